@@ -1,0 +1,168 @@
+"""The kernel contract every backend implements.
+
+Backends never import the domain (``place3d_kernels``); they see plain NumPy arrays and a few small
+value types defined here. The domain prepares inputs so that kernels stay simple:
+
+* Coordinates handed to grid kernels are **grid-local**: the grid's lower corner has already been
+  subtracted on the host in float64, so voxel ``(i, j, k)`` spans ``[i*s, (i+1)*s) x ...``.
+* Directions are unit length, finite, non-zero (validated by the domain).
+* Voxel flat index is ``(i * ny + j) * nz + k``.
+
+Semantics (``reference`` is the executable specification):
+
+* **lidar rays**: one ray per (LiDAR, channel, azimuth step), in that order. Sensor-frame direction
+  ``(cos e cos a, cos e sin a, sin e)``, rotated by ``R = Rz(yaw) Ry(pitch) Rx(roll)``; origin = pose xyz.
+* **raycast**: closest hit with ``t`` in ``[0, t_max]`` (watertight test); miss = ``(inf, -1)``.
+* **traverse / coverage**: the segment ``[0, t_end]`` is clipped to the grid box; a voxel is visited when
+  the open segment passes through its interior. With a ``stop`` mask (uint8 per voxel), a ray ends after
+  the first visited voxel whose mask is non-zero (that voxel is visited). Visit order along the ray.
+* **score**: sums of fixed-point int64 weights over the union of visited voxels, and the union's size:
+  exact integer arithmetic, so identical on every backend for identical visit sets.
+* **vote**: per voxel key, the label with most points among labels > 0 (ties -> lowest label);
+  keys < 0 are ignored; voxels whose points are all label 0 get no entry.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE"]
+
+#: Fixed-point scale for entropy weights: weight = round(H * ENTROPY_SCALE) as int64. ln(22) * 2**32 is
+#: about 1.3e10, so 7e8 fully uncertain voxels still fit in int64 without overflow.
+ENTROPY_SCALE = float(2**32)
+
+
+class BackendUnavailable(RuntimeError):
+    """Raised by a backend constructor when its runtime or device cannot be used here."""
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """A grid as kernels see it: grid-local coordinates, cubic voxels."""
+
+    voxel_size: float
+    shape: tuple[int, int, int]
+
+    @property
+    def n_voxels(self) -> int:
+        nx, ny, nz = self.shape
+        return nx * ny * nz
+
+
+class Backend(abc.ABC):
+    """One compute device running the project's kernels.
+
+    Implementations: ``reference`` (NumPy float64), ``warp:<device>``, ``opencl:<platform>``.
+    Arrays in and out are NumPy; implementations may cache device copies of large inputs keyed by the
+    handle objects they return (``upload_mesh``, ``prepare_grid``).
+    """
+
+    #: Full name, e.g. ``"warp:cpu"``.
+    name: str = "abstract"
+    #: Floating-point width of the kernels (``np.float32`` or ``np.float64``).
+    dtype: type = np.float32
+
+    # ----------------------------------------------------------------- rays
+    @abc.abstractmethod
+    def lidar_rays(self, elevations: np.ndarray, azimuths: np.ndarray, poses: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Rays of several LiDARs.
+
+        Args:
+            elevations: (C,) float64 radians.
+            azimuths: (A,) float64 radians.
+            poses: (L, 6) float64 rows (x, y, z, roll, pitch, yaw) in any frame.
+
+        Returns:
+            origins (L*C*A, 3) and unit directions (L*C*A, 3), ordered (lidar, channel, azimuth).
+        """
+
+    # ----------------------------------------------------------------- ray-mesh
+    @abc.abstractmethod
+    def upload_mesh(self, vertices: np.ndarray, faces: np.ndarray) -> object:
+        """Build the acceleration structure for a triangle mesh and return an opaque handle.
+
+        Args:
+            vertices: (V, 3) float64, already shifted near the origin by the domain.
+            faces: (F, 3) int32 vertex indices.
+        """
+
+    @abc.abstractmethod
+    def raycast(self, mesh: object, origins: np.ndarray, directions: np.ndarray, t_max: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Closest hit per ray.
+
+        Returns:
+            t (N,) float64 (inf on miss) and face (N,) int32 (-1 on miss).
+        """
+
+    # ----------------------------------------------------------------- voxel traversal
+    @abc.abstractmethod
+    def traverse(self, grid: GridSpec, origins: np.ndarray, directions: np.ndarray, t_end: np.ndarray,
+                 stop: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Voxels visited by each ray, in visit order, as CSR.
+
+        Args:
+            grid: grid spec; origins are grid-local.
+            origins, directions: (N, 3) float64.
+            t_end: (N,) float64 segment lengths (>= 0).
+            stop: optional (n_voxels,) uint8 occlusion mask.
+
+        Returns:
+            offsets (N+1,) int64 and voxels (offsets[-1],) int64 flat indices.
+        """
+
+    @abc.abstractmethod
+    def coverage(self, grid: GridSpec, origins: np.ndarray, directions: np.ndarray, t_end: np.ndarray,
+                 stop: np.ndarray | None = None) -> np.ndarray:
+        """Union of visited voxels as a (n_voxels,) bool array (same rules as ``traverse``)."""
+
+    @abc.abstractmethod
+    def prepare_grid(self, grid: GridSpec, weights: np.ndarray, stop: np.ndarray | None) -> object:
+        """Upload per-voxel int64 fixed-point weights and an optional uint8 stop mask once.
+
+        Returns an opaque handle for ``score_placements``.
+        """
+
+    @abc.abstractmethod
+    def score_placements(self, handle: object, elevations: np.ndarray, azimuths: np.ndarray,
+                         t_max: float, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Batched evaluation: rays of each candidate rig -> union of visited voxels -> sums.
+
+        Args:
+            handle: from ``prepare_grid``.
+            elevations, azimuths: as in ``lidar_rays``.
+            t_max: ray length (max range), metres.
+            poses: (P, L, 6) float64 grid-local poses, P candidates of L LiDARs each.
+
+        Returns:
+            sums (P,) int64 of weights over each candidate's covered voxels, counts (P,) int64 of them.
+        """
+
+    # ----------------------------------------------------------------- occupancy grids
+    @abc.abstractmethod
+    def voxel_keys(self, grid: GridSpec, points: np.ndarray) -> np.ndarray:
+        """Flat voxel index per grid-local point, -1 outside the grid. (N,) int64."""
+
+    @abc.abstractmethod
+    def vote(self, keys: np.ndarray, labels: np.ndarray, n_classes: int) -> tuple[np.ndarray, np.ndarray]:
+        """Majority label per voxel.
+
+        Args:
+            keys: (N,) int64 flat voxel indices; negative = ignore.
+            labels: (N,) int32 in [0, n_classes); 0 = unlabeled, does not vote.
+
+        Returns:
+            voxels (M,) int64 ascending and their winning labels (M,) int32.
+        """
+
+    # ----------------------------------------------------------------- misc
+    def synchronize(self) -> None:  # pragma: no cover - trivial for host backends
+        """Wait for queued work (used by benchmarks)."""
+
+    def __repr__(self) -> str:
+        return f"<Backend {self.name}>"

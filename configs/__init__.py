@@ -1,0 +1,1 @@
+"""Shipped configuration files (TOML): lidars/, placements/, scenes/, conditions/, optimize/."""

@@ -1,0 +1,1 @@
+"""place3d-kernels (work in progress)."""

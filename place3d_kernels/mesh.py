@@ -1,0 +1,88 @@
+"""Triangle meshes with one semantic label per face."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["Mesh"]
+
+
+class Mesh:
+    """A labelled triangle mesh.
+
+    Args:
+        vertices: (V, 3) float positions in metres.
+        faces: (F, 3) int vertex indices.
+        labels: (F,) int Place3D class per face (see ``place3d_kernels.classes``); default 0 (unlabeled).
+
+    Backends build their acceleration structure once per mesh and cache it on the object
+    (``Mesh.handle(backend)``); vertices are shifted by ``Mesh.shift`` (float64, on the host) before they
+    become float32 on a device, so far-from-origin scenes keep their precision.
+    """
+
+    def __init__(self, vertices, faces, labels=None):
+        v = np.asarray(vertices, dtype=np.float64)
+        f = np.asarray(faces)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise ValueError(f"Mesh vertices must have shape (V, 3), got {v.shape}")
+        if f.ndim != 2 or f.shape[1] != 3:
+            raise ValueError(f"Mesh faces must have shape (F, 3), got {f.shape}")
+        if len(f) == 0 or len(v) == 0:
+            raise ValueError("Mesh is empty (no faces or no vertices): a scene needs at least one triangle")
+        if not np.issubdtype(f.dtype, np.integer):
+            raise ValueError(f"Mesh faces must be integer vertex indices, got dtype {f.dtype}")
+        if not np.all(np.isfinite(v)):
+            bad = int(np.argmax(~np.all(np.isfinite(v), axis=1)))
+            raise ValueError(f"Mesh vertex {bad} is not finite: {v[bad].tolist()}")
+        if f.min() < 0 or f.max() >= len(v):
+            raise ValueError(f"Mesh face indices must lie in [0, {len(v) - 1}], got range [{f.min()}, {f.max()}]")
+        f = f.astype(np.int32)
+        if labels is None:
+            lab = np.zeros(len(f), dtype=np.int32)
+        else:
+            lab = np.asarray(labels).astype(np.int32).reshape(-1)
+            if lab.shape != (len(f),):
+                raise ValueError(f"Mesh labels must have one entry per face ({len(f)}), got {lab.shape}")
+        area2 = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+        if not np.any(area2 > 0):
+            raise ValueError(f"Mesh is degenerate: all {len(f)} triangles have zero area")
+        self.vertices = v
+        self.faces = f
+        self.labels = lab
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        #: float64 offset subtracted from vertices and ray origins before kernels run
+        self.shift = np.round((lo + hi) / 2.0)
+        self._handles: dict[str, object] = {}
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.faces)
+
+    @property
+    def bounds(self) -> np.ndarray:
+        return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
+
+    def handle(self, backend) -> object:
+        """The backend's acceleration structure for this mesh, built on first use."""
+        h = self._handles.get(backend.name)
+        if h is None:
+            h = backend.upload_mesh(self.vertices - self.shift, self.faces)
+            self._handles[backend.name] = h
+        return h
+
+    @staticmethod
+    def concatenate(meshes: list["Mesh"]) -> "Mesh":
+        meshes = [m for m in meshes if m is not None]
+        if not meshes:
+            raise ValueError("Mesh.concatenate needs at least one mesh")
+        offs = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+        return Mesh(np.concatenate([m.vertices for m in meshes]),
+                    np.concatenate([m.faces + o for m, o in zip(meshes, offs)]),
+                    np.concatenate([m.labels for m in meshes]))
+
+    def to_trimesh(self):
+        import trimesh
+        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+    def __repr__(self) -> str:
+        return f"Mesh({len(self.vertices)} vertices, {self.n_faces} faces, labels {sorted(set(self.labels.tolist()))[:8]}...)"

@@ -1,0 +1,80 @@
+"""Scenes: a static labelled mesh, dynamic actors per frame, and an ego route."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from place3d_kernels.mesh import Mesh
+
+__all__ = ["Scene", "Actor"]
+
+
+@dataclass
+class Actor:
+    """A rigid labelled body that moves between frames.
+
+    Attributes:
+        mesh: the body in its own frame (x forward, z up, origin on the ground under its centre).
+        poses: (n_frames, 6) world poses per frame.
+        kind: free-form tag ("vehicle", "pedestrian", ...).
+    """
+
+    mesh: Mesh
+    poses: np.ndarray
+    kind: str = ""
+
+
+@dataclass
+class Scene:
+    """A drive through a world.
+
+    Attributes:
+        static: the static world as one labelled Mesh (its acceleration structure is built once).
+        ego_poses: (n_frames, 6) world poses (x, y, z, roll, pitch, yaw) of the ego vehicle per frame;
+            z = 0 of the ego frame is the ground under the vehicle centre.
+        actors: moving bodies (their poses have n_frames rows).
+        name, seed: provenance; ``key`` identifies the scene for on-disk caches.
+        frame_interval: seconds between frames.
+    """
+
+    static: Mesh
+    ego_poses: np.ndarray
+    actors: list[Actor] = field(default_factory=list)
+    name: str = "scene"
+    seed: int = 0
+    frame_interval: float = 0.5
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.ego_poses = np.asarray(self.ego_poses, dtype=np.float64).reshape(-1, 6)
+        for a in self.actors:
+            if len(a.poses) != len(self.ego_poses):
+                raise ValueError(f"Actor {a.kind!r} has {len(a.poses)} poses for {len(self.ego_poses)} frames")
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.ego_poses)
+
+    @property
+    def key(self) -> str:
+        return f"{self.name}-seed{self.seed}-f{self.n_frames}-v{len(self.static.vertices)}-t{self.static.n_faces}"
+
+    def dynamic(self, frame: int) -> Mesh | None:
+        """All actors at one frame as one Mesh (None when the scene has no actors)."""
+        from place3d_kernels.pose import pose_matrix
+
+        if not self.actors:
+            return None
+        parts = []
+        for a in self.actors:
+            T = pose_matrix(a.poses[frame])
+            parts.append(Mesh(a.mesh.vertices @ T[:3, :3].T + T[:3, 3], a.mesh.faces, a.mesh.labels))
+        return Mesh.concatenate(parts)
+
+    def mesh(self, frame: int) -> Mesh:
+        """Static world plus the actors at ``frame``."""
+        dyn = self.dynamic(frame)
+        return self.static if dyn is None else Mesh.concatenate([self.static, dyn])
