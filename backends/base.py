@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE"]
+__all__ = ["Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE", "rotation_matrices", "sensor_directions"]
 
 #: Fixed-point scale for entropy weights: weight = round(H * ENTROPY_SCALE) as int64. ln(22) * 2**32 is
 #: about 1.3e10, so 7e8 fully uncertain voxels still fit in int64 without overflow.
@@ -166,3 +166,24 @@ class Backend(abc.ABC):
 
     def __repr__(self) -> str:
         return f"<Backend {self.name}>"
+
+
+def rotation_matrices(poses: np.ndarray) -> np.ndarray:
+    """(L, 3, 3) float64 rotations R = Rz(yaw) Ry(pitch) Rx(roll) of (L, 6) poses."""
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+    cr, sr = np.cos(p[:, 3]), np.sin(p[:, 3])
+    cp, sp = np.cos(p[:, 4]), np.sin(p[:, 4])
+    cy, sy = np.cos(p[:, 5]), np.sin(p[:, 5])
+    return np.stack([
+        np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+        np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+        np.stack([-sp, cp * sr, cp * cr], -1),
+    ], axis=1)
+
+
+def sensor_directions(elevations: np.ndarray, azimuths: np.ndarray) -> np.ndarray:
+    """(C*A, 3) float64 unit directions in the sensor frame, ordered (channel, azimuth)."""
+    e = np.asarray(elevations, dtype=np.float64)[:, None]
+    a = np.asarray(azimuths, dtype=np.float64)[None, :]
+    d = np.stack(np.broadcast_arrays(np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)), -1)
+    return d.reshape(-1, 3)

@@ -1,1 +1,34 @@
-"""place3d-kernels (work in progress)."""
+"""place3d-kernels: fast, exact kernels for multi-LiDAR placement (Place3D, NeurIPS 2024).
+
+Public API (see the README and DESIGN.md):
+
+>>> import place3d_kernels as p3k
+>>> p3k.available_backends()
+>>> scene = p3k.scene.town(seed=0)
+>>> psog = p3k.scene_psog(scene)
+>>> p3k.msog(psog, p3k.LidarModel.load("place3d_16ch"), p3k.Placement.load("pyramid"))
+"""
+
+from place3d_kernels import scene
+from place3d_kernels.backend import available_backends, backend_report, get_backend, use_backend
+from place3d_kernels.classes import CLASSES
+from place3d_kernels.grid import DEFAULT_GRID, Grid
+from place3d_kernels.lidar import LidarModel, lidar_rays
+from place3d_kernels.mesh import Mesh
+from place3d_kernels.metrics import covered_voxels, msog, msog_batch
+from place3d_kernels.ops import Hits, Traversal, coverage, raycast, traverse
+from place3d_kernels.pipeline import scene_psog
+from place3d_kernels.placement import BASELINES, PAPER_PLACEMENTS, Placement
+from place3d_kernels.pointcloud import PointCloud
+from place3d_kernels.simulate import simulate
+from place3d_kernels.sog import PSOG, Frame
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "available_backends", "backend_report", "get_backend", "use_backend",
+    "Grid", "DEFAULT_GRID", "Mesh", "PointCloud", "Frame", "CLASSES",
+    "LidarModel", "lidar_rays", "Placement", "PAPER_PLACEMENTS", "BASELINES",
+    "raycast", "traverse", "coverage", "Hits", "Traversal",
+    "PSOG", "msog", "msog_batch", "covered_voxels", "simulate", "scene_psog", "scene",
+]

@@ -53,10 +53,21 @@ class Mesh:
         #: float64 offset subtracted from vertices and ray origins before kernels run
         self.shift = np.round((lo + hi) / 2.0)
         self._handles: dict[str, object] = {}
+        self._normals: np.ndarray | None = None
 
     @property
     def n_faces(self) -> int:
         return len(self.faces)
+
+    @property
+    def normals(self) -> np.ndarray:
+        """(F, 3) unit face normals (zero for degenerate faces), computed once."""
+        if self._normals is None:
+            v, f = self.vertices, self.faces
+            n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+            norm = np.linalg.norm(n, axis=1, keepdims=True)
+            self._normals = n / np.where(norm > 0, norm, 1.0)
+        return self._normals
 
     @property
     def bounds(self) -> np.ndarray:

@@ -1,0 +1,210 @@
+"""Reference kernels: NumPy float64, written for clarity, not speed.
+
+This module is the executable specification of the kernel contract (``backends/base.py``). Every other
+backend is tested against it. It is slow: ray-mesh intersection is brute force over all triangles, and
+voxel traversal loops over rays in Python.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from place3d_kernels.backends.base import Backend, GridSpec, rotation_matrices, sensor_directions
+
+__all__ = ["ReferenceCore", "traverse_ray", "watertight_intersect"]
+
+
+def traverse_ray(origin: np.ndarray, direction: np.ndarray, t_end: float, spec: GridSpec,
+                 stop: np.ndarray | None = None) -> np.ndarray:
+    """Flat indices of the voxels whose interior the segment [0, t_end] passes through, in order.
+
+    Method: clip the segment to the grid box; collect every parameter t at which it crosses a voxel
+    boundary plane (from integer plane indices); each interval between consecutive crossings lies in
+    one voxel, found from its midpoint. Intervals of zero length (passing exactly through an edge or a
+    corner) visit nothing. With ``stop``, the list ends at the first voxel whose mask is set.
+    """
+    o = np.asarray(origin, dtype=np.float64)
+    d = np.asarray(direction, dtype=np.float64)
+    s = float(spec.voxel_size)
+    n = np.asarray(spec.shape, dtype=np.int64)
+    size = n * s
+    t0, t1 = 0.0, float(t_end)
+    for a in range(3):
+        if d[a] == 0.0:
+            if o[a] < 0.0 or o[a] > size[a]:
+                return np.empty(0, dtype=np.int64)
+            continue
+        ta = (0.0 - o[a]) / d[a]
+        tb = (size[a] - o[a]) / d[a]
+        t0 = max(t0, min(ta, tb))
+        t1 = min(t1, max(ta, tb))
+    if not t1 > t0:
+        return np.empty(0, dtype=np.int64)
+    ts = [np.array([t0, t1])]
+    for a in range(3):
+        if d[a] == 0.0:
+            continue
+        x0, x1 = o[a] + t0 * d[a], o[a] + t1 * d[a]
+        lo, hi = min(x0, x1), max(x0, x1)
+        b = np.arange(np.floor(lo / s) + 1, np.ceil(hi / s), dtype=np.float64)
+        if b.size:
+            tb = (b * s - o[a]) / d[a]
+            ts.append(tb[(tb > t0) & (tb < t1)])
+    t = np.unique(np.concatenate(ts))
+    tm = 0.5 * (t[:-1] + t[1:])
+    tm = tm[t[1:] > t[:-1]]
+    ijk = np.floor((o[None, :] + tm[:, None] * d[None, :]) / s).astype(np.int64)
+    ijk = np.clip(ijk, 0, n - 1)
+    flat = (ijk[:, 0] * n[1] + ijk[:, 1]) * n[2] + ijk[:, 2]
+    if flat.size > 1:  # rounding at a crossing can repeat a voxel; a ray never re-enters one
+        flat = flat[np.concatenate([[True], flat[1:] != flat[:-1]])]
+    if stop is not None and flat.size:
+        hit = np.flatnonzero(stop[flat])
+        if hit.size:
+            flat = flat[: hit[0] + 1]
+    return flat
+
+
+def watertight_intersect(o: np.ndarray, d: np.ndarray, v0: np.ndarray, v1: np.ndarray, v2: np.ndarray,
+                         t_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Woop, Benthin & Wald (JCGT 2013) watertight ray/triangle test, float64, all pairs.
+
+    Args:
+        o, d: (R, 3) ray origins and directions.
+        v0, v1, v2: (F, 3) triangle corners.
+        t_max: (R,) upper bound of t.
+
+    Returns:
+        (R, F) hit distances (inf where no hit) and nothing else; both faces count.
+    """
+    kz = np.argmax(np.abs(d), axis=1)
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    neg = d[np.arange(len(d)), kz] < 0
+    kx, ky = np.where(neg, ky, kx), np.where(neg, kx, ky)
+    r = np.arange(len(d))
+    dz = d[r, kz]
+    sx, sy, sz = d[r, kx] / dz, d[r, ky] / dz, 1.0 / dz
+
+    def project(v):
+        rel = v[None, :, :] - o[:, None, :]                       # (R, F, 3)
+        px = np.take_along_axis(rel, kx[:, None, None], 2)[..., 0]
+        py = np.take_along_axis(rel, ky[:, None, None], 2)[..., 0]
+        pz = np.take_along_axis(rel, kz[:, None, None], 2)[..., 0]
+        return px - sx[:, None] * pz, py - sy[:, None] * pz, sz[:, None] * pz
+
+    ax, ay, az = project(v0)
+    bx, by, bz = project(v1)
+    cx, cy, cz = project(v2)
+    u = cx * by - cy * bx
+    v = ax * cy - ay * cx
+    w = bx * ay - by * ax
+    inside = ~(((u < 0) | (v < 0) | (w < 0)) & ((u > 0) | (v > 0) | (w > 0)))
+    det = u + v + w
+    tt = u * az + v * bz + w * cz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = tt / det
+    ok = inside & (det != 0) & (t >= 0) & (t <= t_max[:, None])
+    return np.where(ok, t, np.inf)
+
+
+class _RefMesh:
+    def __init__(self, vertices, faces):
+        self.v0 = vertices[faces[:, 0]]
+        self.v1 = vertices[faces[:, 1]]
+        self.v2 = vertices[faces[:, 2]]
+        self.lo = np.minimum(np.minimum(self.v0, self.v1), self.v2)
+        self.hi = np.maximum(np.maximum(self.v0, self.v1), self.v2)
+
+
+class _RefGrid:
+    def __init__(self, spec, weights, stop):
+        self.spec = spec
+        self.weights = np.asarray(weights, dtype=np.int64)
+        self.stop = None if stop is None else np.asarray(stop, dtype=np.uint8)
+
+
+class ReferenceCore(Backend):
+    """NumPy float64 implementation of every kernel of the contract."""
+
+    name = "reference"
+    dtype = np.float64
+
+    def lidar_rays(self, elevations, azimuths, poses):
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+        local = sensor_directions(elevations, azimuths)                  # (C*A, 3)
+        R = rotation_matrices(poses)                                       # (L, 3, 3)
+        d = np.einsum("lij,nj->lni", R, local).reshape(-1, 3)
+        o = np.repeat(poses[:, :3], len(local), axis=0)
+        return o, d
+
+    def upload_mesh(self, vertices, faces):
+        return _RefMesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64))
+
+    def raycast(self, mesh, origins, directions, t_max):
+        o = np.asarray(origins, dtype=np.float64)
+        d = np.asarray(directions, dtype=np.float64)
+        tm = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (len(o),))
+        t_out = np.full(len(o), np.inf)
+        f_out = np.full(len(o), -1, dtype=np.int32)
+        n_faces = len(mesh.v0)
+        chunk = max(1, 400_000 // max(n_faces, 1))
+        for s in range(0, len(o), chunk):
+            e = min(s + chunk, len(o))
+            t = watertight_intersect(o[s:e], d[s:e], mesh.v0, mesh.v1, mesh.v2, tm[s:e])
+            best = np.argmin(t, axis=1)
+            tb = t[np.arange(e - s), best]
+            hit = np.isfinite(tb)
+            t_out[s:e] = tb
+            f_out[s:e] = np.where(hit, best, -1)
+        return t_out, f_out
+
+    def traverse(self, grid, origins, directions, t_end, stop=None):
+        o = np.asarray(origins, dtype=np.float64)
+        d = np.asarray(directions, dtype=np.float64)
+        te = np.broadcast_to(np.asarray(t_end, dtype=np.float64), (len(o),))
+        lists = [traverse_ray(o[i], d[i], te[i], grid, stop) for i in range(len(o))]
+        offsets = np.zeros(len(o) + 1, dtype=np.int64)
+        offsets[1:] = np.cumsum([len(x) for x in lists])
+        voxels = np.concatenate(lists) if lists else np.empty(0, dtype=np.int64)
+        return offsets, voxels.astype(np.int64)
+
+    def coverage(self, grid, origins, directions, t_end, stop=None):
+        _, voxels = self.traverse(grid, origins, directions, t_end, stop)
+        mask = np.zeros(grid.n_voxels, dtype=bool)
+        mask[voxels] = True
+        return mask
+
+    def prepare_grid(self, grid, weights, stop):
+        return _RefGrid(grid, weights, stop)
+
+    def score_placements(self, handle, elevations, azimuths, t_max, poses):
+        poses = np.asarray(poses, dtype=np.float64)
+        sums = np.zeros(len(poses), dtype=np.int64)
+        counts = np.zeros(len(poses), dtype=np.int64)
+        for p, rig in enumerate(poses):
+            o, d = self.lidar_rays(elevations, azimuths, rig)
+            _, voxels = self.traverse(handle.spec, o, d, np.full(len(o), float(t_max)), handle.stop)
+            u = np.unique(voxels)
+            sums[p] = int(handle.weights[u].sum(dtype=np.int64))
+            counts[p] = len(u)
+        return sums, counts
+
+    def voxel_keys(self, grid, points):
+        p = np.asarray(points, dtype=np.float64)
+        ijk = np.floor(p / grid.voxel_size).astype(np.int64)
+        n = np.asarray(grid.shape)
+        inside = np.all((ijk >= 0) & (ijk < n), axis=1)
+        flat = (ijk[:, 0] * n[1] + ijk[:, 1]) * n[2] + ijk[:, 2]
+        return np.where(inside, flat, -1).astype(np.int64)
+
+    def vote(self, keys, labels, n_classes):
+        k = np.asarray(keys, dtype=np.int64)
+        lab = np.asarray(labels, dtype=np.int64)
+        ok = (k >= 0) & (lab > 0)
+        combo, counts = np.unique(k[ok] * n_classes + lab[ok], return_counts=True)
+        vox, cls = combo // n_classes, combo % n_classes
+        order = np.lexsort((cls, -counts, vox))          # voxel asc, count desc, label asc
+        vox, cls = vox[order], cls[order]
+        first = np.concatenate([[True], vox[1:] != vox[:-1]]) if len(vox) else np.zeros(0, bool)
+        return vox[first].astype(np.int64), cls[first].astype(np.int32)

@@ -1,0 +1,222 @@
+"""Warp backend: the kernels of ``kernels.py`` on Warp's CPU device or a CUDA GPU.
+
+Warp's CPU device runs a kernel launch on one thread; CUDA devices run the same code on the GPU.
+Meshes use Warp's BVH (``wp.Mesh``; SAH build) and its watertight ``mesh_query_ray``.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from place3d_kernels.backends.base import Backend, BackendUnavailable, rotation_matrices, sensor_directions
+
+try:
+    import warp as wp
+except ImportError as e:  # pragma: no cover - exercised only without warp installed
+    raise ImportError(f"warp-lang is not installed ({e})") from None
+
+from place3d_kernels.backends.warp.conditions import WarpConditions
+
+_initialised = False
+
+
+def _init() -> None:
+    global _initialised
+    if not _initialised:
+        import logging
+
+        if os.environ.get("PLACE3D_WARP_VERBOSE") is None:
+            wp.config.log_level = logging.WARNING   # no init banner unless asked for
+        wp.init()
+        _initialised = True
+
+
+def warp_devices() -> list[str]:
+    """Warp device names usable here, e.g. ``['cpu', 'cuda:0']``."""
+    _init()
+    return [str(d) for d in wp.get_devices()]
+
+
+class _WarpMesh:
+    def __init__(self, bvh, points, indices, lowers, uppers):
+        self.bvh = bvh            # keep the arrays alive with the BVH
+        self.points = points
+        self.indices = indices
+        self.lowers = lowers
+        self.uppers = uppers
+
+
+class _WarpGrid:
+    def __init__(self, spec, weights, stop):
+        self.spec = spec
+        self.weights = weights
+        self.stop = stop
+
+
+class WarpCore(Backend):
+    """Core kernels on one Warp device."""
+
+    dtype = np.float32
+
+    def __init__(self, device: str = "cpu"):
+        _init()
+        try:
+            self.device = wp.get_device(device)
+        except Exception as e:  # noqa: BLE001 - Warp raises several types here
+            raise BackendUnavailable(f"Warp device {device!r} is not available: {e}") from None
+        self.name = f"warp:{self.device}"
+        from place3d_kernels.backends.warp import kernels
+
+        self.k = kernels
+        self._empty_u8 = wp.zeros(1, dtype=wp.uint8, device=self.device)
+
+    # ------------------------------------------------------------------ helpers
+    def _vec3(self, a) -> "wp.array":
+        return wp.array(np.ascontiguousarray(a, dtype=np.float32).reshape(-1, 3), dtype=wp.vec3, device=self.device)
+
+    def _f32(self, a, n) -> "wp.array":
+        return wp.array(np.ascontiguousarray(np.broadcast_to(np.asarray(a, np.float32), (n,))), dtype=wp.float32,
+                        device=self.device)
+
+    def _stop(self, stop):
+        if stop is None:
+            return self._empty_u8, 0
+        if isinstance(stop, wp.array):
+            return stop, 1
+        return wp.array(np.ascontiguousarray(stop, dtype=np.uint8), dtype=wp.uint8, device=self.device), 1
+
+    def synchronize(self) -> None:
+        wp.synchronize_device(self.device)
+
+    # ------------------------------------------------------------------ rays
+    def lidar_rays(self, elevations, azimuths, poses):
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+        sd = sensor_directions(elevations, azimuths)
+        n = len(sd) * len(poses)
+        out_o = wp.empty(n, dtype=wp.vec3, device=self.device)
+        out_d = wp.empty(n, dtype=wp.vec3, device=self.device)
+        rot = wp.array(rotation_matrices(poses).astype(np.float32), dtype=wp.mat33, device=self.device)
+        wp.launch(self.k.lidar_rays_kernel, dim=n, device=self.device,
+                  inputs=[self._vec3(sd), rot, self._vec3(poses[:, :3]), out_o, out_d])
+        return out_o.numpy().astype(np.float64), out_d.numpy().astype(np.float64)
+
+    # ------------------------------------------------------------------ ray-mesh
+    def upload_mesh(self, vertices, faces):
+        # Warp's own mesh_query_ray culls BVH nodes with an unpadded float32 slab test and lets rays
+        # through vertices on node boundaries slip (seen on icospheres and boxes). We build the BVH over
+        # triangle boxes padded by a few float32 ulps instead and test triangles watertight ourselves.
+        v = np.asarray(vertices, dtype=np.float64)
+        f = np.asarray(faces, dtype=np.int64)
+        tri = v[f]                                                     # (F, 3, 3)
+        lo, hi = tri.min(axis=1), tri.max(axis=1)
+        pad = (np.maximum(np.abs(lo), np.abs(hi)).max(axis=1, keepdims=True) + 1.0) * 1e-6
+        lowers, uppers = self._vec3(lo - pad), self._vec3(hi + pad)
+        pts = self._vec3(v)
+        idx = wp.array(np.ascontiguousarray(f, dtype=np.int32).reshape(-1), dtype=wp.int32, device=self.device)
+        bvh = wp.Bvh(lowers, uppers, constructor="sah")
+        return _WarpMesh(bvh, pts, idx, lowers, uppers)
+
+    def raycast(self, mesh, origins, directions, t_max):
+        n = len(origins)
+        out_t = wp.empty(n, dtype=wp.float32, device=self.device)
+        out_f = wp.empty(n, dtype=wp.int32, device=self.device)
+        if n:
+            wp.launch(self.k.raycast_robust_kernel, dim=n, device=self.device,
+                      inputs=[mesh.bvh.id, mesh.points, mesh.indices, self._vec3(origins), self._vec3(directions),
+                              self._f32(t_max, n), out_t, out_f])
+        t = out_t.numpy().astype(np.float64)
+        t[t >= 3.0e38] = np.inf
+        return t, out_f.numpy()
+
+    # ------------------------------------------------------------------ traversal
+    def _walk_args(self, grid, origins, directions, t_end):
+        n = len(origins)
+        nx, ny, nz = grid.shape
+        return n, [self._vec3(origins), self._vec3(directions), self._f32(t_end, n),
+                   float(grid.voxel_size), int(nx), int(ny), int(nz)]
+
+    def traverse(self, grid, origins, directions, t_end, stop=None):
+        n, args = self._walk_args(grid, origins, directions, t_end)
+        stop_a, use = self._stop(stop)
+        counts = wp.zeros(n, dtype=wp.int64, device=self.device)
+        if n:
+            wp.launch(self.k.traverse_count_kernel, dim=n, device=self.device, inputs=args + [stop_a, use, counts])
+        offsets = np.zeros(n + 1, dtype=np.int64)
+        offsets[1:] = np.cumsum(counts.numpy())
+        total = int(offsets[-1])
+        voxels = wp.empty(max(total, 1), dtype=wp.int64, device=self.device)
+        if n and total:
+            wp.launch(self.k.traverse_fill_kernel, dim=n, device=self.device,
+                      inputs=args + [stop_a, use, wp.array(offsets, dtype=wp.int64, device=self.device), voxels])
+        return offsets, voxels.numpy()[:total]
+
+    def coverage(self, grid, origins, directions, t_end, stop=None):
+        n, args = self._walk_args(grid, origins, directions, t_end)
+        stop_a, use = self._stop(stop)
+        mask = wp.zeros(grid.n_voxels, dtype=wp.uint8, device=self.device)
+        if n:
+            wp.launch(self.k.coverage_kernel, dim=n, device=self.device, inputs=args + [stop_a, use, mask])
+        return mask.numpy().astype(bool)
+
+    def prepare_grid(self, grid, weights, stop):
+        w = wp.array(np.ascontiguousarray(weights, dtype=np.int64), dtype=wp.int64, device=self.device)
+        s = None if stop is None else wp.array(np.ascontiguousarray(stop, dtype=np.uint8), dtype=wp.uint8,
+                                              device=self.device)
+        return _WarpGrid(grid, w, s)
+
+    def score_placements(self, handle, elevations, azimuths, t_max, poses):
+        poses = np.asarray(poses, dtype=np.float64)
+        P, L = poses.shape[:2]
+        flat = poses.reshape(-1, 6)
+        sd = sensor_directions(elevations, azimuths)
+        spec = handle.spec
+        nx, ny, nz = spec.shape
+        words = (spec.n_voxels + 31) // 32
+        bits = wp.zeros(P * words, dtype=wp.uint32, device=self.device)
+        sums = wp.zeros(P, dtype=wp.int64, device=self.device)
+        counts = wp.zeros(P, dtype=wp.int64, device=self.device)
+        stop_a, use = self._stop(handle.stop)
+        rot = wp.array(rotation_matrices(flat).astype(np.float32), dtype=wp.mat33, device=self.device)
+        wp.launch(self.k.score_kernel, dim=P * L * len(sd), device=self.device,
+                  inputs=[self._vec3(sd), rot, self._vec3(flat[:, :3]), int(L), float(t_max),
+                          float(spec.voxel_size), int(nx), int(ny), int(nz), stop_a, use, handle.weights,
+                          int(words), bits, sums, counts])
+        return sums.numpy(), counts.numpy()
+
+    # ------------------------------------------------------------------ occupancy
+    def voxel_keys(self, grid, points):
+        n = len(points)
+        out = wp.empty(max(n, 1), dtype=wp.int64, device=self.device)
+        nx, ny, nz = grid.shape
+        if n:
+            wp.launch(self.k.voxel_keys_kernel, dim=n, device=self.device,
+                      inputs=[self._vec3(points), float(grid.voxel_size), int(nx), int(ny), int(nz), out])
+        return out.numpy()[:n]
+
+    def vote(self, keys, labels, n_classes):
+        k = np.asarray(keys, dtype=np.int64)
+        lab = np.asarray(labels, dtype=np.int64)
+        ok = (k >= 0) & (lab > 0)
+        combo = k[ok] * n_classes + lab[ok]
+        n = len(combo)
+        if n == 0:
+            return np.empty(0, np.int64), np.empty(0, np.int32)
+        buf = np.zeros(2 * n, dtype=np.int64)
+        buf[:n] = combo
+        keys_d = wp.array(buf, dtype=wp.int64, device=self.device)
+        vals_d = wp.zeros(2 * n, dtype=wp.int32, device=self.device)
+        wp.utils.radix_sort_pairs(keys_d, vals_d, n)
+        out = wp.empty(n, dtype=wp.int32, device=self.device)
+        wp.launch(self.k.vote_kernel, dim=n, device=self.device, inputs=[keys_d, int(n), int(n_classes), out])
+        lead = out.numpy()
+        sel = np.flatnonzero(lead >= 0)
+        return keys_d.numpy()[sel] // n_classes, lead[sel].astype(np.int32)
+
+
+class WarpBackend(WarpCore, WarpConditions):
+    """Warp backend on one device (``"cpu"``, ``"cuda:0"``, ...)."""
+
+
+__all__ = ["WarpBackend", "warp_devices"]

@@ -1,0 +1,388 @@
+"""Warp kernels of the core contract: LiDAR rays, ray-mesh, voxel traversal, scores, voting.
+
+All grid kernels take grid-local float32 coordinates (the host subtracted the grid's lower corner in
+float64). Voxel boundary crossings are computed from integer plane indices, never accumulated.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+# forward kernels only: no adjoints to generate, which roughly halves compile time
+wp.set_module_options({"enable_backward": False})
+
+INF = wp.constant(wp.float32(3.0e38))
+
+
+# ----------------------------------------------------------------------------- rays
+@wp.kernel
+def lidar_rays_kernel(
+    sensor_dirs: wp.array(dtype=wp.vec3),     # (C*A,) sensor-frame directions
+    rot: wp.array(dtype=wp.mat33),            # (L,) rotations
+    pos: wp.array(dtype=wp.vec3),             # (L,) origins
+    out_o: wp.array(dtype=wp.vec3),
+    out_d: wp.array(dtype=wp.vec3),
+):
+    tid = wp.tid()
+    n = sensor_dirs.shape[0]
+    lid = tid / n
+    d = rot[lid] * sensor_dirs[tid - lid * n]
+    out_o[tid] = pos[lid]
+    out_d[tid] = wp.normalize(d)
+
+
+# ----------------------------------------------------------------------------- ray-mesh
+@wp.kernel
+def raycast_kernel(
+    mesh: wp.uint64,
+    origins: wp.array(dtype=wp.vec3),
+    dirs: wp.array(dtype=wp.vec3),
+    t_max: wp.array(dtype=wp.float32),
+    out_t: wp.array(dtype=wp.float32),
+    out_face: wp.array(dtype=wp.int32),
+):
+    tid = wp.tid()
+    q = wp.mesh_query_ray(mesh, origins[tid], dirs[tid], t_max[tid])
+    if q.result and q.t >= 0.0:
+        out_t[tid] = q.t
+        out_face[tid] = q.face
+    else:
+        out_t[tid] = INF
+        out_face[tid] = -1
+
+
+@wp.func
+def watertight_t(o: wp.vec3, d: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.float32:
+    """Woop, Benthin & Wald (JCGT 2013) watertight ray/triangle test; -1 on miss, else t.
+
+    Edge functions that come out exactly 0 in float32 are recomputed in float64, as the paper advises.
+    """
+    kz = 0
+    if wp.abs(d[1]) > wp.abs(d[kz]):
+        kz = 1
+    if wp.abs(d[2]) > wp.abs(d[kz]):
+        kz = 2
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    if d[kz] < 0.0:
+        tmp = kx
+        kx = ky
+        ky = tmp
+    sx = d[kx] / d[kz]
+    sy = d[ky] / d[kz]
+    sz = 1.0 / d[kz]
+    A = a - o
+    B = b - o
+    C = c - o
+    ax = A[kx] - sx * A[kz]
+    ay = A[ky] - sy * A[kz]
+    bx = B[kx] - sx * B[kz]
+    by = B[ky] - sy * B[kz]
+    cx = C[kx] - sx * C[kz]
+    cy = C[ky] - sy * C[kz]
+    u = cx * by - cy * bx
+    v = ax * cy - ay * cx
+    w = bx * ay - by * ax
+    if u == 0.0 or v == 0.0 or w == 0.0:
+        u = wp.float32(wp.float64(cx) * wp.float64(by) - wp.float64(cy) * wp.float64(bx))
+        v = wp.float32(wp.float64(ax) * wp.float64(cy) - wp.float64(ay) * wp.float64(cx))
+        w = wp.float32(wp.float64(bx) * wp.float64(ay) - wp.float64(by) * wp.float64(ax))
+    if (u < 0.0 or v < 0.0 or w < 0.0) and (u > 0.0 or v > 0.0 or w > 0.0):
+        return -1.0
+    det = u + v + w
+    if det == 0.0:
+        return -1.0
+    t = (u * sz * A[kz] + v * sz * B[kz] + w * sz * C[kz]) / det
+    if t < 0.0:
+        return -1.0
+    return t
+
+
+@wp.kernel
+def raycast_robust_kernel(
+    bvh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    origins: wp.array(dtype=wp.vec3),
+    dirs: wp.array(dtype=wp.vec3),
+    t_max: wp.array(dtype=wp.float32),
+    out_t: wp.array(dtype=wp.float32),
+    out_face: wp.array(dtype=wp.int32),
+):
+    # Candidates come from a BVH over triangle boxes padded on the host, so float32 slab tests cannot
+    # cull a triangle the ray touches; the triangle test itself is watertight. Closest hit wins; equal
+    # distances resolve to the lowest face id so results do not depend on traversal order.
+    tid = wp.tid()
+    o = origins[tid]
+    d = dirs[tid]
+    best = t_max[tid]
+    face = wp.int32(-1)
+    q = wp.bvh_query_ray(bvh, o, d)
+    f = wp.int32(0)
+    while wp.bvh_query_next(q, f, best * 1.000001 + 1.0e-6):
+        t = watertight_t(o, d, points[indices[3 * f]], points[indices[3 * f + 1]], points[indices[3 * f + 2]])
+        if t >= 0.0 and t <= best:
+            if t < best or face < 0 or f < face:
+                best = t
+                face = f
+    if face >= 0:
+        out_t[tid] = best
+    else:
+        out_t[tid] = INF
+    out_face[tid] = face
+
+
+# ----------------------------------------------------------------------------- voxel walk
+@wp.struct
+class Walk:
+    i: wp.int32
+    j: wp.int32
+    k: wp.int32
+    si: wp.int32
+    sj: wp.int32
+    sk: wp.int32
+    tx: wp.float32
+    ty: wp.float32
+    tz: wp.float32
+    t1: wp.float32
+    alive: wp.int32
+
+
+@wp.func
+def _axis_clip(o: wp.float32, d: wp.float32, size: wp.float32, t0: wp.float32, t1: wp.float32):
+    # returns the clipped (t0, t1); an empty interval marks "no overlap"
+    if d == 0.0:
+        if o < 0.0 or o > size:
+            return 1.0, 0.0
+        return t0, t1
+    ta = (0.0 - o) / d
+    tb = (size - o) / d
+    return wp.max(t0, wp.min(ta, tb)), wp.min(t1, wp.max(ta, tb))
+
+
+@wp.func
+def _start_index(p: wp.float32, d: wp.float32, s: wp.float32, n: wp.int32):
+    i = wp.int32(wp.floor(p / s))
+    # a start exactly on a plane belongs to the voxel the ray moves into
+    if d < 0.0 and p <= wp.float32(i) * s:
+        i = i - 1
+    if d > 0.0 and p >= wp.float32(i + 1) * s:
+        i = i + 1
+    return wp.clamp(i, 0, n - 1)
+
+
+@wp.func
+def _next_t(i: wp.int32, step: wp.int32, o: wp.float32, d: wp.float32, s: wp.float32):
+    if step == 0:
+        return INF
+    b = i
+    if step > 0:
+        b = i + 1
+    return (wp.float32(b) * s - o) / d
+
+
+@wp.func
+def walk_begin(o: wp.vec3, d: wp.vec3, t_end: wp.float32, s: wp.float32, nx: wp.int32, ny: wp.int32,
+               nz: wp.int32) -> Walk:
+    w = Walk()
+    t0 = wp.float32(0.0)
+    t1 = t_end
+    t0, t1 = _axis_clip(o[0], d[0], wp.float32(nx) * s, t0, t1)
+    t0, t1 = _axis_clip(o[1], d[1], wp.float32(ny) * s, t0, t1)
+    t0, t1 = _axis_clip(o[2], d[2], wp.float32(nz) * s, t0, t1)
+    w.alive = 0
+    w.t1 = t1
+    if t1 > t0:
+        w.alive = 1
+        p = o + t0 * d
+        w.i = _start_index(p[0], d[0], s, nx)
+        w.j = _start_index(p[1], d[1], s, ny)
+        w.k = _start_index(p[2], d[2], s, nz)
+        w.si = wp.where(d[0] > 0.0, 1, wp.where(d[0] < 0.0, -1, 0))
+        w.sj = wp.where(d[1] > 0.0, 1, wp.where(d[1] < 0.0, -1, 0))
+        w.sk = wp.where(d[2] > 0.0, 1, wp.where(d[2] < 0.0, -1, 0))
+        w.tx = _next_t(w.i, w.si, o[0], d[0], s)
+        w.ty = _next_t(w.j, w.sj, o[1], d[1], s)
+        w.tz = _next_t(w.k, w.sk, o[2], d[2], s)
+    return w
+
+
+@wp.func
+def walk_next(w: Walk, o: wp.vec3, d: wp.vec3, s: wp.float32, nx: wp.int32, ny: wp.int32, nz: wp.int32) -> Walk:
+    # step every axis whose boundary is crossed first (exact ties: an edge or corner, no side voxel)
+    tn = wp.min(w.tx, wp.min(w.ty, w.tz))
+    if tn >= w.t1:
+        w.alive = 0
+        return w
+    if w.tx == tn:
+        w.i = w.i + w.si
+        w.tx = _next_t(w.i, w.si, o[0], d[0], s)
+    if w.ty == tn:
+        w.j = w.j + w.sj
+        w.ty = _next_t(w.j, w.sj, o[1], d[1], s)
+    if w.tz == tn:
+        w.k = w.k + w.sk
+        w.tz = _next_t(w.k, w.sk, o[2], d[2], s)
+    if w.i < 0 or w.i >= nx or w.j < 0 or w.j >= ny or w.k < 0 or w.k >= nz:
+        w.alive = 0
+    return w
+
+
+@wp.func
+def flat_index(w: Walk, ny: wp.int32, nz: wp.int32) -> wp.int64:
+    return (wp.int64(w.i) * wp.int64(ny) + wp.int64(w.j)) * wp.int64(nz) + wp.int64(w.k)
+
+
+@wp.kernel
+def traverse_count_kernel(
+    origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), t_end: wp.array(dtype=wp.float32),
+    s: wp.float32, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    stop: wp.array(dtype=wp.uint8), use_stop: wp.int32,
+    counts: wp.array(dtype=wp.int64),
+):
+    tid = wp.tid()
+    o = origins[tid]
+    d = dirs[tid]
+    w = walk_begin(o, d, t_end[tid], s, nx, ny, nz)
+    c = wp.int64(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        c += wp.int64(1)
+        if use_stop != 0:
+            if stop[flat_index(w, ny, nz)] != wp.uint8(0):
+                break
+        w = walk_next(w, o, d, s, nx, ny, nz)
+    counts[tid] = c
+
+
+@wp.kernel
+def traverse_fill_kernel(
+    origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), t_end: wp.array(dtype=wp.float32),
+    s: wp.float32, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    stop: wp.array(dtype=wp.uint8), use_stop: wp.int32,
+    offsets: wp.array(dtype=wp.int64), voxels: wp.array(dtype=wp.int64),
+):
+    tid = wp.tid()
+    o = origins[tid]
+    d = dirs[tid]
+    w = walk_begin(o, d, t_end[tid], s, nx, ny, nz)
+    at = offsets[tid]
+    end = offsets[tid + 1]
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0 or at >= end:
+            break
+        v = flat_index(w, ny, nz)
+        voxels[at] = v
+        at += wp.int64(1)
+        if use_stop != 0:
+            if stop[v] != wp.uint8(0):
+                break
+        w = walk_next(w, o, d, s, nx, ny, nz)
+
+
+@wp.kernel
+def coverage_kernel(
+    origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), t_end: wp.array(dtype=wp.float32),
+    s: wp.float32, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    stop: wp.array(dtype=wp.uint8), use_stop: wp.int32,
+    mask: wp.array(dtype=wp.uint8),
+):
+    tid = wp.tid()
+    o = origins[tid]
+    d = dirs[tid]
+    w = walk_begin(o, d, t_end[tid], s, nx, ny, nz)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        v = flat_index(w, ny, nz)
+        mask[v] = wp.uint8(1)
+        if use_stop != 0:
+            if stop[v] != wp.uint8(0):
+                break
+        w = walk_next(w, o, d, s, nx, ny, nz)
+
+
+@wp.kernel
+def score_kernel(
+    sensor_dirs: wp.array(dtype=wp.vec3),      # (C*A,)
+    rot: wp.array(dtype=wp.mat33),             # (P*L,)
+    pos: wp.array(dtype=wp.vec3),              # (P*L,) grid-local
+    n_lidars: wp.int32,
+    t_max: wp.float32,
+    s: wp.float32, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    stop: wp.array(dtype=wp.uint8), use_stop: wp.int32,
+    weights: wp.array(dtype=wp.int64),
+    words_per_candidate: wp.int64,
+    bits: wp.array(dtype=wp.uint32),           # (P * words_per_candidate,) zeroed
+    sums: wp.array(dtype=wp.int64),            # (P,) zeroed
+    counts: wp.array(dtype=wp.int64),          # (P,) zeroed
+):
+    tid = wp.tid()
+    n = sensor_dirs.shape[0]
+    rig = tid / n                              # candidate * n_lidars + lidar
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = wp.normalize(rot[rig] * sensor_dirs[tid - rig * n])
+    w = walk_begin(o, d, t_max, s, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        v = flat_index(w, ny, nz)
+        bit = wp.uint32(1) << wp.uint32(v & wp.int64(31))
+        old = wp.atomic_or(bits, base + (v >> wp.int64(5)), bit)
+        if (old & bit) == wp.uint32(0):
+            wp.atomic_add(sums, cand, weights[v])
+            wp.atomic_add(counts, cand, wp.int64(1))
+        if use_stop != 0:
+            if stop[v] != wp.uint8(0):
+                break
+        w = walk_next(w, o, d, s, nx, ny, nz)
+
+
+# ----------------------------------------------------------------------------- occupancy
+@wp.kernel
+def voxel_keys_kernel(points: wp.array(dtype=wp.vec3), s: wp.float32, nx: wp.int32, ny: wp.int32,
+                      nz: wp.int32, out: wp.array(dtype=wp.int64)):
+    tid = wp.tid()
+    p = points[tid]
+    i = wp.int32(wp.floor(p[0] / s))
+    j = wp.int32(wp.floor(p[1] / s))
+    k = wp.int32(wp.floor(p[2] / s))
+    if i < 0 or i >= nx or j < 0 or j >= ny or k < 0 or k >= nz:
+        out[tid] = wp.int64(-1)
+    else:
+        out[tid] = (wp.int64(i) * wp.int64(ny) + wp.int64(j)) * wp.int64(nz) + wp.int64(k)
+
+
+@wp.kernel
+def vote_kernel(sorted_keys: wp.array(dtype=wp.int64), n: wp.int32, n_classes: wp.int64,
+                out_label: wp.array(dtype=wp.int32)):
+    # sorted_keys = voxel * n_classes + label, ascending; thread i leads its voxel's segment if the
+    # previous key has another voxel. It scans the runs (labels ascending) and keeps the first maximum.
+    i = wp.tid()
+    vox = sorted_keys[i] / n_classes
+    out_label[i] = -1
+    if i > 0:
+        if sorted_keys[i - 1] / n_classes == vox:
+            return
+    best_label = wp.int64(-1)
+    best_count = wp.int32(0)
+    run_label = wp.int64(-1)
+    run_count = wp.int32(0)
+    j = i
+    while j < n:
+        key = sorted_keys[j]
+        if key / n_classes != vox:
+            break
+        lab = key - vox * n_classes
+        if lab != run_label:
+            run_label = lab
+            run_count = 0
+        run_count += 1
+        if run_count > best_count:
+            best_count = run_count
+            best_label = run_label
+        j += 1
+    out_label[i] = wp.int32(best_label)

@@ -1,0 +1,193 @@
+"""The ``place3d`` command: backends | evaluate | simulate | optimize | bench."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["main"]
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--backend", default=None,
+                   help="reference | warp[:cpu|:cuda:N] | opencl[:platform] | auto (default: $PLACE3D_BACKEND or auto)")
+    p.add_argument("--scene", default="town", help="scene: 'town' (the embedded procedural town)")
+    p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
+    p.add_argument("--frames", type=int, default=40, help="frames along the ego route (default 40, as the paper)")
+    p.add_argument("--voxel-size", type=float, default=None, help="ROI voxel size in metres (default 0.2)")
+    p.add_argument("--no-cache", action="store_true", help="rebuild the P-SOG even if a cached one exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _grid(args):
+    from place3d_kernels.grid import DEFAULT_GRID, Grid
+
+    if args.voxel_size is None:
+        return DEFAULT_GRID
+    return Grid(DEFAULT_GRID.lower, DEFAULT_GRID.upper, args.voxel_size)
+
+
+def _scene(args):
+    from place3d_kernels import scene as scenes
+
+    name = args.scene
+    if name == "town":
+        return scenes.town(seed=args.seed, n_frames=args.frames)
+    if name.startswith("opendrive:") and hasattr(scenes, "from_opendrive"):
+        return scenes.from_opendrive(name.split(":", 1)[1], seed=args.seed, n_frames=args.frames)
+    raise SystemExit(f"place3d: unknown scene {name!r}; use 'town'")
+
+
+def _psog(args, backend):
+    from place3d_kernels.pipeline import scene_psog
+
+    t = time.perf_counter()
+    sc = _scene(args)
+    psog = scene_psog(sc, grid=_grid(args), backend=backend, cache=not args.no_cache, progress=not args.quiet)
+    if not args.quiet:
+        print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
+    return sc, psog
+
+
+# ---------------------------------------------------------------------------------------- commands
+def cmd_backends(args) -> int:
+    from place3d_kernels.backend import backend_report
+
+    for name, ok, note in backend_report():
+        print(f"{'available' if ok else 'missing':10s} {name:16s} {note}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from tqdm import tqdm
+
+    from place3d_kernels.backend import get_backend
+    from place3d_kernels.lidar import LidarModel
+    from place3d_kernels.metrics import msog_batch
+    from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
+
+    t0 = time.perf_counter()
+    b = get_backend(args.backend)
+    lidar = LidarModel.load(args.lidar)
+    names = args.placements or list(PAPER_PLACEMENTS)
+    placements = [Placement.load(n) for n in names]
+    _, psog = _psog(args, b)
+    rows = []
+    for name, pl in tqdm(list(zip(names, placements)), desc="evaluate", unit="placement", disable=args.quiet,
+                         leave=False):
+        seg = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "seg", b)[0])
+        det = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "det", b)[0])
+        rows.append({"placement": pl.name or name, "msog_seg": seg, "msog_det": det})
+    rows.sort(key=lambda r: -r["msog_seg"])
+    seconds = time.perf_counter() - t0
+    print(f"M-SOG on scene {args.scene} (seed {args.seed}), backend {b.name}, grid {psog.grid.shape} "
+          f"@ {psog.grid.voxel_size} m, occlusion {args.occlusion}; higher is better")
+    print(f"{'rank':>4}  {'placement':14s} {'M-SOG seg':>12s} {'M-SOG det':>12s}")
+    det_rank = {r["placement"]: i + 1 for i, r in enumerate(sorted(rows, key=lambda r: -r["msog_det"]))}
+    for i, r in enumerate(rows):
+        print(f"{i + 1:>4}  {r['placement']:14s} {r['msog_seg']:12.6f} {r['msog_det']:12.6f}"
+              f"   (det rank {det_rank[r['placement']]})")
+    print(f"{seconds:.1f} s")
+    if args.output:
+        out = {"rows": rows, "backend": b.name, "grid": psog.grid.to_dict(), "seconds": seconds,
+               "scene": {"name": args.scene, "seed": args.seed, "frames": args.frames},
+               "occlusion": args.occlusion, "lidar": lidar.name}
+        Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.output).write_text(json.dumps(out, indent=2))
+    return 0
+
+
+def cmd_simulate(args) -> int:
+    from place3d_kernels.backend import get_backend
+    from place3d_kernels.io import write_semantickitti_sequence
+    from place3d_kernels.simulate import simulate
+
+    b = get_backend(args.backend)
+    sc = _scene(args)
+    frames = simulate(sc, args.lidar, backend=b, progress=not args.quiet)
+    if args.condition:
+        from place3d_kernels.conditions import apply_to_frames
+
+        params = dict(kv.split("=", 1) for kv in args.param)
+        frames = apply_to_frames(frames, args.condition, seed=args.seed, backend=b,
+                                 **{k: float(v) for k, v in params.items()})
+    out = write_semantickitti_sequence(frames, args.output)
+    print(f"wrote {len(frames)} frames to {out}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from place3d_kernels.benchmark import run_kernel_bench
+
+    res = run_kernel_bench(backends=args.backends, quick=args.quick, progress=not args.quiet)
+    print(json.dumps(res, indent=2))
+    if args.output:
+        Path(args.output).write_text(json.dumps(res, indent=2))
+    return 0
+
+
+def cmd_optimize(args) -> int:
+    from place3d_kernels.optimize.cli import run as run_optimize
+
+    return run_optimize(args, psog_for=_psog)
+
+
+# ---------------------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="place3d", description="Multi-LiDAR placement kernels (Place3D metric and optimiser)")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("backends", help="list available backends and why others are missing")
+    p.set_defaults(func=cmd_backends)
+
+    p = sub.add_parser("evaluate", help="score the paper's placements by M-SOG on a scene")
+    _add_common(p)
+    p.add_argument("placements", nargs="*", help="placement names or TOML paths (default: all eleven)")
+    p.add_argument("--lidar", default="place3d_16ch", help="LiDAR model name or TOML (default place3d_16ch)")
+    p.add_argument("--occlusion", default="sog", choices=["sog", "none"], help="ray occlusion mode (default sog)")
+    p.add_argument("--output", help="write the table as JSON to this path")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("simulate", help="simulate semantic LiDAR frames (SemanticKITTI layout)")
+    _add_common(p)
+    p.add_argument("--lidar", default="collection_64ch", help="LiDAR model (default collection_64ch)")
+    p.add_argument("--condition", help="adverse condition to apply (fog, wet_ground, snow, motion_blur, ...)")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="condition parameter")
+    p.add_argument("--output", required=True, help="output folder")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("bench", help="kernel microbenchmarks per backend (JSON)")
+    p.add_argument("--backends", nargs="*", default=None, help="backends to time (default: all available)")
+    p.add_argument("--quick", action="store_true", help="smaller workloads")
+    p.add_argument("--output", help="write JSON here")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_bench)
+
+    try:
+        from place3d_kernels.optimize.cli import add_arguments as add_opt
+    except ImportError:
+        add_opt = None
+    if add_opt is not None:
+        p = sub.add_parser("optimize", help="optimise a placement with CMA-ES")
+        _add_common(p)
+        add_opt(p)
+        p.set_defaults(func=cmd_optimize)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"place3d: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

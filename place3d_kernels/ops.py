@@ -1,0 +1,137 @@
+"""Public kernel entry points: ray-mesh intersection, voxel traversal and coverage.
+
+Inputs are validated here (once, on the host) so kernels can assume finite unit directions; world
+coordinates are shifted to the grid or mesh origin in float64 before they reach a device.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from place3d_kernels.backend import get_backend
+from place3d_kernels.grid import Grid
+from place3d_kernels.mesh import Mesh
+
+__all__ = ["Hits", "Traversal", "raycast", "traverse", "coverage", "check_rays"]
+
+
+@dataclass
+class Hits:
+    """Closest hits: ``t`` (inf on miss), ``face`` (-1 on miss), ``label`` of the face (-1 on miss)."""
+
+    t: np.ndarray
+    face: np.ndarray
+    label: np.ndarray
+
+    @property
+    def hit(self) -> np.ndarray:
+        return self.face >= 0
+
+
+@dataclass
+class Traversal:
+    """Visited voxels per ray as CSR: ray i visited ``voxels[offsets[i]:offsets[i+1]]`` in order."""
+
+    offsets: np.ndarray
+    voxels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def ray(self, i: int) -> np.ndarray:
+        return self.voxels[self.offsets[i]:self.offsets[i + 1]]
+
+
+def check_rays(origins, directions, t, what: str = "t_end") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate and normalise ray inputs; raise ValueError naming the first bad value and the fix."""
+    o = np.asarray(origins, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    if o.ndim == 1:
+        o = o[None]
+    if d.ndim == 1:
+        d = d[None]
+    if o.shape[-1:] != (3,) or d.shape[-1:] != (3,):
+        raise ValueError(f"origins and directions must be (N, 3) arrays, got {o.shape} and {d.shape}")
+    if len(o) == 1 and len(d) > 1:
+        o = np.broadcast_to(o, d.shape)
+    if o.shape != d.shape:
+        raise ValueError(f"origins {o.shape} and directions {d.shape} must have the same shape")
+    bad = ~np.all(np.isfinite(o), axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"ray {i} has a non-finite origin {o[i].tolist()}; drop or fix such rays first")
+    bad = ~np.all(np.isfinite(d), axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"ray {i} has a non-finite direction {d[i].tolist()}; drop or fix such rays first")
+    norm = np.linalg.norm(d, axis=1)
+    if np.any(norm == 0):
+        i = int(np.argmax(norm == 0))
+        raise ValueError(f"ray {i} has a zero-length direction; every ray needs a non-zero direction")
+    d = d / norm[:, None]
+    tt = np.asarray(t, dtype=np.float64)
+    if tt.ndim == 0:
+        tt = np.full(len(o), float(tt))
+    if tt.shape != (len(o),):
+        raise ValueError(f"{what} must be a scalar or one value per ray ({len(o)}), got shape {tt.shape}")
+    if np.any(np.isnan(tt)) or np.any(tt < 0):
+        i = int(np.argmax(np.isnan(tt) | (tt < 0)))
+        raise ValueError(f"{what} of ray {i} is {tt[i]}; it must be >= 0 (inf allowed)")
+    return np.ascontiguousarray(o), np.ascontiguousarray(d), tt
+
+
+def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits:
+    """Closest hit of each ray with a mesh, for t in [0, t_max].
+
+    Args:
+        mesh: the triangle mesh; its BVH is built once per backend and cached on the mesh.
+        origins, directions: (N, 3) rays (directions need not be normalised; t is in metres along the
+            normalised direction).
+        t_max: scalar or (N,) maximum distance.
+        backend: backend name or instance (default: the current one).
+    """
+    o, d, tm = check_rays(origins, directions, t_max, "t_max")
+    b = get_backend(backend)
+    tm32 = np.minimum(tm, 1e30)  # float32 kernels need a finite bound
+    t, face = b.raycast(mesh.handle(b), o - mesh.shift, d, tm32)
+    face = np.asarray(face, dtype=np.int64)
+    label = np.where(face >= 0, mesh.labels[np.clip(face, 0, None)], -1)
+    return Hits(np.asarray(t, dtype=np.float64), face, label)
+
+
+def _grid_inputs(grid: Grid, origins, directions, t_end, stop):
+    o, d, te = check_rays(origins, directions, t_end)
+    # a ray cannot pass more than the grid's diagonal; this keeps inf finite for float32 kernels
+    diag = float(np.linalg.norm(np.asarray(grid.upper) - np.asarray(grid.lower)))
+    far = np.linalg.norm(grid.to_local(o) - (np.asarray(grid.upper) - np.asarray(grid.lower)) / 2, axis=1)
+    te = np.minimum(te, far + diag)
+    if stop is not None:
+        stop = np.ascontiguousarray(np.asarray(stop).reshape(-1), dtype=np.uint8)
+        if stop.shape != (grid.n_voxels,):
+            raise ValueError(f"stop mask must have one entry per voxel ({grid.n_voxels}), got {stop.shape}")
+    return grid.to_local(o), d, te, stop
+
+
+def traverse(grid: Grid, origins, directions, t_end, backend=None, stop=None) -> Traversal:
+    """Voxels each ray segment [0, t_end] passes through, in visit order (Amanatides-Woo traversal).
+
+    Args:
+        grid: the voxel grid.
+        origins, directions: (N, 3) rays in the grid's frame.
+        t_end: scalar or (N,) segment lengths in metres.
+        backend: backend name or instance.
+        stop: optional per-voxel occlusion mask; a ray ends after the first voxel where it is set.
+    """
+    o, d, te, stop = _grid_inputs(grid, origins, directions, t_end, stop)
+    b = get_backend(backend)
+    offsets, voxels = b.traverse(grid.spec, o, d, te, stop)
+    return Traversal(np.asarray(offsets, dtype=np.int64), np.asarray(voxels, dtype=np.int64))
+
+
+def coverage(grid: Grid, origins, directions, t_end, backend=None, stop=None) -> np.ndarray:
+    """Boolean array of ``grid.shape``: the union of voxels visited by the ray segments."""
+    o, d, te, stop = _grid_inputs(grid, origins, directions, t_end, stop)
+    b = get_backend(backend)
+    return np.asarray(b.coverage(grid.spec, o, d, te, stop), dtype=bool).reshape(grid.shape)

@@ -1,0 +1,234 @@
+"""Probabilistic semantic occupancy grids (P-SOG) and their entropy (Place3D, Sec. 3.2).
+
+A SOG gives each voxel one label per subset of frames (majority vote of its points; "empty" if none).
+The P-SOG holds, per voxel, the fraction of the T subsets in which it had each label. Only voxels that
+were occupied in at least one subset are stored; every other voxel is empty with probability 1.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from place3d_kernels.backend import get_backend
+from place3d_kernels.backends.base import ENTROPY_SCALE
+from place3d_kernels.classes import CLASSES, N_CLASSES, VEHICLE
+from place3d_kernels.grid import Grid
+from place3d_kernels.pose import invert, pose_matrix, transform_points
+
+__all__ = ["Frame", "PSOG", "entropy", "cache_dir"]
+
+_FORMAT = 1  # bump when the on-disk layout or the build changes
+
+
+def cache_dir() -> Path:
+    """Where P-SOGs are cached: ``$PLACE3D_CACHE`` or ``~/.cache/place3d``."""
+    return Path(os.environ.get("PLACE3D_CACHE", Path.home() / ".cache" / "place3d"))
+
+
+@dataclass
+class Frame:
+    """One LiDAR frame: points in the world frame, their labels, and the ego pose (x, y, z, r, p, y)."""
+
+    points: np.ndarray
+    labels: np.ndarray
+    ego_pose: np.ndarray
+    intensity: np.ndarray | None = None
+    origins: np.ndarray | None = None
+
+
+def entropy(probs: np.ndarray) -> np.ndarray:
+    """Shannon entropy (natural log, 0 log 0 = 0) over the last axis, float64."""
+    p = np.asarray(probs, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(p > 0, -p * np.log(np.where(p > 0, p, 1.0)), 0.0)
+    return terms.sum(axis=-1)
+
+
+class PSOG:
+    """A P-SOG over a grid.
+
+    Attributes:
+        grid: the ROI grid (ego frame).
+        voxels: (M,) int64 ascending flat indices of the stored (ever occupied) voxels.
+        probs: (M, K) float64 class probabilities of those voxels; channel 0 = empty.
+        channels: names of the K channels.
+        n_subsets: T, the number of SOGs aggregated (None when built from probabilities).
+    """
+
+    def __init__(self, grid: Grid, voxels: np.ndarray, probs: np.ndarray, channels=None, n_subsets=None,
+                 counts: np.ndarray | None = None):
+        self.grid = grid
+        self.voxels = np.asarray(voxels, dtype=np.int64)
+        self.probs = np.asarray(probs, dtype=np.float64)
+        self.channels = tuple(channels) if channels is not None else ("empty",) + CLASSES[1:]
+        self.n_subsets = n_subsets
+        self.counts = counts
+        if self.probs.shape != (len(self.voxels), len(self.channels)):
+            raise ValueError(f"PSOG probs must be (M={len(self.voxels)}, K={len(self.channels)}), got {self.probs.shape}")
+        self._cache: dict = {}
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_probabilities(cls, grid: Grid, probs: np.ndarray, channels=None) -> "PSOG":
+        """From a dense (nx, ny, nz, K) array: channel 0 = empty, channel c = class c."""
+        p = np.asarray(probs, dtype=np.float64)
+        if p.ndim != 4 or p.shape[:3] != grid.shape:
+            raise ValueError(f"probs must have shape {grid.shape} + (K,), got {p.shape}")
+        if not np.all(np.isfinite(p)) or p.min() < 0:
+            raise ValueError("probs must be finite and non-negative")
+        s = p.sum(axis=-1)
+        if np.max(np.abs(s - 1.0)) > 1e-6:
+            i = np.unravel_index(int(np.argmax(np.abs(s - 1.0))), s.shape)
+            raise ValueError(f"probs must sum to 1 over the last axis; voxel {tuple(int(v) for v in i)} sums to {s[i]}")
+        flat = p.reshape(-1, p.shape[-1])
+        keep = np.flatnonzero(flat[:, 0] < 1.0)
+        if channels is None and p.shape[-1] != len(CLASSES):
+            channels = ("empty",) + tuple(f"class {c}" for c in range(1, p.shape[-1]))
+        return cls(grid, keep, flat[keep], channels)
+
+    @classmethod
+    def from_frames(cls, frames: list[Frame], grid: Grid, frames_per_subset: int = 5, backend=None,
+                    progress: bool = False) -> "PSOG":
+        """Build from labelled frames (DESIGN.md §5).
+
+        Consecutive subsets of ``frames_per_subset`` frames are merged in the ego frame of their middle
+        frame, voxelised with a majority vote (ties -> lowest class, unlabeled points do not vote), and
+        the per-voxel label frequencies over the T subsets form the P-SOG. Trailing frames that do not
+        fill a subset are dropped (all frames form one subset when there are fewer than k).
+        """
+        k = int(frames_per_subset)
+        if k < 1:
+            raise ValueError(f"frames_per_subset must be >= 1, got {frames_per_subset}")
+        if not frames:
+            raise ValueError("PSOG.from_frames needs at least one frame")
+        b = get_backend(backend)
+        n_sub = max(1, len(frames) // k)
+        groups = [frames[i * k:(i + 1) * k] for i in range(n_sub)] if len(frames) >= k else [frames]
+        all_vox, all_lab = [], []
+        it = groups
+        if progress:
+            from tqdm import tqdm
+
+            it = tqdm(groups, desc="P-SOG subsets", unit="subset", leave=False)
+        for g in it:
+            ref = g[len(g) // 2]
+            to_ref = invert(pose_matrix(ref.ego_pose))
+            pts = np.concatenate([transform_points(to_ref, f.points) for f in g])
+            lab = np.concatenate([np.asarray(f.labels, dtype=np.int32) for f in g])
+            keys = b.voxel_keys(grid.spec, grid.to_local(pts))
+            vox, win = b.vote(keys, lab, N_CLASSES)
+            all_vox.append(np.asarray(vox, np.int64))
+            all_lab.append(np.asarray(win, np.int64))
+        vox = np.concatenate(all_vox)
+        lab = np.concatenate(all_lab)
+        uniq, inv = np.unique(vox, return_inverse=True)
+        counts = np.zeros((len(uniq), N_CLASSES), dtype=np.int32)
+        np.add.at(counts, (inv, lab), 1)
+        counts[:, 0] = len(groups) - counts[:, 1:].sum(axis=1)
+        return cls(grid, uniq, counts / float(len(groups)), n_subsets=len(groups), counts=counts)
+
+    # ------------------------------------------------------------------ variants
+    def detection(self) -> "PSOG":
+        """Detection variant: channels (empty, vehicle, other occupied)."""
+        if len(self.channels) == 3:
+            return self
+        if "det" not in self._cache:
+            p = self.probs
+            veh = p[:, VEHICLE] if p.shape[1] > VEHICLE else np.zeros(len(p))
+            other = 1.0 - p[:, 0] - veh
+            det = np.stack([p[:, 0], veh, np.clip(other, 0.0, 1.0)], axis=1)
+            self._cache["det"] = PSOG(self.grid, self.voxels, det, ("empty", "vehicle", "other"), self.n_subsets)
+        return self._cache["det"]
+
+    def for_task(self, task: str) -> "PSOG":
+        if task == "seg":
+            return self
+        if task == "det":
+            return self.detection()
+        raise ValueError(f"task must be 'seg' or 'det', got {task!r}")
+
+    # ------------------------------------------------------------------ derived fields
+    @property
+    def entropy(self) -> np.ndarray:
+        """(nx, ny, nz) float32 voxel entropy (nats)."""
+        if "entropy" not in self._cache:
+            h = np.zeros(self.grid.n_voxels, dtype=np.float32)
+            h[self.voxels] = entropy(self.probs)
+            self._cache["entropy"] = h.reshape(self.grid.shape)
+        return self._cache["entropy"]
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(n_voxels,) int64 fixed-point entropy, round(H * 2**32): what kernels sum exactly."""
+        if "weights" not in self._cache:
+            w = np.zeros(self.grid.n_voxels, dtype=np.int64)
+            w[self.voxels] = np.rint(entropy(self.probs) * ENTROPY_SCALE).astype(np.int64)
+            self._cache["weights"] = w
+        return self._cache["weights"]
+
+    @property
+    def occupancy(self) -> np.ndarray:
+        """(nx, ny, nz) float32 probability that a voxel is occupied (1 - p_empty)."""
+        occ = np.zeros(self.grid.n_voxels, dtype=np.float32)
+        occ[self.voxels] = 1.0 - self.probs[:, 0]
+        return occ.reshape(self.grid.shape)
+
+    @property
+    def stop_mask(self) -> np.ndarray:
+        """(n_voxels,) uint8: 1 where the voxel is occupied with probability >= 0.5 (stops rays)."""
+        if "stop" not in self._cache:
+            m = np.zeros(self.grid.n_voxels, dtype=np.uint8)
+            m[self.voxels] = (1.0 - self.probs[:, 0]) >= 0.5 - 1e-12
+            self._cache["stop"] = m
+        return self._cache["stop"]
+
+    def dense(self) -> np.ndarray:
+        """(nx, ny, nz, K) float32 probabilities (memory: n_voxels * K * 4 bytes)."""
+        out = np.zeros((self.grid.n_voxels, len(self.channels)), dtype=np.float32)
+        out[:, 0] = 1.0
+        out[self.voxels] = self.probs
+        return out.reshape(self.grid.shape + (len(self.channels),))
+
+    def handle(self, backend, occlusion: str):
+        """Backend grid handle (weights + stop mask uploaded once) for one occlusion mode."""
+        key = ("handle", backend.name, occlusion)
+        if key not in self._cache:
+            stop = self.stop_mask if occlusion == "sog" else None
+            self._cache[key] = backend.prepare_grid(self.grid.spec, self.weights, stop)
+        return self._cache[key]
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez_compressed(tmp, voxels=self.voxels, probs=self.probs,
+                            counts=self.counts if self.counts is not None else np.zeros(0),
+                            meta=json.dumps({"grid": self.grid.to_dict(), "channels": list(self.channels),
+                                             "n_subsets": self.n_subsets, "format": _FORMAT}))
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, path) -> "PSOG":
+        with np.load(path) as z:
+            meta = json.loads(str(z["meta"]))
+            counts = z["counts"] if z["counts"].size else None
+            return cls(Grid.from_dict(meta["grid"]), z["voxels"], z["probs"], meta["channels"],
+                       meta["n_subsets"], counts)
+
+    def __repr__(self) -> str:
+        return (f"PSOG(grid {self.grid.shape} @ {self.grid.voxel_size} m, {len(self.voxels):,} occupied voxels, "
+                f"T={self.n_subsets}, {len(self.channels)} channels)")
+
+
+def cache_key(**inputs) -> str:
+    """Stable hash of JSON-able inputs, for on-disk caches."""
+    blob = json.dumps({"format": _FORMAT, **inputs}, sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:20]
