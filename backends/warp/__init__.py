@@ -76,6 +76,13 @@ class WarpCore(Backend):
     def _vec3(self, a) -> "wp.array":
         return wp.array(np.ascontiguousarray(a, dtype=np.float32).reshape(-1, 3), dtype=wp.vec3, device=self.device)
 
+    def _vec3d(self, a) -> "wp.array":
+        return wp.array(np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d, device=self.device)
+
+    def _f64(self, a, n) -> "wp.array":
+        return wp.array(np.ascontiguousarray(np.broadcast_to(np.asarray(a, np.float64), (n,))), dtype=wp.float64,
+                        device=self.device)
+
     def _f32(self, a, n) -> "wp.array":
         return wp.array(np.ascontiguousarray(np.broadcast_to(np.asarray(a, np.float32), (n,))), dtype=wp.float32,
                         device=self.device)
@@ -95,12 +102,12 @@ class WarpCore(Backend):
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
         sd = sensor_directions(elevations, azimuths)
         n = len(sd) * len(poses)
-        out_o = wp.empty(n, dtype=wp.vec3, device=self.device)
-        out_d = wp.empty(n, dtype=wp.vec3, device=self.device)
-        rot = wp.array(rotation_matrices(poses).astype(np.float32), dtype=wp.mat33, device=self.device)
+        out_o = wp.empty(n, dtype=wp.vec3d, device=self.device)
+        out_d = wp.empty(n, dtype=wp.vec3d, device=self.device)
+        rot = wp.array(rotation_matrices(poses), dtype=wp.mat33d, device=self.device)
         wp.launch(self.k.lidar_rays_kernel, dim=n, device=self.device,
-                  inputs=[self._vec3(sd), rot, self._vec3(poses[:, :3]), out_o, out_d])
-        return out_o.numpy().astype(np.float64), out_d.numpy().astype(np.float64)
+                  inputs=[self._vec3d(sd), rot, self._vec3d(poses[:, :3]), out_o, out_d])
+        return out_o.numpy(), out_d.numpy()
 
     # ------------------------------------------------------------------ ray-mesh
     def upload_mesh(self, vertices, faces):
@@ -134,7 +141,7 @@ class WarpCore(Backend):
     def _walk_args(self, grid, origins, directions, t_end):
         n = len(origins)
         nx, ny, nz = grid.shape
-        return n, [self._vec3(origins), self._vec3(directions), self._f32(t_end, n),
+        return n, [self._vec3d(origins), self._vec3d(directions), self._f64(t_end, n),
                    float(grid.voxel_size), int(nx), int(ny), int(nz)]
 
     def traverse(self, grid, origins, directions, t_end, stop=None):
@@ -178,9 +185,9 @@ class WarpCore(Backend):
         sums = wp.zeros(P, dtype=wp.int64, device=self.device)
         counts = wp.zeros(P, dtype=wp.int64, device=self.device)
         stop_a, use = self._stop(handle.stop)
-        rot = wp.array(rotation_matrices(flat).astype(np.float32), dtype=wp.mat33, device=self.device)
+        rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=self.device)
         wp.launch(self.k.score_kernel, dim=P * L * len(sd), device=self.device,
-                  inputs=[self._vec3(sd), rot, self._vec3(flat[:, :3]), int(L), float(t_max),
+                  inputs=[self._vec3d(sd), rot, self._vec3d(flat[:, :3]), int(L), float(t_max),
                           float(spec.voxel_size), int(nx), int(ny), int(nz), stop_a, use, handle.weights,
                           int(words), bits, sums, counts])
         return sums.numpy(), counts.numpy()
@@ -192,7 +199,8 @@ class WarpCore(Backend):
         nx, ny, nz = grid.shape
         if n:
             wp.launch(self.k.voxel_keys_kernel, dim=n, device=self.device,
-                      inputs=[self._vec3(points), float(grid.voxel_size), int(nx), int(ny), int(nz), out])
+                      inputs=[wp.array(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d,
+                                       device=self.device), float(grid.voxel_size), int(nx), int(ny), int(nz), out])
         return out.numpy()[:n]
 
     def vote(self, keys, labels, n_classes):

@@ -1,7 +1,9 @@
 """Warp kernels of the core contract: LiDAR rays, ray-mesh, voxel traversal, scores, voting.
 
-All grid kernels take grid-local float32 coordinates (the host subtracted the grid's lower corner in
-float64). Voxel boundary crossings are computed from integer plane indices, never accumulated.
+Grid kernels take grid-local coordinates (the host subtracted the grid's lower corner in float64) and
+walk voxels in float64, so covered voxel sets, and therefore M-SOG, agree with the float64 reference
+(the contract asks for identical coverage across backends). Voxel boundary crossings are computed
+from integer plane indices, never accumulated. Ray-mesh intersection runs in float32.
 """
 
 from __future__ import annotations
@@ -12,16 +14,17 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 INF = wp.constant(wp.float32(3.0e38))
+INF64 = wp.constant(wp.float64(1.0e300))
 
 
 # ----------------------------------------------------------------------------- rays
 @wp.kernel
 def lidar_rays_kernel(
-    sensor_dirs: wp.array(dtype=wp.vec3),     # (C*A,) sensor-frame directions
-    rot: wp.array(dtype=wp.mat33),            # (L,) rotations
-    pos: wp.array(dtype=wp.vec3),             # (L,) origins
-    out_o: wp.array(dtype=wp.vec3),
-    out_d: wp.array(dtype=wp.vec3),
+    sensor_dirs: wp.array(dtype=wp.vec3d),     # (C*A,) sensor-frame directions
+    rot: wp.array(dtype=wp.mat33d),            # (L,) rotations
+    pos: wp.array(dtype=wp.vec3d),             # (L,) origins
+    out_o: wp.array(dtype=wp.vec3d),
+    out_d: wp.array(dtype=wp.vec3d),
 ):
     tid = wp.tid()
     n = sensor_dirs.shape[0]
@@ -141,55 +144,58 @@ class Walk:
     si: wp.int32
     sj: wp.int32
     sk: wp.int32
-    tx: wp.float32
-    ty: wp.float32
-    tz: wp.float32
-    t1: wp.float32
+    tx: wp.float64
+    ty: wp.float64
+    tz: wp.float64
+    t1: wp.float64
     alive: wp.int32
 
 
 @wp.func
-def _axis_clip(o: wp.float32, d: wp.float32, size: wp.float32, t0: wp.float32, t1: wp.float32):
+def _axis_clip(o: wp.float64, d: wp.float64, size: wp.float64, t0: wp.float64, t1: wp.float64):
     # returns the clipped (t0, t1); an empty interval marks "no overlap"
-    if d == 0.0:
-        if o < 0.0 or o > size:
-            return 1.0, 0.0
+    zero = wp.float64(0.0)
+    if d == zero:
+        if o < zero or o > size:
+            return wp.float64(1.0), zero
         return t0, t1
-    ta = (0.0 - o) / d
+    ta = (zero - o) / d
     tb = (size - o) / d
     return wp.max(t0, wp.min(ta, tb)), wp.min(t1, wp.max(ta, tb))
 
 
 @wp.func
-def _start_index(p: wp.float32, d: wp.float32, s: wp.float32, n: wp.int32):
+def _start_index(p: wp.float64, d: wp.float64, s: wp.float64, n: wp.int32):
     i = wp.int32(wp.floor(p / s))
     # a start exactly on a plane belongs to the voxel the ray moves into
-    if d < 0.0 and p <= wp.float32(i) * s:
+    zero = wp.float64(0.0)
+    if d < zero and p <= wp.float64(i) * s:
         i = i - 1
-    if d > 0.0 and p >= wp.float32(i + 1) * s:
+    if d > zero and p >= wp.float64(i + 1) * s:
         i = i + 1
     return wp.clamp(i, 0, n - 1)
 
 
 @wp.func
-def _next_t(i: wp.int32, step: wp.int32, o: wp.float32, d: wp.float32, s: wp.float32):
+def _next_t(i: wp.int32, step: wp.int32, o: wp.float64, d: wp.float64, s: wp.float64):
     if step == 0:
-        return INF
+        return INF64
     b = i
     if step > 0:
         b = i + 1
-    return (wp.float32(b) * s - o) / d
+    return (wp.float64(b) * s - o) / d
 
 
 @wp.func
-def walk_begin(o: wp.vec3, d: wp.vec3, t_end: wp.float32, s: wp.float32, nx: wp.int32, ny: wp.int32,
+def walk_begin(o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32,
                nz: wp.int32) -> Walk:
     w = Walk()
-    t0 = wp.float32(0.0)
+    zero = wp.float64(0.0)
+    t0 = zero
     t1 = t_end
-    t0, t1 = _axis_clip(o[0], d[0], wp.float32(nx) * s, t0, t1)
-    t0, t1 = _axis_clip(o[1], d[1], wp.float32(ny) * s, t0, t1)
-    t0, t1 = _axis_clip(o[2], d[2], wp.float32(nz) * s, t0, t1)
+    t0, t1 = _axis_clip(o[0], d[0], wp.float64(nx) * s, t0, t1)
+    t0, t1 = _axis_clip(o[1], d[1], wp.float64(ny) * s, t0, t1)
+    t0, t1 = _axis_clip(o[2], d[2], wp.float64(nz) * s, t0, t1)
     w.alive = 0
     w.t1 = t1
     if t1 > t0:
@@ -198,9 +204,9 @@ def walk_begin(o: wp.vec3, d: wp.vec3, t_end: wp.float32, s: wp.float32, nx: wp.
         w.i = _start_index(p[0], d[0], s, nx)
         w.j = _start_index(p[1], d[1], s, ny)
         w.k = _start_index(p[2], d[2], s, nz)
-        w.si = wp.where(d[0] > 0.0, 1, wp.where(d[0] < 0.0, -1, 0))
-        w.sj = wp.where(d[1] > 0.0, 1, wp.where(d[1] < 0.0, -1, 0))
-        w.sk = wp.where(d[2] > 0.0, 1, wp.where(d[2] < 0.0, -1, 0))
+        w.si = wp.where(d[0] > zero, 1, wp.where(d[0] < zero, -1, 0))
+        w.sj = wp.where(d[1] > zero, 1, wp.where(d[1] < zero, -1, 0))
+        w.sk = wp.where(d[2] > zero, 1, wp.where(d[2] < zero, -1, 0))
         w.tx = _next_t(w.i, w.si, o[0], d[0], s)
         w.ty = _next_t(w.j, w.sj, o[1], d[1], s)
         w.tz = _next_t(w.k, w.sk, o[2], d[2], s)
@@ -208,7 +214,7 @@ def walk_begin(o: wp.vec3, d: wp.vec3, t_end: wp.float32, s: wp.float32, nx: wp.
 
 
 @wp.func
-def walk_next(w: Walk, o: wp.vec3, d: wp.vec3, s: wp.float32, nx: wp.int32, ny: wp.int32, nz: wp.int32) -> Walk:
+def walk_next(w: Walk, o: wp.vec3d, d: wp.vec3d, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32) -> Walk:
     # step every axis whose boundary is crossed first (exact ties: an edge or corner, no side voxel)
     tn = wp.min(w.tx, wp.min(w.ty, w.tz))
     if tn >= w.t1:
@@ -235,8 +241,8 @@ def flat_index(w: Walk, ny: wp.int32, nz: wp.int32) -> wp.int64:
 
 @wp.kernel
 def traverse_count_kernel(
-    origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), t_end: wp.array(dtype=wp.float32),
-    s: wp.float32, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    origins: wp.array(dtype=wp.vec3d), dirs: wp.array(dtype=wp.vec3d), t_end: wp.array(dtype=wp.float64),
+    s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
     stop: wp.array(dtype=wp.uint8), use_stop: wp.int32,
     counts: wp.array(dtype=wp.int64),
 ):
@@ -258,8 +264,8 @@ def traverse_count_kernel(
 
 @wp.kernel
 def traverse_fill_kernel(
-    origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), t_end: wp.array(dtype=wp.float32),
-    s: wp.float32, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    origins: wp.array(dtype=wp.vec3d), dirs: wp.array(dtype=wp.vec3d), t_end: wp.array(dtype=wp.float64),
+    s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
     stop: wp.array(dtype=wp.uint8), use_stop: wp.int32,
     offsets: wp.array(dtype=wp.int64), voxels: wp.array(dtype=wp.int64),
 ):
@@ -283,8 +289,8 @@ def traverse_fill_kernel(
 
 @wp.kernel
 def coverage_kernel(
-    origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), t_end: wp.array(dtype=wp.float32),
-    s: wp.float32, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    origins: wp.array(dtype=wp.vec3d), dirs: wp.array(dtype=wp.vec3d), t_end: wp.array(dtype=wp.float64),
+    s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
     stop: wp.array(dtype=wp.uint8), use_stop: wp.int32,
     mask: wp.array(dtype=wp.uint8),
 ):
@@ -305,12 +311,12 @@ def coverage_kernel(
 
 @wp.kernel
 def score_kernel(
-    sensor_dirs: wp.array(dtype=wp.vec3),      # (C*A,)
-    rot: wp.array(dtype=wp.mat33),             # (P*L,)
-    pos: wp.array(dtype=wp.vec3),              # (P*L,) grid-local
+    sensor_dirs: wp.array(dtype=wp.vec3d),      # (C*A,)
+    rot: wp.array(dtype=wp.mat33d),             # (P*L,)
+    pos: wp.array(dtype=wp.vec3d),              # (P*L,) grid-local
     n_lidars: wp.int32,
-    t_max: wp.float32,
-    s: wp.float32, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    t_max: wp.float64,
+    s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
     stop: wp.array(dtype=wp.uint8), use_stop: wp.int32,
     weights: wp.array(dtype=wp.int64),
     words_per_candidate: wp.int64,
@@ -343,8 +349,9 @@ def score_kernel(
 
 # ----------------------------------------------------------------------------- occupancy
 @wp.kernel
-def voxel_keys_kernel(points: wp.array(dtype=wp.vec3), s: wp.float32, nx: wp.int32, ny: wp.int32,
+def voxel_keys_kernel(points: wp.array(dtype=wp.vec3d), s: wp.float64, nx: wp.int32, ny: wp.int32,
                       nz: wp.int32, out: wp.array(dtype=wp.int64)):
+    # float64 on purpose: binning must agree bit for bit with the reference on every backend
     tid = wp.tid()
     p = points[tid]
     i = wp.int32(wp.floor(p[0] / s))

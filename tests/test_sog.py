@@ -1,0 +1,110 @@
+"""P-SOG from hand-built frames: voting, ties, unlabeled points, subsets, entropy, detection variant."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import place3d_kernels as p3k
+from place3d_kernels.classes import CLASS_ID
+
+G = p3k.Grid(lower=(0, 0, 0), upper=(4, 4, 2), voxel_size=1.0)
+ROAD, CAR, BLD, TREE = CLASS_ID["road"], CLASS_ID["vehicle"], CLASS_ID["building"], CLASS_ID["vegetation"]
+ORIGIN = np.zeros(6)
+
+
+def frame(points, labels, pose=ORIGIN):
+    return p3k.Frame(np.asarray(points, float), np.asarray(labels), np.asarray(pose, float))
+
+
+def test_vote_majority_ties_and_unlabeled(backend):
+    pts = [[0.5, 0.5, 0.5]] * 5 + [[1.5, 0.5, 0.5]] * 4 + [[2.5, 0.5, 0.5]] * 3 + [[9, 9, 9]]
+    labels = [ROAD, ROAD, CAR, CAR, CAR,          # voxel A: car wins 3-2
+              BLD, TREE, TREE, BLD,               # voxel B: 2-2 tie -> lowest id (building = 1)
+              0, 0, 0,                            # voxel C: only unlabeled points -> stays empty
+              ROAD]                               # outside the grid: ignored
+    psog = p3k.PSOG.from_frames([frame(pts, labels)], G, frames_per_subset=1, backend=backend)
+    dense = psog.dense()
+    assert psog.n_subsets == 1
+    assert dense[0, 0, 0, CAR] == 1.0
+    assert dense[1, 0, 0, BLD] == 1.0
+    assert dense[2, 0, 0, 0] == 1.0            # empty
+    assert len(psog.voxels) == 2
+    np.testing.assert_allclose(dense.sum(axis=-1), 1.0)
+
+
+def test_subsets_give_frequencies(backend):
+    # 4 frames, k = 2 -> T = 2 subsets; voxel (0,0,0): road in subset 1, car in subset 2
+    f = [frame([[0.5, 0.5, 0.5]], [ROAD]), frame([[0.5, 0.5, 0.5]], [ROAD]),
+         frame([[0.5, 0.5, 0.5]], [CAR]), frame([[3.5, 3.5, 1.5]], [BLD])]
+    psog = p3k.PSOG.from_frames(f, G, frames_per_subset=2, backend=backend)
+    d = psog.dense()
+    assert psog.n_subsets == 2
+    np.testing.assert_allclose(d[0, 0, 0, [0, ROAD, CAR]], [0.0, 0.5, 0.5])
+    np.testing.assert_allclose(d[3, 3, 1, [0, BLD]], [0.5, 0.5])
+    np.testing.assert_allclose(psog.entropy[0, 0, 0], np.log(2), rtol=1e-6)
+    np.testing.assert_allclose(psog.entropy[3, 3, 1], np.log(2), rtol=1e-6)
+    assert psog.entropy[1, 1, 1] == 0.0
+
+
+def test_subset_merged_in_middle_frame_ego_frame(backend):
+    # the same world point seen from two ego poses; the subset uses frame index 1 (the middle of 3)
+    world = [[10.5, 0.5, 0.5]]
+    poses = [np.array([9.0, 0, 0, 0, 0, 0]), np.array([10.0, 0, 0, 0, 0, 0]), np.array([11.0, 0, 0, 0, 0, 0])]
+    frames = [frame(world, [ROAD], p) for p in poses]
+    psog = p3k.PSOG.from_frames(frames, G, frames_per_subset=3, backend=backend)
+    assert psog.voxels.tolist() == [int(G.flat(np.array([0, 0, 0])))]
+    # a yawed ego pose rotates the world into the ego frame
+    yawed = frame([[0.0, 2.5, 0.5]], [CAR], [0, 0, 0, 0, 0, np.pi / 2])   # ahead of a car facing +y
+    psog = p3k.PSOG.from_frames([yawed], G, frames_per_subset=1, backend=backend)
+    assert psog.voxels.tolist() == [int(G.flat(np.array([2, 0, 0])))]
+
+
+def test_detection_variant_merges_classes():
+    probs = np.zeros(G.shape + (22,))
+    probs[..., 0] = 1.0
+    probs[0, 0, 0] = 0
+    probs[0, 0, 0, [0, CAR, ROAD, BLD]] = [0.25, 0.25, 0.25, 0.25]
+    psog = p3k.PSOG.from_probabilities(G, probs)
+    det = psog.detection()
+    assert det.channels == ("empty", "vehicle", "other")
+    np.testing.assert_allclose(det.dense()[0, 0, 0], [0.25, 0.25, 0.5])
+    np.testing.assert_allclose(psog.entropy[0, 0, 0], np.log(4), rtol=1e-6)
+    h = -(0.25 * np.log(0.25) * 2 + 0.5 * np.log(0.5))
+    np.testing.assert_allclose(det.entropy[0, 0, 0], h, rtol=1e-6)
+
+
+def test_entropy_edge_probabilities():
+    p = np.array([[1.0, 0, 0], [0.5, 0.5, 0], [1 - 1e-30, 1e-30, 0]])
+    h = p3k.sog.entropy(p)
+    assert h[0] == 0.0 and np.isfinite(h).all()
+    np.testing.assert_allclose(h[1], np.log(2))
+    assert 0 <= h[2] < 1e-27
+
+
+def test_from_probabilities_validates():
+    with pytest.raises(ValueError, match="sum to 1"):
+        p3k.PSOG.from_probabilities(G, np.full(G.shape + (3,), 0.5))
+    with pytest.raises(ValueError, match="shape"):
+        p3k.PSOG.from_probabilities(G, np.ones((2, 2, 2, 3)))
+
+
+def test_save_load_roundtrip(tmp_path):
+    f = [frame([[0.5, 0.5, 0.5], [1.5, 2.5, 1.5]], [ROAD, CAR])]
+    psog = p3k.PSOG.from_frames(f, G, frames_per_subset=1, backend="reference")
+    back = p3k.PSOG.load(psog.save(tmp_path / "p.npz"))
+    np.testing.assert_array_equal(back.voxels, psog.voxels)
+    np.testing.assert_array_equal(back.probs, psog.probs)
+    assert back.grid == psog.grid and back.n_subsets == 1
+
+
+def test_psog_identical_across_backends(device_backend, rng):
+    n = 20000
+    frames = [frame(rng.uniform([-1, -1, -0.5], [5, 5, 2.5], (n, 3)), rng.integers(0, 22, n),
+                    [rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 0, 0, 0, rng.uniform(-0.2, 0.2)])
+              for _ in range(6)]
+    grid = p3k.Grid(lower=(0, 0, 0), upper=(4, 4, 2), voxel_size=0.25)
+    a = p3k.PSOG.from_frames(frames, grid, frames_per_subset=2, backend="reference")
+    b = p3k.PSOG.from_frames(frames, grid, frames_per_subset=2, backend=device_backend)
+    np.testing.assert_array_equal(a.voxels, b.voxels)
+    np.testing.assert_array_equal(a.probs, b.probs)
