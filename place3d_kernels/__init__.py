@@ -16,6 +16,8 @@ from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.lidar import LidarModel, lidar_rays
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.metrics import covered_voxels, msog, msog_batch
+from place3d_kernels.optimize import (Bounds, CallableConstraint, FixedHeight, MinDistance, OptimizeResult,
+                                      SearchSpace, optimize)
 from place3d_kernels.ops import Hits, Traversal, coverage, raycast, traverse
 from place3d_kernels.pipeline import scene_psog
 from place3d_kernels.placement import BASELINES, PAPER_PLACEMENTS, Placement
@@ -31,4 +33,5 @@ __all__ = [
     "LidarModel", "lidar_rays", "Placement", "PAPER_PLACEMENTS", "BASELINES",
     "raycast", "traverse", "coverage", "Hits", "Traversal",
     "PSOG", "msog", "msog_batch", "covered_voxels", "simulate", "scene_psog", "scene",
+    "optimize", "SearchSpace", "OptimizeResult", "MinDistance", "FixedHeight", "Bounds", "CallableConstraint",
 ]

@@ -58,7 +58,8 @@ def raycast_kernel(
 def watertight_t(o: wp.vec3, d: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.float32:
     """Woop, Benthin & Wald (JCGT 2013) watertight ray/triangle test; -1 on miss, else t.
 
-    Edge functions that come out exactly 0 in float32 are recomputed in float64, as the paper advises.
+    The paper recomputes edge functions that are exactly 0 in float32 in double precision; here they are
+    always computed from exact float64 products (see below).
     """
     kz = 0
     if wp.abs(d[1]) > wp.abs(d[kz]):
@@ -83,13 +84,12 @@ def watertight_t(o: wp.vec3, d: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> 
     by = B[ky] - sy * B[kz]
     cx = C[kx] - sx * C[kz]
     cy = C[ky] - sy * C[kz]
-    u = cx * by - cy * bx
-    v = ax * cy - ay * cx
-    w = bx * ay - by * ax
-    if u == 0.0 or v == 0.0 or w == 0.0:
-        u = wp.float32(wp.float64(cx) * wp.float64(by) - wp.float64(cy) * wp.float64(bx))
-        v = wp.float32(wp.float64(ax) * wp.float64(cy) - wp.float64(ay) * wp.float64(cx))
-        w = wp.float32(wp.float64(bx) * wp.float64(ay) - wp.float64(by) * wp.float64(ax))
+    # Edge functions in float64 from float32 inputs: each product is exact and the difference rounds
+    # once, so a shared edge gets the same value (up to sign) from both triangles even where the
+    # compiler contracts to FMA (CUDA does; a float32 version leaked on an H100).
+    u = wp.float32(wp.float64(cx) * wp.float64(by) - wp.float64(cy) * wp.float64(bx))
+    v = wp.float32(wp.float64(ax) * wp.float64(cy) - wp.float64(ay) * wp.float64(cx))
+    w = wp.float32(wp.float64(bx) * wp.float64(ay) - wp.float64(by) * wp.float64(ax))
     if (u < 0.0 or v < 0.0 or w < 0.0) and (u > 0.0 or v > 0.0 or w > 0.0):
         return -1.0
     det = u + v + w

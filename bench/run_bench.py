@@ -1,0 +1,46 @@
+#!/usr/bin/env python3
+"""Kernel microbenchmarks for every available backend; writes bench/results/<machine>-<date>.json and
+merges the run into bench/results/summary.json (one entry per machine label).
+
+    python3 bench/run_bench.py [--label cpu-2core] [--backends warp:cpu reference] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from place3d_kernels.benchmark import run_kernel_bench
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--label", default=None, help="machine label for file names (default: hostname)")
+    ap.add_argument("--device", default="", help="free text naming the accelerator, e.g. 'NVIDIA H100'")
+    ap.add_argument("--backends", nargs="*", default=None)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", default=str(RESULTS))
+    args = ap.parse_args()
+    res = run_kernel_bench(args.backends, quick=args.quick)
+    info = res["info"]
+    label = args.label or info["machine"]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{label}-{info['date']}.json"
+    res["info"]["label"] = label
+    res["info"]["device"] = args.device or info["cpu"]
+    path.write_text(json.dumps(res, indent=2))
+    summary_path = out / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.exists() else {"runs": []}
+    summary["runs"] = [r for r in summary["runs"] if r.get("machine") != label]
+    summary["runs"].append({"machine": label, "device": res["info"]["device"], "date": info["date"],
+                            "backends": res["backends"], "peers": res.get("peers", {})})
+    summary_path.write_text(json.dumps(summary, indent=2))
+    print(f"wrote {path} and {summary_path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,117 @@
+"""Kernel microbenchmarks per backend (used by ``place3d bench`` and ``bench/run_bench.py``).
+
+Workloads are fixed and named: the paper rig (4 LiDARs x 16 channels x 250 azimuth steps, placement
+"pyramid") on the default 0.2 m grid and the default town's P-SOG; ray-mesh on the town's static mesh
+with one sweep of the 64 x 1024 collection LiDAR, and (unless ``quick``) on a 1M-triangle box city
+with the dense rig (4 x 64 x 2048). Every timing is the median of repeated runs after a warm-up
+(kernel compilation and uploads excluded; they are reported separately where they matter).
+"""
+
+from __future__ import annotations
+
+import platform
+import statistics
+import time
+from datetime import date
+
+import numpy as np
+
+__all__ = ["run_kernel_bench", "machine_info"]
+
+
+def machine_info() -> dict:
+    import os
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return {"machine": platform.node(), "cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
+            "date": date.today().isoformat()}
+
+
+def _time(fn, sync, repeat=5, min_time=0.0):
+    fn()
+    sync()
+    times = []
+    t_all = time.perf_counter()
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - t)
+        if min_time and time.perf_counter() - t_all > min_time:
+            break
+    return statistics.median(times)
+
+
+def run_kernel_bench(backends=None, quick: bool = False, progress: bool = True, seed: int = 0) -> dict:
+    import place3d_kernels as p3k
+    from place3d_kernels.pipeline import scene_psog
+    from place3d_kernels.scene.city import box_city
+    from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
+    from place3d_kernels.sog import PSOG
+
+    names = backends or p3k.available_backends()
+    scene = p3k.scene.town(seed=seed)
+    psog = scene_psog(scene, progress=progress)
+    lidar = p3k.LidarModel.load("place3d_16ch")
+    collection = p3k.LidarModel.load("collection_64ch")
+    rig = p3k.Placement.load("pyramid")
+    rng = np.random.default_rng(seed)
+    pop = np.repeat(rig.poses[None], 16, axis=0)
+    pop[..., :3] += rng.uniform(-0.3, 0.3, pop[..., :3].shape)
+    ego0 = scene.ego_poses[0].copy()
+    ego0[2] += DEFAULT_MOUNT[2]
+    frames = simulate(scene, collection, frames=range(8), backend=names[-1])
+    out = {"info": machine_info(), "workloads": {
+        "paper_rig": "4 x 16 x 250 rays (pyramid), default grid 400x400x25 @ 0.2 m",
+        "town_sweep": f"collection LiDAR 64 x 1024 rays from the first ego pose, town static mesh "
+                      f"{scene.static.n_faces} triangles",
+        "city_dense": "1M-triangle box city, dense rig 4 x 64 x 2048 rays",
+        "psog_build": "8 simulated frames, k = 4, default grid"}, "backends": {}}
+    city = None
+    for name in names:
+        b = p3k.get_backend(name)
+        sync = b.synchronize
+        r: dict = {}
+        o, d = p3k.lidar_rays(lidar, rig, backend=b)
+        r["lidar_rays_ms"] = 1e3 * _time(lambda: b.lidar_rays(lidar.elevations, lidar.azimuths, rig.poses), sync)
+        tr = p3k.traverse(psog.grid, o, d, lidar.max_range, backend=b)
+        steps = len(tr.voxels)
+        t = _time(lambda: p3k.traverse(psog.grid, o, d, lidar.max_range, backend=b), sync, repeat=3)
+        r["traverse_gsteps_s"] = steps / t / 1e9
+        r["traverse_steps"] = steps
+        r["placement_eval_ms"] = 1e3 * _time(lambda: p3k.msog(psog, lidar, rig, backend=b), sync, repeat=5)
+        r["population16_eval_ms"] = 1e3 * _time(lambda: p3k.msog_batch(psog, lidar, pop, backend=b), sync,
+                                                repeat=3)
+        r["psog_build_s"] = _time(lambda: PSOG.from_frames(frames, psog.grid, 4, backend=b), sync, repeat=2)
+        if name != "reference":   # brute-force reference ray-mesh is far too slow for these meshes
+            co, cd = b.lidar_rays(collection.elevations, collection.azimuths, ego0[None])
+            mesh = scene.static
+            t0 = time.perf_counter()
+            mesh.handle(b)
+            sync()
+            r["town_bvh_build_s"] = time.perf_counter() - t0
+            r["raycast_town_mrays_s"] = len(co) / _time(lambda: p3k.raycast(mesh, co, cd, 100.0, backend=b), sync,
+                                                          repeat=3) / 1e6
+            if not quick:
+                if city is None:
+                    city = box_city(1_000_000, seed=seed)
+                    dense = p3k.LidarModel.uniform(64, (-25, 15), 2048, max_range=200.0)
+                    do, dd = p3k.get_backend("reference").lidar_rays(dense.elevations, dense.azimuths, rig.poses)
+                t0 = time.perf_counter()
+                city.handle(b)
+                sync()
+                r["city_bvh_build_s"] = time.perf_counter() - t0
+                r["raycast_mrays_s"] = len(do) / _time(lambda: p3k.raycast(city, do, dd, 200.0, backend=b), sync,
+                                                       repeat=2) / 1e6
+        out["backends"][b.name] = r
+        if progress:
+            print(f"{b.name}: {r}", flush=True)
+    return out

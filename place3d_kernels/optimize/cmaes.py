@@ -1,0 +1,170 @@
+"""Search strategies over the integer grid indices: pycma's CMA-ES, uniform random search, exhaustive grid.
+
+All strategies work on integer grid indices ``k`` (grid value = ``k * delta``) of the free dimensions,
+propose batches with ``ask()``, learn from ``tell(values)`` (lower is better: values of G), and pickle
+completely (random state included), which is what makes checkpoints resume bit for bit.
+
+CMA-ES runs pycma in index coordinates with ``integer_variables`` set for every dimension, so pycma
+samples lattice points itself (its LB+IC integer handling keeps a minimum step size, so the search does
+not stall below the grid spacing), with bounds ``[kmin, kmax]`` and per-coordinate initial standard
+deviations ``sigma0 * (upper - lower) / delta`` (``CMA_stds``): ``sigma0`` is relative to the bound widths.
+pycma draws its random numbers from NumPy's global generator (its samples and its integer centering);
+the adapter swaps a private generator state in around every pycma call, so user code that touches
+``np.random`` neither disturbs nor is disturbed by the search.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import warnings
+
+import numpy as np
+
+__all__ = ["METHODS", "make_strategy", "default_popsize"]
+
+METHODS = ("cma", "random", "grid")
+_GRID_LIMIT = 10_000_000
+
+
+def default_popsize(n: int) -> int:
+    """pycma's default population size ``4 + floor(3 ln n)``."""
+    return 4 + int(3 * math.log(max(n, 1)))
+
+
+def _global_randn(*shape):
+    # pycma calls opts['randn'](lam, N). A module-level function pickles by name, so a restored strategy
+    # keeps drawing from the (swapped-in) global generator; np.random.randn itself would pickle a copy
+    # of the global RandomState.
+    return np.random.randn(*shape)
+
+
+class CMAStrategy:
+    """pycma ask/tell on integer grid indices with an isolated random state."""
+
+    name = "cma"
+
+    def __init__(self, x0, kmin, kmax, sigma0: float, widths_idx, popsize: int | None, seed: int,
+                 options: dict | None = None):
+        import cma  # the only import of pycma: only this strategy needs it
+
+        self._np_state = np.random.RandomState(seed).get_state()
+        n = len(kmin)
+        opts = {
+            "bounds": [np.asarray(kmin, float).tolist(), np.asarray(kmax, float).tolist()],
+            "integer_variables": list(range(n)),
+            "CMA_stds": np.asarray(widths_idx, float).tolist(),
+            "seed": np.nan,  # seeding happens through the private state above
+            "randn": _global_randn,
+            "verbose": -9, "verb_log": 0, "verb_disp": 0,
+        }
+        if popsize is not None:
+            opts["popsize"] = int(popsize)
+        opts.update(options or {})
+        with self._rng(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # pycma chats about option choices; our options are deliberate
+            self.es = cma.CMAEvolutionStrategy(np.asarray(x0, float).tolist(), float(sigma0), opts)
+        self.popsize = int(self.es.popsize)
+        self._asked = None
+
+    @contextlib.contextmanager
+    def _rng(self):
+        outer = np.random.get_state()
+        np.random.set_state(self._np_state)
+        try:
+            yield
+        finally:
+            self._np_state = np.random.get_state()
+            np.random.set_state(outer)
+
+    def ask(self) -> np.ndarray:
+        with self._rng():
+            self._asked = self.es.ask()
+        return np.array(self._asked, dtype=np.float64)
+
+    def tell(self, values) -> None:
+        with self._rng():
+            self.es.tell(self._asked, [float(v) for v in values])
+        self._asked = None
+
+    def stop(self) -> dict:
+        return dict(self.es.stop())
+
+    @property
+    def sigma(self) -> float | None:
+        return float(self.es.sigma)
+
+    @property
+    def mean(self) -> np.ndarray:
+        return np.asarray(self.es.mean, dtype=np.float64)
+
+
+class RandomStrategy:
+    """Uniform random grid points (a baseline for CMA-ES)."""
+
+    name = "random"
+
+    def __init__(self, kmin, kmax, popsize: int, seed: int):
+        self.kmin, self.kmax = np.asarray(kmin), np.asarray(kmax)
+        self.popsize = int(popsize)
+        self.rng = np.random.default_rng(seed)
+
+    def ask(self) -> np.ndarray:
+        return self.rng.integers(self.kmin, self.kmax + 1, size=(self.popsize, len(self.kmin))).astype(np.float64)
+
+    def tell(self, values) -> None:
+        pass
+
+    def stop(self) -> dict:
+        return {}
+
+    sigma = None
+
+
+class GridStrategy:
+    """Every grid point once, in lexicographic order, ``popsize`` at a time."""
+
+    name = "grid"
+
+    def __init__(self, kmin, kmax, popsize: int):
+        self.kmin, self.kmax = np.asarray(kmin, np.int64), np.asarray(kmax, np.int64)
+        self.shape = tuple(int(n) for n in self.kmax - self.kmin + 1)
+        self.total = math.prod(self.shape)
+        if self.total > _GRID_LIMIT:
+            raise ValueError(f"method='grid' would enumerate {self.total:.3g} grid points (limit {_GRID_LIMIT:.0e}); "
+                             f"use method='cma', fewer variables or a coarser delta")
+        self.popsize = int(popsize)
+        self.next = 0
+
+    def ask(self) -> np.ndarray:
+        idx = np.arange(self.next, min(self.next + self.popsize, self.total))
+        self.next = int(idx[-1]) + 1 if len(idx) else self.next
+        if not self.shape:
+            return np.zeros((len(idx), 0))
+        K = np.stack(np.unravel_index(idx, self.shape), axis=1) + self.kmin
+        return K.astype(np.float64)
+
+    def tell(self, values) -> None:
+        pass
+
+    def stop(self) -> dict:
+        return {"grid_exhausted": self.total} if self.next >= self.total else {}
+
+    sigma = None
+
+
+def make_strategy(method: str, *, x0, kmin, kmax, sigma0, widths_idx, popsize, seed, options=None):
+    """A strategy over the free dimensions (``kmin < kmax``).
+
+    ``method='cma'`` on fewer than two free dimensions enumerates the grid instead (pycma does not
+    support one-dimensional integer search); the returned strategy's ``name`` says which ran.
+    """
+    if method not in METHODS:
+        raise ValueError(f"Unknown method {method!r}; available: {list(METHODS)}")
+    n = len(kmin)
+    pop = popsize if popsize is not None else default_popsize(max(n, 2))
+    if method == "grid" or (method == "cma" and n < 2):
+        return GridStrategy(kmin, kmax, pop)
+    if method == "random":
+        return RandomStrategy(kmin, kmax, pop, seed)
+    return CMAStrategy(x0, kmin, kmax, sigma0, widths_idx, popsize, seed, options)

@@ -1,0 +1,426 @@
+"""``optimize``: CMA-ES placement search on the delta grid, with cache, penalties, checkpoints, certificate.
+
+The objective sees batches: ``objective(X) -> scores`` with X a (P, D) float64 array of snapped parameter
+vectors of the user's ``SearchSpace`` (``space.to_poses(X)`` gives the (P, L, 6) poses) and scores a
+(P,) array, higher is better (e.g. M-SOG). Each generation calls it once, with only the candidates whose
+grid point has not been scored before (repeated grid points are answered from a cache), so a GPU
+backend sees whole populations. The optimiser itself never imports a backend.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Callable as _Fn, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from place3d_kernels.optimize.certificate import certificate
+from place3d_kernels.optimize.checkpoint import load_checkpoint, save_checkpoint
+from place3d_kernels.optimize.cmaes import METHODS, make_strategy
+from place3d_kernels.optimize.constraints import Constraint, prepare, total_penalty
+from place3d_kernels.optimize.space import DEFAULT_DELTA, SearchSpace
+from place3d_kernels.placement import Placement
+
+__all__ = ["optimize", "OptimizeResult", "DEFAULT_PENALTY_WEIGHT"]
+
+#: lambda in G = -F + lambda * P. Penalties are in metres (or the user's units); 1000 makes a 1 mm
+#: violation cost 1, far more than the spread of M-SOG scores. Scale it to your objective if needed.
+DEFAULT_PENALTY_WEIGHT = 1000.0
+
+
+def _json(v):
+    """JSON-safe copy: numpy -> Python, non-finite floats -> None."""
+    if isinstance(v, Mapping):
+        return {str(k): _json(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _json(v.tolist())
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v) if math.isfinite(v) else None
+    if v is None or isinstance(v, str):
+        return v
+    return str(v)
+
+
+def _num(v):
+    return None if v is None or not math.isfinite(v) else float(v)
+
+
+@dataclass
+class OptimizeResult:
+    """Outcome of ``optimize``.
+
+    Attributes:
+        best_vector: (D,) best parameter vector in the user's space (feasible if any feasible was seen).
+        best_placement: the same as a ``Placement`` (name ``"optimized"``).
+        best_score: objective F at the best vector (higher is better).
+        best_G: ``-F + penalty_weight * P`` there; ``best_penalty`` is P.
+        feasible: whether the best vector satisfies every constraint (P == 0).
+        history: one dict per generation: generation, evaluations (cumulative), new (rows sent to the
+            objective), cache_hits, best / mean (F over the generation), best_G, best_so_far (F of the
+            incumbent), n_feasible, n_nonfinite, sigma (pycma's step size, relative to bound widths;
+            None for non-CMA methods). Missing values are None.
+        evaluations: rows scored by the objective (distinct grid points).
+        certificate: Theorem 1 estimate over all evaluated samples (keys k_G, C_M, bound,
+            bound_corollary, ...), with ``certificate["feasible"]`` the same over feasible samples only.
+        cache: hits, misses, size, hit_rate, nonfinite.
+        stop_reason: why the run ended (``max_evals``, ``stalled``, ``callback``, ``cma:tolfun``, ...).
+        method: the strategy that ran (``cma``, ``random``, ``grid``).
+        space / search_space: the user's space and the one actually searched (after FixedHeight).
+    """
+
+    best_vector: np.ndarray
+    best_placement: Placement
+    best_score: float
+    best_G: float
+    best_penalty: float
+    feasible: bool
+    history: list
+    evaluations: int
+    generations: int
+    seconds: float
+    certificate: dict
+    seed: int
+    cache: dict
+    stop_reason: str
+    method: str
+    popsize: int
+    space: SearchSpace
+    search_space: SearchSpace
+    delta: object = DEFAULT_DELTA
+    penalty_weight: float = DEFAULT_PENALTY_WEIGHT
+    resumed: bool = False
+    checkpoint: str | None = None
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """JSON-safe summary (non-finite numbers become null)."""
+        return _json({
+            "best_vector": self.best_vector, "best_placement": {"name": self.best_placement.name,
+                                                                "poses": self.best_placement.poses},
+            "best_score": self.best_score, "best_G": self.best_G, "best_penalty": self.best_penalty,
+            "feasible": self.feasible, "evaluations": self.evaluations, "generations": self.generations,
+            "seconds": self.seconds, "seed": self.seed, "method": self.method, "popsize": self.popsize,
+            "stop_reason": self.stop_reason, "delta": self.delta, "penalty_weight": self.penalty_weight,
+            "resumed": self.resumed, "checkpoint": self.checkpoint, "cache": self.cache,
+            "certificate": self.certificate, "space": self.space.to_dict(),
+            "search_space": self.search_space.to_dict(), "names": list(self.space.names),
+            "history": self.history, **self.extra})
+
+    def __repr__(self) -> str:
+        return (f"OptimizeResult(best_score={self.best_score:.6g}, feasible={self.feasible}, "
+                f"evaluations={self.evaluations}, generations={self.generations}, method={self.method!r}, "
+                f"stop_reason={self.stop_reason!r}, seconds={self.seconds:.2f})")
+
+
+def _setup(space, constraints, method, sigma0, popsize, delta, seed, penalty_weight, x0, cma_options,
+           max_stall) -> dict:
+    return _json({"space": space.to_dict(), "constraints": [c.describe() for c in constraints],
+                  "method": method, "sigma0": sigma0, "popsize": popsize,
+                  "delta": dict(delta) if isinstance(delta, Mapping) else float(delta), "seed": seed,
+                  "penalty_weight": penalty_weight, "x0": None if x0 is None else np.asarray(x0).tolist(),
+                  "cma_options": repr(sorted((cma_options or {}).items())),
+                  "max_stall_generations": max_stall})
+
+
+def _check_int(name, v, lo):
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+        raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
+    return int(v)
+
+
+def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constraint] | Constraint = (), *,
+             method: str = "cma", sigma0: float = 0.3, popsize: int | None = None, max_evals: int = 2000,
+             delta=DEFAULT_DELTA, seed: int = 0, penalty_weight: float = DEFAULT_PENALTY_WEIGHT,
+             checkpoint=None, resume: bool = False, progress: bool = True, callback: _Fn | None = None,
+             x0=None, max_stall_generations: int = 30, cma_options: dict | None = None) -> OptimizeResult:
+    """Maximise ``objective`` over placements on the delta grid of ``space`` (paper, Algorithm 1).
+
+    Minimises ``G = -F + penalty_weight * P`` with CMA-ES (pycma ask/tell), F the objective and P the
+    summed constraint penalties. Candidates are snapped to the grid (anchored at 0, inside the bounds);
+    a cache maps each grid point to its score so repeats cost nothing.
+
+    Args:
+        objective: ``f(X (P, D) float64) -> (P,) float64``, higher is better. Called once per generation
+            with the not-yet-scored rows only. NaN / inf scores are treated as failed candidates: they
+            rank below every finite one (G = worst finite G seen + max(1, |worst|) + lambda P), are never
+            chosen as best, are left out of the certificate, and raise a RuntimeWarning; if the whole
+            first generation fails, ValueError.
+        space: the ``SearchSpace``.
+        constraints: ``MinDistance``, ``FixedHeight``, ``Bounds``, ``Callable`` (or your own
+            ``Constraint``). ``FixedHeight`` removes z from the searched variables (see
+            ``result.search_space``); the objective still receives vectors of ``space``.
+        method: ``"cma"`` (default), ``"random"`` (uniform grid points) or ``"grid"`` (exhaustive). With
+            fewer than two free dimensions ``"cma"`` enumerates the grid.
+        sigma0: initial CMA-ES step size relative to the bound widths: coordinate i starts with standard
+            deviation ``sigma0 * (upper_i - lower_i)``.
+        popsize: candidates per generation (default: pycma's, ``4 + 3 ln n`` raised for integer search).
+        max_evals: budget of objective rows (distinct grid points); the last generation is cut to fit.
+        delta: grid step, metres for positions and radians for angles (paper: 0.1), or
+            ``{variable: step}``.
+        seed: seeds the search; same seed and objective give the identical result.
+        penalty_weight: lambda (default 1000).
+        checkpoint: path of a checkpoint, written atomically after every generation that evaluated
+            something (generations answered wholly from the cache cost nothing to replay, so they are
+            saved only every 10th time) and at the end. ``resume=True`` continues from it (same setup
+            required; ``max_evals`` may grow); a missing file starts a fresh run; ``resume=False``
+            overwrites it. A run killed at any moment (even SIGKILL) and resumed ends with the same
+            result, bit for bit, as one that was not, losing at most the generation in flight. The
+            objective is not stored: resume with the same objective.
+        progress: tqdm progress bar on stderr.
+        callback: ``callback(info: dict)`` after each generation (the history entry plus ``best_vector``);
+            return True to stop.
+        x0: initial mean, a ``Placement`` or a vector of ``space`` (default: centre of the box).
+        max_stall_generations: stop after this many generations in a row without a new grid point.
+        cma_options: extra pycma options (e.g. ``{"tolfun": 0}``).
+
+    Returns:
+        OptimizeResult.
+
+    Raises:
+        ValueError: bad arguments, infeasible constraints, a misbehaving objective.
+    """
+    # ------------------------------------------------------------ validation
+    if not callable(objective):
+        raise ValueError(f"objective must be callable X (P, D) -> scores (P,), got {objective!r}")
+    if not isinstance(space, SearchSpace):
+        raise ValueError(f"space must be a SearchSpace, got {type(space).__name__}")
+    if method not in METHODS:
+        raise ValueError(f"Unknown method {method!r}; available: {list(METHODS)}")
+    max_evals = _check_int("max_evals (the evaluation budget)", max_evals, 1)
+    seed = _check_int("seed", seed, 0)
+    if seed >= 2 ** 32:
+        raise ValueError(f"seed must be below 2**32, got {seed}")
+    if popsize is not None:
+        popsize = _check_int("popsize", popsize, 2)
+    max_stall_generations = _check_int("max_stall_generations", max_stall_generations, 1)
+    try:
+        sigma0 = float(sigma0)
+        penalty_weight = float(penalty_weight)
+    except (TypeError, ValueError):
+        raise ValueError(f"sigma0 and penalty_weight must be numbers, got {sigma0!r}, {penalty_weight!r}") from None
+    if not (math.isfinite(sigma0) and sigma0 > 0):
+        raise ValueError(f"sigma0 must be > 0 (a fraction of the bound widths, e.g. 0.3), got {sigma0}")
+    if not (math.isfinite(penalty_weight) and penalty_weight >= 0):
+        raise ValueError(f"penalty_weight must be finite and >= 0, got {penalty_weight}")
+    if resume and checkpoint is None:
+        raise ValueError("resume=True needs a checkpoint path")
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback must be callable, got {callback!r}")
+
+    search, cons = prepare(space, constraints, delta)
+    steps = search.grid_steps(delta)
+    kmin, kmax = search.grid_index_bounds(delta)
+    free = kmax > kmin
+    x0_vec = None
+    if x0 is not None:
+        x0_vec = space.from_placement(x0) if isinstance(x0, Placement) else np.asarray(x0, dtype=np.float64)
+        if x0_vec.shape != (space.dim,) or not np.all(np.isfinite(x0_vec)):
+            raise ValueError(f"x0 must be a Placement or a finite vector of length {space.dim}, got {x0!r}")
+        k0 = search.snap_indices(search.from_poses(space.to_poses(x0_vec)), delta)[free].astype(float)
+    else:
+        k0 = (kmin[free] + kmax[free]) / 2.0
+    setup = _setup(space, cons, method, sigma0, popsize, delta, seed, penalty_weight, x0_vec, cma_options,
+                   max_stall_generations)
+
+    # ----------------------------------------------------------------- state
+    state = None
+    resumed = False
+    if resume and Path(checkpoint).exists():
+        state = load_checkpoint(checkpoint)
+        if state.get("setup") != setup:
+            old = state.get("setup", {})
+            diff = sorted(k for k in set(old) | set(setup) if old.get(k) != setup.get(k))
+            raise ValueError(f"Checkpoint {checkpoint} was written by a run with a different setup "
+                             f"(differs in {diff}); resume with the same arguments or use resume=False")
+        resumed = True
+    if state is None:
+        strategy = make_strategy(method, x0=k0, kmin=kmin[free], kmax=kmax[free], sigma0=sigma0,
+                                 widths_idx=search.widths[free] / steps[free], popsize=popsize, seed=seed,
+                                 options=cma_options)
+        state = {"setup": setup, "strategy": strategy, "cache": {}, "U": np.zeros((0, search.dim)), "F": [], "P": [],
+                 "history": [], "evaluations": 0, "generation": 0, "hits": 0, "stall": 0, "nonfinite": 0,
+                 "worst_G": None, "best": None, "seconds": 0.0, "stop_reason": None}
+    strategy = state["strategy"]
+    cache: dict = state["cache"]
+
+    t0 = time.perf_counter()
+    seconds_before = state["seconds"]
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=max_evals, initial=min(state["evaluations"], max_evals), unit="eval",
+                   desc=f"optimize[{strategy.name}]", leave=False, dynamic_ncols=True)
+    warned_nonfinite = False
+    stop_reason = None
+    unsaved = 0
+    try:
+        while True:
+            # --------------------------------------------------- termination
+            if state["evaluations"] >= max_evals:
+                stop_reason = "max_evals"
+            elif strategy.stop():
+                stop_reason = ",".join(f"{strategy.name}:{k}" if strategy.name == "cma" else str(k)
+                                       for k in strategy.stop())
+            elif state["stall"] >= max_stall_generations:
+                stop_reason = "stalled"
+            if stop_reason:
+                break
+
+            # --------------------------------------------------- one generation
+            sigma = strategy.sigma
+            Kf = strategy.ask()
+            n = len(Kf)
+            K = np.repeat(kmin[None], n, axis=0)
+            K[:, free] = np.clip(np.rint(Kf), kmin[free], kmax[free]).astype(np.int64)
+            U = search.grid_values(K, delta)          # searched coordinates
+            poses = search.to_poses(U)                # (n, L, 6)
+            X = space.from_poses(poses)               # the user's vectors
+            P = total_penalty(cons, poses)
+            keys = [row.tobytes() for row in X]
+            new, seen = [], set()
+            for i, k in enumerate(keys):
+                if k not in cache and k not in seen:
+                    seen.add(k)
+                    new.append(i)
+            left = max_evals - state["evaluations"]
+            partial = len(new) > left
+            if partial:
+                new = new[:left]
+            hits = n - len(seen)
+            if new:
+                Xn = np.ascontiguousarray(X[new])
+                Fn = objective(Xn)
+                try:
+                    Fn = np.asarray(Fn, dtype=np.float64)
+                except (TypeError, ValueError):
+                    raise ValueError(f"objective returned {type(Fn).__name__}, not numbers; it must return "
+                                     f"one float per row, shape ({len(new)},)") from None
+                if Fn.shape != (len(new),):
+                    raise ValueError(f"objective returned shape {Fn.shape} for a batch of {len(new)} candidates "
+                                     f"(X shape {Xn.shape}); it must return one score per row, shape "
+                                     f"({len(new)},)")
+                for i, f in zip(new, Fn):
+                    cache[keys[i]] = float(f)
+                    state["F"].append(float(f))
+                    state["P"].append(float(P[i]))
+                state["U"] = np.concatenate([state["U"], U[new]])
+                state["evaluations"] += len(new)
+            state["hits"] += hits
+
+            # values of this generation (rows cut by the budget stay unknown)
+            F = np.array([cache.get(k, np.nan) for k in keys])
+            known = np.array([k in cache for k in keys])
+            fin = np.isfinite(F)
+            G = -F + penalty_weight * P
+            if fin.any():
+                gmax = float(G[fin].max())
+                state["worst_G"] = gmax if state["worst_G"] is None else max(state["worst_G"], gmax)
+            bad = known & ~fin
+            if bad.any():
+                state["nonfinite"] += int(np.sum(bad[new])) if new else 0
+                if state["worst_G"] is None:
+                    if state["generation"] == 0:
+                        raise ValueError(f"objective returned no finite score for any of the {int(bad.sum())} "
+                                         f"candidates of the first generation (e.g. {F[bad][:3].tolist()}); "
+                                         f"check the objective on X such as {X[bad][0].tolist()}")
+                    worst = 0.0
+                else:
+                    worst = state["worst_G"]
+                G[bad] = worst + max(1.0, abs(worst)) + penalty_weight * P[bad]
+                if not warned_nonfinite:
+                    warnings.warn(f"objective returned non-finite scores for {int(bad.sum())} candidates in "
+                                  f"generation {state['generation']}; they are ranked below all finite ones "
+                                  f"and never chosen as best", RuntimeWarning, stacklevel=2)
+                    warned_nonfinite = True
+
+            # incumbent: feasible first, then lowest G; ties keep the earlier one
+            for i in np.flatnonzero(known & fin):
+                rank = (0 if P[i] == 0 else 1, float(G[i]))
+                b = state["best"]
+                if b is None or rank < b["rank"]:
+                    state["best"] = {"rank": rank, "X": X[i].copy(), "U": U[i].copy(), "F": float(F[i]),
+                                     "G": float(G[i]), "P": float(P[i])}
+
+            if not partial:
+                strategy.tell(G)
+            kf = known & fin
+            entry = {"generation": state["generation"], "evaluations": state["evaluations"], "new": len(new),
+                     "cache_hits": hits,
+                     "best": _num(float(F[kf].max())) if kf.any() else None,
+                     "mean": _num(float(F[kf].mean())) if kf.any() else None,
+                     "best_G": _num(float(G[kf].min())) if kf.any() else None,
+                     "best_so_far": state["best"]["F"] if state["best"] else None,
+                     "n_feasible": int(np.sum(kf & (P == 0))), "n_nonfinite": int(bad.sum()),
+                     "sigma": sigma}
+            state["history"].append(entry)
+            state["generation"] += 1
+            state["stall"] = 0 if new else state["stall"] + 1
+            state["seconds"] = seconds_before + time.perf_counter() - t0
+            # A generation answered wholly from the cache is not worth an fsync: replaying it after a
+            # crash costs no evaluation and, with the same cache and random state, gives the same result.
+            unsaved += 1
+            if checkpoint is not None and (new or unsaved >= 10):
+                save_checkpoint(checkpoint, state)
+                unsaved = 0
+            if bar is not None:
+                bar.update(len(new))
+                if state["best"]:
+                    bar.set_postfix(best=f"{state['best']['F']:.6g}", refresh=False)
+            if partial:
+                stop_reason = "max_evals"
+                break
+            if callback is not None:
+                info = dict(entry, best_vector=None if not state["best"] else state["best"]["X"].copy())
+                if callback(info):
+                    stop_reason = "callback"
+                    break
+    finally:
+        if bar is not None:
+            bar.close()
+
+    state["seconds"] = seconds_before + time.perf_counter() - t0
+    state["stop_reason"] = stop_reason
+    if checkpoint is not None:
+        save_checkpoint(checkpoint, state)
+    return _result(state, space, search, cons, strategy, delta, steps, penalty_weight, seed, resumed, checkpoint)
+
+
+def _result(state, space, search, cons, strategy, delta, steps, lam, seed, resumed, checkpoint) -> OptimizeResult:
+    b = state["best"]
+    if b is None:
+        raise ValueError(f"objective returned no finite score in {state['evaluations']} evaluations")
+    if b["P"] > 0:
+        warnings.warn(f"no feasible placement was found in {state['evaluations']} evaluations; the best "
+                      f"infeasible one (penalty {b['P']:.3g}) is returned. Raise penalty_weight or max_evals, "
+                      f"or relax the constraints", RuntimeWarning, stacklevel=3)
+    U = state["U"]
+    F = np.asarray(state["F"])
+    P = np.asarray(state["P"])
+    G = -F + lam * P
+    kw = dict(delta=float(np.max(steps)), side_lengths=search.widths, delta_l2=search.covering_radius(delta))
+    cert = certificate(U, G, **kw)
+    feas = P == 0
+    cert["feasible"] = certificate(U[feas], G[feas], **kw)
+    cert["penalty_weight"] = lam
+    n = state["evaluations"]
+    hits = state["hits"]
+    cache = {"hits": hits, "misses": n, "size": len(state["cache"]),
+             "hit_rate": hits / (hits + n) if hits + n else 0.0, "nonfinite": state["nonfinite"]}
+    return OptimizeResult(
+        best_vector=b["X"].copy(), best_placement=space.to_placement(b["X"], name="optimized"),
+        best_score=b["F"], best_G=b["G"], best_penalty=b["P"], feasible=b["P"] == 0,
+        history=[dict(h) for h in state["history"]], evaluations=n, generations=state["generation"],
+        seconds=state["seconds"], certificate=cert, seed=seed, cache=cache, stop_reason=state["stop_reason"],
+        method=strategy.name, popsize=strategy.popsize, space=space, search_space=search,
+        delta=dict(delta) if isinstance(delta, Mapping) else float(delta), penalty_weight=lam,
+        resumed=resumed, checkpoint=None if checkpoint is None else str(checkpoint))

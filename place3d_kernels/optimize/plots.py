@@ -1,0 +1,147 @@
+"""Figures of an optimisation: convergence curve and rig layout. Agg only; pyplot's state is untouched.
+
+Both functions build a ``matplotlib.figure.Figure`` directly (no ``pyplot``), so they work headless and
+never change the backend of an interactive session.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from place3d_kernels.placement import Placement
+
+__all__ = ["plot_convergence", "plot_rig"]
+
+
+def _figure(w, h):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(w, h), dpi=120)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, bbox_inches="tight")
+    return path
+
+
+def _col(history, key):
+    return np.array([np.nan if h.get(key) is None else float(h[key]) for h in history])
+
+
+def plot_convergence(history: Sequence[Mapping], path, title: str = "CMA-ES placement search") -> Path:
+    """Objective against evaluations: best so far, generation best and mean; step size on a second axis.
+
+    Args:
+        history: ``OptimizeResult.history`` (or its JSON form).
+        path: output image (PNG, SVG, PDF by suffix).
+    """
+    if not history:
+        raise ValueError("plot_convergence needs a non-empty history")
+    ev = _col(history, "evaluations")
+    fig = _figure(7, 4)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot(ev, _col(history, "mean"), color="0.6", lw=1, label="generation mean")
+    ax.plot(ev, _col(history, "best"), ".", color="tab:blue", ms=3, label="generation best")
+    ax.plot(ev, _col(history, "best_so_far"), color="tab:red", lw=2, drawstyle="steps-post",
+            label="best so far (feasible first)")
+    ax.set_xlabel("objective evaluations (distinct grid points)")
+    ax.set_ylabel("score F (higher is better)")
+    ax.grid(alpha=0.3)
+    sig = _col(history, "sigma")
+    handles, labels = ax.get_legend_handles_labels()
+    if np.isfinite(sig).any():
+        ax2 = ax.twinx()
+        ax2.semilogy(ev, sig, color="tab:green", lw=1, ls="--", label="sigma (relative)")
+        ax2.set_ylabel("CMA-ES step size sigma")
+        h2, l2 = ax2.get_legend_handles_labels()
+        handles, labels = handles + h2, labels + l2
+    ax.legend(handles, labels, loc="lower right", fontsize=8)
+    ax.set_title(title)
+    return _save(fig, path)
+
+
+def _as_placements(baselines) -> list[Placement]:
+    if baselines is None:
+        return []
+    if isinstance(baselines, Placement):
+        return [baselines]
+    if isinstance(baselines, Mapping):
+        return [p if isinstance(p, Placement) else Placement(p, name=str(k)) for k, p in baselines.items()]
+    out = []
+    for b in baselines:
+        out.append(b if isinstance(b, Placement) else Placement.load(b))
+    return out
+
+
+def _box(bounds, key, fallback):
+    if bounds is None:
+        return None
+    b = bounds.bounds if hasattr(bounds, "bounds") else bounds
+    if key in b:
+        return tuple(float(t) for t in b[key])
+    return fallback
+
+
+def plot_rig(placement: Placement, path, baselines=None, bounds=None, title: str | None = None) -> Path:
+    """Top view (x-y), side view (x-z) and front view (y-z, seen from ahead; roll drawn as each sensor's tilt).
+
+    Args:
+        placement: the rig to draw (highlighted, LiDARs numbered).
+        path: output image.
+        baselines: optional placements drawn faintly for comparison: Placements, shipped names
+            (``"pyramid"``), or ``{name: Placement}``.
+        bounds: optional search box (``SearchSpace`` or ``{name: (lower, upper)}``) drawn dashed.
+    """
+    if not isinstance(placement, Placement):
+        placement = Placement(placement)
+    others = _as_placements(baselines)
+    fig = _figure(13, 4.4)
+    views = [("top view", 0, 1, "x forward [m]", "y left [m]"),
+             ("side view", 0, 2, "x forward [m]", "z up [m]"),
+             ("front view (roll)", 1, 2, "y left [m]", "z up [m]")]
+    keys = "xyz"
+    colors = [f"C{i}" for i in range(1, 10)]
+    for j, (name, a, b, xl, yl) in enumerate(views):
+        ax = fig.add_subplot(1, 3, j + 1)
+        ba, bb = _box(bounds, keys[a], None), _box(bounds, keys[b], None)
+        if ba and bb:
+            ax.add_patch(_rect(ba, bb))
+        for k, o in enumerate(others):
+            ax.scatter(o.poses[:, a], o.poses[:, b], s=18, marker="x", color=colors[k % len(colors)],
+                       alpha=0.6, label=o.name or f"baseline {k}")
+        p = placement.poses
+        ax.scatter(p[:, a], p[:, b], s=60, color="tab:red", zorder=3, label=placement.name or "placement")
+        for i, row in enumerate(p):
+            ax.annotate(str(i + 1), (row[a], row[b]), textcoords="offset points", xytext=(5, 5), fontsize=8)
+            if name.startswith("front"):
+                # the sensor's horizontal plane tilted by roll (rotation about x; y left, z up)
+                r, half = row[3], 0.12
+                dy, dz = half * np.cos(r), half * np.sin(r)
+                ax.plot([row[1] - dy, row[1] + dy], [row[2] - dz, row[2] + dz], color="tab:red", lw=2)
+                if abs(r) > 1e-12:
+                    ax.annotate(f"{r:+.2f} rad", (row[1], row[2]), textcoords="offset points", xytext=(5, -11),
+                                fontsize=7, color="tab:red")
+        ax.set_xlabel(xl)
+        ax.set_ylabel(yl)
+        ax.set_title(name)
+        ax.grid(alpha=0.3)
+        ax.set_aspect("equal", adjustable="datalim")
+        if j == 0:
+            ax.legend(fontsize=7, loc="best")
+    fig.suptitle(title or f"LiDAR rig: {placement.name or 'placement'}")
+    return _save(fig, path)
+
+
+def _rect(ra, rb):
+    from matplotlib.patches import Rectangle
+
+    return Rectangle((ra[0], rb[0]), ra[1] - ra[0], rb[1] - rb[0], fill=False, ls="--", color="0.5",
+                     label="search box")
