@@ -70,7 +70,10 @@ def check_rays(origins, directions, t, what: str = "t_end") -> tuple[np.ndarray,
     if np.any(norm == 0):
         i = int(np.argmax(norm == 0))
         raise ValueError(f"ray {i} has a zero-length direction; every ray needs a non-zero direction")
-    d = d / norm[:, None]
+    # normalise, but leave directions that are unit to rounding untouched: renormalising them would nudge
+    # rays that pass exactly through voxel edges to one side, and the same rays must give the same voxels
+    # whichever entry point (traverse, coverage, msog_batch) they come through
+    d = np.where(np.abs(norm - 1.0)[:, None] > 1e-12, d / norm[:, None], d)
     tt = np.asarray(t, dtype=np.float64)
     if tt.ndim == 0:
         tt = np.full(len(o), float(tt))

@@ -450,3 +450,33 @@ def test_plots(tmp_path):
     b = plot_rig(res.best_placement, tmp_path / "rig.png", baselines=["pyramid", "square"], bounds=space)
     for p in (a, b):
         assert p.exists() and p.stat().st_size > 5000
+
+
+# ---------------------------------------------------------------------------- M-SOG objective (lead)
+def test_msog_objective_cache_is_bit_identical_to_msog_batch(backend):
+    import place3d_kernels as p3k
+    from place3d_kernels.classes import CLASS_ID
+    from place3d_kernels.optimize import MSOGObjective, SearchSpace
+
+    grid = p3k.Grid(lower=(-6.05, -6.05, -0.45), upper=(5.95, 5.95, 3.55), voxel_size=0.2)
+    rng = np.random.default_rng(3)
+    probs = np.zeros(grid.shape + (22,))
+    probs[..., 0] = 1.0
+    occ = rng.uniform(size=grid.shape) < 0.03
+    probs[occ, 0] = 0.4
+    probs[occ, CLASS_ID["road"]] = 0.6
+    probs[:, :, 2] = 0
+    probs[:, :, 2, CLASS_ID["road"]] = 1.0         # the ground layer stops downward rays
+    psog = p3k.PSOG.from_probabilities(grid, probs)
+    lidar = p3k.LidarModel.uniform(4, (-20, 2), 40, max_range=30.0)
+    space = SearchSpace(n_lidars=2)
+    X = space.snap(rng.uniform(space.lower, space.upper, (6, space.dim)))
+    X[3] = X[0]                                      # a repeated rig: both its poses come from the cache
+    obj = MSOGObjective(psog, lidar, space, task="seg", backend=backend)
+    got = obj(X)
+    want = p3k.msog_batch(psog, lidar, space.to_poses(X), backend=backend)
+    np.testing.assert_array_equal(got, want)
+    assert obj.pose_misses <= 10 and obj.pose_hits >= 2
+    misses = obj.pose_misses
+    np.testing.assert_array_equal(obj(X[:2]), want[:2])
+    assert obj.pose_misses == misses               # nothing traversed again

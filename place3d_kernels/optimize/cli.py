@@ -35,7 +35,7 @@ def run(args, psog_for) -> int:
     from place3d_kernels.backend import get_backend
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.metrics import msog_batch
-    from place3d_kernels.optimize import FixedHeight, MinDistance, SearchSpace, optimize
+    from place3d_kernels.optimize import FixedHeight, MinDistance, MSOGObjective, SearchSpace, optimize
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
 
     if args.condition:
@@ -49,8 +49,7 @@ def run(args, psog_for) -> int:
     if args.fixed_height is not None:
         cons.append(FixedHeight(args.fixed_height))
 
-    def objective(X):
-        return msog_batch(psog, lidar, space.to_poses(X), occlusion=args.occlusion, task=args.task, backend=b)
+    objective = MSOGObjective(psog, lidar, space, task=args.task, occlusion=args.occlusion, backend=b)
 
     res = optimize(objective, space, cons, sigma0=args.sigma0, popsize=args.popsize, max_evals=args.max_evals,
                    delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
@@ -64,7 +63,7 @@ def run(args, psog_for) -> int:
     best = res.best_placement
     best.name = f"optimized-{args.task}"
     print(f"best M-SOG ({args.task}) {res.best_score:.6f} after {res.evaluations} evaluations in {seconds:.1f} s "
-          f"on {b.name}")
+          f"on {b.name}; LiDAR poses traversed {objective.pose_misses}, reused {objective.pose_hits}")
     for name, s in sorted(baselines.items(), key=lambda kv: -kv[1]):
         mark = "  <" if s > res.best_score else ""
         print(f"  {name:14s} {s:.6f}{mark}")
@@ -83,7 +82,9 @@ def run(args, psog_for) -> int:
                   "certificate": {k: cert.get(k) for k in ("k_G", "C_M", "bound", "bound_corollary")},
                   "evaluations": res.evaluations, "seconds": seconds, "backend": b.name, "seed": args.opt_seed,
                   "scene": {"name": args.scene, "seed": args.seed, "frames": args.frames},
-                  "feasible": res.feasible, "details": res.to_dict()}
+                  "feasible": res.feasible, "pose_cache": {"traversed": objective.pose_misses,
+                                                           "reused": objective.pose_hits},
+                  "details": res.to_dict()}
         (out / "result.json").write_text(json.dumps(result, indent=2, default=float))
         with open(out / "history.csv", "w", newline="") as fh:
             if res.history:
