@@ -9,7 +9,7 @@ Public API (see the README and DESIGN.md):
 >>> p3k.msog(psog, p3k.LidarModel.load("place3d_16ch"), p3k.Placement.load("pyramid"))
 """
 
-from place3d_kernels import scene
+from place3d_kernels import conditions, scene
 from place3d_kernels.backend import available_backends, backend_report, get_backend, use_backend
 from place3d_kernels.classes import CLASSES
 from place3d_kernels.grid import DEFAULT_GRID, Grid
@@ -32,6 +32,6 @@ __all__ = [
     "Grid", "DEFAULT_GRID", "Mesh", "PointCloud", "Frame", "CLASSES",
     "LidarModel", "lidar_rays", "Placement", "PAPER_PLACEMENTS", "BASELINES",
     "raycast", "traverse", "coverage", "Hits", "Traversal",
-    "PSOG", "msog", "msog_batch", "covered_voxels", "simulate", "scene_psog", "scene",
+    "PSOG", "msog", "msog_batch", "covered_voxels", "simulate", "scene_psog", "scene", "conditions",
     "optimize", "SearchSpace", "OptimizeResult", "MinDistance", "FixedHeight", "Bounds", "CallableConstraint",
 ]

@@ -22,6 +22,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--voxel-size", type=float, default=None, help="ROI voxel size in metres (default 0.2)")
     p.add_argument("--no-cache", action="store_true", help="rebuild the P-SOG even if a cached one exists")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--condition", default=None,
+                   help="adverse condition on the simulated frames: fog, wet_ground, snow, motion_blur, crosstalk, "
+                        "incomplete_echo (paper settings unless --severity/--param)")
+    p.add_argument("--severity", default=None, choices=["light", "moderate", "heavy"], help="condition severity")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="condition parameter, e.g. --param alpha=0.03 (repeatable)")
 
 
 def _grid(args):
@@ -43,12 +49,31 @@ def _scene(args):
     raise SystemExit(f"place3d: unknown scene {name!r}; use 'town'")
 
 
+def _condition(args, backend):
+    """The FrameCondition named by --condition / --severity / --param KEY=VALUE, or None."""
+    if not getattr(args, "condition", None):
+        return None
+    from place3d_kernels.pipeline import FrameCondition
+
+    params = {}
+    for kv in getattr(args, "param", []) or []:
+        if "=" not in kv:
+            raise ValueError(f"--param expects KEY=VALUE, got {kv!r}")
+        k, v = kv.split("=", 1)
+        try:
+            params[k] = float(v)
+        except ValueError:
+            params[k] = v
+    return FrameCondition(args.condition, seed=args.seed, backend=backend, severity=args.severity, **params)
+
+
 def _psog(args, backend):
     from place3d_kernels.pipeline import scene_psog
 
     t = time.perf_counter()
     sc = _scene(args)
-    psog = scene_psog(sc, grid=_grid(args), backend=backend, cache=not args.no_cache, progress=not args.quiet)
+    psog = scene_psog(sc, grid=_grid(args), backend=backend, cache=not args.no_cache, progress=not args.quiet,
+                      condition=_condition(args, backend))
     if not args.quiet:
         print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
     return sc, psog
@@ -85,7 +110,8 @@ def cmd_evaluate(args) -> int:
         rows.append({"placement": pl.name or name, "msog_seg": seg, "msog_det": det})
     rows.sort(key=lambda r: -r["msog_seg"])
     seconds = time.perf_counter() - t0
-    print(f"M-SOG on scene {args.scene} (seed {args.seed}), backend {b.name}, grid {psog.grid.shape} "
+    cond = f", condition {args.condition}" if args.condition else ""
+    print(f"M-SOG on scene {args.scene} (seed {args.seed}{cond}), backend {b.name}, grid {psog.grid.shape} "
           f"@ {psog.grid.voxel_size} m, occlusion {args.occlusion}; higher is better")
     print(f"{'rank':>4}  {'placement':14s} {'M-SOG seg':>12s} {'M-SOG det':>12s}")
     det_rank = {r["placement"]: i + 1 for i, r in enumerate(sorted(rows, key=lambda r: -r["msog_det"]))}
@@ -110,12 +136,9 @@ def cmd_simulate(args) -> int:
     b = get_backend(args.backend)
     sc = _scene(args)
     frames = simulate(sc, args.lidar, backend=b, progress=not args.quiet)
-    if args.condition:
-        from place3d_kernels.conditions import apply_to_frames
-
-        params = dict(kv.split("=", 1) for kv in args.param)
-        frames = apply_to_frames(frames, args.condition, seed=args.seed, backend=b,
-                                 **{k: float(v) for k, v in params.items()})
+    cond = _condition(args, b)
+    if cond is not None:
+        frames = [cond(f, i) for i, f in enumerate(frames)]
     out = write_semantickitti_sequence(frames, args.output)
     print(f"wrote {len(frames)} frames to {out}")
     return 0
@@ -156,8 +179,6 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="simulate semantic LiDAR frames (SemanticKITTI layout)")
     _add_common(p)
     p.add_argument("--lidar", default="collection_64ch", help="LiDAR model (default collection_64ch)")
-    p.add_argument("--condition", help="adverse condition to apply (fog, wet_ground, snow, motion_blur, ...)")
-    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="condition parameter")
     p.add_argument("--output", required=True, help="output folder")
     p.set_defaults(func=cmd_simulate)
 

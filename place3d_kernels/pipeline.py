@@ -12,7 +12,7 @@ from place3d_kernels.lidar import LidarModel
 from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
 from place3d_kernels.sog import PSOG, cache_dir, cache_key
 
-__all__ = ["scene_psog", "DEFAULT_FRAMES_PER_SUBSET"]
+__all__ = ["scene_psog", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET"]
 
 log = logging.getLogger(__name__)
 
@@ -30,8 +30,8 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     simulation. ``cache=False`` disables it; a path chooses the folder.
 
     Args:
-        condition: optional callable ``frame_cloud -> frame_cloud`` applied to each simulated frame
-            (adverse conditions); it must carry a ``key`` attribute for the cache.
+        condition: optional ``FrameCondition`` (or any callable ``(frame, index) -> frame`` with a ``key``
+            attribute for the cache) applied to each simulated frame before voting.
     """
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
@@ -49,8 +49,49 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
                 log.warning("ignoring unreadable P-SOG cache %s: %s", path, e)
     frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress)
     if condition is not None:
-        frames = [condition(f) for f in frames]
+        frames = [condition(f, i) for i, f in enumerate(frames)]
     psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)
     if path is not None:
         psog.save(path)
     return psog
+
+
+class FrameCondition:
+    """An adverse condition applied to simulated frames (callable ``Frame -> Frame``).
+
+    Each frame gets its own seed derived from the run seed and the frame's position in the drive, so
+    results never depend on evaluation order. ``key`` identifies the condition for P-SOG caches.
+
+    Args:
+        name: condition name (``place3d_kernels.conditions.CONDITIONS``) or a condition TOML path.
+        seed: run seed.
+        backend: backend for the condition kernels.
+        severity: "light" | "moderate" | "heavy" (default: the paper's setting).
+        **params: condition parameters (override the severity's).
+    """
+
+    def __init__(self, name: str, seed: int = 0, backend=None, severity: str | None = None, **params):
+        from place3d_kernels import conditions
+
+        if name not in conditions.CONDITIONS and not Path(name).exists():
+            raise ValueError(f"unknown condition {name!r}; choose one of {sorted(conditions.CONDITIONS)} "
+                             f"or give a condition TOML file")
+        self.name, self.seed, self.backend, self.severity, self.params = name, int(seed), backend, severity, params
+        self.key = {"condition": name, "seed": self.seed, "severity": severity,
+                    "params": {k: params[k] for k in sorted(params)}}
+        self._count = 0
+
+    def __call__(self, frame, index: int | None = None):
+        from place3d_kernels import conditions
+        from place3d_kernels.pointcloud import PointCloud
+        from place3d_kernels.sog import Frame
+
+        i = self._count if index is None else index
+        self._count += 1
+        cloud = PointCloud(frame.points, frame.labels,
+                           frame.intensity if frame.intensity is not None else np.zeros(len(frame.points)),
+                           frame.origins)
+        out = conditions.apply(cloud, self.name, seed=self.seed * 1_000_003 + i, backend=self.backend,
+                               severity=self.severity, **self.params)
+        origin = None if frame.origins is None else np.asarray(frame.origins, dtype=np.float64).reshape(-1, 3)[0]
+        return Frame(out.points, out.labels, frame.ego_pose, out.intensity, origin)

@@ -102,3 +102,19 @@ def test_cli_backends_and_errors(tmp_path):
     assert r.returncode == 2 and "Available here" in r.stderr
     r = _cli("evaluate", "not-a-placement", "--quiet", env_cache=tmp_path)
     assert r.returncode == 2 and "shipped names" in r.stderr
+
+
+def test_conditions_plug_into_the_psog(small_town, tmp_path):
+    from place3d_kernels.pipeline import FrameCondition
+
+    lidar = p3k.LidarModel.uniform(16, (-30, 10), 180, max_range=40.0, name="cond16")
+    clean = p3k.scene_psog(small_town, GRID, lidar, frames_per_subset=4, cache=tmp_path)
+    fog = FrameCondition("fog", seed=1, alpha=0.06)
+    foggy = p3k.scene_psog(small_town, GRID, lidar, frames_per_subset=4, cache=tmp_path, condition=fog)
+    again = p3k.scene_psog(small_town, GRID, lidar, frames_per_subset=4, cache=False,
+                           condition=FrameCondition("fog", seed=1, alpha=0.06))
+    assert len(list(tmp_path.glob("psog-*.npz"))) == 2          # the condition is part of the cache key
+    np.testing.assert_array_equal(foggy.probs, again.probs)     # per-frame seeds: deterministic
+    assert not np.array_equal(clean.voxels, foggy.voxels)
+    with pytest.raises(ValueError, match="unknown condition"):
+        FrameCondition("hail")

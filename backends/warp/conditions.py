@@ -88,8 +88,9 @@ def _wet_kernel(intensity: wp.array(dtype=wp.float32), cos_theta: wp.array(dtype
     if den != 0.0:
         rho = wp.clamp(inten / den, rho_min, rho_max)
     theta = wp.max(wp.acos(ct), _THETA_MIN)
-    cos_i = wp.cos(theta)
-    sin_w = wp.sin(theta) * n_air / n_water
+    # use cos theta as given: cos(acos(x)) in float32 loses digits at grazing incidence
+    cos_i = ct
+    sin_w = wp.sqrt(wp.clamp(1.0 - ct * ct, 0.0, 1.0)) * n_air / n_water
     cos_w = wp.sqrt(1.0 - sin_w * sin_w)
     t_best = float(0.0)
     for pol in range(2):
@@ -159,6 +160,10 @@ def _snow_kernel(ranges: wp.array(dtype=wp.float32), intensity: wp.array(dtype=w
         clear = clear * (1.0 - q0)
     p_t = inten * clear
     half = 0.5 * pulse_length
+    # w0: the waveform at the target's own peak (k = 0); the maximum is at least this
+    w0 = p_t
+    for jj in range(s, e):
+        w0 = w0 + power[jj] * _bump(r0, fr[jj], half, pulse_length)
     n_samples = int(wp.floor(pulse_length / step)) + 2
     best = float(-1.0)
     best_k = int(0)
@@ -168,6 +173,15 @@ def _snow_kernel(ranges: wp.array(dtype=wp.float32), intensity: wp.array(dtype=w
         rj = r0
         if j < e:
             rj = fr[j]
+            # exact pruning: pulses within one pulse length of r_j bound every sample of this window
+            bound = float(0.0)
+            if r0 - rj <= pulse_length:
+                bound = p_t
+            for jj in range(s, e):
+                if wp.abs(fr[jj] - rj) <= pulse_length:
+                    bound = bound + power[jj]
+            if bound < w0:
+                continue
         k_lo = int(wp.ceil((rj - half - r0) / step))
         for m in range(n_samples):
             k = k_lo + m
@@ -182,7 +196,10 @@ def _snow_kernel(ranges: wp.array(dtype=wp.float32), intensity: wp.array(dtype=w
                     found = 1
     peak = wp.clamp(best, 0.0, intensity_max)
     out_i[tid] = peak
-    if wp.abs(best_k) <= 1:
+    if best <= 0.0:
+        # beam blocked before the overlap range R1: no return at all
+        out_keep[tid] = wp.uint8(0)
+    elif wp.abs(best_k) <= 1:
         if peak < threshold[tid]:
             out_keep[tid] = wp.uint8(0)
     else:

@@ -25,7 +25,6 @@ def add_arguments(p) -> None:
     p.add_argument("--delta", type=float, default=0.1, help="grid density of candidates (default 0.1, the paper's)")
     p.add_argument("--opt-seed", type=int, default=0, help="optimiser seed (default 0)")
     p.add_argument("--occlusion", default="sog", choices=["sog", "none"], help="ray occlusion mode")
-    p.add_argument("--condition", default=None, help="adverse condition applied to the frames the P-SOG is built from")
     p.add_argument("--checkpoint", default=None, help="checkpoint file written after every generation")
     p.add_argument("--resume", action="store_true", help="continue from --checkpoint")
     p.add_argument("--output", default=None, help="folder for result.json, placement TOML, history.csv and plots")
@@ -38,8 +37,6 @@ def run(args, psog_for) -> int:
     from place3d_kernels.optimize import FixedHeight, MinDistance, MSOGObjective, SearchSpace, optimize
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
 
-    if args.condition:
-        raise ValueError("--condition for optimize needs the conditions module's frame hook; not wired yet")
     t0 = time.perf_counter()
     b = get_backend(args.backend)
     lidar = LidarModel.load(args.lidar)
