@@ -23,6 +23,7 @@ from place3d_kernels.pipeline import scene_psog
 from place3d_kernels.placement import BASELINES, PAPER_PLACEMENTS, Placement
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.simulate import simulate
+from place3d_kernels.smig import BernoulliGrid, scene_boxes, smig, smig_batch
 from place3d_kernels.sog import PSOG, Frame
 
 __version__ = "0.1.0"
@@ -33,5 +34,6 @@ __all__ = [
     "LidarModel", "lidar_rays", "Placement", "PAPER_PLACEMENTS", "BASELINES",
     "raycast", "traverse", "coverage", "Hits", "Traversal",
     "PSOG", "msog", "msog_batch", "covered_voxels", "simulate", "scene_psog", "scene", "conditions",
+    "smig", "smig_batch", "BernoulliGrid", "scene_boxes",
     "optimize", "SearchSpace", "OptimizeResult", "MinDistance", "FixedHeight", "Bounds", "CallableConstraint",
 ]

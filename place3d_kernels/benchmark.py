@@ -92,15 +92,21 @@ def run_kernel_bench(backends=None, quick: bool = False, progress: bool = True, 
         r["population16_eval_ms"] = 1e3 * _time(lambda: p3k.msog_batch(psog, lidar, pop, backend=b), sync,
                                                 repeat=3)
         r["psog_build_s"] = _time(lambda: PSOG.from_frames(frames, psog.grid, 4, backend=b), sync, repeat=2)
+        if hasattr(b, "resident_traverse"):    # kernel only, rays already on the device
+            run = b.resident_traverse(psog.grid.spec, psog.grid.to_local(o), d, lidar.max_range)
+            r["traverse_kernel_gsteps_s"] = steps / _time(run, sync, repeat=5) / 1e9
         if name != "reference":   # brute-force reference ray-mesh is far too slow for these meshes
             co, cd = b.lidar_rays(collection.elevations, collection.azimuths, ego0[None])
-            mesh = scene.static
+            mesh = p3k.Mesh(scene.static.vertices, scene.static.faces, scene.static.labels)  # fresh: no cached BVH
             t0 = time.perf_counter()
             mesh.handle(b)
             sync()
             r["town_bvh_build_s"] = time.perf_counter() - t0
             r["raycast_town_mrays_s"] = len(co) / _time(lambda: p3k.raycast(mesh, co, cd, 100.0, backend=b), sync,
                                                           repeat=3) / 1e6
+            if hasattr(b, "resident_raycast"):
+                run = b.resident_raycast(mesh.handle(b), co - mesh.shift, cd, 100.0)
+                r["raycast_town_kernel_mrays_s"] = len(co) / _time(run, sync, repeat=5) / 1e6
             if not quick:
                 if city is None:
                     city = box_city(1_000_000, seed=seed)
@@ -112,6 +118,10 @@ def run_kernel_bench(backends=None, quick: bool = False, progress: bool = True, 
                 r["city_bvh_build_s"] = time.perf_counter() - t0
                 r["raycast_mrays_s"] = len(do) / _time(lambda: p3k.raycast(city, do, dd, 200.0, backend=b), sync,
                                                        repeat=2) / 1e6
+                if hasattr(b, "resident_raycast"):
+                    run = b.resident_raycast(city.handle(b), do - city.shift, dd / np.linalg.norm(dd, axis=1)[:, None],
+                                             200.0)
+                    r["raycast_kernel_mrays_s"] = len(do) / _time(run, sync, repeat=3) / 1e6
         out["backends"][b.name] = r
         if progress:
             print(f"{b.name}: {r}", flush=True)

@@ -16,7 +16,8 @@ __all__ = ["main"]
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", default=None,
                    help="reference | warp[:cpu|:cuda:N] | opencl[:platform] | auto (default: $PLACE3D_BACKEND or auto)")
-    p.add_argument("--scene", default="town", help="scene: 'town' (the embedded procedural town)")
+    p.add_argument("--scene", default="town",
+                   help="scene: 'town' (the embedded procedural town) or 'opendrive:PATH' (e.g. a CARLA .xodr map)")
     p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     p.add_argument("--frames", type=int, default=40, help="frames along the ego route (default 40, as the paper)")
     p.add_argument("--voxel-size", type=float, default=None, help="ROI voxel size in metres (default 0.2)")
@@ -44,9 +45,9 @@ def _scene(args):
     name = args.scene
     if name == "town":
         return scenes.town(seed=args.seed, n_frames=args.frames)
-    if name.startswith("opendrive:") and hasattr(scenes, "from_opendrive"):
+    if name.startswith("opendrive:"):
         return scenes.from_opendrive(name.split(":", 1)[1], seed=args.seed, n_frames=args.frames)
-    raise SystemExit(f"place3d: unknown scene {name!r}; use 'town'")
+    raise ValueError(f"unknown scene {name!r}; use 'town' or 'opendrive:PATH' (an OpenDRIVE .xodr file)")
 
 
 def _condition(args, backend):

@@ -137,6 +137,23 @@ class WarpCore(Backend):
         t[t >= 3.0e38] = np.inf
         return t, out_f.numpy()
 
+    def resident_raycast(self, mesh, origins, directions, t_max):
+        """For benchmarks: a zero-argument callable that launches the ray-mesh kernel on rays already on
+        the device (no host transfers), so kernel throughput can be timed apart from data movement."""
+        n = len(origins)
+        args = [mesh.bvh.id, mesh.points, mesh.indices, self._vec3(origins), self._vec3(directions),
+                self._f32(t_max, n), wp.empty(n, dtype=wp.float32, device=self.device),
+                wp.empty(n, dtype=wp.int32, device=self.device)]
+        return lambda: wp.launch(self.k.raycast_robust_kernel, dim=n, device=self.device, inputs=args)
+
+    def resident_traverse(self, grid, origins, directions, t_end, stop=None):
+        """For benchmarks: launch the traversal count kernel on resident rays (see ``resident_raycast``)."""
+        n, args = self._walk_args(grid, origins, directions, t_end)
+        stop_a, use = self._stop(stop)
+        counts = wp.zeros(n, dtype=wp.int64, device=self.device)
+        return lambda: wp.launch(self.k.traverse_count_kernel, dim=n, device=self.device,
+                                 inputs=args + [stop_a, use, counts])
+
     # ------------------------------------------------------------------ traversal
     def _walk_args(self, grid, origins, directions, t_end):
         n = len(origins)

@@ -332,6 +332,10 @@ def score_kernel(
     d = wp.normalize(rot[rig] * sensor_dirs[tid - rig * n])
     w = walk_begin(o, d, t_max, s, nx, ny, nz)
     base = wp.int64(cand) * words_per_candidate
+    # the ray that sets a voxel's bit first owns it; integer partial sums make the total independent of
+    # thread order, and one atomic per ray (not per voxel) keeps contention on sums[cand] low
+    my_sum = wp.int64(0)
+    my_count = wp.int64(0)
     for _ in range(nx + ny + nz + 3):
         if w.alive == 0:
             break
@@ -339,12 +343,15 @@ def score_kernel(
         bit = wp.uint32(1) << wp.uint32(v & wp.int64(31))
         old = wp.atomic_or(bits, base + (v >> wp.int64(5)), bit)
         if (old & bit) == wp.uint32(0):
-            wp.atomic_add(sums, cand, weights[v])
-            wp.atomic_add(counts, cand, wp.int64(1))
+            my_sum += weights[v]
+            my_count += wp.int64(1)
         if use_stop != 0:
             if stop[v] != wp.uint8(0):
                 break
         w = walk_next(w, o, d, s, nx, ny, nz)
+    if my_count > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+        wp.atomic_add(counts, cand, my_count)
 
 
 # ----------------------------------------------------------------------------- occupancy
