@@ -49,6 +49,9 @@ class Mesh:
         self.vertices = v
         self.faces = f
         self.labels = lab
+        #: faces with non-zero area in world coordinates; only these are uploaded, so a triangle that is
+        #: degenerate as given can never be hit, however the origin shift rounds its corners
+        self.valid_faces = np.flatnonzero(area2 > 0).astype(np.int64)
         lo, hi = v.min(axis=0), v.max(axis=0)
         #: float64 offset subtracted from vertices and ray origins before kernels run
         self.shift = np.round((lo + hi) / 2.0)
@@ -77,9 +80,17 @@ class Mesh:
         """The backend's acceleration structure for this mesh, built on first use."""
         h = self._handles.get(backend.name)
         if h is None:
-            h = backend.upload_mesh(self.vertices - self.shift, self.faces)
+            faces = self.faces if len(self.valid_faces) == len(self.faces) else self.faces[self.valid_faces]
+            h = backend.upload_mesh(self.vertices - self.shift, faces)
             self._handles[backend.name] = h
         return h
+
+    def original_face(self, uploaded: np.ndarray) -> np.ndarray:
+        """Map face ids of the uploaded (non-degenerate) faces back to this mesh's face ids (-1 stays)."""
+        uploaded = np.asarray(uploaded, dtype=np.int64)
+        if len(self.valid_faces) == len(self.faces):
+            return uploaded
+        return np.where(uploaded >= 0, self.valid_faces[np.clip(uploaded, 0, None)], -1)
 
     @staticmethod
     def concatenate(meshes: list["Mesh"]) -> "Mesh":

@@ -99,7 +99,7 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
     b = get_backend(backend)
     tm32 = np.minimum(tm, 1e30)  # float32 kernels need a finite bound
     t, face = b.raycast(mesh.handle(b), o - mesh.shift, d, tm32)
-    face = np.asarray(face, dtype=np.int64)
+    face = mesh.original_face(face)
     label = np.where(face >= 0, mesh.labels[np.clip(face, 0, None)], -1)
     return Hits(np.asarray(t, dtype=np.float64), face, label)
 

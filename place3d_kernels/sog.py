@@ -23,7 +23,7 @@ from place3d_kernels.pose import invert, pose_matrix, transform_points
 
 __all__ = ["Frame", "PSOG", "entropy", "cache_dir"]
 
-_FORMAT = 1  # bump when the on-disk layout or the build changes
+_FORMAT = 2  # bump when the on-disk layout or the build changes (2: float64 voxel binning)
 
 
 def cache_dir() -> Path:

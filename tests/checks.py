@@ -34,7 +34,7 @@ def assert_visits_close(grid, o, d, t_end, got, want, eps=EPS):
     glo, ghi = np.asarray(grid.lower), np.asarray(grid.upper)
     for v in set(got.tolist()) - set(np.asarray(want).tolist()):
         lo, hi = voxel_box(grid, v)
-        assert segment_overlap(o, d, t_end, lo - eps, hi + eps, glo, ghi) > 0, \
+        assert segment_overlap(o, d, t_end, lo - eps, hi + eps, glo - eps, ghi + eps) > 0, \
             f"voxel {v} visited but the ray passes farther than {eps} m from it"
     for v in set(np.asarray(want).tolist()) - set(got.tolist()):
         lo, hi = voxel_box(grid, v)

@@ -40,9 +40,10 @@ def warp_devices() -> list[str]:
 
 
 class _WarpMesh:
-    def __init__(self, bvh, points, indices, lowers, uppers):
+    def __init__(self, bvh, points, points64, indices, lowers, uppers):
         self.bvh = bvh            # keep the arrays alive with the BVH
         self.points = points
+        self.points64 = points64
         self.indices = indices
         self.lowers = lowers
         self.uppers = uppers
@@ -123,26 +124,26 @@ class WarpCore(Backend):
         pts = self._vec3(v)
         idx = wp.array(np.ascontiguousarray(f, dtype=np.int32).reshape(-1), dtype=wp.int32, device=self.device)
         bvh = wp.Bvh(lowers, uppers, constructor="sah")
-        return _WarpMesh(bvh, pts, idx, lowers, uppers)
+        return _WarpMesh(bvh, pts, self._vec3d(v), idx, lowers, uppers)
 
     def raycast(self, mesh, origins, directions, t_max):
         n = len(origins)
-        out_t = wp.empty(n, dtype=wp.float32, device=self.device)
+        out_t = wp.empty(n, dtype=wp.float64, device=self.device)
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
         if n:
             wp.launch(self.k.raycast_robust_kernel, dim=n, device=self.device,
-                      inputs=[mesh.bvh.id, mesh.points, mesh.indices, self._vec3(origins), self._vec3(directions),
-                              self._f32(t_max, n), out_t, out_f])
-        t = out_t.numpy().astype(np.float64)
-        t[t >= 3.0e38] = np.inf
+                      inputs=[mesh.bvh.id, mesh.points, mesh.points64, mesh.indices, self._vec3d(origins),
+                              self._vec3d(directions), self._f32(t_max, n), out_t, out_f])
+        t = out_t.numpy()
+        t[t >= 1.0e300] = np.inf
         return t, out_f.numpy()
 
     def resident_raycast(self, mesh, origins, directions, t_max):
         """For benchmarks: a zero-argument callable that launches the ray-mesh kernel on rays already on
         the device (no host transfers), so kernel throughput can be timed apart from data movement."""
         n = len(origins)
-        args = [mesh.bvh.id, mesh.points, mesh.indices, self._vec3(origins), self._vec3(directions),
-                self._f32(t_max, n), wp.empty(n, dtype=wp.float32, device=self.device),
+        args = [mesh.bvh.id, mesh.points, mesh.points64, mesh.indices, self._vec3d(origins), self._vec3d(directions),
+                self._f32(t_max, n), wp.empty(n, dtype=wp.float64, device=self.device),
                 wp.empty(n, dtype=wp.int32, device=self.device)]
         return lambda: wp.launch(self.k.raycast_robust_kernel, dim=n, device=self.device, inputs=args)
 

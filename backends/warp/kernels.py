@@ -105,19 +105,24 @@ def watertight_t(o: wp.vec3, d: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> 
 def raycast_robust_kernel(
     bvh: wp.uint64,
     points: wp.array(dtype=wp.vec3),
+    points64: wp.array(dtype=wp.vec3d),
     indices: wp.array(dtype=wp.int32),
-    origins: wp.array(dtype=wp.vec3),
-    dirs: wp.array(dtype=wp.vec3),
+    origins: wp.array(dtype=wp.vec3d),
+    dirs: wp.array(dtype=wp.vec3d),
     t_max: wp.array(dtype=wp.float32),
-    out_t: wp.array(dtype=wp.float32),
+    out_t: wp.array(dtype=wp.float64),
     out_face: wp.array(dtype=wp.int32),
 ):
     # Candidates come from a BVH over triangle boxes padded on the host, so float32 slab tests cannot
     # cull a triangle the ray touches; the triangle test itself is watertight. Closest hit wins; equal
-    # distances resolve to the lowest face id so results do not depend on traversal order.
+    # distances resolve to the lowest face id so results do not depend on traversal order. The winning
+    # face's distance is then recomputed in float64 from float64 inputs (plane equation), so grazing
+    # rays do not inherit float32 rounding of vertices and origins (0.3 mm at 13 m was seen).
     tid = wp.tid()
-    o = origins[tid]
-    d = dirs[tid]
+    o64 = origins[tid]
+    d64 = dirs[tid]
+    o = wp.vec3(wp.float32(o64[0]), wp.float32(o64[1]), wp.float32(o64[2]))
+    d = wp.vec3(wp.float32(d64[0]), wp.float32(d64[1]), wp.float32(d64[2]))
     best = t_max[tid]
     face = wp.int32(-1)
     q = wp.bvh_query_ray(bvh, o, d)
@@ -129,9 +134,17 @@ def raycast_robust_kernel(
                 best = t
                 face = f
     if face >= 0:
-        out_t[tid] = best
+        a64 = points64[indices[3 * face]]
+        n64 = wp.cross(points64[indices[3 * face + 1]] - a64, points64[indices[3 * face + 2]] - a64)
+        den = wp.dot(n64, d64)
+        t64 = wp.float64(best)
+        if den != wp.float64(0.0):
+            t64 = wp.dot(n64, a64 - o64) / den
+        if t64 < wp.float64(0.0):
+            t64 = wp.float64(0.0)
+        out_t[tid] = t64
     else:
-        out_t[tid] = INF
+        out_t[tid] = INF64
     out_face[tid] = face
 
 

@@ -61,7 +61,8 @@ class Constraint:
 class MinDistance(Constraint):
     """Centres of every two LiDARs at least ``d`` metres apart.
 
-    Penalty: sum over LiDAR pairs of ``max(0, d - |c_i - c_j|)`` (metres of shortfall).
+    Penalty: sum over LiDAR pairs of ``max(0, d - |c_i - c_j|)`` (metres of shortfall); shortfalls up to
+    1e-9 m (floating-point rounding of grid points exactly ``d`` apart) count as feasible.
     """
 
     def __init__(self, d: float):
@@ -80,7 +81,10 @@ class MinDistance(Constraint):
             return np.zeros(len(p))
         i, j = np.triu_indices(L, 1)
         dist = np.linalg.norm(p[:, i, :3] - p[:, j, :3], axis=-1)
-        return np.maximum(0.0, self.d - dist).sum(axis=1)
+        # a nanometre of slack: grid points exactly d apart (2.4 - 2.2 = 0.19999999999999973) are feasible,
+        # as in the paper's "center" rig
+        short = self.d - dist
+        return np.where(short > 1e-9, short, 0.0).sum(axis=1)
 
     def check(self, space: SearchSpace, delta=DEFAULT_DELTA) -> None:
         L = space.n_lidars

@@ -179,7 +179,8 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
         progress: tqdm progress bar on stderr.
         callback: ``callback(info: dict)`` after each generation (the history entry plus ``best_vector``);
             return True to stop.
-        x0: initial mean, a ``Placement`` or a vector of ``space`` (default: centre of the box).
+        x0: initial mean, a ``Placement`` or a vector of ``space`` (default: centre of the box). With
+            ``method="cma"`` it is also injected into the first generation, so it is always scored.
         max_stall_generations: stop after this many generations in a row without a new grid point.
         cma_options: extra pycma options (e.g. ``{"tolfun": 0}``).
 
@@ -247,6 +248,9 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
         strategy = make_strategy(method, x0=k0, kmin=kmin[free], kmax=kmax[free], sigma0=sigma0,
                                  widths_idx=search.widths[free] / steps[free], popsize=popsize, seed=seed,
                                  options=cma_options)
+        if x0_vec is not None and hasattr(strategy, "es"):
+            # the first generation scores x0 itself, so a warm start never ends below its starting rig
+            strategy.es.inject([k0], force=True)
         state = {"setup": setup, "strategy": strategy, "cache": {}, "U": np.zeros((0, search.dim)), "F": [], "P": [],
                  "history": [], "evaluations": 0, "generation": 0, "hits": 0, "stall": 0, "nonfinite": 0,
                  "worst_G": None, "best": None, "seconds": 0.0, "stop_reason": None}

@@ -60,7 +60,18 @@ class Scene:
 
     @property
     def key(self) -> str:
-        return f"{self.name}-seed{self.seed}-f{self.n_frames}-v{len(self.static.vertices)}-t{self.static.n_faces}"
+        """Identity for on-disk caches: name, seed, and a hash of the geometry, labels, route and actors."""
+        if "_key" not in self.__dict__:
+            import hashlib
+
+            h = hashlib.blake2b(digest_size=12)
+            for arr in (self.static.vertices, self.static.faces, self.static.labels, self.ego_poses):
+                h.update(np.ascontiguousarray(arr).tobytes())
+            for a in self.actors:
+                for arr in (a.mesh.vertices, a.mesh.faces, a.mesh.labels, a.poses):
+                    h.update(np.ascontiguousarray(arr).tobytes())
+            self.__dict__["_key"] = f"{self.name}-seed{self.seed}-f{self.n_frames}-{h.hexdigest()}"
+        return self.__dict__["_key"]
 
     def dynamic(self, frame: int) -> Mesh | None:
         """All actors at one frame as one Mesh (None when the scene has no actors)."""
