@@ -1,10 +1,30 @@
-"""OpenCL backend (PyOpenCL; PoCL on CPU, any OpenCL GPU). Not written yet."""
+"""OpenCL backend (PyOpenCL; PoCL on the CPU, any OpenCL GPU).
+
+``opencl_devices()`` lists the usable platforms by short name (``"pocl"``, ``"nvidia"``, ...);
+``OpenCLBackend(name)`` runs the kernels of ``backends/base.py`` on one of them. Kernel sources are the
+``*.cl`` files next to this module; the ray caster's BVH is built on the host (``bvh.py``).
+
+Importing this package raises ImportError when PyOpenCL is not installed.
+"""
+
+from __future__ import annotations
+
+try:
+    import pyopencl  # noqa: F401
+except ImportError as e:  # pragma: no cover - depends on the environment
+    raise ImportError(f"PyOpenCL is not installed ({e})") from e
+
+from place3d_kernels.backends.opencl._runtime import INSTALL_HINT, platform_table
+from place3d_kernels.backends.opencl.backend import OpenCLBackend
 
 
 def opencl_devices() -> list[str]:
-    raise ImportError("the OpenCL backend is not implemented yet")
+    """Short names of the OpenCL platforms that have a usable device, e.g. ``['pocl']``; ``[]`` if none.
+
+    Raises:
+        ImportError: PyOpenCL is not installed.
+    """
+    return list(platform_table())
 
 
-class OpenCLBackend:  # pragma: no cover - placeholder
-    def __init__(self, platform: str):
-        raise ImportError("the OpenCL backend is not implemented yet")
+__all__ = ["OpenCLBackend", "opencl_devices", "INSTALL_HINT"]

@@ -1,0 +1,496 @@
+"""The OpenCL backend: kernels in ``*.cl`` next to this file, host code here (PyOpenCL)."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pyopencl as cl
+
+from place3d_kernels.backends.base import Backend, BackendUnavailable, GridSpec, rotation_matrices, sensor_directions
+from place3d_kernels.backends.opencl import _runtime as rt
+from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, brute_force_raycast, build_bvh, collapse_bvh4
+
+__all__ = ["OpenCLBackend", "CLMesh", "CLGrid"]
+
+_MF = cl.mem_flags
+#: candidates per score launch are chunked so that their visited-voxel bitsets stay below this
+_BITSET_BYTES = 256 * 2**20
+#: largest dense (voxel, class) count table of ``vote``; larger problems use hash tables
+_DENSE_VOTE_BYTES = 256 * 2**20
+#: work-group size on CPU devices
+_CPU_GROUP = 8
+
+
+class CLMesh:
+    """Handle of an uploaded mesh: the BVH on the host and its device buffers."""
+
+    def __init__(self, backend: "OpenCLBackend", vertices: np.ndarray, faces: np.ndarray, bvh: BVH):
+        self.vertices = vertices
+        self.faces = faces
+        self.bvh = bvh
+        ctx = backend.ctx
+        self.width = backend.bvh_width
+        self.bvh4 = collapse_bvh4(bvh) if self.width == 4 else None
+        nodes = self.bvh4.nodes if self.width == 4 else bvh.nodes
+        self.nodes = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=nodes)
+        self.tris = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=bvh.tris)
+        if backend.fp64:  # float64 mesh for the final hit distance
+            self.verts64 = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=vertices)
+            self.faces32 = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=faces)
+
+    def __repr__(self) -> str:
+        tree = self.bvh4 if self.width == 4 else self.bvh
+        return f"<CLMesh {len(self.faces)} faces, BVH{self.width} of {tree.n_nodes} nodes, depth {tree.depth}>"
+
+
+class CLGrid:
+    """Handle of a prepared grid: fixed-point weights and the stop mask on the device."""
+
+    def __init__(self, backend: "OpenCLBackend", spec: GridSpec, weights: np.ndarray, stop: np.ndarray | None):
+        self.spec = spec
+        ctx = backend.ctx
+        w = np.ascontiguousarray(weights, dtype=np.int64).reshape(-1)
+        if w.shape != (spec.n_voxels,):
+            raise ValueError(f"weights must have one int64 per voxel ({spec.n_voxels}), got shape {w.shape}")
+        self.weights = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=w)
+        self.use_stop = stop is not None
+        self.stop = backend._stop_buffer(stop, spec, keep=True)
+
+
+class OpenCLBackend(Backend):
+    """Kernels of the contract on one OpenCL device.
+
+    Args:
+        platform: short platform name as listed by ``opencl_devices()`` (``"pocl"``, ``"nvidia"``, ...),
+            optionally ``"<platform>:<device index>"``; the first GPU of the platform by default.
+        fp64: use double precision where the kernels refine float32 decisions (default: when the device
+            has ``cl_khr_fp64``). ``False`` runs the pure float32 path (as on devices without doubles).
+        stack_size: BVH traversal stack entries; defaults to the builder's depth cap. Smaller values exist
+            to exercise the overflow fallback in tests.
+        rays_per_item: rays walked by one work-item of the atomic ``score_placements`` strategy (default 1).
+        bvh_width: 4 (a 4-wide tree, SIMD box tests; default on CPUs) or 2 (binary; default on GPUs, whose
+            registers favour the smaller traversal stack).
+        score_strategy: ``"private"`` (a bitset per work-item, OR-reduced; default on CPUs) or ``"atomic"``
+            (one shared bitset per candidate, atomic_or; default on GPUs). Both give identical results.
+
+    Raises:
+        BackendUnavailable: no OpenCL platform/device, or the named one is absent.
+    """
+
+    dtype = np.float32
+
+    def __init__(self, platform: str = "pocl", *, fp64: bool | None = None, stack_size: int | None = None,
+                 rays_per_item: int | None = None, score_strategy: str | None = None, bvh_width: int | None = None):
+        table = rt.platform_table()
+        if not table:
+            raise BackendUnavailable(
+                "no CL platforms available to the ICD loader (or none with a usable device). Install a CL "
+                f"driver such as PoCL for the CPU: {rt.INSTALL_HINT}")
+        plat, _, dev_index = str(platform).strip().lower().partition(":")
+        if plat not in table:
+            raise BackendUnavailable(
+                f"OpenCL platform {platform!r} not found; platforms with a device here: {sorted(table)} "
+                f"(use 'opencl:<name>'). For a CPU device install PoCL: {rt.INSTALL_HINT}")
+        _, devices = table[plat]
+        if dev_index:
+            if not dev_index.isdigit() or int(dev_index) >= len(devices):
+                raise BackendUnavailable(
+                    f"OpenCL device index {dev_index!r} is not valid for platform {plat!r}, which has "
+                    f"{len(devices)} device(s): " + ", ".join(f"{i}: {d.name}" for i, d in enumerate(devices)))
+            self.device = devices[int(dev_index)]
+        else:
+            gpus = [d for d in devices if d.type & cl.device_type.GPU]
+            self.device = (gpus or devices)[0]
+        self.name = f"opencl:{str(platform).strip().lower()}"
+        try:
+            self.ctx = cl.Context([self.device])
+            self.queue = cl.CommandQueue(self.ctx)
+        except cl.Error as e:  # pragma: no cover - driver trouble
+            raise BackendUnavailable(f"cannot create an OpenCL context on {self.device.name!r}: {e}") from e
+        has_fp64 = "cl_khr_fp64" in self.device.extensions
+        if fp64 and not has_fp64:
+            raise BackendUnavailable(f"device {self.device.name!r} has no cl_khr_fp64; use fp64=None or False")
+        self.fp64 = has_fp64 if fp64 is None else bool(fp64)
+        self.real = np.float64 if self.fp64 else np.float32
+        self.stack_size = int(stack_size) if stack_size is not None else DEFAULT_MAX_DEPTH
+        self.is_cpu = bool(self.device.type & cl.device_type.CPU)
+        self.rays_per_item = int(rays_per_item) if rays_per_item else 1
+        if score_strategy not in (None, "private", "atomic"):
+            raise ValueError(f"score_strategy must be 'private' or 'atomic', got {score_strategy!r}")
+        self.score_strategy = score_strategy or ("private" if self.is_cpu else "atomic")
+        if bvh_width not in (None, 2, 4):
+            raise ValueError(f"bvh_width must be 2 or 4, got {bvh_width!r}")
+        self.bvh_width = bvh_width or (4 if self.is_cpu else 2)
+        self._kernels: dict[str, cl.Kernel] = {}
+        self._lock = threading.Lock()   # a Kernel's arguments are set and enqueued in two steps
+        #: counters of the last calls (``retraced_rays``: rays the ray caster handed back to the host)
+        self.stats: dict[str, int] = {"retraced_rays": 0}
+        self._dummy = cl.Buffer(self.ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=np.zeros(8, np.uint8))
+
+    # ----------------------------------------------------------------- plumbing
+    def _options(self) -> tuple[str, ...]:
+        return ("-DHAVE_FP64",) if self.fp64 else ()
+
+    def _kernel(self, name: str) -> cl.Kernel:
+        k = self._kernels.get(name)
+        if k is None:  # first use: build (or fetch from the per-context cache) the program holding it
+            if name in ("raycast", "raycast4"):
+                files, opts = ("common.cl", "raycast.cl"), self._options() + (f"-DSTACK_SIZE={self.stack_size}",)
+            elif name.startswith("vote_"):
+                files, opts = ("common.cl", "vote.cl"), self._options()
+            else:
+                files, opts = ("common.cl", "grid.cl"), self._options()
+            prg = rt.build_program(self.ctx, files, opts)
+            for kk in prg.all_kernels():
+                self._kernels[kk.function_name] = kk
+            k = self._kernels[name]
+        return k
+
+    def _in(self, a: np.ndarray, keep: bool = False) -> cl.Buffer:
+        """A read-only input buffer. Per-call inputs on CPU devices use the NumPy memory in place (no copy;
+        PyOpenCL keeps the array alive); ``keep=True`` copies, for buffers that outlive the call."""
+        a = np.ascontiguousarray(a)
+        if a.nbytes == 0:
+            return self._dummy
+        flag = _MF.USE_HOST_PTR if (self.is_cpu and not keep) else _MF.COPY_HOST_PTR
+        return cl.Buffer(self.ctx, _MF.READ_ONLY | flag, hostbuf=a)
+
+    def _out(self, nbytes: int) -> cl.Buffer:
+        return cl.Buffer(self.ctx, _MF.READ_WRITE, size=max(int(nbytes), 8))
+
+    def _host_out(self, dtype, n: int) -> tuple[np.ndarray, cl.Buffer]:
+        """Output written by a kernel straight into a NumPy array on CPU devices (no copy back)."""
+        arr = np.empty(max(int(n), 1), dtype=dtype)
+        if self.is_cpu:
+            return arr[:n], cl.Buffer(self.ctx, _MF.READ_WRITE | _MF.USE_HOST_PTR, hostbuf=arr)
+        return arr[:n], self._out(arr.nbytes)
+
+    def _fetch(self, arr: np.ndarray, buf: cl.Buffer) -> np.ndarray:
+        """Make the kernel's writes to ``buf`` visible in ``arr`` (a map/unmap on CPU, a copy on GPUs)."""
+        if arr.size == 0:
+            return arr
+        if self.is_cpu:
+            mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, (buf.size,), np.uint8)
+            mapped.base.release(self.queue)
+            self.queue.finish()
+        else:
+            cl.enqueue_copy(self.queue, arr, buf)
+        return arr
+
+    def _read(self, buf: cl.Buffer, dtype, n: int) -> np.ndarray:
+        out = np.empty(n, dtype=dtype)
+        if n:
+            cl.enqueue_copy(self.queue, out, buf)
+        return out
+
+    def _launch(self, name: str, n, *args):
+        gsize = [int(n)] if np.isscalar(n) else [int(x) for x in n]
+        if min(gsize) == 0:
+            return
+        lsize = None
+        if self.is_cpu:
+            # CPU drivers run one work-group per thread; small groups balance the uneven ray costs
+            lsize = [_CPU_GROUP] + [1] * (len(gsize) - 1)
+            gsize[0] = -(-gsize[0] // _CPU_GROUP) * _CPU_GROUP
+        k = self._kernel(name)
+        with self._lock:
+            k(self.queue, tuple(gsize), None if lsize is None else tuple(lsize), *args)
+
+    def _stop_buffer(self, stop, spec: GridSpec, keep: bool = False) -> cl.Buffer:
+        if stop is None:
+            return self._dummy
+        s = np.ascontiguousarray(stop, dtype=np.uint8).reshape(-1)
+        if s.shape != (spec.n_voxels,):
+            raise ValueError(f"stop mask must have one uint8 per voxel ({spec.n_voxels}), got shape {s.shape}")
+        return self._in(s, keep=keep)
+
+    def _rays(self, origins, directions, t):
+        r = self.real
+        o = np.ascontiguousarray(origins, dtype=r).reshape(-1, 3)
+        d = np.ascontiguousarray(directions, dtype=r).reshape(-1, 3)
+        tt = np.ascontiguousarray(np.broadcast_to(np.asarray(t, dtype=r), (len(o),)))
+        return o, d, tt
+
+    def _grid_args(self, grid: GridSpec, stop_buf: cl.Buffer, use_stop: bool) -> tuple:
+        nx, ny, nz = (int(v) for v in grid.shape)
+        if grid.n_voxels >= 2**62:  # pragma: no cover
+            raise ValueError(f"grid of {grid.n_voxels} voxels is too large")
+        return (self.real(grid.voxel_size), np.int32(nx), np.int32(ny), np.int32(nz), stop_buf,
+                np.int32(1 if use_stop else 0))
+
+    def synchronize(self) -> None:
+        self.queue.finish()
+
+    def warmup(self) -> None:
+        """Compile every program now (benchmarks call this so that compile time stays out of timings)."""
+        for name in ("dda_count", "raycast", "vote_insert"):
+            self._kernel(name)
+
+    # ----------------------------------------------------------------- rays
+    def lidar_rays(self, elevations, azimuths, poses):
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+        rig, local = self._rig(poses, elevations, azimuths)
+        L, CA = len(poses), len(local)
+        n = L * CA
+        ob, db = self._out(n * 3 * np.dtype(self.real).itemsize), self._out(n * 3 * np.dtype(self.real).itemsize)
+        self._launch("lidar_rays", n, self._in(rig), self._in(local), np.int32(L), np.int32(CA), ob, db)
+        o = self._read(ob, self.real, n * 3).reshape(-1, 3).astype(np.float64)
+        d = self._read(db, self.real, n * 3).reshape(-1, 3).astype(np.float64)
+        return o, d
+
+    def _rig(self, poses: np.ndarray, elevations, azimuths) -> tuple[np.ndarray, np.ndarray]:
+        """(P*L, 12) origin + row-major rotation, and (C*A, 3) sensor-frame directions, in `real`."""
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+        rig = np.concatenate([poses[:, :3], rotation_matrices(poses).reshape(-1, 9)], axis=1)
+        local = sensor_directions(elevations, azimuths)
+        return np.ascontiguousarray(rig, dtype=self.real), np.ascontiguousarray(local, dtype=self.real)
+
+    # ----------------------------------------------------------------- ray-mesh
+    def upload_mesh(self, vertices, faces):
+        # private copies: the handle must not change if the caller edits its arrays later
+        v = np.array(vertices, dtype=np.float64, copy=True).reshape(-1, 3)
+        f = np.array(faces, dtype=np.int32, copy=True).reshape(-1, 3)
+        bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH)
+        return CLMesh(self, v, f, bvh)
+
+    def raycast(self, mesh, origins, directions, t_max):
+        if not isinstance(mesh, CLMesh):
+            raise TypeError(f"raycast needs the handle returned by {self.name}.upload_mesh, got {type(mesh).__name__}")
+        o, d, tm = self._rays(origins, directions, t_max)
+        n = len(o)
+        if n == 0:
+            return np.empty(0, np.float64), np.empty(0, np.int32)
+        (t, tb), (face, fb) = self._host_out(self.real, n), self._host_out(np.int32, n)
+        args = [mesh.nodes, mesh.tris, self._in(o), self._in(d), self._in(tm), tb, fb, np.int32(n)]
+        if self.fp64:
+            args += [mesh.verts64, mesh.faces32]
+        self._launch("raycast4" if mesh.width == 4 else "raycast", n, *args)
+        t = self._fetch(t, tb).astype(np.float64, copy=False)
+        face = self._fetch(face, fb)
+        o64 = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+        d64 = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        tm64 = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (n,))
+        if not self.fp64:
+            t, face = _refine_on_host(mesh, o64, d64, tm64, t, face)
+        over = np.flatnonzero(face == -2)
+        self.stats["retraced_rays"] = len(over)
+        if len(over):  # stack overflow (cannot happen for builder trees): trace these on the host
+            t[over], face[over] = brute_force_raycast(mesh.vertices, mesh.faces, o64[over], d64[over], tm64[over])
+        return t, face
+
+    # ----------------------------------------------------------------- voxel traversal
+    def count_visits(self, grid, origins, directions, t_end, stop=None) -> np.ndarray:
+        """Voxels each ray visits (the first pass of ``traverse``); (N,) int64. Benchmarks count steps with it."""
+        o, d, te = self._rays(origins, directions, t_end)
+        n = len(o)
+        counts, cb = self._host_out(np.int64, n)
+        if n:
+            ga = self._grid_args(grid, self._stop_buffer(stop, grid), stop is not None)
+            self._launch("dda_count", n, self._in(o), self._in(d), self._in(te), *ga, cb, np.int32(n))
+        return self._fetch(counts, cb)
+
+    def traverse(self, grid, origins, directions, t_end, stop=None):
+        o, d, te = self._rays(origins, directions, t_end)
+        n = len(o)
+        offsets = np.zeros(n + 1, dtype=np.int64)
+        if n == 0:
+            return offsets, np.empty(0, np.int64)
+        ob, db, tb = self._in(o), self._in(d), self._in(te)
+        ga = self._grid_args(grid, self._stop_buffer(stop, grid), stop is not None)
+        cb = self._out(n * 8)
+        self._launch("dda_count", n, ob, db, tb, *ga, cb, np.int32(n))
+        np.cumsum(self._read(cb, np.int64, n), out=offsets[1:])
+        total = int(offsets[-1])
+        if total == 0:
+            return offsets, np.empty(0, np.int64)
+        voxels, vb = self._host_out(np.int64, total)
+        self._launch("dda_fill", n, ob, db, tb, *ga, self._in(offsets), vb, np.int32(n))
+        return offsets, self._fetch(voxels, vb)
+
+    def coverage(self, grid, origins, directions, t_end, stop=None):
+        o, d, te = self._rays(origins, directions, t_end)
+        n, nv = len(o), grid.n_voxels
+        out, mask = self._host_out(np.uint8, nv)
+        cl.enqueue_fill_buffer(self.queue, mask, np.uint8(0), 0, mask.size)
+        if n:
+            ga = self._grid_args(grid, self._stop_buffer(stop, grid), stop is not None)
+            self._launch("dda_coverage", n, self._in(o), self._in(d), self._in(te), *ga, mask, np.int32(n))
+        return self._fetch(out, mask).view(bool)
+
+    def prepare_grid(self, grid, weights, stop):
+        return CLGrid(self, grid, weights, stop)
+
+    def score_placements(self, handle, elevations, azimuths, t_max, poses):
+        if not isinstance(handle, CLGrid):
+            raise TypeError(f"score_placements needs the handle from {self.name}.prepare_grid, "
+                            f"got {type(handle).__name__}")
+        poses = np.asarray(poses, dtype=np.float64)
+        if poses.ndim != 3 or poses.shape[2] != 6:
+            raise ValueError(f"poses must have shape (P, L, 6), got {poses.shape}")
+        P, L = poses.shape[:2]
+        sums = np.zeros(P, dtype=np.int64)
+        counts = np.zeros(P, dtype=np.int64)
+        rig, local = self._rig(poses.reshape(-1, 6), elevations, azimuths)
+        CA = len(local)
+        n_rays = L * CA
+        if P == 0 or n_rays == 0:
+            return sums, counts
+        spec = handle.spec
+        words = (spec.n_voxels + 31) // 32
+        ga = self._grid_args(spec, handle.stop, handle.use_stop)
+        sdir_b = self._in(local)
+        if self.score_strategy == "private":
+            # few threads: a private bitset per work-item, no atomics, then an OR-reduction per candidate
+            G = int(max(1, min(64, -(-4 * self.device.max_compute_units // P),
+                               _BITSET_BYTES // max(words * 4, 1))))
+            chunk = int(max(1, min(P, _BITSET_BYTES // max(words * 4 * G, 1))))
+            per = 4096
+            n_chunks = (words + per - 1) // per
+            bits = self._out(chunk * G * words * 4)
+            ps, pc = self._out(chunk * n_chunks * 8), self._out(chunk * n_chunks * 8)
+            for p0 in range(0, P, chunk):
+                pn = min(chunk, P - p0)
+                cl.enqueue_fill_buffer(self.queue, bits, np.uint32(0), 0, pn * G * words * 4)
+                rig_b = self._in(rig[p0 * L:(p0 + pn) * L])
+                self._launch("score_walk", (G, pn), rig_b, sdir_b, np.int32(L), np.int32(CA), self.real(t_max),
+                             *ga, bits, np.int64(words), np.int32(G))
+                self._launch("score_reduce", (n_chunks, pn), bits, np.int64(words), np.int32(G), np.int32(per),
+                             np.int32(n_chunks), handle.weights, np.int64(spec.n_voxels), ps, pc)
+                sums[p0:p0 + pn] = self._read(ps, np.int64, pn * n_chunks).reshape(pn, -1).sum(1, dtype=np.int64)
+                counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(1, dtype=np.int64)
+            return sums, counts
+        per = self.rays_per_item
+        items = (n_rays + per - 1) // per
+        chunk = int(max(1, min(P, _BITSET_BYTES // max(words * 4, 1))))
+        bits = self._out(chunk * words * 4)
+        ps, pc = self._out(chunk * items * 8), self._out(chunk * items * 8)
+        for p0 in range(0, P, chunk):
+            pn = min(chunk, P - p0)
+            cl.enqueue_fill_buffer(self.queue, bits, np.uint32(0), 0, pn * words * 4)
+            rig_b = self._in(rig[p0 * L:(p0 + pn) * L])
+            self._launch("score_rays", (items, pn), rig_b, sdir_b, np.int32(L), np.int32(CA), self.real(t_max),
+                         *ga, handle.weights, bits, np.int64(words), np.int32(per), np.int32(items), ps, pc)
+            sums[p0:p0 + pn] = self._read(ps, np.int64, pn * items).reshape(pn, items).sum(axis=1, dtype=np.int64)
+            counts[p0:p0 + pn] = self._read(pc, np.int64, pn * items).reshape(pn, items).sum(axis=1, dtype=np.int64)
+        return sums, counts
+
+    # ----------------------------------------------------------------- occupancy grids
+    def voxel_keys(self, grid, points):
+        p = np.ascontiguousarray(points, dtype=self.real).reshape(-1, 3)
+        n = len(p)
+        out = self._out(n * 8)
+        nx, ny, nz = (int(v) for v in grid.shape)
+        self._launch("voxel_keys", n, self._in(p), self.real(grid.voxel_size), np.int32(nx), np.int32(ny),
+                     np.int32(nz), out, np.int32(n))
+        return self._read(out, np.int64, n)
+
+    def vote(self, keys, labels, n_classes):
+        k = np.ascontiguousarray(keys, dtype=np.int64).reshape(-1)
+        lab = np.ascontiguousarray(labels, dtype=np.int32).reshape(-1)
+        if k.shape != lab.shape:
+            raise ValueError(f"keys {k.shape} and labels {lab.shape} must have the same length")
+        n_classes = int(n_classes)
+        if len(lab) and (lab.min() < 0 or lab.max() >= n_classes):
+            raise ValueError(f"labels must lie in [0, {n_classes}), got range [{lab.min()}, {lab.max()}]")
+        voting = (k >= 0) & (lab > 0)
+        n_vote = int(voting.sum())
+        if n_vote == 0:
+            return np.empty(0, np.int64), np.empty(0, np.int32)
+        kmax = int(k.max())
+        n = len(k)
+        lab_b = self._in(lab)
+        keys_b = self._in(k)
+        if kmax < 16 * n_vote + 2**22:
+            # dense: flags per key, ranks by a prefix sum (ascending order for free), counts per (rank, label)
+            flags, fb = self._host_out(np.uint8, kmax + 1)
+            cl.enqueue_fill_buffer(self.queue, fb, np.uint8(0), 0, fb.size)
+            self._launch("vote_mark", n, keys_b, lab_b, fb, np.int32(n))
+            flags = self._fetch(flags, fb)
+            voxels = np.flatnonzero(flags)
+            M = len(voxels)
+            if M * n_classes * 4 <= _DENSE_VOTE_BYTES:
+                rank = np.empty(kmax + 1, dtype=np.int32)   # read only where flagged
+                rank[voxels] = np.arange(M, dtype=np.int32)
+                cnt = self._out(M * n_classes * 4)
+                cl.enqueue_fill_buffer(self.queue, cnt, np.int32(0), 0, M * n_classes * 4)
+                self._launch("vote_count_dense", n, keys_b, lab_b, self._in(rank), np.int32(n_classes), cnt,
+                             np.int32(n))
+                best, bb = self._host_out(np.int32, M)
+                self._launch("vote_argmax", M, cnt, np.int32(n_classes), bb, np.int32(M))
+                return voxels.astype(np.int64, copy=False), self._fetch(best, bb)
+        if kmax >= 2**31 - 1 or n_vote * n_classes >= 2**31 - 1:
+            return _vote_numpy(k, lab, n_classes)  # beyond 32-bit hash keys: exact host path
+        H = 1 << max(4, int(math.ceil(math.log2(2 * n_vote))))
+        table = self._out(H * 4)
+        cl.enqueue_fill_buffer(self.queue, table, np.int32(-1), 0, H * 4)
+        slot = self._out(n * 4)
+        self._launch("vote_insert", n, keys_b, lab_b, table, np.uint32(H - 1), slot, np.int32(n))
+        tab = self._read(table, np.int32, H)
+        occ = np.flatnonzero(tab >= 0)
+        order = np.argsort(tab[occ], kind="stable")
+        voxels = tab[occ][order].astype(np.int64)
+        M = len(voxels)
+        rank = np.full(H, -1, dtype=np.int32)
+        rank[occ[order]] = np.arange(M, dtype=np.int32)
+        t2 = self._out(H * 4)
+        c2 = self._out(H * 4)
+        cl.enqueue_fill_buffer(self.queue, t2, np.int32(-1), 0, H * 4)
+        cl.enqueue_fill_buffer(self.queue, c2, np.int32(0), 0, H * 4)
+        self._launch("vote_pairs", n, slot, lab_b, self._in(rank), np.int32(n_classes), t2, c2,
+                     np.uint32(H - 1), np.int32(n))
+        bc = self._out(M * 4)
+        bl = self._out(M * 4)
+        cl.enqueue_fill_buffer(self.queue, bc, np.int32(0), 0, M * 4)
+        cl.enqueue_fill_buffer(self.queue, bl, np.int32(2**31 - 1), 0, M * 4)
+        self._launch("vote_best_count", H, t2, c2, np.int32(n_classes), bc, np.int32(H))
+        self._launch("vote_best_label", H, t2, c2, np.int32(n_classes), bc, bl, np.int32(H))
+        return voxels, self._read(bl, np.int32, M)
+
+
+def _vote_numpy(k, lab, n_classes):
+    ok = (k >= 0) & (lab > 0)
+    combo, counts = np.unique(k[ok] * n_classes + lab[ok], return_counts=True)
+    vox, cls = combo // n_classes, combo % n_classes
+    order = np.lexsort((cls, -counts, vox))
+    vox, cls = vox[order], cls[order]
+    first = np.concatenate([[True], vox[1:] != vox[:-1]])
+    return vox[first].astype(np.int64), cls[first].astype(np.int32)
+
+
+def _refine_on_host(mesh: CLMesh, o, d, tm, t, face):
+    """Float64 hit distance of the reported face (devices without fp64), as the kernel does otherwise."""
+    hit = np.flatnonzero(face >= 0)
+    if len(hit) == 0:
+        return t, face
+    f = mesh.faces[face[hit]]
+    v = mesh.vertices
+    oo, dd = o[hit], d[hit]
+    r = np.arange(len(hit))
+    kz = np.argmax(np.abs(dd), axis=1)
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    neg = dd[r, kz] < 0
+    kx, ky = np.where(neg, ky, kx), np.where(neg, kx, ky)
+    dz = dd[r, kz]
+    sx, sy, sz = dd[r, kx] / dz, dd[r, ky] / dz, 1.0 / dz
+    P = []
+    for j in range(3):
+        rel = v[f[:, j]] - oo
+        rz = rel[r, kz]
+        P.append((rel[r, kx] - sx * rz, rel[r, ky] - sy * rz, sz * rz))
+    (ax, ay, az), (bx, by, bz), (cx, cy, cz) = P
+    u = cx * by - cy * bx
+    vv = ax * cy - ay * cx
+    w = bx * ay - by * ax
+    det = u + vv + w
+    with np.errstate(divide="ignore", invalid="ignore"):
+        td = np.where(det != 0, (u * az + vv * bz + w * cz) / det, t[hit])
+    td = np.maximum(td, 0.0)
+    over = td > tm[hit]
+    t = t.copy()
+    face = face.copy()
+    t[hit] = np.where(over, np.inf, td)
+    face[hit] = np.where(over, -1, face[hit])
+    return t, face

@@ -1,0 +1,296 @@
+/* Closest-hit ray casting through the host-built BVH (bvh.py). Needs common.cl in front and
+ * -DSTACK_SIZE=<n> (the builder's proven inner-depth cap).
+ *
+ * - Front-to-back: both child boxes of a node are tested; the nearer child is descended, the farther
+ *   pushed with its entry distance; popped entries farther than the current hit are skipped.
+ * - Box test: slab test with the far distance scaled by 1 + 2*gamma(3) (Ize 2013, "Robust BVH Ray
+ *   Traversal") so that rounding never culls a box the ray touches.
+ * - Triangle test: Woop, Benthin & Wald 2013, "Watertight Ray/Triangle Intersection" (JCGT 2(1)):
+ *   translate to the ray origin, permute so the dominant direction axis is z, shear, and take the signs
+ *   of the three 2D edge functions. An edge function that is exactly 0 in float is recomputed in double
+ *   (products of floats are exact in double), so the two triangles sharing an edge agree on its side.
+ * - Equal distances go to the lower original face id, so results do not depend on traversal order.
+ * - A ray that would overflow the stack (impossible for trees of the builder; checked anyway) reports
+ *   face -2 and the host traces it again.
+ */
+
+#ifndef STACK_SIZE
+#error "STACK_SIZE must be defined by the host"
+#endif
+
+typedef struct {
+    float ox, oy, oz;         /* origin */
+    float ix, iy, iz;         /* 1 / direction (components below 1e-20 clamped, box test only) */
+    int kx, ky, kz;           /* axis permutation: kz = dominant direction axis */
+    float sx, sy, sz;         /* shear constants */
+} ray_t;
+
+ALWAYS_INLINE float comp3(float x, float y, float z, int k) { return k == 0 ? x : (k == 1 ? y : z); }
+
+/* slab test of box lo/hi (6 floats at b) against [0, best]; tnear out */
+ALWAYS_INLINE bool slab(__global const float* b, const ray_t* r, float best, float* tnear)
+{
+    float tx0 = (b[0] - r->ox) * r->ix, tx1 = (b[3] - r->ox) * r->ix;
+    float ty0 = (b[1] - r->oy) * r->iy, ty1 = (b[4] - r->oy) * r->iy;
+    float tz0 = (b[2] - r->oz) * r->iz, tz1 = (b[5] - r->oz) * r->iz;
+    float tn = MAXF(MAXF(MINF(tx0, tx1), MINF(ty0, ty1)), MAXF(MINF(tz0, tz1), 0.0f));
+    float tf = MINF(MINF(MAXF(tx0, tx1), MAXF(ty0, ty1)), MINF(MAXF(tz0, tz1), best)) * 1.0000004f;
+    *tnear = tn;
+    return tn <= tf;
+}
+
+ALWAYS_INLINE bool tri_hit(__global const float* tri, const ray_t* r, float best, float* t_out)
+{
+    float ax = tri[0] - r->ox, ay = tri[1] - r->oy, az = tri[2] - r->oz;
+    float bx = tri[4] - r->ox, by = tri[5] - r->oy, bz = tri[6] - r->oz;
+    float cx = tri[8] - r->ox, cy = tri[9] - r->oy, cz = tri[10] - r->oz;
+    float Az = comp3(ax, ay, az, r->kz), Bz = comp3(bx, by, bz, r->kz), Cz = comp3(cx, cy, cz, r->kz);
+    float Ax = comp3(ax, ay, az, r->kx) - r->sx * Az, Ay = comp3(ax, ay, az, r->ky) - r->sy * Az;
+    float Bx = comp3(bx, by, bz, r->kx) - r->sx * Bz, By = comp3(bx, by, bz, r->ky) - r->sy * Bz;
+    float Cx = comp3(cx, cy, cz, r->kx) - r->sx * Cz, Cy = comp3(cx, cy, cz, r->ky) - r->sy * Cz;
+    float U = Cx * By - Cy * Bx;
+    float V = Ax * Cy - Ay * Cx;
+    float W = Bx * Ay - By * Ax;
+#ifdef HAVE_FP64
+    if (U == 0.0f || V == 0.0f || W == 0.0f) {
+        double du = (double)Cx * (double)By - (double)Cy * (double)Bx;
+        double dv = (double)Ax * (double)Cy - (double)Ay * (double)Cx;
+        double dw = (double)Bx * (double)Ay - (double)By * (double)Ax;
+        /* keep the sign where float would underflow */
+        U = du == 0.0 ? 0.0f : (du > 0.0 ? MAXF((float)du, FLT_MIN) : MINF((float)du, -FLT_MIN));
+        V = dv == 0.0 ? 0.0f : (dv > 0.0 ? MAXF((float)dv, FLT_MIN) : MINF((float)dv, -FLT_MIN));
+        W = dw == 0.0 ? 0.0f : (dw > 0.0 ? MAXF((float)dw, FLT_MIN) : MINF((float)dw, -FLT_MIN));
+    }
+#endif
+    if ((U < 0.0f || V < 0.0f || W < 0.0f) && (U > 0.0f || V > 0.0f || W > 0.0f)) return false;
+    float det = U + V + W;
+    if (det == 0.0f) return false;
+    float T = U * (r->sz * Az) + V * (r->sz * Bz) + W * (r->sz * Cz);
+    float t = T / det;
+    if (!(t >= 0.0f && t <= best)) return false;
+    *t_out = t;
+    return true;
+}
+
+#ifdef HAVE_FP64
+/* Distance to the hit face in double, with the reference's formula (Woop et al. in float64). */
+double refine_t(__global const double* verts, __global const int* faces, int f, double3 o, double3 d,
+                       double t_float)
+{
+    double ad[3] = {absd(d.x), absd(d.y), absd(d.z)};
+    double dd[3] = {d.x, d.y, d.z};
+    int kz = 0;
+    if (ad[1] > ad[kz]) kz = 1;
+    if (ad[2] > ad[kz]) kz = 2;
+    int kx = (kz + 1) % 3, ky = (kx + 1) % 3;
+    if (dd[kz] < 0.0) { int tmp = kx; kx = ky; ky = tmp; }
+    double dz = dd[kz];
+    double sx = dd[kx] / dz, sy = dd[ky] / dz, sz = 1.0 / dz;
+    double oo[3] = {o.x, o.y, o.z};
+    double px[3], py[3], pz[3];
+    for (int j = 0; j < 3; ++j) {
+        __global const double* v = verts + 3 * (long)faces[3 * (long)f + j];
+        double rx = v[kx] - oo[kx], ry = v[ky] - oo[ky], rz = v[kz] - oo[kz];
+        px[j] = rx - sx * rz;
+        py[j] = ry - sy * rz;
+        pz[j] = sz * rz;
+    }
+    double u = px[2] * py[1] - py[2] * px[1];
+    double w_ = px[1] * py[0] - py[1] * px[0];
+    double v_ = px[0] * py[2] - py[0] * px[2];
+    double det = u + v_ + w_;
+    if (det == 0.0) return t_float;
+    return (u * pz[0] + v_ * pz[1] + w_ * pz[2]) / det;
+}
+#endif
+
+ALWAYS_INLINE void ray_init(ray_t* r, __global const real* od, __global const real* dd)
+{
+    float dx = (float)dd[0], dy = (float)dd[1], dz = (float)dd[2];
+    r->ox = (float)od[0]; r->oy = (float)od[1]; r->oz = (float)od[2];
+    r->ix = 1.0f / (absf(dx) < 1e-20f ? (dx < 0.0f ? -1e-20f : 1e-20f) : dx);
+    r->iy = 1.0f / (absf(dy) < 1e-20f ? (dy < 0.0f ? -1e-20f : 1e-20f) : dy);
+    r->iz = 1.0f / (absf(dz) < 1e-20f ? (dz < 0.0f ? -1e-20f : 1e-20f) : dz);
+    float adx = absf(dx), ady = absf(dy), adz = absf(dz);
+    r->kz = 0;
+    if (ady > adx) r->kz = 1;
+    if (adz > comp3(adx, ady, adz, r->kz)) r->kz = 2;
+    r->kx = r->kz == 2 ? 0 : r->kz + 1;
+    r->ky = r->kx == 2 ? 0 : r->kx + 1;
+    float dk = comp3(dx, dy, dz, r->kz);
+    if (dk < 0.0f) { int tmp = r->kx; r->kx = r->ky; r->ky = tmp; }
+    r->sx = comp3(dx, dy, dz, r->kx) / dk;
+    r->sy = comp3(dx, dy, dz, r->ky) / dk;
+    r->sz = 1.0f / dk;
+}
+
+/* closest hit among the triangles of a leaf; equal distances go to the lower original face id */
+ALWAYS_INLINE void leaf_hits(__global const float* tris, int first, int count, const ray_t* r, float* best,
+                             int* best_face)
+{
+    for (int j = first; j < first + count; ++j) {
+        __global const float* tri = tris + 12 * (long)j;
+        float t;
+        if (tri_hit(tri, r, *best, &t)) {
+            int f = as_int(tri[3]);
+            if (t < *best || *best_face < 0 || f < *best_face) { *best = t; *best_face = f; }
+        }
+    }
+}
+
+/* write the result: distance refined in double where available, t_max applied exactly */
+ALWAYS_INLINE void store_hit(int i, bool overflow, float best, int best_face, real tmr,
+                             __global const real* orig, __global const real* dir, __global real* out_t,
+                             __global int* out_face
+#ifdef HAVE_FP64
+                             , __global const double* verts, __global const int* faces
+#endif
+                             )
+{
+    if (overflow) {
+        out_t[i] = (real)INFINITY;
+        out_face[i] = -2;
+        return;
+    }
+    real t_hit = (real)INFINITY;
+    if (best_face >= 0) {
+        t_hit = (real)best;
+#ifdef HAVE_FP64
+        double3 od = (double3)(orig[3 * (long)i], orig[3 * (long)i + 1], orig[3 * (long)i + 2]);
+        double3 dd = (double3)(dir[3 * (long)i], dir[3 * (long)i + 1], dir[3 * (long)i + 2]);
+        t_hit = refine_t(verts, faces, best_face, od, dd, (double)best);
+        if (t_hit < 0.0) t_hit = 0.0;
+        if (t_hit > tmr) { t_hit = INFINITY; best_face = -1; }
+#endif
+    }
+    out_t[i] = t_hit;
+    out_face[i] = best_face;
+}
+
+#ifdef HAVE_FP64
+#define MESH_ARGS , __global const double* verts, __global const int* faces
+#define MESH_PASS , verts, faces
+#else
+#define MESH_ARGS
+#define MESH_PASS
+#endif
+
+/* Binary BVH (GPUs: the smaller stack). */
+__kernel void raycast(__global const float* nodes, __global const float* tris, __global const real* orig,
+                      __global const real* dir, __global const real* t_max, __global real* out_t,
+                      __global int* out_face, const int n MESH_ARGS)
+{
+    int i = get_global_id(0);
+    if (i >= n) return;
+    ray_t r;
+    ray_init(&r, orig + 3 * (long)i, dir + 3 * (long)i);
+    real tmr = t_max[i];
+    /* a hair above t_max in float; the exact bound is applied after the double refinement */
+    float best = (float)tmr * 1.00000024f;
+    int best_face = -1;
+
+    int st_ref[STACK_SIZE], st_cnt[STACK_SIZE];
+    float st_t[STACK_SIZE];
+    int sp = 0;
+    int ref = 0, cnt = 0;   /* the root, an inner node */
+    bool overflow = false;
+    for (;;) {
+        if (cnt == 0) {
+            __global const float* nd = nodes + 16 * (long)ref;
+            float tn0, tn1;
+            bool h0 = slab(nd, &r, best, &tn0);
+            bool h1 = slab(nd + 6, &r, best, &tn1);
+            int r0 = as_int(nd[12]), c0 = as_int(nd[13]), r1 = as_int(nd[14]), c1 = as_int(nd[15]);
+            if (h0 && h1) {
+                if (tn1 < tn0) {
+                    int x = r0; r0 = r1; r1 = x;
+                    x = c0; c0 = c1; c1 = x;
+                    float y = tn0; tn0 = tn1; tn1 = y;
+                }
+                if (sp == STACK_SIZE) { overflow = true; break; }
+                st_ref[sp] = r1; st_cnt[sp] = c1; st_t[sp] = tn1; sp++;
+                ref = r0; cnt = c0;
+                continue;
+            }
+            if (h0) { ref = r0; cnt = c0; continue; }
+            if (h1) { ref = r1; cnt = c1; continue; }
+        } else {
+            leaf_hits(tris, ref, cnt, &r, &best, &best_face);
+        }
+        bool found = false;
+        while (sp > 0) {
+            sp--;
+            if (st_t[sp] <= best) { ref = st_ref[sp]; cnt = st_cnt[sp]; found = true; break; }
+        }
+        if (!found) break;
+    }
+    store_hit(i, overflow, best, best_face, tmr, orig, dir, out_t, out_face MESH_PASS);
+}
+
+#define VMIN(a, b) ((a) < (b) ? (a) : (b))
+#define VMAX(a, b) ((a) > (b) ? (a) : (b))
+
+/* 4-wide BVH (CPUs): one node = four child boxes tested as float4 (SIMD), hit children visited nearest
+ * first; the others are pushed farthest first. Stack bound: 3 entries per level, STACK4 = 3 * depth cap. */
+__kernel void raycast4(__global const float4* nodes, __global const float* tris, __global const real* orig,
+                       __global const real* dir, __global const real* t_max, __global real* out_t,
+                       __global int* out_face, const int n MESH_ARGS)
+{
+    int i = get_global_id(0);
+    if (i >= n) return;
+    ray_t r;
+    ray_init(&r, orig + 3 * (long)i, dir + 3 * (long)i);
+    real tmr = t_max[i];
+    float best = (float)tmr * 1.00000024f;
+    int best_face = -1;
+    float4 ox = (float4)(r.ox), oy = (float4)(r.oy), oz = (float4)(r.oz);
+    float4 ix = (float4)(r.ix), iy = (float4)(r.iy), iz = (float4)(r.iz);
+
+    int st_ref[3 * STACK_SIZE], st_cnt[3 * STACK_SIZE];
+    float st_t[3 * STACK_SIZE];
+    int sp = 0;
+    int ref = 0, cnt = 0;
+    bool overflow = false;
+    for (;;) {
+        if (cnt == 0) {
+            __global const float4* nd = nodes + 8 * (long)ref;
+            float4 ax = (nd[0] - ox) * ix, bx = (nd[1] - ox) * ix;
+            float4 ay = (nd[2] - oy) * iy, by = (nd[3] - oy) * iy;
+            float4 az = (nd[4] - oz) * iz, bz = (nd[5] - oz) * iz;
+            float4 tn = VMAX(VMAX(VMIN(ax, bx), VMIN(ay, by)), VMAX(VMIN(az, bz), (float4)(0.0f)));
+            float4 tf = VMIN(VMIN(VMAX(ax, bx), VMAX(ay, by)), VMIN(VMAX(az, bz), (float4)(best)))
+                        * (float4)(1.0000004f);
+            int4 rf = as_int4(nd[6]), ct = as_int4(nd[7]);
+            int4 hit = (tn <= tf) & (ct >= (int4)(0));
+            /* gather the hit children, then insertion-sort them by entry distance, farthest first */
+            float hv[4]; int hr[4], hc[4];
+            int nh = 0;
+            if (hit.s0) { hv[nh] = tn.s0; hr[nh] = rf.s0; hc[nh] = ct.s0; nh++; }
+            if (hit.s1) { hv[nh] = tn.s1; hr[nh] = rf.s1; hc[nh] = ct.s1; nh++; }
+            if (hit.s2) { hv[nh] = tn.s2; hr[nh] = rf.s2; hc[nh] = ct.s2; nh++; }
+            if (hit.s3) { hv[nh] = tn.s3; hr[nh] = rf.s3; hc[nh] = ct.s3; nh++; }
+            if (nh == 1) { ref = hr[0]; cnt = hc[0]; continue; }
+            if (nh > 1) {
+                for (int a = 1; a < nh; ++a) {
+                    float v = hv[a]; int rr = hr[a], cc = hc[a];
+                    int b = a - 1;
+                    while (b >= 0 && hv[b] < v) { hv[b + 1] = hv[b]; hr[b + 1] = hr[b]; hc[b + 1] = hc[b]; b--; }
+                    hv[b + 1] = v; hr[b + 1] = rr; hc[b + 1] = cc;
+                }
+                if (sp + nh - 1 > 3 * STACK_SIZE) { overflow = true; break; }
+                for (int a = 0; a < nh - 1; ++a) { st_ref[sp] = hr[a]; st_cnt[sp] = hc[a]; st_t[sp] = hv[a]; sp++; }
+                ref = hr[nh - 1]; cnt = hc[nh - 1];
+                continue;
+            }
+        } else {
+            leaf_hits(tris, ref, cnt, &r, &best, &best_face);
+        }
+        bool found = false;
+        while (sp > 0) {
+            sp--;
+            if (st_t[sp] <= best) { ref = st_ref[sp]; cnt = st_cnt[sp]; found = true; break; }
+        }
+        if (!found) break;
+    }
+    store_hit(i, overflow, best, best_face, tmr, orig, dir, out_t, out_face MESH_PASS);
+}

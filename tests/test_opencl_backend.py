@@ -1,0 +1,683 @@
+"""OpenCL backend: BVH builder and its depth bound, stack-overflow fallback, program/device caching, error
+messages, and agreement with the float64 reference on seeded random and adversarial inputs.
+
+Every device test runs once per OpenCL platform found (ids like ``[opencl:pocl]``) and, where the device
+has doubles, once more on the pure float32 path (``[opencl:pocl-fp32]``, what a device without
+cl_khr_fp64 runs); ray-mesh tests also run the other BVH width (``[opencl:pocl-bvh2]``: CPUs default to
+the 4-wide tree, GPUs to the binary one). Without PyOpenCL or without a device the tests skip with the
+reason.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from place3d_kernels.backends.base import BackendUnavailable, GridSpec
+from place3d_kernels.backends.opencl.bvh import (DEFAULT_MAX_DEPTH, brute_force_raycast, build_bvh, need_levels,
+                                                 validate_bvh)
+from place3d_kernels.backends.reference import ReferenceBackend
+
+try:
+    from place3d_kernels.backends.opencl import OpenCLBackend, opencl_devices
+
+    _DEVICES = opencl_devices()
+    _WHY = "no OpenCL platform with a device (install PoCL: pip install 'place3d-kernels[opencl]')"
+except ImportError as e:  # pragma: no cover - environment without PyOpenCL
+    _DEVICES, _WHY = [], f"PyOpenCL not importable: {e}"
+
+REF = ReferenceBackend()
+EPS = 1e-4  # 0.1 mm (DESIGN.md section 4)
+
+_instances: dict[str, "OpenCLBackend"] = {}
+
+
+def _backend(variant: str) -> "OpenCLBackend":
+    """``<platform>``: defaults; ``-fp32``: the pure float32 path; ``-bvh2``: the binary-tree ray caster."""
+    if variant not in _instances:
+        plat, _, mode = variant.partition("-")
+        _instances[variant] = OpenCLBackend(plat, fp64=False if mode == "fp32" else None,
+                                            bvh_width=2 if mode == "bvh2" else None)
+    return _instances[variant]
+
+
+def _variants() -> list:
+    out = []
+    for d in list(_DEVICES):
+        try:
+            b = _backend(d)
+        except BackendUnavailable:  # pragma: no cover - a listed platform that cannot open a context
+            _DEVICES.remove(d)
+            continue
+        out.append(pytest.param(d, id=f"opencl:{d}"))
+        if b.fp64:
+            out.append(pytest.param(f"{d}-fp32", id=f"opencl:{d}-fp32"))
+    return out or [pytest.param(None, marks=pytest.mark.skip(reason=_WHY), id="opencl")]
+
+
+VARIANTS = _variants()
+PLATFORMS = [p for p in VARIANTS if not str(p.id).endswith("-fp32")]
+#: ray-mesh tests also run the other tree width than the device's default
+RAY_VARIANTS = VARIANTS + [pytest.param(f"{d}-bvh2", id=f"opencl:{d}-bvh2") for d in _DEVICES
+                           if _backend(d).bvh_width == 4]
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(20240611)
+
+
+# ============================================================================ exact geometry for judging
+def _clip(o, d, t0, t1, lo, hi):
+    """Parameter range of the segment o + t d, t in [t0, t1], inside the closed box [lo, hi]."""
+    for a in range(3):
+        if d[a] == 0.0:
+            if o[a] < lo[a] or o[a] > hi[a]:
+                return None
+            continue
+        ta, tb = (lo[a] - o[a]) / d[a], (hi[a] - o[a]) / d[a]
+        t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+    return (t0, t1) if t1 >= t0 else None
+
+
+def _segment_box_distance(o, d, t0, t1, lo, hi) -> float:
+    """Euclidean distance between the segment [t0, t1] and the box: minimise the convex function
+    f(t) = |p(t) - clamp(p(t), lo, hi)| by ternary search (converges to ~1e-15 of the range)."""
+    def f(t):
+        p = o + t * d
+        return float(np.linalg.norm(p - np.clip(p, lo, hi)))
+    a, b = t0, t1
+    for _ in range(200):
+        m1, m2 = a + (b - a) / 3, b - (b - a) / 3
+        if f(m1) <= f(m2):
+            b = m2
+        else:
+            a = m1
+    return min(f(a), f(t0), f(t1))
+
+
+def assert_visits_within_tolerance(spec: GridSpec, o, d, t_end, got, want, eps=EPS):
+    """``got`` equals ``want`` except for voxels the ray passes within ``eps`` of (DESIGN.md section 4):
+
+    * an extra voxel must lie within Euclidean distance ``eps`` of the segment (clipped to the grid);
+    * a missing voxel may be entered by at most ``eps``: the segment must not reach the voxel shrunk by
+      ``eps`` on every side.
+    Both lists must be free of duplicates, and their common voxels must keep the same order.
+    """
+    got, want = np.asarray(got), np.asarray(want)
+    assert len(np.unique(got)) == len(got), f"duplicate voxels in {got}"
+    s = spec.voxel_size
+    n = np.asarray(spec.shape)
+    seg = _clip(o, d, 0.0, float(t_end), np.zeros(3), n * s)
+    for v in np.setdiff1d(got, want):
+        lo = np.array(np.unravel_index(v, spec.shape)) * s
+        assert seg is not None, f"voxel {v} visited by a ray that misses the grid"
+        dist = _segment_box_distance(o, d, seg[0], seg[1], lo, lo + s)
+        assert dist <= eps, f"extra voxel {v} is {dist:.3g} m from the ray (> {eps})"
+    for v in np.setdiff1d(want, got):
+        lo = np.array(np.unravel_index(v, spec.shape)) * s
+        inner = None if seg is None else _clip(o, d, seg[0], seg[1], lo + eps, lo + s - eps)
+        assert inner is None or inner[1] - inner[0] <= 0, \
+            f"voxel {v} skipped although the ray passes more than {eps} m inside it"
+    common = np.intersect1d(got, want)
+    np.testing.assert_array_equal(got[np.isin(got, common)], want[np.isin(want, common)])
+
+
+# ============================================================================ adversarial inputs
+def adversarial_rays(spec: GridSpec, rng, n=300):
+    s = spec.voxel_size
+    shape = np.asarray(spec.shape)
+    ijk = rng.integers(0, shape + 1, (n, 3)).astype(float)
+    jitter = rng.uniform(0, 1, (n, 3)) * (rng.uniform(size=(n, 3)) < 0.4)
+    o = (ijk + jitter) * s                                   # faces, edges, corners of voxels
+    d = rng.normal(size=(n, 3))
+    zero = rng.uniform(size=(n, 3)) < 0.3
+    d[zero] = np.where(rng.uniform(size=zero.sum()) < 0.5, 0.0, -0.0)   # axis-parallel, planar, -0.0
+    d[np.all(d == 0, axis=1)] = [0.0, -1.0, 0.0]
+    diag = rng.uniform(size=n) < 0.2
+    d[diag] = rng.choice([-1.0, 1.0], (diag.sum(), 3))       # through edges and corners
+    outside = rng.uniform(size=n) < 0.25
+    o[outside] = -3 * s + rng.uniform(0, 1, (outside.sum(), 3)) * (shape + 6) * s
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    # near-ties: rays aimed within 1e-7 m of a voxel edge (the float32 walk must defer to float64)
+    k = n // 5
+    tgt = (rng.integers(1, shape, (k, 3)) * s).astype(float)
+    tgt[:, 2] += rng.uniform(0.2, 0.8, k) * s                 # on an x-y edge line, inside in z
+    tgt[:, :2] += rng.uniform(-1e-7, 1e-7, (k, 2))
+    src = rng.uniform(0, 1, (k, 3)) * shape * s
+    dd = tgt - src
+    dd /= np.linalg.norm(dd, axis=1, keepdims=True)
+    o = np.concatenate([o, src])
+    d = np.concatenate([d, dd])
+    t_end = rng.choice([0.0, 0.3, 2.0, 50.0, 1e3], len(o))
+    return o, d, t_end
+
+
+def random_rays(spec: GridSpec, rng, n=1500, t=30.0):
+    size = np.asarray(spec.shape) * spec.voxel_size
+    o = rng.uniform(-0.1 * size, 1.1 * size, (n, 3))
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return o, d, np.full(n, t)
+
+
+def _csr_rows(offsets, voxels):
+    return [voxels[offsets[i]:offsets[i + 1]] for i in range(len(offsets) - 1)]
+
+
+# ============================================================================ BVH (host only)
+def _random_soup(rng, n):
+    c = rng.uniform(-10, 10, (n, 1, 3))
+    v = (c + rng.normal(scale=0.5, size=(n, 3, 3))).reshape(-1, 3)
+    return v, np.arange(3 * n).reshape(n, 3)
+
+
+def deep_scene(n=120, r=1.35, first=0):
+    """Tiny triangles at x = r**i: binned SAH peels a few off per level, a chain instead of a tree."""
+    x = float(r) ** (np.arange(n) + first)
+    w = 1e-3 * x
+    v0 = np.stack([x, np.zeros(n), np.zeros(n)], 1)
+    v1 = np.stack([x, w, np.zeros(n)], 1)
+    v2 = np.stack([x, np.zeros(n), w], 1)
+    return np.stack([v0, v1, v2], 1).reshape(-1, 3), np.arange(3 * n).reshape(n, 3)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 17, 1000])
+def test_bvh_structure(n, rng):
+    v, f = _random_soup(rng, n)
+    bvh = build_bvh(v, f)
+    validate_bvh(bvh, v, f)
+    assert sorted(bvh.order.tolist()) == list(range(n))
+    assert bvh.depth <= DEFAULT_MAX_DEPTH
+
+
+def test_bvh_identical_triangles_split_by_median():
+    v = np.tile(np.eye(3), (100, 1))
+    f = np.arange(300).reshape(100, 3)
+    bvh = build_bvh(v, f, leaf_size=4)
+    validate_bvh(bvh, v, f)
+    assert bvh.depth <= int(need_levels(100, 4)) + 1
+
+
+def test_bvh4_collapse_keeps_every_triangle_once(rng):
+    from place3d_kernels.backends.opencl.bvh import collapse_bvh4
+
+    v, f = _random_soup(rng, 3000)
+    bvh = build_bvh(v, f)
+    b4 = collapse_bvh4(bvh)
+    ints = b4.nodes[:, 24:32].view(np.int32)
+    ref, cnt = ints[:, :4], ints[:, 4:]
+    seen = np.zeros(len(f), int)
+    for r_, c_ in zip(ref[cnt > 0], cnt[cnt > 0]):
+        seen[bvh.order[r_:r_ + c_]] += 1
+    assert np.all(seen == 1)
+    inner = ref[cnt == 0]
+    assert sorted(inner.tolist()) == list(range(1, b4.n_nodes))   # every node but the root is a child once
+    assert b4.depth <= bvh.depth and b4.n_nodes < bvh.n_nodes
+
+
+def test_need_levels():
+    assert need_levels(np.array([1, 4, 5, 8, 9, 16, 17, 2**20]), 4).tolist() == [0, 0, 1, 1, 2, 2, 3, 18]
+
+
+def test_bvh_depth_cap_holds_on_a_scene_built_to_exceed_it():
+    v, f = deep_scene(210, 2.0, -105)        # within float32 range: 2**-105 ... 2**104
+    free = build_bvh(v, f, max_depth=None)
+    assert free.depth > DEFAULT_MAX_DEPTH, "the scene must defeat plain SAH (else the test proves nothing)"
+    capped = build_bvh(v, f)
+    validate_bvh(capped, v, f)
+    assert capped.depth <= DEFAULT_MAX_DEPTH
+    tight = build_bvh(v, f, max_depth=int(need_levels(len(f), 4)))
+    validate_bvh(tight, v, f)
+    assert tight.depth <= int(need_levels(len(f), 4))
+
+
+def test_bvh_builds_large_meshes_fast(rng):
+    import time
+
+    v, f = _random_soup(rng, 200_000)
+    t = time.process_time()
+    bvh = build_bvh(v, f)
+    assert time.process_time() - t < 5.0
+    assert bvh.depth <= DEFAULT_MAX_DEPTH
+
+
+# ============================================================================ backend basics and errors
+def test_unknown_platform_names_what_exists():
+    if not _DEVICES:
+        pytest.skip(_WHY)
+    with pytest.raises(BackendUnavailable) as e:
+        OpenCLBackend("no-such-vendor")
+    msg = str(e.value)
+    assert "no-such-vendor" in msg and _DEVICES[0] in msg and "pip install" in msg
+
+
+def test_no_platform_message(monkeypatch):
+    if not _DEVICES:
+        pytest.skip(_WHY)
+    from place3d_kernels.backends.opencl import _runtime
+
+    monkeypatch.setattr(_runtime, "platform_table", lambda: {})
+    with pytest.raises(BackendUnavailable, match=r"no CL platforms.*pip install 'place3d-kernels\[opencl\]'"):
+        OpenCLBackend("pocl")
+
+
+def test_missing_pyopencl_is_an_import_error_and_the_backend_is_listed_as_missing():
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['pyopencl'] = None\n"
+            "try:\n    import place3d_kernels.backends.opencl\nexcept ImportError as e:\n    print('IMPORT', e)\n"
+            "import place3d_kernels as p3k\n"
+            "print('NAMES', [b for b in p3k.available_backends() if b.startswith('opencl')])\n"
+            "print('REPORT', [r for r in p3k.backend_report() if r[0] == 'opencl'])\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120).stdout
+    assert "IMPORT PyOpenCL is not installed" in out
+    assert "NAMES []" in out
+    assert "place3d-kernels[opencl]" in out
+
+
+def test_bad_device_index():
+    if not _DEVICES:
+        pytest.skip(_WHY)
+    with pytest.raises(BackendUnavailable, match="device index"):
+        OpenCLBackend(f"{_DEVICES[0]}:99")
+
+
+def test_opencl_devices_are_short_unique_names():
+    from place3d_kernels.backends.opencl._runtime import short_name
+
+    assert short_name("Portable Computing Language") == "pocl"
+    assert short_name("NVIDIA CUDA") == "nvidia"
+    assert short_name("AMD Accelerated Parallel Processing") == "amd"
+    assert short_name("Intel(R) OpenCL HD Graphics") == "intel"
+    assert short_name("Some Vendor 9") == "some"
+    assert len(set(_DEVICES)) == len(_DEVICES)
+    assert all(d == d.lower() and " " not in d for d in _DEVICES)
+
+
+@pytest.mark.parametrize("variant", PLATFORMS)
+def test_programs_compiled_once_per_context(variant, rng):
+    from place3d_kernels.backends.opencl import _runtime
+
+    b = _backend(variant)
+    spec = GridSpec(0.5, (4, 4, 4))
+    o, d, t = random_rays(spec, rng, 10)
+    b.coverage(spec, o, d, t)
+    v, f = _random_soup(rng, 20)
+    h = b.upload_mesh(v, f)
+    b.raycast(h, o, d, t)
+    n_programs = len(_runtime._programs)
+    k = b._kernel("dda_coverage")
+    for _ in range(3):
+        b.coverage(spec, o, d, t)
+        b.raycast(h, o, d, t)
+    assert len(_runtime._programs) == n_programs
+    assert b._kernel("dda_coverage") is k
+
+
+@pytest.mark.parametrize("variant", PLATFORMS)
+def test_mesh_and_grid_handles_keep_device_buffers(variant, rng):
+    b = _backend(variant)
+    v, f = _random_soup(rng, 50)
+    h = b.upload_mesh(v, f)
+    tree = h.bvh4 if h.width == 4 else h.bvh
+    assert h.nodes.size == tree.nodes.nbytes and h.tris.size == h.bvh.tris.nbytes
+    spec = GridSpec(0.5, (4, 5, 6))
+    g = b.prepare_grid(spec, np.arange(spec.n_voxels), None)
+    assert g.weights.size == spec.n_voxels * 8 and not g.use_stop
+    with pytest.raises(ValueError, match="one int64 per voxel"):
+        b.prepare_grid(spec, np.arange(7), None)
+    # handles hold copies: editing the inputs afterwards changes nothing
+    w = rng.integers(0, 100, spec.n_voxels)
+    stop = (rng.uniform(size=spec.n_voxels) < 0.05).astype(np.uint8)
+    g = b.prepare_grid(spec, w, stop)
+    el, az = np.array([-0.1, 0.0, 0.1]), np.linspace(0, 6, 40)
+    poses = np.array([[[1.1, 1.2, 1.3, 0, 0, 0]]])
+    before = b.score_placements(g, el, az, 5.0, poses)
+    w[:] = 0
+    stop[:] = 1
+    after = b.score_placements(g, el, az, 5.0, poses)
+    assert before[0][0] == after[0][0] and before[1][0] == after[1][0] > 0
+    with pytest.raises(TypeError, match="upload_mesh"):
+        b.raycast(object(), v[:1], v[:1], [1.0])
+
+
+@pytest.mark.parametrize("variant", PLATFORMS)
+def test_empty_inputs(variant):
+    b = _backend(variant)
+    spec = GridSpec(0.5, (4, 4, 4))
+    e3 = np.empty((0, 3))
+    off, vox = b.traverse(spec, e3, e3, np.empty(0))
+    assert off.tolist() == [0] and vox.size == 0
+    assert not b.coverage(spec, e3, e3, np.empty(0)).any()
+    assert b.voxel_keys(spec, e3).size == 0
+    vv, ll = b.vote(np.empty(0, np.int64), np.empty(0, np.int32), 22)
+    assert vv.size == 0 and ll.size == 0
+    vv, ll = b.vote(np.array([3, 4, -1]), np.array([0, 0, 5]), 22)   # nobody votes
+    assert vv.size == 0 and ll.size == 0
+
+
+# ============================================================================ traversal vs reference
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("voxel", [0.2, 1.0, 0.05])
+def test_traverse_adversarial_vs_reference(variant, voxel, rng):
+    b = _backend(variant)
+    spec = GridSpec(voxel, tuple(int(round(x / voxel)) for x in (6.4, 3.2, 1.6)))
+    o, d, t_end = adversarial_rays(spec, rng)
+    got = _csr_rows(*b.traverse(spec, o, d, t_end))
+    want = _csr_rows(*REF.traverse(spec, o, d, t_end))
+    for i in range(len(o)):
+        assert_visits_within_tolerance(spec, o[i], d[i], t_end[i], got[i], want[i])
+    if b.fp64:
+        # Away from degenerate starts (origin on a voxel plane: the ray may run exactly along edges, where
+        # the reference itself decides at 1e-17 m), the fp64 path settles every near-tie in float64 as the
+        # reference does: identical lists, including the rays aimed within 1e-7 m of an edge.
+        frac = o / spec.voxel_size
+        clean = np.all(np.abs(frac - np.round(frac)) > 1e-4, axis=1)
+        assert clean[-(len(o) // 6):].all() and clean.sum() > 60
+        for i in np.flatnonzero(clean):
+            np.testing.assert_array_equal(got[i], want[i], err_msg=f"ray {i}: {o[i]} {d[i]} {t_end[i]}")
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_traverse_random_vs_reference(variant, rng):
+    b = _backend(variant)
+    spec = GridSpec(0.2, (100, 100, 20))
+    o, d, t = random_rays(spec, rng, 1500)
+    off, vox = b.traverse(spec, o, d, t)
+    roff, rvox = REF.traverse(spec, o, d, t)
+    assert np.all((vox >= 0) & (vox < spec.n_voxels))
+    if b.fp64:
+        np.testing.assert_array_equal(off, roff)
+        np.testing.assert_array_equal(vox, rvox)
+    else:
+        got, want = _csr_rows(off, vox), _csr_rows(roff, rvox)
+        for i in range(len(o)):
+            assert_visits_within_tolerance(spec, o[i], d[i], t[i], got[i], want[i])
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_tiny_voxels_on_long_rays(variant, rng):
+    b = _backend(variant)
+    spec = GridSpec(0.01, (20000, 50, 50))                    # 200 m x 0.5 m x 0.5 m
+    n = 6
+    o = np.column_stack([np.full(n, 0.003), rng.uniform(0.1, 0.4, n), rng.uniform(0.1, 0.4, n)])
+    d = np.column_stack([np.ones(n), rng.uniform(-1e-3, 1e-3, n), rng.uniform(-1e-3, 1e-3, n)])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    got = _csr_rows(*b.traverse(spec, o, d, np.full(n, 200.0)))
+    want = _csr_rows(*REF.traverse(spec, o, d, np.full(n, 200.0)))
+    for i in range(n):
+        assert len(want[i]) > 10_000
+        assert_visits_within_tolerance(spec, o[i], d[i], 200.0, got[i], want[i])
+        if b.fp64:
+            np.testing.assert_array_equal(got[i], want[i])
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_coverage_and_stop_mask_vs_reference(variant, rng):
+    b = _backend(variant)
+    spec = GridSpec(0.25, (40, 32, 12))
+    o, d, t = random_rays(spec, rng, 800, t=12.0)
+    stop = (rng.uniform(size=spec.n_voxels) < 0.01).astype(np.uint8)
+    for s in (None, stop):
+        got = b.coverage(spec, o, d, t, s)
+        want = REF.coverage(spec, o, d, t, s)
+        if b.fp64:
+            np.testing.assert_array_equal(got, want)
+        else:
+            assert (got != want).sum() <= 2
+        off, vox = b.traverse(spec, o, d, t, s)
+        m = np.zeros(spec.n_voxels, bool)
+        m[vox] = True
+        np.testing.assert_array_equal(m, got)                 # coverage is the union of traversal
+        if s is not None:                                     # each list ends at its first stop voxel
+            for row in _csr_rows(off, vox):
+                hit = np.flatnonzero(s[row])
+                assert len(hit) == 0 or hit[0] == len(row) - 1
+
+
+# ============================================================================ batched scores
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_score_placements_identical_to_reference(variant, rng):
+    b = _backend(variant)
+    spec = GridSpec(0.2, (60, 50, 15))
+    el = np.deg2rad(np.linspace(-25, 3, 6))
+    az = np.linspace(0, 2 * np.pi, 120, endpoint=False)
+    lo, hi = [1, 1, 0.5, -0.1, -0.1, -np.pi], [11, 9, 2.5, 0.1, 0.1, np.pi]
+    poses = rng.uniform(lo, hi, (4, 3, 6))
+    poses[1, :, 3:] = 0.0                                    # axis-aligned beams (exact zeros)
+    poses[2, 0, :3] = [2.0, 3.0, 1.0]                        # a sensor on a voxel corner
+    w = rng.integers(0, 2**40, spec.n_voxels)
+    stop = (rng.uniform(size=spec.n_voxels) < 0.003).astype(np.uint8)
+    for s in (None, stop):
+        got = b.score_placements(b.prepare_grid(spec, w, s), el, az, 25.0, poses)
+        want = REF.score_placements(REF.prepare_grid(spec, w, s), el, az, 25.0, poses)
+        if b.fp64:
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+        else:
+            assert np.all(np.abs(got[1] - want[1]) <= 2)
+    # one candidate alone scores the same as in a batch, and repeated calls are deterministic
+    h = b.prepare_grid(spec, w, stop)
+    s_all, c_all = b.score_placements(h, el, az, 25.0, poses)
+    s_one, c_one = b.score_placements(h, el, az, 25.0, poses[2:3])
+    assert s_one[0] == s_all[2] and c_one[0] == c_all[2]
+    np.testing.assert_array_equal(b.score_placements(h, el, az, 25.0, poses)[0], s_all)
+
+
+def test_score_strategies_agree(rng):
+    """Private bitsets + OR-reduction (CPU default) and the shared atomic bitset (GPU default), with any
+    number of rays per work-item and any population size, give the same exact sums."""
+    if not _DEVICES:
+        pytest.skip(_WHY)
+    spec = GridSpec(0.25, (40, 40, 10))
+    el = np.deg2rad(np.linspace(-20, 2, 5))
+    az = np.linspace(0, 2 * np.pi, 50, endpoint=False)
+    poses = rng.uniform([1, 1, 0.5, 0, 0, -3], [9, 9, 2, 0, 0, 3], (9, 2, 6))
+    w = rng.integers(0, 2**40, spec.n_voxels)
+    stop = (rng.uniform(size=spec.n_voxels) < 0.01).astype(np.uint8)
+    res = []
+    for strategy, per in (("private", 1), ("atomic", 1), ("atomic", 7), ("atomic", 64)):
+        b = OpenCLBackend(_DEVICES[0], rays_per_item=per, score_strategy=strategy)
+        res.append(b.score_placements(b.prepare_grid(spec, w, stop), el, az, 15.0, poses))
+        one = b.score_placements(b.prepare_grid(spec, w, stop), el, az, 15.0, poses[4:5])
+        assert one[0][0] == res[-1][0][4] and one[1][0] == res[-1][1][4]
+    for r in res[1:]:
+        np.testing.assert_array_equal(r[0], res[0][0])
+        np.testing.assert_array_equal(r[1], res[0][1])
+
+
+# ============================================================================ rays, keys, vote
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_lidar_rays_vs_reference(variant, rng):
+    b = _backend(variant)
+    el = np.deg2rad(np.linspace(-30, 10, 7))
+    az = np.linspace(-np.pi, np.pi, 33)
+    poses = rng.uniform(-3, 3, (3, 6))
+    o, d = b.lidar_rays(el, az, poses)
+    ro, rd = REF.lidar_rays(el, az, poses)
+    tol = 1e-12 if b.fp64 else 1e-6
+    np.testing.assert_allclose(o, ro, atol=tol * 10)
+    np.testing.assert_allclose(d, rd, atol=tol)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_voxel_keys_vs_reference(variant, rng):
+    b = _backend(variant)
+    spec = GridSpec(0.2, (30, 20, 10))
+    p = rng.uniform(-1, 7, (5000, 3))
+    p[:500] = rng.integers(-2, 32, (500, 3)) * 0.2           # on voxel faces, edges, corners, borders
+    got, want = b.voxel_keys(spec, p), REF.voxel_keys(spec, p)
+    if b.fp64:
+        np.testing.assert_array_equal(got, want)
+    else:
+        assert (got != want).mean() < 0.15                   # float32 rounds points on faces either way
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_vote_identical_to_reference(variant, rng):
+    b = _backend(variant)
+    n = 50_000
+    keys = rng.integers(-3, 4000, n)
+    labels = rng.integers(0, 6, n)                            # few classes: many ties
+    got = b.vote(keys, labels, 22)
+    want = REF.vote(keys, labels, 22)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    assert got[0].dtype == np.int64 and got[1].dtype == np.int32
+    # explicit tie: two labels with two points each -> the lower label wins; label 0 never votes
+    k = np.array([7, 7, 7, 7, 7, 7, 9, 9])
+    lab = np.array([5, 3, 5, 3, 0, 0, 0, 0])
+    v, l = b.vote(k, lab, 22)
+    assert v.tolist() == [7] and l.tolist() == [3]
+    with pytest.raises(ValueError, match="labels must lie"):
+        b.vote(np.array([1]), np.array([22]), 22)
+
+
+@pytest.mark.parametrize("variant", PLATFORMS)
+@pytest.mark.parametrize("path", ["dense", "hash", "dense-keys-hash-counts"])
+def test_vote_paths_identical_to_reference(variant, path, rng, monkeypatch):
+    """Dense flags + prefix-sum ranks (keys of one grid), hash tables (sparse huge keys), and the mixed
+    case (dense ranks, too many (voxel, class) pairs for a dense count table) agree with the reference."""
+    import place3d_kernels.backends.opencl.backend as be
+
+    b = _backend(variant)
+    n = 30_000
+    hi = 2**30 if path == "hash" else 5000
+    keys = rng.integers(-2, hi, n)
+    keys[: n // 3] = rng.integers(0, 40, n // 3)               # crowded voxels: long vote lists, ties
+    labels = rng.integers(0, 5, n)
+    if path == "dense-keys-hash-counts":
+        monkeypatch.setattr(be, "_DENSE_VOTE_BYTES", 0)
+    got, want = b.vote(keys, labels, 22), REF.vote(keys, labels, 22)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+# ============================================================================ ray-mesh
+def _closed_meshes():
+    trimesh = pytest.importorskip("trimesh")
+    ico = trimesh.creation.icosphere(subdivisions=3, radius=1.5)
+    box = trimesh.creation.box(extents=(2.0, 1.0, 3.0)).subdivide().subdivide()
+    return {"icosphere": (ico.vertices, ico.faces, ico.edges_unique),
+            "cube": (box.vertices, box.faces, box.edges_unique)}
+
+
+@pytest.mark.parametrize("variant", RAY_VARIANTS)
+@pytest.mark.parametrize("name", ["icosphere", "cube"])
+def test_no_leaks_at_shared_vertices_and_edges(variant, name, rng):
+    b = _backend(variant)
+    v, f, edges = _closed_meshes()[name]
+    v = v + [3.0, -2.0, 1.0]
+    w = rng.uniform(0.05, 0.95, (len(edges), 1))
+    tgt = np.concatenate([v, 0.5 * (v[edges[:, 0]] + v[edges[:, 1]]),
+                          w * v[edges[:, 0]] + (1 - w) * v[edges[:, 1]]])
+    centre = v.mean(axis=0)
+    out = tgt - centre
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    out += 0.1 * rng.normal(size=out.shape)
+    origins = tgt + 10.0 * out
+    d = tgt - origins
+    dist = np.linalg.norm(d, axis=1)
+    d /= dist[:, None]
+    h = b.upload_mesh(v, f)
+    t, face = b.raycast(h, origins, d, np.full(len(d), 100.0))
+    assert np.all(face >= 0), f"{int((face < 0).sum())} of {len(d)} rays slipped through the mesh"
+    assert np.all(t <= dist * (1 + 1e-6) + 1e-6), "a ray passed its target: it leaked into the body"
+    # axis-aligned rays through every vertex (exact zero direction components)
+    for axis in range(3):
+        dd = np.zeros((len(v), 3))
+        dd[:, axis] = 1.0
+        oo = v.copy()
+        oo[:, axis] = v[:, axis].min() - 5.0
+        t, face = b.raycast(h, oo, dd, np.full(len(v), 100.0))
+        # each ray passes exactly through a vertex of the convex body: it enters it or touches it there
+        assert np.all(face >= 0), f"axis {axis}: {int((face < 0).sum())} rays through vertices missed"
+
+
+@pytest.mark.parametrize("variant", RAY_VARIANTS)
+def test_raycast_vs_reference(variant, rng):
+    trimesh = pytest.importorskip("trimesh")
+    b = _backend(variant)
+    tm = trimesh.creation.icosphere(subdivisions=3, radius=2.0)
+    v, f = tm.vertices + [40.0, -25.0, 3.0], tm.faces       # away from the origin, like a city part
+    o = rng.normal(size=(1500, 3)) * 5.0 + [40.0, -25.0, 3.0]
+    d = rng.normal(size=(1500, 3)) * 1.5 - (o - [40.0, -25.0, 3.0])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t_max = rng.choice([3.0, 8.0, 30.0], len(o))
+    h = b.upload_mesh(v, f)
+    got_t, got_f = b.raycast(h, o, d, t_max)
+    want_t, want_f = REF.raycast(REF.upload_mesh(v, f), o, d, t_max)
+    hit = want_f >= 0
+    np.testing.assert_array_equal(got_f >= 0, hit)
+    assert hit.sum() > 300
+    np.testing.assert_allclose(got_t[hit], want_t[hit], rtol=1e-5)
+    assert np.all(np.isinf(got_t[~hit])) and np.all(got_f[~hit] == -1)
+    same = got_f[hit] == want_f[hit]
+    assert same.mean() > 0.995
+    # a different face id only where the two faces are hit at the same distance (shared edge/vertex)
+    for i in np.flatnonzero(hit)[~same]:
+        tt, _ = brute_force_raycast(v, f[got_f[i]][None], o[i:i + 1], d[i:i + 1], t_max[i:i + 1])
+        np.testing.assert_allclose(tt, want_t[i:i + 1], rtol=1e-6)
+
+
+@pytest.mark.parametrize("variant", RAY_VARIANTS)
+def test_closest_hit_ties_go_to_the_lowest_face(variant):
+    b = _backend(variant)
+    # the same square twice (faces 0-1 and 2-3): every hit ties; the lower id must win
+    v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
+    f = np.array([[0, 1, 2], [0, 2, 3], [0, 1, 2], [0, 2, 3]])
+    o = np.array([[0.3, -0.5, 2.0], [-0.5, 0.3, 2.0]])
+    d = np.array([[0, 0, -1.0], [0, 0, -1.0]])
+    t, face = b.raycast(b.upload_mesh(v, f), o, d, np.array([10.0, 10.0]))
+    np.testing.assert_allclose(t, [2.0, 2.0])
+    assert face.tolist() == [0, 1]
+
+
+@pytest.mark.parametrize("variant", RAY_VARIANTS)
+def test_t_max_bounds_the_hit(variant):
+    b = _backend(variant)
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    f = np.array([[0, 1, 2]])
+    o = np.array([[0.2, 0.2, 1.0]] * 4)
+    d = np.array([[0, 0, -1.0]] * 4)
+    t, face = b.raycast(b.upload_mesh(v, f), o, d, np.array([1.0, 1.0 - 1e-9, 0.5, 10.0]))
+    assert face.tolist() == [0, -1, -1, 0]
+    assert t[0] == 1.0 and np.isinf(t[1]) and np.isinf(t[2]) and t[3] == 1.0
+
+
+def test_stack_overflow_rays_are_retraced_on_the_host(rng):
+    """A deliberately tiny stack overflows on the deep scene; flagged rays must come back exact."""
+    if not _DEVICES:
+        pytest.skip(_WHY)
+    v, f = deep_scene(120)
+    b = OpenCLBackend(_DEVICES[0], stack_size=2, bvh_width=2)
+    h = b.upload_mesh(v, f)
+    assert h.bvh.depth > 2
+    x = 1.35 ** np.arange(120)
+    # rays along -x through the tiny triangles' corner region, and random ones near the deep end of the
+    # chain (far out, at 1e15 m, even float64 cannot resolve 1 mm triangles)
+    # (float32 Woop products overflow beyond ~1e12 m, so stay below that)
+    o = np.column_stack([x[:90:3] * 1.5 + 1.0, np.full(30, 1e-7), np.full(30, 1e-7)])
+    o = np.concatenate([o, rng.uniform([0, -0.5, -0.5], [300, 0.5, 0.5], (200, 3))])
+    d = np.tile([-1.0, 0.0, 0.0], (len(o), 1))
+    d[30:] = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    tm = np.full(len(o), 1e30)
+    t, face = b.raycast(h, o, d, tm)
+    assert b.stats["retraced_rays"] > 0
+    bt, bf = brute_force_raycast(v, f, o, d, tm)
+    np.testing.assert_array_equal(face, bf)
+    np.testing.assert_allclose(t[bf >= 0], bt[bf >= 0], rtol=1e-9)
+    # the 4-wide tree with a tiny stack overflows too (up to 3 entries per level)
+    b4 = OpenCLBackend(_DEVICES[0], stack_size=1, bvh_width=4)
+    t4, face4 = b4.raycast(b4.upload_mesh(v, f), o, d, tm)
+    assert b4.stats["retraced_rays"] > 0
+    np.testing.assert_array_equal(face4, bf)
+    # with the proven stack size nothing is handed back, and the answers are the same
+    for width in (2, 4):
+        b64 = OpenCLBackend(_DEVICES[0], bvh_width=width)
+        t2, face2 = b64.raycast(b64.upload_mesh(v, f), o, d, tm)
+        assert b64.stats["retraced_rays"] == 0
+        np.testing.assert_array_equal(face2, bf)
