@@ -10,8 +10,9 @@ if [ -d .whl ]; then python3 -m pip install -q --no-index --no-deps --target /tm
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader | tee "$out/gpu.txt"
 python3 -c "import place3d_kernels as p; print(p.available_backends())" | tee -a "$out/gpu.txt"
 gpus=$(python3 -c "import place3d_kernels as p; print(','.join(b for b in p.available_backends() if b.startswith('warp:cuda') or (b.startswith('opencl:') and b != 'opencl:pocl')))")
-PLACE3D_TEST_BACKENDS="$gpus" timeout 300 python3 -m pytest -q -p no:cacheprovider tests/test_traversal.py \
-  tests/test_raycast.py tests/test_msog.py tests/test_sog.py tests/test_pipeline.py 2>&1 | tail -25 | tee "$out/gpu-tests.txt"
+PLACE3D_TEST_BACKENDS="$gpus" timeout 420 python3 -m pytest -q -p no:cacheprovider -x tests/test_traversal.py \
+  tests/test_raycast.py tests/test_msog.py tests/test_sog.py tests/test_pipeline.py tests/test_opencl_backend.py \
+  tests/stress 2>&1 | tail -25 | tee "$out/gpu-tests.txt"
 label=${GPU_LABEL:-gpu-$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | tr ' ' '-')}
-timeout 400 python3 bench/run_bench.py --label "$label" --device "$(head -1 "$out/gpu.txt")" \
+timeout 300 python3 bench/run_bench.py --label "$label" --device "$(head -1 "$out/gpu.txt")" \
   --backends ${gpus//,/ } --out "$out" 2>&1 | tail -15
