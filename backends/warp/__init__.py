@@ -40,13 +40,11 @@ def warp_devices() -> list[str]:
 
 
 class _WarpMesh:
-    def __init__(self, bvh, points, points64, indices, lowers, uppers):
-        self.bvh = bvh            # keep the arrays alive with the BVH
+    def __init__(self, mesh, points, indices, corners64):
+        self.mesh = mesh          # keep the arrays alive with the BVH
         self.points = points
-        self.points64 = points64
         self.indices = indices
-        self.lowers = lowers
-        self.uppers = uppers
+        self.corners64 = corners64
 
 
 class _WarpGrid:
@@ -112,28 +110,33 @@ class WarpCore(Backend):
 
     # ------------------------------------------------------------------ ray-mesh
     def upload_mesh(self, vertices, faces):
-        # Warp's own mesh_query_ray culls BVH nodes with an unpadded float32 slab test and lets rays
-        # through vertices on node boundaries slip (seen on icospheres and boxes). We build the BVH over
-        # triangle boxes padded by a few float32 ulps instead and test triangles watertight ourselves.
+        # Warp's mesh_query_ray culls BVH nodes with an unpadded float32 slab test, and rays aimed at
+        # vertices on node boundaries slipped through (seen on boxes and cylinders). So the BVH is built
+        # over padded triangle boxes: each triangle gets its own three points, first set to the corners
+        # of its box grown by a few float32 ulps (the BVH takes its bounds from them), then overwritten
+        # in place with the true corners, without a refit. Queries then test true triangles
+        # (watertight) inside padded boxes. Face ids are unchanged (triangle f uses points 3f..3f+2).
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces, dtype=np.int64)
         tri = v[f]                                                     # (F, 3, 3)
         lo, hi = tri.min(axis=1), tri.max(axis=1)
         pad = (np.maximum(np.abs(lo), np.abs(hi)).max(axis=1, keepdims=True) + 1.0) * 1e-6
-        lowers, uppers = self._vec3(lo - pad), self._vec3(hi + pad)
-        pts = self._vec3(v)
-        idx = wp.array(np.ascontiguousarray(f, dtype=np.int32).reshape(-1), dtype=wp.int32, device=self.device)
-        bvh = wp.Bvh(lowers, uppers, constructor="sah")
-        return _WarpMesh(bvh, pts, self._vec3d(v), idx, lowers, uppers)
+        build = np.stack([lo - pad, hi + pad, 0.5 * (lo + hi)], axis=1).reshape(-1, 3)
+        pts = self._vec3(build)
+        idx = wp.array(np.arange(3 * len(f), dtype=np.int32), dtype=wp.int32, device=self.device)
+        mesh = wp.Mesh(points=pts, indices=idx, bvh_constructor="sah")
+        corners = tri.reshape(-1, 3)
+        pts.assign(self._vec3(corners))
+        return _WarpMesh(mesh, pts, idx, self._vec3d(corners))
 
     def raycast(self, mesh, origins, directions, t_max):
         n = len(origins)
         out_t = wp.empty(n, dtype=wp.float64, device=self.device)
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
         if n:
-            wp.launch(self.k.raycast_robust_kernel, dim=n, device=self.device,
-                      inputs=[mesh.bvh.id, mesh.points, mesh.points64, mesh.indices, self._vec3d(origins),
-                              self._vec3d(directions), self._f32(t_max, n), out_t, out_f])
+            wp.launch(self.k.raycast_kernel, dim=n, device=self.device,
+                      inputs=[mesh.mesh.id, mesh.corners64, self._vec3d(origins), self._vec3d(directions),
+                              self._f64(t_max, n), out_t, out_f])
         t = out_t.numpy()
         t[t >= 1.0e300] = np.inf
         return t, out_f.numpy()
@@ -142,10 +145,9 @@ class WarpCore(Backend):
         """For benchmarks: a zero-argument callable that launches the ray-mesh kernel on rays already on
         the device (no host transfers), so kernel throughput can be timed apart from data movement."""
         n = len(origins)
-        args = [mesh.bvh.id, mesh.points, mesh.points64, mesh.indices, self._vec3d(origins), self._vec3d(directions),
-                self._f32(t_max, n), wp.empty(n, dtype=wp.float64, device=self.device),
-                wp.empty(n, dtype=wp.int32, device=self.device)]
-        return lambda: wp.launch(self.k.raycast_robust_kernel, dim=n, device=self.device, inputs=args)
+        args = [mesh.mesh.id, mesh.corners64, self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n),
+                wp.empty(n, dtype=wp.float64, device=self.device), wp.empty(n, dtype=wp.int32, device=self.device)]
+        return lambda: wp.launch(self.k.raycast_kernel, dim=n, device=self.device, inputs=args)
 
     def resident_traverse(self, grid, origins, directions, t_end, stop=None):
         """For benchmarks: launch the traversal count kernel on resident rays (see ``resident_raycast``)."""

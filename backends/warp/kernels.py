@@ -13,7 +13,6 @@ import warp as wp
 # forward kernels only: no adjoints to generate, which roughly halves compile time
 wp.set_module_options({"enable_backward": False})
 
-INF = wp.constant(wp.float32(3.0e38))
 INF64 = wp.constant(wp.float64(1.0e300))
 
 
@@ -38,114 +37,37 @@ def lidar_rays_kernel(
 @wp.kernel
 def raycast_kernel(
     mesh: wp.uint64,
-    origins: wp.array(dtype=wp.vec3),
-    dirs: wp.array(dtype=wp.vec3),
-    t_max: wp.array(dtype=wp.float32),
-    out_t: wp.array(dtype=wp.float32),
-    out_face: wp.array(dtype=wp.int32),
-):
-    tid = wp.tid()
-    q = wp.mesh_query_ray(mesh, origins[tid], dirs[tid], t_max[tid])
-    if q.result and q.t >= 0.0:
-        out_t[tid] = q.t
-        out_face[tid] = q.face
-    else:
-        out_t[tid] = INF
-        out_face[tid] = -1
-
-
-@wp.func
-def watertight_t(o: wp.vec3, d: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.float32:
-    """Woop, Benthin & Wald (JCGT 2013) watertight ray/triangle test; -1 on miss, else t.
-
-    The paper recomputes edge functions that are exactly 0 in float32 in double precision; here they are
-    always computed from exact float64 products (see below).
-    """
-    kz = 0
-    if wp.abs(d[1]) > wp.abs(d[kz]):
-        kz = 1
-    if wp.abs(d[2]) > wp.abs(d[kz]):
-        kz = 2
-    kx = (kz + 1) % 3
-    ky = (kx + 1) % 3
-    if d[kz] < 0.0:
-        tmp = kx
-        kx = ky
-        ky = tmp
-    sx = d[kx] / d[kz]
-    sy = d[ky] / d[kz]
-    sz = 1.0 / d[kz]
-    A = a - o
-    B = b - o
-    C = c - o
-    ax = A[kx] - sx * A[kz]
-    ay = A[ky] - sy * A[kz]
-    bx = B[kx] - sx * B[kz]
-    by = B[ky] - sy * B[kz]
-    cx = C[kx] - sx * C[kz]
-    cy = C[ky] - sy * C[kz]
-    # Edge functions in float64 from float32 inputs: each product is exact and the difference rounds
-    # once, so a shared edge gets the same value (up to sign) from both triangles even where the
-    # compiler contracts to FMA (CUDA does; a float32 version leaked on an H100).
-    u = wp.float32(wp.float64(cx) * wp.float64(by) - wp.float64(cy) * wp.float64(bx))
-    v = wp.float32(wp.float64(ax) * wp.float64(cy) - wp.float64(ay) * wp.float64(cx))
-    w = wp.float32(wp.float64(bx) * wp.float64(ay) - wp.float64(by) * wp.float64(ax))
-    if (u < 0.0 or v < 0.0 or w < 0.0) and (u > 0.0 or v > 0.0 or w > 0.0):
-        return -1.0
-    det = u + v + w
-    if det == 0.0:
-        return -1.0
-    t = (u * sz * A[kz] + v * sz * B[kz] + w * sz * C[kz]) / det
-    if t < 0.0:
-        return -1.0
-    return t
-
-
-@wp.kernel
-def raycast_robust_kernel(
-    bvh: wp.uint64,
-    points: wp.array(dtype=wp.vec3),
-    points64: wp.array(dtype=wp.vec3d),
-    indices: wp.array(dtype=wp.int32),
+    corners64: wp.array(dtype=wp.vec3d),    # (3F,) true triangle corners, float64
     origins: wp.array(dtype=wp.vec3d),
     dirs: wp.array(dtype=wp.vec3d),
-    t_max: wp.array(dtype=wp.float32),
+    t_max: wp.array(dtype=wp.float64),
     out_t: wp.array(dtype=wp.float64),
     out_face: wp.array(dtype=wp.int32),
 ):
-    # Candidates come from a BVH over triangle boxes padded on the host, so float32 slab tests cannot
-    # cull a triangle the ray touches; the triangle test itself is watertight. Closest hit wins; equal
-    # distances resolve to the lowest face id so results do not depend on traversal order. The winning
-    # face's distance is then recomputed in float64 from float64 inputs (plane equation), so grazing
-    # rays do not inherit float32 rounding of vertices and origins (0.3 mm at 13 m was seen).
+    # Warp's ordered BVH query and watertight triangle test, on a mesh whose BVH boxes were built
+    # padded (see WarpCore.upload_mesh), so no box culls a triangle the ray touches. The winning face's
+    # distance is recomputed in float64 from float64 inputs (plane equation): grazing rays otherwise
+    # inherit the float32 rounding of corners and origins (0.3 mm at 13 m was seen).
     tid = wp.tid()
     o64 = origins[tid]
     d64 = dirs[tid]
+    tm = t_max[tid]
     o = wp.vec3(wp.float32(o64[0]), wp.float32(o64[1]), wp.float32(o64[2]))
     d = wp.vec3(wp.float32(d64[0]), wp.float32(d64[1]), wp.float32(d64[2]))
-    best = t_max[tid]
-    face = wp.int32(-1)
-    q = wp.bvh_query_ray(bvh, o, d)
-    f = wp.int32(0)
-    while wp.bvh_query_next(q, f, best * 1.000001 + 1.0e-6):
-        t = watertight_t(o, d, points[indices[3 * f]], points[indices[3 * f + 1]], points[indices[3 * f + 2]])
-        if t >= 0.0 and t <= best:
-            if t < best or face < 0 or f < face:
-                best = t
-                face = f
-    if face >= 0:
-        a64 = points64[indices[3 * face]]
-        n64 = wp.cross(points64[indices[3 * face + 1]] - a64, points64[indices[3 * face + 2]] - a64)
+    q = wp.mesh_query_ray(mesh, o, d, wp.float32(tm * wp.float64(1.000001) + wp.float64(1.0e-6)))
+    out_t[tid] = INF64
+    out_face[tid] = -1
+    if q.result:
+        a64 = corners64[3 * q.face]
+        n64 = wp.cross(corners64[3 * q.face + 1] - a64, corners64[3 * q.face + 2] - a64)
         den = wp.dot(n64, d64)
-        t64 = wp.float64(best)
+        t64 = wp.float64(q.t)
         if den != wp.float64(0.0):
             t64 = wp.dot(n64, a64 - o64) / den
-        if t64 < wp.float64(0.0):
-            t64 = wp.float64(0.0)
-        out_t[tid] = t64
-    else:
-        out_t[tid] = INF64
-    out_face[tid] = face
+        t64 = wp.max(t64, wp.float64(0.0))
+        if t64 <= tm:
+            out_t[tid] = t64
+            out_face[tid] = q.face
 
 
 # ----------------------------------------------------------------------------- voxel walk
