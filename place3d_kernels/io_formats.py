@@ -49,7 +49,7 @@ from typing import NamedTuple
 import numpy as np
 
 from place3d_kernels.classes import CLASS_ID, N_CLASSES
-from place3d_kernels.pose import invert, pose_matrix, transform_points
+from place3d_kernels.pose import invert, pose_from_matrix, pose_matrix, transform_points
 
 __all__ = ["SEMANTICKITTI_TO_PLACE3D", "CARLA_LEGACY_TO_PLACE3D", "CARLA_CITYSCAPES_TO_PLACE3D", "remap_semantickitti",
            "read_semantickitti", "read_carla_ply", "CarlaCloud", "read_poses", "read_sequence",
@@ -249,12 +249,6 @@ def read_poses(path) -> np.ndarray:
     return np.stack(rows)
 
 
-def _pose6(T: np.ndarray) -> np.ndarray:
-    R = T[:3, :3]
-    pitch = -np.arcsin(np.clip(R[2, 0], -1.0, 1.0))
-    roll = np.arctan2(R[2, 1], R[2, 2])
-    yaw = np.arctan2(R[1, 0], R[0, 0])
-    return np.array([T[0, 3], T[1, 3], T[2, 3], roll, pitch, yaw])
 
 
 def read_sequence(folder, labels: str = "semantickitti", mount=(0.0, 0.0, 2.5, 0.0, 0.0, 0.0), frames=None,
@@ -290,7 +284,7 @@ def read_sequence(folder, labels: str = "semantickitti", mount=(0.0, 0.0, 2.5, 0
         pts, inten, lab = read_semantickitti(b, lab_path, labels=labels, strict=strict)
         T = poses[int(b.stem)] if int(b.stem) < len(poses) else poses[i]
         world = transform_points(T, pts.astype(np.float64))
-        ego = _pose6(T @ mount_inv)
+        ego = pose_from_matrix(T @ mount_inv)
         out.append(Frame(world, lab, ego, inten, T[:3, 3].copy()))
     return out
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["rotation", "pose_matrix", "invert", "transform_points"]
+__all__ = ["rotation", "pose_matrix", "pose_from_matrix", "invert", "transform_points"]
 
 
 def rotation(roll, pitch, yaw) -> np.ndarray:
@@ -32,6 +32,15 @@ def pose_matrix(pose) -> np.ndarray:
     T[..., :3, 3] = p[..., :3]
     T[..., 3, 3] = 1.0
     return T
+
+
+def pose_from_matrix(T: np.ndarray) -> np.ndarray:
+    """(x, y, z, roll, pitch, yaw) of a 4x4 transform (inverse of ``pose_matrix``)."""
+    R = T[:3, :3]
+    pitch = -np.arcsin(np.clip(R[2, 0], -1.0, 1.0))
+    roll = np.arctan2(R[2, 1], R[2, 2])
+    yaw = np.arctan2(R[1, 0], R[0, 0])
+    return np.array([T[0, 3], T[1, 3], T[2, 3], roll, pitch, yaw])
 
 
 def invert(T: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ from place3d_kernels.classes import REFLECTIVITY
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.ops import raycast
-from place3d_kernels.pose import pose_matrix
+from place3d_kernels.pose import pose_from_matrix, pose_matrix
 from place3d_kernels.sog import Frame
 
 __all__ = ["simulate_frame", "simulate", "DEFAULT_MOUNT"]
@@ -78,15 +78,7 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
     for f in it:
         ego_T = pose_matrix(scene.ego_poses[f])
         T = ego_T @ mount_T
-        sensor_pose = _pose_from_matrix(T)
+        sensor_pose = pose_from_matrix(T)
         pts, lab, inten, origin = simulate_frame(scene.static, scene.dynamic(f), lidar, sensor_pose, backend)
         out.append(Frame(pts, lab, scene.ego_poses[f].copy(), inten, origin))
     return out
-
-
-def _pose_from_matrix(T: np.ndarray) -> np.ndarray:
-    R = T[:3, :3]
-    pitch = -np.arcsin(np.clip(R[2, 0], -1.0, 1.0))
-    roll = np.arctan2(R[2, 1], R[2, 2])
-    yaw = np.arctan2(R[1, 0], R[0, 0])
-    return np.array([T[0, 3], T[1, 3], T[2, 3], roll, pitch, yaw])

@@ -466,52 +466,14 @@ def collapse_bvh4(bvh: BVH) -> BVH4:
 
 # ------------------------------------------------------------------------------ host fallback
 def brute_force_raycast(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray, directions: np.ndarray,
-                        t_max: np.ndarray, chunk_pairs: int = 4_000_000) -> tuple[np.ndarray, np.ndarray]:
-    """Closest hit by testing every triangle (float64 watertight test). Used to re-trace the rare rays the
-    kernel flags (stack overflow) and as an oracle in tests. Ties in t go to the lowest face id."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
+                        t_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest hit by testing every triangle: the reference backend's float64 watertight test. Used to
+    re-trace the rare rays the kernel flags (stack overflow) and as an oracle in tests. Ties in t go to
+    the lowest face id."""
+    from place3d_kernels.backends.reference.core import ReferenceCore
+
+    ref = ReferenceCore()
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
-    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    tm = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (len(o),))
-    v0, v1, v2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    t_out = np.full(len(o), np.inf)
-    f_out = np.full(len(o), -1, dtype=np.int32)
-    r = np.arange(len(o))
-    kz = np.argmax(np.abs(d), axis=1)
-    kx = (kz + 1) % 3
-    ky = (kx + 1) % 3
-    neg = d[r, kz] < 0
-    kx, ky = np.where(neg, ky, kx), np.where(neg, kx, ky)
-    dz = d[r, kz]
-    sx, sy, sz = d[r, kx] / dz, d[r, ky] / dz, 1.0 / dz
-    step = max(1, chunk_pairs // max(len(f), 1))
-    for s in range(0, len(o), step):
-        e = min(s + step, len(o))
-        rr = slice(s, e)
-
-        def proj(p):
-            rel = p[None, :, :] - o[rr, None, :]
-            px = np.take_along_axis(rel, kx[rr, None, None], 2)[..., 0]
-            py = np.take_along_axis(rel, ky[rr, None, None], 2)[..., 0]
-            pz = np.take_along_axis(rel, kz[rr, None, None], 2)[..., 0]
-            return px - sx[rr, None] * pz, py - sy[rr, None] * pz, sz[rr, None] * pz
-
-        ax, ay, az = proj(v0)
-        bx, by, bz = proj(v1)
-        cx, cy, cz = proj(v2)
-        u = cx * by - cy * bx
-        vv = ax * cy - ay * cx
-        w = bx * ay - by * ax
-        inside = ~(((u < 0) | (vv < 0) | (w < 0)) & ((u > 0) | (vv > 0) | (w > 0)))
-        det = u + vv + w
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (u * az + vv * bz + w * cz) / det
-        ok = inside & (det != 0) & (t >= 0) & (t <= tm[rr, None])
-        t = np.where(ok, t, np.inf)
-        best = np.argmin(t, axis=1)  # first (lowest id) among equal minima
-        tb = t[np.arange(e - s), best]
-        hit = np.isfinite(tb)
-        t_out[rr] = tb
-        f_out[rr] = np.where(hit, best, -1)
-    return t_out, f_out
+    t, face = ref.raycast(ref.upload_mesh(vertices, faces), o, np.asarray(directions, dtype=np.float64).reshape(-1, 3),
+                          np.broadcast_to(np.asarray(t_max, dtype=np.float64), (len(o),)))
+    return t, face.astype(np.int32)
