@@ -23,7 +23,7 @@ def add_arguments(p) -> None:
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population (default: pycma's)")
     p.add_argument("--sigma0", type=float, default=0.3, help="initial step, fraction of each bound width")
     p.add_argument("--delta", type=float, default=0.1, help="grid density of candidates (default 0.1, the paper's)")
-    p.add_argument("--opt-seed", type=int, default=0, help="optimiser seed (default 0)")
+    p.add_argument("--opt-seed", type=int, default=None, help="optimiser seed (default: --seed)")
     p.add_argument("--occlusion", default="sog", choices=["sog", "none"], help="ray occlusion mode")
     p.add_argument("--pose-cache", action="store_true",
                    help="cache covered voxels per LiDAR pose (pays off when rigs repeat most poses; otherwise "
@@ -41,6 +41,8 @@ def run(args, psog_for) -> int:
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
 
     t0 = time.perf_counter()
+    if args.opt_seed is None:
+        args.opt_seed = args.seed          # --seed S seeds the scene and the optimiser alike
     b = get_backend(args.backend)
     lidar = LidarModel.load(args.lidar)
     _, psog = psog_for(args, b)
