@@ -2,7 +2,7 @@
 
 Names: ``reference``, ``warp:cpu``, ``warp:cuda:N``, ``opencl:<platform>`` (``opencl:pocl``,
 ``opencl:nvidia``, ...). Short forms: ``warp`` and ``opencl`` pick that backend's default device
-(CUDA / GPU first), ``auto`` picks the fastest available (warp:cuda, opencl GPU, warp:cpu, opencl:pocl,
+(CUDA / GPU first), ``auto`` picks the fastest available (warp:cuda, opencl GPU, opencl:pocl, warp:cpu,
 reference). The default backend comes from ``use_backend`` scopes, else the ``PLACE3D_BACKEND``
 environment variable, else ``auto``.
 """
@@ -67,9 +67,10 @@ def _canonical(name: str) -> str:
     names = available_backends()
     n = name.strip().lower()
     if n == "auto":
+        # GPUs first; on the CPU, PoCL (all cores) measured 3-10x faster than Warp's one-thread CPU device
         order = [x for x in names if x.startswith("warp:cuda")] + \
                 [x for x in names if x.startswith("opencl:") and x != "opencl:pocl"] + \
-                [x for x in names if x == "warp:cpu"] + [x for x in names if x == "opencl:pocl"] + ["reference"]
+                [x for x in names if x == "opencl:pocl"] + [x for x in names if x == "warp:cpu"] + ["reference"]
         return order[0]
     if n in ("warp", "opencl"):
         fam = [x for x in names if x.startswith(n + ":")]

@@ -1,4 +1,4 @@
-"""The ``place3d`` command: backends | evaluate | simulate | optimize | bench."""
+"""The ``place3d`` command: backends | evaluate | simulate | optimize | study | bench."""
 
 from __future__ import annotations
 
@@ -130,6 +130,20 @@ def cmd_evaluate(args) -> int:
 
 def cmd_simulate(args) -> int:
     from place3d_kernels.backend import get_backend
+
+    if getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None):
+        from place3d_kernels.distributed import ConditionSpec, SceneSpec, executor_from_args, simulate_to_folder
+
+        ex = executor_from_args(args)
+        try:
+            r = simulate_to_folder(SceneSpec(args.scene, args.seed, args.frames), args.lidar, args.output, ex,
+                                   chunk=args.chunk or 8, backend=args.backend,
+                                   condition=ConditionSpec.of(_condition(args, None)))
+        finally:
+            ex.shutdown()
+        print(f"wrote {r['written']} frames ({r['skipped']} already there) to {r['out']} in {r['seconds']:.1f} s "
+              f"on {ex.kind}")
+        return 0
     from place3d_kernels.io import write_semantickitti_sequence
     from place3d_kernels.simulate import simulate
 
@@ -152,6 +166,12 @@ def cmd_bench(args) -> int:
     if args.output:
         Path(args.output).write_text(json.dumps(res, indent=2))
     return 0
+
+
+def cmd_study(args) -> int:
+    from place3d_kernels.study import run as run_study
+
+    return run_study(args)
 
 
 def cmd_optimize(args) -> int:
@@ -180,7 +200,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     p.add_argument("--lidar", default="collection_64ch", help="LiDAR model (default collection_64ch)")
     p.add_argument("--output", required=True, help="output folder")
+    from place3d_kernels.distributed import add_executor_arguments
+
+    add_executor_arguments(p)
     p.set_defaults(func=cmd_simulate)
+
+    from place3d_kernels.study import add_arguments as add_study
+
+    p = sub.add_parser("study", help="M-SOG over a grid of placements x conditions x scenes (one table)")
+    add_study(p)
+    p.set_defaults(func=cmd_study)
 
     p = sub.add_parser("bench", help="kernel microbenchmarks per backend (JSON)")
     p.add_argument("--backends", nargs="*", default=None, help="backends to time (default: all available)")
@@ -197,6 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser("optimize", help="optimise a placement with CMA-ES")
         _add_common(p)
         add_opt(p)
+        add_executor_arguments(p)
         p.set_defaults(func=cmd_optimize)
     return ap
 

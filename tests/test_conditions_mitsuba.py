@@ -68,12 +68,33 @@ def test_mitsuba_matches_the_analytic_surface_model():
     assert np.all(a.kind == 2)
 
 
-def test_wet_road_ratio_follows_film_transmission():
-    """Wet/dry road returns at 60-85 deg incidence against the analytic film model.
+def _fresnel_unpolarised(cos_i, n1, n2):
+    """Unpolarised power reflectance (R_s + R_p) / 2 of an n1 -> n2 interface (1 beyond the critical angle)."""
+    sin_t = np.sqrt(np.clip(1.0 - cos_i * cos_i, 0.0, 1.0)) * n1 / n2
+    cos_t = np.sqrt(np.clip(1.0 - sin_t * sin_t, 0.0, 1.0))
+    rs = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)
+    rp = (n2 * cos_i - n1 * cos_t) / (n2 * cos_i + n1 * cos_t)
+    return np.where(sin_t < 1.0, 0.5 * (rs * rs + rp * rp), 1.0)
 
-    Mitsuba's wet BSDF is physical (a rough dielectric water layer over the diffuse base, blended by film
-    fraction); the analytic model's film term t / theta is an empirical fit. They agree to 5.5 % at worst
-    (near 72 deg for the road's reflectivity 0.12), so the bound here is 6 %.
+
+def test_wet_road_ratio_follows_film_transmission():
+    """Wet/dry road returns at 60-85 deg incidence against the analytic film model: within 6 %, not 5 %.
+
+    Mitsuba renders the wet road physically: ``blendbsdf`` of weight f = h_w / 1.2 mm between the dry
+    diffuse base and a smooth-ish rough dielectric (water) over that base. Its monostatic film term is the
+    layered-surface result ``T(theta)^2 rho / (1 - rho F_int)`` (checked below to 1 %): unpolarised Fresnel
+    transmission in and out, and the cosine-weighted hemispherical internal reflectance F_int = 0.47 of the
+    water/air interface for the light the diffuse base scatters back into the film. The analytic film term
+    is ``max_{s,p}[T_aw rho T_wa / (1 - rho R_wa(theta_w))] / theta``: the larger polarisation (near the
+    Brewster angle T_p ~ 1, so 0.99 instead of 0.89 at 60 deg), the internal reflection at the refracted
+    angle only, and a division by the incidence angle in radians, an empirical factor with no counterpart
+    in any BSDF (it is not dimensionless in angle, nor reciprocal). The two film terms differ by -1.3 % at
+    60 deg, +7.2 % at 75 deg and +0.2 % at 85 deg; blended with weight f = 0.83 against the dry term the
+    wet/dry ratios differ by up to 5.5 % (72.5-75 deg, road reflectivity 0.12), hence the 6 % bound.
+
+    Meeting 5 % would mean putting the 1/theta factor (or an angle-dependent correction) into the
+    rendered radiance, i.e. rescaling the render to the formula, or replacing the rendered film layer by
+    the model's own Fresnel product, which would make the comparison circular. Neither is done.
     """
     mesh = _road()
     theta = np.radians(np.arange(60.0, 85.1, 2.5))
@@ -84,6 +105,13 @@ def test_wet_road_ratio_follows_film_transmission():
     assert np.all(dry.kind == 1) and np.all(wet.kind == 1)
     ratio = wet.intensity / dry.intensity
     want = C.film_transmission(theta, 0.12, 1.0)
+    # the rendered film layer is the physical layered surface (no fitting): unpolarised Fresnel in and out,
+    # hemispherical internal reflectance (cosine-weighted) for the diffusely reflected light
+    f, rho, n_air, n_water = 1.0 / 1.2, 0.12, 1.0003, 1.33
+    mu = (np.arange(20000) + 0.5) / 20000                                   # midpoint rule over cos
+    f_int = np.mean(2.0 * mu * _fresnel_unpolarised(mu, n_water, n_air))
+    film = (1.0 - _fresnel_unpolarised(np.cos(theta), n_air, n_water)) ** 2 / (1.0 - rho * f_int)
+    np.testing.assert_allclose((ratio - (1.0 - f)) / f, film, rtol=0.01)
     np.testing.assert_allclose(ratio, want, rtol=0.06)
     assert np.all(ratio < 1.0) and np.all(np.diff(ratio) < 0)      # darker, and more so at grazing incidence
     none = C.lidar_returns(mesh, o, d, "wet_ground", model="mitsuba", water_height=0.0)

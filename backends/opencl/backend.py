@@ -11,6 +11,7 @@ import pyopencl as cl
 from place3d_kernels.backends.base import Backend, BackendUnavailable, GridSpec, rotation_matrices, sensor_directions
 from place3d_kernels.backends.opencl import _runtime as rt
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, brute_force_raycast, build_bvh, collapse_bvh4
+from place3d_kernels.backends.opencl.conditions import OpenCLConditions
 
 __all__ = ["OpenCLBackend", "CLMesh", "CLGrid"]
 
@@ -59,7 +60,7 @@ class CLGrid:
         self.stop = backend._stop_buffer(stop, spec, keep=True)
 
 
-class OpenCLBackend(Backend):
+class OpenCLBackend(Backend, OpenCLConditions):
     """Kernels of the contract on one OpenCL device.
 
     Args:

@@ -51,15 +51,30 @@ def run(args, psog_for) -> int:
     if args.fixed_height is not None:
         cons.append(FixedHeight(args.fixed_height))
 
-    if args.pose_cache:
+    executor = None
+    if getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None):
+        from place3d_kernels.cli import _condition
+        from place3d_kernels.distributed import (ConditionSpec, DistributedObjective, PSOGSpec, SceneSpec,
+                                                 executor_from_args)
+
+        executor = executor_from_args(args)
+        spec = PSOGSpec(SceneSpec(args.scene, args.seed, args.frames), b.name, args.voxel_size,
+                        ConditionSpec.of(_condition(args, None)))
+        objective = DistributedObjective(spec, lidar, space, executor, task=args.task, occlusion=args.occlusion,
+                                         backend=b.name, chunk=args.chunk)
+    elif args.pose_cache:
         objective = MSOGObjective(psog, lidar, space, task=args.task, occlusion=args.occlusion, backend=b)
     else:
         def objective(X):
             return msog_batch(psog, lidar, space.to_poses(X), occlusion=args.occlusion, task=args.task, backend=b)
 
-    res = optimize(objective, space, cons, sigma0=args.sigma0, popsize=args.popsize, max_evals=args.max_evals,
-                   delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
-                   progress=not args.quiet)
+    try:
+        res = optimize(objective, space, cons, sigma0=args.sigma0, popsize=args.popsize, max_evals=args.max_evals,
+                       delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
+                       progress=not args.quiet)
+    finally:
+        if executor is not None:
+            executor.shutdown()
     baselines = {}
     if args.lidars == 4:
         for name in PAPER_PLACEMENTS:
@@ -70,7 +85,7 @@ def run(args, psog_for) -> int:
     best.name = f"optimized-{args.task}"
     print(f"best M-SOG ({args.task}) {res.best_score:.6f} after {res.evaluations} evaluations in {seconds:.1f} s "
           f"on {b.name}" + (f"; LiDAR poses traversed {objective.pose_misses}, reused {objective.pose_hits}"
-                            if args.pose_cache else ""))
+                            if args.pose_cache and executor is None else ""))
     for name, s in sorted(baselines.items(), key=lambda kv: -kv[1]):
         mark = "  <" if s > res.best_score else ""
         print(f"  {name:14s} {s:.6f}{mark}")
@@ -94,7 +109,7 @@ def run(args, psog_for) -> int:
                   "scene": {"name": args.scene, "seed": args.seed, "frames": args.frames},
                   "feasible": res.feasible,
                   "pose_cache": ({"traversed": objective.pose_misses, "reused": objective.pose_hits}
-                                 if args.pose_cache else None),
+                                 if args.pose_cache and executor is None else None),
                   "details": res.to_dict()}
         (out / "result.json").write_text(json.dumps(result, indent=2, default=float))
         with open(out / "history.csv", "w", newline="") as fh:

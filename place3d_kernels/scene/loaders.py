@@ -29,7 +29,7 @@ from place3d_kernels.classes import CLASS_ID, CLASSES
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.scene.base import Scene
 
-__all__ = ["load_mesh", "save_mesh", "combine", "resolve_class", "load_label_map", "load_scene"]
+__all__ = ["load_mesh", "save_mesh", "combine", "resolve_class", "load_label_map", "load_scene", "load_mitsuba"]
 
 _SUFFIX = re.compile(r"^(.*?)(?:[._\- ]\d+)?$")
 _FORMATS = ("obj", "ply", "glb", "gltf", "stl", "off")
@@ -248,6 +248,17 @@ def combine(parts, name: str = "combined", ego_poses=None, seed: int = 0) -> Sce
 
 
 def load_scene(path, labels=None, ego_poses=None, **kw) -> Scene:
-    """A static Scene from one mesh file (``ego_poses`` default: one frame at the origin)."""
+    """A static Scene from one mesh file or a Mitsuba XML scene (``ego_poses`` default: one frame at the
+    origin)."""
+    if Path(path).suffix.lower() == ".xml":
+        return load_mitsuba(path, labels=labels, ego_poses=ego_poses, **kw)
     m = load_mesh(path, labels=labels, **kw)
     return combine([m], name=f"mesh-{Path(path).stem}", ego_poses=ego_poses)
+
+
+def load_mitsuba(path, labels=None, ego_poses=None, **kw) -> Scene:
+    """A static Scene from a Mitsuba 3 XML file (shapes referencing PLY/OBJ files, primitives);
+    see place3d_kernels.scene.mitsuba_xml. Mitsuba itself is not needed."""
+    from place3d_kernels.scene.mitsuba_xml import load_mitsuba_scene
+
+    return load_mitsuba_scene(path, labels=labels, ego_poses=ego_poses, **kw)

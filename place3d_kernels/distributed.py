@@ -1,0 +1,470 @@
+"""Scale-out on Ray: an executor choice, distributed dataset simulation and distributed population scoring.
+
+Everything a task needs travels in the task itself (scene spec, LiDAR, backend name, condition spec,
+frame indices or candidate rows), so tasks are pure functions of explicit inputs and give the same bytes
+on any worker as the local executor does in-process:
+
+    >>> from place3d_kernels.distributed import SceneSpec, get_executor, simulate_to_folder
+    >>> ex = get_executor("ray")                           # or "local"; address="ray://head:10001"
+    >>> simulate_to_folder(SceneSpec("town", seed=0, frames=40), "collection_64ch", "seq/", ex, chunk=8)
+
+- ``get_executor(kind, address, num_cpus, num_gpus_per_task)`` -> ``Executor`` with ``map(fn, tasks)``
+  (results in task order). The Ray executor retries a task whose worker process dies (Ray's
+  ``max_retries``); an exception raised by the task itself is not retried and reaches the caller.
+- ``simulate_to_folder``: frames split into chunks of frame indices; each task simulates its frames,
+  applies the condition with the frame's *global* index and writes ``velodyne/NNNNNN.bin`` and
+  ``labels/NNNNNN.label`` atomically; the driver writes ``poses.txt`` at the end. A rerun skips
+  frames whose two files exist, so a killed run resumes without losing or duplicating anything.
+- ``DistributedObjective``: splits each CMA-ES batch into chunks scored as tasks; workers load the
+  P-SOG from the on-disk cache of ``scene_psog`` (keyed by its inputs), building it only if absent.
+- ``task_seed(run_seed, task_id)``: seeds derived from the run seed and the task id only. The frame
+  conditions already seed each frame from (run seed, global frame index) (``FrameCondition``).
+
+GPU tasks: ``num_gpus_per_task=1`` makes Ray pin one GPU per task and set ``CUDA_VISIBLE_DEVICES``,
+so the task's backend is ``warp:cuda:0`` / ``opencl:nvidia`` on every worker.
+Multi-machine clusters: the output folder and the P-SOG cache folder should be on shared storage
+(a worker that cannot see the cache rebuilds the P-SOG, deterministically, and pays its time).
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+__all__ = ["Executor", "LocalExecutor", "RayExecutor", "get_executor", "add_executor_arguments",
+           "executor_from_args", "task_seed", "SceneSpec", "ConditionSpec", "PSOGSpec", "simulate_to_folder",
+           "DistributedObjective", "INSTALL_HINT", "chunks"]
+
+INSTALL_HINT = "pip install 'place3d-kernels[dist]'"
+
+
+# ============================================================================== executors
+def task_seed(run_seed: int, task_id: int) -> int:
+    """A 32-bit seed from (run seed, task id) only: never from worker identity, time or order."""
+    return int(np.random.SeedSequence([int(run_seed), int(task_id)]).generate_state(1, np.uint32)[0])
+
+
+class Executor:
+    """Runs ``fn(task)`` for each task; ``map`` returns the results in task order.
+
+    ``submitted`` counts the tasks handed to ``map`` over the executor's life (used to show that a
+    rerun of a finished job does no work).
+    """
+
+    kind = "base"
+
+    def __init__(self) -> None:
+        self.submitted = 0
+
+    def map(self, fn: Callable[[Any], Any], tasks: Sequence[Any], *, num_gpus: float | None = None) -> list:
+        raise NotImplementedError
+
+    def shutdown(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.shutdown()
+
+
+class LocalExecutor(Executor):
+    """In-process, one task after the other (the reference the Ray executor must match)."""
+
+    kind = "local"
+
+    def map(self, fn, tasks, *, num_gpus=None) -> list:
+        tasks = list(tasks)
+        self.submitted += len(tasks)
+        return [fn(t) for t in tasks]
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError as e:
+        raise ImportError(f"the Ray executor needs Ray: {INSTALL_HINT}  (import failed: {e})") from None
+    return ray
+
+
+class RayExecutor(Executor):
+    """Tasks on a Ray cluster: a new local one (``address=None``) or an existing one (``"auto"``,
+    ``"HOST:PORT"``, ``"ray://HOST:10001"``).
+
+    Args:
+        address: cluster address; None starts a local cluster unless Ray is already initialised.
+        num_cpus: CPUs of a local cluster started here (default: all).
+        num_gpus_per_task: GPUs each task requests (0 = CPU tasks).
+        cpus_per_task: CPUs each task requests (default 1).
+        max_retries: retries of a task whose worker dies (Ray's ``max_retries``).
+    """
+
+    kind = "ray"
+
+    def __init__(self, address: str | None = None, num_cpus: int | None = None, num_gpus_per_task: float = 0,
+                 cpus_per_task: float = 1, max_retries: int = 3) -> None:
+        super().__init__()
+        ray = _import_ray()
+        self._ray = ray
+        self._owns = False
+        if not ray.is_initialized():
+            kw: dict = {"include_dashboard": False, "log_to_driver": True}
+            if address is None:
+                kw["num_cpus"] = num_cpus
+            ray.init(address=address, **kw)
+            self._owns = True
+        self.num_gpus_per_task = float(num_gpus_per_task or 0)
+        self.cpus_per_task = float(cpus_per_task)
+        self.max_retries = int(max_retries)
+
+    def map(self, fn, tasks, *, num_gpus=None) -> list:
+        tasks = list(tasks)
+        self.submitted += len(tasks)
+        if not tasks:
+            return []
+        gpus = self.num_gpus_per_task if num_gpus is None else float(num_gpus)
+        remote = self._ray.remote(num_cpus=self.cpus_per_task, num_gpus=gpus, max_retries=self.max_retries)(fn)
+        return self._ray.get([remote.remote(t) for t in tasks])
+
+    def shutdown(self) -> None:
+        if self._owns and self._ray.is_initialized():
+            self._ray.shutdown()
+        self._owns = False
+
+
+def get_executor(kind: str = "local", address: str | None = None, num_cpus: int | None = None,
+                 num_gpus_per_task: float = 0, **kw) -> Executor:
+    """``"local"`` or ``"ray"``; a Ray address implies ``"ray"``."""
+    kind = (kind or "local").lower()
+    if kind == "local" and address:
+        kind = "ray"
+    if kind == "local":
+        return LocalExecutor()
+    if kind == "ray":
+        return RayExecutor(address=address, num_cpus=num_cpus, num_gpus_per_task=num_gpus_per_task, **kw)
+    raise ValueError(f"unknown executor {kind!r}; use 'local' or 'ray'")
+
+
+def add_executor_arguments(p) -> None:
+    """``--executor local|ray``, ``--ray-address``, ``--num-cpus``, ``--gpus-per-task``, ``--chunk``."""
+    p.add_argument("--executor", default="local", choices=["local", "ray"],
+                   help=f"where tasks run (default local; ray needs {INSTALL_HINT})")
+    p.add_argument("--ray-address", default=None,
+                   help="Ray cluster to join: auto | HOST:PORT | ray://HOST:10001 (default: start a local one)")
+    p.add_argument("--num-cpus", type=int, default=None, help="CPUs of a local Ray cluster (default: all)")
+    p.add_argument("--gpus-per-task", type=float, default=0, help="GPUs each Ray task requests (default 0)")
+    p.add_argument("--chunk", type=int, default=None,
+                   help="frames (simulate) or candidates (optimize) per task (default: 8 / batch split over workers)")
+
+
+def executor_from_args(args) -> Executor:
+    kind = getattr(args, "executor", "local") or "local"
+    if kind == "local" and getattr(args, "ray_address", None):
+        raise ValueError("--ray-address needs --executor ray")
+    if kind == "ray":
+        try:
+            return get_executor("ray", getattr(args, "ray_address", None), getattr(args, "num_cpus", None),
+                                getattr(args, "gpus_per_task", 0) or 0)
+        except ImportError as e:
+            raise ValueError(str(e)) from None
+    return get_executor(kind)
+
+
+def chunks(items: Sequence, size: int) -> list[list]:
+    size = max(1, int(size))
+    items = list(items)
+    return [items[i:i + size] for i in range(0, len(items), size)]
+
+
+def _backend_name(backend) -> str:
+    """A name a worker can resolve: explicit names pass through unresolved (the driver may lack the
+    device, e.g. 'warp:cuda:0' on a CPU head node); None / 'auto' resolve here so all tasks agree."""
+    if backend is not None and not isinstance(backend, str):
+        return backend.name
+    if backend in (None, "auto"):
+        from place3d_kernels.backend import get_backend
+
+        return get_backend(backend).name
+    return backend
+
+
+# ============================================================================== specs
+@dataclass(frozen=True)
+class SceneSpec:
+    """A scene rebuilt inside tasks from explicit inputs: 'town' or 'opendrive:PATH', seed, frames."""
+
+    name: str = "town"
+    seed: int = 0
+    frames: int = 40
+
+    def build(self):
+        return _build_scene(self)
+
+    @property
+    def label(self) -> str:
+        base = self.name if self.name == "town" else Path(self.name.split(":", 1)[-1]).stem
+        return f"{base}-s{self.seed}-f{self.frames}"
+
+
+@functools.lru_cache(maxsize=4)
+def _build_scene(spec: SceneSpec):
+    from place3d_kernels import scene as scenes
+
+    if spec.name == "town":
+        return scenes.town(seed=spec.seed, n_frames=spec.frames)
+    if spec.name.startswith("opendrive:"):
+        return scenes.from_opendrive(spec.name.split(":", 1)[1], seed=spec.seed, n_frames=spec.frames)
+    raise ValueError(f"unknown scene {spec.name!r}; use 'town' or 'opendrive:PATH'")
+
+
+@dataclass(frozen=True)
+class ConditionSpec:
+    """A ``FrameCondition`` as plain data (name, run seed, severity, params), rebuilt in tasks."""
+
+    name: str
+    seed: int = 0
+    severity: str | None = None
+    params: tuple = ()          # sorted (key, value) pairs
+
+    @classmethod
+    def of(cls, cond) -> "ConditionSpec | None":
+        if cond is None or isinstance(cond, ConditionSpec):
+            return cond
+        if isinstance(cond, dict):
+            d = dict(cond)
+            name = d.pop("name")
+            if name in (None, "", "clean", "none"):
+                return None
+            seed, sev = int(d.pop("seed", 0)), d.pop("severity", None)
+            params = d.pop("params", {}) or {}
+            params = {**params, **d}
+            return cls(name, seed, sev, tuple(sorted(params.items())))
+        # a FrameCondition
+        return cls(cond.name, int(cond.seed), cond.severity, tuple(sorted(cond.params.items())))
+
+    def build(self, backend=None):
+        from place3d_kernels.pipeline import FrameCondition
+
+        return FrameCondition(self.name, seed=self.seed, backend=backend, severity=self.severity,
+                              **dict(self.params))
+
+    @property
+    def label(self) -> str:
+        extra = "".join(f"-{k}{v}" for k, v in self.params)
+        return f"{self.name}" + (f"-{self.severity}" if self.severity else "") + extra + f"-s{self.seed}"
+
+
+def _lidar(lidar):
+    from place3d_kernels.lidar import LidarModel
+
+    return LidarModel.load(lidar) if isinstance(lidar, str) else lidar
+
+
+# ============================================================================== simulate
+def _frame_paths(out: Path, i: int) -> tuple[Path, Path]:
+    return out / "velodyne" / f"{i:06d}.bin", out / "labels" / f"{i:06d}.label"
+
+
+def _frame_done(out: Path, i: int) -> bool:
+    b, lab = _frame_paths(out, i)
+    return b.exists() and lab.exists()
+
+
+def _sensor_matrix(frame) -> np.ndarray:
+    """Sensor-to-world matrix as ``io.write_semantickitti_sequence`` writes it."""
+    from place3d_kernels.pose import pose_matrix
+
+    sensor = pose_matrix(frame.ego_pose)
+    if frame.origins is not None:
+        sensor[:3, 3] = np.asarray(frame.origins, dtype=np.float64).reshape(-1, 3)[0]
+    return sensor
+
+
+def _pose_row(sensor: np.ndarray) -> str:
+    return " ".join(f"{v:.9g}" for v in sensor[:3].reshape(-1))
+
+
+@dataclass(frozen=True)
+class _SimTask:
+    task_id: int
+    frames: tuple
+    scene: SceneSpec
+    lidar: Any
+    mount: tuple
+    backend: str
+    condition: ConditionSpec | None
+    out: str
+    hook: Any = None            # test hook: hook(task_id, frame_index) after each frame is written
+
+
+def _simulate_task(t: _SimTask) -> list[int]:
+    """Simulate and write the task's frames that are not on disk yet; returns the frames written."""
+    from place3d_kernels.io import write_frame_bin
+    from place3d_kernels.pose import invert, transform_points
+    from place3d_kernels.simulate import simulate
+
+    out = Path(t.out)
+    sc = t.scene.build()
+    cond = None if t.condition is None else t.condition.build(t.backend)
+    written = []
+    for i in t.frames:
+        if _frame_done(out, i):
+            continue
+        (f,) = simulate(sc, _lidar(t.lidar), mount=np.asarray(t.mount), frames=[i], backend=t.backend)
+        if cond is not None:
+            f = cond(f, i)                                     # the frame's global index seeds it
+        local = transform_points(invert(_sensor_matrix(f)), f.points)
+        inten = f.intensity if f.intensity is not None else np.zeros(len(local), np.float32)
+        pb, pl = _frame_paths(out, i)
+        pb.unlink(missing_ok=True)                             # label written last marks the frame done
+        write_frame_bin(pb, pl, local, inten, f.labels)
+        written.append(int(i))
+        if t.hook is not None:
+            t.hook(t.task_id, int(i))
+    return written
+
+
+def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="seq", executor: Executor | None = None,
+                       *, chunk: int = 8, mount=None, backend=None, condition=None, frames=None,
+                       task_hook: Callable | None = None) -> dict:
+    """Simulate a scene's frames as tasks into a SemanticKITTI folder (resumable; identical to local).
+
+    Args:
+        scene: ``SceneSpec`` or (name, seed, n_frames).
+        lidar: LiDAR name or ``LidarModel`` (travels with the tasks).
+        out: output folder (``velodyne/``, ``labels/``, ``poses.txt``).
+        executor: ``get_executor(...)`` (default local).
+        chunk: frames per task.
+        mount: (6,) sensor pose in the ego frame (default ``simulate.DEFAULT_MOUNT``).
+        backend: backend name for the tasks.
+        condition: ``FrameCondition``, ``ConditionSpec``, dict or None.
+        frames: global frame indices to produce (default all); ``poses.txt`` always lists every frame.
+        task_hook: ``hook(task_id, frame_index)`` called in the worker after each frame is written (tests).
+
+    Returns:
+        dict: frames, written, skipped, tasks, seconds, out.
+    """
+    from place3d_kernels.io import _atomic_write
+    from place3d_kernels.pose import pose_from_matrix, pose_matrix
+    from place3d_kernels.simulate import DEFAULT_MOUNT
+
+    t0 = time.perf_counter()
+    spec = scene if isinstance(scene, SceneSpec) else SceneSpec(*scene)
+    executor = executor or LocalExecutor()
+    mount = tuple(float(v) for v in (DEFAULT_MOUNT if mount is None else np.asarray(mount, np.float64)))
+    out = Path(out)
+    (out / "velodyne").mkdir(parents=True, exist_ok=True)
+    (out / "labels").mkdir(parents=True, exist_ok=True)
+    idx = list(range(spec.frames)) if frames is None else [int(i) for i in frames]
+    todo = [i for i in idx if not _frame_done(out, i)]
+    bname = _backend_name(backend)
+    cspec = ConditionSpec.of(condition)
+    tasks = [_SimTask(k, tuple(c), spec, lidar, mount, bname, cspec, str(out), task_hook)
+             for k, c in enumerate(chunks(todo, chunk))]
+    written = [i for w in executor.map(_simulate_task, tasks) for i in w]
+    # poses.txt by the driver: the sensor origin is the translation of ego @ mount, exactly as the
+    # backends return it (lidar_rays copies the pose's position), so no frame needs re-simulating.
+    sc = spec.build()
+    mount_T = pose_matrix(np.asarray(mount))
+    rows = []
+    for i in range(spec.frames):
+        from place3d_kernels.sog import Frame
+
+        origin = pose_from_matrix(pose_matrix(sc.ego_poses[i]) @ mount_T)[:3]
+        rows.append(_pose_row(_sensor_matrix(Frame(np.zeros((0, 3)), np.zeros(0), sc.ego_poses[i], None, origin))))
+    _atomic_write(out / "poses.txt", ("\n".join(rows) + "\n").encode())
+    missing = [i for i in idx if not _frame_done(out, i)]
+    if missing:
+        raise RuntimeError(f"frames {missing[:10]} were not written to {out}")
+    return {"frames": len(idx), "written": len(written), "skipped": len(idx) - len(todo), "tasks": len(tasks),
+            "seconds": time.perf_counter() - t0, "out": str(out)}
+
+
+# ============================================================================== P-SOG and scoring
+@dataclass(frozen=True)
+class PSOGSpec:
+    """The inputs of ``scene_psog`` as data; ``load()`` reads the on-disk cache (building it if absent)."""
+
+    scene: SceneSpec
+    backend: str
+    voxel_size: float | None = None
+    condition: ConditionSpec | None = None
+    lidar: Any = "collection_64ch"
+    frames_per_subset: int | None = None
+    cache: str | None = None       # cache folder, resolved in the driver (workers may have another $HOME)
+
+    def load(self):
+        return _load_psog(self)
+
+    def resolved(self) -> "PSOGSpec":
+        from place3d_kernels.sog import cache_dir
+
+        return PSOGSpec(self.scene, _backend_name(self.backend), self.voxel_size, self.condition, self.lidar,
+                        self.frames_per_subset, self.cache or str(cache_dir()))
+
+
+@functools.lru_cache(maxsize=4)
+def _load_psog(spec: PSOGSpec):
+    from place3d_kernels.grid import DEFAULT_GRID, Grid
+    from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET, scene_psog
+
+    grid = DEFAULT_GRID if spec.voxel_size is None else Grid(DEFAULT_GRID.lower, DEFAULT_GRID.upper, spec.voxel_size)
+    cond = None if spec.condition is None else spec.condition.build(spec.backend)
+    return scene_psog(spec.scene.build(), grid=grid, lidar=_lidar(spec.lidar),
+                      frames_per_subset=spec.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET, backend=spec.backend,
+                      cache=spec.cache if spec.cache else True, condition=cond)
+
+
+def _score_task(t: tuple) -> np.ndarray:
+    psog_spec, lidar, poses, occlusion, task, backend = t
+    from place3d_kernels.metrics import msog_batch
+
+    return np.asarray(msog_batch(psog_spec.load(), _lidar(lidar), poses, occlusion=occlusion, task=task,
+                                 backend=backend), dtype=np.float64)
+
+
+@dataclass
+class DistributedObjective:
+    """``objective(X) -> (P,) M-SOG`` with each batch split into chunks scored as executor tasks.
+
+    Same scores as ``msog_batch(psog, lidar, space.to_poses(X), ...)`` (each rig is scored on its own).
+
+    Args:
+        psog: ``PSOGSpec`` (workers load the cached P-SOG; call ``psog.load()`` in the driver first so
+            the cache exists before the first generation).
+        lidar: LiDAR name or model of the rig; space: the ``SearchSpace``.
+        executor: the executor; chunk: candidates per task (default: batch split into 2 x workers' tasks,
+            here simply ``ceil(P / n_chunks)`` with ``n_chunks`` given).
+    """
+
+    psog: PSOGSpec
+    lidar: Any
+    space: Any
+    executor: Executor
+    task: str = "seg"
+    occlusion: str = "sog"
+    backend: str | None = None
+    chunk: int | None = None
+    n_chunks: int = 2
+    calls: int = field(default=0, init=False)
+
+    def __post_init__(self):
+        self.psog = self.psog.resolved()
+        self.backend = _backend_name(self.backend if self.backend is not None else self.psog.backend)
+
+    def __call__(self, X) -> np.ndarray:
+        poses = np.asarray(self.space.to_poses(np.asarray(X, dtype=np.float64)))
+        if poses.ndim == 2:
+            poses = poses[None]
+        size = self.chunk or -(-len(poses) // max(1, self.n_chunks))
+        parts = [poses[i:i + size] for i in range(0, len(poses), size)]
+        self.calls += 1
+        res = self.executor.map(_score_task, [(self.psog, self.lidar, p, self.occlusion, self.task, self.backend)
+                                              for p in parts])
+        return np.concatenate(res) if res else np.zeros(0)
