@@ -186,7 +186,7 @@ def study_azimuth(ctx, runs, backend):
         lid = paper.subsample(1, step)
         t, s = timed_scores(ctx["psog"], lid, ctx["poses"], backend=backend, runs=runs)
         rows.append({"setting": f"paper a/{step} ({len(lid.azimuths)} az)", "azimuth_steps": len(lid.azimuths),
-                     "azimuth_step_of_paper": step, "rays_per_rig": 4 * lid.n_rays, "time_s": t,
+                     "azimuth_step_of_paper": step, "rays_per_rig": 4 * lid.n_rays, "time_s": t, "time_min_s": LAST_MIN,
                      "scores": s.tolist()})
     return rows, "2000 az", "azimuth steps (16 ch; paper = 250 az)"
 
@@ -206,7 +206,7 @@ def study_channels(ctx, runs, backend):
         lid = paper.subsample(step, 1)
         t, s = timed_scores(ctx["psog"], lid, ctx["poses"], backend=backend, runs=runs)
         rows.append({"setting": f"paper c/{step} ({lid.n_channels} ch)", "channels": lid.n_channels,
-                     "channel_step_of_paper": step, "rays_per_rig": 4 * lid.n_rays, "time_s": t,
+                     "channel_step_of_paper": step, "rays_per_rig": 4 * lid.n_rays, "time_s": t, "time_min_s": LAST_MIN,
                      "scores": s.tolist()})
     return rows, "121 ch", "channels (250 az; paper = 16 ch)"
 
@@ -311,7 +311,7 @@ def main() -> None:
              f"{title}\n{args.backend if study != 'precision' else ''} {info['cores']}-core {info['cpu'][:28]}, "
              f"{info['date']}")
         summary["studies"][study] = {"finest": finest, "sweet_spot": spot, "sweet_spot_vs_paper_setting": spot_paper,
-                                     "settings": [{k: r[k] for k in ("setting", "time_s", "abs_err_mean",
+                                     "settings": [{k: r.get(k) for k in ("setting", "time_s", "abs_err_mean",
                                                                      "abs_err_max", "kendall_tau",
                                                                      "speedup_vs_finest", "time_min_s")} for r in rows]}
         print(f"  -> sweet spot: {spot['setting']}" + (f" ({spot['speedup_vs_finest']:.1f}x faster, tau "

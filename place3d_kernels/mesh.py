@@ -55,7 +55,7 @@ class Mesh:
         lo, hi = v.min(axis=0), v.max(axis=0)
         #: float64 offset subtracted from vertices and ray origins before kernels run
         self.shift = np.round((lo + hi) / 2.0)
-        self._handles: dict[str, object] = {}
+        self._handles: dict[object, object] = {}
         self._normals: np.ndarray | None = None
 
     @property
@@ -78,11 +78,13 @@ class Mesh:
 
     def handle(self, backend) -> object:
         """The backend's acceleration structure for this mesh, built on first use."""
-        h = self._handles.get(backend.name)
+        # keyed by the backend object, not its name: two instances with one name (e.g. an fp32 and an
+        # fp64 OpenCL backend) own buffers in different device contexts
+        h = self._handles.get(backend)
         if h is None:
             faces = self.faces if len(self.valid_faces) == len(self.faces) else self.faces[self.valid_faces]
             h = backend.upload_mesh(self.vertices - self.shift, faces)
-            self._handles[backend.name] = h
+            self._handles[backend] = h
         return h
 
     def original_face(self, uploaded: np.ndarray) -> np.ndarray:

@@ -197,7 +197,7 @@ class PSOG:
 
     def handle(self, backend, occlusion: str):
         """Backend grid handle (weights + stop mask uploaded once) for one occlusion mode."""
-        key = ("handle", backend.name, occlusion)
+        key = ("handle", backend, occlusion)   # the object: same-named instances may differ in context
         if key not in self._cache:
             stop = self.stop_mask if occlusion == "sog" else None
             self._cache[key] = backend.prepare_grid(self.grid.spec, self.weights, stop)

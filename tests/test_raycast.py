@@ -91,9 +91,9 @@ def test_bvh_built_once_per_backend(device_backend):
     tm = trimesh.creation.icosphere(subdivisions=1)
     mesh = p3k.Mesh(tm.vertices, tm.faces)
     p3k.raycast(mesh, [[0, 0, 5.0]], [[0, 0, -1.0]], backend=device_backend)
-    h1 = mesh._handles[p3k.get_backend(device_backend).name]
+    h1 = mesh._handles[p3k.get_backend(device_backend)]
     p3k.raycast(mesh, [[0, 0, 5.0]], [[0, 0, -1.0]], backend=device_backend)
-    assert mesh._handles[p3k.get_backend(device_backend).name] is h1
+    assert mesh._handles[p3k.get_backend(device_backend)] is h1 and len(mesh._handles) == 1
 
 
 def test_far_from_origin_mesh(backend):
