@@ -36,6 +36,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from place3d_kernels.io import frame_paths, pose_row, sensor_matrix
+
 __all__ = ["Executor", "LocalExecutor", "RayExecutor", "get_executor", "add_executor_arguments",
            "executor_from_args", "task_seed", "SceneSpec", "ConditionSpec", "PSOGSpec", "simulate_to_folder",
            "DistributedObjective", "INSTALL_HINT", "chunks"]
@@ -267,27 +269,9 @@ def _lidar(lidar):
 
 
 # ============================================================================== simulate
-def _frame_paths(out: Path, i: int) -> tuple[Path, Path]:
-    return out / "velodyne" / f"{i:06d}.bin", out / "labels" / f"{i:06d}.label"
-
-
 def _frame_done(out: Path, i: int) -> bool:
-    b, lab = _frame_paths(out, i)
+    b, lab = frame_paths(out, i)
     return b.exists() and lab.exists()
-
-
-def _sensor_matrix(frame) -> np.ndarray:
-    """Sensor-to-world matrix as ``io.write_semantickitti_sequence`` writes it."""
-    from place3d_kernels.pose import pose_matrix
-
-    sensor = pose_matrix(frame.ego_pose)
-    if frame.origins is not None:
-        sensor[:3, 3] = np.asarray(frame.origins, dtype=np.float64).reshape(-1, 3)[0]
-    return sensor
-
-
-def _pose_row(sensor: np.ndarray) -> str:
-    return " ".join(f"{v:.9g}" for v in sensor[:3].reshape(-1))
 
 
 @dataclass(frozen=True)
@@ -305,8 +289,7 @@ class _SimTask:
 
 def _simulate_task(t: _SimTask) -> list[int]:
     """Simulate and write the task's frames that are not on disk yet; returns the frames written."""
-    from place3d_kernels.io import write_frame_bin
-    from place3d_kernels.pose import invert, transform_points
+    from place3d_kernels.io import write_frame
     from place3d_kernels.simulate import simulate
 
     out = Path(t.out)
@@ -319,11 +302,8 @@ def _simulate_task(t: _SimTask) -> list[int]:
         (f,) = simulate(sc, _lidar(t.lidar), mount=np.asarray(t.mount), frames=[i], backend=t.backend)
         if cond is not None:
             f = cond(f, i)                                     # the frame's global index seeds it
-        local = transform_points(invert(_sensor_matrix(f)), f.points)
-        inten = f.intensity if f.intensity is not None else np.zeros(len(local), np.float32)
-        pb, pl = _frame_paths(out, i)
-        pb.unlink(missing_ok=True)                             # label written last marks the frame done
-        write_frame_bin(pb, pl, local, inten, f.labels)
+        frame_paths(out, i)[0].unlink(missing_ok=True)         # label written last marks the frame done
+        write_frame(out, i, f)
         written.append(int(i))
         if t.hook is not None:
             t.hook(t.task_id, int(i))
@@ -377,7 +357,7 @@ def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="s
         from place3d_kernels.sog import Frame
 
         origin = pose_from_matrix(pose_matrix(sc.ego_poses[i]) @ mount_T)[:3]
-        rows.append(_pose_row(_sensor_matrix(Frame(np.zeros((0, 3)), np.zeros(0), sc.ego_poses[i], None, origin))))
+        rows.append(pose_row(sensor_matrix(Frame(np.zeros((0, 3)), np.zeros(0), sc.ego_poses[i], None, origin))))
     _atomic_write(out / "poses.txt", ("\n".join(rows) + "\n").encode())
     missing = [i for i in idx if not _frame_done(out, i)]
     if missing:
