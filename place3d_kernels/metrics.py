@@ -16,7 +16,7 @@ from place3d_kernels.mesh import Mesh
 from place3d_kernels.ops import coverage, raycast
 from place3d_kernels.sog import PSOG
 
-__all__ = ["msog", "msog_batch", "covered_voxels", "OCCLUSION_MODES"]
+__all__ = ["msog", "msog_batch", "covered_voxels", "msog_from_voxels", "OCCLUSION_MODES"]
 
 OCCLUSION_MODES = ("none", "sog", "mesh")
 

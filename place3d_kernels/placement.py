@@ -88,10 +88,6 @@ class Placement:
         return path
 
     @staticmethod
-    def paper(name: str) -> "Placement":
-        return Placement.load(name)
-
-    @staticmethod
     def all_paper() -> dict[str, "Placement"]:
         return {n: Placement.load(n) for n in PAPER_PLACEMENTS}
 

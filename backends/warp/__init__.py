@@ -82,10 +82,6 @@ class WarpCore(Backend):
         return wp.array(np.ascontiguousarray(np.broadcast_to(np.asarray(a, np.float64), (n,))), dtype=wp.float64,
                         device=self.device)
 
-    def _f32(self, a, n) -> "wp.array":
-        return wp.array(np.ascontiguousarray(np.broadcast_to(np.asarray(a, np.float32), (n,))), dtype=wp.float32,
-                        device=self.device)
-
     def _stop(self, stop):
         if stop is None:
             return self._empty_u8, 0

@@ -303,14 +303,12 @@ def _deep_rays(name, v, rng, n=300):
 
 @pytest.mark.parametrize("name", ["geometric", "nested", "stacked", "chain"])
 @pytest.mark.parametrize("offset", [0.0, 1e5])
-def test_deep_bvh_true_closest_hit(backend, name, offset):
-    if backend == "reference":
-        pytest.skip("reference is the oracle (brute force)")
+def test_deep_bvh_true_closest_hit(device_backend, name, offset):
     rng = np.random.default_rng(7)
     v, f = _deep_scenes()[name]
     o, d = _deep_rays(name, v, rng)
     mesh = p3k.Mesh(v + offset, f)
-    got = p3k.raycast(mesh, o + offset, d, np.inf, backend=backend)
+    got = p3k.raycast(mesh, o + offset, d, np.inf, backend=device_backend)
     want = p3k.raycast(mesh, o + offset, d, np.inf, backend="reference")
     assert want.hit.sum() > len(o) // 2
     _assert_same_hits(mesh, o + offset, d, got, want)

@@ -145,10 +145,8 @@ def _traverse_property(backend, case):
     np.testing.assert_array_equal(cov, union)
 
 
-def test_traverse_stress(backend):
-    if backend == "reference":
-        pytest.skip("reference is the oracle")
-    _traverse_property(backend)
+def test_traverse_stress(device_backend):
+    _traverse_property(device_backend)
 
 
 def test_reference_visits_are_exact():
@@ -221,10 +219,8 @@ def _stop_property(backend, case, density, seed):
     np.testing.assert_array_equal(cov, union)
 
 
-def test_stop_mask_stress(backend):
-    if backend == "reference":
-        pytest.skip("reference is the oracle")
-    _stop_property(backend)
+def test_stop_mask_stress(device_backend):
+    _stop_property(device_backend)
 
 
 # ------------------------------------------------------------------------------ bad inputs
