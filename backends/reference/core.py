@@ -14,14 +14,29 @@ from place3d_kernels.backends.base import Backend, GridSpec, rotation_matrices, 
 __all__ = ["ReferenceCore", "traverse_ray", "watertight_intersect"]
 
 
+def _start_index(p: float, d: float, s: float, n: int) -> int:
+    """Voxel index of the clipped start point along one axis; a start exactly on a plane belongs to the
+    voxel the ray moves into."""
+    i = int(np.floor(p / s))
+    if d < 0.0 and p <= i * s:
+        i -= 1
+    if d > 0.0 and p >= (i + 1) * s:
+        i += 1
+    return min(max(i, 0), n - 1)
+
+
 def traverse_ray(origin: np.ndarray, direction: np.ndarray, t_end: float, spec: GridSpec,
                  stop: np.ndarray | None = None) -> np.ndarray:
     """Flat indices of the voxels whose interior the segment [0, t_end] passes through, in order.
 
-    Method: clip the segment to the grid box; collect every parameter t at which it crosses a voxel
-    boundary plane (from integer plane indices); each interval between consecutive crossings lies in
-    one voxel, found from its midpoint. Intervals of zero length (passing exactly through an edge or a
-    corner) visit nothing. With ``stop``, the list ends at the first voxel whose mask is set.
+    Method (Amanatides-Woo, evaluated all at once): clip the segment to the grid box and find the voxel of
+    the clipped start point. Along each axis the ray then crosses the planes after that voxel at
+    parameters t_b = (b * s - o) / d, computed from the integer plane index b (never accumulated). Each
+    distinct crossing parameter below the segment's end moves the ray into the voxel whose index along
+    each axis is the start index plus the number of that axis's crossings at or before it. Crossings at
+    exactly the same t (a ray through an edge or corner) move all their axes at once, so no side voxel is
+    visited; crossings one rounding step apart do visit it, since the ray passes through it. The walk
+    ends where an index leaves the grid. With ``stop``, the list ends at the first voxel whose mask is set.
     """
     o = np.asarray(origin, dtype=np.float64)
     d = np.asarray(direction, dtype=np.float64)
@@ -40,24 +55,27 @@ def traverse_ray(origin: np.ndarray, direction: np.ndarray, t_end: float, spec: 
         t1 = min(t1, max(ta, tb))
     if not t1 > t0:
         return np.empty(0, dtype=np.int64)
-    ts = [np.array([t0, t1])]
+    p = o + t0 * d
+    start = np.array([_start_index(p[a], d[a], s, int(n[a])) for a in range(3)], dtype=np.int64)
+    steps = np.sign(d).astype(np.int64)
+    crossings = []
     for a in range(3):
-        if d[a] == 0.0:
+        if steps[a] == 0:
+            crossings.append(np.empty(0))
             continue
-        x0, x1 = o[a] + t0 * d[a], o[a] + t1 * d[a]
-        lo, hi = min(x0, x1), max(x0, x1)
-        b = np.arange(np.floor(lo / s) + 1, np.ceil(hi / s), dtype=np.float64)
-        if b.size:
-            tb = (b * s - o[a]) / d[a]
-            ts.append(tb[(tb > t0) & (tb < t1)])
-    t = np.unique(np.concatenate(ts))
-    tm = 0.5 * (t[:-1] + t[1:])
-    tm = tm[t[1:] > t[:-1]]
-    ijk = np.floor((o[None, :] + tm[:, None] * d[None, :]) / s).astype(np.int64)
-    ijk = np.clip(ijk, 0, n - 1)
+        # planes after the start voxel in the direction of travel, up to the grid's far face
+        b = np.arange(start[a] + 1, n[a] + 1) if steps[a] > 0 else np.arange(start[a], -1, -1)
+        tb = (b.astype(np.float64) * s - o[a]) / d[a]
+        crossings.append(tb[tb < t1])
+    events = np.unique(np.concatenate(crossings))
+    ijk = np.repeat(start[None, :], len(events) + 1, axis=0)
+    for a in range(3):
+        if crossings[a].size:
+            ijk[1:, a] += steps[a] * np.searchsorted(crossings[a], events, side="right")
+    inside = np.all((ijk >= 0) & (ijk < n), axis=1)
+    if not inside.all():
+        ijk = ijk[: np.argmin(inside)]
     flat = (ijk[:, 0] * n[1] + ijk[:, 1]) * n[2] + ijk[:, 2]
-    if flat.size > 1:  # rounding at a crossing can repeat a voxel; a ray never re-enters one
-        flat = flat[np.concatenate([[True], flat[1:] != flat[:-1]])]
     if stop is not None and flat.size:
         hit = np.flatnonzero(stop[flat])
         if hit.size:

@@ -12,6 +12,9 @@ import warp as wp
 
 from place3d_kernels.backends.conditions_base import ConditionKernels
 
+# no fused multiply-add, as in kernels.py: the reference rounds each product and sum separately
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})
+
 __all__ = ["WarpConditions"]
 
 _THETA_MIN = wp.constant(1.0e-6)

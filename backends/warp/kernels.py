@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import warp as wp
 
-# forward kernels only: no adjoints to generate, which roughly halves compile time
-wp.set_module_options({"enable_backward": False})
+# forward kernels only: no adjoints to generate, which roughly halves compile time. No fused multiply-add
+# (fuse_fp): CUDA's default --fmad=true contracts b*s - o and the rotation products into FMAs, which round
+# differently from the reference's separate multiply and add and flip voxel-boundary ties on fine grids.
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 INF64 = wp.constant(wp.float64(1.0e300))
 
@@ -28,9 +30,10 @@ def lidar_rays_kernel(
     tid = wp.tid()
     n = sensor_dirs.shape[0]
     lid = tid / n
+    # R @ local, not renormalised: the reference's rays bit for bit (sensor_directions are unit vectors)
     d = rot[lid] * sensor_dirs[tid - lid * n]
     out_o[tid] = pos[lid]
-    out_d[tid] = wp.normalize(d)
+    out_d[tid] = d
 
 
 # ----------------------------------------------------------------------------- ray-mesh
@@ -264,7 +267,7 @@ def score_kernel(
     rig = tid / n                              # candidate * n_lidars + lidar
     cand = rig / n_lidars
     o = pos[rig]
-    d = wp.normalize(rot[rig] * sensor_dirs[tid - rig * n])
+    d = rot[rig] * sensor_dirs[tid - rig * n]   # as lidar_rays_kernel: the reference's rays bit for bit
     w = walk_begin(o, d, t_max, s, nx, ny, nz)
     base = wp.int64(cand) * words_per_candidate
     # the ray that sets a voxel's bit first owns it; integer partial sums make the total independent of
