@@ -12,11 +12,13 @@ The model, per ray (one Mitsuba wavefront over all rays):
   of the class reflectivity rho gives ``rho |cos theta|`` as the analytic model;
 * wet ground: ground classes get ``blendbsdf`` by film fraction ``f = clip(h_w / 1.2 mm, 0, 1)`` of the dry
   diffuse base and a rough dielectric (water, n = 1.33 in air 1.0003, Beckmann roughness) over that base
-  (Mitsuba's ``roughplastic``). Its monostatic film term is the physical layered surface
-  ``T(theta)^2 rho / (1 - rho F_int)`` (unpolarised Fresnel in and out, hemispherical internal reflectance
-  F_int ~ 0.47); the analytic ``film_transmission`` uses the larger polarisation, the internal reflection
-  at the refracted angle and an empirical 1 / theta, so the two wet/dry ratios agree only to ~5.5 % at
-  60-85 deg (see ``tests/test_conditions_mitsuba.py``). No factor is fitted to close that gap;
+  (Mitsuba's ``roughplastic`` in its default colour-preserving mode, ``nonlinear=False``). Its monostatic
+  film term is ``rho T(theta)^2 / (n^2 (1 - F_int))`` (unpolarised Fresnel in and out, hemispherical
+  internal reflectance F_int ~ 0.47); the physical layered surface (Lekner & Dorf 1988) would have
+  ``1 - rho F_int`` and is about 36 % darker than Hahner's formula. The analytic ``film_transmission``
+  uses the larger polarisation, the internal reflection at the refracted angle, no 1/n^2 and an empirical
+  1 / theta, so the two wet/dry ratios agree only to ~5.5 % at 60-85 deg (see
+  ``tests/test_conditions_mitsuba.py`` for the alternatives measured). No factor is fitted to close that gap;
 * fog: a homogeneous medium with ``sigma_t = alpha``; the hard return's two-way transmittance is the
   survival fraction of ``spp`` stratified free-flight samples (``medium.sample_interaction``) over 2 R0.
   The fog backscatter peak is Hahner et al.'s soft-target integral (``fog_lookup``), which a radiance
