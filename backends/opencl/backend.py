@@ -320,6 +320,63 @@ class OpenCLBackend(Backend, OpenCLConditions):
             self._launch("dda_coverage", n, self._in(o), self._in(d), self._in(te), *ga, mask, np.int32(n))
         return self._fetch(out, mask).view(bool)
 
+    # ----------------------------------------------------------------- benchmark hooks (kernel-only timers)
+    def resident_raycast(self, mesh, origins, directions, t_max):
+        """For benchmarks: a zero-argument callable that runs the ray-mesh kernel on rays already on the
+        device and waits for it (no host transfers), so kernel throughput can be timed apart from data
+        movement (as ``WarpCore.resident_raycast``). Rays are in the mesh's frame with unit directions,
+        as ``raycast`` receives them. ``run.read()`` copies the results of the last run back once and
+        returns ``(t, face)`` as ``raycast`` does (devices without fp64 refine on the host there too;
+        rays of a BVH stack overflow stay ``face == -2``: this is the kernel alone)."""
+        if not isinstance(mesh, CLMesh):
+            raise TypeError(f"resident_raycast needs the handle returned by {self.name}.upload_mesh, "
+                            f"got {type(mesh).__name__}")
+        o, d, tm = self._rays(origins, directions, t_max)
+        n = len(o)
+        tb, fb = self._out(n * np.dtype(self.real).itemsize), self._out(n * 4)
+        args = [mesh.nodes, mesh.tris, self._in(o, keep=True), self._in(d, keep=True), self._in(tm, keep=True),
+                tb, fb, np.int32(n)]
+        if self.fp64:
+            args += [mesh.verts64, mesh.faces32]
+        kernel = "raycast4" if mesh.width == 4 else "raycast"
+        self._kernel(kernel)   # compile now, not inside the first timed call
+
+        def run() -> None:
+            self._launch(kernel, n, *args)
+            self.queue.finish()
+
+        def read() -> tuple[np.ndarray, np.ndarray]:
+            t = self._read(tb, self.real, n).astype(np.float64)
+            face = self._read(fb, np.int32, n)
+            if not self.fp64:   # as raycast: the float64 inputs, not their float32 copies on the device
+                o64 = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+                d64 = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+                tm64 = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (n,))
+                t, face = _refine_on_host(mesh, o64, d64, tm64, t, face)
+            return t, face
+
+        run.read = read
+        return run
+
+    def resident_traverse(self, grid, origins, directions, t_end, stop=None):
+        """For benchmarks: a zero-argument callable that runs the traversal count kernel (``dda_count``, the
+        first pass of ``traverse``) on rays already on the device and waits for it (see
+        ``resident_raycast``). Rays are in the grid's local frame. ``run.read()`` copies the per-ray voxel
+        counts of the last run back once ((N,) int64, ``np.diff`` of ``traverse``'s offsets)."""
+        o, d, te = self._rays(origins, directions, t_end)
+        n = len(o)
+        cb = self._out(n * 8)
+        ga = self._grid_args(grid, self._stop_buffer(stop, grid, keep=True), stop is not None)
+        args = [self._in(o, keep=True), self._in(d, keep=True), self._in(te, keep=True), *ga, cb, np.int32(n)]
+        self._kernel("dda_count")
+
+        def run() -> None:
+            self._launch("dda_count", n, *args)
+            self.queue.finish()
+
+        run.read = lambda: self._read(cb, np.int64, n)
+        return run
+
     def prepare_grid(self, grid, weights, stop):
         return CLGrid(self, grid, weights, stop)
 

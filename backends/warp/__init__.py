@@ -47,11 +47,32 @@ class _WarpMesh:
         self.corners64 = corners64
 
 
+def brick_shape(shape) -> tuple[int, int, int]:
+    """Bricks (4 x 4 x 2 voxels, one 32-bit word each) along x, y, z of the score kernel's bitsets."""
+    nx, ny, nz = shape
+    return (nx + 3) // 4, (ny + 3) // 4, (nz + 1) // 2
+
+
+def brick_bits(mask: np.ndarray, shape) -> np.ndarray:
+    """Pack a flat per-voxel boolean mask into bricked 32-bit words (``kernels.brick_word`` / ``brick_bit``)."""
+    bx, by, bz = brick_shape(shape)
+    words = np.zeros(bx * by * bz, dtype=np.uint32)
+    i, j, k = np.unravel_index(np.flatnonzero(mask), shape)
+    if i.size:
+        word = ((i >> 2) * by + (j >> 2)) * bz + (k >> 1)
+        bit = np.left_shift(np.uint32(1), ((i & 3) | ((j & 3) << 2) | ((k & 1) << 4)).astype(np.uint32))
+        order = np.argsort(word, kind="stable")
+        word, bit = word[order], bit[order]
+        first = np.flatnonzero(np.r_[True, word[1:] != word[:-1]])
+        words[word[first]] = np.bitwise_or.reduceat(bit, first)
+    return words
+
+
 class _WarpGrid:
-    def __init__(self, spec, weights, stop):
+    def __init__(self, spec, weights, stop_bits=None):
         self.spec = spec
-        self.weights = weights
-        self.stop = stop
+        self.weights = weights          # int64 fixed-point entropy, flat voxel order
+        self.stop_bits = stop_bits      # bricked occlusion mask (brick_bits) or None
 
 
 class WarpCore(Backend):
@@ -70,6 +91,7 @@ class WarpCore(Backend):
 
         self.k = kernels
         self._empty_u8 = wp.zeros(1, dtype=wp.uint8, device=self.device)
+        self._empty_u32 = wp.zeros(1, dtype=wp.uint32, device=self.device)
 
     # ------------------------------------------------------------------ helpers
     def _vec3(self, a) -> "wp.array":
@@ -185,9 +207,10 @@ class WarpCore(Backend):
 
     def prepare_grid(self, grid, weights, stop):
         w = wp.array(np.ascontiguousarray(weights, dtype=np.int64), dtype=wp.int64, device=self.device)
-        s = None if stop is None else wp.array(np.ascontiguousarray(stop, dtype=np.uint8), dtype=wp.uint8,
-                                              device=self.device)
-        return _WarpGrid(grid, w, s)
+        if stop is None:
+            return _WarpGrid(grid, w)
+        sb = brick_bits(np.asarray(stop).reshape(-1) != 0, grid.shape)
+        return _WarpGrid(grid, w, wp.array(sb, dtype=wp.uint32, device=self.device))
 
     def score_placements(self, handle, elevations, azimuths, t_max, poses):
         poses = np.asarray(poses, dtype=np.float64)
@@ -196,16 +219,20 @@ class WarpCore(Backend):
         sd = sensor_directions(elevations, azimuths)
         spec = handle.spec
         nx, ny, nz = spec.shape
-        words = (spec.n_voxels + 31) // 32
+        bx, by, bz = brick_shape(spec.shape)
+        words = bx * by * bz
         bits = wp.zeros(P * words, dtype=wp.uint32, device=self.device)
         sums = wp.zeros(P, dtype=wp.int64, device=self.device)
         counts = wp.zeros(P, dtype=wp.int64, device=self.device)
-        stop_a, use = self._stop(handle.stop)
+        if handle.stop_bits is None:
+            stop_bits, use = self._empty_u32, 0
+        else:
+            stop_bits, use = handle.stop_bits, 1
         rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=self.device)
         wp.launch(self.k.score_kernel, dim=P * L * len(sd), device=self.device,
                   inputs=[self._vec3d(sd), rot, self._vec3d(flat[:, :3]), int(L), float(t_max),
-                          float(spec.voxel_size), int(nx), int(ny), int(nz), stop_a, use, handle.weights,
-                          int(words), bits, sums, counts])
+                          float(spec.voxel_size), int(nx), int(ny), int(nz), int(by), int(bz), stop_bits, use,
+                          handle.weights, int(words), bits, sums, counts])
         return sums.numpy(), counts.numpy()
 
     # ------------------------------------------------------------------ occupancy

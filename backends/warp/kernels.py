@@ -247,22 +247,27 @@ def coverage_kernel(
         w = walk_next(w, o, d, s, nx, ny, nz)
 
 
-@wp.kernel
-def score_kernel(
-    sensor_dirs: wp.array(dtype=wp.vec3d),      # (C*A,)
-    rot: wp.array(dtype=wp.mat33d),             # (P*L,)
-    pos: wp.array(dtype=wp.vec3d),              # (P*L,) grid-local
-    n_lidars: wp.int32,
-    t_max: wp.float64,
-    s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
-    stop: wp.array(dtype=wp.uint8), use_stop: wp.int32,
-    weights: wp.array(dtype=wp.int64),
-    words_per_candidate: wp.int64,
-    bits: wp.array(dtype=wp.uint32),           # (P * words_per_candidate,) zeroed
-    sums: wp.array(dtype=wp.int64),            # (P,) zeroed
-    counts: wp.array(dtype=wp.int64),          # (P,) zeroed
+@wp.func
+def brick_word(w: Walk, bny: wp.int32, bnz: wp.int32) -> wp.int64:
+    # bitsets of the score kernel are bricked: one 32-bit word holds a 4 x 4 x 2 block of voxels, so the
+    # next voxel of a walk usually sits in the word just read (cache hit, no new atomic)
+    return (wp.int64(w.i >> 2) * wp.int64(bny) + wp.int64(w.j >> 2)) * wp.int64(bnz) + wp.int64(w.k >> 1)
+
+
+@wp.func
+def brick_bit(w: Walk) -> wp.uint32:
+    return wp.uint32(1) << wp.uint32((w.i & 3) | ((w.j & 3) << 2) | ((w.k & 1) << 4))
+
+
+@wp.func
+def score_ray(
+    tid: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, stop_bits: wp.array(dtype=wp.uint32), use_stop: wp.int32,
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64), counts: wp.array(dtype=wp.int64),
 ):
-    tid = wp.tid()
     n = sensor_dirs.shape[0]
     rig = tid / n                              # candidate * n_lidars + lidar
     cand = rig / n_lidars
@@ -277,19 +282,42 @@ def score_kernel(
     for _ in range(nx + ny + nz + 3):
         if w.alive == 0:
             break
-        v = flat_index(w, ny, nz)
-        bit = wp.uint32(1) << wp.uint32(v & wp.int64(31))
-        old = wp.atomic_or(bits, base + (v >> wp.int64(5)), bit)
-        if (old & bit) == wp.uint32(0):
-            my_sum += weights[v]
-            my_count += wp.int64(1)
+        word = brick_word(w, bny, bnz)
+        bit = brick_bit(w)
+        # plain read first: a set bit stays set, so most revisits (near the sensor every ray passes the
+        # same voxels) cost a cached load instead of an atomic
+        if (bits[base + word] & bit) == wp.uint32(0):
+            old = wp.atomic_or(bits, base + word, bit)
+            if (old & bit) == wp.uint32(0):
+                my_sum += weights[flat_index(w, ny, nz)]
+                my_count += wp.int64(1)
         if use_stop != 0:
-            if stop[v] != wp.uint8(0):
+            if (stop_bits[word] & bit) != wp.uint32(0):
                 break
         w = walk_next(w, o, d, s, nx, ny, nz)
     if my_count > wp.int64(0):
         wp.atomic_add(sums, cand, my_sum)
         wp.atomic_add(counts, cand, my_count)
+
+
+@wp.kernel
+def score_kernel(
+    sensor_dirs: wp.array(dtype=wp.vec3d),      # (C*A,)
+    rot: wp.array(dtype=wp.mat33d),             # (P*L,)
+    pos: wp.array(dtype=wp.vec3d),              # (P*L,) grid-local
+    n_lidars: wp.int32,
+    t_max: wp.float64,
+    s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32,               # bricks along y and z (see brick_word)
+    stop_bits: wp.array(dtype=wp.uint32), use_stop: wp.int32,   # bricked occlusion mask
+    weights: wp.array(dtype=wp.int64),          # flat voxel order
+    words_per_candidate: wp.int64,
+    bits: wp.array(dtype=wp.uint32),           # (P * words_per_candidate,) zeroed, bricked
+    sums: wp.array(dtype=wp.int64),            # (P,) zeroed
+    counts: wp.array(dtype=wp.int64),          # (P,) zeroed
+):
+    score_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, stop_bits, use_stop,
+              weights, words_per_candidate, bits, sums, counts)
 
 
 # ----------------------------------------------------------------------------- occupancy

@@ -1,0 +1,170 @@
+#!/usr/bin/env python3
+"""A/B study of the Warp batched score kernel on one GPU (issue 6: the dense rig on a 0.05 m grid).
+
+Workload as in ``gpu_dense.py``: a population of ``--pop`` perturbed ``pyramid`` rigs of the dense LiDAR
+(4 x 64 x 2048 rays each) over the default town's P-SOG on a ``--voxel`` grid, occlusion "sog". Variants:
+
+* ``flat``: the kernel before bricking: one bit per voxel in flat (x, y, z) order, the occlusion mask
+  as one byte per voxel, an ``atomic_or`` on every step;
+* ``bricked``: the shipped kernel (``backends/warp/kernels.py``): bitsets in 4 x 4 x 2 bricks (one
+  32-bit word each), the occlusion mask as a bricked bitset, a plain read before the atomic;
+* ``bricked-rN``: the same with CUDA ``__maxnreg__(N)`` (register cap for occupancy);
+* ``bricked-bD``: the same launched with D threads per block.
+
+Every variant must return the same int64 sums and counts as the shipped kernel (checked; a mismatch
+raises). Kernel times are taken around the launch only, with the device synchronised, best of
+``--repeat``. Writes ``$OUT/gpu-score-variants-<voxel>m.json`` (or bench/results/).
+
+    python3 bench/gpu_score_variants.py [--voxel 0.05] [--pop 16] [--device cuda:0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+import place3d_kernels as p3k
+from place3d_kernels.backends.base import rotation_matrices, sensor_directions
+from place3d_kernels.backends.warp import brick_bits, brick_shape
+from place3d_kernels.backends.warp.kernels import flat_index, score_ray, walk_begin, walk_next
+from place3d_kernels.benchmark import machine_info
+
+OPTS = {"enable_backward": False, "fuse_fp": False}   # as the shipped module: no FMA contraction
+
+
+@wp.kernel(module="unique", module_options=OPTS)
+def flat_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
+                nx: wp.int32, ny: wp.int32, nz: wp.int32, stop: wp.array(dtype=wp.uint8), use_stop: wp.int32,
+                weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64,
+                bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64), counts: wp.array(dtype=wp.int64)):
+    tid = wp.tid()
+    n = sensor_dirs.shape[0]
+    rig = tid / n
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = rot[rig] * sensor_dirs[tid - rig * n]
+    w = walk_begin(o, d, t_max, s, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    my_sum = wp.int64(0)
+    my_count = wp.int64(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        v = flat_index(w, ny, nz)
+        bit = wp.uint32(1) << wp.uint32(v & wp.int64(31))
+        old = wp.atomic_or(bits, base + (v >> wp.int64(5)), bit)
+        if (old & bit) == wp.uint32(0):
+            my_sum += weights[v]
+            my_count += wp.int64(1)
+        if use_stop != 0:
+            if stop[v] != wp.uint8(0):
+                break
+        w = walk_next(w, o, d, s, nx, ny, nz)
+    if my_count > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+        wp.atomic_add(counts, cand, my_count)
+
+
+def _bricked(maxreg: int):
+    @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
+    def capped(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+               pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
+               nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
+               stop_bits: wp.array(dtype=wp.uint32), use_stop: wp.int32, weights: wp.array(dtype=wp.int64),
+               words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64),
+               counts: wp.array(dtype=wp.int64)):
+        score_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, stop_bits, use_stop,
+                  weights, words_per_candidate, bits, sums, counts)
+    return capped
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--voxel", type=float, default=0.05)
+    ap.add_argument("--pop", type=int, default=16)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--device", default="cuda:0")
+    args = ap.parse_args()
+    dev = args.device
+    b = p3k.get_backend(f"warp:{dev}")
+    d0 = p3k.DEFAULT_GRID
+    grid = p3k.Grid(d0.lower, d0.upper, args.voxel)
+    psog = p3k.scene_psog(p3k.scene.town(seed=0), grid=grid, backend=b)
+    lidar = p3k.LidarModel.uniform(64, (-25, 15), 2048, max_range=100.0, name="dense64x2048")
+    rig = p3k.Placement.load("pyramid")
+    rng = np.random.default_rng(0)
+    pop = np.repeat(rig.poses[None], args.pop, axis=0)
+    pop[..., :3] += rng.uniform(-0.3, 0.3, pop[..., :3].shape).round(1)
+    P, L = pop.shape[:2]
+    flat = pop.reshape(-1, 6)
+    sd = wp.array(sensor_directions(lidar.elevations, lidar.azimuths), dtype=wp.vec3d, device=dev)
+    rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=dev)
+    pos = wp.array(psog.grid.to_local(flat[:, :3]), dtype=wp.vec3d, device=dev)
+    n = P * L * sd.shape[0]
+    spec = psog.grid.spec
+    nx, ny, nz = spec.shape
+    weights = wp.array(psog.weights.reshape(-1).astype(np.int64), dtype=wp.int64, device=dev)
+    stop_np = np.asarray(psog.stop_mask).reshape(-1).astype(np.uint8)
+    stop_u8 = wp.array(stop_np, dtype=wp.uint8, device=dev)
+    bx, by, bz = brick_shape(spec.shape)
+    stop_bits = wp.array(brick_bits(stop_np != 0, spec.shape), dtype=wp.uint32, device=dev)
+    common = [sd, rot, pos, int(L), float(lidar.max_range), float(spec.voxel_size), int(nx), int(ny), int(nz)]
+    flat_words = (spec.n_voxels + 31) // 32
+    brick_words = bx * by * bz
+
+    def run(kernel, inputs_tail, words, block_dim=None):
+        bits = wp.zeros(P * words, dtype=wp.uint32, device=dev)
+        sums = wp.zeros(P, dtype=wp.int64, device=dev)
+        counts = wp.zeros(P, dtype=wp.int64, device=dev)
+        best = np.inf
+        for _ in range(args.repeat + 1):   # the first launch compiles and warms up
+            bits.zero_(), sums.zero_(), counts.zero_()
+            wp.synchronize_device(dev)
+            t0 = time.perf_counter()
+            wp.launch(kernel, dim=n, device=dev, inputs=common + inputs_tail(words) + [bits, sums, counts],
+                      block_dim=block_dim or 256)
+            wp.synchronize_device(dev)
+            best = min(best, time.perf_counter() - t0)
+        return best, sums.numpy(), counts.numpy()
+
+    flat_tail = lambda words: [stop_u8, 1, weights, int(words)]                       # noqa: E731
+    brick_tail = lambda words: [int(by), int(bz), stop_bits, 1, weights, int(words)]  # noqa: E731
+    variants = {
+        "flat": (flat_kernel, flat_tail, flat_words, None),
+        "bricked": (b.k.score_kernel, brick_tail, brick_words, None),
+        "bricked-b128": (b.k.score_kernel, brick_tail, brick_words, 128),
+        "bricked-b512": (b.k.score_kernel, brick_tail, brick_words, 512),
+        "bricked-r64": (_bricked(64), brick_tail, brick_words, None),
+        "bricked-r48": (_bricked(48), brick_tail, brick_words, None),
+    }
+    ref = p3k.msog_batch(psog, lidar, pop, backend=b)          # the public API, shipped kernel
+    out = {"info": machine_info(), "device": dev, "grid": grid.to_dict(), "rays_per_rig": L * sd.shape[0],
+           "population": P, "variants": {}}
+    base_sums = None
+    for name, (kern, tail, words, bd) in variants.items():
+        t, sums, counts = run(kern, tail, words, bd)
+        if base_sums is None:
+            base_sums, base_counts = sums, counts
+        same = bool(np.array_equal(sums, base_sums) and np.array_equal(counts, base_counts))
+        out["variants"][name] = {"kernel_ms": 1e3 * t, "amortised_ms_per_rig": 1e3 * t / P,
+                                 "identical_to_flat": same}
+        print(name, out["variants"][name], flush=True)
+        if not same:
+            raise SystemExit(f"variant {name} disagrees with the flat kernel")
+    scores = -(base_sums / 2.0**32) / np.maximum(base_counts, 1)
+    out["scores_equal_public_api"] = bool(np.allclose(scores, ref, rtol=0, atol=1e-15))
+    out["covered_voxels_per_rig"] = base_counts.tolist()
+    res = Path(os.environ.get("OUT", Path(__file__).resolve().parent / "results"))
+    res.mkdir(parents=True, exist_ok=True)
+    (res / f"gpu-score-variants-{args.voxel}m.json").write_text(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
