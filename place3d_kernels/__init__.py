@@ -9,7 +9,6 @@ Public API (see the README and DESIGN.md):
 >>> p3k.msog(psog, p3k.LidarModel.load("place3d_16ch"), p3k.Placement.load("pyramid"))
 """
 
-from place3d_kernels import conditions, scene
 from place3d_kernels.backend import available_backends, backend_report, get_backend, use_backend
 from place3d_kernels.classes import CLASSES
 from place3d_kernels.grid import DEFAULT_GRID, Grid
@@ -27,6 +26,17 @@ from place3d_kernels.smig import BernoulliGrid, scene_boxes, smig, smig_batch
 from place3d_kernels.sog import PSOG, Frame
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # ``p3k.scene`` and ``p3k.conditions`` load on first use: a run without adverse conditions, or one that
+    # brings its own frames, never imports the condition models or the scene loaders
+    if name in ("scene", "conditions"):
+        import importlib
+
+        return importlib.import_module(f"place3d_kernels.{name}")
+    raise AttributeError(f"module 'place3d_kernels' has no attribute {name!r}")
+
 
 __all__ = [
     "available_backends", "backend_report", "get_backend", "use_backend",
