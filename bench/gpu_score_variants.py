@@ -6,10 +6,12 @@ Workload as in ``gpu_dense.py``: a population of ``--pop`` perturbed ``pyramid``
 
 * ``flat``: the kernel before bricking: one bit per voxel in flat (x, y, z) order, the occlusion mask
   as one byte per voxel, an ``atomic_or`` on every step;
-* ``bricked``: the shipped kernel (``backends/warp/kernels.py``): bitsets in 4 x 4 x 2 bricks (one
-  32-bit word each), the occlusion mask as a bricked bitset, a plain read before the atomic;
+* ``bricked``: bitsets in 4 x 4 x 2 bricks (one 32-bit word each), the occlusion mask as a bricked
+  bitset, a plain read before the atomic (``score_ray`` of ``backends/warp/kernels.py``), no register cap;
 * ``bricked-rN``: the same with CUDA ``__maxnreg__(N)`` (register cap for occupancy);
 * ``bricked-bD``: the same launched with D threads per block;
+* ``shipped``: ``score_kernel`` as the backend launches it (the register cap and block size chosen from
+  this study);
 * ``recip`` (study only): the bricked kernel with boundary crossings computed as ``(b s - o) * (1 / d)``
   instead of ``(b s - o) / d``: no float64 division per step, but one more rounding, so near-ties can
   resolve differently; its sums are compared with the shipped kernel's and the differences reported,
@@ -87,63 +89,65 @@ def _next_r(i: wp.int32, step: wp.int32, o: wp.float64, inv: wp.float64, s: wp.f
     return (wp.float64(b) * s - o) * inv
 
 
-@wp.kernel(module="unique", module_options=OPTS)
-def recip_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
-                 pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
-                 nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
-                 stop_bits: wp.array(dtype=wp.uint32), use_stop: wp.int32, weights: wp.array(dtype=wp.int64),
-                 words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64),
-                 counts: wp.array(dtype=wp.int64)):
-    tid = wp.tid()
-    n = sensor_dirs.shape[0]
-    rig = tid / n
-    cand = rig / n_lidars
-    o = pos[rig]
-    d = rot[rig] * sensor_dirs[tid - rig * n]
-    w = walk_begin(o, d, t_max, s, nx, ny, nz)
-    one = wp.float64(1.0)
-    ix = one / d[0]
-    iy = one / d[1]
-    iz = one / d[2]
-    w.tx = _next_r(w.i, w.si, o[0], ix, s)
-    w.ty = _next_r(w.j, w.sj, o[1], iy, s)
-    w.tz = _next_r(w.k, w.sk, o[2], iz, s)
-    base = wp.int64(cand) * words_per_candidate
-    my_sum = wp.int64(0)
-    my_count = wp.int64(0)
-    for _ in range(nx + ny + nz + 3):
-        if w.alive == 0:
-            break
-        word = brick_word(w, bny, bnz)
-        bit = brick_bit(w)
-        if (bits[base + word] & bit) == wp.uint32(0):
-            old = wp.atomic_or(bits, base + word, bit)
-            if (old & bit) == wp.uint32(0):
-                my_sum += weights[flat_index(w, ny, nz)]
-                my_count += wp.int64(1)
-        if use_stop != 0:
-            if (stop_bits[word] & bit) != wp.uint32(0):
-                break
-        tn = wp.min(w.tx, wp.min(w.ty, w.tz))
-        if tn >= w.t1:
-            break
-        if w.tx == tn:
-            w.i = w.i + w.si
-            w.tx = _next_r(w.i, w.si, o[0], ix, s)
-        if w.ty == tn:
-            w.j = w.j + w.sj
-            w.ty = _next_r(w.j, w.sj, o[1], iy, s)
-        if w.tz == tn:
-            w.k = w.k + w.sk
-            w.tz = _next_r(w.k, w.sk, o[2], iz, s)
-        if w.i < 0 or w.i >= nx or w.j < 0 or w.j >= ny or w.k < 0 or w.k >= nz:
-            break
-    if my_count > wp.int64(0):
-        wp.atomic_add(sums, cand, my_sum)
-        wp.atomic_add(counts, cand, my_count)
+def _recip(maxreg=None):
+  @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
+  def recip_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                   pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
+                   nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
+                   stop_bits: wp.array(dtype=wp.uint32), use_stop: wp.int32, weights: wp.array(dtype=wp.int64),
+                   words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64),
+                   counts: wp.array(dtype=wp.int64)):
+      tid = wp.tid()
+      n = sensor_dirs.shape[0]
+      rig = tid / n
+      cand = rig / n_lidars
+      o = pos[rig]
+      d = rot[rig] * sensor_dirs[tid - rig * n]
+      w = walk_begin(o, d, t_max, s, nx, ny, nz)
+      one = wp.float64(1.0)
+      ix = one / d[0]
+      iy = one / d[1]
+      iz = one / d[2]
+      w.tx = _next_r(w.i, w.si, o[0], ix, s)
+      w.ty = _next_r(w.j, w.sj, o[1], iy, s)
+      w.tz = _next_r(w.k, w.sk, o[2], iz, s)
+      base = wp.int64(cand) * words_per_candidate
+      my_sum = wp.int64(0)
+      my_count = wp.int64(0)
+      for _ in range(nx + ny + nz + 3):
+          if w.alive == 0:
+              break
+          word = brick_word(w, bny, bnz)
+          bit = brick_bit(w)
+          if (bits[base + word] & bit) == wp.uint32(0):
+              old = wp.atomic_or(bits, base + word, bit)
+              if (old & bit) == wp.uint32(0):
+                  my_sum += weights[flat_index(w, ny, nz)]
+                  my_count += wp.int64(1)
+          if use_stop != 0:
+              if (stop_bits[word] & bit) != wp.uint32(0):
+                  break
+          tn = wp.min(w.tx, wp.min(w.ty, w.tz))
+          if tn >= w.t1:
+              break
+          if w.tx == tn:
+              w.i = w.i + w.si
+              w.tx = _next_r(w.i, w.si, o[0], ix, s)
+          if w.ty == tn:
+              w.j = w.j + w.sj
+              w.ty = _next_r(w.j, w.sj, o[1], iy, s)
+          if w.tz == tn:
+              w.k = w.k + w.sk
+              w.tz = _next_r(w.k, w.sk, o[2], iz, s)
+          if w.i < 0 or w.i >= nx or w.j < 0 or w.j >= ny or w.k < 0 or w.k >= nz:
+              break
+      if my_count > wp.int64(0):
+          wp.atomic_add(sums, cand, my_sum)
+          wp.atomic_add(counts, cand, my_count)
+  return recip_kernel
 
 
-def _bricked(maxreg: int):
+def _bricked(maxreg=None):
     @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
     def capped(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
                pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
@@ -209,12 +213,17 @@ def main() -> None:
     brick_tail = lambda words: [int(by), int(bz), stop_bits, 1, weights, int(words)]  # noqa: E731
     variants = {
         "flat": (flat_kernel, flat_tail, flat_words, None),
-        "bricked": (b.k.score_kernel, brick_tail, brick_words, None),
-        "bricked-b128": (b.k.score_kernel, brick_tail, brick_words, 128),
-        "bricked-b512": (b.k.score_kernel, brick_tail, brick_words, 512),
+        "bricked": (_bricked(), brick_tail, brick_words, None),
+        "bricked-b128": (_bricked(), brick_tail, brick_words, 128),
+        "bricked-b512": (_bricked(), brick_tail, brick_words, 512),
         "bricked-r64": (_bricked(64), brick_tail, brick_words, None),
         "bricked-r48": (_bricked(48), brick_tail, brick_words, None),
-        "recip": (recip_kernel, brick_tail, brick_words, None),
+        "bricked-r64-b128": (_bricked(64), brick_tail, brick_words, 128),
+        "bricked-r56-b128": (_bricked(56), brick_tail, brick_words, 128),
+        "bricked-r72-b128": (_bricked(72), brick_tail, brick_words, 128),
+        "shipped": (b.k.score_kernel, brick_tail, brick_words, b.k.SCORE_BLOCK_DIM),
+        "recip": (_recip(), brick_tail, brick_words, None),
+        "recip-r64-b128": (_recip(64), brick_tail, brick_words, 128),
     }
     ref = p3k.msog_batch(psog, lidar, pop, backend=b)          # the public API, shipped kernel
     out = {"info": machine_info(), "device": dev, "grid": grid.to_dict(), "rays_per_rig": L * sd.shape[0],
@@ -227,13 +236,13 @@ def main() -> None:
         same = bool(np.array_equal(sums, base_sums) and np.array_equal(counts, base_counts))
         out["variants"][name] = {"kernel_ms": 1e3 * t, "amortised_ms_per_rig": 1e3 * t / P,
                                  "identical_to_flat": same}
-        if name == "recip":
+        if name.startswith("recip"):
             sc = -(sums / 2.0**32) / np.maximum(counts, 1)
             sb = -(base_sums / 2.0**32) / np.maximum(base_counts, 1)
             out["variants"][name].update({"max_abs_msog_diff": float(np.abs(sc - sb).max()),
                                           "max_count_diff": int(np.abs(counts - base_counts).max())})
         print(name, out["variants"][name], flush=True)
-        if not same and name != "recip":
+        if not same and not name.startswith("recip"):
             raise SystemExit(f"variant {name} disagrees with the flat kernel")
     scores = -(base_sums / 2.0**32) / np.maximum(base_counts, 1)
     out["scores_equal_public_api"] = bool(np.allclose(scores, ref, rtol=0, atol=1e-15))

@@ -232,7 +232,8 @@ class WarpCore(Backend):
         wp.launch(self.k.score_kernel, dim=P * L * len(sd), device=self.device,
                   inputs=[self._vec3d(sd), rot, self._vec3d(flat[:, :3]), int(L), float(t_max),
                           float(spec.voxel_size), int(nx), int(ny), int(nz), int(by), int(bz), stop_bits, use,
-                          handle.weights, int(words), bits, sums, counts])
+                          handle.weights, int(words), bits, sums, counts],
+                  block_dim=self.k.SCORE_BLOCK_DIM)
         return sums.numpy(), counts.numpy()
 
     # ------------------------------------------------------------------ occupancy
