@@ -10,8 +10,9 @@ Workload as in ``gpu_dense.py``: a population of ``--pop`` perturbed ``pyramid``
   bitset, a plain read before the atomic (``score_ray`` of ``backends/warp/kernels.py``), no register cap;
 * ``bricked-rN``: the same with CUDA ``__maxnreg__(N)`` (register cap for occupancy);
 * ``bricked-bD``: the same launched with D threads per block;
-* ``shipped``: ``score_kernel`` as the backend launches it (the register cap and block size chosen from
-  this study);
+* ``shipped``: ``score_kernel`` as the backend launches it: bricked, with the register cap and block
+  size chosen from this study, and a bricked nonzero-weight mask next to the occlusion word so that
+  weights are read only for voxels with entropy;
 * ``recip`` (study only): the bricked kernel with boundary crossings computed as ``(b s - o) * (1 / d)``
   instead of ``(b s - o) / d``: no float64 division per step, but one more rounding, so near-ties can
   resolve differently; its sums are compared with the shipped kernel's and the differences reported,
@@ -39,7 +40,7 @@ import place3d_kernels as p3k
 from place3d_kernels.backends.base import rotation_matrices, sensor_directions
 from place3d_kernels.backends.warp import brick_bits, brick_shape
 from place3d_kernels.backends.warp.kernels import (INF64, Walk, _axis_clip, _start_index, brick_bit, brick_word,
-                                                  flat_index, score_ray, walk_begin, walk_next)
+                                                  flat_index, walk_begin, walk_next)
 from place3d_kernels.benchmark import machine_info
 
 OPTS = {"enable_backward": False, "fuse_fp": False}   # as the shipped module: no FMA contraction
@@ -147,6 +148,47 @@ def _recip(maxreg=None):
   return recip_kernel
 
 
+@wp.func
+def bricked_ray(
+    tid: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, stop_bits: wp.array(dtype=wp.uint32), use_stop: wp.int32,
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64), counts: wp.array(dtype=wp.int64),
+):
+    n = sensor_dirs.shape[0]
+    rig = tid / n                              # candidate * n_lidars + lidar
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = rot[rig] * sensor_dirs[tid - rig * n]   # as lidar_rays_kernel: the reference's rays bit for bit
+    w = walk_begin(o, d, t_max, s, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    # the ray that sets a voxel's bit first owns it; integer partial sums make the total independent of
+    # thread order, and one atomic per ray (not per voxel) keeps contention on sums[cand] low
+    my_sum = wp.int64(0)
+    my_count = wp.int64(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        word = brick_word(w, bny, bnz)
+        bit = brick_bit(w)
+        # plain read first: a set bit stays set, so most revisits (near the sensor every ray passes the
+        # same voxels) cost a cached load instead of an atomic
+        if (bits[base + word] & bit) == wp.uint32(0):
+            old = wp.atomic_or(bits, base + word, bit)
+            if (old & bit) == wp.uint32(0):
+                my_sum += weights[flat_index(w, ny, nz)]
+                my_count += wp.int64(1)
+        if use_stop != 0:
+            if (stop_bits[word] & bit) != wp.uint32(0):
+                break
+        w = walk_next(w, o, d, s, nx, ny, nz)
+    if my_count > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+        wp.atomic_add(counts, cand, my_count)
+
+
 def _bricked(maxreg=None):
     @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
     def capped(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
@@ -155,7 +197,7 @@ def _bricked(maxreg=None):
                stop_bits: wp.array(dtype=wp.uint32), use_stop: wp.int32, weights: wp.array(dtype=wp.int64),
                words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64),
                counts: wp.array(dtype=wp.int64)):
-        score_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, stop_bits, use_stop,
+        bricked_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, stop_bits, use_stop,
                   weights, words_per_candidate, bits, sums, counts)
     return capped
 
@@ -211,19 +253,19 @@ def main() -> None:
 
     flat_tail = lambda words: [stop_u8, 1, weights, int(words)]                       # noqa: E731
     brick_tail = lambda words: [int(by), int(bz), stop_bits, 1, weights, int(words)]  # noqa: E731
+    masks = np.zeros(2 * brick_words, dtype=np.uint32)
+    masks[0::2] = brick_bits(stop_np != 0, spec.shape)
+    masks[1::2] = brick_bits(psog.weights.reshape(-1) != 0, spec.shape)
+    masks = wp.array(masks, dtype=wp.uint32, device=dev)
+    shipped_tail = lambda words: [int(by), int(bz), masks, weights, int(words)]  # noqa: E731
     variants = {
         "flat": (flat_kernel, flat_tail, flat_words, None),
         "bricked": (_bricked(), brick_tail, brick_words, None),
         "bricked-b128": (_bricked(), brick_tail, brick_words, 128),
-        "bricked-b512": (_bricked(), brick_tail, brick_words, 512),
-        "bricked-r64": (_bricked(64), brick_tail, brick_words, None),
-        "bricked-r48": (_bricked(48), brick_tail, brick_words, None),
         "bricked-r64-b128": (_bricked(64), brick_tail, brick_words, 128),
-        "bricked-r56-b128": (_bricked(56), brick_tail, brick_words, 128),
         "bricked-r72-b128": (_bricked(72), brick_tail, brick_words, 128),
-        "shipped": (b.k.score_kernel, brick_tail, brick_words, b.k.SCORE_BLOCK_DIM),
+        "shipped": (b.k.score_kernel, shipped_tail, brick_words, b.k.SCORE_BLOCK_DIM),
         "recip": (_recip(), brick_tail, brick_words, None),
-        "recip-r64-b128": (_recip(64), brick_tail, brick_words, 128),
     }
     ref = p3k.msog_batch(psog, lidar, pop, backend=b)          # the public API, shipped kernel
     out = {"info": machine_info(), "device": dev, "grid": grid.to_dict(), "rays_per_rig": L * sd.shape[0],

@@ -69,10 +69,10 @@ def brick_bits(mask: np.ndarray, shape) -> np.ndarray:
 
 
 class _WarpGrid:
-    def __init__(self, spec, weights, stop_bits=None):
+    def __init__(self, spec, weights, masks):
         self.spec = spec
         self.weights = weights          # int64 fixed-point entropy, flat voxel order
-        self.stop_bits = stop_bits      # bricked occlusion mask (brick_bits) or None
+        self.masks = masks              # per brick word w: [2w] occlusion bits, [2w + 1] nonzero-weight bits
 
 
 class WarpCore(Backend):
@@ -91,7 +91,6 @@ class WarpCore(Backend):
 
         self.k = kernels
         self._empty_u8 = wp.zeros(1, dtype=wp.uint8, device=self.device)
-        self._empty_u32 = wp.zeros(1, dtype=wp.uint32, device=self.device)
 
     # ------------------------------------------------------------------ helpers
     def _vec3(self, a) -> "wp.array":
@@ -207,10 +206,12 @@ class WarpCore(Backend):
 
     def prepare_grid(self, grid, weights, stop):
         w = wp.array(np.ascontiguousarray(weights, dtype=np.int64), dtype=wp.int64, device=self.device)
-        if stop is None:
-            return _WarpGrid(grid, w)
-        sb = brick_bits(np.asarray(stop).reshape(-1) != 0, grid.shape)
-        return _WarpGrid(grid, w, wp.array(sb, dtype=wp.uint32, device=self.device))
+        nz_bits = brick_bits(np.asarray(weights).reshape(-1) != 0, grid.shape)
+        masks = np.zeros(2 * len(nz_bits), dtype=np.uint32)        # no occlusion mask: never stops
+        masks[1::2] = nz_bits
+        if stop is not None:
+            masks[0::2] = brick_bits(np.asarray(stop).reshape(-1) != 0, grid.shape)
+        return _WarpGrid(grid, w, wp.array(masks, dtype=wp.uint32, device=self.device))
 
     def score_placements(self, handle, elevations, azimuths, t_max, poses):
         poses = np.asarray(poses, dtype=np.float64)
@@ -224,14 +225,10 @@ class WarpCore(Backend):
         bits = wp.zeros(P * words, dtype=wp.uint32, device=self.device)
         sums = wp.zeros(P, dtype=wp.int64, device=self.device)
         counts = wp.zeros(P, dtype=wp.int64, device=self.device)
-        if handle.stop_bits is None:
-            stop_bits, use = self._empty_u32, 0
-        else:
-            stop_bits, use = handle.stop_bits, 1
         rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=self.device)
         wp.launch(self.k.score_kernel, dim=P * L * len(sd), device=self.device,
                   inputs=[self._vec3d(sd), rot, self._vec3d(flat[:, :3]), int(L), float(t_max),
-                          float(spec.voxel_size), int(nx), int(ny), int(nz), int(by), int(bz), stop_bits, use,
+                          float(spec.voxel_size), int(nx), int(ny), int(nz), int(by), int(bz), handle.masks,
                           handle.weights, int(words), bits, sums, counts],
                   block_dim=self.k.SCORE_BLOCK_DIM)
         return sums.numpy(), counts.numpy()

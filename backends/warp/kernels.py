@@ -264,7 +264,7 @@ def score_ray(
     tid: wp.int32,
     sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
     n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
-    bny: wp.int32, bnz: wp.int32, stop_bits: wp.array(dtype=wp.uint32), use_stop: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks: wp.array(dtype=wp.uint32),
     weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
     sums: wp.array(dtype=wp.int64), counts: wp.array(dtype=wp.int64),
 ):
@@ -289,11 +289,13 @@ def score_ray(
         if (bits[base + word] & bit) == wp.uint32(0):
             old = wp.atomic_or(bits, base + word, bit)
             if (old & bit) == wp.uint32(0):
-                my_sum += weights[flat_index(w, ny, nz)]
                 my_count += wp.int64(1)
-        if use_stop != 0:
-            if (stop_bits[word] & bit) != wp.uint32(0):
-                break
+                # most covered voxels are free space with zero entropy: only read weights where the mask
+                # (next to the occlusion word, so in the same cache sector) says there is one
+                if (masks[wp.int64(2) * word + wp.int64(1)] & bit) != wp.uint32(0):
+                    my_sum += weights[flat_index(w, ny, nz)]
+        if (masks[wp.int64(2) * word] & bit) != wp.uint32(0):      # occlusion: the ray ends after this voxel
+            break
         w = walk_next(w, o, d, s, nx, ny, nz)
     if my_count > wp.int64(0):
         wp.atomic_add(sums, cand, my_sum)
@@ -315,15 +317,15 @@ def score_kernel(
     t_max: wp.float64,
     s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
     bny: wp.int32, bnz: wp.int32,               # bricks along y and z (see brick_word)
-    stop_bits: wp.array(dtype=wp.uint32), use_stop: wp.int32,   # bricked occlusion mask
+    masks: wp.array(dtype=wp.uint32),           # per brick: (occlusion bits, nonzero-weight bits)
     weights: wp.array(dtype=wp.int64),          # flat voxel order
     words_per_candidate: wp.int64,
     bits: wp.array(dtype=wp.uint32),           # (P * words_per_candidate,) zeroed, bricked
     sums: wp.array(dtype=wp.int64),            # (P,) zeroed
     counts: wp.array(dtype=wp.int64),          # (P,) zeroed
 ):
-    score_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, stop_bits, use_stop,
-              weights, words_per_candidate, bits, sums, counts)
+    score_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks, weights,
+              words_per_candidate, bits, sums, counts)
 
 
 # ----------------------------------------------------------------------------- occupancy
