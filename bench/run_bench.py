@@ -3,6 +3,15 @@
 merges the run into bench/results/summary.json (one entry per machine label).
 
     python3 bench/run_bench.py [--label cpu-2core] [--backends warp:cpu reference] [--quick]
+
+A summary.json run is ``{"machine": label, "device", "date", "backends": {...}, "peers": {...}}``. This
+script writes ``machine``, ``device``, ``date`` and ``backends`` and keeps the run's ``peers``, which
+``bench/peers.py`` measures and merges (open3d / embree / mitsuba ``raycast_mrays_s``, ``numpy_baseline``
+``traverse_gsteps_s`` and rays/s). Run both with the same ``--label`` (default of both: the host name; the
+dev VM's run is ``cpu-2core-dev``), in either order.
+
+``--quick`` (no 1M-triangle city, so no ``raycast_mrays_s`` / ``city_*``) is a smoke run: it writes
+``<label>-quick-<date>.json`` and leaves summary.json alone, whose runs carry the full set of keys.
 """
 
 from __future__ import annotations
@@ -29,15 +38,20 @@ def main() -> None:
     label = args.label or info["machine"]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{label}-{info['date']}.json"
+    path = out / f"{label}{'-quick' if args.quick else ''}-{info['date']}.json"
     res["info"]["label"] = label
     res["info"]["device"] = args.device or info["cpu"]
+    res["info"]["quick"] = bool(args.quick)
     path.write_text(json.dumps(res, indent=2))
+    if args.quick:
+        print(f"wrote {path} (quick: summary.json not updated)")
+        return
     summary_path = out / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {"runs": []}
+    old = next((r for r in summary["runs"] if r.get("machine") == label), {})
     summary["runs"] = [r for r in summary["runs"] if r.get("machine") != label]
     summary["runs"].append({"machine": label, "device": res["info"]["device"], "date": info["date"],
-                            "backends": res["backends"], "peers": res.get("peers", {})})
+                            "backends": res["backends"], "peers": old.get("peers", {})})  # peers: bench/peers.py
     summary_path.write_text(json.dumps(summary, indent=2))
     print(f"wrote {path} and {summary_path}")
 

@@ -681,3 +681,45 @@ def test_stack_overflow_rays_are_retraced_on_the_host(rng):
         t2, face2 = b64.raycast(b64.upload_mesh(v, f), o, d, tm)
         assert b64.stats["retraced_rays"] == 0
         np.testing.assert_array_equal(face2, bf)
+
+
+# ============================================================================ benchmark hooks
+@pytest.mark.parametrize("variant", RAY_VARIANTS)
+def test_resident_raycast_matches_raycast(variant, rng):
+    """The kernel-only timer (rays kept on the device) runs repeatedly and leaves what ``raycast`` returns."""
+    trimesh = pytest.importorskip("trimesh")
+    b = _backend(variant)
+    tm = trimesh.creation.icosphere(subdivisions=2, radius=2.0)
+    v, f = tm.vertices, tm.faces
+    o = rng.normal(size=(400, 3)) * 4.0
+    d = rng.normal(size=(400, 3)) - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t_max = rng.choice([3.0, 30.0], len(o))
+    h = b.upload_mesh(v, f)
+    run = b.resident_raycast(h, o, d, t_max)
+    run()
+    run()
+    got_t, got_f = run.read()
+    want_t, want_f = b.raycast(h, o, d, t_max)
+    assert (want_f >= 0).sum() > 50 and (want_f < 0).sum() > 10
+    np.testing.assert_array_equal(got_f, want_f)
+    np.testing.assert_array_equal(got_t, want_t)
+    empty = b.resident_raycast(h, np.empty((0, 3)), np.empty((0, 3)), 1.0)
+    empty()
+    assert empty.read()[1].shape == (0,)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_resident_traverse_matches_traverse(variant, rng):
+    b = _backend(variant)
+    spec = GridSpec(0.5, (12, 9, 7))
+    o, d, t_end = random_rays(spec, rng, n=500, t=6.0)
+    stop = (rng.random(spec.n_voxels) < 0.05).astype(np.uint8)
+    for s in (None, stop):
+        run = b.resident_traverse(spec, o, d, t_end, stop=s)
+        run()
+        run()
+        offsets, _ = b.traverse(spec, o, d, t_end, stop=s)
+        counts = run.read()
+        assert counts.sum() > 1000
+        np.testing.assert_array_equal(counts, np.diff(offsets))
