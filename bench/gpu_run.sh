@@ -6,6 +6,8 @@
 set -uo pipefail
 out=${OUT:-bench/results}
 mkdir -p "$out"
+# start from the committed summary so that the merge keeps the other machines' runs
+[ "$out" != bench/results ] && cp bench/results/summary.json "$out/summary.json"
 if [ -d .whl ]; then python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl; fi
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader | tee "$out/gpu.txt"
 python3 -c "import place3d_kernels as p; print(p.available_backends())" | tee -a "$out/gpu.txt"
@@ -16,3 +18,6 @@ PLACE3D_TEST_BACKENDS="$gpus" timeout 420 python3 -m pytest -q -p no:cacheprovid
 label=${GPU_LABEL:-gpu-$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | tr ' ' '-')}
 timeout 300 python3 bench/run_bench.py --label "$label" --device "$(head -1 "$out/gpu.txt")" \
   --backends ${gpus//,/ } --out "$out" 2>&1 | tail -15
+# peers on the same host (Open3D / Embree / Mitsuba where importable; the pure-Python traversal baseline
+# always), merged into the run of the same label in $out/summary.json
+timeout 240 python3 bench/peers.py --label "$label" --device "$(head -1 "$out/gpu.txt")" --out "$out" 2>&1 | tail -25

@@ -10,9 +10,11 @@ Workload as in ``gpu_dense.py``: a population of ``--pop`` perturbed ``pyramid``
   bitset, a plain read before the atomic (``score_ray`` of ``backends/warp/kernels.py``), no register cap;
 * ``bricked-rN``: the same with CUDA ``__maxnreg__(N)`` (register cap for occupancy);
 * ``bricked-bD``: the same launched with D threads per block;
-* ``shipped``: ``score_kernel`` as the backend launches it: bricked, with the register cap and block
-  size chosen from this study, and a bricked nonzero-weight mask next to the occlusion word so that
-  weights are read only for voxels with entropy;
+* ``pervoxel-r72-b128``: bricked, 72 registers, 128 threads, plus a bricked nonzero-weight mask next to
+  the occlusion word so that weights are read only for voxels with entropy; one atomic per new voxel;
+* ``perbrick-*``: the walk touches memory only when it enters a brick and sets the bits it marked there
+  with one ``atomic_or`` when it leaves (``score_ray``), with register caps / block sizes;
+* ``shipped``: ``score_kernel`` as the backend launches it;
 * ``recip`` (study only): the bricked kernel with boundary crossings computed as ``(b s - o) * (1 / d)``
   instead of ``(b s - o) / d``: no float64 division per step, but one more rounding, so near-ties can
   resolve differently; its sums are compared with the shipped kernel's and the differences reported,
@@ -189,6 +191,159 @@ def bricked_ray(
         wp.atomic_add(counts, cand, my_count)
 
 
+@wp.func
+def pervoxel_ray(
+    tid: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks: wp.array(dtype=wp.uint32),
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64), counts: wp.array(dtype=wp.int64),
+):
+    n = sensor_dirs.shape[0]
+    rig = tid / n                              # candidate * n_lidars + lidar
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = rot[rig] * sensor_dirs[tid - rig * n]   # as lidar_rays_kernel: the reference's rays bit for bit
+    w = walk_begin(o, d, t_max, s, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    # the ray that sets a voxel's bit first owns it; integer partial sums make the total independent of
+    # thread order, and one atomic per ray (not per voxel) keeps contention on sums[cand] low
+    my_sum = wp.int64(0)
+    my_count = wp.int64(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        word = brick_word(w, bny, bnz)
+        bit = brick_bit(w)
+        # plain read first: a set bit stays set, so most revisits (near the sensor every ray passes the
+        # same voxels) cost a cached load instead of an atomic
+        if (bits[base + word] & bit) == wp.uint32(0):
+            old = wp.atomic_or(bits, base + word, bit)
+            if (old & bit) == wp.uint32(0):
+                my_count += wp.int64(1)
+                # most covered voxels are free space with zero entropy: only read weights where the mask
+                # (next to the occlusion word, so in the same cache sector) says there is one
+                if (masks[wp.int64(2) * word + wp.int64(1)] & bit) != wp.uint32(0):
+                    my_sum += weights[flat_index(w, ny, nz)]
+        if (masks[wp.int64(2) * word] & bit) != wp.uint32(0):      # occlusion: the ray ends after this voxel
+            break
+        w = walk_next(w, o, d, s, nx, ny, nz)
+    if my_count > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+        wp.atomic_add(counts, cand, my_count)
+
+
+@wp.func
+def _flush_brick(bits: wp.array(dtype=wp.uint32), at: wp.int64, pending: wp.uint32, nz_bits: wp.uint32,
+                 bi: wp.int32, bj: wp.int32, bk: wp.int32, ny: wp.int32, nz: wp.int32,
+                 weights: wp.array(dtype=wp.int64)):
+    # set the bits a ray marked in one brick with one atomic; the bits it set first (not set before) are
+    # its own: count them and add the weights of those with entropy
+    add = wp.int64(0)
+    cnt = wp.int64(0)
+    if pending != wp.uint32(0):
+        old = wp.atomic_or(bits, at, pending)
+        mine = pending & ~old
+        cnt = wp.int64(wp.bit_count(mine))
+        m = mine & nz_bits
+        while m != wp.uint32(0):
+            b = wp.bit_count((m & (~m + wp.uint32(1))) - wp.uint32(1))     # index of the lowest set bit
+            i = bi * 4 + (b & 3)
+            j = bj * 4 + ((b >> 2) & 3)
+            k = bk * 2 + (b >> 4)
+            add += weights[(wp.int64(i) * wp.int64(ny) + wp.int64(j)) * wp.int64(nz) + wp.int64(k)]
+            m = m & (m - wp.uint32(1))
+    return add, cnt
+
+
+@wp.func
+def perbrick_ray(
+    tid: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks: wp.array(dtype=wp.uint32),
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64), counts: wp.array(dtype=wp.int64),
+):
+    n = sensor_dirs.shape[0]
+    rig = tid / n                              # candidate * n_lidars + lidar
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = rot[rig] * sensor_dirs[tid - rig * n]   # as lidar_rays_kernel: the reference's rays bit for bit
+    w = walk_begin(o, d, t_max, s, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    # A straight ray meets a brick (convex) in one piece, so it visits each brick's voxels in one run: the
+    # walk touches memory only when it enters a brick (its visited word, occlusion and nonzero-weight
+    # bits) and leaves it with one atomic_or of the bits it marked there (_flush_brick). The first ray to
+    # set a voxel's bit owns it; integer partial sums make the total independent of thread order, and one
+    # atomic add per ray keeps contention on sums[cand] low.
+    my_sum = wp.int64(0)
+    my_count = wp.int64(0)
+    cur = wp.int64(-1)
+    pending = wp.uint32(0)
+    seen = wp.uint32(0)
+    stop_w = wp.uint32(0)
+    nz_w = wp.uint32(0)
+    bi = wp.int32(0)
+    bj = wp.int32(0)
+    bk = wp.int32(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        word = brick_word(w, bny, bnz)
+        if word != cur:
+            add, cnt = _flush_brick(bits, base + cur, pending, nz_w, bi, bj, bk, ny, nz, weights)
+            my_sum += add
+            my_count += cnt
+            cur = word
+            pending = wp.uint32(0)
+            seen = bits[base + word]      # a plain read: bits only ever get set
+            stop_w = masks[wp.int64(2) * word]
+            nz_w = masks[wp.int64(2) * word + wp.int64(1)]
+            bi = w.i >> 2
+            bj = w.j >> 2
+            bk = w.k >> 1
+        bit = brick_bit(w)
+        if (seen & bit) == wp.uint32(0):
+            pending = pending | bit
+        if (stop_w & bit) != wp.uint32(0):      # occlusion: the ray ends after this voxel
+            break
+        w = walk_next(w, o, d, s, nx, ny, nz)
+    add, cnt = _flush_brick(bits, base + cur, pending, nz_w, bi, bj, bk, ny, nz, weights)
+    my_sum += add
+    my_count += cnt
+    if my_count > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+        wp.atomic_add(counts, cand, my_count)
+
+
+def _pervoxel(maxreg=None):
+    @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
+    def pervoxel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                 pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
+                 nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
+                 masks: wp.array(dtype=wp.uint32), weights: wp.array(dtype=wp.int64),
+                 words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64),
+                 counts: wp.array(dtype=wp.int64)):
+        pervoxel_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks, weights,
+                     words_per_candidate, bits, sums, counts)
+    return pervoxel
+
+
+def _perbrick(maxreg=None):
+    @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
+    def perbrick(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                 pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
+                 nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
+                 masks: wp.array(dtype=wp.uint32), weights: wp.array(dtype=wp.int64),
+                 words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64),
+                 counts: wp.array(dtype=wp.int64)):
+        perbrick_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks, weights,
+                     words_per_candidate, bits, sums, counts)
+    return perbrick
+
+
 def _bricked(maxreg=None):
     @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
     def capped(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
@@ -264,6 +419,11 @@ def main() -> None:
         "bricked-b128": (_bricked(), brick_tail, brick_words, 128),
         "bricked-r64-b128": (_bricked(64), brick_tail, brick_words, 128),
         "bricked-r72-b128": (_bricked(72), brick_tail, brick_words, 128),
+        "pervoxel-r72-b128": (_pervoxel(72), shipped_tail, brick_words, 128),
+        "perbrick-b128": (_perbrick(), shipped_tail, brick_words, 128),
+        "perbrick-b256": (_perbrick(), shipped_tail, brick_words, 256),
+        "perbrick-r64-b128": (_perbrick(64), shipped_tail, brick_words, 128),
+        "perbrick-r80-b128": (_perbrick(80), shipped_tail, brick_words, 128),
         "shipped": (b.k.score_kernel, shipped_tail, brick_words, b.k.SCORE_BLOCK_DIM),
         "recip": (_recip(), brick_tail, brick_words, None),
     }
