@@ -14,7 +14,9 @@ Workload as in ``gpu_dense.py``: a population of ``--pop`` perturbed ``pyramid``
   the occlusion word so that weights are read only for voxels with entropy; one atomic per new voxel;
 * ``perbrick-*``: the walk touches memory only when it enters a brick and sets the bits it marked there
   with one ``atomic_or`` when it leaves (``score_ray``), with register caps / block sizes;
-* ``shipped``: ``score_kernel`` as the backend launches it;
+* ``shipped``: ``score_kernel`` as the backend launches it: as ``pervoxel-r72-b128``, but only voxels with
+  entropy use the value an ``atomic_or`` returns; free space issues atomics whose result is unused, and
+  the covered voxels are counted afterwards from the bitset (``count_bits_kernel``, timed with it);
 * ``recip`` (study only): the bricked kernel with boundary crossings computed as ``(b s - o) * (1 / d)``
   instead of ``(b s - o) / d``: no float64 division per step, but one more rounding, so near-ties can
   resolve differently; its sums are compared with the shipped kernel's and the differences reported,
@@ -40,7 +42,7 @@ import warp as wp
 
 import place3d_kernels as p3k
 from place3d_kernels.backends.base import rotation_matrices, sensor_directions
-from place3d_kernels.backends.warp import brick_bits, brick_shape
+from place3d_kernels.backends.bricks import brick_bits, brick_shape
 from place3d_kernels.backends.warp.kernels import (INF64, Walk, _axis_clip, _start_index, brick_bit, brick_word,
                                                   flat_index, walk_begin, walk_next)
 from place3d_kernels.benchmark import machine_info
@@ -400,8 +402,15 @@ def main() -> None:
             bits.zero_(), sums.zero_(), counts.zero_()
             wp.synchronize_device(dev)
             t0 = time.perf_counter()
-            wp.launch(kernel, dim=n, device=dev, inputs=common + inputs_tail(words) + [bits, sums, counts],
-                      block_dim=block_dim or 256)
+            if kernel is b.k.score_kernel:   # shipped: sums in the walk, counts from the bitset afterwards
+                wp.launch(kernel, dim=n, device=dev, inputs=common + inputs_tail(words) + [bits, sums],
+                          block_dim=block_dim or 256)
+                chunks = -(-words // b.k.COUNT_WORDS)
+                wp.launch(b.k.count_bits_kernel, dim=P * chunks, device=dev,
+                          inputs=[bits, int(words), int(chunks), counts])
+            else:
+                wp.launch(kernel, dim=n, device=dev, inputs=common + inputs_tail(words) + [bits, sums, counts],
+                          block_dim=block_dim or 256)
             wp.synchronize_device(dev)
             best = min(best, time.perf_counter() - t0)
         return best, sums.numpy(), counts.numpy()
@@ -421,9 +430,6 @@ def main() -> None:
         "bricked-r72-b128": (_bricked(72), brick_tail, brick_words, 128),
         "pervoxel-r72-b128": (_pervoxel(72), shipped_tail, brick_words, 128),
         "perbrick-b128": (_perbrick(), shipped_tail, brick_words, 128),
-        "perbrick-b256": (_perbrick(), shipped_tail, brick_words, 256),
-        "perbrick-r64-b128": (_perbrick(64), shipped_tail, brick_words, 128),
-        "perbrick-r80-b128": (_perbrick(80), shipped_tail, brick_words, 128),
         "shipped": (b.k.score_kernel, shipped_tail, brick_words, b.k.SCORE_BLOCK_DIM),
         "recip": (_recip(), brick_tail, brick_words, None),
     }

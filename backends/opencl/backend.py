@@ -9,6 +9,7 @@ import numpy as np
 import pyopencl as cl
 
 from place3d_kernels.backends.base import Backend, BackendUnavailable, GridSpec, rotation_matrices, sensor_directions
+from place3d_kernels.backends.bricks import brick_masks, brick_shape
 from place3d_kernels.backends.opencl import _runtime as rt
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, brute_force_raycast, build_bvh, collapse_bvh4
 from place3d_kernels.backends.opencl.conditions import OpenCLConditions
@@ -58,6 +59,11 @@ class CLGrid:
         self.weights = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=w)
         self.use_stop = stop is not None
         self.stop = backend._stop_buffer(stop, spec, keep=True)
+        self.masks = None
+        if backend.score_strategy == "atomic":
+            # bricked (occlusion, nonzero-weight) bit pairs for score_rays_bricked
+            m = brick_masks(spec.shape, w != 0, None if stop is None else np.asarray(stop).reshape(-1) != 0)
+            self.masks = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=m)
 
 
 class OpenCLBackend(Backend, OpenCLConditions):
@@ -421,6 +427,8 @@ class OpenCLBackend(Backend, OpenCLConditions):
             return sums, counts
         per = self.rays_per_item
         items = (n_rays + per - 1) // per
+        bx, by, bz = brick_shape(spec.shape)
+        words = bx * by * bz
         chunk = int(max(1, min(P, _BITSET_BYTES // max(words * 4, 1))))
         bits = self._out(chunk * words * 4)
         ps, pc = self._out(chunk * items * 8), self._out(chunk * items * 8)
@@ -428,8 +436,10 @@ class OpenCLBackend(Backend, OpenCLConditions):
             pn = min(chunk, P - p0)
             cl.enqueue_fill_buffer(self.queue, bits, np.uint32(0), 0, pn * words * 4)
             rig_b = self._in(rig[p0 * L:(p0 + pn) * L])
-            self._launch("score_rays", (items, pn), rig_b, sdir_b, np.int32(L), np.int32(CA), self.real(t_max),
-                         *ga, handle.weights, bits, np.int64(words), np.int32(per), np.int32(items), ps, pc)
+            self._launch("score_rays_bricked", (items, pn), rig_b, sdir_b, np.int32(L), np.int32(CA),
+                         self.real(t_max), self.real(spec.voxel_size), *(np.int32(v) for v in spec.shape),
+                         np.int32(by), np.int32(bz), handle.masks, handle.weights, bits, np.int64(words),
+                         np.int32(per), np.int32(items), ps, pc)
             sums[p0:p0 + pn] = self._read(ps, np.int64, pn * items).reshape(pn, items).sum(axis=1, dtype=np.int64)
             counts[p0:p0 + pn] = self._read(pc, np.int64, pn * items).reshape(pn, items).sum(axis=1, dtype=np.int64)
         return sums, counts

@@ -313,6 +313,49 @@ __kernel void score_rays(__global const real* rig, __global const real* sdir, co
     part_cnt[p * items + item] = cnt;
 }
 
+/* score_rays on bricked bitsets (the GPU path of the atomic strategy, as the Warp score kernel): one
+ * 32-bit word holds a 4 x 4 x 2 brick of voxels, so consecutive voxels of a walk mostly share the word
+ * just read; masks holds per brick word w the occlusion bits ([2w]) and the nonzero-weight bits ([2w+1]),
+ * so weights are read only for voxels with entropy (most covered voxels are free space). */
+__kernel void score_rays_bricked(__global const real* rig, __global const real* sdir, const int L, const int CA,
+                                 const real t_max, const real s, const int nx, const int ny, const int nz,
+                                 const int bny, const int bnz, __global const uint* masks,
+                                 __global const long* weights, __global uint* bits, const long words,
+                                 const int per_item, const int items, __global long* part_sum,
+                                 __global long* part_cnt)
+{
+    int item = get_global_id(0);
+    long p = get_global_id(1);
+    if (item >= items) return;
+    long n_rays = (long)L * CA;
+    long r0 = (long)item * per_item;
+    long r1 = r0 + per_item < n_rays ? r0 + per_item : n_rays;
+    __global volatile uint* mine = bits + p * words;
+    long sum = 0, cnt = 0;
+    for (long r = r0; r < r1; ++r) {
+        real o[3], d[3];
+        rig_ray(rig, sdir, p, r, L, CA, o, d);
+        dda_t st;
+        if (!dda_init(&st, o[0], o[1], o[2], d[0], d[1], d[2], t_max, s, nx, ny, nz)) continue;
+        int guard = nx + ny + nz;
+        for (;;) {
+            long w = ((long)(st.ix >> 2) * bny + (st.iy >> 2)) * bnz + (st.iz >> 1);
+            uint bit = 1u << (uint)((st.ix & 3) | ((st.iy & 3) << 2) | ((st.iz & 1) << 4));
+            if (!(mine[w] & bit)) {
+                uint old = atomic_or(&mine[w], bit);
+                if (!(old & bit)) {
+                    cnt++;
+                    if (masks[2 * w + 1] & bit) sum += weights[st.flat];
+                }
+            }
+            if (masks[2 * w] & bit) break;
+            if (--guard <= 0 || !dda_step(&st)) break;
+        }
+    }
+    part_sum[p * items + item] = sum;
+    part_cnt[p * items + item] = cnt;
+}
+
 __kernel void score_walk(__global const real* rig, __global const real* sdir, const int L, const int CA,
                          const real t_max, GRID_ARGS, __global uint* bits, const long words, const int G)
 {

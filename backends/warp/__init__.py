@@ -11,6 +11,7 @@ import os
 import numpy as np
 
 from place3d_kernels.backends.base import Backend, BackendUnavailable, rotation_matrices, sensor_directions
+from place3d_kernels.backends.bricks import brick_masks, brick_shape
 
 try:
     import warp as wp
@@ -45,27 +46,6 @@ class _WarpMesh:
         self.points = points
         self.indices = indices
         self.corners64 = corners64
-
-
-def brick_shape(shape) -> tuple[int, int, int]:
-    """Bricks (4 x 4 x 2 voxels, one 32-bit word each) along x, y, z of the score kernel's bitsets."""
-    nx, ny, nz = shape
-    return (nx + 3) // 4, (ny + 3) // 4, (nz + 1) // 2
-
-
-def brick_bits(mask: np.ndarray, shape) -> np.ndarray:
-    """Pack a flat per-voxel boolean mask into bricked 32-bit words (``kernels.brick_word`` / ``brick_bit``)."""
-    bx, by, bz = brick_shape(shape)
-    words = np.zeros(bx * by * bz, dtype=np.uint32)
-    i, j, k = np.unravel_index(np.flatnonzero(mask), shape)
-    if i.size:
-        word = ((i >> 2) * by + (j >> 2)) * bz + (k >> 1)
-        bit = np.left_shift(np.uint32(1), ((i & 3) | ((j & 3) << 2) | ((k & 1) << 4)).astype(np.uint32))
-        order = np.argsort(word, kind="stable")
-        word, bit = word[order], bit[order]
-        first = np.flatnonzero(np.r_[True, word[1:] != word[:-1]])
-        words[word[first]] = np.bitwise_or.reduceat(bit, first)
-    return words
 
 
 class _WarpGrid:
@@ -206,11 +186,8 @@ class WarpCore(Backend):
 
     def prepare_grid(self, grid, weights, stop):
         w = wp.array(np.ascontiguousarray(weights, dtype=np.int64), dtype=wp.int64, device=self.device)
-        nz_bits = brick_bits(np.asarray(weights).reshape(-1) != 0, grid.shape)
-        masks = np.zeros(2 * len(nz_bits), dtype=np.uint32)        # no occlusion mask: never stops
-        masks[1::2] = nz_bits
-        if stop is not None:
-            masks[0::2] = brick_bits(np.asarray(stop).reshape(-1) != 0, grid.shape)
+        masks = brick_masks(grid.shape, np.asarray(weights).reshape(-1) != 0,
+                            None if stop is None else np.asarray(stop).reshape(-1) != 0)
         return _WarpGrid(grid, w, wp.array(masks, dtype=wp.uint32, device=self.device))
 
     def score_placements(self, handle, elevations, azimuths, t_max, poses):
@@ -229,8 +206,11 @@ class WarpCore(Backend):
         wp.launch(self.k.score_kernel, dim=P * L * len(sd), device=self.device,
                   inputs=[self._vec3d(sd), rot, self._vec3d(flat[:, :3]), int(L), float(t_max),
                           float(spec.voxel_size), int(nx), int(ny), int(nz), int(by), int(bz), handle.masks,
-                          handle.weights, int(words), bits, sums, counts],
+                          handle.weights, int(words), bits, sums],
                   block_dim=self.k.SCORE_BLOCK_DIM)
+        chunks = -(-words // self.k.COUNT_WORDS)
+        wp.launch(self.k.count_bits_kernel, dim=P * chunks, device=self.device,
+                  inputs=[bits, int(words), int(chunks), counts])
         return sums.numpy(), counts.numpy()
 
     # ------------------------------------------------------------------ occupancy

@@ -266,7 +266,7 @@ def score_ray(
     n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
     bny: wp.int32, bnz: wp.int32, masks: wp.array(dtype=wp.uint32),
     weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
-    sums: wp.array(dtype=wp.int64), counts: wp.array(dtype=wp.int64),
+    sums: wp.array(dtype=wp.int64),
 ):
     n = sensor_dirs.shape[0]
     rig = tid / n                              # candidate * n_lidars + lidar
@@ -278,7 +278,6 @@ def score_ray(
     # the ray that sets a voxel's bit first owns it; integer partial sums make the total independent of
     # thread order, and one atomic per ray (not per voxel) keeps contention on sums[cand] low
     my_sum = wp.int64(0)
-    my_count = wp.int64(0)
     for _ in range(nx + ny + nz + 3):
         if w.alive == 0:
             break
@@ -287,19 +286,22 @@ def score_ray(
         # plain read first: a set bit stays set, so most revisits (near the sensor every ray passes the
         # same voxels) cost a cached load instead of an atomic
         if (bits[base + word] & bit) == wp.uint32(0):
-            old = wp.atomic_or(bits, base + word, bit)
-            if (old & bit) == wp.uint32(0):
-                my_count += wp.int64(1)
-                # most covered voxels are free space with zero entropy: only read weights where the mask
-                # (next to the occlusion word, so in the same cache sector) says there is one
-                if (masks[wp.int64(2) * word + wp.int64(1)] & bit) != wp.uint32(0):
+            # Only voxels with entropy need to know whether this ray set their bit first (to add the
+            # weight once); the mask sits next to the occlusion word, in the same cache sector. Free
+            # space (most covered voxels) takes an atomic whose result is unused, which the GPU issues
+            # without waiting for it; the number of covered voxels is counted afterwards from the bitset
+            # (count_bits_kernel).
+            if (masks[wp.int64(2) * word + wp.int64(1)] & bit) != wp.uint32(0):
+                old = wp.atomic_or(bits, base + word, bit)
+                if (old & bit) == wp.uint32(0):
                     my_sum += weights[flat_index(w, ny, nz)]
+            else:
+                wp.atomic_or(bits, base + word, bit)
         if (masks[wp.int64(2) * word] & bit) != wp.uint32(0):      # occlusion: the ray ends after this voxel
             break
         w = walk_next(w, o, d, s, nx, ny, nz)
-    if my_count > wp.int64(0):
+    if my_sum > wp.int64(0):
         wp.atomic_add(sums, cand, my_sum)
-        wp.atomic_add(counts, cand, my_count)
 
 
 # 72 registers and 128-thread blocks: on an H100 the uncapped kernel takes 82 registers (25 % theoretical
@@ -322,10 +324,29 @@ def score_kernel(
     words_per_candidate: wp.int64,
     bits: wp.array(dtype=wp.uint32),           # (P * words_per_candidate,) zeroed, bricked
     sums: wp.array(dtype=wp.int64),            # (P,) zeroed
-    counts: wp.array(dtype=wp.int64),          # (P,) zeroed
 ):
     score_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks, weights,
-              words_per_candidate, bits, sums, counts)
+              words_per_candidate, bits, sums)
+
+
+COUNT_WORDS = 64   # bitset words per thread of count_bits_kernel (the literal in its loop)
+
+
+@wp.kernel
+def count_bits_kernel(bits: wp.array(dtype=wp.uint32), words_per_candidate: wp.int64,
+                      chunks_per_candidate: wp.int64, counts: wp.array(dtype=wp.int64)):
+    # covered voxels of each candidate = set bits of its bitset; one atomic add per COUNT_WORDS words
+    tid = wp.int64(wp.tid())
+    cand = tid / chunks_per_candidate
+    w0 = (tid - cand * chunks_per_candidate) * wp.int64(64)
+    base = cand * words_per_candidate
+    c = wp.int64(0)
+    for q in range(64):
+        at = w0 + wp.int64(q)
+        if at < words_per_candidate:
+            c += wp.int64(wp.bit_count(bits[base + at]))
+    if c > wp.int64(0):
+        wp.atomic_add(counts, wp.int32(cand), c)
 
 
 # ----------------------------------------------------------------------------- occupancy

@@ -1,0 +1,45 @@
+"""Bricked voxel bitsets shared by the GPU score kernels (Warp ``score_kernel``, OpenCL
+``score_rays_bricked``).
+
+One 32-bit word holds a brick of 4 x 4 x 2 voxels (x, y, z), so the next voxel of a ray's walk is
+usually in the word just read. Bricks are numbered ``((i >> 2) * by + (j >> 2)) * bz + (k >> 1)``
+and a voxel's bit is ``(i & 3) | (j & 3) << 2 | (k & 1) << 4``, with (bx, by, bz) = ``brick_shape``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["brick_shape", "brick_bits", "brick_masks"]
+
+
+def brick_shape(shape) -> tuple[int, int, int]:
+    """Bricks along x, y, z of a grid of ``shape`` voxels."""
+    nx, ny, nz = (int(v) for v in shape)
+    return (nx + 3) // 4, (ny + 3) // 4, (nz + 1) // 2
+
+
+def brick_bits(mask: np.ndarray, shape) -> np.ndarray:
+    """Pack a flat per-voxel boolean mask (C order over ``shape``) into one uint32 word per brick."""
+    bx, by, bz = brick_shape(shape)
+    words = np.zeros(bx * by * bz, dtype=np.uint32)
+    i, j, k = np.unravel_index(np.flatnonzero(mask), tuple(int(v) for v in shape))
+    if i.size:
+        word = ((i >> 2) * by + (j >> 2)) * bz + (k >> 1)
+        bit = np.left_shift(np.uint32(1), ((i & 3) | ((j & 3) << 2) | ((k & 1) << 4)).astype(np.uint32))
+        order = np.argsort(word, kind="stable")
+        word, bit = word[order], bit[order]
+        first = np.flatnonzero(np.r_[True, word[1:] != word[:-1]])
+        words[word[first]] = np.bitwise_or.reduceat(bit, first)
+    return words
+
+
+def brick_masks(shape, nonzero: np.ndarray, stop: np.ndarray | None) -> np.ndarray:
+    """Interleaved per-brick pairs: word ``2b`` the occlusion bits of brick b (zero without a stop mask:
+    a ray never stops), word ``2b + 1`` the bits of voxels with a nonzero weight."""
+    nz_bits = brick_bits(nonzero, shape)
+    out = np.zeros(2 * len(nz_bits), dtype=np.uint32)
+    out[1::2] = nz_bits
+    if stop is not None:
+        out[0::2] = brick_bits(stop, shape)
+    return out
