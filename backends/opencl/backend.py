@@ -431,7 +431,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
         words = bx * by * bz
         chunk = int(max(1, min(P, _BITSET_BYTES // max(words * 4, 1))))
         bits = self._out(chunk * words * 4)
-        ps, pc = self._out(chunk * items * 8), self._out(chunk * items * 8)
+        per_count = 256
+        n_chunks = (words + per_count - 1) // per_count
+        ps, pc = self._out(chunk * items * 8), self._out(chunk * n_chunks * 8)
         for p0 in range(0, P, chunk):
             pn = min(chunk, P - p0)
             cl.enqueue_fill_buffer(self.queue, bits, np.uint32(0), 0, pn * words * 4)
@@ -439,9 +441,11 @@ class OpenCLBackend(Backend, OpenCLConditions):
             self._launch("score_rays_bricked", (items, pn), rig_b, sdir_b, np.int32(L), np.int32(CA),
                          self.real(t_max), self.real(spec.voxel_size), *(np.int32(v) for v in spec.shape),
                          np.int32(by), np.int32(bz), handle.masks, handle.weights, bits, np.int64(words),
-                         np.int32(per), np.int32(items), ps, pc)
+                         np.int32(per), np.int32(items), ps)
+            self._launch("count_bits", (n_chunks, pn), bits, np.int64(words), np.int32(per_count),
+                         np.int32(n_chunks), pc)
             sums[p0:p0 + pn] = self._read(ps, np.int64, pn * items).reshape(pn, items).sum(axis=1, dtype=np.int64)
-            counts[p0:p0 + pn] = self._read(pc, np.int64, pn * items).reshape(pn, items).sum(axis=1, dtype=np.int64)
+            counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(axis=1, dtype=np.int64)
         return sums, counts
 
     # ----------------------------------------------------------------- occupancy grids

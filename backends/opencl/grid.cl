@@ -276,44 +276,15 @@ __kernel void lidar_rays(__global const real* rig, __global const real* sdir, co
 /* Batched placement score, two strategies with the same exact result (the union is a set; its sums are
  * int64 and added on the host in int64):
  *
- * score_rays (GPUs: many work-items): global size (items, P); each work-item walks `per_item` consecutive
- * rays of candidate p and marks their voxels in p's shared bitset. The first marker of a voxel
- * (atomic_or returns the old word) adds its weight, so each covered voxel is counted exactly once.
+ * score_rays_bricked + count_bits (GPUs: many work-items): global size (items, P); each work-item walks
+ * `per_item` consecutive rays of candidate p and marks their voxels in p's shared (bricked) bitset. The
+ * first marker of a voxel with entropy (atomic_or returns the old word) adds its weight, so each is added
+ * exactly once; count_bits then counts the covered voxels of each candidate.
  *
  * score_walk + score_reduce (CPUs: few threads): global size (G, P); work-item (g, p) walks the g-th share
  * of p's rays into a bitset of its own (plain stores, no atomics), then score_reduce ORs the G bitsets of
  * a candidate word by word and adds the weights of the set bits. */
-__kernel void score_rays(__global const real* rig, __global const real* sdir, const int L, const int CA,
-                         const real t_max, GRID_ARGS, __global const long* weights,
-                         __global uint* bits, const long words, const int per_item, const int items,
-                         __global long* part_sum, __global long* part_cnt)
-{
-    int item = get_global_id(0);
-    long p = get_global_id(1);
-    if (item >= items) return;
-    long n_rays = (long)L * CA;
-    long r0 = (long)item * per_item;
-    long r1 = r0 + per_item < n_rays ? r0 + per_item : n_rays;
-    __global volatile uint* mine = bits + p * words;
-    long sum = 0, cnt = 0;
-    for (long r = r0; r < r1; ++r) {
-        real o[3], d[3];
-        rig_ray(rig, sdir, p, r, L, CA, o, d);
-        DDA_WALK(o, d, t_max, {
-            uint w = (uint)(st.flat >> 5);
-            uint bit = 1u << (uint)(st.flat & 31);
-            /* plain read first: once set a bit stays set, so this only skips needless atomics */
-            if (!(mine[w] & bit)) {
-                uint old = atomic_or(&mine[w], bit);
-                if (!(old & bit)) { sum += weights[st.flat]; cnt++; }
-            }
-        });
-    }
-    part_sum[p * items + item] = sum;
-    part_cnt[p * items + item] = cnt;
-}
-
-/* score_rays on bricked bitsets (the GPU path of the atomic strategy, as the Warp score kernel): one
+/* score_rays_bricked (the GPU path, atomic strategy, as the Warp score kernel): one
  * 32-bit word holds a 4 x 4 x 2 brick of voxels, so consecutive voxels of a walk mostly share the word
  * just read; masks holds per brick word w the occlusion bits ([2w]) and the nonzero-weight bits ([2w+1]),
  * so weights are read only for voxels with entropy (most covered voxels are free space). */
@@ -321,8 +292,7 @@ __kernel void score_rays_bricked(__global const real* rig, __global const real* 
                                  const real t_max, const real s, const int nx, const int ny, const int nz,
                                  const int bny, const int bnz, __global const uint* masks,
                                  __global const long* weights, __global uint* bits, const long words,
-                                 const int per_item, const int items, __global long* part_sum,
-                                 __global long* part_cnt)
+                                 const int per_item, const int items, __global long* part_sum)
 {
     int item = get_global_id(0);
     long p = get_global_id(1);
@@ -331,7 +301,7 @@ __kernel void score_rays_bricked(__global const real* rig, __global const real* 
     long r0 = (long)item * per_item;
     long r1 = r0 + per_item < n_rays ? r0 + per_item : n_rays;
     __global volatile uint* mine = bits + p * words;
-    long sum = 0, cnt = 0;
+    long sum = 0;
     for (long r = r0; r < r1; ++r) {
         real o[3], d[3];
         rig_ray(rig, sdir, p, r, L, CA, o, d);
@@ -342,10 +312,13 @@ __kernel void score_rays_bricked(__global const real* rig, __global const real* 
             long w = ((long)(st.ix >> 2) * bny + (st.iy >> 2)) * bnz + (st.iz >> 1);
             uint bit = 1u << (uint)((st.ix & 3) | ((st.iy & 3) << 2) | ((st.iz & 1) << 4));
             if (!(mine[w] & bit)) {
-                uint old = atomic_or(&mine[w], bit);
-                if (!(old & bit)) {
-                    cnt++;
-                    if (masks[2 * w + 1] & bit) sum += weights[st.flat];
+                /* only voxels with entropy need the old word (to add the weight once); free space takes
+                 * an atomic whose result is unused, and count_bits counts the covered voxels afterwards */
+                if (masks[2 * w + 1] & bit) {
+                    uint old = atomic_or(&mine[w], bit);
+                    if (!(old & bit)) sum += weights[st.flat];
+                } else {
+                    atomic_or(&mine[w], bit);
                 }
             }
             if (masks[2 * w] & bit) break;
@@ -353,7 +326,20 @@ __kernel void score_rays_bricked(__global const real* rig, __global const real* 
         }
     }
     part_sum[p * items + item] = sum;
-    part_cnt[p * items + item] = cnt;
+}
+
+/* global size (chunks, P): set bits of words [c * per, (c + 1) * per) of candidate p's bitset */
+__kernel void count_bits(__global const uint* bits, const long words, const int per, const int chunks,
+                         __global long* part_cnt)
+{
+    int c = get_global_id(0);
+    long p = get_global_id(1);
+    if (c >= chunks) return;
+    long w0 = (long)c * per, w1 = w0 + per < words ? w0 + per : words;
+    __global const uint* mine = bits + p * words;
+    long cnt = 0;
+    for (long q = w0; q < w1; ++q) cnt += popcount(mine[q]);
+    part_cnt[p * chunks + c] = cnt;
 }
 
 __kernel void score_walk(__global const real* rig, __global const real* sdir, const int L, const int CA,
