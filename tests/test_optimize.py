@@ -325,6 +325,28 @@ def test_callback_can_stop():
     assert seen == [0, 1, 2] and res.generations == 3 and res.stop_reason == "callback"
 
 
+def test_restarts_run_independent_seeds_and_keep_the_best(tmp_path):
+    space = SearchSpace(2)
+    runs = [optimize(sphere(TARGET2), space, max_evals=120, seed=s, progress=False) for s in (5, 6, 7)]
+    res = optimize(sphere(TARGET2), space, max_evals=120, seed=5, progress=False, restarts=2)
+    # the same three runs as done one by one; the best of them wins
+    assert [r["seed"] for r in res.extra["runs"]] == [5, 6, 7]
+    assert [r["best_score"] for r in res.extra["runs"]] == [r.best_score for r in runs]
+    assert res.best_score == max(r.best_score for r in runs)
+    np.testing.assert_array_equal(res.best_vector, runs[res.extra["best_run"]].best_vector)
+    assert res.evaluations == sum(r.evaluations for r in runs)
+    assert res.generations == sum(r.generations for r in runs) == len(res.history)
+    assert [h["run"] for h in res.history] == [i for i, r in enumerate(runs) for _ in r.history]
+    # a callback that stops ends every run; checkpoints and restarts do not mix
+    one = optimize(sphere(TARGET2), space, max_evals=120, seed=5, progress=False, restarts=2,
+                   callback=lambda info: True)
+    assert len(one.extra["runs"]) == 1 and one.stop_reason == "callback"
+    with pytest.raises(ValueError, match="restarts"):
+        optimize(sphere(TARGET2), space, max_evals=120, progress=False, restarts=1, checkpoint=tmp_path / "c")
+    with pytest.raises(ValueError, match="restarts"):
+        optimize(sphere(TARGET2), space, max_evals=120, progress=False, restarts=-1)
+
+
 # ------------------------------------------------------------------------------------------ checkpoints
 _CHILD = textwrap.dedent("""
     import sys, time

@@ -37,6 +37,59 @@ def lidar_rays_kernel(
 
 
 # ----------------------------------------------------------------------------- ray-mesh
+@wp.func
+def _comp(v: wp.vec3d, k: wp.int32):
+    r = v[0]
+    if k == 1:
+        r = v[1]
+    if k == 2:
+        r = v[2]
+    return r
+
+
+@wp.func
+def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fallback: wp.float64):
+    # Distance to triangle (a, b, c) with the reference's formula (Woop, Benthin & Wald's watertight test
+    # in float64, backends/reference/core.py), operation for operation and without FMA contraction, so
+    # backends that find the same face report the same t, bit for bit
+    ad = wp.vec3d(wp.abs(d[0]), wp.abs(d[1]), wp.abs(d[2]))
+    kz = wp.int32(0)
+    if ad[1] > ad[0]:
+        kz = 1
+    if ad[2] > _comp(ad, kz):
+        kz = 2
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    if _comp(d, kz) < wp.float64(0.0):
+        tmp = kx
+        kx = ky
+        ky = tmp
+    dz = _comp(d, kz)
+    sx = _comp(d, kx) / dz
+    sy = _comp(d, ky) / dz
+    sz = wp.float64(1.0) / dz
+    ra = a - o
+    rb = b - o
+    rc = c - o
+    ax = _comp(ra, kx) - sx * _comp(ra, kz)
+    ay = _comp(ra, ky) - sy * _comp(ra, kz)
+    az = sz * _comp(ra, kz)
+    bx = _comp(rb, kx) - sx * _comp(rb, kz)
+    by = _comp(rb, ky) - sy * _comp(rb, kz)
+    bz = sz * _comp(rb, kz)
+    cx = _comp(rc, kx) - sx * _comp(rc, kz)
+    cy = _comp(rc, ky) - sy * _comp(rc, kz)
+    cz = sz * _comp(rc, kz)
+    u = cx * by - cy * bx
+    v = ax * cy - ay * cx
+    w = bx * ay - by * ax
+    det = u + v + w
+    t = t_fallback
+    if det != wp.float64(0.0):
+        t = (u * az + v * bz + w * cz) / det
+    return t
+
+
 @wp.kernel
 def raycast_kernel(
     mesh: wp.uint64,
@@ -49,8 +102,8 @@ def raycast_kernel(
 ):
     # Warp's ordered BVH query and watertight triangle test, on a mesh whose BVH boxes were built
     # padded (see WarpCore.upload_mesh), so no box culls a triangle the ray touches. The winning face's
-    # distance is recomputed in float64 from float64 inputs (plane equation): grazing rays otherwise
-    # inherit the float32 rounding of corners and origins (0.3 mm at 13 m was seen).
+    # distance is recomputed in float64 from float64 inputs with the reference's formula (woop_t):
+    # grazing rays otherwise inherit the float32 rounding of corners and origins (0.3 mm at 13 m was seen).
     tid = wp.tid()
     o64 = origins[tid]
     d64 = dirs[tid]
@@ -61,12 +114,8 @@ def raycast_kernel(
     out_t[tid] = INF64
     out_face[tid] = -1
     if q.result:
-        a64 = corners64[3 * q.face]
-        n64 = wp.cross(corners64[3 * q.face + 1] - a64, corners64[3 * q.face + 2] - a64)
-        den = wp.dot(n64, d64)
-        t64 = wp.float64(q.t)
-        if den != wp.float64(0.0):
-            t64 = wp.dot(n64, a64 - o64) / den
+        t64 = woop_t(corners64[3 * q.face], corners64[3 * q.face + 1], corners64[3 * q.face + 2], o64, d64,
+                     wp.float64(q.t))
         t64 = wp.max(t64, wp.float64(0.0))
         if t64 <= tm:
             out_t[tid] = t64

@@ -22,6 +22,9 @@ def add_arguments(p) -> None:
     p.add_argument("--max-evals", type=int, default=2000, help="evaluation budget (default 2000)")
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population (default: pycma's)")
     p.add_argument("--sigma0", type=float, default=0.3, help="initial step, fraction of each bound width")
+    p.add_argument("--restarts", type=int, default=0,
+                   help="further independent runs (seeds + 1, + 2, ...), each with the full --max-evals budget; "
+                        "the best run wins (default 0)")
     p.add_argument("--delta", type=float, default=0.1, help="grid density of candidates (default 0.1, the paper's)")
     p.add_argument("--opt-seed", type=int, default=None, help="optimiser seed (default: --seed)")
     p.add_argument("--occlusion", default="sog", choices=["sog", "none"], help="ray occlusion mode")
@@ -71,7 +74,7 @@ def run(args, psog_for) -> int:
     try:
         res = optimize(objective, space, cons, sigma0=args.sigma0, popsize=args.popsize, max_evals=args.max_evals,
                        delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
-                       progress=not args.quiet)
+                       progress=not args.quiet, restarts=args.restarts)
     finally:
         if executor is not None:
             executor.shutdown()

@@ -142,7 +142,8 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
              method: str = "cma", sigma0: float = 0.3, popsize: int | None = None, max_evals: int = 2000,
              delta=DEFAULT_DELTA, seed: int = 0, penalty_weight: float = DEFAULT_PENALTY_WEIGHT,
              checkpoint=None, resume: bool = False, progress: bool = True, callback: _Fn | None = None,
-             x0=None, max_stall_generations: int = 30, cma_options: dict | None = None) -> OptimizeResult:
+             x0=None, max_stall_generations: int = 30, cma_options: dict | None = None,
+             restarts: int = 0) -> OptimizeResult:
     """Maximise ``objective`` over placements on the delta grid of ``space`` (paper, Algorithm 1).
 
     Minimises ``G = -F + penalty_weight * P`` with CMA-ES (pycma ask/tell), F the objective and P the
@@ -183,6 +184,13 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
             ``method="cma"`` it is also injected into the first generation, so it is always scored.
         max_stall_generations: stop after this many generations in a row without a new grid point.
         cma_options: extra pycma options (e.g. ``{"tolfun": 0}``).
+        restarts: independent further runs with seeds ``seed + 1, ..., seed + restarts``, each with the
+            full ``max_evals`` budget (multi-start; a single CMA-ES run of 2,000 evaluations on the
+            default town beats the best paper placement for the detection task in about half of the
+            seeds, see the README). The result is the best run's, with ``evaluations``, ``generations``
+            and ``seconds`` summed, the histories concatenated (each entry has ``run``), and
+            ``extra["runs"]`` one summary per run. A callback returning True stops all runs. Not
+            combinable with ``checkpoint``.
 
     Returns:
         OptimizeResult.
@@ -198,6 +206,14 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
     if method not in METHODS:
         raise ValueError(f"Unknown method {method!r}; available: {list(METHODS)}")
     max_evals = _check_int("max_evals (the evaluation budget)", max_evals, 1)
+    restarts = _check_int("restarts", restarts, 0)
+    if restarts:
+        if checkpoint is not None:
+            raise ValueError("restarts cannot be combined with checkpoint; checkpoint each run on its own")
+        return _multistart(objective, space, constraints, restarts, callback,
+                           dict(method=method, sigma0=sigma0, popsize=popsize, max_evals=max_evals, delta=delta,
+                                seed=seed, penalty_weight=penalty_weight, progress=progress, x0=x0,
+                                max_stall_generations=max_stall_generations, cma_options=cma_options))
     seed = _check_int("seed", seed, 0)
     if seed >= 2 ** 32:
         raise ValueError(f"seed must be below 2**32, got {seed}")
@@ -428,3 +444,33 @@ def _result(state, space, search, cons, strategy, delta, steps, lam, seed, resum
         method=strategy.name, popsize=strategy.popsize, space=space, search_space=search,
         delta=dict(delta) if isinstance(delta, Mapping) else float(delta), penalty_weight=lam,
         resumed=resumed, checkpoint=None if checkpoint is None else str(checkpoint))
+
+
+def _multistart(objective, space, constraints, restarts: int, callback, kw: dict) -> OptimizeResult:
+    """``restarts + 1`` independent runs (seeds ``seed + r``); the best one, with totals (see ``optimize``)."""
+    from dataclasses import replace
+
+    seed = _check_int("seed", kw.pop("seed"), 0)
+    stopped = [False]
+
+    def cb(info):
+        if callback is not None and callback(info):
+            stopped[0] = True
+            return True
+        return False
+
+    runs: list[OptimizeResult] = []
+    for r in range(restarts + 1):
+        runs.append(optimize(objective, space, constraints, seed=seed + r, callback=cb, **kw))
+        if stopped[0]:
+            break
+    # the penalised objective G = -F + lambda P decides, as inside a run
+    i_best = min(range(len(runs)), key=lambda i: (runs[i].best_G, -runs[i].best_score))
+    best = runs[i_best]
+    history = [dict(h, run=r) for r, res in enumerate(runs) for h in res.history]
+    summary = [{"seed": res.seed, "best_score": res.best_score, "feasible": res.feasible,
+                "evaluations": res.evaluations, "stop_reason": res.stop_reason} for res in runs]
+    return replace(best, history=history, evaluations=sum(res.evaluations for res in runs),
+                   generations=sum(res.generations for res in runs), seconds=sum(res.seconds for res in runs),
+                   seed=seed, stop_reason="callback" if stopped[0] else f"restarts: {best.stop_reason}",
+                   extra={**best.extra, "runs": summary, "best_run": i_best})
