@@ -23,7 +23,8 @@ from place3d_kernels.pose import invert, pose_matrix, transform_points
 
 __all__ = ["Frame", "PSOG", "entropy", "cache_dir"]
 
-_FORMAT = 2  # bump when the on-disk layout or the build changes (2: float64 voxel binning)
+_FORMAT = 3  # bump when the on-disk layout or the build changes (2: float64 voxel binning; 3: ray-mesh
+             # distances from the reference formula on every backend, so P-SOGs agree across backends)
 
 
 def cache_dir() -> Path:

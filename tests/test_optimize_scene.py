@@ -1,7 +1,7 @@
 """On the default scene, CMA-ES finds a placement that beats all seven heuristic baselines (seg and det).
 
 A single run of the CLI budget (2,000 evaluations) does this for seg; for det, "center" is a strong local
-optimum that one run beats in about half of the seeds (seeds 0-3 on this P-SOG: no, no, yes, yes), so
+optimum that one run beats in about half of the seeds (seeds 0-3: yes, no, yes, no; 2026-11-22), so
 the test allows up to three restarts (``optimize(restarts=3)``: seeds 0..3, 2,000 evaluations each) and
 stops as soon as every baseline is beaten."""
 

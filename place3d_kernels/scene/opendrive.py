@@ -6,7 +6,8 @@ elevation profile, lane offset and lane sections, and meshes the lanes into labe
 
 - driving-like lanes (driving, parking, bidirectional, entry, exit, on/off ramps, stop, bus, taxi, HOV,
   biking, special*, roadWorks) -> road (7), on the road surface;
-- sidewalks (and ``curb`` lanes) -> sidewalk (8), raised 0.15 m, closed by curb faces on both edges;
+- sidewalks (and ``curb`` lanes) -> sidewalk (8), raised 0.14 m (not 0.15 m: a voxel face of the default
+  grid, see ``town``), closed by curb faces on both edges;
 - shoulder, border, median, restricted -> terrain (21), on the road surface; ``rail``/``tram`` -> rail
   track (15); ``none`` lanes are skipped;
 - lane boundaries with a painted ``roadMark`` (solid, broken, double marks) -> road line (6) strips
@@ -65,7 +66,7 @@ _PAINTED = ("solid", "broken", "solid solid", "solid broken", "broken solid", "b
 #: options of :func:`from_opendrive` and their defaults
 OPENDRIVE_OPTIONS = {
     "step": 1.5,             # sampling step along s, m (halved and so on near tight curves)
-    "curb_height": 0.15,     # sidewalk height above the road, m
+    "curb_height": 0.14,     # sidewalk height above the road, m (0.15 is a face of the default grid)
     "line_width": 0.15,      # default painted line width, m
     "ground": True,          # terrain height field between the roads
     "ground_cell": 8.0,      # m

@@ -45,7 +45,7 @@ TOWN_OPTIONS = {
     "lane_width": 3.5,       # one lane per direction, m
     "parking_width": 2.5,    # parking strip between lane and curb, m
     "sidewalk_width": 3.5,   # m
-    "curb_height": 0.15,     # sidewalk / block top, m
+    "curb_height": 0.14,     # sidewalk / block top, m; not 0.15, a voxel face of the default grid (below)
     "margin": 45.0,          # terrain band around the road network, m
     "ego_speed": None,       # m/s; None: uniform in [6.5, 8.5] from the seed
     "n_traffic": 10,         # moving vehicles on random routes (besides lead/follow/oncoming ones)
@@ -729,7 +729,9 @@ def town(seed: int = 0, n_frames: int = 40, **options) -> Scene:
         **options: any of
             ``blocks`` (3) city blocks per side; ``block_size`` (90.0) m between road centrelines;
             ``lane_width`` (3.5) m, one lane per direction; ``parking_width`` (2.5) m parking strip by each
-            curb; ``sidewalk_width`` (3.5) m; ``curb_height`` (0.15) m, the sidewalk/block top;
+            curb; ``sidewalk_width`` (3.5) m; ``curb_height`` (0.14) m, the sidewalk/block top (0.15 m, a usual curb, is a
+            voxel face of the default 0.2 m grid, whose z faces lie at -0.05 + 0.2 k: every sidewalk point
+            would sit exactly on it and fall in one voxel or the other by float rounding);
             ``margin`` (45.0) m of terrain around the network; ``ego_speed`` (None: uniform in
             [6.5, 8.5] m/s) constant ego speed along the lane centre; ``n_traffic`` (10) vehicles on random
             routes; ``n_oncoming`` (3) vehicles in the opposite lane of the ego route that meet the ego;
