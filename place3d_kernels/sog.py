@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -208,7 +209,9 @@ class PSOG:
     def save(self, path) -> Path:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp.npz")
+        # a name of its own per writer: processes that build the same cached P-SOG at once (tests, Ray
+        # workers) each write their own file, and the last rename wins with identical content
+        tmp = path.with_name(f"{path.name}.{os.getpid()}-{threading.get_ident()}.tmp.npz")
         np.savez_compressed(tmp, voxels=self.voxels, probs=self.probs,
                             counts=self.counts if self.counts is not None else np.zeros(0),
                             meta=json.dumps({"grid": self.grid.to_dict(), "channels": list(self.channels),

@@ -21,7 +21,12 @@ def add_arguments(p) -> None:
     p.add_argument("--min-distance", type=float, default=0.2, help="minimum distance between LiDARs, m (default 0.2)")
     p.add_argument("--max-evals", type=int, default=2000, help="evaluation budget (default 2000)")
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population (default: pycma's)")
-    p.add_argument("--sigma0", type=float, default=0.3, help="initial step, fraction of each bound width")
+    p.add_argument("--sigma0", type=float, default=None,
+                   help="initial step, fraction of each bound width (default 0.15 from a baseline, 0.3 from the "
+                        "box centre)")
+    p.add_argument("--x0", default="best-baseline",
+                   help="where the search starts: 'best-baseline' (default with 4 LiDARs: the best of the paper's "
+                        "placements on this scene), 'centre' (the box centre), or a placement name / TOML file")
     p.add_argument("--restarts", type=int, default=0,
                    help="further independent runs (seeds + 1, + 2, ...), each with the full --max-evals budget; "
                         "the best run wins (default 0)")
@@ -71,18 +76,29 @@ def run(args, psog_for) -> int:
         def objective(X):
             return msog_batch(psog, lidar, space.to_poses(X), occlusion=args.occlusion, task=args.task, backend=b)
 
-    try:
-        res = optimize(objective, space, cons, sigma0=args.sigma0, popsize=args.popsize, max_evals=args.max_evals,
-                       delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
-                       progress=not args.quiet, restarts=args.restarts)
-    finally:
-        if executor is not None:
-            executor.shutdown()
     baselines = {}
     if args.lidars == 4:
         for name in PAPER_PLACEMENTS:
             baselines[name] = float(msog_batch(psog, lidar, Placement.load(name).poses[None], args.occlusion,
                                                args.task, b)[0])
+    # A warm start from the best paper placement with a smaller step: on the default town the "center"
+    # rig is a strong local optimum for detection, which 2,000-evaluation runs from the box centre
+    # (sigma0 0.3) beat in none of seeds 0-3 and runs from center (sigma0 0.15) in each of them
+    # (tests/test_optimize_scene.py, README "Optimisation")
+    x0 = None
+    if args.x0 == "best-baseline":
+        if baselines:
+            x0 = Placement.load(max(baselines, key=baselines.get))
+    elif args.x0 not in ("centre", "center-of-box"):
+        x0 = Placement.load(args.x0)
+    sigma0 = args.sigma0 if args.sigma0 is not None else (0.15 if x0 is not None else 0.3)
+    try:
+        res = optimize(objective, space, cons, sigma0=sigma0, popsize=args.popsize, max_evals=args.max_evals,
+                       delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
+                       progress=not args.quiet, restarts=args.restarts, x0=x0)
+    finally:
+        if executor is not None:
+            executor.shutdown()
     seconds = time.perf_counter() - t0
     best = res.best_placement
     best.name = f"optimized-{args.task}"
@@ -109,6 +125,7 @@ def run(args, psog_for) -> int:
                                   for k in ("k_G", "C_M", "bound", "bound_corollary")},
                   "certificate_samples": "feasible" if cert.get("feasible") else "all",
                   "evaluations": res.evaluations, "seconds": seconds, "backend": b.name, "seed": args.opt_seed,
+                  "x0": x0.name if x0 is not None else "box centre", "sigma0": sigma0,
                   "scene": {"name": args.scene, "seed": args.seed, "frames": args.frames},
                   "feasible": res.feasible,
                   "pose_cache": ({"traversed": objective.pose_misses, "reused": objective.pose_hits}

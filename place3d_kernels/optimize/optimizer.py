@@ -185,9 +185,8 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
         max_stall_generations: stop after this many generations in a row without a new grid point.
         cma_options: extra pycma options (e.g. ``{"tolfun": 0}``).
         restarts: independent further runs with seeds ``seed + 1, ..., seed + restarts``, each with the
-            full ``max_evals`` budget (multi-start; a single CMA-ES run of 2,000 evaluations on the
-            default town beats the best paper placement for the detection task in about half of the
-            seeds, see the README). The result is the best run's, with ``evaluations``, ``generations``
+            full ``max_evals`` budget (multi-start, for objectives with strong local optima). The result
+            is the best run's, with ``evaluations``, ``generations``
             and ``seconds`` summed, the histories concatenated (each entry has ``run``), and
             ``extra["runs"]`` one summary per run. A callback returning True stops all runs. Not
             combinable with ``checkpoint``.
