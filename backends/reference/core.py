@@ -38,6 +38,15 @@ def traverse_ray(origin: np.ndarray, direction: np.ndarray, t_end: float, spec: 
     visited; crossings one rounding step apart do visit it, since the ray passes through it. The walk
     ends where an index leaves the grid. With ``stop``, the list ends at the first voxel whose mask is set.
     """
+    # tiny direction components make crossing parameters overflow to +-inf, which the walk handles (a
+    # crossing at inf is never reached); the division warnings would only be noise
+    with np.errstate(over="ignore", divide="ignore"):
+        return _traverse_ray(origin, direction, t_end, spec, stop)
+
+
+def _traverse_ray(origin: np.ndarray, direction: np.ndarray, t_end: float, spec: GridSpec,
+                  stop: np.ndarray | None = None) -> np.ndarray:
+    """The walk of ``traverse_ray``."""
     o = np.asarray(origin, dtype=np.float64)
     d = np.asarray(direction, dtype=np.float64)
     s = float(spec.voxel_size)
