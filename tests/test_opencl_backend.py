@@ -466,6 +466,19 @@ def test_score_placements_identical_to_reference(variant, rng):
     np.testing.assert_array_equal(b.score_placements(h, el, az, 25.0, poses)[0], s_all)
 
 
+def test_prepared_grid_rejects_a_bad_stop_mask_on_both_strategies():
+    """Each strategy keeps only the mask form it reads (bytes or bricked bits); both still check the size."""
+    if not _DEVICES:
+        pytest.skip(_WHY)
+    spec = GridSpec(0.25, (8, 8, 4))
+    for strategy in ("private", "atomic"):
+        b = OpenCLBackend(_DEVICES[0], score_strategy=strategy)
+        with pytest.raises(ValueError, match="one uint8 per voxel"):
+            b.prepare_grid(spec, np.zeros(spec.n_voxels, np.int64), np.zeros(5, np.uint8))
+        h = b.prepare_grid(spec, np.zeros(spec.n_voxels, np.int64), None)
+        assert (h.stop is None) == (strategy == "atomic") and (h.masks is None) == (strategy == "private")
+
+
 def test_score_strategies_agree(rng):
     """Private bitsets + OR-reduction (CPU default) and the shared atomic bitset (GPU default), with any
     number of rays per work-item and any population size, give the same exact sums."""

@@ -58,11 +58,16 @@ class CLGrid:
             raise ValueError(f"weights must have one int64 per voxel ({spec.n_voxels}), got shape {w.shape}")
         self.weights = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=w)
         self.use_stop = stop is not None
-        self.stop = backend._stop_buffer(stop, spec, keep=True)
-        self.masks = None
-        if backend.score_strategy == "atomic":
-            # bricked (occlusion, nonzero-weight) bit pairs for score_rays_bricked
-            m = brick_masks(spec.shape, w != 0, None if stop is None else np.asarray(stop).reshape(-1) != 0)
+        # each score strategy reads one form of the occlusion mask: bytes (private) or bricked bit pairs
+        # of (occlusion, nonzero weight) for score_rays_bricked (atomic); only that one is uploaded
+        self.stop = self.masks = None
+        if backend.score_strategy == "private":
+            self.stop = backend._stop_buffer(stop, spec, keep=True)
+        else:
+            sm = None if stop is None else np.asarray(stop).reshape(-1) != 0
+            if sm is not None and sm.shape != (spec.n_voxels,):
+                raise ValueError(f"stop mask must have one uint8 per voxel ({spec.n_voxels}), got shape {sm.shape}")
+            m = brick_masks(spec.shape, w != 0, sm)
             self.masks = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=m)
 
 
@@ -403,9 +408,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
             return sums, counts
         spec = handle.spec
         words = (spec.n_voxels + 31) // 32
-        ga = self._grid_args(spec, handle.stop, handle.use_stop)
         sdir_b = self._in(local)
         if self.score_strategy == "private":
+            ga = self._grid_args(spec, handle.stop, handle.use_stop)
             # few threads: a private bitset per work-item, no atomics, then an OR-reduction per candidate
             G = int(max(1, min(64, -(-4 * self.device.max_compute_units // P),
                                _BITSET_BYTES // max(words * 4, 1))))

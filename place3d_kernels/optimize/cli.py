@@ -89,7 +89,7 @@ def run(args, psog_for) -> int:
     if args.x0 == "best-baseline":
         if baselines:
             x0 = Placement.load(max(baselines, key=baselines.get))
-    elif args.x0 not in ("centre", "center-of-box"):
+    elif args.x0 != "centre":
         x0 = Placement.load(args.x0)
     sigma0 = args.sigma0 if args.sigma0 is not None else (0.15 if x0 is not None else 0.3)
     try:
