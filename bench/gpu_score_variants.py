@@ -43,8 +43,8 @@ import warp as wp
 import place3d_kernels as p3k
 from place3d_kernels.backends.base import rotation_matrices, sensor_directions
 from place3d_kernels.backends.bricks import brick_bits, brick_shape
-from place3d_kernels.backends.warp.kernels import (INF64, Walk, _axis_clip, _start_index, brick_bit, brick_word,
-                                                  flat_index, walk_begin, walk_next)
+from place3d_kernels.backends.warp.kernels import (INF64, brick_bit, brick_word, flat_index, walk_begin,
+                                                  walk_next)
 from place3d_kernels.benchmark import machine_info
 
 OPTS = {"enable_backward": False, "fuse_fp": False}   # as the shipped module: no FMA contraction
@@ -95,61 +95,61 @@ def _next_r(i: wp.int32, step: wp.int32, o: wp.float64, inv: wp.float64, s: wp.f
 
 
 def _recip(maxreg=None):
-  @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
-  def recip_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
-                   pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
-                   nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
-                   stop_bits: wp.array(dtype=wp.uint32), use_stop: wp.int32, weights: wp.array(dtype=wp.int64),
-                   words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64),
-                   counts: wp.array(dtype=wp.int64)):
-      tid = wp.tid()
-      n = sensor_dirs.shape[0]
-      rig = tid / n
-      cand = rig / n_lidars
-      o = pos[rig]
-      d = rot[rig] * sensor_dirs[tid - rig * n]
-      w = walk_begin(o, d, t_max, s, nx, ny, nz)
-      one = wp.float64(1.0)
-      ix = one / d[0]
-      iy = one / d[1]
-      iz = one / d[2]
-      w.tx = _next_r(w.i, w.si, o[0], ix, s)
-      w.ty = _next_r(w.j, w.sj, o[1], iy, s)
-      w.tz = _next_r(w.k, w.sk, o[2], iz, s)
-      base = wp.int64(cand) * words_per_candidate
-      my_sum = wp.int64(0)
-      my_count = wp.int64(0)
-      for _ in range(nx + ny + nz + 3):
-          if w.alive == 0:
-              break
-          word = brick_word(w, bny, bnz)
-          bit = brick_bit(w)
-          if (bits[base + word] & bit) == wp.uint32(0):
-              old = wp.atomic_or(bits, base + word, bit)
-              if (old & bit) == wp.uint32(0):
-                  my_sum += weights[flat_index(w, ny, nz)]
-                  my_count += wp.int64(1)
-          if use_stop != 0:
-              if (stop_bits[word] & bit) != wp.uint32(0):
-                  break
-          tn = wp.min(w.tx, wp.min(w.ty, w.tz))
-          if tn >= w.t1:
-              break
-          if w.tx == tn:
-              w.i = w.i + w.si
-              w.tx = _next_r(w.i, w.si, o[0], ix, s)
-          if w.ty == tn:
-              w.j = w.j + w.sj
-              w.ty = _next_r(w.j, w.sj, o[1], iy, s)
-          if w.tz == tn:
-              w.k = w.k + w.sk
-              w.tz = _next_r(w.k, w.sk, o[2], iz, s)
-          if w.i < 0 or w.i >= nx or w.j < 0 or w.j >= ny or w.k < 0 or w.k >= nz:
-              break
-      if my_count > wp.int64(0):
-          wp.atomic_add(sums, cand, my_sum)
-          wp.atomic_add(counts, cand, my_count)
-  return recip_kernel
+    @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
+    def recip_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                     pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
+                     nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
+                     stop_bits: wp.array(dtype=wp.uint32), use_stop: wp.int32, weights: wp.array(dtype=wp.int64),
+                     words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64),
+                     counts: wp.array(dtype=wp.int64)):
+        tid = wp.tid()
+        n = sensor_dirs.shape[0]
+        rig = tid / n
+        cand = rig / n_lidars
+        o = pos[rig]
+        d = rot[rig] * sensor_dirs[tid - rig * n]
+        w = walk_begin(o, d, t_max, s, nx, ny, nz)
+        one = wp.float64(1.0)
+        ix = one / d[0]
+        iy = one / d[1]
+        iz = one / d[2]
+        w.tx = _next_r(w.i, w.si, o[0], ix, s)
+        w.ty = _next_r(w.j, w.sj, o[1], iy, s)
+        w.tz = _next_r(w.k, w.sk, o[2], iz, s)
+        base = wp.int64(cand) * words_per_candidate
+        my_sum = wp.int64(0)
+        my_count = wp.int64(0)
+        for _ in range(nx + ny + nz + 3):
+            if w.alive == 0:
+                break
+            word = brick_word(w, bny, bnz)
+            bit = brick_bit(w)
+            if (bits[base + word] & bit) == wp.uint32(0):
+                old = wp.atomic_or(bits, base + word, bit)
+                if (old & bit) == wp.uint32(0):
+                    my_sum += weights[flat_index(w, ny, nz)]
+                    my_count += wp.int64(1)
+            if use_stop != 0:
+                if (stop_bits[word] & bit) != wp.uint32(0):
+                    break
+            tn = wp.min(w.tx, wp.min(w.ty, w.tz))
+            if tn >= w.t1:
+                break
+            if w.tx == tn:
+                w.i = w.i + w.si
+                w.tx = _next_r(w.i, w.si, o[0], ix, s)
+            if w.ty == tn:
+                w.j = w.j + w.sj
+                w.ty = _next_r(w.j, w.sj, o[1], iy, s)
+            if w.tz == tn:
+                w.k = w.k + w.sk
+                w.tz = _next_r(w.k, w.sk, o[2], iz, s)
+            if w.i < 0 or w.i >= nx or w.j < 0 or w.j >= ny or w.k < 0 or w.k >= nz:
+                break
+        if my_count > wp.int64(0):
+            wp.atomic_add(sums, cand, my_sum)
+            wp.atomic_add(counts, cand, my_count)
+    return recip_kernel
 
 
 @wp.func

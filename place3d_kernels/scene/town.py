@@ -824,7 +824,6 @@ def town(seed: int = 0, n_frames: int = 40, **options) -> Scene:
                 def pt(u, v):  # along-road u, across-road v -> world xy
                     return (u, rc + v) if axis == 0 else (rc + v, u)
 
-                L = a1 - a0
                 yaw_road = 0.0 if axis == 0 else math.pi / 2
                 # zebra crossings at segment ends
                 for end, sgn_ in ((a0, 1), (a1, -1)):
