@@ -1,12 +1,21 @@
 """Warp backend: the kernels of ``kernels.py`` on Warp's CPU device or a CUDA GPU.
 
-Warp's CPU device runs a kernel launch on one thread; CUDA devices run the same code on the GPU.
+Warp's CPU device runs each kernel launch on one thread (NVIDIA/warp#1309). On the CPU this backend
+therefore splits the launches of its heavy kernels (ray-mesh, traversal, coverage, scores) into chunks
+and runs them on a pool of Python threads, one per usable core (``PLACE3D_WARP_CPU_THREADS`` overrides):
+a CPU launch is a ctypes call, which releases the GIL, and Warp 1.x passes the task index as an argument
+(no shared static state). Only kernels whose chunks write disjoint outputs, or store the same value to a
+shared one (coverage's byte mask), are split that way; Warp's CPU "atomics" are plain read-modify-writes,
+so the score kernel is split by candidate (each candidate owns its bitset and sum), never inside one.
+CUDA devices run each kernel as one launch on the GPU.
 Meshes use Warp's BVH (``wp.Mesh``; SAH build) and its watertight ``mesh_query_ray``.
 """
 
 from __future__ import annotations
 
 import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -40,6 +49,28 @@ def warp_devices() -> list[str]:
     return [str(d) for d in wp.get_devices()]
 
 
+def cpu_threads() -> int:
+    """Threads for split CPU launches: ``PLACE3D_WARP_CPU_THREADS`` if set, else the usable cores."""
+    env = os.environ.get("PLACE3D_WARP_CPU_THREADS")
+    if env:
+        try:
+            n = int(env)
+        except ValueError:
+            raise ValueError(f"PLACE3D_WARP_CPU_THREADS must be a positive integer, got {env!r}") from None
+        if n < 1:
+            raise ValueError(f"PLACE3D_WARP_CPU_THREADS must be a positive integer, got {env!r}")
+        return n
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+# a chunk smaller than this many items is not worth a thread hand-off (a launch costs some 20 us)
+MIN_CHUNK = 2048
+CHUNKS_PER_THREAD = 8    # many small chunks per thread balance rays of very different lengths
+
+
 class _WarpMesh:
     def __init__(self, mesh, points, indices, corners64):
         self.mesh = mesh          # keep the arrays alive with the BVH
@@ -71,6 +102,48 @@ class WarpCore(Backend):
 
         self.k = kernels
         self._empty_u8 = wp.zeros(1, dtype=wp.uint8, device=self.device)
+        self.threads = 1 if self.device.is_cuda else cpu_threads()
+        self._pool = None
+        self._pool_lock = threading.Lock()
+        self._loaded = set()      # kernels launched once already (module compiled and loaded)
+
+    # ------------------------------------------------------------------ launches
+    def _launch(self, kernel, n: int, inputs) -> None:
+        """Launch ``kernel`` over ``n`` independent items; ``inputs(lo, hi)`` gives its inputs for items
+        ``lo..hi-1`` (array views of that range plus the shared arguments). On the GPU, or for small ``n``,
+        one launch; on the CPU with several threads, chunks of the range run on the thread pool."""
+        if n <= 0:
+            return
+        if self.threads <= 1 or n < 2 * MIN_CHUNK:
+            wp.launch(kernel, dim=n, device=self.device, inputs=inputs(0, n))
+            return
+        n_chunks = min(self.threads * CHUNKS_PER_THREAD, n // MIN_CHUNK)
+        edges = [n * c // n_chunks for c in range(n_chunks + 1)]
+        self._run_chunks(kernel, [(lo, hi, inputs(lo, hi)) for lo, hi in zip(edges[:-1], edges[1:])])
+
+    def _launch_groups(self, kernel, groups: int, per_group: int, inputs) -> None:
+        """CPU only: launch ``kernel`` over ``groups`` blocks of ``per_group`` items, whole groups per thread
+        (``inputs(g0, g1)`` gives the inputs for groups ``g0..g1-1``)."""
+        k = min(groups, self.threads * CHUNKS_PER_THREAD)
+        bounds = [groups * c // k for c in range(k + 1)]
+        self._run_chunks(kernel, [(g0 * per_group, g1 * per_group, inputs(g0, g1))
+                                  for g0, g1 in zip(bounds[:-1], bounds[1:])])
+
+    def _run_chunks(self, kernel, chunks) -> None:
+        # chunks: (first item, end item, inputs); the first launch of a kernel compiles and loads its
+        # module, which must not happen on two threads at once, so it runs here before the others
+        chunks = list(chunks)
+        if kernel not in self._loaded:
+            lo, hi, args = chunks.pop(0)
+            wp.launch(kernel, dim=hi - lo, device=self.device, inputs=args)
+            self._loaded.add(kernel)
+        with self._pool_lock:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="place3d-warp-cpu")
+        futures = [self._pool.submit(wp.launch, kernel, dim=hi - lo, device=self.device, inputs=args)
+                   for lo, hi, args in chunks]
+        for f in futures:
+            f.result()
 
     # ------------------------------------------------------------------ helpers
     def _vec3(self, a) -> "wp.array":
@@ -130,10 +203,9 @@ class WarpCore(Backend):
         n = len(origins)
         out_t = wp.empty(n, dtype=wp.float64, device=self.device)
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
-        if n:
-            wp.launch(self.k.raycast_kernel, dim=n, device=self.device,
-                      inputs=[mesh.mesh.id, mesh.corners64, self._vec3d(origins), self._vec3d(directions),
-                              self._f64(t_max, n), out_t, out_f])
+        o, d, tm = self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n)
+        self._launch(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], d[a:b], tm[a:b],
+                                                            out_t[a:b], out_f[a:b]])
         t = out_t.numpy()
         t[t >= 1.0e300] = np.inf
         return t, out_f.numpy()
@@ -142,17 +214,19 @@ class WarpCore(Backend):
         """For benchmarks: a zero-argument callable that launches the ray-mesh kernel on rays already on
         the device (no host transfers), so kernel throughput can be timed apart from data movement."""
         n = len(origins)
-        args = [mesh.mesh.id, mesh.corners64, self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n),
-                wp.empty(n, dtype=wp.float64, device=self.device), wp.empty(n, dtype=wp.int32, device=self.device)]
-        return lambda: wp.launch(self.k.raycast_kernel, dim=n, device=self.device, inputs=args)
+        o, d, tm = self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n)
+        out_t = wp.empty(n, dtype=wp.float64, device=self.device)
+        out_f = wp.empty(n, dtype=wp.int32, device=self.device)
+        return lambda: self._launch(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b],
+                                                                           d[a:b], tm[a:b], out_t[a:b], out_f[a:b]])
 
     def resident_traverse(self, grid, origins, directions, t_end, stop=None):
         """For benchmarks: launch the traversal count kernel on resident rays (see ``resident_raycast``)."""
         n, args = self._walk_args(grid, origins, directions, t_end)
         stop_a, use = self._stop(stop)
         counts = wp.zeros(n, dtype=wp.int64, device=self.device)
-        return lambda: wp.launch(self.k.traverse_count_kernel, dim=n, device=self.device,
-                                 inputs=args + [stop_a, use, counts])
+        return lambda: self._launch(self.k.traverse_count_kernel, n,
+                                    lambda a, b: self._ray_range(args, a, b) + [stop_a, use, counts[a:b]])
 
     # ------------------------------------------------------------------ traversal
     def _walk_args(self, grid, origins, directions, t_end):
@@ -161,28 +235,35 @@ class WarpCore(Backend):
         return n, [self._vec3d(origins), self._vec3d(directions), self._f64(t_end, n),
                    float(grid.voxel_size), int(nx), int(ny), int(nz)]
 
+    @staticmethod
+    def _ray_range(args, a, b):
+        # _walk_args for rays a..b-1: views of the three per-ray arrays, the grid arguments as they are
+        return [x[a:b] for x in args[:3]] + args[3:]
+
     def traverse(self, grid, origins, directions, t_end, stop=None):
         n, args = self._walk_args(grid, origins, directions, t_end)
         stop_a, use = self._stop(stop)
         counts = wp.zeros(n, dtype=wp.int64, device=self.device)
-        if n:
-            wp.launch(self.k.traverse_count_kernel, dim=n, device=self.device, inputs=args + [stop_a, use, counts])
+        self._launch(self.k.traverse_count_kernel, n,
+                     lambda a, b: self._ray_range(args, a, b) + [stop_a, use, counts[a:b]])
         offsets = np.zeros(n + 1, dtype=np.int64)
         offsets[1:] = np.cumsum(counts.numpy())
         total = int(offsets[-1])
         voxels = wp.empty(max(total, 1), dtype=wp.int64, device=self.device)
-        if n and total:
-            wp.launch(self.k.traverse_fill_kernel, dim=n, device=self.device,
-                      inputs=args + [stop_a, use, wp.array(offsets, dtype=wp.int64, device=self.device), voxels])
+        if total:
+            off = wp.array(offsets, dtype=wp.int64, device=self.device)
+            # each ray writes only its own range voxels[offsets[i]:offsets[i + 1]]
+            self._launch(self.k.traverse_fill_kernel, n,
+                         lambda a, b: self._ray_range(args, a, b) + [stop_a, use, off[a:b + 1], voxels])
         return offsets, voxels.numpy()[:total]
 
     def coverage(self, grid, origins, directions, t_end, stop=None):
         n, args = self._walk_args(grid, origins, directions, t_end)
         stop_a, use = self._stop(stop)
         mask = wp.zeros(grid.n_voxels, dtype=wp.uint8, device=self.device)
-        if n:
-            wp.launch(self.k.coverage_kernel, dim=n, device=self.device, inputs=args + [stop_a, use, mask])
-        return mask.numpy().astype(bool)
+        # chunks may share voxels: every write stores the same byte 1, so the order does not matter
+        self._launch(self.k.coverage_kernel, n, lambda a, b: self._ray_range(args, a, b) + [stop_a, use, mask])
+        return mask.numpy().view(bool)
 
     def prepare_grid(self, grid, weights, stop):
         w = wp.array(np.ascontiguousarray(weights, dtype=np.int64), dtype=wp.int64, device=self.device)
@@ -203,11 +284,21 @@ class WarpCore(Backend):
         sums = wp.zeros(P, dtype=wp.int64, device=self.device)
         counts = wp.zeros(P, dtype=wp.int64, device=self.device)
         rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=self.device)
-        wp.launch(self.k.score_kernel, dim=P * L * len(sd), device=self.device,
-                  inputs=[self._vec3d(sd), rot, self._vec3d(flat[:, :3]), int(L), float(t_max),
-                          float(spec.voxel_size), int(nx), int(ny), int(nz), int(by), int(bz), handle.masks,
-                          handle.weights, int(words), bits, sums],
-                  block_dim=self.k.SCORE_BLOCK_DIM)
+        sd_a, pos = self._vec3d(sd), self._vec3d(flat[:, :3])
+        rays = L * len(sd)     # per candidate
+        if self.device.is_cuda or P == 1 or self.threads <= 1:
+            wp.launch(self.k.score_kernel, dim=P * rays, device=self.device,
+                      inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
+                              int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
+                      block_dim=self.k.SCORE_BLOCK_DIM)
+        else:
+            # CPU threads take whole candidates: a candidate's bitset and sum are written by one thread only
+            def cand_range(a, b):
+                return [sd_a, rot[a * L:b * L], pos[a * L:b * L], int(L), float(t_max), float(spec.voxel_size),
+                        int(nx), int(ny), int(nz), int(by), int(bz), handle.masks, handle.weights, int(words),
+                        bits[a * words:b * words], sums[a:b]]
+
+            self._launch_groups(self.k.score_kernel, P, rays, cand_range)
         chunks = -(-words // self.k.COUNT_WORDS)
         wp.launch(self.k.count_bits_kernel, dim=P * chunks, device=self.device,
                   inputs=[bits, int(words), int(chunks), counts])
