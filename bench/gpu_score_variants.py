@@ -14,16 +14,33 @@ Workload as in ``gpu_dense.py``: a population of ``--pop`` perturbed ``pyramid``
   the occlusion word so that weights are read only for voxels with entropy; one atomic per new voxel;
 * ``perbrick-*``: the walk touches memory only when it enters a brick and sets the bits it marked there
   with one ``atomic_or`` when it leaves (``score_ray``), with register caps / block sizes;
-* ``shipped``: ``score_kernel`` as the backend launches it: as ``pervoxel-r72-b128``, but only voxels with
-  entropy use the value an ``atomic_or`` returns; free space issues atomics whose result is unused, and
-  the covered voxels are counted afterwards from the bitset (``count_bits_kernel``, timed with it);
+* ``f64-resultfree-r72-b128``: the kernel shipped until the second session of 2026-11-22: as
+  ``pervoxel-r72-b128``, but only voxels with entropy use the value an ``atomic_or`` returns; free space
+  issues atomics whose result is unused, and the covered voxels are counted afterwards from the bitset
+  (``count_bits_kernel``, timed with it); the walk in float64 (``walk_begin`` / ``walk_next``);
+* ``w32-r72-b128-cpu-kernel``: ``score_kernel`` (the Warp CPU device's score kernel): the same with the
+  float32 walk that falls back to float64 on near-ties (``walk32_begin`` / ``walk32_next``; same voxels,
+  bit for bit);
+* ``w32-rN-bD``: that body with other register caps / block sizes;
+* ``w32-reload-r*``: that body, but the float64 fallback re-derives the ray's origin and direction from
+  the rig arrays instead of keeping them live in registers;
+* ``w32-perbrick-*``: the float32 walk with ``perbrick-*``'s bookkeeping;
+* ``w32-cached-*``: the float32 walk reading a brick's masks (one 64-bit load) and a snapshot of its
+  bitset word once per brick entered, one atomic per newly marked voxel;
+* ``shipped``: ``score_kernel_gpu`` as the backend launches it on CUDA (``score_ray_brick``): as
+  ``w32-cached``, but the bits newly marked in a brick go out in one ``atomic_or`` when the ray leaves it,
+  whose result is waited for only when some of them have entropy; 80 registers, 128 threads;
+  ``w32-brick-rN-bD`` is the same body with other caps / block sizes;
+* ``diag-walkonly`` / ``diag-nonatomic`` (diagnostics, wrong sums on purpose): the walk reading only the
+  occlusion bits (no bitset, no weights: the floor of the walk itself), and the shipped per-voxel body
+  with plain read-modify-writes instead of atomics (the cost of the atomics);
 * ``recip`` (study only): the bricked kernel with boundary crossings computed as ``(b s - o) * (1 / d)``
   instead of ``(b s - o) / d``: no float64 division per step, but one more rounding, so near-ties can
   resolve differently; its sums are compared with the shipped kernel's and the differences reported,
   not required to be zero.
 
-Every variant must return the same int64 sums and counts as the shipped kernel (checked; a mismatch
-raises). Kernel times are taken around the launch only, with the device synchronised, best of
+Every variant except ``recip`` and ``diag-*`` must return the same int64 sums and counts as ``flat``
+(checked; a mismatch raises). Kernel times are taken around the launch only, with the device synchronised, best of
 ``--repeat``. Writes ``$OUT/gpu-score-variants-<voxel>m.json`` (or bench/results/).
 
     python3 bench/gpu_score_variants.py [--voxel 0.05] [--pop 16] [--device cuda:0]
@@ -43,8 +60,10 @@ import warp as wp
 import place3d_kernels as p3k
 from place3d_kernels.backends.base import rotation_matrices, sensor_directions
 from place3d_kernels.backends.bricks import brick_bits, brick_shape
-from place3d_kernels.backends.warp.kernels import (INF64, brick_bit, brick_word, flat_index, walk_begin,
-                                                  walk_next)
+from place3d_kernels.backends.warp.kernels import (INF64, Walk32, brick_bit, brick_word, flat32, flat_index,
+                                                  score_ray, score_ray_brick, walk32_begin, walk32_exact,
+                                                  walk32_next,
+                                                  walk_begin, walk_next)
 from place3d_kernels.benchmark import machine_info
 
 OPTS = {"enable_backward": False, "fuse_fp": False}   # as the shipped module: no FMA contraction
@@ -346,6 +365,330 @@ def _perbrick(maxreg=None):
     return perbrick
 
 
+@wp.func
+def f64_ray(
+    tid: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks: wp.array(dtype=wp.uint32),
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64),
+):
+    # frozen: score_ray as shipped before the float32 walk (float64 walk_begin / walk_next)
+    n = sensor_dirs.shape[0]
+    rig = tid / n
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = rot[rig] * sensor_dirs[tid - rig * n]
+    w = walk_begin(o, d, t_max, s, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    my_sum = wp.int64(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        word = brick_word(w, bny, bnz)
+        bit = brick_bit(w)
+        if (bits[base + word] & bit) == wp.uint32(0):
+            if (masks[wp.int64(2) * word + wp.int64(1)] & bit) != wp.uint32(0):
+                old = wp.atomic_or(bits, base + word, bit)
+                if (old & bit) == wp.uint32(0):
+                    my_sum += weights[flat_index(w, ny, nz)]
+            else:
+                wp.atomic_or(bits, base + word, bit)
+        if (masks[wp.int64(2) * word] & bit) != wp.uint32(0):
+            break
+        w = walk_next(w, o, d, s, nx, ny, nz)
+    if my_sum > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+
+
+@wp.func
+def _rig_ray(tid: wp.int32, sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+             pos: wp.array(dtype=wp.vec3d)):
+    n = sensor_dirs.shape[0]
+    rig = tid / n
+    return pos[rig], rot[rig] * sensor_dirs[tid - rig * n]
+
+
+@wp.func
+def _next_reload(w: Walk32, tid: wp.int32, sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                 pos: wp.array(dtype=wp.vec3d), s: wp.float64, sf: wp.float32, nx: wp.int32, ny: wp.int32,
+                 nz: wp.int32) -> Walk32:
+    # walk32_next whose float64 fallback re-derives o and d (same bits: same products, no FMA)
+    fast = wp.int32(0)
+    if w.exact == 0:
+        if w.tx < w.ty and w.tx < w.tz:
+            lim = w.tx + w.tol
+            if not (w.ty <= lim or w.tz <= lim or w.t1 <= lim):
+                fast = 1
+        elif w.ty < w.tz:
+            lim = w.ty + w.tol
+            if not (w.tx <= lim or w.tz <= lim or w.t1 <= lim):
+                fast = 2
+        else:
+            lim = w.tz + w.tol
+            if not (w.tx <= lim or w.ty <= lim or w.t1 <= lim):
+                fast = 3
+    if fast == 1:
+        w.i = w.i + w.si
+        w.ki = w.ki + w.si
+        w.tx = (wp.float32(w.ki) * sf - w.qx) * w.vx
+        if w.i < 0 or w.i >= nx:
+            w.alive = 0
+        return w
+    if fast == 2:
+        w.j = w.j + w.sj
+        w.kj = w.kj + w.sj
+        w.ty = (wp.float32(w.kj) * sf - w.qy) * w.vy
+        if w.j < 0 or w.j >= ny:
+            w.alive = 0
+        return w
+    if fast == 3:
+        w.k = w.k + w.sk
+        w.kk = w.kk + w.sk
+        w.tz = (wp.float32(w.kk) * sf - w.qz) * w.vz
+        if w.k < 0 or w.k >= nz:
+            w.alive = 0
+        return w
+    o, d = _rig_ray(tid, sensor_dirs, rot, pos)
+    return walk32_exact(w, o, d, s, sf, nx, ny, nz)
+
+
+@wp.func
+def reload_ray(
+    tid: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks: wp.array(dtype=wp.uint32),
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64),
+):
+    n = sensor_dirs.shape[0]
+    cand = (tid / n) / n_lidars
+    o, d = _rig_ray(tid, sensor_dirs, rot, pos)
+    sf = wp.float32(s)
+    w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    my_sum = wp.int64(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        word = brick_word(w, bny, bnz)
+        bit = brick_bit(w)
+        if (bits[base + word] & bit) == wp.uint32(0):
+            if (masks[wp.int64(2) * word + wp.int64(1)] & bit) != wp.uint32(0):
+                old = wp.atomic_or(bits, base + word, bit)
+                if (old & bit) == wp.uint32(0):
+                    my_sum += weights[flat32(w, ny, nz)]
+            else:
+                wp.atomic_or(bits, base + word, bit)
+        if (masks[wp.int64(2) * word] & bit) != wp.uint32(0):
+            break
+        w = _next_reload(w, tid, sensor_dirs, rot, pos, s, sf, nx, ny, nz)
+    if my_sum > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+
+
+@wp.func
+def perbrick32_ray(
+    tid: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks: wp.array(dtype=wp.uint32),
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64), counts: wp.array(dtype=wp.int64),
+):
+    # perbrick_ray with the float32 walk
+    n = sensor_dirs.shape[0]
+    rig = tid / n
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = rot[rig] * sensor_dirs[tid - rig * n]
+    sf = wp.float32(s)
+    w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    my_sum = wp.int64(0)
+    my_count = wp.int64(0)
+    cur = wp.int64(-1)
+    pending = wp.uint32(0)
+    seen = wp.uint32(0)
+    stop_w = wp.uint32(0)
+    nz_w = wp.uint32(0)
+    bi = wp.int32(0)
+    bj = wp.int32(0)
+    bk = wp.int32(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        word = brick_word(w, bny, bnz)
+        if word != cur:
+            add, cnt = _flush_brick(bits, base + cur, pending, nz_w, bi, bj, bk, ny, nz, weights)
+            my_sum += add
+            my_count += cnt
+            cur = word
+            pending = wp.uint32(0)
+            seen = bits[base + word]
+            stop_w = masks[wp.int64(2) * word]
+            nz_w = masks[wp.int64(2) * word + wp.int64(1)]
+            bi = w.i >> 2
+            bj = w.j >> 2
+            bk = w.k >> 1
+        bit = brick_bit(w)
+        if (seen & bit) == wp.uint32(0):
+            pending = pending | bit
+        if (stop_w & bit) != wp.uint32(0):
+            break
+        w = walk32_next(w, o, d, s, sf, nx, ny, nz)
+    add, cnt = _flush_brick(bits, base + cur, pending, nz_w, bi, bj, bk, ny, nz, weights)
+    my_sum += add
+    my_count += cnt
+    if my_count > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+        wp.atomic_add(counts, cand, my_count)
+
+
+def _sumonly(body, maxreg=None):
+    # a kernel around a score_ray-shaped function (sums only; counts from the bitset afterwards)
+    @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
+    def sumonly(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
+                nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
+                masks: wp.array(dtype=wp.uint32), weights: wp.array(dtype=wp.int64),
+                words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64)):
+        body(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks, weights,
+             words_per_candidate, bits, sums)
+    return sumonly
+
+
+def _perbrick32(maxreg=None):
+    @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
+    def perbrick32(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                   pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
+                   nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
+                   masks: wp.array(dtype=wp.uint32), weights: wp.array(dtype=wp.int64),
+                   words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64),
+                   counts: wp.array(dtype=wp.int64)):
+        perbrick32_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks, weights,
+                       words_per_candidate, bits, sums, counts)
+    return perbrick32
+
+
+@wp.func
+def cached_ray(
+    tid: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks64: wp.array(dtype=wp.uint64),
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64),
+):
+    # shipped body, but the brick's masks (one 64-bit load: stop bits low, nonzero-weight bits high) and
+    # a snapshot of its bitset word are read once per brick the ray enters, not per voxel; an atomic per
+    # voxel the snapshot (plus the ray's own bits) does not show as covered
+    n = sensor_dirs.shape[0]
+    rig = tid / n
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = rot[rig] * sensor_dirs[tid - rig * n]
+    sf = wp.float32(s)
+    w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    my_sum = wp.int64(0)
+    cur = wp.int64(-1)
+    seen = wp.uint32(0)
+    stop_w = wp.uint32(0)
+    nz_w = wp.uint32(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        word = brick_word(w, bny, bnz)
+        if word != cur:
+            cur = word
+            m = masks64[word]
+            stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))
+            nz_w = wp.uint32(m >> wp.uint64(32))
+            seen = bits[base + word]
+        bit = brick_bit(w)
+        if (seen & bit) == wp.uint32(0):
+            seen = seen | bit
+            if (nz_w & bit) != wp.uint32(0):
+                old = wp.atomic_or(bits, base + word, bit)
+                if (old & bit) == wp.uint32(0):
+                    my_sum += weights[flat32(w, ny, nz)]
+            else:
+                wp.atomic_or(bits, base + word, bit)
+        if (stop_w & bit) != wp.uint32(0):
+            break
+        w = walk32_next(w, o, d, s, sf, nx, ny, nz)
+    if my_sum > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+
+
+def _sumonly64(body, maxreg=None):
+    @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
+    def sumonly64(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                  pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
+                  nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
+                  masks64: wp.array(dtype=wp.uint64), weights: wp.array(dtype=wp.int64),
+                  words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64)):
+        body(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks64, weights,
+             words_per_candidate, bits, sums)
+    return sumonly64
+
+
+@wp.func
+def diag_ray(
+    tid: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks: wp.array(dtype=wp.uint32),
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64), mode: wp.int32,
+):
+    # diagnostics, wrong results on purpose: mode 0 walks and reads the stop bits only (no bitset, no
+    # weights: the floor of the walk itself); mode 1 as shipped but sets bits with a plain read-modify-write
+    # instead of an atomic (races lose bits: the cost of the atomics)
+    n = sensor_dirs.shape[0]
+    rig = tid / n
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = rot[rig] * sensor_dirs[tid - rig * n]
+    sf = wp.float32(s)
+    w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    my_sum = wp.int64(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        word = brick_word(w, bny, bnz)
+        bit = brick_bit(w)
+        if mode == 1:
+            cur = bits[base + word]
+            if (cur & bit) == wp.uint32(0):
+                bits[base + word] = cur | bit
+                if (masks[wp.int64(2) * word + wp.int64(1)] & bit) != wp.uint32(0):
+                    my_sum += weights[flat32(w, ny, nz)]
+        if (masks[wp.int64(2) * word] & bit) != wp.uint32(0):
+            break
+        w = walk32_next(w, o, d, s, sf, nx, ny, nz)
+    if mode == 0:
+        my_sum = wp.int64(w.i)
+    if my_sum > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+
+
+def _diag(mode, maxreg=72):
+    @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
+    def diag(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+             pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
+             nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
+             masks: wp.array(dtype=wp.uint32), weights: wp.array(dtype=wp.int64),
+             words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64)):
+        diag_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks, weights,
+                 words_per_candidate, bits, sums, wp.static(mode))
+    return diag
+
+
 def _bricked(maxreg=None):
     @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
     def capped(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
@@ -365,6 +708,7 @@ def main() -> None:
     ap.add_argument("--pop", type=int, default=16)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--only", default="", help="comma-separated variant names (flat, the baseline, always runs)")
     args = ap.parse_args()
     dev = args.device
     b = p3k.get_backend(f"warp:{dev}")
@@ -402,7 +746,7 @@ def main() -> None:
             bits.zero_(), sums.zero_(), counts.zero_()
             wp.synchronize_device(dev)
             t0 = time.perf_counter()
-            if kernel is b.k.score_kernel:   # shipped: sums in the walk, counts from the bitset afterwards
+            if kernel in sum_only:   # shipped shape: sums in the walk, counts from the bitset afterwards
                 wp.launch(kernel, dim=n, device=dev, inputs=common + inputs_tail(words) + [bits, sums],
                           block_dim=block_dim or 256)
                 chunks = -(-words // b.k.COUNT_WORDS)
@@ -422,6 +766,8 @@ def main() -> None:
     masks[1::2] = brick_bits(psog.weights.reshape(-1) != 0, spec.shape)
     masks = wp.array(masks, dtype=wp.uint32, device=dev)
     shipped_tail = lambda words: [int(by), int(bz), masks, weights, int(words)]  # noqa: E731
+    masks64 = wp.array(masks.numpy().view(np.uint64), dtype=wp.uint64, device=dev)   # little-endian: stop low
+    tail64 = lambda words: [int(by), int(bz), masks64, weights, int(words)]  # noqa: E731
     variants = {
         "flat": (flat_kernel, flat_tail, flat_words, None),
         "bricked": (_bricked(), brick_tail, brick_words, None),
@@ -430,9 +776,37 @@ def main() -> None:
         "bricked-r72-b128": (_bricked(72), brick_tail, brick_words, 128),
         "pervoxel-r72-b128": (_pervoxel(72), shipped_tail, brick_words, 128),
         "perbrick-b128": (_perbrick(), shipped_tail, brick_words, 128),
-        "shipped": (b.k.score_kernel, shipped_tail, brick_words, b.k.SCORE_BLOCK_DIM),
+        "f64-resultfree-r72-b128": (_sumonly(f64_ray, 72), shipped_tail, brick_words, 128),
+        "w32-r72-b128-cpu-kernel": (b.k.score_kernel, shipped_tail, brick_words, b.k.SCORE_BLOCK_DIM),
+        "shipped": (b.k.score_kernel_gpu, tail64, brick_words, b.k.SCORE_BLOCK_DIM),
+        "w32-rnone-b128": (_sumonly(score_ray), shipped_tail, brick_words, 128),
+        "w32-r56-b128": (_sumonly(score_ray, 56), shipped_tail, brick_words, 128),
+        "w32-r64-b128": (_sumonly(score_ray, 64), shipped_tail, brick_words, 128),
+        "w32-r80-b128": (_sumonly(score_ray, 80), shipped_tail, brick_words, 128),
+        "w32-r64-b256": (_sumonly(score_ray, 64), shipped_tail, brick_words, 256),
+        "w32-r64-b64": (_sumonly(score_ray, 64), shipped_tail, brick_words, 64),
+        "w32-reload-r56-b128": (_sumonly(reload_ray, 56), shipped_tail, brick_words, 128),
+        "w32-reload-r64-b128": (_sumonly(reload_ray, 64), shipped_tail, brick_words, 128),
+        "w32-perbrick-r64-b128": (_perbrick32(64), shipped_tail, brick_words, 128),
+        "w32-perbrick-r72-b128": (_perbrick32(72), shipped_tail, brick_words, 128),
+        "w32-cached-r72-b128": (_sumonly64(cached_ray, 72), tail64, brick_words, 128),
+        "w32-cached-r80-b128": (_sumonly64(cached_ray, 80), tail64, brick_words, 128),
+        "w32-cached-rnone-b128": (_sumonly64(cached_ray), tail64, brick_words, 128),
+        "w32-brick-r72-b128": (_sumonly64(score_ray_brick, 72), tail64, brick_words, 128),
+        "w32-brick-r80-b128": (_sumonly64(score_ray_brick, 80), tail64, brick_words, 128),
+        "w32-brick-r88-b128": (_sumonly64(score_ray_brick, 88), tail64, brick_words, 128),
+        "w32-brick-r96-b128": (_sumonly64(score_ray_brick, 96), tail64, brick_words, 128),
+        "w32-brick-r80-b256": (_sumonly64(score_ray_brick, 80), tail64, brick_words, 256),
+        "w32-brick-rnone-b128": (_sumonly64(score_ray_brick), tail64, brick_words, 128),
         "recip": (_recip(), brick_tail, brick_words, None),
+        "diag-walkonly": (_diag(0), shipped_tail, brick_words, 128),
+        "diag-nonatomic": (_diag(1), shipped_tail, brick_words, 128),
     }
+    sum_only = {v[0] for k, v in variants.items() if (k == "shipped" or k.startswith(("f64-", "w32-", "diag-")))
+                and "perbrick" not in k}
+    only = [x for x in (args.only or "").split(",") if x]
+    if only:
+        variants = {k: v for k, v in variants.items() if k in only or k == "flat"}
     ref = p3k.msog_batch(psog, lidar, pop, backend=b)          # the public API, shipped kernel
     out = {"info": machine_info(), "device": dev, "grid": grid.to_dict(), "rays_per_rig": L * sd.shape[0],
            "population": P, "variants": {}}
@@ -444,13 +818,13 @@ def main() -> None:
         same = bool(np.array_equal(sums, base_sums) and np.array_equal(counts, base_counts))
         out["variants"][name] = {"kernel_ms": 1e3 * t, "amortised_ms_per_rig": 1e3 * t / P,
                                  "identical_to_flat": same}
-        if name.startswith("recip"):
+        if name.startswith(("recip", "diag-")):
             sc = -(sums / 2.0**32) / np.maximum(counts, 1)
             sb = -(base_sums / 2.0**32) / np.maximum(base_counts, 1)
             out["variants"][name].update({"max_abs_msog_diff": float(np.abs(sc - sb).max()),
                                           "max_count_diff": int(np.abs(counts - base_counts).max())})
         print(name, out["variants"][name], flush=True)
-        if not same and not name.startswith("recip"):
+        if not same and not name.startswith(("recip", "diag-")):
             raise SystemExit(f"variant {name} disagrees with the flat kernel")
     scores = -(base_sums / 2.0**32) / np.maximum(base_counts, 1)
     out["scores_equal_public_api"] = bool(np.allclose(scores, ref, rtol=0, atol=1e-15))

@@ -84,6 +84,7 @@ class _WarpGrid:
         self.spec = spec
         self.weights = weights          # int64 fixed-point entropy, flat voxel order
         self.masks = masks              # per brick word w: [2w] occlusion bits, [2w + 1] nonzero-weight bits
+                                        # (uint32 pairs; on CUDA the same bytes as one uint64 per brick)
 
 
 class WarpCore(Backend):
@@ -269,6 +270,8 @@ class WarpCore(Backend):
         w = wp.array(np.ascontiguousarray(weights, dtype=np.int64), dtype=wp.int64, device=self.device)
         masks = brick_masks(grid.shape, np.asarray(weights).reshape(-1) != 0,
                             None if stop is None else np.asarray(stop).reshape(-1) != 0)
+        if self.device.is_cuda:   # score_kernel_gpu reads each brick's pair as one little-endian uint64
+            return _WarpGrid(grid, w, wp.array(masks.view(np.uint64), dtype=wp.uint64, device=self.device))
         return _WarpGrid(grid, w, wp.array(masks, dtype=wp.uint32, device=self.device))
 
     def score_placements(self, handle, elevations, azimuths, t_max, poses):
@@ -286,7 +289,12 @@ class WarpCore(Backend):
         rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=self.device)
         sd_a, pos = self._vec3d(sd), self._vec3d(flat[:, :3])
         rays = L * len(sd)     # per candidate
-        if self.device.is_cuda or P == 1 or self.threads <= 1:
+        if self.device.is_cuda:
+            wp.launch(self.k.score_kernel_gpu, dim=P * rays, device=self.device,
+                      inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
+                              int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
+                      block_dim=self.k.SCORE_BLOCK_DIM)
+        elif P == 1 or self.threads <= 1:
             wp.launch(self.k.score_kernel, dim=P * rays, device=self.device,
                       inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
                               int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],

@@ -538,9 +538,93 @@ def score_ray(
         wp.atomic_add(sums, cand, my_sum)
 
 
-# 72 registers and 128-thread blocks: on an H100 the uncapped kernel takes 82 registers (25 % theoretical
-# occupancy); this pair ran the dense rig on the 0.05 m grid 1.49x faster than 256 uncapped threads, with
-# identical sums (bench/gpu_score_variants.py, bench/results/gpu-H100-score-variants-*). CPU ignores both.
+@wp.func
+def flush_brick(bits: wp.array(dtype=wp.uint32), base: wp.int64, word: wp.int64, pending: wp.uint32,
+                nz_w: wp.uint32, bny: wp.int32, bnz: wp.int32, ny: wp.int32, nz: wp.int32,
+                weights: wp.array(dtype=wp.int64)) -> wp.int64:
+    # one atomic_or for the bits a ray marked in one brick; only when some have entropy is its result
+    # waited for (the bits the ray set first are its own: it adds their weights)
+    add = wp.int64(0)
+    if pending != wp.uint32(0):
+        at = base + word
+        if (pending & nz_w) != wp.uint32(0):
+            old = wp.atomic_or(bits, at, pending)
+            m = pending & ~old & nz_w
+            # the brick's coordinates from its word (rare: only bricks with entropy the ray marked first)
+            bk = wp.int32(word % wp.int64(bnz))
+            bj = wp.int32((word / wp.int64(bnz)) % wp.int64(bny))
+            bi = wp.int32(word / (wp.int64(bnz) * wp.int64(bny)))
+            while m != wp.uint32(0):
+                b = wp.bit_count((m & (~m + wp.uint32(1))) - wp.uint32(1))     # index of the lowest set bit
+                i = bi * 4 + (b & 3)
+                j = bj * 4 + ((b >> 2) & 3)
+                k = bk * 2 + (b >> 4)
+                add += weights[(wp.int64(i) * wp.int64(ny) + wp.int64(j)) * wp.int64(nz) + wp.int64(k)]
+                m = m & (m - wp.uint32(1))
+        else:
+            wp.atomic_or(bits, at, pending)
+    return add
+
+
+@wp.func
+def score_ray_brick(
+    tid: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks64: wp.array(dtype=wp.uint64),
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64),
+):
+    # The GPU form of score_ray (same sums). Memory is touched per brick a ray passes, not per voxel: on
+    # entering a brick, one 64-bit load of its masks (occlusion bits low, nonzero-weight bits high) and a
+    # plain read of its bitset word (bits only ever get set, so a stale copy is safe: it only filters);
+    # on leaving, one atomic_or with the bits the ray newly marked there (flush_brick). The first ray to
+    # set a voxel's bit owns it and adds its weight. On the H100 this ran the dense rig on the 0.05 m
+    # grid in 3.12 against 3.37 ms (bench/gpu_score_variants.py); on the CPU it was slower (no atomics
+    # to save there), so the CPU keeps score_ray.
+    n = sensor_dirs.shape[0]
+    rig = tid / n
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = rot[rig] * sensor_dirs[tid - rig * n]
+    sf = wp.float32(s)
+    w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    my_sum = wp.int64(0)
+    cur = wp.int64(-1)
+    seen = wp.uint32(0)
+    pending = wp.uint32(0)
+    stop_w = wp.uint32(0)
+    nz_w = wp.uint32(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        word = brick_word(w, bny, bnz)
+        if word != cur:
+            if pending != wp.uint32(0):
+                my_sum += flush_brick(bits, base, cur, pending, nz_w, bny, bnz, ny, nz, weights)
+            cur = word
+            pending = wp.uint32(0)
+            m = masks64[word]
+            stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))
+            nz_w = wp.uint32(m >> wp.uint64(32))
+            seen = bits[base + word]
+        bit = brick_bit(w)
+        if (seen & bit) == wp.uint32(0):
+            seen = seen | bit
+            pending = pending | bit
+        if (stop_w & bit) != wp.uint32(0):
+            break
+        w = walk32_next(w, o, d, s, sf, nx, ny, nz)
+    if pending != wp.uint32(0):
+        my_sum += flush_brick(bits, base, cur, pending, nz_w, bny, bnz, ny, nz, weights)
+    if my_sum > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+
+
+# 128-thread blocks and a register cap: on an H100 the uncapped kernels take 82+ registers (25 % theoretical
+# occupancy); the caps below ran the dense rig on the 0.05 m grid fastest, with identical sums
+# (bench/gpu_score_variants.py, bench/results/gpu-H100-score-variants-*). The CPU ignores both.
 SCORE_BLOCK_DIM = 128
 
 
@@ -559,8 +643,23 @@ def score_kernel(
     bits: wp.array(dtype=wp.uint32),           # (P * words_per_candidate,) zeroed, bricked
     sums: wp.array(dtype=wp.int64),            # (P,) zeroed
 ):
+    # the CPU's score kernel (and the GPU study's baseline)
     score_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks, weights,
               words_per_candidate, bits, sums)
+
+
+@wp.kernel(cuda_max_registers=80)
+def score_kernel_gpu(
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32,
+    masks64: wp.array(dtype=wp.uint64),         # per brick: occlusion bits | nonzero-weight bits << 32
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64,
+    bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64),
+):
+    # the CUDA score kernel: per-brick memory traffic (score_ray_brick)
+    score_ray_brick(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks64, weights,
+                    words_per_candidate, bits, sums)
 
 
 COUNT_WORDS = 64   # bitset words per thread of count_bits_kernel (the literal in its loop)
