@@ -5,7 +5,7 @@ set -uo pipefail
 out=${OUT:-bench/results}
 mkdir -p "$out"
 if [ -d .whl ]; then python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl 2>/dev/null; fi
-timeout 240 python3 bench/gpu_score_variants.py --voxel 0.05 --pop 16 2>&1 | grep -v "CUDA warning" | tail -9
+timeout 300 python3 bench/gpu_score_variants.py --voxel 0.05 --pop 16 2>&1 | grep -v "CUDA warning" | tail -40
 timeout 200 python3 bench/gpu_dense.py 2>&1 | grep -v "CUDA warning" | tail -5
 NCU=$(command -v ncu || ls /usr/local/cuda*/bin/ncu /opt/nvidia/nsight-compute/*/ncu 2>/dev/null | head -1)
 echo "ncu: ${NCU:-not found}"

@@ -113,14 +113,20 @@ class WarpCore(Backend):
         """Launch ``kernel`` over ``n`` independent items; ``inputs(lo, hi)`` gives its inputs for items
         ``lo..hi-1`` (array views of that range plus the shared arguments). On the GPU, or for small ``n``,
         one launch; on the CPU with several threads, chunks of the range run on the thread pool."""
+        self._prepare(kernel, n, inputs)()
+
+    def _prepare(self, kernel, n: int, inputs):
+        """``_launch`` split in two: builds the (chunks') inputs now and returns the zero-argument launch
+        (benchmarks time the launch alone)."""
         if n <= 0:
-            return
+            return lambda: None
         if self.threads <= 1 or n < 2 * MIN_CHUNK:
-            wp.launch(kernel, dim=n, device=self.device, inputs=inputs(0, n))
-            return
+            args = inputs(0, n)
+            return lambda: wp.launch(kernel, dim=n, device=self.device, inputs=args)
         n_chunks = min(self.threads * CHUNKS_PER_THREAD, n // MIN_CHUNK)
         edges = [n * c // n_chunks for c in range(n_chunks + 1)]
-        self._run_chunks(kernel, [(lo, hi, inputs(lo, hi)) for lo, hi in zip(edges[:-1], edges[1:])])
+        chunks = [(lo, hi, inputs(lo, hi)) for lo, hi in zip(edges[:-1], edges[1:])]
+        return lambda: self._run_chunks(kernel, chunks)
 
     def _launch_groups(self, kernel, groups: int, per_group: int, inputs) -> None:
         """CPU only: launch ``kernel`` over ``groups`` blocks of ``per_group`` items, whole groups per thread
@@ -218,16 +224,16 @@ class WarpCore(Backend):
         o, d, tm = self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n)
         out_t = wp.empty(n, dtype=wp.float64, device=self.device)
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
-        return lambda: self._launch(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b],
-                                                                           d[a:b], tm[a:b], out_t[a:b], out_f[a:b]])
+        return self._prepare(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], d[a:b],
+                                                                    tm[a:b], out_t[a:b], out_f[a:b]])
 
     def resident_traverse(self, grid, origins, directions, t_end, stop=None):
         """For benchmarks: launch the traversal count kernel on resident rays (see ``resident_raycast``)."""
         n, args = self._walk_args(grid, origins, directions, t_end)
         stop_a, use = self._stop(stop)
         counts = wp.zeros(n, dtype=wp.int64, device=self.device)
-        return lambda: self._launch(self.k.traverse_count_kernel, n,
-                                    lambda a, b: self._ray_range(args, a, b) + [stop_a, use, counts[a:b]])
+        return self._prepare(self.k.traverse_count_kernel, n,
+                             lambda a, b: self._ray_range(args, a, b) + [stop_a, use, counts[a:b]])
 
     # ------------------------------------------------------------------ traversal
     def _walk_args(self, grid, origins, directions, t_end):
