@@ -152,6 +152,18 @@ def _axis_clip(o: wp.float64, d: wp.float64, size: wp.float64, t0: wp.float64, t
 
 
 @wp.func
+def _clip_grid(o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32,
+               nz: wp.int32):
+    # the segment [0, t_end] clipped to the grid box [0, n s]^3; empty when t1 <= t0
+    t0 = wp.float64(0.0)
+    t1 = t_end
+    t0, t1 = _axis_clip(o[0], d[0], wp.float64(nx) * s, t0, t1)
+    t0, t1 = _axis_clip(o[1], d[1], wp.float64(ny) * s, t0, t1)
+    t0, t1 = _axis_clip(o[2], d[2], wp.float64(nz) * s, t0, t1)
+    return t0, t1
+
+
+@wp.func
 def _start_index(p: wp.float64, d: wp.float64, s: wp.float64, n: wp.int32):
     i = wp.int32(wp.floor(p / s))
     # a start exactly on a plane belongs to the voxel the ray moves into
@@ -178,11 +190,7 @@ def walk_begin(o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, nx: w
                nz: wp.int32) -> Walk:
     w = Walk()
     zero = wp.float64(0.0)
-    t0 = zero
-    t1 = t_end
-    t0, t1 = _axis_clip(o[0], d[0], wp.float64(nx) * s, t0, t1)
-    t0, t1 = _axis_clip(o[1], d[1], wp.float64(ny) * s, t0, t1)
-    t0, t1 = _axis_clip(o[2], d[2], wp.float64(nz) * s, t0, t1)
+    t0, t1 = _clip_grid(o, d, t_end, s, nx, ny, nz)
     w.alive = 0
     w.t1 = t1
     if t1 > t0:
@@ -270,11 +278,7 @@ def walk32_begin(o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, sf:
                  ny: wp.int32, nz: wp.int32) -> Walk32:
     w = Walk32()
     zero = wp.float64(0.0)
-    t0 = zero
-    t1 = t_end
-    t0, t1 = _axis_clip(o[0], d[0], wp.float64(nx) * s, t0, t1)
-    t0, t1 = _axis_clip(o[1], d[1], wp.float64(ny) * s, t0, t1)
-    t0, t1 = _axis_clip(o[2], d[2], wp.float64(nz) * s, t0, t1)
+    t0, t1 = _clip_grid(o, d, t_end, s, nx, ny, nz)
     w.alive = 0
     w.t1d = t1
     if t1 > t0:
