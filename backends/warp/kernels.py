@@ -1,9 +1,11 @@
 """Warp kernels of the core contract: LiDAR rays, ray-mesh, voxel traversal, scores, voting.
 
 Grid kernels take grid-local coordinates (the host subtracted the grid's lower corner in float64) and
-walk voxels in float64, so covered voxel sets, and therefore M-SOG, agree with the float64 reference
-(the contract asks for identical coverage across backends). Voxel boundary crossings are computed
-from integer plane indices, never accumulated. Ray-mesh intersection runs in float32.
+walk voxels with the float64 reference's decisions (walk32_*: float32 where an error bound makes a step
+certain, float64 otherwise), so covered voxel sets, and therefore M-SOG, agree with the reference bit
+for bit (the contract asks for identical coverage across backends). Voxel boundary crossings are
+computed from integer plane indices, never accumulated. Ray-mesh intersection runs in float32 (hit
+distances recomputed in float64).
 """
 
 from __future__ import annotations
@@ -152,6 +154,12 @@ def _axis_clip(o: wp.float64, d: wp.float64, size: wp.float64, t0: wp.float64, t
 
 
 @wp.func
+def _sign(x: wp.float64) -> wp.int32:
+    zero = wp.float64(0.0)
+    return wp.where(x > zero, 1, wp.where(x < zero, -1, 0))
+
+
+@wp.func
 def _clip_grid(o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32,
                nz: wp.int32):
     # the segment [0, t_end] clipped to the grid box [0, n s]^3; empty when t1 <= t0
@@ -189,7 +197,6 @@ def _next_t(i: wp.int32, step: wp.int32, o: wp.float64, d: wp.float64, s: wp.flo
 def walk_begin(o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32,
                nz: wp.int32) -> Walk:
     w = Walk()
-    zero = wp.float64(0.0)
     t0, t1 = _clip_grid(o, d, t_end, s, nx, ny, nz)
     w.alive = 0
     w.t1 = t1
@@ -199,9 +206,9 @@ def walk_begin(o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, nx: w
         w.i = _start_index(p[0], d[0], s, nx)
         w.j = _start_index(p[1], d[1], s, ny)
         w.k = _start_index(p[2], d[2], s, nz)
-        w.si = wp.where(d[0] > zero, 1, wp.where(d[0] < zero, -1, 0))
-        w.sj = wp.where(d[1] > zero, 1, wp.where(d[1] < zero, -1, 0))
-        w.sk = wp.where(d[2] > zero, 1, wp.where(d[2] < zero, -1, 0))
+        w.si = _sign(d[0])
+        w.sj = _sign(d[1])
+        w.sk = _sign(d[2])
         w.tx = _next_t(w.i, w.si, o[0], d[0], s)
         w.ty = _next_t(w.j, w.sj, o[1], d[1], s)
         w.tz = _next_t(w.k, w.sk, o[2], d[2], s)
@@ -287,9 +294,9 @@ def walk32_begin(o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, sf:
         w.i = _start_index(p[0], d[0], s, nx)
         w.j = _start_index(p[1], d[1], s, ny)
         w.k = _start_index(p[2], d[2], s, nz)
-        w.si = wp.where(d[0] > zero, 1, wp.where(d[0] < zero, -1, 0))
-        w.sj = wp.where(d[1] > zero, 1, wp.where(d[1] < zero, -1, 0))
-        w.sk = wp.where(d[2] > zero, 1, wp.where(d[2] < zero, -1, 0))
+        w.si = _sign(d[0])
+        w.sj = _sign(d[1])
+        w.sk = _sign(d[2])
         w.ki = wp.where(w.si > 0, 1, 0)
         w.kj = wp.where(w.sj > 0, 1, 0)
         w.kk = wp.where(w.sk > 0, 1, 0)
@@ -584,7 +591,7 @@ def score_ray_brick(
     # plain read of its bitset word (bits only ever get set, so a stale copy is safe: it only filters);
     # on leaving, one atomic_or with the bits the ray newly marked there (flush_brick). The first ray to
     # set a voxel's bit owns it and adds its weight. On the H100 this ran the dense rig on the 0.05 m
-    # grid in 3.12 against 3.37 ms (bench/gpu_score_variants.py); on the CPU it was slower (no atomics
+    # grid in 3.10 against 3.38 ms (bench/results/gpu-H100-score-variants-0.05m-2026-11-22.json); on the CPU it was slower (no atomics
     # to save there), so the CPU keeps score_ray.
     n = sensor_dirs.shape[0]
     rig = tid / n
