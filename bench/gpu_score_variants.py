@@ -7,7 +7,7 @@ Workload as in ``gpu_dense.py``: a population of ``--pop`` perturbed ``pyramid``
 * ``flat``: the kernel before bricking: one bit per voxel in flat (x, y, z) order, the occlusion mask
   as one byte per voxel, an ``atomic_or`` on every step;
 * ``bricked``: bitsets in 4 x 4 x 2 bricks (one 32-bit word each), the occlusion mask as a bricked
-  bitset, a plain read before the atomic (``score_ray`` of ``backends/warp/kernels.py``), no register cap;
+  bitset, a plain read before the atomic (``score_ray`` of ``place3d_kernels/backends/warp/kernels.py``), no register cap;
 * ``bricked-rN``: the same with CUDA ``__maxnreg__(N)`` (register cap for occupancy);
 * ``bricked-bD``: the same launched with D threads per block;
 * ``pervoxel-r72-b128``: bricked, 72 registers, 128 threads, plus a bricked nonzero-weight mask next to

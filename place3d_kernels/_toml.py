@@ -15,7 +15,7 @@ def config_dir(kind: str) -> Path:
 
 
 def resolve_config(path_or_name, kind: str) -> Path:
-    """A path as given, or the name of a shipped config (``"pyramid"`` -> configs/placements/pyramid.toml)."""
+    """A path as given, or the name of a shipped config (``"pyramid"`` -> place3d_kernels/configs/placements/pyramid.toml)."""
     p = Path(path_or_name)
     if p.exists():
         return p

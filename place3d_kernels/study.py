@@ -1,6 +1,6 @@
 """``place3d study CONFIG.toml``: M-SOG (seg, det) over a grid of placements x conditions x scenes.
 
-The config (``configs/study/example.toml``)::
+The config (``place3d_kernels/configs/study/example.toml``)::
 
     [study]
     name = "example"
@@ -44,7 +44,7 @@ __all__ = ["add_arguments", "run", "run_study", "load_config"]
 def add_arguments(p) -> None:
     from place3d_kernels.distributed import add_executor_arguments
 
-    p.add_argument("config", help="study TOML (see configs/study/example.toml)")
+    p.add_argument("config", help="study TOML (see place3d_kernels/configs/study/example.toml)")
     p.add_argument("--output", default=None, help="output folder (default: study-<name>/)")
     p.add_argument("--backend", default=None, help="backend of the tasks (default: $PLACE3D_BACKEND or auto)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")

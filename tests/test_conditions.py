@@ -36,7 +36,7 @@ def _condition_kernels_only(request):
         name = params.get(key)
         if name is not None and not isinstance(get_backend(name), ConditionKernels):
             pytest.skip(f"backend {name!r} has no condition kernels (it falls back to the reference)")
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "conditions"
+CONFIGS = Path(__file__).resolve().parents[1] / "place3d_kernels" / "configs" / "conditions"
 
 
 def _sphere_cloud(n, r_lo, r_hi, seed=0, labels=None, origin=ORIGIN):

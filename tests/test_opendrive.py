@@ -254,6 +254,6 @@ def test_carla_town_builds_and_evaluates(town):
     assert np.mean(np.isin(lab, [6, 7])) > 0.2  # the ego sees its road
     grid = p3k.Grid(lower=(-30, -30, -1), upper=(30, 30, 5), voxel_size=1.0)
     psog = p3k.PSOG.from_frames(frames, grid, frames_per_subset=2)
-    placement = p3k.Placement.load(Path(__file__).resolve().parents[1] / "configs" / "placements" / "pyramid.toml")
+    placement = p3k.Placement.load(Path(__file__).resolve().parents[1] / "place3d_kernels" / "configs" / "placements" / "pyramid.toml")
     score = p3k.msog(psog, lidar, placement)
     assert np.isfinite(score) and score <= 0.0

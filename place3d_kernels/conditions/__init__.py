@@ -15,7 +15,7 @@ condition           model                                         paper setting 
 ==================  ============================================  ====================================
 
 ``apply(cloud, name, seed, backend, severity=..., **params)`` dispatches by name (or by a TOML file under
-``configs/conditions/``); ``SEVERITIES[name]`` holds Robo3D's light / moderate / heavy levels (moderate =
+``place3d_kernels/configs/conditions/``); ``SEVERITIES[name]`` holds Robo3D's light / moderate / heavy levels (moderate =
 the paper's setting). ``lidar_returns`` gives per-ray returns in a mesh (analytic, or Mitsuba 3 with the
 ``mitsuba`` extra).
 
@@ -73,7 +73,7 @@ SEVERITIES = {
 
 
 def load_condition(name_or_path) -> dict:
-    """Read a condition config: a shipped name (``configs/conditions/<name>.toml``) or a TOML path.
+    """Read a condition config: a shipped name (``place3d_kernels/configs/conditions/<name>.toml``) or a TOML path.
 
     Returns:
         ``{"condition": name, "params": {...}, "severities": {level: {...}}}``.

@@ -1,7 +1,7 @@
 """OpenCL backend (PyOpenCL; PoCL on the CPU, any OpenCL GPU).
 
 ``opencl_devices()`` lists the usable platforms by short name (``"pocl"``, ``"nvidia"``, ...);
-``OpenCLBackend(name)`` runs the kernels of ``backends/base.py`` on one of them. Kernel sources are the
+``OpenCLBackend(name)`` runs the kernels of ``place3d_kernels/backends/base.py`` on one of them. Kernel sources are the
 ``*.cl`` files next to this module; the ray caster's BVH is built on the host (``bvh.py``).
 
 Importing this package raises ImportError when PyOpenCL is not installed.

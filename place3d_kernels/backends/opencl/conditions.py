@@ -1,6 +1,6 @@
 """OpenCL kernels of the adverse-condition models (``conditions.cl``; one work-item per point).
 
-Same contract as ``backends/conditions_base.py``: random numbers come from the host, so an OpenCL result
+Same contract as ``place3d_kernels/backends/conditions_base.py``: random numbers come from the host, so an OpenCL result
 equals the reference one up to rounding. The kernels compute in the backend's ``real`` type: double where
 the device has ``cl_khr_fp64`` (PoCL, NVIDIA; then results agree with the reference to ~1e-15 and every
 threshold decision is the reference's except exact ties), float32 with ``fp64=False`` or on devices without

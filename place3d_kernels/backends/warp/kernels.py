@@ -52,7 +52,7 @@ def _comp(v: wp.vec3d, k: wp.int32):
 @wp.func
 def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fallback: wp.float64):
     # Distance to triangle (a, b, c) with the reference's formula (Woop, Benthin & Wald's watertight test
-    # in float64, backends/reference/core.py), operation for operation and without FMA contraction, so
+    # in float64, place3d_kernels/backends/reference/core.py), operation for operation and without FMA contraction, so
     # backends that find the same face report the same t, bit for bit
     ad = wp.vec3d(wp.abs(d[0]), wp.abs(d[1]), wp.abs(d[2]))
     kz = wp.int32(0)
@@ -238,7 +238,7 @@ def walk_next(w: Walk, o: wp.vec3d, d: wp.vec3d, s: wp.float64, nx: wp.int32, ny
 
 # ----------------------------------------------------------------------------- float32 walk, exact
 # The walk the kernels run. It takes the same decisions as walk_begin / walk_next (the float64 reference
-# walk) but makes them in float32 where that is certain, as the OpenCL backend does (backends/opencl/
+# walk) but makes them in float32 where that is certain, as the OpenCL backend does (place3d_kernels/backends/opencl/
 # grid.cl, which derives the bound): in a frame rebased at the entry point p0 = o + t0 d and the first
 # voxel b, the time after t0 at which the ray crosses boundary plane b + K of an axis is
 #     t' = (K s - q) / d,   q = p0 - b s,

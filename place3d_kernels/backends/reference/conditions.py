@@ -1,6 +1,6 @@
 """Reference (NumPy float64) kernels of the adverse-condition models: the executable specification.
 
-The contract, formulas and the host/kernel split are documented in ``backends/conditions_base.py``.
+The contract, formulas and the host/kernel split are documented in ``place3d_kernels/backends/conditions_base.py``.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Reference kernels: NumPy float64, written for clarity, not speed.
 
-This module is the executable specification of the kernel contract (``backends/base.py``). Every other
+This module is the executable specification of the kernel contract (``place3d_kernels/backends/base.py``). Every other
 backend is tested against it. It is slow: ray-mesh intersection is brute force over all triangles, and
 voxel traversal loops over rays in Python.
 """

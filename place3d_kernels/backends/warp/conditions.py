@@ -1,6 +1,6 @@
 """Warp kernels of the adverse-condition models (float32, one thread per point).
 
-Same contract as ``backends/conditions_base.py``; random numbers come from the host, so a Warp result
+Same contract as ``place3d_kernels/backends/conditions_base.py``; random numbers come from the host, so a Warp result
 equals the reference one up to float32 rounding (a decision taken within rounding of its threshold may
 differ). Mixed into ``WarpBackend``, which provides ``self.device``.
 """
