@@ -37,12 +37,12 @@ def _probe() -> tuple[tuple[str, ...], tuple[tuple[str, str], ...]]:
     except ImportError as e:
         missing.append(("warp", f"{e}; install with: {_INSTALL['warp']}"))
     try:
-        from place3d_kernels.backends.opencl import opencl_devices
+        from place3d_kernels.backends.opencl import opencl_devices, unusable_platforms
 
         devs = opencl_devices()
-        if devs:
-            names += [f"opencl:{d}" for d in devs]
-        else:
+        names += [f"opencl:{d}" for d in devs]
+        missing += [("opencl", f"platform {plat}: {why}") for plat, why in unusable_platforms()]
+        if not devs and not unusable_platforms():
             missing.append(("opencl", "no OpenCL platform with a usable device; install a driver such as PoCL: "
                                       + _INSTALL["opencl"]))
     except ImportError as e:

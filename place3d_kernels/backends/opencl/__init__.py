@@ -14,7 +14,7 @@ try:
 except ImportError as e:  # pragma: no cover - depends on the environment
     raise ImportError(f"PyOpenCL is not installed ({e})") from e
 
-from place3d_kernels.backends.opencl._runtime import INSTALL_HINT, platform_table
+from place3d_kernels.backends.opencl._runtime import INSTALL_HINT, platform_table, unusable_platforms
 from place3d_kernels.backends.opencl.backend import OpenCLBackend
 
 
@@ -27,4 +27,4 @@ def opencl_devices() -> list[str]:
     return list(platform_table())
 
 
-__all__ = ["OpenCLBackend", "opencl_devices", "INSTALL_HINT"]
+__all__ = ["OpenCLBackend", "opencl_devices", "unusable_platforms", "INSTALL_HINT"]

@@ -8,11 +8,12 @@ from __future__ import annotations
 import re
 import threading
 import warnings
+from functools import lru_cache
 from pathlib import Path
 
 import pyopencl as cl
 
-__all__ = ["INSTALL_HINT", "platform_table", "short_name", "build_program", "kernel_source"]
+__all__ = ["INSTALL_HINT", "platform_table", "unusable_platforms", "short_name", "build_program", "kernel_source"]
 
 INSTALL_HINT = "pip install 'place3d-kernels[opencl]'  (PyOpenCL + the PoCL CPU driver)"
 
@@ -44,10 +45,34 @@ def short_name(platform_name: str) -> str:
     return words[0] if words else "cl"
 
 
+_PROBE_SOURCE = "__kernel void probe(__global int *a) { a[get_global_id(0)] = 1; }"
+_unusable: list[tuple[str, str]] = []
+
+#: what to do when a platform cannot compile; the PyPI PoCL wheel (3.0, LLVM 14) does not know AMD Zen 5
+#: (CPU family 26) and asks its compiler for target CPU 'generic', which LLVM rejects (pocl issue #1049)
+POCL_CPU_HINT = ("this PoCL's LLVM does not know the host CPU; install a PoCL whose LLVM does (Debian: "
+                 "apt-get install pocl-opencl-icd) and make it visible: export OCL_ICD_VENDORS=/etc/OpenCL/vendors")
+
+
+def _compiles(ctx: "cl.Context") -> str | None:
+    """None if the platform builds a one-line kernel, else the compiler's first error line."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", cl.CompilerWarning)
+            cl.Program(ctx, _PROBE_SOURCE).build()
+    except cl.Error as e:  # RuntimeError subclasses: BUILD_PROGRAM_FAILURE and the like
+        lines = [ln.strip() for ln in str(e).splitlines() if "error" in ln.lower() and "clBuild" not in ln]
+        return lines[0] if lines else str(e).splitlines()[0]
+    return None
+
+
+@lru_cache(maxsize=None)
 def platform_table() -> dict[str, tuple["cl.Platform", list["cl.Device"]]]:
     """Usable platforms by unique short name (a second platform of the same vendor gets a suffix 2, 3...).
 
-    Platforms without a device are left out. No ICD platform at all gives an empty dict.
+    Platforms without a device are left out, and so are platforms that cannot compile a one-line kernel
+    (``unusable_platforms()`` says why). No ICD platform at all gives an empty dict. Cached: the probe
+    compiles once per process.
     """
     try:
         plats = cl.get_platforms()
@@ -62,12 +87,23 @@ def platform_table() -> dict[str, tuple["cl.Platform", list["cl.Device"]]]:
         devs = [d for d in devs if d.available]
         if not devs:
             continue
+        why = _compiles(cl.Context(devs[:1]))
+        if why is not None:
+            hint = POCL_CPU_HINT if "unknown target cpu" in why.lower() else "check the OpenCL driver"
+            _unusable.append((f"{p.name} ({p.version.strip()})", f"cannot compile: {why}; {hint}"))
+            continue
         base = short_name(p.name)
         name, k = base, 2
         while name in table:
             name, k = f"{base}{k}", k + 1
         table[name] = (p, devs)
     return table
+
+
+def unusable_platforms() -> list[tuple[str, str]]:
+    """(platform, reason) for platforms that have a device but failed the compile probe."""
+    platform_table()
+    return list(_unusable)
 
 
 def kernel_source(*files: str) -> str:
