@@ -45,7 +45,8 @@ from place3d_kernels.classes import CLASS_ID
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.scene.base import Actor, Scene
 from place3d_kernels.scene.primitives import transform
-from place3d_kernels.scene.town import EGO_LENGTH, _Town, pedestrian_mesh, vehicle_mesh
+from place3d_kernels.scene.bodies import EGO_LENGTH, pedestrian_mesh, vehicle_mesh
+from place3d_kernels.scene.props import Props
 
 __all__ = ["from_opendrive", "parse_opendrive", "OpenDrive", "Road", "OPENDRIVE_OPTIONS", "LANE_CLASS"]
 
@@ -661,7 +662,7 @@ def _box_of(m: Mesh, x, y, z, yaw):
     return [x + cs * c[0] - sn * c[1], y + sn * c[0] + cs * c[1], z + c[2], *(hi - lo).tolist(), yaw]
 
 
-def _roadside(T: _Town, rng, raster: _Raster, edges, lanes, height_at, opt, boxes):
+def _roadside(T: Props, rng, raster: _Raster, edges, lanes, height_at, opt, boxes):
     """Street furniture, buildings, trees and parked cars next to the outer lane edges."""
     parked = 0
     # parked cars on parking lanes
@@ -755,7 +756,7 @@ def _roadside(T: _Town, rng, raster: _Raster, edges, lanes, height_at, opt, boxe
     return parked
 
 
-def _fill(T: _Town, rng, raster: _Raster, road_mask: np.ndarray, height_at, density: float):
+def _fill(T: Props, rng, raster: _Raster, road_mask: np.ndarray, height_at, density: float):
     """Buildings and trees in the free space between the roads, facing the nearest road."""
     from scipy import ndimage
 
@@ -859,7 +860,7 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
         gf = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
         parts.append((gv, gf, np.full(len(gf), TERRAIN, np.int32)))
 
-    T = _Town(rng, {})
+    T = Props(rng, {})
     n_parked = 0
     static_boxes: list = []
     if opt["roadside"]:
