@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import time
 from pathlib import Path
 
@@ -13,7 +14,13 @@ from scipy.special import fresnel
 import place3d_kernels as p3k
 from place3d_kernels.scene.opendrive import from_opendrive, parse_opendrive
 
-TOWNS_DIR = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "opendrive"
+_REPO = Path(__file__).resolve().parents[1]
+# the CARLA maps: $P3K_OPENDRIVE_DIR, else ../shared/data/opendrive beside the checkout (or beside the folder
+# holding a git worktree)
+TOWNS_DIR = next((d for d in (Path(os.environ.get("P3K_OPENDRIVE_DIR", "") or "/nonexistent"),
+                              _REPO / ".." / "shared" / "data" / "opendrive",
+                              _REPO / ".." / ".." / "shared" / "data" / "opendrive") if d.is_dir()),
+                 _REPO / ".." / "shared" / "data" / "opendrive")
 #: README figures (km)
 TOWN_LENGTHS = {"Town01": 3.9, "Town03": 9.1, "Town04": 9.75, "Town06": 7.3}
 
