@@ -146,7 +146,9 @@ def _marks(lane: Lane, s, ds, t, at, lines: Strips, opt, inner_types=()):
     mid = 0.5 * (s[1:] + s[:-1])
     mid_ds = 0.5 * (ds[1:] + ds[:-1])
     kinds = [lane.mark_at(v) for v in mid_ds]
-    for mtype in set(k[1] for k in kinds if k is not None):
+    # first-appearance order, not set order: string hashes vary per process (PYTHONHASHSEED), and the face
+    # order must not, or the scene key (and the P-SOG cache) would differ between runs
+    for mtype in dict.fromkeys(k[1] for k in kinds if k is not None):
         if mtype not in _PAINTED:
             continue
         sel = np.array([k is not None and k[1] == mtype for k in kinds])
