@@ -21,8 +21,9 @@ step), ``poly3`` (local u/v cubic, arc length mapped to u numerically) and ``par
 ``step`` metres (default 1.5 m; finer on tight curves), so Town03 (9 km of road) meshes in seconds.
 
 Roadside content is placed procedurally from ``seed`` (buildings, trees and hedges, lamps, signs,
-traffic lights, parked cars on parking lanes or beside the road) on a 1 m occupancy raster of the road
-area, so nothing stands on a lane. Traffic drives along lane centre lines (right lanes along +s, left
+traffic lights, parked cars on parking lanes or beside the road, and beside every outer road edge within
+60 m of the ego route) on a 1 m occupancy raster of the road area, so nothing stands on a lane. A lead
+vehicle drives ahead of the ego on its route. Traffic drives along lane centre lines (right lanes along +s, left
 lanes against s); routes chain lanes whose centre lines meet end to start (within 1 m and 45 degrees),
 which follows the junction connecting roads without parsing lane links. The ego vehicle does the same.
 
@@ -47,7 +48,7 @@ from place3d_kernels.classes import CLASS_ID
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.scene.base import Scene
 from place3d_kernels.scene.opendrive_mesh import DRIVING_TYPES, LANE_CLASS, Strips, mesh_road, orient_up
-from place3d_kernels.scene.opendrive_roadside import Raster, fill, road_area_points, roadside
+from place3d_kernels.scene.opendrive_roadside import Raster, fill, road_area_points, roadside, route_parking
 from place3d_kernels.scene.opendrive_traffic import ego_drive, traffic
 from place3d_kernels.scene.props import Props
 from place3d_kernels.scene.xodr import OpenDrive, Road, parse_opendrive
@@ -55,6 +56,10 @@ from place3d_kernels.scene.xodr import OpenDrive, Road, parse_opendrive
 __all__ = ["from_opendrive", "parse_opendrive", "OpenDrive", "Road", "OPENDRIVE_OPTIONS", "LANE_CLASS"]
 
 TERRAIN = CLASS_ID["terrain"]
+
+#: bumped whenever the builder changes what it places, so scene keys (and the P-SOG cache) change with it;
+#: 2: cars parked along the ego route, a lead vehicle, deterministic road-mark order
+BUILDER_VERSION = 2
 
 #: options of :func:`from_opendrive` and their defaults
 OPENDRIVE_OPTIONS = {
@@ -65,8 +70,10 @@ OPENDRIVE_OPTIONS = {
     "ground_cell": 8.0,      # m
     "ground_margin": 30.0,   # m around the road network
     "roadside": True,        # buildings, vegetation, street furniture, parked cars
+    "route_parking": True,   # cars parked beside the road edges along the ego route (needs roadside)
     "fill": 1.0,             # density of buildings and trees filling the space between roads (0: none)
     "n_traffic": 12,         # moving vehicles
+    "n_lead": 1,             # a vehicle ahead of the ego on its route (0: none)
     "n_pedestrians": 10,     # pedestrians on sidewalks
     "ego_speed": None,       # m/s; None: uniform in [6.5, 8.5]
     "frame_interval": 0.5,   # s
@@ -135,6 +142,14 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
                             static_boxes)
         if float(opt["fill"]) > 0:
             fill(T, rng, raster, road_mask, height_at, float(opt["fill"]))
+    dt = float(opt["frame_interval"])
+    t = np.arange(n_frames) * dt
+    ego_route, ego_poses, ego_speed, graph, ego_s0 = ego_drive(rng, info["lanes"], opt, t, od.path)
+    if opt["roadside"] and opt["route_parking"]:
+        # cars parked beside the roads the ego drives along, so every map shows some (the route is the drive
+        # plus at most one more lane)
+        n_parked += route_parking(T, rng, raster, [edges[i] for i in order], ego_route.p[:, :2], height_at,
+                                  static_boxes)
     if T.b._parts or T.b._box_c:
         rs = T.b.build()
         parts.append((rs.vertices, rs.faces, rs.labels))
@@ -142,12 +157,10 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
     static = Mesh(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] + o for p, o in zip(parts, offs)]),
                   np.concatenate([p[2] for p in parts]))
 
-    dt = float(opt["frame_interval"])
-    t = np.arange(n_frames) * dt
-    ego_route, ego_poses, ego_speed, graph = ego_drive(rng, info["lanes"], opt, t, od.path)
-    actors = traffic(rng, graph, info["lanes"], opt, t, ego_poses[:, :2])
+    actors = traffic(rng, graph, info["lanes"], opt, t, ego_poses[:, :2], ego_route, ego_s0, ego_speed)
     drive_area = float(sum(a for tp, a in info["area"].items() if tp.lower() in DRIVING_TYPES))
     meta = {
+        "builder": f"opendrive-{BUILDER_VERSION}",
         "file": str(od.path),
         "road_length": od.road_length,
         "road_length_no_junction": float(sum(r.length for r in od.roads if r.junction == "-1")),

@@ -12,7 +12,7 @@ from place3d_kernels.scene.opendrive_routes import Route
 from place3d_kernels.scene.primitives import transform
 from place3d_kernels.scene.props import Props
 
-__all__ = ["Raster", "road_area_points", "roadside", "fill"]
+__all__ = ["Raster", "road_area_points", "roadside", "fill", "edge_frame", "route_parking"]
 
 
 class Raster:
@@ -102,33 +102,10 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes)
             else:
                 u += rng.uniform(4.0, 9.0)
     for e in edges:
-        if len(e) < 2:
+        frame = edge_frame(e, raster)
+        if frame is None:
             continue
-        d = np.diff(e[:, :2], axis=0)
-        seg = np.linalg.norm(d, axis=1)
-        s = np.r_[0.0, np.cumsum(seg)]
-        if s[-1] < 6.0:
-            continue
-        # the outward side: edges are polylines of the outer lane border; the outward normal points
-        # away from the road, found from the raster (the side that is free)
-        def pose(u):
-            x = np.interp(u, s, e[:, 0])
-            y = np.interp(u, s, e[:, 1])
-            k = min(int(np.searchsorted(s, u, side="right")) - 1, len(d) - 1)
-            k = max(k, 0)
-            t = d[k] / max(seg[k], 1e-9)
-            return x, y, t
-
-        x, y, t = pose(s[-1] / 2)
-        nrm = np.array([-t[1], t[0]])
-        probe = np.array([[x + nrm[0] * 2.0, y + nrm[1] * 2.0], [x - nrm[0] * 2.0, y - nrm[1] * 2.0]])
-        ij = raster.idx(probe)
-        ij = np.clip(ij, 0, np.array(raster.shape) - 1)
-        occ = raster.occ[ij[:, 0], ij[:, 1]]
-        if occ[0] and occ[1]:
-            continue  # an inner edge (lanes on both sides)
-        if occ[0]:
-            nrm = -nrm
+        s, pose, nrm = frame
         u = rng.uniform(2.0, 10.0)
         while u < s[-1] - 2.0:
             x, y, t = pose(u)
@@ -172,6 +149,78 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes)
                     boxes.append(_box_of(m, px, py, z0, yaw))
                     parked += 1
             u += rng.uniform(5.0, 12.0)
+    return parked
+
+
+def edge_frame(e, raster: Raster):
+    """Arc lengths, a pose function u -> (x, y, unit tangent) and the outward normal of an outer lane edge;
+    None for an edge shorter than 6 m or an inner edge (road on both sides, per the raster)."""
+    if len(e) < 2:
+        return None
+    d = np.diff(e[:, :2], axis=0)
+    seg = np.linalg.norm(d, axis=1)
+    s = np.r_[0.0, np.cumsum(seg)]
+    if s[-1] < 6.0:
+        return None
+
+    def pose(u):
+        x = np.interp(u, s, e[:, 0])
+        y = np.interp(u, s, e[:, 1])
+        k = min(int(np.searchsorted(s, u, side="right")) - 1, len(d) - 1)
+        k = max(k, 0)
+        t = d[k] / max(seg[k], 1e-9)
+        return x, y, t
+
+    # the outward side: edges are polylines of the outer lane border; the outward normal points
+    # away from the road, found from the raster (the side that is free)
+    x, y, t = pose(s[-1] / 2)
+    nrm = np.array([-t[1], t[0]])
+    probe = np.array([[x + nrm[0] * 2.0, y + nrm[1] * 2.0], [x - nrm[0] * 2.0, y - nrm[1] * 2.0]])
+    ij = raster.idx(probe)
+    ij = np.clip(ij, 0, np.array(raster.shape) - 1)
+    occ = raster.occ[ij[:, 0], ij[:, 1]]
+    if occ[0] and occ[1]:
+        return None
+    return s, pose, (-nrm if occ[0] else nrm)
+
+
+def route_parking(T: Props, rng, raster: Raster, edges, route_xy, height_at, boxes, reach=60.0):
+    """Cars parked beside the outer road edges within ``reach`` metres of the ego route.
+
+    The roadside pass parks a car beside an edge rarely and anywhere on the map, so on a long map (Town06,
+    7 km of road) the ego could drive past none; this pass parks one every 5-15 m along the route's
+    stretch of each edge, where the raster is free (after buildings and trees took their places).
+
+    Returns:
+        the number of cars parked.
+    """
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(route_xy)
+    parked = 0
+    for e in edges:
+        frame = edge_frame(e, raster)
+        if frame is None:
+            continue
+        s, pose, nrm = frame
+        near = tree.query(e[:, :2], distance_upper_bound=reach)[0] < reach
+        if not near.any():
+            continue
+        u, u_end = s[np.argmax(near)], s[len(near) - 1 - np.argmax(near[::-1])]
+        u += rng.uniform(0.0, 6.0)
+        while u < u_end:
+            x, y, t = pose(u)
+            yaw = math.atan2(t[1], t[0])
+            n = np.array([-t[1], t[0]]) if np.dot([-t[1], t[0]], nrm) > 0 else np.array([t[1], -t[0]])
+            m, _ = vehicle_mesh(rng, "car" if rng.random() < 0.85 else "van")
+            lo, hi = m.bounds
+            px, py = x + n[0] * 2.2, y + n[1] * 2.2
+            if rng.random() < 0.7 and raster.take(px, py, hi[0] - lo[0], hi[1] - lo[1], yaw, 0.3):
+                z0 = height_at(px, py)
+                T.b.add(transform(m.vertices, px, py, z0, yaw=yaw), m.faces, m.labels)
+                boxes.append(_box_of(m, px, py, z0, yaw))
+                parked += 1
+            u += rng.uniform(5.0, 15.0)
     return parked
 
 

@@ -12,7 +12,7 @@ from place3d_kernels.scene.opendrive_routes import LaneGraph, Route, polylen
 __all__ = ["ego_drive", "traffic"]
 
 
-def ego_drive(rng, lanes, opt, t, where) -> tuple[Route, np.ndarray, float, LaneGraph]:
+def ego_drive(rng, lanes, opt, t, where) -> tuple[Route, np.ndarray, float, LaneGraph, float]:
     """The ego route: the longest of up to 40 random lane chains, stopping at the first long enough.
 
     Args:
@@ -23,7 +23,8 @@ def ego_drive(rng, lanes, opt, t, where) -> tuple[Route, np.ndarray, float, Lane
         where: names the file in errors.
 
     Returns:
-        the route, the ego poses (n_frames, 6), the ego speed (m/s) and the graph of driving lanes.
+        the route, the ego poses (n_frames, 6), the ego speed (m/s), the graph of driving lanes
+        and the ego's start on the route (m).
 
     Raises:
         ValueError: the map has no driving lanes.
@@ -47,12 +48,13 @@ def ego_drive(rng, lanes, opt, t, where) -> tuple[Route, np.ndarray, float, Lane
     ego_route = best
     s0 = min(rng.uniform(0.0, 10.0), max(ego_route.length - ego_speed * t[-1], 0.0))
     s_ego = s0 + ego_speed * t
-    return ego_route, ego_route.poses(s_ego), ego_speed, graph
+    return ego_route, ego_route.poses(s_ego), ego_speed, graph, s0
 
 
-def traffic(rng, graph: LaneGraph, lanes, opt, t, ego_xy) -> list[Actor]:
-    """Moving vehicles (half of them starting near the ego route) and pedestrians on the sidewalks; none
-    comes closer to the ego or to another actor than their radii at any frame."""
+def traffic(rng, graph: LaneGraph, lanes, opt, t, ego_xy, ego_route=None, ego_s0=0.0, ego_speed=0.0) -> list[Actor]:
+    """A lead vehicle on the ego route (``ego_route`` from ``ego_s0`` at ``ego_speed``), moving vehicles (half
+    of them starting near the ego route) and pedestrians on the sidewalks; none comes closer to the ego or to
+    another actor than their radii at any frame."""
     n_frames = len(t)
     actors: list[Actor] = []
     tracks: list[np.ndarray] = [ego_xy]
@@ -60,6 +62,18 @@ def traffic(rng, graph: LaneGraph, lanes, opt, t, ego_xy) -> list[Actor]:
 
     def clear(xy, rad):
         return all(np.min(np.linalg.norm(xy - o, axis=1)) > rad + r0 for o, r0 in zip(tracks, radii))
+
+    # a lead vehicle ahead of the ego in its lane, as in the embedded town: random traffic spread over a
+    # large map (Town06: 7 km of road) may never come near the ego
+    if ego_route is not None and opt["n_lead"]:
+        m, _ = vehicle_mesh(rng, str(rng.choice(["car", "car", "van"])))
+        half = float(max(m.bounds[1, 0] - m.bounds[0, 0], 2.0)) / 2
+        v = ego_speed * rng.uniform(0.9, 1.05)
+        poses = ego_route.poses(ego_s0 + rng.uniform(14.0, 22.0) + v * t)
+        if clear(poses[:, :2], half):
+            tracks.append(poses[:, :2])
+            radii.append(half)
+            actors.append(Actor(m, poses, "lead"))
 
     for k in range(int(opt["n_traffic"])):
         for _attempt in range(10):
