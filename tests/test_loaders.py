@@ -7,7 +7,8 @@ import pytest
 
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.scene import Scene, Actor
-from place3d_kernels.scene.loaders import combine, load_mesh, load_scene, resolve_class, save_mesh
+from place3d_kernels.scene.files import load_scene
+from place3d_kernels.scene.loaders import combine, load_mesh, resolve_class, save_mesh
 from place3d_kernels.scene.primitives import boxes
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import time
 from pathlib import Path
 
@@ -11,9 +12,16 @@ import pytest
 from scipy.special import fresnel
 
 import place3d_kernels as p3k
+from place3d_kernels.classes import CLASS_ID
 from place3d_kernels.scene.opendrive import from_opendrive, parse_opendrive
 
-TOWNS_DIR = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "opendrive"
+_REPO = Path(__file__).resolve().parents[1]
+# the CARLA maps: $P3K_OPENDRIVE_DIR, else ../shared/data/opendrive beside the checkout (or beside the folder
+# holding a git worktree)
+TOWNS_DIR = next((d for d in (Path(os.environ.get("P3K_OPENDRIVE_DIR", "") or "/nonexistent"),
+                              _REPO / ".." / "shared" / "data" / "opendrive",
+                              _REPO / ".." / ".." / "shared" / "data" / "opendrive") if d.is_dir()),
+                 _REPO / ".." / "shared" / "data" / "opendrive")
 #: README figures (km)
 TOWN_LENGTHS = {"Town01": 3.9, "Town03": 9.1, "Town04": 9.75, "Town06": 7.3}
 
@@ -53,7 +61,7 @@ def label_area(mesh, label):
     return 0.5 * float(np.abs(n[:, 2]).sum())  # horizontal (projected) area
 
 
-BARE = dict(ground=False, roadside=False, n_traffic=0, n_pedestrians=0)
+BARE = dict(ground=False, roadside=False, n_traffic=0, n_pedestrians=0, n_lead=0)
 
 
 def test_straight_road_length_area_and_labels(tmp_path):
@@ -257,3 +265,34 @@ def test_carla_town_builds_and_evaluates(town):
     placement = p3k.Placement.load(Path(__file__).resolve().parents[1] / "place3d_kernels" / "configs" / "placements" / "pyramid.toml")
     score = p3k.msog(psog, lidar, placement)
     assert np.isfinite(score) and score <= 0.0
+
+
+# one low-poly car is about 100 triangles (two boxes, four 6-sided wheels): 150 means more than one vehicle
+# (the lead and at least one parked or passing car) within 40 m of the ego at every checked frame
+MIN_VEHICLE_TRIANGLES = 150
+
+
+@pytest.mark.parametrize("town", sorted(TOWN_LENGTHS))
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_carla_town_has_vehicles_near_the_ego(town, seed):
+    path = TOWNS_DIR / f"{town}.xodr"
+    if not path.is_file():
+        pytest.skip(f"{path} not present (CARLA maps live in ../shared/data/opendrive)")
+    sc = from_opendrive(path, seed=seed, n_frames=40)
+    assert sum(a.kind == "vehicle" for a in sc.actors) > 0 and sc.meta["n_parked"] > 0
+    for f in (0, sc.n_frames // 2, sc.n_frames - 1):
+        m = sc.mesh(f)
+        centre = m.vertices[m.faces].mean(axis=1)[:, :2]
+        near = np.linalg.norm(centre - sc.ego_poses[f, :2], axis=1) < 40.0
+        n_vehicle = int(np.sum(near & (m.labels == CLASS_ID["vehicle"])))
+        assert n_vehicle >= MIN_VEHICLE_TRIANGLES, (town, seed, f, n_vehicle)
+
+
+def test_builder_version_is_part_of_the_key(tmp_path):
+    p = write(tmp_path, road_xml(0, 30.0, geom(30.0, "<line/>")))
+    a = from_opendrive(p, n_frames=2, **BARE)
+    b = from_opendrive(p, n_frames=2, **BARE)
+    assert a.meta["builder"].startswith("opendrive-") and a.key == b.key
+    b.meta["builder"] = "opendrive-older"
+    b.__dict__.pop("_key", None)
+    assert a.key != b.key

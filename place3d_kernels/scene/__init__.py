@@ -2,7 +2,8 @@
 
 from place3d_kernels.scene.base import Actor, Scene
 from place3d_kernels.scene.city import box_city
-from place3d_kernels.scene.loaders import combine, load_mesh, load_mitsuba, load_scene
+from place3d_kernels.scene.files import load_mitsuba, load_scene
+from place3d_kernels.scene.loaders import combine, load_mesh
 from place3d_kernels.scene.mitsuba_xml import load_mitsuba_scene, load_mitsuba_xml
 from place3d_kernels.scene.opendrive import from_opendrive
 from place3d_kernels.scene.town import town

@@ -59,11 +59,15 @@ class Scene:
 
     @property
     def key(self) -> str:
-        """Identity for on-disk caches: name, seed, and a hash of the geometry, labels, route and actors."""
+        """Identity for on-disk caches: name, seed, and a hash of the builder version (``meta["builder"]``,
+        if any), geometry, labels, route and actors."""
         if "_key" not in self.__dict__:
             import hashlib
 
             h = hashlib.blake2b(digest_size=12)
+            # a builder version (meta["builder"]) keys what the geometry hash may not show (actor kinds, boxes)
+            if "builder" in self.meta:
+                h.update(str(self.meta["builder"]).encode())
             for arr in (self.static.vertices, self.static.faces, self.static.labels, self.ego_poses):
                 h.update(np.ascontiguousarray(arr).tobytes())
             for a in self.actors:

@@ -20,67 +20,18 @@ Node transforms of GLB/GLTF scene graphs are applied. Vertices come back as floa
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
 
-from place3d_kernels.classes import CLASS_ID, CLASSES
+from place3d_kernels.classes import CLASSES
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.scene.base import Scene
+from place3d_kernels.scene.labels import class_from_name, load_label_map, resolve_class
 
-__all__ = ["load_mesh", "save_mesh", "combine", "resolve_class", "load_label_map", "load_scene", "load_mitsuba"]
+__all__ = ["load_mesh", "save_mesh", "combine", "resolve_class", "load_label_map"]
 
-_SUFFIX = re.compile(r"^(.*?)(?:[._\- ]\d+)?$")
 _FORMATS = ("obj", "ply", "glb", "gltf", "stl", "off")
-
-
-def resolve_class(value, where: str = "") -> int:
-    """A class id from an int or a class name ("traffic sign", "traffic_sign", "Road")."""
-    if isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"{where}label {value!r} is not a class id or name")
-    if isinstance(value, (int, np.integer)):
-        v = int(value)
-        if not 0 <= v < len(CLASSES):
-            raise ValueError(f"{where}class id {v} is outside 0..{len(CLASSES) - 1}")
-        return v
-    if isinstance(value, str):
-        key = value.strip().lower().replace("_", " ").replace("-", " ")
-        if key.isdigit():
-            return resolve_class(int(key), where)
-        if key in CLASS_ID:
-            return CLASS_ID[key]
-        raise ValueError(f"{where}unknown class name {value!r}; known: {', '.join(CLASSES)}")
-    raise ValueError(f"{where}label {value!r} is not a class id or name")
-
-
-def _class_from_name(name: str | None):
-    if not name:
-        return None
-    base = _SUFFIX.match(name.strip()).group(1).lower().replace("_", " ").replace("-", " ")
-    return CLASS_ID.get(base)
-
-
-def load_label_map(source) -> dict[str, int]:
-    """A name -> class mapping from a dict or a TOML file (top-level keys or a ``[labels]`` table)."""
-    if isinstance(source, (str, Path)):
-        path = Path(source)
-        if not path.is_file():
-            raise ValueError(f"{path}: no such label map file")
-        import tomllib
-
-        try:
-            data = tomllib.loads(path.read_text())
-        except Exception as e:  # noqa: BLE001 - any parse error becomes a ValueError naming the file
-            raise ValueError(f"{path}: not a valid TOML label map ({e})") from None
-        if isinstance(data.get("labels"), dict):
-            data = data["labels"]
-        where = f"{path}: "
-    elif isinstance(source, dict):
-        data, where = source, ""
-    else:
-        raise ValueError(f"labels must be a dict, a TOML path, a class id or a class name, got {type(source).__name__}")
-    return {str(k): resolve_class(v, f"{where}label map entry {k!r}: ") for k, v in data.items()}
 
 
 def _load_trimesh(path: Path, kind: str):
@@ -158,7 +109,7 @@ def load_mesh(path, labels=None, default=0, up: str = "z") -> Mesh:
                     raise ValueError(f"{path}: per-face labels must be {len(f)} values in 0..{len(CLASSES) - 1}")
             else:
                 if cls is None:
-                    cls = next((c for c in map(_class_from_name, names) if c is not None), None)
+                    cls = next((c for c in map(class_from_name, names) if c is not None), None)
                 if cls is None:
                     cls = mapping.get("*", default)
                 lab = np.full(len(f), cls)
@@ -245,20 +196,3 @@ def combine(parts, name: str = "combined", ego_poses=None, seed: int = 0) -> Sce
             raise ValueError(f"combine: actor {a.kind!r} has {len(a.poses)} poses for a route of {len(ego_poses)} frames")
     return Scene(static=Mesh.concatenate(statics), ego_poses=ego_poses, actors=actors, name=name, seed=seed,
                  frame_interval=first.frame_interval if first is not None else 0.5, meta=meta)
-
-
-def load_scene(path, labels=None, ego_poses=None, **kw) -> Scene:
-    """A static Scene from one mesh file or a Mitsuba XML scene (``ego_poses`` default: one frame at the
-    origin)."""
-    if Path(path).suffix.lower() == ".xml":
-        return load_mitsuba(path, labels=labels, ego_poses=ego_poses, **kw)
-    m = load_mesh(path, labels=labels, **kw)
-    return combine([m], name=f"mesh-{Path(path).stem}", ego_poses=ego_poses)
-
-
-def load_mitsuba(path, labels=None, ego_poses=None, **kw) -> Scene:
-    """A static Scene from a Mitsuba 3 XML file (shapes referencing PLY/OBJ files, primitives);
-    see place3d_kernels.scene.mitsuba_xml. Mitsuba itself is not needed."""
-    from place3d_kernels.scene.mitsuba_xml import load_mitsuba_scene
-
-    return load_mitsuba_scene(path, labels=labels, ego_poses=ego_poses, **kw)

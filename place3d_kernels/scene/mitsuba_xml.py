@@ -40,7 +40,8 @@ import numpy as np
 
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.scene.base import Scene
-from place3d_kernels.scene.loaders import _class_from_name, combine, load_label_map, load_mesh, resolve_class
+from place3d_kernels.scene.labels import class_from_name, load_label_map, resolve_class
+from place3d_kernels.scene.loaders import combine, load_mesh
 from place3d_kernels.scene.primitives import box, icosphere
 
 __all__ = ["load_mitsuba_xml", "load_mitsuba_scene", "parse_transform"]
@@ -317,7 +318,7 @@ class _Parser:
         if self.whole is not None:
             return self.whole, self.whole
         hit = next((self.mapping[n] for n in names if n in self.mapping), None)
-        fb = next((c for c in map(_class_from_name, names) if c is not None), None)
+        fb = next((c for c in map(class_from_name, names) if c is not None), None)
         if fb is None:
             fb = self.mapping.get("*", self.default)
         return hit, fb

@@ -1,0 +1,96 @@
+"""Low-poly labelled bodies shared by the scene builders: vehicles, pedestrians and unit templates."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from place3d_kernels.classes import CLASS_ID
+from place3d_kernels.mesh import Mesh
+from place3d_kernels.scene.primitives import MeshBuilder, icosphere, prism, transform
+
+__all__ = ["vehicle_mesh", "pedestrian_mesh", "template", "EGO_LENGTH", "EGO_WIDTH"]
+
+VEHICLE, PEDESTRIAN = CLASS_ID["vehicle"], CLASS_ID["pedestrian"]
+
+#: footprint of the ego vehicle (not part of the scene), metres
+EGO_LENGTH, EGO_WIDTH = 4.6, 2.0
+
+_TEMPLATES: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def template(name: str):
+    """A cached unit solid (vertices, faces): "ico0"/"ico1" icospheres, "prismN" an N-sided unit prism.
+
+    Raises:
+        KeyError: any other name.
+    """
+    if name not in _TEMPLATES:
+        if name == "ico1":
+            _TEMPLATES[name] = icosphere(1)
+        elif name == "ico0":
+            _TEMPLATES[name] = icosphere(0)
+        elif name.startswith("prism"):
+            n = int(name[5:])
+            _TEMPLATES[name] = prism(n, 1.0, 0.0, 1.0, phase=math.pi / n)
+        else:
+            raise KeyError(name)
+    return _TEMPLATES[name]
+
+
+def _wheel(v_unit, x, y, r, w):
+    """A wheel: unit prism (axis z) turned to axis y, radius r, width w, centred (x, y, r)."""
+    v = v_unit.copy()
+    v[:, :2] *= r
+    v[:, 2] = (v[:, 2] - 0.5) * w
+    # rotation about x by +90 deg: (x, y, z) -> (x, -z, y)
+    return np.stack([v[:, 0] + x, -v[:, 2] + y, v[:, 1] + r], 1)
+
+
+def vehicle_mesh(rng: np.random.Generator, kind: str | None = None) -> tuple[Mesh, str]:
+    """A low-poly vehicle in its own frame (x forward, z up, origin on the ground under its centre)."""
+    if kind is None:
+        kind = rng.choice(["car", "car", "car", "car", "car", "car", "van", "van", "truck", "bus"])
+    b = MeshBuilder()
+    wv, wf = template("prism6")
+    if kind == "car":
+        L, W, H = rng.uniform(4.0, 4.9), rng.uniform(1.75, 1.95), rng.uniform(1.4, 1.6)
+        b.add_box(0, 0, 0.3, L, W, 0.65, 0, VEHICLE)
+        cab = L * rng.uniform(0.45, 0.55)
+        b.add_box(-0.05 * L, 0, 0.95, cab, W - 0.14, H - 0.95, 0, VEHICLE)
+        r, ax = 0.32, L / 2 - 0.8
+    elif kind == "van":
+        L, W, H = rng.uniform(4.8, 5.6), 2.0, rng.uniform(1.9, 2.4)
+        b.add_box(0, 0, 0.35, L, W, 0.9, 0, VEHICLE)
+        b.add_box(-0.1, 0, 1.25, L - 0.8, W - 0.06, H - 1.25, 0, VEHICLE)
+        r, ax = 0.35, L / 2 - 0.85
+    elif kind == "truck":
+        L, W, H = rng.uniform(6.5, 8.0), 2.3, rng.uniform(2.8, 3.4)
+        b.add_box(L / 2 - 1.0, 0, 0.45, 2.0, W, 2.1, 0, VEHICLE)            # cab
+        b.add_box(-0.9, 0, 0.6, L - 2.2, W, H - 0.6, 0, VEHICLE)            # cargo box
+        r, ax = 0.45, L / 2 - 1.1
+    elif kind == "bus":
+        L, W, H = rng.uniform(10.0, 12.0), 2.5, rng.uniform(2.9, 3.2)
+        b.add_box(0, 0, 0.35, L, W, H - 0.35, 0, VEHICLE)
+        r, ax = 0.5, L / 2 - 2.2
+    else:
+        raise ValueError(f"unknown vehicle kind {kind!r}; use car, van, truck or bus")
+    for sx in (-ax, ax):
+        for sy in (-1, 1):
+            b.add(_wheel(wv, sx, sy * (W / 2 - 0.12), r, 0.24), wf, VEHICLE)
+    return b.build(), str(kind)
+
+
+def pedestrian_mesh(rng: np.random.Generator) -> Mesh:
+    """A low-poly pedestrian (label 4), origin on the ground between the feet, facing +x."""
+    h = rng.uniform(1.55, 1.92)
+    b = MeshBuilder()
+    for sy in (-0.09, 0.09):
+        b.add_box(0, sy, 0, 0.14, 0.14, 0.47 * h, 0, PEDESTRIAN)                 # legs
+    b.add_box(0, 0, 0.47 * h, 0.22, 0.38, 0.35 * h, 0, PEDESTRIAN)              # torso
+    for sy in (-0.245, 0.245):
+        b.add_box(0, sy, 0.48 * h, 0.1, 0.09, 0.33 * h, 0, PEDESTRIAN)          # arms
+    hv, hf = template("ico0")
+    b.add(transform(hv, 0, 0, 0.9 * h, scale=0.075 * h), hf, PEDESTRIAN)        # head
+    return b.build()

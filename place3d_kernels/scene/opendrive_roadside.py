@@ -1,0 +1,260 @@
+"""Roadside content of OpenDRIVE towns: an occupancy raster, street furniture, parked cars, buildings, trees."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from place3d_kernels.mesh import Mesh
+from place3d_kernels.scene.bodies import vehicle_mesh
+from place3d_kernels.scene.opendrive_routes import Route
+from place3d_kernels.scene.primitives import transform
+from place3d_kernels.scene.props import Props
+
+__all__ = ["Raster", "road_area_points", "roadside", "fill", "edge_frame", "route_parking"]
+
+
+class Raster:
+    """A 1 m occupancy raster over the map (road area plus placed objects)."""
+
+    def __init__(self, lo, hi, cell=1.0):
+        self.lo = np.asarray(lo, float)
+        self.cell = cell
+        self.shape = tuple(int(math.ceil((h - l) / cell)) + 1 for l, h in zip(lo, hi))
+        self.occ = np.zeros(self.shape, bool)
+
+    def idx(self, xy):
+        ij = np.floor((np.asarray(xy, float) - self.lo) / self.cell).astype(np.int64)
+        return ij
+
+    def mark_points(self, xy):
+        ij = self.idx(xy)
+        ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < self.shape[0]) & (ij[:, 1] < self.shape[1])
+        self.occ[ij[ok, 0], ij[ok, 1]] = True
+
+    def _rect_points(self, x, y, w, d, yaw, pad):
+        u = np.arange(-w / 2 - pad, w / 2 + pad + 1e-9, self.cell * 0.5)
+        v = np.arange(-d / 2 - pad, d / 2 + pad + 1e-9, self.cell * 0.5)
+        U, V = np.meshgrid(np.r_[u, w / 2 + pad], np.r_[v, d / 2 + pad], indexing="ij")
+        c, s = math.cos(yaw), math.sin(yaw)
+        return np.stack([x + c * U.ravel() - s * V.ravel(), y + s * U.ravel() + c * V.ravel()], 1)
+
+    def free(self, x, y, w, d, yaw, pad=0.5):
+        # cheap rejection on the centre and the corners first
+        c, s = math.cos(yaw), math.sin(yaw)
+        a, b = w / 2 + pad, d / 2 + pad
+        quick = np.array([[x, y], [x + c * a - s * b, y + s * a + c * b], [x - c * a - s * b, y - s * a + c * b],
+                          [x + c * a + s * b, y + s * a - c * b], [x - c * a + s * b, y - s * a - c * b]])
+        ij = self.idx(quick)
+        if np.any(ij < 0) or np.any(ij[:, 0] >= self.shape[0]) or np.any(ij[:, 1] >= self.shape[1]):
+            return False
+        if self.occ[ij[:, 0], ij[:, 1]].any():
+            return False
+        ij = self.idx(self._rect_points(x, y, w, d, yaw, pad))
+        if np.any(ij < 0) or np.any(ij[:, 0] >= self.shape[0]) or np.any(ij[:, 1] >= self.shape[1]):
+            return False
+        return not self.occ[ij[:, 0], ij[:, 1]].any()
+
+    def take(self, x, y, w, d, yaw, pad=0.5):
+        if not self.free(x, y, w, d, yaw, pad):
+            return False
+        self.mark_points(self._rect_points(x, y, w, d, yaw, pad))
+        return True
+
+
+def road_area_points(static_parts, spacing=0.5):
+    """Points covering every meshed lane triangle (vertices + barycentric samples), for the raster."""
+    v, f, lab = static_parts
+    tri = v[f]
+    pts = [v[:, :2]]
+    for a, b in ((1 / 3, 1 / 3), (0.5, 0.25), (0.25, 0.5), (0.25, 0.25), (0.5, 0.5), (0.0, 0.5), (0.5, 0.0)):
+        pts.append((tri[:, 0] * (1 - a - b) + tri[:, 1] * a + tri[:, 2] * b)[:, :2])
+    return np.concatenate(pts)
+
+
+def _box_of(m: Mesh, x, y, z, yaw):
+    """World (x, y, z, l, w, h, yaw) box of mesh ``m`` posed at (x, y, z, yaw); z = box centre."""
+    lo, hi = m.bounds
+    c = (lo + hi) / 2
+    cs, sn = math.cos(yaw), math.sin(yaw)
+    return [x + cs * c[0] - sn * c[1], y + sn * c[0] + cs * c[1], z + c[2], *(hi - lo).tolist(), yaw]
+
+
+def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes):
+    """Street furniture, buildings, trees and parked cars next to the outer lane edges."""
+    parked = 0
+    # parked cars on parking lanes
+    for ltype, junc, pts, width, rid in lanes:
+        if ltype != "parking" or junc:
+            continue
+        r = Route(pts)
+        u = rng.uniform(1.0, 5.0)
+        while u < r.length - 5.0:
+            if rng.random() < 0.6:
+                m, _ = vehicle_mesh(rng, "car" if rng.random() < 0.85 else "van")
+                L = float(m.bounds[1, 0] - m.bounds[0, 0])
+                p = r.poses([u + L / 2])[0]
+                T.b.add(transform(m.vertices, p[0], p[1], p[2], yaw=p[5]), m.faces, m.labels)
+                boxes.append(_box_of(m, p[0], p[1], p[2], p[5]))
+                parked += 1
+                u += L + rng.uniform(0.8, 2.5)
+            else:
+                u += rng.uniform(4.0, 9.0)
+    for e in edges:
+        frame = edge_frame(e, raster)
+        if frame is None:
+            continue
+        s, pose, nrm = frame
+        u = rng.uniform(2.0, 10.0)
+        while u < s[-1] - 2.0:
+            x, y, t = pose(u)
+            yaw = math.atan2(t[1], t[0])
+            n = np.array([-t[1], t[0]]) if np.dot([-t[1], t[0]], nrm) > 0 else np.array([t[1], -t[0]])
+            out_yaw = math.atan2(-n[1], -n[0])  # facing the road
+            r = rng.random()
+            z0 = height_at(x, y)
+            if r < 0.18:  # lamp just off the edge
+                px, py = x + n[0] * 0.6, y + n[1] * 0.6
+                if raster.take(px, py, 0.4, 0.4, 0.0, 0.1):
+                    T.lamp(px, py, z0, out_yaw)
+            elif r < 0.26:
+                px, py = x + n[0] * 0.5, y + n[1] * 0.5
+                if raster.take(px, py, 0.4, 0.4, 0.0, 0.1):
+                    T.sign(px, py, z0, math.atan2(-t[1], -t[0]))
+            elif r < 0.30:
+                px, py = x + n[0] * 0.7, y + n[1] * 0.7
+                if raster.take(px, py, 0.5, 0.5, 0.0, 0.1):
+                    T.traffic_light(px, py, z0, (-n[0], -n[1]), rng.uniform(3.5, 5.0))
+            elif r < 0.55:  # a tree or hedge a little further out
+                off = rng.uniform(2.5, 5.0)
+                px, py = x + n[0] * off, y + n[1] * off
+                if raster.take(px, py, 2.0, 2.0, 0.0, 0.5):
+                    if rng.random() < 0.8:
+                        T.tree(px, py, z0, rng.uniform(0.8, 1.2))
+                    else:
+                        T.hedge(px, py, z0, rng.uniform(2.0, 4.0), 1.0, rng.uniform(0.8, 1.6), yaw)
+            elif r < 0.85:  # a building set back from the road
+                w, dd = rng.uniform(8.0, 20.0), rng.uniform(8.0, 16.0)
+                off = rng.uniform(4.0, 9.0) + dd / 2
+                px, py = x + n[0] * off, y + n[1] * off
+                if raster.take(px, py, w, dd, yaw, 1.0):
+                    T.building(px, py, z0, w, dd, rng.uniform(5.0, 22.0), yaw)
+                    u += w / 2
+            elif r < 0.9 and parked < 400:  # a car parked beside the road
+                m, _ = vehicle_mesh(rng, "car")
+                px, py = x + n[0] * 2.2, y + n[1] * 2.2
+                if raster.take(px, py, 4.8, 2.0, yaw, 0.3):
+                    T.b.add(transform(m.vertices, px, py, z0, yaw=yaw), m.faces, m.labels)
+                    boxes.append(_box_of(m, px, py, z0, yaw))
+                    parked += 1
+            u += rng.uniform(5.0, 12.0)
+    return parked
+
+
+def edge_frame(e, raster: Raster):
+    """Arc lengths, a pose function u -> (x, y, unit tangent) and the outward normal of an outer lane edge;
+    None for an edge shorter than 6 m or an inner edge (road on both sides, per the raster)."""
+    if len(e) < 2:
+        return None
+    d = np.diff(e[:, :2], axis=0)
+    seg = np.linalg.norm(d, axis=1)
+    s = np.r_[0.0, np.cumsum(seg)]
+    if s[-1] < 6.0:
+        return None
+
+    def pose(u):
+        x = np.interp(u, s, e[:, 0])
+        y = np.interp(u, s, e[:, 1])
+        k = min(int(np.searchsorted(s, u, side="right")) - 1, len(d) - 1)
+        k = max(k, 0)
+        t = d[k] / max(seg[k], 1e-9)
+        return x, y, t
+
+    # the outward side: edges are polylines of the outer lane border; the outward normal points
+    # away from the road, found from the raster (the side that is free)
+    x, y, t = pose(s[-1] / 2)
+    nrm = np.array([-t[1], t[0]])
+    probe = np.array([[x + nrm[0] * 2.0, y + nrm[1] * 2.0], [x - nrm[0] * 2.0, y - nrm[1] * 2.0]])
+    ij = raster.idx(probe)
+    ij = np.clip(ij, 0, np.array(raster.shape) - 1)
+    occ = raster.occ[ij[:, 0], ij[:, 1]]
+    if occ[0] and occ[1]:
+        return None
+    return s, pose, (-nrm if occ[0] else nrm)
+
+
+def route_parking(T: Props, rng, raster: Raster, edges, route_xy, height_at, boxes, reach=60.0):
+    """Cars parked beside the outer road edges within ``reach`` metres of the ego route.
+
+    The roadside pass parks a car beside an edge rarely and anywhere on the map, so on a long map (Town06,
+    7 km of road) the ego could drive past none; this pass parks one every 5-15 m along the route's
+    stretch of each edge, where the raster is free (after buildings and trees took their places).
+
+    Returns:
+        the number of cars parked.
+    """
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(route_xy)
+    parked = 0
+    for e in edges:
+        frame = edge_frame(e, raster)
+        if frame is None:
+            continue
+        s, pose, nrm = frame
+        near = tree.query(e[:, :2], distance_upper_bound=reach)[0] < reach
+        if not near.any():
+            continue
+        u, u_end = s[np.argmax(near)], s[len(near) - 1 - np.argmax(near[::-1])]
+        u += rng.uniform(0.0, 6.0)
+        while u < u_end:
+            x, y, t = pose(u)
+            yaw = math.atan2(t[1], t[0])
+            n = np.array([-t[1], t[0]]) if np.dot([-t[1], t[0]], nrm) > 0 else np.array([t[1], -t[0]])
+            m, _ = vehicle_mesh(rng, "car" if rng.random() < 0.85 else "van")
+            lo, hi = m.bounds
+            px, py = x + n[0] * 2.2, y + n[1] * 2.2
+            if rng.random() < 0.7 and raster.take(px, py, hi[0] - lo[0], hi[1] - lo[1], yaw, 0.3):
+                z0 = height_at(px, py)
+                T.b.add(transform(m.vertices, px, py, z0, yaw=yaw), m.faces, m.labels)
+                boxes.append(_box_of(m, px, py, z0, yaw))
+                parked += 1
+            u += rng.uniform(5.0, 15.0)
+    return parked
+
+
+def fill(T: Props, rng, raster: Raster, road_mask: np.ndarray, height_at, density: float):
+    """Buildings and trees in the free space between the roads, facing the nearest road."""
+    from scipy import ndimage
+
+    dist, (ni, nj) = ndimage.distance_transform_edt(~road_mask, return_indices=True)
+    free_area = float((dist > 3.0).sum()) * raster.cell ** 2
+    lo, cell = raster.lo, raster.cell
+
+    def sample(dmin, dmax, n):
+        ii, jj = np.nonzero((dist >= dmin / cell) & (dist <= dmax / cell))
+        if len(ii) == 0:
+            return []
+        k = rng.integers(0, len(ii), size=n)
+        return list(zip(ii[k], jj[k]))
+
+    for i, j in sample(5.0, 45.0, int(density * free_area / 250.0)):
+        x, y = lo[0] + (i + 0.5) * cell, lo[1] + (j + 0.5) * cell
+        dx, dy = (ni[i, j] - i) * cell, (nj[i, j] - j) * cell
+        yaw = math.atan2(dy, dx) + math.pi / 2  # the long side along the road
+        w, dd = rng.uniform(10.0, 26.0), rng.uniform(8.0, 18.0)
+        if dist[i, j] * cell < dd / 2 + 1.5:
+            continue
+        if raster.take(x, y, w, dd, yaw, 1.5):
+            h = rng.uniform(4.0, 7.0) if rng.random() < 0.3 else rng.uniform(7.0, 30.0)
+            T.building(x, y, height_at(x, y), w, dd, h, yaw)
+    for i, j in sample(3.0, 80.0, int(density * free_area / 200.0)):
+        x, y = lo[0] + (i + 0.5) * cell, lo[1] + (j + 0.5) * cell
+        if raster.take(x, y, 2.0, 2.0, 0.0, 0.8):
+            z0 = height_at(x, y)
+            if rng.random() < 0.85:
+                T.tree(x, y, z0, rng.uniform(0.8, 1.3))
+            else:
+                T.hedge(x, y, z0, rng.uniform(2.0, 5.0), rng.uniform(0.8, 1.5), rng.uniform(0.8, 1.8),
+                        rng.uniform(0, math.pi))

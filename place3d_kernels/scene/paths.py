@@ -1,0 +1,137 @@
+"""Planar paths for the procedural town: arc-length curves, filleted lane centrelines and junction walks."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["Path", "fillet", "lane_path", "walk", "DIRS"]
+
+_RIGHT_TURN_RADIUS = 8.0
+_LEFT_TURN_RADIUS = 12.0
+
+
+class Path:
+    """A planar curve sampled densely; poses by arc length (linear extrapolation past both ends)."""
+
+    def __init__(self, points: np.ndarray):
+        p = np.asarray(points, float)
+        keep = np.r_[True, np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-9]
+        p = p[keep]
+        self.points = p
+        d = np.diff(p, axis=0)
+        seg = np.linalg.norm(d, axis=1)
+        self.s = np.r_[0.0, np.cumsum(seg)]
+        head = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+        # yaw at vertices: mean of adjacent segment headings
+        self.yaw = np.r_[head[0], (head[:-1] + head[1:]) / 2, head[-1]]
+        self.dir0 = d[0] / seg[0]
+        self.dir1 = d[-1] / seg[-1]
+
+    @property
+    def length(self) -> float:
+        return float(self.s[-1])
+
+    def at(self, s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x, y, yaw at arc lengths ``s``."""
+        s = np.asarray(s, float)
+        x = np.interp(s, self.s, self.points[:, 0])
+        y = np.interp(s, self.s, self.points[:, 1])
+        yaw = np.interp(s, self.s, self.yaw)
+        lo, hi = s < 0, s > self.length
+        x = np.where(lo, self.points[0, 0] + s * self.dir0[0], x)
+        y = np.where(lo, self.points[0, 1] + s * self.dir0[1], y)
+        e = s - self.length
+        x = np.where(hi, self.points[-1, 0] + e * self.dir1[0], x)
+        y = np.where(hi, self.points[-1, 1] + e * self.dir1[1], y)
+        return x, y, yaw
+
+    def nearest_s(self, xy, lo: float = -np.inf, hi: float = np.inf) -> float:
+        """Arc length of the sample nearest to ``xy`` among those with lo <= s <= hi."""
+        i0, i1 = np.searchsorted(self.s, lo), np.searchsorted(self.s, hi, side="right")
+        i1 = max(i1, i0 + 1)
+        k = i0 + int(np.argmin(np.linalg.norm(self.points[i0:i1] - np.asarray(xy)[None], axis=1)))
+        return float(self.s[min(k, len(self.s) - 1)])
+
+
+def fillet(corners: np.ndarray, radii, step: float = 0.25) -> Path:
+    """Polyline through ``corners`` with circular fillets of ``radii`` at interior corners."""
+    P = np.asarray(corners, float)
+    radii = np.broadcast_to(np.asarray(radii, float), (len(P),))
+    pts = [P[0]]
+    for i in range(1, len(P) - 1):
+        u, w = P[i] - P[i - 1], P[i + 1] - P[i]
+        lu, lw = np.linalg.norm(u), np.linalg.norm(w)
+        u, w = u / lu, w / lw
+        cross = u[0] * w[1] - u[1] * w[0]
+        theta = math.acos(float(np.clip(u @ w, -1.0, 1.0)))
+        if theta < 1e-6:
+            pts.append(P[i])
+            continue
+        t = min(radii[i] * math.tan(theta / 2), 0.49 * lu, 0.49 * lw)
+        r = t / math.tan(theta / 2)
+        A = P[i] - u * t
+        sgn = 1.0 if cross > 0 else -1.0
+        centre = A + sgn * r * np.array([-u[1], u[0]])
+        a0 = math.atan2(A[1] - centre[1], A[0] - centre[0])
+        k = max(2, int(math.ceil(r * theta / step)))
+        a = a0 + sgn * theta * np.linspace(0, 1, k + 1)
+        pts.extend(np.stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)], 1))
+    pts.append(P[-1])
+    pts = np.array(pts)
+    # densify straight stretches
+    out = [pts[0]]
+    for a, b in zip(pts[:-1], pts[1:]):
+        n = max(1, int(math.ceil(np.linalg.norm(b - a) / step)))
+        out.extend(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    return Path(np.array(out))
+
+
+def lane_path(nodes, centres, offset, step=0.25) -> Path:
+    """Lane centreline of a junction walk: ``offset`` metres along the left normal of travel (negative: the
+    right-hand lane), with fillets of the turn radii at junctions."""
+    P = np.array([[centres[i], centres[j]] for i, j in nodes], float)
+    dirs = np.diff(P, axis=0)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    nrm = np.stack([-dirs[:, 1], dirs[:, 0]], 1)
+    corners = [P[0] + offset * nrm[0]]
+    radii = [0.0]
+    for k in range(1, len(P) - 1):
+        if np.allclose(dirs[k - 1], dirs[k]):
+            corners.append(P[k] + offset * nrm[k])
+            radii.append(0.0)
+        else:
+            corners.append(P[k] + offset * (nrm[k - 1] + nrm[k]))
+            left = dirs[k - 1][0] * dirs[k][1] - dirs[k - 1][1] * dirs[k][0] > 0
+            # with offset < 0 (right-hand traffic) left turns sweep wide, right turns hug the corner
+            radii.append(_LEFT_TURN_RADIUS if left == (offset < 0) else _RIGHT_TURN_RADIUS)
+    corners.append(P[-1] + offset * nrm[-1])
+    radii.append(0.0)
+    return fillet(np.array(corners), radii, step)
+
+
+DIRS = ((1, 0), (0, 1), (-1, 0), (0, -1))
+
+
+def walk(rng, start, d0, n_seg, nmax, force_turn_at=None, p_straight=0.55, avoid_border=False):
+    """A random node walk on the (nmax+1)^2 junction grid without U-turns."""
+    nodes = [start, (start[0] + d0[0], start[1] + d0[1])]
+    d = d0
+    while len(nodes) < n_seg + 1:
+        cur = nodes[-1]
+        opts = [e for e in DIRS if e != (-d[0], -d[1])
+                and 0 <= cur[0] + e[0] <= nmax and 0 <= cur[1] + e[1] <= nmax]
+        if force_turn_at is not None and len(nodes) - 1 == force_turn_at:
+            turns = [e for e in opts if e != d]
+            opts = turns or opts
+        if avoid_border:
+            inner = [e for e in opts if 0 < cur[0] + e[0] < nmax or 0 < cur[1] + e[1] < nmax]
+            opts = inner or opts
+        if d in opts and rng.random() < p_straight and not (force_turn_at is not None and len(nodes) - 1 == force_turn_at):
+            e = d
+        else:
+            e = opts[int(rng.integers(0, len(opts)))]
+        nodes.append((cur[0] + e[0], cur[1] + e[1]))
+        d = e
+    return nodes
