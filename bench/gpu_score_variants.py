@@ -64,7 +64,7 @@ from place3d_kernels.backends.warp.kernels import (INF64, Walk32, brick_bit, bri
                                                   score_ray, score_ray_brick, walk32_begin, walk32_exact,
                                                   walk32_next,
                                                   walk_begin, walk_next)
-from place3d_kernels.benchmark import machine_info
+from place3d_kernels.kernel_bench import machine_info
 
 OPTS = {"enable_backward": False, "fuse_fp": False}   # as the shipped module: no FMA contraction
 

@@ -554,7 +554,7 @@ def test_vote_identical_to_reference(variant, rng):
 def test_vote_paths_identical_to_reference(variant, path, rng, monkeypatch):
     """Dense flags + prefix-sum ranks (keys of one grid), hash tables (sparse huge keys), and the mixed
     case (dense ranks, too many (voxel, class) pairs for a dense count table) agree with the reference."""
-    import place3d_kernels.backends.opencl.backend as be
+    import place3d_kernels.backends.opencl.host as be
 
     b = _backend(variant)
     n = 30_000

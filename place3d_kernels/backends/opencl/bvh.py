@@ -470,7 +470,7 @@ def brute_force_raycast(vertices: np.ndarray, faces: np.ndarray, origins: np.nda
     """Closest hit by testing every triangle: the reference backend's float64 watertight test. Used to
     re-trace the rare rays the kernel flags (stack overflow) and as an oracle in tests. Ties in t go to
     the lowest face id."""
-    from place3d_kernels.backends.reference.core import ReferenceCore
+    from place3d_kernels.backends.reference.host import ReferenceCore
 
     ref = ReferenceCore()
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
