@@ -107,7 +107,8 @@ def _canonical(name: str) -> str:
     names = available_backends()
     n = name.strip().lower()
     if n == "auto":
-        # GPUs first; on the CPU, PoCL (all cores) before Warp's CPU device (figures: bench/README.md)
+        # GPUs first; on the CPU, PoCL (all cores) before Warp's CPU device (why: bench/README.md, "Figures
+        # behind backend code comments")
         order = [x for x in names if x.startswith("warp:cuda")] + \
                 [x for x in names if x.startswith("opencl:") and x != "opencl:pocl"] + \
                 [x for x in names if x == "opencl:pocl"] + [x for x in names if x == "warp:cpu"] + ["reference"]

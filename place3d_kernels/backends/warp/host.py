@@ -66,7 +66,8 @@ def cpu_threads() -> int:
         return os.cpu_count() or 1
 
 
-# a chunk smaller than this many items is not worth a thread hand-off (a launch costs some 20 us)
+# a chunk smaller than this many items is not worth a thread hand-off (launch cost: bench/README.md,
+# "Figures behind backend code comments")
 MIN_CHUNK = 2048
 CHUNKS_PER_THREAD = 8    # many small chunks per thread balance rays of very different lengths
 

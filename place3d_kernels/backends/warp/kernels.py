@@ -517,9 +517,9 @@ def score_ray_brick(
     # entering a brick, one 64-bit load of its masks (occlusion bits low, nonzero-weight bits high) and a
     # plain read of its bitset word (bits only ever get set, so a stale copy is safe: it only filters);
     # on leaving, one atomic_or with the bits the ray newly marked there (flush_brick). The first ray to
-    # set a voxel's bit owns it and adds its weight. On the H100 this ran the dense rig on the 0.05 m
-    # grid in 3.10 against 3.38 ms (bench/results/gpu-H100-score-variants-0.05m-2026-11-22.json); on the CPU it was slower (no atomics
-    # to save there), so the CPU keeps score_ray.
+    # set a voxel's bit owns it and adds its weight. On a GPU this is faster than score_ray; on the CPU
+    # it was slower (no atomics to save there), so the CPU keeps score_ray (figures: bench/README.md,
+    # "Figures behind backend code comments").
     n = sensor_dirs.shape[0]
     rig = tid / n
     cand = rig / n_lidars
@@ -560,9 +560,10 @@ def score_ray_brick(
         wp.atomic_add(sums, cand, my_sum)
 
 
-# 128-thread blocks and a register cap: on an H100 the uncapped kernels take 82+ registers (25 % theoretical
-# occupancy); the caps below ran the dense rig on the 0.05 m grid fastest, with identical sums
-# (bench/gpu_score_variants.py, bench/results/gpu-H100-score-variants-*). The CPU ignores both.
+# 128-thread blocks and a register cap: uncapped, the kernels take so many registers that few warps fit on
+# an SM; the caps below ran the dense rig on the 0.05 m grid fastest, with identical sums
+# (bench/gpu_score_variants.py; figures: bench/README.md, "Figures behind backend code comments").
+# The CPU ignores both.
 SCORE_BLOCK_DIM = 128
 
 
