@@ -19,7 +19,8 @@ import os
 from dataclasses import dataclass
 from functools import lru_cache
 
-__all__ = ["Family", "FAMILIES", "available_backends", "get_backend", "use_backend", "resolve", "backend_report"]
+__all__ = ["Family", "FAMILIES", "available_backends", "get_backend", "use_backend", "resolve", "backend_report",
+           "forget"]
 
 
 @dataclass(frozen=True)
@@ -152,6 +153,13 @@ def get_backend(name: str | object | None = None):
 
 
 resolve = get_backend
+
+
+def forget() -> None:
+    """Probe the families again on next use and drop the cached instances (after installing a driver,
+    or in tests that change ``FAMILIES``)."""
+    _probe.cache_clear()
+    _instances.clear()
 
 
 @contextlib.contextmanager

@@ -52,7 +52,7 @@ def _comp(v: wp.vec3d, k: wp.int32):
 @wp.func
 def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fallback: wp.float64):
     # Distance to triangle (a, b, c) with the reference's formula (Woop, Benthin & Wald's watertight test
-    # in float64, place3d_kernels/backends/reference/core.py), operation for operation and without FMA contraction, so
+    # in float64, place3d_kernels/backends/reference/host.py), operation for operation and without FMA contraction, so
     # backends that find the same face report the same t, bit for bit
     ad = wp.vec3d(wp.abs(d[0]), wp.abs(d[1]), wp.abs(d[2]))
     kz = wp.int32(0)
