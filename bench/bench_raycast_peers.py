@@ -106,8 +106,7 @@ def main(argv=None) -> int:
         [b for b in avail if b.startswith("opencl:")] + [b for b in avail if b == "warp:cpu"]
     bks = _backends(names)
     for b in bks.values():
-        if hasattr(b, "warmup"):
-            b.warmup()
+        b.warmup()   # Backend.warmup: compiles ahead where the backend compiles at all
     print(f"backends: {list(bks)}; load average {_load()}")
 
     res: dict = {

@@ -7,7 +7,8 @@ Workload as in ``gpu_dense.py``: a population of ``--pop`` perturbed ``pyramid``
 * ``flat``: the kernel before bricking: one bit per voxel in flat (x, y, z) order, the occlusion mask
   as one byte per voxel, an ``atomic_or`` on every step;
 * ``bricked``: bitsets in 4 x 4 x 2 bricks (one 32-bit word each), the occlusion mask as a bricked
-  bitset, a plain read before the atomic (``score_ray`` of ``place3d_kernels/backends/warp/kernels.py``), no register cap;
+  bitset, a plain read before the atomic (``score_ray``), no register cap. The walks and score bodies the
+  variants build on are frozen copies in ``gpu_score_variants_kernels.py``;
 * ``bricked-rN``: the same with CUDA ``__maxnreg__(N)`` (register cap for occupancy);
 * ``bricked-bD``: the same launched with D threads per block;
 * ``pervoxel-r72-b128``: bricked, 72 registers, 128 threads, plus a bricked nonzero-weight mask next to
@@ -51,6 +52,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -60,11 +62,13 @@ import warp as wp
 import place3d_kernels as p3k
 from place3d_kernels.backends.base import rotation_matrices, sensor_directions
 from place3d_kernels.backends.bricks import brick_bits, brick_shape
-from place3d_kernels.backends.warp.kernels import (INF64, Walk32, brick_bit, brick_word, flat32, flat_index,
-                                                  score_ray, score_ray_brick, walk32_begin, walk32_exact,
-                                                  walk32_next,
-                                                  walk_begin, walk_next)
-from place3d_kernels.benchmark import machine_info
+from place3d_kernels.kernel_bench import machine_info
+
+# frozen copies of the walks and score bodies the variants are built on (see that module's docstring)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gpu_score_variants_kernels import (INF64, Walk32, brick_bit, brick_word, flat32, flat_index,  # noqa: E402
+                                        score_ray, score_ray_brick, walk32_begin, walk32_exact, walk32_next,
+                                        walk_begin, walk_next)
 
 OPTS = {"enable_backward": False, "fuse_fp": False}   # as the shipped module: no FMA contraction
 

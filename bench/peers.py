@@ -31,7 +31,8 @@ equal (pyramid LiDARs at x, y = (-0.2, 0.6), (0.4, 0), (-0.2, 0), (-0.2, -0.6); 
 voxel 0.2: all a quarter voxel past a plane), so that each x-plane crossing coincides with a y-plane
 crossing up to ~1e-14 m. At each such edge the side voxel (entered for a chord of at most ~1e-14 m) is
 chosen by rounding: the baseline's tMax += tDelta accumulates a different rounding error than our
-crossings computed from integer plane indices (DESIGN.md 4: rays on a voxel edge may visit either side).
+crossings computed from integer plane indices (docs/architecture.md, Kernel contract: rays on a voxel edge
+may visit either side).
 On the earlier 2,002-ray subset (k = 262) this was 2 rays (45 degrees, LiDARs 0 and 2) and 94 voxels of
 symmetric difference. ``python_vs_reference`` lists the differing rays (azimuth, steps, voxels only one
 side visits) and the longest chord of a ray through any of those voxels; at rounding level (< 1e-9 m)
@@ -360,7 +361,7 @@ def main(argv=None):
         merge_into_summary(json.loads(src.read_text()), outdir / "summary.json", src.name, args.device)
         print(f"merged {src} into {outdir / 'summary.json'}")
         return
-    from place3d_kernels.benchmark import machine_info
+    from place3d_kernels.kernel_bench import machine_info
 
     load_start = os.getloadavg()
 
@@ -441,7 +442,7 @@ def main(argv=None):
            + ", ".join(sorted({f"{r['azimuth_deg']:.2f}" for r in py_vs_ref["differing_rays"]})) + " deg; LiDAR x, y "
            "offsets to the grid planes are equal) and the side voxel is chosen by rounding: S-MIG's tMax += tDelta "
            "accumulates a different rounding error than our crossings from integer plane indices. Allowed by "
-           "DESIGN.md 4 (rays on a voxel edge may visit either side); not a disagreement."
+           "docs/architecture.md, Kernel contract (rays on a voxel edge may visit either side); not a disagreement."
            if edge else "MORE than rounding: a real disagreement, investigate."))
     print("  " + py_vs_ref["explanation"], flush=True)
 

@@ -9,7 +9,7 @@ Public API (see the README and DESIGN.md):
 >>> p3k.msog(psog, p3k.LidarModel.load("place3d_16ch"), p3k.Placement.load("pyramid"))
 """
 
-from place3d_kernels.backend import available_backends, backend_report, get_backend, use_backend
+from place3d_kernels.backends.registry import available_backends, backend_report, get_backend, use_backend
 from place3d_kernels.classes import CLASSES
 from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.lidar import LidarModel, lidar_rays

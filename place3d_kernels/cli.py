@@ -81,7 +81,7 @@ def _psog(args, backend):
 
 # ---------------------------------------------------------------------------------------- commands
 def cmd_backends(args) -> int:
-    from place3d_kernels.backend import backend_report
+    from place3d_kernels.backends.registry import backend_report
 
     for name, ok, note in backend_report():
         print(f"{'available' if ok else 'missing':10s} {name:16s} {note}")
@@ -91,7 +91,7 @@ def cmd_backends(args) -> int:
 def cmd_evaluate(args) -> int:
     from tqdm import tqdm
 
-    from place3d_kernels.backend import get_backend
+    from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
@@ -129,7 +129,7 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from place3d_kernels.backend import get_backend
+    from place3d_kernels.backends.registry import get_backend
 
     if getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None):
         from place3d_kernels.distributed import ConditionSpec, SceneSpec, executor_from_args, simulate_to_folder
@@ -159,7 +159,7 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from place3d_kernels.benchmark import run_kernel_bench
+    from place3d_kernels.kernel_bench import run_kernel_bench
 
     res = run_kernel_bench(backends=args.backends, quick=args.quick, progress=not args.quiet)
     print(json.dumps(res, indent=2))

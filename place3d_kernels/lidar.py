@@ -101,7 +101,7 @@ def lidar_rays(lidar: LidarModel, placement, backend=None) -> tuple[np.ndarray, 
         placement: a ``Placement`` or an (L, 6) pose array.
         backend: name or Backend; default the current one.
     """
-    from place3d_kernels.backend import resolve
+    from place3d_kernels.backends.registry import resolve
 
     poses = placement.poses if hasattr(placement, "poses") else np.asarray(placement, dtype=np.float64)
     b = resolve(backend)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from place3d_kernels.backend import get_backend
+from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.mesh import Mesh

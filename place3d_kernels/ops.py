@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from place3d_kernels.backend import get_backend
+from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.grid import Grid
 from place3d_kernels.mesh import Mesh
 

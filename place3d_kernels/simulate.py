@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from place3d_kernels.backend import get_backend
+from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.classes import REFLECTIVITY
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.mesh import Mesh

@@ -41,7 +41,7 @@ import math
 
 import numpy as np
 
-from place3d_kernels.backend import get_backend
+from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.grid import Grid
 from place3d_kernels.lidar import LidarModel

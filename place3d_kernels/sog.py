@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from place3d_kernels.backend import get_backend
+from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.classes import CLASSES, N_CLASSES, VEHICLE
 from place3d_kernels.grid import Grid

@@ -18,7 +18,7 @@ import pytest
 import place3d_kernels as p3k
 from place3d_kernels import conditions as C
 from place3d_kernels._toml import read_toml
-from place3d_kernels.backend import get_backend
+from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.backends.conditions_base import ConditionKernels
 from place3d_kernels.classes import REFLECTIVITY, VEHICLE
 from place3d_kernels.conditions.fog import FogSensor

@@ -27,7 +27,7 @@ except ImportError as e:  # pragma: no cover - environment without PyOpenCL
     _DEVICES, _WHY = [], f"PyOpenCL not importable: {e}"
 
 REF = ReferenceBackend()
-EPS = 1e-4  # 0.1 mm (DESIGN.md section 4)
+EPS = 1e-4  # 0.1 mm (docs/architecture.md, Kernel contract)
 
 _instances: dict[str, "OpenCLBackend"] = {}
 
@@ -97,7 +97,8 @@ def _segment_box_distance(o, d, t0, t1, lo, hi) -> float:
 
 
 def assert_visits_within_tolerance(spec: GridSpec, o, d, t_end, got, want, eps=EPS):
-    """``got`` equals ``want`` except for voxels the ray passes within ``eps`` of (DESIGN.md section 4):
+    """``got`` equals ``want`` except for voxels the ray passes within ``eps`` of (docs/architecture.md,
+    Kernel contract):
 
     * an extra voxel must lie within Euclidean distance ``eps`` of the segment (clipped to the grid);
     * a missing voxel may be entered by at most ``eps``: the segment must not reach the voxel shrunk by
@@ -554,7 +555,7 @@ def test_vote_identical_to_reference(variant, rng):
 def test_vote_paths_identical_to_reference(variant, path, rng, monkeypatch):
     """Dense flags + prefix-sum ranks (keys of one grid), hash tables (sparse huge keys), and the mixed
     case (dense ranks, too many (voxel, class) pairs for a dense count table) agree with the reference."""
-    import place3d_kernels.backends.opencl.backend as be
+    import place3d_kernels.backends.opencl.host as be
 
     b = _backend(variant)
     n = 30_000

@@ -164,6 +164,38 @@ class Backend(abc.ABC):
     def synchronize(self) -> None:  # pragma: no cover - trivial for host backends
         """Wait for queued work (used by benchmarks)."""
 
+    def warmup(self) -> None:
+        """Compile or load every kernel now, so that benchmarks keep compile time out of timings.
+
+        Backends that compile nothing ahead (``reference``) keep this default, which does nothing.
+        """
+
+    # ----------------------------------------------------------------- benchmark hooks (optional)
+    #: True where ``resident_raycast`` and ``resident_traverse`` are implemented: kernel-only timers
+    #: for benchmarks (rays uploaded once, the timed call launches the kernel and waits).
+    resident_kernels: bool = False
+
+    def resident_raycast(self, mesh: object, origins: np.ndarray, directions: np.ndarray, t_max: float):
+        """For benchmarks: a zero-argument callable that launches the ray-mesh kernel on rays already on
+        the device (uploaded by this call); only where ``resident_kernels`` is True.
+
+        Raises:
+            NotImplementedError: this backend has no resident kernels (``resident_kernels`` is False).
+        """
+        raise NotImplementedError(f"backend {self.name} has no resident kernels (resident_kernels is False); "
+                                  f"check resident_kernels before calling resident_raycast")
+
+    def resident_traverse(self, grid: GridSpec, origins: np.ndarray, directions: np.ndarray, t_end,
+                          stop: np.ndarray | None = None):
+        """For benchmarks: a zero-argument callable that launches the traversal count kernel on rays
+        already on the device (see ``resident_raycast``); only where ``resident_kernels`` is True.
+
+        Raises:
+            NotImplementedError: this backend has no resident kernels (``resident_kernels`` is False).
+        """
+        raise NotImplementedError(f"backend {self.name} has no resident kernels (resident_kernels is False); "
+                                  f"check resident_kernels before calling resident_traverse")
+
     def __repr__(self) -> str:
         return f"<Backend {self.name}>"
 

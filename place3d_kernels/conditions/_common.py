@@ -6,7 +6,7 @@ import warnings
 
 import numpy as np
 
-from place3d_kernels.backend import get_backend
+from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.backends.conditions_base import ConditionKernels
 from place3d_kernels.pointcloud import PointCloud
 

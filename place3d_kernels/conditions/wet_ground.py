@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from place3d_kernels.backends.reference.conditions import fresnel_film
+from place3d_kernels.backends.conditions_base import fresnel_film
 from place3d_kernels.classes import GROUND_CLASSES
 from place3d_kernels.conditions._common import check_cloud, check_range, kernels, rays, rng
 from place3d_kernels.pointcloud import PointCloud

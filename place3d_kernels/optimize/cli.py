@@ -42,7 +42,7 @@ def add_arguments(p) -> None:
 
 
 def run(args, psog_for) -> int:
-    from place3d_kernels.backend import get_backend
+    from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.optimize import FixedHeight, MinDistance, MSOGObjective, SearchSpace, optimize

@@ -20,7 +20,7 @@ from collections import OrderedDict
 
 import numpy as np
 
-from place3d_kernels.backend import get_backend
+from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.ops import traverse
 

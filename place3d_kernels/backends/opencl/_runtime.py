@@ -11,7 +11,10 @@ import warnings
 from functools import lru_cache
 from pathlib import Path
 
-import pyopencl as cl
+try:
+    import pyopencl as cl
+except ImportError as e:  # pragma: no cover - depends on the environment
+    raise ImportError(f"PyOpenCL is not installed ({e})") from e
 
 __all__ = ["INSTALL_HINT", "platform_table", "unusable_platforms", "short_name", "build_program", "kernel_source"]
 

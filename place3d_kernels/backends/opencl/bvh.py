@@ -12,8 +12,8 @@ Layout (what ``raycast.cl`` reads):
 Build: top-down, one level of the tree per NumPy pass (every node of a level is split at once), binned
 SAH over up to ``bins`` centroid bins (Wald 2007; fewer bins once nodes are small), on all three axes
 while a level has few nodes and on the widest centroid axis after that. Triangles whose node becomes a
-leaf leave the working set, so each pass costs O(active triangles): about 3 s for 1M triangles on one
-core. Child boxes are padded outward by ~2**-21 of their coordinates (see ``_pad``).
+leaf leave the working set, so each pass costs O(active triangles) (build times: bench/README.md,
+"Figures behind backend code comments"). Child boxes are padded outward by ~2**-21 of their coordinates (see ``_pad``).
 
 CPUs traverse the 4-wide collapse of this tree (``collapse_bvh4``: one float4 slab test per node).
 
@@ -470,7 +470,7 @@ def brute_force_raycast(vertices: np.ndarray, faces: np.ndarray, origins: np.nda
     """Closest hit by testing every triangle: the reference backend's float64 watertight test. Used to
     re-trace the rare rays the kernel flags (stack overflow) and as an oracle in tests. Ties in t go to
     the lowest face id."""
-    from place3d_kernels.backends.reference.core import ReferenceCore
+    from place3d_kernels.backends.reference.host import ReferenceCore
 
     ref = ReferenceCore()
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)

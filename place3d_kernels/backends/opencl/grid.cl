@@ -1,7 +1,7 @@
 /* Voxel grid kernels: traversal (count + fill CSR), coverage, batched placement scores, voxel keys,
  * LiDAR rays. Needs common.cl in front.
  *
- * Traversal semantics (backends/base.py, DESIGN.md section 4): the segment [0, t_end] is clipped to the
+ * Traversal semantics (backends/base.py; docs/architecture.md, Kernel contract): the segment [0, t_end] is clipped to the
  * grid box [0, n*s]^3; a voxel is visited when the open segment passes through its interior.
  *
  * The walk. Setup (clip, first voxel) runs once per ray in `real`. The loop runs in float32 in a frame

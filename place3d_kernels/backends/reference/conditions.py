@@ -7,42 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from place3d_kernels.backends.conditions_base import ConditionKernels
+from place3d_kernels.backends.conditions_base import ConditionKernels, fresnel_film
 
-__all__ = ["ReferenceConditions", "fresnel_film"]
-
-#: Smallest incidence angle (rad) used in the film term t / theta (theta = 0 only for a beam straight down).
-THETA_MIN = 1e-6
-
-
-def _fresnel_power(cos_i: np.ndarray, n1: float, n2: float):
-    """Power reflection / transmission coefficients (R_s, T_s, R_p, T_p) and cos of the refracted angle."""
-    sin_i = np.sqrt(np.clip(1.0 - cos_i * cos_i, 0.0, 1.0))
-    sin_t = np.clip(sin_i * n1 / n2, -1.0, 1.0)
-    cos_t = np.sqrt(1.0 - sin_t * sin_t)
-    rs = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)
-    rp = (n2 * cos_i - n1 * cos_t) / (n2 * cos_i + n1 * cos_t)
-    ts = 2.0 * n1 * cos_i / (n1 * cos_i + n2 * cos_t)
-    tp = 2.0 * n1 * cos_i / (n2 * cos_i + n1 * cos_t)
-    k = (n2 * cos_t) / (n1 * cos_i)  # power transmittance = |t|^2 n2 cos_t / (n1 cos_i)
-    return rs * rs, ts * ts * k, rp * rp, tp * tp * k, cos_t
-
-
-def fresnel_film(theta, rho, film_fraction, n_air: float = 1.0003, n_water: float = 1.33):
-    """``(1 - f) rho + f t / theta`` of the water-film model (Hahner et al. 2022), NumPy float64, vectorised.
-
-    ``t = max_{s,p} T_aw rho T_wa / (1 - rho R_wa)``: the power that enters the film (air -> water at theta),
-    is reflected by the ground with reflectivity rho, and leaves it (water -> air at the refracted angle),
-    summed over the multiple reflections inside the film.
-    """
-    theta = np.maximum(np.asarray(theta, dtype=np.float64), THETA_MIN)
-    rho = np.asarray(rho, dtype=np.float64)
-    _, ts_aw, _, tp_aw, cos_w = _fresnel_power(np.cos(theta), n_air, n_water)
-    rs_wa, ts_wa, rp_wa, tp_wa, _ = _fresnel_power(cos_w, n_water, n_air)
-    t_s = ts_aw * rho * ts_wa / (1.0 - rho * rs_wa)
-    t_p = tp_aw * rho * tp_wa / (1.0 - rho * rp_wa)
-    t = np.maximum(t_s, t_p)
-    return (1.0 - film_fraction) * rho + film_fraction * t / theta
+__all__ = ["ReferenceConditions"]
 
 
 def _overlap_fraction(y, a, w):

@@ -10,14 +10,14 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from place3d_kernels.backends.conditions_base import ConditionKernels
+from place3d_kernels.backends.conditions_base import THETA_MIN, ConditionKernels
 
 # no fused multiply-add, as in kernels.py: the reference rounds each product and sum separately
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 __all__ = ["WarpConditions"]
 
-_THETA_MIN = wp.constant(1.0e-6)
+_THETA_MIN = wp.constant(THETA_MIN)   # the shared floor of conditions_base.py
 _PI = wp.constant(3.14159265358979323846)
 
 

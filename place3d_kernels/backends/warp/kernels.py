@@ -52,7 +52,7 @@ def _comp(v: wp.vec3d, k: wp.int32):
 @wp.func
 def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fallback: wp.float64):
     # Distance to triangle (a, b, c) with the reference's formula (Woop, Benthin & Wald's watertight test
-    # in float64, place3d_kernels/backends/reference/core.py), operation for operation and without FMA contraction, so
+    # in float64, place3d_kernels/backends/reference/host.py), operation for operation and without FMA contraction, so
     # backends that find the same face report the same t, bit for bit
     ad = wp.vec3d(wp.abs(d[0]), wp.abs(d[1]), wp.abs(d[2]))
     kz = wp.int32(0)
@@ -125,21 +125,6 @@ def raycast_kernel(
 
 
 # ----------------------------------------------------------------------------- voxel walk
-@wp.struct
-class Walk:
-    i: wp.int32
-    j: wp.int32
-    k: wp.int32
-    si: wp.int32
-    sj: wp.int32
-    sk: wp.int32
-    tx: wp.float64
-    ty: wp.float64
-    tz: wp.float64
-    t1: wp.float64
-    alive: wp.int32
-
-
 @wp.func
 def _axis_clip(o: wp.float64, d: wp.float64, size: wp.float64, t0: wp.float64, t1: wp.float64):
     # returns the clipped (t0, t1); an empty interval marks "no overlap"
@@ -193,59 +178,17 @@ def _next_t(i: wp.int32, step: wp.int32, o: wp.float64, d: wp.float64, s: wp.flo
     return (wp.float64(b) * s - o) / d
 
 
-@wp.func
-def walk_begin(o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32,
-               nz: wp.int32) -> Walk:
-    w = Walk()
-    t0, t1 = _clip_grid(o, d, t_end, s, nx, ny, nz)
-    w.alive = 0
-    w.t1 = t1
-    if t1 > t0:
-        w.alive = 1
-        p = o + t0 * d
-        w.i = _start_index(p[0], d[0], s, nx)
-        w.j = _start_index(p[1], d[1], s, ny)
-        w.k = _start_index(p[2], d[2], s, nz)
-        w.si = _sign(d[0])
-        w.sj = _sign(d[1])
-        w.sk = _sign(d[2])
-        w.tx = _next_t(w.i, w.si, o[0], d[0], s)
-        w.ty = _next_t(w.j, w.sj, o[1], d[1], s)
-        w.tz = _next_t(w.k, w.sk, o[2], d[2], s)
-    return w
-
-
-@wp.func
-def walk_next(w: Walk, o: wp.vec3d, d: wp.vec3d, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32) -> Walk:
-    # step every axis whose boundary is crossed first (exact ties: an edge or corner, no side voxel)
-    tn = wp.min(w.tx, wp.min(w.ty, w.tz))
-    if tn >= w.t1:
-        w.alive = 0
-        return w
-    if w.tx == tn:
-        w.i = w.i + w.si
-        w.tx = _next_t(w.i, w.si, o[0], d[0], s)
-    if w.ty == tn:
-        w.j = w.j + w.sj
-        w.ty = _next_t(w.j, w.sj, o[1], d[1], s)
-    if w.tz == tn:
-        w.k = w.k + w.sk
-        w.tz = _next_t(w.k, w.sk, o[2], d[2], s)
-    if w.i < 0 or w.i >= nx or w.j < 0 or w.j >= ny or w.k < 0 or w.k >= nz:
-        w.alive = 0
-    return w
-
-
 # ----------------------------------------------------------------------------- float32 walk, exact
-# The walk the kernels run. It takes the same decisions as walk_begin / walk_next (the float64 reference
-# walk) but makes them in float32 where that is certain, as the OpenCL backend does (place3d_kernels/backends/opencl/
-# grid.cl, which derives the bound): in a frame rebased at the entry point p0 = o + t0 d and the first
-# voxel b, the time after t0 at which the ray crosses boundary plane b + K of an axis is
+# The walk the kernels run. It takes the same decisions as the float64 reference walk (``traverse_ray`` in
+# place3d_kernels/backends/reference/host.py) but makes them in float32 where that is certain, as the OpenCL
+# backend does (place3d_kernels/backends/opencl/grid.cl, which derives the bound): in a frame rebased at the
+# entry point p0 = o + t0 d and the first voxel b, the time after t0 at which the ray crosses boundary plane
+# b + K of an axis is
 #     t' = (K s - q) / d,   q = p0 - b s,
 # computed in float32 as (K sf - q) * (1 / d) with an error below DDA_ERR (|t'| + 2 |q / d|). A step
 # whose axis crosses first by more than ``tol`` (2.5 times that bound, for the segment end as well) is
 # certain; any other step (near-ties: rays within about 1e-6 relative of a voxel edge or corner, or
-# ending near a plane) is taken by walk_next's float64 arithmetic on the same indices, so every backend
+# ending near a plane) is taken by walk32_exact's float64 arithmetic on the same indices, so every backend
 # walks the reference's voxels, bit for bit. The float64 fallback is also used for a whole ray when a
 # direction component is too small for a float32 reciprocal.
 DDA_ERR = wp.constant(wp.float32(9.5367431640625e-07))     # 2^-20
@@ -334,7 +277,7 @@ def walk32_begin(o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, sf:
 @wp.func
 def walk32_exact(w: Walk32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.float32, nx: wp.int32,
                  ny: wp.int32, nz: wp.int32) -> Walk32:
-    # walk_next's float64 step (every axis whose boundary comes first steps; the segment may end)
+    # the reference's float64 step (every axis whose boundary comes first steps; the segment may end)
     tx = _next_t(w.i, w.si, o[0], d[0], s)
     ty = _next_t(w.j, w.sj, o[1], d[1], s)
     tz = _next_t(w.k, w.sk, o[2], d[2], s)
@@ -399,11 +342,6 @@ def walk32_next(w: Walk32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.float
 
 @wp.func
 def flat32(w: Walk32, ny: wp.int32, nz: wp.int32) -> wp.int64:
-    return (wp.int64(w.i) * wp.int64(ny) + wp.int64(w.j)) * wp.int64(nz) + wp.int64(w.k)
-
-
-@wp.func
-def flat_index(w: Walk, ny: wp.int32, nz: wp.int32) -> wp.int64:
     return (wp.int64(w.i) * wp.int64(ny) + wp.int64(w.j)) * wp.int64(nz) + wp.int64(w.k)
 
 
@@ -489,17 +427,6 @@ def brick_word(w: Walk32, bny: wp.int32, bnz: wp.int32) -> wp.int64:
 
 @wp.func
 def brick_bit(w: Walk32) -> wp.uint32:
-    return wp.uint32(1) << wp.uint32((w.i & 3) | ((w.j & 3) << 2) | ((w.k & 1) << 4))
-
-
-@wp.func
-def brick_word(w: Walk, bny: wp.int32, bnz: wp.int32) -> wp.int64:
-    # the same for the float64 walk (overload; the GPU study's frozen kernels use it)
-    return (wp.int64(w.i >> 2) * wp.int64(bny) + wp.int64(w.j >> 2)) * wp.int64(bnz) + wp.int64(w.k >> 1)
-
-
-@wp.func
-def brick_bit(w: Walk) -> wp.uint32:
     return wp.uint32(1) << wp.uint32((w.i & 3) | ((w.j & 3) << 2) | ((w.k & 1) << 4))
 
 
@@ -590,9 +517,9 @@ def score_ray_brick(
     # entering a brick, one 64-bit load of its masks (occlusion bits low, nonzero-weight bits high) and a
     # plain read of its bitset word (bits only ever get set, so a stale copy is safe: it only filters);
     # on leaving, one atomic_or with the bits the ray newly marked there (flush_brick). The first ray to
-    # set a voxel's bit owns it and adds its weight. On the H100 this ran the dense rig on the 0.05 m
-    # grid in 3.10 against 3.38 ms (bench/results/gpu-H100-score-variants-0.05m-2026-11-22.json); on the CPU it was slower (no atomics
-    # to save there), so the CPU keeps score_ray.
+    # set a voxel's bit owns it and adds its weight. On a GPU this is faster than score_ray; on the CPU
+    # it was slower (no atomics to save there), so the CPU keeps score_ray (figures: bench/README.md,
+    # "Figures behind backend code comments").
     n = sensor_dirs.shape[0]
     rig = tid / n
     cand = rig / n_lidars
@@ -633,9 +560,10 @@ def score_ray_brick(
         wp.atomic_add(sums, cand, my_sum)
 
 
-# 128-thread blocks and a register cap: on an H100 the uncapped kernels take 82+ registers (25 % theoretical
-# occupancy); the caps below ran the dense rig on the 0.05 m grid fastest, with identical sums
-# (bench/gpu_score_variants.py, bench/results/gpu-H100-score-variants-*). The CPU ignores both.
+# 128-thread blocks and a register cap: uncapped, the kernels take so many registers that few warps fit on
+# an SM; the caps below ran the dense rig on the 0.05 m grid fastest, with identical sums
+# (bench/gpu_score_variants.py; figures: bench/README.md, "Figures behind backend code comments").
+# The CPU ignores both.
 SCORE_BLOCK_DIM = 128
 
 

@@ -14,7 +14,7 @@ from place3d_kernels.backends.opencl import _runtime as rt
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, brute_force_raycast, build_bvh, collapse_bvh4
 from place3d_kernels.backends.opencl.conditions import OpenCLConditions
 
-__all__ = ["OpenCLBackend", "CLMesh", "CLGrid"]
+__all__ = ["OpenCLBackend", "CLMesh", "CLGrid", "opencl_devices"]
 
 _MF = cl.mem_flags
 #: candidates per score launch are chunked so that their visited-voxel bitsets stay below this
@@ -23,6 +23,15 @@ _BITSET_BYTES = 256 * 2**20
 _DENSE_VOTE_BYTES = 256 * 2**20
 #: work-group size on CPU devices
 _CPU_GROUP = 8
+
+
+def opencl_devices() -> list[str]:
+    """Short names of the OpenCL platforms that have a usable device, e.g. ``['pocl']``; ``[]`` if none.
+
+    Raises:
+        ImportError: PyOpenCL is not installed (raised when this module is imported).
+    """
+    return list(rt.platform_table())
 
 
 class CLMesh:
@@ -92,6 +101,7 @@ class OpenCLBackend(Backend, OpenCLConditions):
     """
 
     dtype = np.float32
+    resident_kernels = True
 
     def __init__(self, platform: str = "pocl", *, fp64: bool | None = None, stack_size: int | None = None,
                  rays_per_item: int | None = None, score_strategy: str | None = None, bvh_width: int | None = None):

@@ -10,8 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 from place3d_kernels.backends.base import Backend, GridSpec, rotation_matrices, sensor_directions
+from place3d_kernels.backends.reference.conditions import ReferenceConditions
 
-__all__ = ["ReferenceCore", "traverse_ray", "watertight_intersect"]
+__all__ = ["ReferenceBackend", "ReferenceCore", "traverse_ray", "watertight_intersect"]
 
 
 def _start_index(p: float, d: float, s: float, n: int) -> int:
@@ -235,3 +236,9 @@ class ReferenceCore(Backend):
         vox, cls = vox[order], cls[order]
         first = np.concatenate([[True], vox[1:] != vox[:-1]]) if len(vox) else np.zeros(0, bool)
         return vox[first].astype(np.int64), cls[first].astype(np.int32)
+
+
+class ReferenceBackend(ReferenceCore, ReferenceConditions):
+    """The reference backend: the geometry kernels above and the adverse-condition kernels."""
+
+    name = "reference"

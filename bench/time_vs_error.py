@@ -21,7 +21,7 @@ with the largest speedup over the finest whose tau >= 0.9 and whose mean |error|
 mean |M-SOG| of the finest. Writes bench/results/studies-<study>.json and .png (Pareto plot: time on a
 log x axis, mean |error| on y, tau beside each point) and studies-summary.json.
 
-    python3 bench/studies.py [--studies azimuth channels voxel occlusion precision] [--runs 3]
+    python3 bench/time_vs_error.py [--studies azimuth channels voxel occlusion precision] [--runs 3]
                              [--backend opencl:pocl] [--no-reference] [--out bench/results]
 """
 
@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 import place3d_kernels as p3k
-from place3d_kernels.benchmark import machine_info
+from place3d_kernels.kernel_bench import machine_info
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TAU_MIN = 0.9

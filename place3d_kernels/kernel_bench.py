@@ -7,9 +7,10 @@ with the dense rig (4 x 64 x 2048). Every timing is the median of repeated runs 
 (kernel compilation and uploads excluded; they are reported separately where they matter).
 
 Kernel-only figures (``raycast_kernel_mrays_s``, ``raycast_town_kernel_mrays_s``, ``traverse_kernel_gsteps_s``)
-are measured where a backend has the benchmark hooks ``resident_raycast`` / ``resident_traverse`` (Warp and
-OpenCL): the rays are uploaded once, and the timed call only launches the kernel (ray-mesh, or the traversal
-count pass) and waits for it, so the gap to the API figures is host-side work and data movement.
+are measured where a backend has resident kernels (``Backend.resident_kernels``: ``resident_raycast`` /
+``resident_traverse``, Warp and OpenCL): the rays are uploaded once, and the timed call only launches the
+kernel (ray-mesh, or the traversal count pass) and waits for it, so the gap to the API figures is host-side
+work and data movement.
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ def _ray_mesh(r: dict, label: str, b, mesh, o, d, t_max: float, repeat: int) -> 
     r[f"{label}_bvh_build_s"] = time.perf_counter() - t0
     api = "raycast_town_mrays_s" if label == "town" else "raycast_mrays_s"   # names kept from earlier results
     r[api] = len(o) / _time(lambda: p3k.raycast(mesh, o, d, t_max, backend=b), b.synchronize, repeat=repeat) / 1e6
-    if hasattr(b, "resident_raycast"):
+    if b.resident_kernels:
         run = b.resident_raycast(mesh.handle(b), o - mesh.shift, d / np.linalg.norm(d, axis=1)[:, None], t_max)
         r[api.replace("_mrays_s", "_kernel_mrays_s")] = len(o) / _time(run, b.synchronize, repeat=repeat + 2) / 1e6
 
@@ -112,7 +113,7 @@ def run_kernel_bench(backends=None, quick: bool = False, progress: bool = True, 
         r["population16_eval_ms"] = 1e3 * _time(lambda: p3k.msog_batch(psog, lidar, pop, backend=b), sync,
                                                 repeat=3)
         r["psog_build_s"] = _time(lambda: PSOG.from_frames(frames, psog.grid, 4, backend=b), sync, repeat=2)
-        if hasattr(b, "resident_traverse"):    # kernel only, rays already on the device
+        if b.resident_kernels:    # kernel only, rays already on the device
             run = b.resident_traverse(psog.grid.spec, psog.grid.to_local(o), d, lidar.max_range)
             r["traverse_kernel_gsteps_s"] = steps / _time(run, sync, repeat=5) / 1e9
         if name != "reference":   # brute-force reference ray-mesh is far too slow for these meshes

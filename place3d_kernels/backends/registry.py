@@ -1,0 +1,173 @@
+"""Backend selection: the table of backend families, availability, a scoped default.
+
+Names: ``reference``, ``warp:cpu``, ``warp:cuda:N``, ``opencl:<platform>`` (``opencl:pocl``,
+``opencl:nvidia``, ...). Short forms: ``warp`` and ``opencl`` pick that backend's default device
+(CUDA / GPU first), ``auto`` picks the fastest available (warp:cuda, opencl GPU, opencl:pocl, warp:cpu,
+reference). The default backend comes from ``use_backend`` scopes, else the ``PLACE3D_BACKEND``
+environment variable, else ``auto``.
+
+Adding a backend is one ``FAMILIES`` entry and one folder beside ``reference/``, ``warp/``, ``opencl/``
+whose ``__init__.py`` exports the host class and, for a family with devices, its probe function.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import importlib
+import os
+from dataclasses import dataclass
+from functools import lru_cache
+
+__all__ = ["Family", "FAMILIES", "available_backends", "get_backend", "use_backend", "resolve", "backend_report",
+           "forget"]
+
+
+@dataclass(frozen=True)
+class Family:
+    """One backend family as data: where it lives and how to find its devices.
+
+    Attributes:
+        module: package of the backend (imported lazily: importing it imports the runtime).
+        host: name of the host class in ``module``; constructed as ``host(device)`` for a family with
+            devices, ``host()`` otherwise.
+        devices: name of the probe function in ``module`` returning the device names (``"cpu"``,
+            ``"cuda:0"``, ``"pocl"``); ``None`` for a family that is one backend named as the family.
+        unusable: name of a function in ``module`` returning ``(device, reason)`` pairs for devices found
+            but unusable (reported as missing); ``None`` if the family has none.
+        install: the command that installs the family's runtime, quoted in errors.
+        no_device: the reason reported when the runtime imports but finds no device (``{install}`` is
+            replaced by ``install``); ``None`` reports nothing.
+    """
+
+    module: str
+    host: str
+    devices: str | None = None
+    unusable: str | None = None
+    install: str = ""
+    no_device: str | None = None
+
+
+#: Every backend family, in the order ``available_backends`` lists them.
+FAMILIES: dict[str, Family] = {
+    "reference": Family("place3d_kernels.backends.reference", "ReferenceBackend"),
+    "warp": Family("place3d_kernels.backends.warp", "WarpBackend", devices="warp_devices",
+                   install="pip install warp-lang"),
+    "opencl": Family("place3d_kernels.backends.opencl", "OpenCLBackend", devices="opencl_devices",
+                     unusable="unusable_platforms",
+                     install="pip install 'place3d-kernels[opencl]'  (PyOpenCL + PoCL CPU driver)",
+                     no_device="no OpenCL platform with a usable device; install a driver such as PoCL: {install}"),
+}
+
+_current: contextvars.ContextVar = contextvars.ContextVar("place3d_backend", default=None)
+_instances: dict[str, object] = {}
+
+
+def _probe_family(fam: str, spec: Family) -> tuple[list[str], list[tuple[str, str]]]:
+    """(backend names, (family, reason-unavailable) pairs) of one family."""
+    if spec.devices is None:
+        return [fam], []
+    try:
+        mod = importlib.import_module(spec.module)
+        devs = getattr(mod, spec.devices)()
+        bad = getattr(mod, spec.unusable)() if spec.unusable else []
+    except ImportError as e:
+        return [], [(fam, f"{e}; install with: {spec.install}")]
+    missing = [(fam, f"platform {dev}: {why}") for dev, why in bad]
+    if not devs and not bad and spec.no_device:
+        missing.append((fam, spec.no_device.format(install=spec.install)))
+    return [f"{fam}:{d}" for d in devs], missing
+
+
+@lru_cache(maxsize=None)
+def _probe() -> tuple[tuple[str, ...], tuple[tuple[str, str], ...]]:
+    """(available names, (family, reason-unavailable) pairs). Cached: probing imports runtimes."""
+    names: list[str] = []
+    missing: list[tuple[str, str]] = []
+    for fam, spec in FAMILIES.items():
+        n, m = _probe_family(fam, spec)
+        names += n
+        missing += m
+    return tuple(names), tuple(missing)
+
+
+def available_backends() -> list[str]:
+    """Names of the backends usable on this machine, e.g. ``['reference', 'warp:cpu', 'opencl:pocl']``."""
+    return list(_probe()[0])
+
+
+def backend_report() -> list[tuple[str, bool, str]]:
+    """(name, available, note) rows: every available backend, and each missing family with the reason."""
+    names, missing = _probe()
+    rows = [(n, True, "") for n in names]
+    rows += [(fam, False, why) for fam, why in missing]
+    return rows
+
+
+def _canonical(name: str) -> str:
+    names = available_backends()
+    n = name.strip().lower()
+    if n == "auto":
+        # GPUs first; on the CPU, PoCL (all cores) before Warp's CPU device (why: bench/README.md, "Figures
+        # behind backend code comments")
+        order = [x for x in names if x.startswith("warp:cuda")] + \
+                [x for x in names if x.startswith("opencl:") and x != "opencl:pocl"] + \
+                [x for x in names if x == "opencl:pocl"] + [x for x in names if x == "warp:cpu"] + ["reference"]
+        return order[0]
+    if n in FAMILIES and FAMILIES[n].devices is not None:
+        fam = [x for x in names if x.startswith(n + ":")]
+        gpu = [x for x in fam if not x.endswith(":cpu") and x != "opencl:pocl"]
+        if fam:
+            return (gpu or fam)[0]
+    if n == "warp:cuda":
+        n = "warp:cuda:0"
+    if n in names:
+        return n
+    missing = dict(_probe()[1])
+    fam = n.split(":")[0]
+    hint = f" ({missing[fam]})" if fam in missing else ""
+    raise ValueError(f"Unknown or unavailable backend {name!r}{hint}. Available here: {names}. "
+                     f"Names: 'auto', 'reference', 'warp[:cpu|:cuda:N]', 'opencl[:platform]'. "
+                     f"Install the rest with: {FAMILIES['warp'].install}; {FAMILIES['opencl'].install}")
+
+
+def _construct(full: str):
+    """A new backend for a canonical name: the family's host class, given the device if it has any."""
+    fam, _, device = full.partition(":")
+    spec = FAMILIES[fam]
+    cls = getattr(importlib.import_module(spec.module), spec.host)
+    return cls(device) if spec.devices is not None else cls()
+
+
+def get_backend(name: str | object | None = None):
+    """The Backend for a name (``None`` = the current default); instances are cached per name."""
+    if name is None:
+        name = _current.get() or os.environ.get("PLACE3D_BACKEND") or "auto"
+    if not isinstance(name, str):
+        return name  # already a Backend
+    full = _canonical(name)
+    inst = _instances.get(full)
+    if inst is None:
+        inst = _instances[full] = _construct(full)
+    return inst
+
+
+resolve = get_backend
+
+
+def forget() -> None:
+    """Probe the families again on next use and drop the cached instances (after installing a driver,
+    or in tests that change ``FAMILIES``)."""
+    _probe.cache_clear()
+    _instances.clear()
+
+
+@contextlib.contextmanager
+def use_backend(name):
+    """Scoped default backend: ``with use_backend("opencl"): ...``."""
+    b = get_backend(name)
+    token = _current.set(b.name)
+    try:
+        yield b
+    finally:
+        _current.reset(token)

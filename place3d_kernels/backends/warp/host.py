@@ -1,0 +1,358 @@
+"""Warp backend: the kernels of ``kernels.py`` on Warp's CPU device or a CUDA GPU.
+
+Warp's CPU device runs each kernel launch on one thread (NVIDIA/warp#1309). On the CPU this backend
+therefore splits the launches of its heavy kernels (ray-mesh, traversal, coverage, scores) into chunks
+and runs them on a pool of Python threads, one per usable core (``PLACE3D_WARP_CPU_THREADS`` overrides):
+a CPU launch is a ctypes call, which releases the GIL, and Warp 1.x passes the task index as an argument
+(no shared static state). Only kernels whose chunks write disjoint outputs, or store the same value to a
+shared one (coverage's byte mask), are split that way; Warp's CPU "atomics" are plain read-modify-writes,
+so the score kernel is split by candidate (each candidate owns its bitset and sum), never inside one.
+CUDA devices run each kernel as one launch on the GPU.
+Meshes use Warp's BVH (``wp.Mesh``; SAH build) and its watertight ``mesh_query_ray``.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from place3d_kernels.backends.base import Backend, BackendUnavailable, rotation_matrices, sensor_directions
+from place3d_kernels.backends.bricks import brick_masks, brick_shape
+
+try:
+    import warp as wp
+except ImportError as e:  # pragma: no cover - exercised only without warp installed
+    raise ImportError(f"warp-lang is not installed ({e})") from None
+
+from place3d_kernels.backends.warp.conditions import WarpConditions
+
+_initialised = False
+
+
+def _init() -> None:
+    global _initialised
+    if not _initialised:
+        import logging
+
+        if os.environ.get("PLACE3D_WARP_VERBOSE") is None:
+            wp.config.log_level = logging.WARNING   # no init banner unless asked for
+        wp.init()
+        _initialised = True
+
+
+def warp_devices() -> list[str]:
+    """Warp device names usable here, e.g. ``['cpu', 'cuda:0']``."""
+    _init()
+    return [str(d) for d in wp.get_devices()]
+
+
+def cpu_threads() -> int:
+    """Threads for split CPU launches: ``PLACE3D_WARP_CPU_THREADS`` if set, else the usable cores."""
+    env = os.environ.get("PLACE3D_WARP_CPU_THREADS")
+    if env:
+        try:
+            n = int(env)
+        except ValueError:
+            raise ValueError(f"PLACE3D_WARP_CPU_THREADS must be a positive integer, got {env!r}") from None
+        if n < 1:
+            raise ValueError(f"PLACE3D_WARP_CPU_THREADS must be a positive integer, got {env!r}")
+        return n
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+# a chunk smaller than this many items is not worth a thread hand-off (launch cost: bench/README.md,
+# "Figures behind backend code comments")
+MIN_CHUNK = 2048
+CHUNKS_PER_THREAD = 8    # many small chunks per thread balance rays of very different lengths
+
+
+class _WarpMesh:
+    def __init__(self, mesh, points, indices, corners64):
+        self.mesh = mesh          # keep the arrays alive with the BVH
+        self.points = points
+        self.indices = indices
+        self.corners64 = corners64
+
+
+class _WarpGrid:
+    def __init__(self, spec, weights, masks):
+        self.spec = spec
+        self.weights = weights          # int64 fixed-point entropy, flat voxel order
+        self.masks = masks              # per brick word w: [2w] occlusion bits, [2w + 1] nonzero-weight bits
+                                        # (uint32 pairs; on CUDA the same bytes as one uint64 per brick)
+
+
+class WarpCore(Backend):
+    """Core kernels on one Warp device."""
+
+    dtype = np.float32
+    resident_kernels = True
+
+    def __init__(self, device: str = "cpu"):
+        _init()
+        try:
+            self.device = wp.get_device(device)
+        except Exception as e:  # noqa: BLE001 - Warp raises several types here
+            raise BackendUnavailable(f"Warp device {device!r} is not available: {e}") from None
+        self.name = f"warp:{self.device}"
+        from place3d_kernels.backends.warp import kernels
+
+        self.k = kernels
+        self._empty_u8 = wp.zeros(1, dtype=wp.uint8, device=self.device)
+        self.threads = 1 if self.device.is_cuda else cpu_threads()
+        self._pool = None
+        self._pool_lock = threading.Lock()
+        self._loaded = set()      # kernels launched once already (module compiled and loaded)
+
+    # ------------------------------------------------------------------ launches
+    def _launch(self, kernel, n: int, inputs) -> None:
+        """Launch ``kernel`` over ``n`` independent items; ``inputs(lo, hi)`` gives its inputs for items
+        ``lo..hi-1`` (array views of that range plus the shared arguments). On the GPU, or for small ``n``,
+        one launch; on the CPU with several threads, chunks of the range run on the thread pool."""
+        self._prepare(kernel, n, inputs)()
+
+    def _prepare(self, kernel, n: int, inputs):
+        """``_launch`` split in two: builds the (chunks') inputs now and returns the zero-argument launch
+        (benchmarks time the launch alone)."""
+        if n <= 0:
+            return lambda: None
+        if self.threads <= 1 or n < 2 * MIN_CHUNK:
+            args = inputs(0, n)
+            return lambda: wp.launch(kernel, dim=n, device=self.device, inputs=args)
+        n_chunks = min(self.threads * CHUNKS_PER_THREAD, n // MIN_CHUNK)
+        edges = [n * c // n_chunks for c in range(n_chunks + 1)]
+        chunks = [(lo, hi, inputs(lo, hi)) for lo, hi in zip(edges[:-1], edges[1:])]
+        return lambda: self._run_chunks(kernel, chunks)
+
+    def _launch_groups(self, kernel, groups: int, per_group: int, inputs) -> None:
+        """CPU only: launch ``kernel`` over ``groups`` blocks of ``per_group`` items, whole groups per thread
+        (``inputs(g0, g1)`` gives the inputs for groups ``g0..g1-1``)."""
+        k = min(groups, self.threads * CHUNKS_PER_THREAD)
+        bounds = [groups * c // k for c in range(k + 1)]
+        self._run_chunks(kernel, [(g0 * per_group, g1 * per_group, inputs(g0, g1))
+                                  for g0, g1 in zip(bounds[:-1], bounds[1:])])
+
+    def _run_chunks(self, kernel, chunks) -> None:
+        # chunks: (first item, end item, inputs); the first launch of a kernel compiles and loads its
+        # module, which must not happen on two threads at once, so it runs here before the others
+        chunks = list(chunks)
+        if kernel not in self._loaded:
+            lo, hi, args = chunks.pop(0)
+            wp.launch(kernel, dim=hi - lo, device=self.device, inputs=args)
+            self._loaded.add(kernel)
+        with self._pool_lock:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="place3d-warp-cpu")
+        futures = [self._pool.submit(wp.launch, kernel, dim=hi - lo, device=self.device, inputs=args)
+                   for lo, hi, args in chunks]
+        for f in futures:
+            f.result()
+
+    # ------------------------------------------------------------------ helpers
+    def _vec3(self, a) -> "wp.array":
+        return wp.array(np.ascontiguousarray(a, dtype=np.float32).reshape(-1, 3), dtype=wp.vec3, device=self.device)
+
+    def _vec3d(self, a) -> "wp.array":
+        return wp.array(np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d, device=self.device)
+
+    def _f64(self, a, n) -> "wp.array":
+        return wp.array(np.ascontiguousarray(np.broadcast_to(np.asarray(a, np.float64), (n,))), dtype=wp.float64,
+                        device=self.device)
+
+    def _stop(self, stop):
+        if stop is None:
+            return self._empty_u8, 0
+        if isinstance(stop, wp.array):
+            return stop, 1
+        return wp.array(np.ascontiguousarray(stop, dtype=np.uint8), dtype=wp.uint8, device=self.device), 1
+
+    def synchronize(self) -> None:
+        wp.synchronize_device(self.device)
+
+    # ------------------------------------------------------------------ rays
+    def lidar_rays(self, elevations, azimuths, poses):
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+        sd = sensor_directions(elevations, azimuths)
+        n = len(sd) * len(poses)
+        out_o = wp.empty(n, dtype=wp.vec3d, device=self.device)
+        out_d = wp.empty(n, dtype=wp.vec3d, device=self.device)
+        rot = wp.array(rotation_matrices(poses), dtype=wp.mat33d, device=self.device)
+        wp.launch(self.k.lidar_rays_kernel, dim=n, device=self.device,
+                  inputs=[self._vec3d(sd), rot, self._vec3d(poses[:, :3]), out_o, out_d])
+        return out_o.numpy(), out_d.numpy()
+
+    # ------------------------------------------------------------------ ray-mesh
+    def upload_mesh(self, vertices, faces):
+        # Warp's mesh_query_ray culls BVH nodes with an unpadded float32 slab test, and rays aimed at
+        # vertices on node boundaries slipped through (seen on boxes and cylinders). So the BVH is built
+        # over padded triangle boxes: each triangle gets its own three points, first set to the corners
+        # of its box grown by a few float32 ulps (the BVH takes its bounds from them), then overwritten
+        # in place with the true corners, without a refit. Queries then test true triangles
+        # (watertight) inside padded boxes. Face ids are unchanged (triangle f uses points 3f..3f+2).
+        v = np.asarray(vertices, dtype=np.float64)
+        f = np.asarray(faces, dtype=np.int64)
+        tri = v[f]                                                     # (F, 3, 3)
+        lo, hi = tri.min(axis=1), tri.max(axis=1)
+        pad = (np.maximum(np.abs(lo), np.abs(hi)).max(axis=1, keepdims=True) + 1.0) * 1e-6
+        build = np.stack([lo - pad, hi + pad, 0.5 * (lo + hi)], axis=1).reshape(-1, 3)
+        pts = self._vec3(build)
+        idx = wp.array(np.arange(3 * len(f), dtype=np.int32), dtype=wp.int32, device=self.device)
+        mesh = wp.Mesh(points=pts, indices=idx, bvh_constructor="sah")
+        corners = tri.reshape(-1, 3)
+        pts.assign(self._vec3(corners))
+        return _WarpMesh(mesh, pts, idx, self._vec3d(corners))
+
+    def raycast(self, mesh, origins, directions, t_max):
+        n = len(origins)
+        out_t = wp.empty(n, dtype=wp.float64, device=self.device)
+        out_f = wp.empty(n, dtype=wp.int32, device=self.device)
+        o, d, tm = self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n)
+        self._launch(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], d[a:b], tm[a:b],
+                                                            out_t[a:b], out_f[a:b]])
+        t = out_t.numpy()
+        t[t >= 1.0e300] = np.inf
+        return t, out_f.numpy()
+
+    def resident_raycast(self, mesh, origins, directions, t_max):
+        """For benchmarks: a zero-argument callable that launches the ray-mesh kernel on rays already on
+        the device (no host transfers), so kernel throughput can be timed apart from data movement."""
+        n = len(origins)
+        o, d, tm = self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n)
+        out_t = wp.empty(n, dtype=wp.float64, device=self.device)
+        out_f = wp.empty(n, dtype=wp.int32, device=self.device)
+        return self._prepare(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], d[a:b],
+                                                                    tm[a:b], out_t[a:b], out_f[a:b]])
+
+    def resident_traverse(self, grid, origins, directions, t_end, stop=None):
+        """For benchmarks: launch the traversal count kernel on resident rays (see ``resident_raycast``)."""
+        n, args = self._walk_args(grid, origins, directions, t_end)
+        stop_a, use = self._stop(stop)
+        counts = wp.zeros(n, dtype=wp.int64, device=self.device)
+        return self._prepare(self.k.traverse_count_kernel, n,
+                             lambda a, b: self._ray_range(args, a, b) + [stop_a, use, counts[a:b]])
+
+    # ------------------------------------------------------------------ traversal
+    def _walk_args(self, grid, origins, directions, t_end):
+        n = len(origins)
+        nx, ny, nz = grid.shape
+        return n, [self._vec3d(origins), self._vec3d(directions), self._f64(t_end, n),
+                   float(grid.voxel_size), int(nx), int(ny), int(nz)]
+
+    @staticmethod
+    def _ray_range(args, a, b):
+        # _walk_args for rays a..b-1: views of the three per-ray arrays, the grid arguments as they are
+        return [x[a:b] for x in args[:3]] + args[3:]
+
+    def traverse(self, grid, origins, directions, t_end, stop=None):
+        n, args = self._walk_args(grid, origins, directions, t_end)
+        stop_a, use = self._stop(stop)
+        counts = wp.zeros(n, dtype=wp.int64, device=self.device)
+        self._launch(self.k.traverse_count_kernel, n,
+                     lambda a, b: self._ray_range(args, a, b) + [stop_a, use, counts[a:b]])
+        offsets = np.zeros(n + 1, dtype=np.int64)
+        offsets[1:] = np.cumsum(counts.numpy())
+        total = int(offsets[-1])
+        voxels = wp.empty(max(total, 1), dtype=wp.int64, device=self.device)
+        if total:
+            off = wp.array(offsets, dtype=wp.int64, device=self.device)
+            # each ray writes only its own range voxels[offsets[i]:offsets[i + 1]]
+            self._launch(self.k.traverse_fill_kernel, n,
+                         lambda a, b: self._ray_range(args, a, b) + [stop_a, use, off[a:b + 1], voxels])
+        return offsets, voxels.numpy()[:total]
+
+    def coverage(self, grid, origins, directions, t_end, stop=None):
+        n, args = self._walk_args(grid, origins, directions, t_end)
+        stop_a, use = self._stop(stop)
+        mask = wp.zeros(grid.n_voxels, dtype=wp.uint8, device=self.device)
+        # chunks may share voxels: every write stores the same byte 1, so the order does not matter
+        self._launch(self.k.coverage_kernel, n, lambda a, b: self._ray_range(args, a, b) + [stop_a, use, mask])
+        return mask.numpy().view(bool)
+
+    def prepare_grid(self, grid, weights, stop):
+        w = wp.array(np.ascontiguousarray(weights, dtype=np.int64), dtype=wp.int64, device=self.device)
+        masks = brick_masks(grid.shape, np.asarray(weights).reshape(-1) != 0,
+                            None if stop is None else np.asarray(stop).reshape(-1) != 0)
+        if self.device.is_cuda:   # score_kernel_gpu reads each brick's pair as one little-endian uint64
+            return _WarpGrid(grid, w, wp.array(masks.view(np.uint64), dtype=wp.uint64, device=self.device))
+        return _WarpGrid(grid, w, wp.array(masks, dtype=wp.uint32, device=self.device))
+
+    def score_placements(self, handle, elevations, azimuths, t_max, poses):
+        poses = np.asarray(poses, dtype=np.float64)
+        P, L = poses.shape[:2]
+        flat = poses.reshape(-1, 6)
+        sd = sensor_directions(elevations, azimuths)
+        spec = handle.spec
+        nx, ny, nz = spec.shape
+        bx, by, bz = brick_shape(spec.shape)
+        words = bx * by * bz
+        bits = wp.zeros(P * words, dtype=wp.uint32, device=self.device)
+        sums = wp.zeros(P, dtype=wp.int64, device=self.device)
+        counts = wp.zeros(P, dtype=wp.int64, device=self.device)
+        rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=self.device)
+        sd_a, pos = self._vec3d(sd), self._vec3d(flat[:, :3])
+        rays = L * len(sd)     # per candidate
+        if self.device.is_cuda:
+            wp.launch(self.k.score_kernel_gpu, dim=P * rays, device=self.device,
+                      inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
+                              int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
+                      block_dim=self.k.SCORE_BLOCK_DIM)
+        elif P == 1 or self.threads <= 1:
+            wp.launch(self.k.score_kernel, dim=P * rays, device=self.device,
+                      inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
+                              int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
+                      block_dim=self.k.SCORE_BLOCK_DIM)
+        else:
+            # CPU threads take whole candidates: a candidate's bitset and sum are written by one thread only
+            def cand_range(a, b):
+                return [sd_a, rot[a * L:b * L], pos[a * L:b * L], int(L), float(t_max), float(spec.voxel_size),
+                        int(nx), int(ny), int(nz), int(by), int(bz), handle.masks, handle.weights, int(words),
+                        bits[a * words:b * words], sums[a:b]]
+
+            self._launch_groups(self.k.score_kernel, P, rays, cand_range)
+        chunks = -(-words // self.k.COUNT_WORDS)
+        wp.launch(self.k.count_bits_kernel, dim=P * chunks, device=self.device,
+                  inputs=[bits, int(words), int(chunks), counts])
+        return sums.numpy(), counts.numpy()
+
+    # ------------------------------------------------------------------ occupancy
+    def voxel_keys(self, grid, points):
+        n = len(points)
+        out = wp.empty(max(n, 1), dtype=wp.int64, device=self.device)
+        nx, ny, nz = grid.shape
+        if n:
+            wp.launch(self.k.voxel_keys_kernel, dim=n, device=self.device,
+                      inputs=[wp.array(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), dtype=wp.vec3d,
+                                       device=self.device), float(grid.voxel_size), int(nx), int(ny), int(nz), out])
+        return out.numpy()[:n]
+
+    def vote(self, keys, labels, n_classes):
+        k = np.asarray(keys, dtype=np.int64)
+        lab = np.asarray(labels, dtype=np.int64)
+        ok = (k >= 0) & (lab > 0)
+        combo = k[ok] * n_classes + lab[ok]
+        n = len(combo)
+        if n == 0:
+            return np.empty(0, np.int64), np.empty(0, np.int32)
+        buf = np.zeros(2 * n, dtype=np.int64)
+        buf[:n] = combo
+        keys_d = wp.array(buf, dtype=wp.int64, device=self.device)
+        vals_d = wp.zeros(2 * n, dtype=wp.int32, device=self.device)
+        wp.utils.radix_sort_pairs(keys_d, vals_d, n)
+        out = wp.empty(n, dtype=wp.int32, device=self.device)
+        wp.launch(self.k.vote_kernel, dim=n, device=self.device, inputs=[keys_d, int(n), int(n_classes), out])
+        lead = out.numpy()
+        sel = np.flatnonzero(lead >= 0)
+        return keys_d.numpy()[sel] // n_classes, lead[sel].astype(np.int32)
+
+
+class WarpBackend(WarpCore, WarpConditions):
+    """Warp backend on one device (``"cpu"``, ``"cuda:0"``, ...)."""
+
+
+__all__ = ["WarpBackend", "WarpCore", "warp_devices", "cpu_threads"]

@@ -1,0 +1,57 @@
+"""The backend registry: families are data, so a new backend is one FAMILIES entry and one folder."""
+
+from __future__ import annotations
+
+import sys
+import types
+
+import pytest
+
+from place3d_kernels.backends import registry
+from place3d_kernels.backends.reference import ReferenceBackend
+
+
+class _FakeBackend(ReferenceBackend):
+    def __init__(self, device: str):
+        self.name = f"fake:{device}"
+
+
+@pytest.fixture
+def fake_family(monkeypatch):
+    """A family 'fake' with devices 'a' and 'b' (one unusable 'c'), served by a module made on the fly."""
+    mod = types.ModuleType("fake_backend_pkg")
+    mod.FakeBackend = _FakeBackend
+    mod.fake_devices = lambda: ["a", "b"]
+    mod.fake_unusable = lambda: [("c", "driver too old; upgrade it")]
+    monkeypatch.setitem(sys.modules, "fake_backend_pkg", mod)
+    fams = dict(registry.FAMILIES)
+    fams["fake"] = registry.Family("fake_backend_pkg", "FakeBackend", devices="fake_devices",
+                                   unusable="fake_unusable", install="pip install fake")
+    monkeypatch.setattr(registry, "FAMILIES", fams)
+    registry.forget()
+    yield
+    registry.forget()
+
+
+def test_a_new_family_is_one_entry(fake_family):
+    assert {"fake:a", "fake:b"} <= set(registry.available_backends())
+    assert ("fake", False, "platform c: driver too old; upgrade it") in registry.backend_report()
+    b = registry.get_backend("fake")          # the family's default device: its first
+    assert isinstance(b, _FakeBackend) and b.name == "fake:a"
+    assert registry.get_backend("fake:b").name == "fake:b"
+    assert registry.get_backend("fake:a") is b   # cached per name
+
+
+def test_a_family_whose_runtime_is_missing_is_reported_with_its_install_command(monkeypatch):
+    fams = dict(registry.FAMILIES)
+    fams["ghost"] = registry.Family("no_such_module_for_place3d", "Ghost", devices="ghost_devices",
+                                    install="pip install ghost")
+    monkeypatch.setattr(registry, "FAMILIES", fams)
+    registry.forget()
+    try:
+        rows = [r for r in registry.backend_report() if r[0] == "ghost"]
+        assert len(rows) == 1 and rows[0][1] is False and "pip install ghost" in rows[0][2]
+        with pytest.raises(ValueError, match=r"'ghost:x'.*pip install ghost"):
+            registry.get_backend("ghost:x")
+    finally:
+        registry.forget()
