@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-EPS = 1e-4  # 0.1 mm: DESIGN.md section 4
+EPS = 1e-4  # 0.1 mm: docs/architecture.md, Kernel contract
 
 
 def segment_overlap(o, d, t_end, box_lo, box_hi, grid_lo, grid_hi):

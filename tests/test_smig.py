@@ -98,18 +98,16 @@ def test_scene_boxes_ego_frame():
 
 
 def test_opendrive_town_smig_objective():
-    from pathlib import Path
+    from place3d_kernels.data import opendrive_path
 
-    path = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "opendrive" / "Town01.xodr"
-    if not path.is_file():
-        pytest.skip("CARLA maps not present")
+    path = opendrive_path("Town01")
     from place3d_kernels.scene.opendrive import from_opendrive
 
     sc = from_opendrive(path, seed=0, n_frames=8)
     grid = p3k.Grid(lower=(-40, -40, 0), upper=(40, 40, 4), voxel_size=0.5)
     bg = BernoulliGrid.from_scene(sc, grid)
     lidar = p3k.LidarModel.uniform(16, (-25, 5), 180, max_range=80)
-    place = p3k.Placement.load(Path(__file__).resolve().parents[1] / "place3d_kernels" / "configs" / "placements" / "pyramid.toml")
+    place = p3k.Placement.load("pyramid")
     rigs = np.stack([place.poses, place.poses + np.array([0.0, 0.0, 0.3, 0, 0, 0])])
     s = smig_batch(bg, lidar, rigs)
     assert s.shape == (2,) and np.all(np.isfinite(s)) and np.all(s >= 0) and np.all(s <= bg.total_entropy + 1e-9)

@@ -1,4 +1,4 @@
-"""Entropy edge values and deterministic fixed-point reductions (DESIGN.md section 4, "reductions")."""
+"""Entropy edge values and deterministic fixed-point reductions (docs/architecture.md, Kernel contract: reductions)."""
 
 from __future__ import annotations
 

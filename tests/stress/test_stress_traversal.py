@@ -1,4 +1,4 @@
-"""Property-based stress tests of voxel traversal / coverage against the reference (DESIGN.md section 4).
+"""Property-based stress tests of voxel traversal / coverage against the reference (docs/architecture.md, Kernel contract).
 
 Grids offset by up to 1e6 m, voxels from 1 cm to 2 m, rays up to 500 m, adversarial directions
 (axis-parallel, -0.0 components, exact diagonals, near-axis), origins on voxel faces, edges and corners,
