@@ -101,10 +101,17 @@ def _lane(el, path, rid) -> Lane:
 
 
 def parse_opendrive(path) -> OpenDrive:
-    """Parse an OpenDRIVE (1.4-style) file. Raises ValueError naming the file and the problem."""
+    """Parse an OpenDRIVE (1.4-style) file: a path, or the name of a shipped CARLA map (``"Town01"``).
+
+    Raises ValueError naming the file and the problem.
+    """
     path = _FsPath(path)
     if not path.is_file():
-        raise ValueError(f"{path}: no such OpenDRIVE file")
+        from place3d_kernels.data import CARLA_TOWNS, opendrive_path
+
+        if path.name.removesuffix(".xodr") not in CARLA_TOWNS:
+            raise ValueError(f"{path}: no such OpenDRIVE file (shipped maps by name: {list(CARLA_TOWNS)})")
+        path = opendrive_path(path.name)
     try:
         root = ET.parse(path).getroot()
     except ET.ParseError as e:
