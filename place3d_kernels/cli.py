@@ -188,6 +188,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("backends", help="list available backends and why others are missing")
     p.set_defaults(func=cmd_backends)
 
+    from place3d_kernels.lidar_cli import add_lidars_parser
+
+    add_lidars_parser(sub)
+
     p = sub.add_parser("evaluate", help="score the paper's placements by M-SOG on a scene")
     _add_common(p)
     p.add_argument("placements", nargs="*", help="placement names or TOML paths (default: all eleven)")

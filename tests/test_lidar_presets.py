@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import place3d_kernels as p3k
-from place3d_kernels.backend import get_backend
+from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.backends.base import sensor_directions
 from place3d_kernels.lidar import CARLA_LIDAR_DEFAULTS, LidarModel, lidar_rays, list_presets, rays_from_directions
 from place3d_kernels.scan_patterns import RosettePattern
