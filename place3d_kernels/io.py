@@ -15,10 +15,11 @@ import numpy as np
 from place3d_kernels.pose import invert, pose_matrix, transform_points
 
 __all__ = ["write_semantickitti_sequence", "write_frame", "write_frame_bin", "frame_paths", "sensor_matrix",
-           "pose_row"]
+           "pose_row", "atomic_write"]
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file and a rename (readers never see half a file)."""
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(data)
     os.replace(tmp, path)
@@ -27,8 +28,8 @@ def _atomic_write(path: Path, data: bytes) -> None:
 def write_frame_bin(path_bin, path_label, points_sensor, intensity, labels) -> None:
     xyz = np.asarray(points_sensor, dtype=np.float32).reshape(-1, 3)
     arr = np.concatenate([xyz, np.asarray(intensity, np.float32).reshape(-1, 1)], axis=1)
-    _atomic_write(Path(path_bin), arr.astype(np.float32).tobytes())
-    _atomic_write(Path(path_label), np.asarray(labels, dtype=np.uint32).tobytes())
+    atomic_write(Path(path_bin), arr.astype(np.float32).tobytes())
+    atomic_write(Path(path_label), np.asarray(labels, dtype=np.uint32).tobytes())
 
 
 def frame_paths(folder, index: int) -> tuple[Path, Path]:
@@ -68,5 +69,5 @@ def write_semantickitti_sequence(frames, folder) -> Path:
     (folder / "velodyne").mkdir(parents=True, exist_ok=True)
     (folder / "labels").mkdir(parents=True, exist_ok=True)
     rows = [pose_row(write_frame(folder, i, f)) for i, f in enumerate(frames)]
-    _atomic_write(folder / "poses.txt", ("\n".join(rows) + "\n").encode())
+    atomic_write(folder / "poses.txt", ("\n".join(rows) + "\n").encode())
     return folder
