@@ -189,13 +189,13 @@ class BernoulliGrid:
 
 
 def _sums(bg: BernoulliGrid, lidar: LidarModel, poses: np.ndarray, occlusion: str, backend, mesh):
-    from place3d_kernels.metrics import _check, _mesh_sums
+    from place3d_kernels.metrics import check_inputs, mesh_sums
 
     p = bg.psog
-    _check(p, poses, occlusion, mesh)
+    check_inputs(p, poses, occlusion, mesh)
     b = get_backend(backend)
     if occlusion == "mesh":
-        sums, counts = zip(*(_mesh_sums(p, lidar, rig, mesh, b) for rig in poses))
+        sums, counts = zip(*(mesh_sums(p, lidar, rig, mesh, b) for rig in poses))
         return np.array(sums, np.int64), np.array(counts, np.int64)
     local = poses.copy()
     local[..., :3] = p.grid.to_local(poses[..., :3])

@@ -97,9 +97,9 @@ class MSOGObjective:
         P, L = poses.shape[:2]
         # +0.0 folds -0.0 so equal poses share one key
         flat = np.ascontiguousarray(poses.reshape(-1, 6) + 0.0)
-        from place3d_kernels.metrics import _check
+        from place3d_kernels.metrics import check_inputs
 
-        _check(self.psog, poses, self.occlusion, None)
+        check_inputs(self.psog, poses, self.occlusion, None)
         self._fill(flat)
         w = self.task_psog.weights
         out = np.empty(P)
