@@ -23,7 +23,7 @@ from place3d_kernels.placement import BASELINES, PAPER_PLACEMENTS, Placement
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.simulate import simulate
 from place3d_kernels.smig import BernoulliGrid, scene_boxes, smig, smig_batch
-from place3d_kernels.sog import PSOG, Frame
+from place3d_kernels.sog import PSOG
 
 __version__ = "0.1.0"
 
@@ -40,7 +40,7 @@ def __getattr__(name):
 
 __all__ = [
     "available_backends", "backend_report", "get_backend", "use_backend",
-    "Grid", "DEFAULT_GRID", "Mesh", "PointCloud", "Frame", "CLASSES",
+    "Grid", "DEFAULT_GRID", "Mesh", "PointCloud", "CLASSES",
     "LidarModel", "lidar_rays", "Placement", "PAPER_PLACEMENTS", "BASELINES",
     "raycast", "traverse", "coverage", "Hits", "Traversal",
     "PSOG", "msog", "msog_batch", "covered_voxels", "simulate", "scene_psog", "scene", "conditions",

@@ -38,6 +38,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from place3d_kernels.io import atomic_write, frame_paths, pose_row, sensor_matrix
+from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec, backend_name, resolve_lidar
 
 __all__ = ["Executor", "LocalExecutor", "RayExecutor", "get_executor", "add_executor_arguments",
@@ -271,10 +272,9 @@ def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="s
     mount_T = pose_matrix(np.asarray(mount))
     rows = []
     for i in range(spec.frames):
-        from place3d_kernels.sog import Frame
-
         origin = pose_from_matrix(pose_matrix(sc.ego_poses[i]) @ mount_T)[:3]
-        rows.append(pose_row(sensor_matrix(Frame(np.zeros((0, 3)), np.zeros(0), sc.ego_poses[i], None, origin))))
+        rows.append(pose_row(sensor_matrix(PointCloud(np.zeros((0, 3)), np.zeros(0), ego_pose=sc.ego_poses[i],
+                                                      sweep_origin=origin))))
     atomic_write(out / "poses.txt", ("\n".join(rows) + "\n").encode())
     missing = [i for i in idx if not _frame_done(out, i)]
     if missing:
