@@ -15,7 +15,7 @@ from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.lidar import LidarModel, lidar_rays
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.metrics import covered_voxels, msog, msog_batch
-from place3d_kernels.optimize import (Bounds, CallableConstraint, FixedHeight, MinDistance, OptimizeResult,
+from place3d_kernels.optimize import (Bounds, FixedHeight, FunctionConstraint, MinDistance, OptimizeResult,
                                       SearchSpace, optimize)
 from place3d_kernels.ops import Hits, Traversal, coverage, raycast, traverse
 from place3d_kernels.pipeline import scene_psog
@@ -45,5 +45,5 @@ __all__ = [
     "raycast", "traverse", "coverage", "Hits", "Traversal",
     "PSOG", "msog", "msog_batch", "covered_voxels", "simulate", "scene_psog", "scene", "conditions",
     "smig", "smig_batch", "BernoulliGrid", "scene_boxes",
-    "optimize", "SearchSpace", "OptimizeResult", "MinDistance", "FixedHeight", "Bounds", "CallableConstraint",
+    "optimize", "SearchSpace", "OptimizeResult", "MinDistance", "FixedHeight", "Bounds", "FunctionConstraint",
 ]
