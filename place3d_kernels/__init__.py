@@ -1,6 +1,6 @@
 """place3d-kernels: fast, exact kernels for multi-LiDAR placement (Place3D, NeurIPS 2024).
 
-Public API (see the README and DESIGN.md):
+Public API (see the README and docs/architecture.md):
 
 >>> import place3d_kernels as p3k
 >>> p3k.available_backends()

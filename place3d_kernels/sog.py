@@ -86,7 +86,7 @@ class PSOG:
     @classmethod
     def from_frames(cls, frames: list[PointCloud], grid: Grid, frames_per_subset: int = 5, backend=None,
                     progress: bool = False) -> "PSOG":
-        """Build from labelled frames (DESIGN.md §5).
+        """Build from labelled frames (docs/architecture.md, "P-SOG").
 
         Consecutive subsets of ``frames_per_subset`` frames are merged in the ego frame of their middle
         frame, voxelised with a majority vote (ties -> lowest class, unlabeled points do not vote), and
