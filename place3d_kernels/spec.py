@@ -146,8 +146,6 @@ class ConditionSpec:
         return FrameCondition(self.name, seed=self.seed, backend=backend, severity=self.severity,
                               **dict(self.params))
 
-    build = condition
-
     @property
     def label(self) -> str:
         extra = "".join(f"-{k}{v}" for k, v in self.params)
