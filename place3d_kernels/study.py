@@ -104,7 +104,7 @@ def _cell_task(t) -> dict:
 def run_study(config, output=None, executor=None, backend=None, progress: bool = False) -> dict:
     """Run (or finish) a study; returns {rows, executed, cells, psogs, seconds, csv, json}."""
     from place3d_kernels.distributed import LocalExecutor
-    from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec, backend_name
+    from place3d_kernels.spec import ConditionSpec, PSOGSpec, RoiSpec, SceneSpec, backend_name
 
     t0 = time.perf_counter()
     cfg = config if isinstance(config, dict) else load_config(config)
@@ -118,11 +118,11 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
 
     cells, groups = [], {}
     for s in cfg["scenes"]:
-        sspec = SceneSpec(s.get("name", "town"), int(s.get("seed", 0)), int(s.get("frames", 40)))
+        sspec = SceneSpec.from_dict(s)
         for c in cfg["conditions"]:
-            cspec = ConditionSpec.of(dict(c))
-            pspec = PSOGSpec(sspec, bname, cfg.get("voxel_size"), cspec, cfg.get("collection_lidar", "collection_64ch"),
-                             cfg.get("frames_per_subset")).resolved()
+            cspec = ConditionSpec.from_dict(c)
+            pspec = PSOGSpec(sspec, bname, RoiSpec(cfg.get("voxel_size")), cspec,
+                             cfg.get("collection_lidar", "collection_64ch"), cfg.get("frames_per_subset")).resolved()
             clabel = "clean" if cspec is None else cspec.label
             for p in cfg["placements"]:
                 plabel = Path(p).stem if str(p).endswith(".toml") else str(p)
