@@ -1,6 +1,6 @@
 """place3d-kernels: fast, exact kernels for multi-LiDAR placement (Place3D, NeurIPS 2024).
 
-Public API (see the README and DESIGN.md):
+Public API (see the README and docs/architecture.md):
 
 >>> import place3d_kernels as p3k
 >>> p3k.available_backends()
@@ -15,7 +15,7 @@ from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.lidar import LidarModel, lidar_rays
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.metrics import covered_voxels, msog, msog_batch
-from place3d_kernels.optimize import (Bounds, CallableConstraint, FixedHeight, MinDistance, OptimizeResult,
+from place3d_kernels.optimize import (Bounds, FixedHeight, FunctionConstraint, MinDistance, OptimizeResult,
                                       SearchSpace, optimize)
 from place3d_kernels.ops import Hits, Traversal, coverage, raycast, traverse
 from place3d_kernels.pipeline import scene_psog
@@ -23,7 +23,7 @@ from place3d_kernels.placement import BASELINES, PAPER_PLACEMENTS, Placement
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.simulate import simulate
 from place3d_kernels.smig import BernoulliGrid, scene_boxes, smig, smig_batch
-from place3d_kernels.sog import PSOG, Frame
+from place3d_kernels.sog import PSOG
 
 __version__ = "0.1.0"
 
@@ -40,10 +40,10 @@ def __getattr__(name):
 
 __all__ = [
     "available_backends", "backend_report", "get_backend", "use_backend",
-    "Grid", "DEFAULT_GRID", "Mesh", "PointCloud", "Frame", "CLASSES",
+    "Grid", "DEFAULT_GRID", "Mesh", "PointCloud", "CLASSES",
     "LidarModel", "lidar_rays", "Placement", "PAPER_PLACEMENTS", "BASELINES",
     "raycast", "traverse", "coverage", "Hits", "Traversal",
     "PSOG", "msog", "msog_batch", "covered_voxels", "simulate", "scene_psog", "scene", "conditions",
     "smig", "smig_batch", "BernoulliGrid", "scene_boxes",
-    "optimize", "SearchSpace", "OptimizeResult", "MinDistance", "FixedHeight", "Bounds", "CallableConstraint",
+    "optimize", "SearchSpace", "OptimizeResult", "MinDistance", "FixedHeight", "Bounds", "FunctionConstraint",
 ]

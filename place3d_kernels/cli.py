@@ -30,53 +30,13 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="condition parameter, e.g. --param alpha=0.03 (repeatable)")
 
 
-def _grid(args):
-    from place3d_kernels.grid import DEFAULT_GRID, Grid
-
-    if args.voxel_size is None:
-        return DEFAULT_GRID
-    return Grid(DEFAULT_GRID.lower, DEFAULT_GRID.upper, args.voxel_size)
-
-
-def _scene(args):
-    from place3d_kernels import scene as scenes
-
-    name = args.scene
-    if name == "town":
-        return scenes.town(seed=args.seed, n_frames=args.frames)
-    if name.startswith("opendrive:"):
-        return scenes.from_opendrive(name.split(":", 1)[1], seed=args.seed, n_frames=args.frames)
-    raise ValueError(f"unknown scene {name!r}; use 'town' or 'opendrive:PATH' (an OpenDRIVE .xodr file)")
-
-
-def _condition(args, backend):
-    """The FrameCondition named by --condition / --severity / --param KEY=VALUE, or None."""
-    if not getattr(args, "condition", None):
-        return None
-    from place3d_kernels.pipeline import FrameCondition
-
-    params = {}
-    for kv in getattr(args, "param", []) or []:
-        if "=" not in kv:
-            raise ValueError(f"--param expects KEY=VALUE, got {kv!r}")
-        k, v = kv.split("=", 1)
-        try:
-            params[k] = float(v)
-        except ValueError:
-            params[k] = v
-    return FrameCondition(args.condition, seed=args.seed, backend=backend, severity=args.severity, **params)
-
-
-def _psog(args, backend):
-    from place3d_kernels.pipeline import scene_psog
-
+def _psog(spec, args, backend):
+    """(scene, P-SOG) of ``spec`` built with ``backend`` (the local path), honouring --no-cache / --quiet."""
     t = time.perf_counter()
-    sc = _scene(args)
-    psog = scene_psog(sc, grid=_grid(args), backend=backend, cache=not args.no_cache, progress=not args.quiet,
-                      condition=_condition(args, backend))
+    psog = spec.build(backend=backend, cache=not args.no_cache, progress=not args.quiet)
     if not args.quiet:
         print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
-    return sc, psog
+    return spec.scene.build(), psog
 
 
 # ---------------------------------------------------------------------------------------- commands
@@ -95,13 +55,14 @@ def cmd_evaluate(args) -> int:
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
+    from place3d_kernels.spec import specs_from_args
 
     t0 = time.perf_counter()
     b = get_backend(args.backend)
     lidar = LidarModel.load(args.lidar)
     names = args.placements or list(PAPER_PLACEMENTS)
     placements = [Placement.load(n) for n in names]
-    _, psog = _psog(args, b)
+    _, psog = _psog(specs_from_args(args), args, b)
     rows = []
     for name, pl in tqdm(list(zip(names, placements)), desc="evaluate", unit="placement", disable=args.quiet,
                          leave=False):
@@ -131,14 +92,16 @@ def cmd_evaluate(args) -> int:
 def cmd_simulate(args) -> int:
     from place3d_kernels.backends.registry import get_backend
 
+    from place3d_kernels.spec import specs_from_args
+
+    spec = specs_from_args(args)
     if getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None):
-        from place3d_kernels.distributed import ConditionSpec, SceneSpec, executor_from_args, simulate_to_folder
+        from place3d_kernels.distributed import executor_from_args, simulate_to_folder
 
         ex = executor_from_args(args)
         try:
-            r = simulate_to_folder(SceneSpec(args.scene, args.seed, args.frames), args.lidar, args.output, ex,
-                                   chunk=args.chunk or 8, backend=args.backend,
-                                   condition=ConditionSpec.of(_condition(args, None)))
+            r = simulate_to_folder(spec.scene, args.lidar, args.output, ex, chunk=args.chunk or 8,
+                                   backend=args.backend, condition=spec.condition)
         finally:
             ex.shutdown()
         print(f"wrote {r['written']} frames ({r['skipped']} already there) to {r['out']} in {r['seconds']:.1f} s "
@@ -148,10 +111,9 @@ def cmd_simulate(args) -> int:
     from place3d_kernels.simulate import simulate
 
     b = get_backend(args.backend)
-    sc = _scene(args)
-    frames = simulate(sc, args.lidar, backend=b, progress=not args.quiet)
-    cond = _condition(args, b)
-    if cond is not None:
+    frames = simulate(spec.scene.build(), args.lidar, backend=b, progress=not args.quiet)
+    if spec.condition is not None:
+        cond = spec.condition.condition(b)
         frames = [cond(f, i) for i, f in enumerate(frames)]
     out = write_semantickitti_sequence(frames, args.output)
     print(f"wrote {len(frames)} frames to {out}")
@@ -176,8 +138,10 @@ def cmd_study(args) -> int:
 
 def cmd_optimize(args) -> int:
     from place3d_kernels.optimize.cli import run as run_optimize
+    from place3d_kernels.spec import specs_from_args
 
-    return run_optimize(args, psog_for=_psog)
+    spec = specs_from_args(args)
+    return run_optimize(args, spec, psog_for=lambda backend: _psog(spec, args, backend))
 
 
 # ---------------------------------------------------------------------------------------- parser

@@ -17,6 +17,8 @@ on any worker as the local executor does in-process:
   frames whose two files exist, so a killed run resumes without losing or duplicating anything.
 - ``DistributedObjective``: splits each CMA-ES batch into chunks scored as tasks; workers load the
   P-SOG from the on-disk cache of ``scene_psog`` (keyed by its inputs), building it only if absent.
+- The specs (``SceneSpec``, ``ConditionSpec``, ``PSOGSpec``) live in ``place3d_kernels.spec`` and are
+  re-exported here.
 - ``task_seed(run_seed, task_id)``: seeds derived from the run seed and the task id only. The frame
   conditions already seed each frame from (run seed, global frame index) (``FrameCondition``).
 
@@ -28,7 +30,6 @@ Multi-machine clusters: the output folder and the P-SOG cache folder should be o
 
 from __future__ import annotations
 
-import functools
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,7 +37,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from place3d_kernels.io import frame_paths, pose_row, sensor_matrix
+from place3d_kernels.io import atomic_write, frame_paths, pose_row, sensor_matrix
+from place3d_kernels.pointcloud import PointCloud
+from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec, backend_name, resolve_lidar
 
 __all__ = ["Executor", "LocalExecutor", "RayExecutor", "get_executor", "add_executor_arguments",
            "executor_from_args", "task_seed", "SceneSpec", "ConditionSpec", "PSOGSpec", "simulate_to_folder",
@@ -184,90 +187,6 @@ def chunks(items: Sequence, size: int) -> list[list]:
     return [items[i:i + size] for i in range(0, len(items), size)]
 
 
-def _backend_name(backend) -> str:
-    """A name a worker can resolve: explicit names pass through unresolved (the driver may lack the
-    device, e.g. 'warp:cuda:0' on a CPU head node); None / 'auto' resolve here so all tasks agree."""
-    if backend is not None and not isinstance(backend, str):
-        return backend.name
-    if backend in (None, "auto"):
-        from place3d_kernels.backends.registry import get_backend
-
-        return get_backend(backend).name
-    return backend
-
-
-# ============================================================================== specs
-@dataclass(frozen=True)
-class SceneSpec:
-    """A scene rebuilt inside tasks from explicit inputs: 'town' or 'opendrive:PATH', seed, frames."""
-
-    name: str = "town"
-    seed: int = 0
-    frames: int = 40
-
-    def build(self):
-        return _build_scene(self)
-
-    @property
-    def label(self) -> str:
-        base = self.name if self.name == "town" else Path(self.name.split(":", 1)[-1]).stem
-        return f"{base}-s{self.seed}-f{self.frames}"
-
-
-@functools.lru_cache(maxsize=4)
-def _build_scene(spec: SceneSpec):
-    from place3d_kernels import scene as scenes
-
-    if spec.name == "town":
-        return scenes.town(seed=spec.seed, n_frames=spec.frames)
-    if spec.name.startswith("opendrive:"):
-        return scenes.from_opendrive(spec.name.split(":", 1)[1], seed=spec.seed, n_frames=spec.frames)
-    raise ValueError(f"unknown scene {spec.name!r}; use 'town' or 'opendrive:PATH'")
-
-
-@dataclass(frozen=True)
-class ConditionSpec:
-    """A ``FrameCondition`` as plain data (name, run seed, severity, params), rebuilt in tasks."""
-
-    name: str
-    seed: int = 0
-    severity: str | None = None
-    params: tuple = ()          # sorted (key, value) pairs
-
-    @classmethod
-    def of(cls, cond) -> "ConditionSpec | None":
-        if cond is None or isinstance(cond, ConditionSpec):
-            return cond
-        if isinstance(cond, dict):
-            d = dict(cond)
-            name = d.pop("name")
-            if name in (None, "", "clean", "none"):
-                return None
-            seed, sev = int(d.pop("seed", 0)), d.pop("severity", None)
-            params = d.pop("params", {}) or {}
-            params = {**params, **d}
-            return cls(name, seed, sev, tuple(sorted(params.items())))
-        # a FrameCondition
-        return cls(cond.name, int(cond.seed), cond.severity, tuple(sorted(cond.params.items())))
-
-    def build(self, backend=None):
-        from place3d_kernels.pipeline import FrameCondition
-
-        return FrameCondition(self.name, seed=self.seed, backend=backend, severity=self.severity,
-                              **dict(self.params))
-
-    @property
-    def label(self) -> str:
-        extra = "".join(f"-{k}{v}" for k, v in self.params)
-        return f"{self.name}" + (f"-{self.severity}" if self.severity else "") + extra + f"-s{self.seed}"
-
-
-def _lidar(lidar):
-    from place3d_kernels.lidar import LidarModel
-
-    return LidarModel.load(lidar) if isinstance(lidar, str) else lidar
-
-
 # ============================================================================== simulate
 def _frame_done(out: Path, i: int) -> bool:
     b, lab = frame_paths(out, i)
@@ -294,12 +213,12 @@ def _simulate_task(t: _SimTask) -> list[int]:
 
     out = Path(t.out)
     sc = t.scene.build()
-    cond = None if t.condition is None else t.condition.build(t.backend)
+    cond = None if t.condition is None else t.condition.condition(t.backend)
     written = []
     for i in t.frames:
         if _frame_done(out, i):
             continue
-        (f,) = simulate(sc, _lidar(t.lidar), mount=np.asarray(t.mount), frames=[i], backend=t.backend)
+        (f,) = simulate(sc, resolve_lidar(t.lidar), mount=np.asarray(t.mount), frames=[i], backend=t.backend)
         if cond is not None:
             f = cond(f, i)                                     # the frame's global index seeds it
         frame_paths(out, i)[0].unlink(missing_ok=True)         # label written last marks the frame done
@@ -330,7 +249,6 @@ def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="s
     Returns:
         dict: frames, written, skipped, tasks, seconds, out.
     """
-    from place3d_kernels.io import _atomic_write
     from place3d_kernels.pose import pose_from_matrix, pose_matrix
     from place3d_kernels.simulate import DEFAULT_MOUNT
 
@@ -343,7 +261,7 @@ def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="s
     (out / "labels").mkdir(parents=True, exist_ok=True)
     idx = list(range(spec.frames)) if frames is None else [int(i) for i in frames]
     todo = [i for i in idx if not _frame_done(out, i)]
-    bname = _backend_name(backend)
+    bname = backend_name(backend)
     cspec = ConditionSpec.of(condition)
     tasks = [_SimTask(k, tuple(c), spec, lidar, mount, bname, cspec, str(out), task_hook)
              for k, c in enumerate(chunks(todo, chunk))]
@@ -354,11 +272,10 @@ def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="s
     mount_T = pose_matrix(np.asarray(mount))
     rows = []
     for i in range(spec.frames):
-        from place3d_kernels.sog import Frame
-
         origin = pose_from_matrix(pose_matrix(sc.ego_poses[i]) @ mount_T)[:3]
-        rows.append(pose_row(sensor_matrix(Frame(np.zeros((0, 3)), np.zeros(0), sc.ego_poses[i], None, origin))))
-    _atomic_write(out / "poses.txt", ("\n".join(rows) + "\n").encode())
+        rows.append(pose_row(sensor_matrix(PointCloud(np.zeros((0, 3)), np.zeros(0), ego_pose=sc.ego_poses[i],
+                                                      sweep_origin=origin))))
+    atomic_write(out / "poses.txt", ("\n".join(rows) + "\n").encode())
     missing = [i for i in idx if not _frame_done(out, i)]
     if missing:
         raise RuntimeError(f"frames {missing[:10]} were not written to {out}")
@@ -367,45 +284,11 @@ def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="s
 
 
 # ============================================================================== P-SOG and scoring
-@dataclass(frozen=True)
-class PSOGSpec:
-    """The inputs of ``scene_psog`` as data; ``load()`` reads the on-disk cache (building it if absent)."""
-
-    scene: SceneSpec
-    backend: str
-    voxel_size: float | None = None
-    condition: ConditionSpec | None = None
-    lidar: Any = "collection_64ch"
-    frames_per_subset: int | None = None
-    cache: str | None = None       # cache folder, resolved in the driver (workers may have another $HOME)
-
-    def load(self):
-        return _load_psog(self)
-
-    def resolved(self) -> "PSOGSpec":
-        from place3d_kernels.sog import cache_dir
-
-        return PSOGSpec(self.scene, _backend_name(self.backend), self.voxel_size, self.condition, self.lidar,
-                        self.frames_per_subset, self.cache or str(cache_dir()))
-
-
-@functools.lru_cache(maxsize=4)
-def _load_psog(spec: PSOGSpec):
-    from place3d_kernels.grid import DEFAULT_GRID, Grid
-    from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET, scene_psog
-
-    grid = DEFAULT_GRID if spec.voxel_size is None else Grid(DEFAULT_GRID.lower, DEFAULT_GRID.upper, spec.voxel_size)
-    cond = None if spec.condition is None else spec.condition.build(spec.backend)
-    return scene_psog(spec.scene.build(), grid=grid, lidar=_lidar(spec.lidar),
-                      frames_per_subset=spec.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET, backend=spec.backend,
-                      cache=spec.cache if spec.cache else True, condition=cond)
-
-
 def _score_task(t: tuple) -> np.ndarray:
     psog_spec, lidar, poses, occlusion, task, backend = t
     from place3d_kernels.metrics import msog_batch
 
-    return np.asarray(msog_batch(psog_spec.load(), _lidar(lidar), poses, occlusion=occlusion, task=task,
+    return np.asarray(msog_batch(psog_spec.load(), resolve_lidar(lidar), poses, occlusion=occlusion, task=task,
                                  backend=backend), dtype=np.float64)
 
 
@@ -436,7 +319,7 @@ class DistributedObjective:
 
     def __post_init__(self):
         self.psog = self.psog.resolved()
-        self.backend = _backend_name(self.backend if self.backend is not None else self.psog.backend)
+        self.backend = backend_name(self.backend if self.backend is not None else self.psog.backend)
 
     def __call__(self, X) -> np.ndarray:
         poses = np.asarray(self.space.to_poses(np.asarray(X, dtype=np.float64)))

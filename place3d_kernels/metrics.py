@@ -26,7 +26,9 @@ def _poses(placement) -> np.ndarray:
     return np.asarray(p, dtype=np.float64)
 
 
-def _check(psog: PSOG, poses: np.ndarray, occlusion: str, mesh) -> None:
+def check_inputs(psog: PSOG, poses: np.ndarray, occlusion: str, mesh) -> None:
+    """Raise ValueError naming the bad value: an unknown occlusion mode, 'mesh' without a mesh, poses that
+    are not finite (..., 6) rows or that lie outside the P-SOG's grid."""
     if occlusion not in OCCLUSION_MODES:
         raise ValueError(f"occlusion must be one of {OCCLUSION_MODES}, got {occlusion!r}")
     if occlusion == "mesh" and mesh is None:
@@ -66,11 +68,11 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
     poses = _poses(poses)
     if poses.ndim == 2:
         poses = poses[None]
-    _check(psog, poses, occlusion, mesh)
+    check_inputs(psog, poses, occlusion, mesh)
     p = psog.for_task(task)
     b = get_backend(backend)
     if occlusion == "mesh":
-        sums, counts = zip(*(_mesh_sums(p, lidar, rig, mesh, b) for rig in poses))
+        sums, counts = zip(*(mesh_sums(p, lidar, rig, mesh, b) for rig in poses))
         return _score(np.array(sums), np.array(counts))
     local = poses.copy()
     local[..., :3] = p.grid.to_local(poses[..., :3])
@@ -79,7 +81,8 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
     return _score(sums, counts)
 
 
-def _mesh_sums(p: PSOG, lidar: LidarModel, rig: np.ndarray, mesh: Mesh, b) -> tuple[int, int]:
+def mesh_sums(p: PSOG, lidar: LidarModel, rig: np.ndarray, mesh: Mesh, b) -> tuple[int, int]:
+    """(fixed-point entropy sum, voxel count) covered by one rig whose rays stop at the mesh (occlusion 'mesh')."""
     o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, rig)
     hits = raycast(mesh, o, d, lidar.max_range, backend=b)
     t_end = np.minimum(hits.t, lidar.max_range)
@@ -100,7 +103,7 @@ def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog",
     Used to cache coverage per LiDAR pose: the M-SOG of a rig is then a union of cached sets.
     """
     poses = _poses(poses).reshape(-1, 6)
-    _check(psog, poses, occlusion, mesh)
+    check_inputs(psog, poses, occlusion, mesh)
     b = get_backend(backend)
     o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, poses)
     if occlusion == "mesh":

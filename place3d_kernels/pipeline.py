@@ -57,7 +57,7 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
 
 
 class FrameCondition:
-    """An adverse condition applied to simulated frames (callable ``Frame -> Frame``).
+    """An adverse condition applied to simulated frames (callable ``(PointCloud, index) -> PointCloud``).
 
     Each frame gets its own seed derived from the run seed and the frame's position in the drive, so
     results never depend on evaluation order. ``key`` identifies the condition for P-SOG caches.
@@ -83,15 +83,9 @@ class FrameCondition:
 
     def __call__(self, frame, index: int | None = None):
         from place3d_kernels import conditions
-        from place3d_kernels.pointcloud import PointCloud
-        from place3d_kernels.sog import Frame
 
         i = self._count if index is None else index
         self._count += 1
-        cloud = PointCloud(frame.points, frame.labels,
-                           frame.intensity if frame.intensity is not None else np.zeros(len(frame.points)),
-                           frame.origins)
-        out = conditions.apply(cloud, self.name, seed=self.seed * 1_000_003 + i, backend=self.backend,
-                               severity=self.severity, **self.params)
-        origin = None if frame.origins is None else np.asarray(frame.origins, dtype=np.float64).reshape(-1, 3)[0]
-        return Frame(out.points, out.labels, frame.ego_pose, out.intensity, origin)
+        # the conditions return copies or subsets of the frame, so its ego pose and sweep origin travel on
+        return conditions.apply(frame, self.name, seed=self.seed * 1_000_003 + i, backend=self.backend,
+                                severity=self.severity, **self.params)

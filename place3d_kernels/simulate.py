@@ -9,8 +9,8 @@ from place3d_kernels.classes import REFLECTIVITY
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.ops import raycast
+from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import pose_from_matrix, pose_matrix
-from place3d_kernels.sog import Frame
 
 __all__ = ["simulate_frame", "simulate", "DEFAULT_MOUNT"]
 
@@ -54,8 +54,8 @@ def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor
 
 
 def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_MOUNT, frames=None,
-             backend=None, progress: bool = False) -> list[Frame]:
-    """Semantic LiDAR frames along the scene's ego route.
+             backend=None, progress: bool = False) -> list[PointCloud]:
+    """Semantic LiDAR frames along the scene's ego route (world points, ego pose, sensor origin per return).
 
     Args:
         scene: a ``Scene``.
@@ -80,5 +80,5 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         T = ego_T @ mount_T
         sensor_pose = pose_from_matrix(T)
         pts, lab, inten, origin = simulate_frame(scene.static, scene.dynamic(f), lidar, sensor_pose, backend)
-        out.append(Frame(pts, lab, scene.ego_poses[f].copy(), inten, origin))
+        out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
     return out

@@ -31,8 +31,8 @@ Defects of the original public code that this version does not repeat:
 3. negative voxel indices from rays leaving through the lower ROI faces were used as Python indices and
    wrapped around to voxels on the opposite side of the grid (here segments are clipped to the grid and
    indices are checked; see ``place3d_kernels.ops.traverse``);
-4. (speed) ray casting and the full-grid entropy loop ran in pure Python (~15 s and ~12 min per placement);
-   here both are kernels and the entropy is summed only over covered voxels.
+4. (speed) ray casting and the full-grid entropy loop ran in pure Python (minutes per placement; timings in
+   bench/README.md); here both are kernels and the entropy is summed only over covered voxels.
 """
 
 from __future__ import annotations
@@ -189,13 +189,13 @@ class BernoulliGrid:
 
 
 def _sums(bg: BernoulliGrid, lidar: LidarModel, poses: np.ndarray, occlusion: str, backend, mesh):
-    from place3d_kernels.metrics import _check, _mesh_sums
+    from place3d_kernels.metrics import check_inputs, mesh_sums
 
     p = bg.psog
-    _check(p, poses, occlusion, mesh)
+    check_inputs(p, poses, occlusion, mesh)
     b = get_backend(backend)
     if occlusion == "mesh":
-        sums, counts = zip(*(_mesh_sums(p, lidar, rig, mesh, b) for rig in poses))
+        sums, counts = zip(*(mesh_sums(p, lidar, rig, mesh, b) for rig in poses))
         return np.array(sums, np.int64), np.array(counts, np.int64)
     local = poses.copy()
     local[..., :3] = p.grid.to_local(poses[..., :3])

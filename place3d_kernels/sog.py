@@ -11,7 +11,6 @@ import hashlib
 import json
 import os
 import threading
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,9 +19,10 @@ from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.classes import CLASSES, N_CLASSES, VEHICLE
 from place3d_kernels.grid import Grid
+from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import invert, pose_matrix, transform_points
 
-__all__ = ["Frame", "PSOG", "entropy", "cache_dir"]
+__all__ = ["PSOG", "entropy", "cache_dir", "cache_key"]
 
 _FORMAT = 3  # bump when the on-disk layout or the build changes (2: float64 voxel binning; 3: ray-mesh
              # distances from the reference formula on every backend, so P-SOGs agree across backends)
@@ -31,17 +31,6 @@ _FORMAT = 3  # bump when the on-disk layout or the build changes (2: float64 vox
 def cache_dir() -> Path:
     """Where P-SOGs are cached: ``$PLACE3D_CACHE`` or ``~/.cache/place3d``."""
     return Path(os.environ.get("PLACE3D_CACHE", Path.home() / ".cache" / "place3d"))
-
-
-@dataclass
-class Frame:
-    """One LiDAR frame: points in the world frame, their labels, and the ego pose (x, y, z, r, p, y)."""
-
-    points: np.ndarray
-    labels: np.ndarray
-    ego_pose: np.ndarray
-    intensity: np.ndarray | None = None
-    origins: np.ndarray | None = None
 
 
 def entropy(probs: np.ndarray) -> np.ndarray:
@@ -95,9 +84,9 @@ class PSOG:
         return cls(grid, keep, flat[keep], channels)
 
     @classmethod
-    def from_frames(cls, frames: list[Frame], grid: Grid, frames_per_subset: int = 5, backend=None,
+    def from_frames(cls, frames: list[PointCloud], grid: Grid, frames_per_subset: int = 5, backend=None,
                     progress: bool = False) -> "PSOG":
-        """Build from labelled frames (DESIGN.md §5).
+        """Build from labelled frames (docs/architecture.md, "P-SOG").
 
         Consecutive subsets of ``frames_per_subset`` frames are merged in the ego frame of their middle
         frame, voxelised with a majority vote (ties -> lowest class, unlabeled points do not vote), and

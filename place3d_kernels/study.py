@@ -87,13 +87,13 @@ def _psog_task(spec) -> str:
 def _cell_task(t) -> dict:
     """Score one placement on one (scene, condition) P-SOG, both tasks; write the cell file atomically."""
     psog_spec, placement, lidar, occlusion, backend, path, meta = t
-    from place3d_kernels.distributed import _lidar
+    from place3d_kernels.spec import resolve_lidar
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.placement import Placement
 
     psog = psog_spec.load()
     pl = Placement.load(placement)
-    L = _lidar(lidar)
+    L = resolve_lidar(lidar)
     row = dict(meta)
     for task in ("seg", "det"):
         row[f"msog_{task}"] = float(msog_batch(psog, L, pl.poses[None], occlusion, task, backend)[0])
@@ -103,25 +103,26 @@ def _cell_task(t) -> dict:
 
 def run_study(config, output=None, executor=None, backend=None, progress: bool = False) -> dict:
     """Run (or finish) a study; returns {rows, executed, cells, psogs, seconds, csv, json}."""
-    from place3d_kernels.distributed import ConditionSpec, LocalExecutor, PSOGSpec, SceneSpec, _backend_name
+    from place3d_kernels.distributed import LocalExecutor
+    from place3d_kernels.spec import ConditionSpec, PSOGSpec, RoiSpec, SceneSpec, backend_name
 
     t0 = time.perf_counter()
     cfg = config if isinstance(config, dict) else load_config(config)
     executor = executor or LocalExecutor()
     out = Path(output or f"study-{_safe(cfg['name'])}")
     (out / "cells").mkdir(parents=True, exist_ok=True)
-    bname = _backend_name(backend if backend is not None else cfg.get("backend"))
+    bname = backend_name(backend if backend is not None else cfg.get("backend"))
     lidar = cfg.get("lidar", "place3d_16ch")
     occlusion = cfg.get("occlusion", "sog")
     before = executor.submitted
 
     cells, groups = [], {}
     for s in cfg["scenes"]:
-        sspec = SceneSpec(s.get("name", "town"), int(s.get("seed", 0)), int(s.get("frames", 40)))
+        sspec = SceneSpec.from_dict(s)
         for c in cfg["conditions"]:
-            cspec = ConditionSpec.of(dict(c))
-            pspec = PSOGSpec(sspec, bname, cfg.get("voxel_size"), cspec, cfg.get("collection_lidar", "collection_64ch"),
-                             cfg.get("frames_per_subset")).resolved()
+            cspec = ConditionSpec.from_dict(c)
+            pspec = PSOGSpec(sspec, bname, RoiSpec(cfg.get("voxel_size")), cspec,
+                             cfg.get("collection_lidar", "collection_64ch"), cfg.get("frames_per_subset")).resolved()
             clabel = "clean" if cspec is None else cspec.label
             for p in cfg["placements"]:
                 plabel = Path(p).stem if str(p).endswith(".toml") else str(p)

@@ -128,8 +128,9 @@ def test_missing_and_bad_label_maps(tmp_path):
 
 # ---------------------------------------------------------------------------- point-cloud formats
 from place3d_kernels import io as p3k_io  # noqa: E402
-from place3d_kernels import io_formats as iof  # noqa: E402
-from place3d_kernels.sog import Frame, PSOG  # noqa: E402
+from place3d_kernels import io as iof  # noqa: E402
+from place3d_kernels.pointcloud import PointCloud  # noqa: E402
+from place3d_kernels.sog import PSOG  # noqa: E402
 from place3d_kernels.grid import Grid  # noqa: E402
 from place3d_kernels.pose import pose_matrix, transform_points  # noqa: E402
 
@@ -145,7 +146,7 @@ def synthetic_frames(n=6, seed=0):
         world = transform_points(pose_matrix(ego), local)
         lab = rng.integers(0, 22, size=300).astype(np.int32)
         origin = transform_points(pose_matrix(ego), np.array([[0.0, 0.0, 2.5]]))[0]
-        frames.append(Frame(world, lab, ego, rng.random(300).astype(np.float32), origin[None]))
+        frames.append(PointCloud(world, lab, rng.random(300).astype(np.float32), origin[None], ego_pose=ego))
     return frames
 
 

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from place3d_kernels.optimize import (Bounds, Callable, FixedHeight, MinDistance, SearchSpace, certificate,
+from place3d_kernels.optimize import (Bounds, FixedHeight, FunctionConstraint, MinDistance, SearchSpace, certificate,
                                       load_checkpoint, optimize, total_penalty)
 from place3d_kernels.placement import Placement
 
@@ -146,12 +146,12 @@ def test_penalties_by_hand():
     np.testing.assert_allclose(FixedHeight(2.2).penalty(poses), [0.0, 0.3])
     np.testing.assert_allclose(FixedHeight().penalty(poses), [0.0, 0.2])
     np.testing.assert_allclose(Bounds({"z": (2.2, 2.35)}).penalty(poses), [0.0, 0.05])
-    c = Callable(lambda p: p[:, :, 0].sum(axis=1), name="sum_x")
+    c = FunctionConstraint(lambda p: p[:, :, 0].sum(axis=1), name="sum_x")
     np.testing.assert_allclose(total_penalty([c, MinDistance(0.4)], poses), [0.4, 0.5])
     with pytest.raises(ValueError, match="finite penalties >= 0"):
-        Callable(lambda p: -np.ones(len(p))).penalty(poses)
+        FunctionConstraint(lambda p: -np.ones(len(p))).penalty(poses)
     with pytest.raises(ValueError, match="shape"):
-        Callable(lambda p: np.ones(7)).penalty(poses)
+        FunctionConstraint(lambda p: np.ones(7)).penalty(poses)
     with pytest.raises(ValueError, match="positive"):
         MinDistance(0)
 

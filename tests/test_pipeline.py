@@ -39,8 +39,8 @@ def test_simulated_frames_are_labelled_and_on_surfaces(frames, small_town):
     assert ranges.max() <= 60.0 + 1e-3
     # re-casting toward each point hits at its range: points lie on the first surface
     idx = np.random.default_rng(0).choice(len(f.points), 300, replace=False)
-    d = f.points[idx] - f.origins
-    hits = p3k.raycast(small_town.mesh(0), np.broadcast_to(f.origins, d.shape), d, 100.0, backend="warp:cpu")
+    d = f.points[idx] - f.sweep_origin
+    hits = p3k.raycast(small_town.mesh(0), np.broadcast_to(f.sweep_origin, d.shape), d, 100.0, backend="warp:cpu")
     np.testing.assert_allclose(hits.t, ranges[idx], atol=2e-3)
 
 

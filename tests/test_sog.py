@@ -14,7 +14,7 @@ ORIGIN = np.zeros(6)
 
 
 def frame(points, labels, pose=ORIGIN):
-    return p3k.Frame(np.asarray(points, float), np.asarray(labels), np.asarray(pose, float))
+    return p3k.PointCloud(np.asarray(points, float), np.asarray(labels), ego_pose=np.asarray(pose, float))
 
 
 def test_vote_majority_ties_and_unlabeled(backend):

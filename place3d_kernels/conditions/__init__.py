@@ -1,4 +1,5 @@
-"""Adverse conditions: point-cloud corruptions as kernels on every backend (DESIGN.md section 7).
+"""Adverse conditions: point-cloud corruptions as kernels on every backend (docs/architecture.md,
+"Kernel contract").
 
 One function per condition, each ``f(cloud, <model parameters>, seed=0, backend=None, **options) -> PointCloud``,
 pure (the input cloud is never modified) and deterministic per seed on every backend:

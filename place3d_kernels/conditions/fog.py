@@ -169,8 +169,8 @@ def fog_lookup(alpha: float, tau_h: float = 20e-9, r1: float = 0.9, r2: float = 
                        bool(shift))
 
 
-def _fog_arrays(cloud: PointCloud, alpha: float, beta: float, seed, backend, noise: float, sensor: FogSensor,
-                intensity_max: float):
+def fog_arrays(cloud: PointCloud, alpha: float, beta: float, seed, backend, noise: float, sensor: FogSensor,
+               intensity_max: float):
     """(new points, new intensity, fog mask, ranges R0) for a cloud; the kernel call behind ``fog``."""
     o, u, r0 = rays(cloud)
     table = fog_lookup(alpha, sensor.tau_h, sensor.r1, sensor.r2)
@@ -211,5 +211,5 @@ def fog(cloud: PointCloud, alpha: float | None = None, beta: float = 0.05, seed=
     noise = check_range("noise", noise, lo=0.0)
     if alpha == 0.0 and beta == 0.0 or len(cloud) == 0:
         return cloud.copy()
-    pts, inten, is_fog, _ = _fog_arrays(cloud, alpha, beta, seed, backend, noise, sensor, intensity_max)
+    pts, inten, is_fog, _ = fog_arrays(cloud, alpha, beta, seed, backend, noise, sensor, intensity_max)
     return cloud.copy(points=pts, intensity=inten.astype(np.float32), scattered=scattered(cloud) | is_fog)

@@ -38,7 +38,7 @@ import numpy as np
 
 from place3d_kernels.classes import GROUND_CLASSES, REFLECTIVITY
 from place3d_kernels.conditions._common import rng
-from place3d_kernels.conditions.returns import FOG, NONE, SURFACE, Returns
+from place3d_kernels.conditions.return_types import FOG, NONE, SURFACE, Returns
 
 __all__ = ["mitsuba_lidar_returns", "import_mitsuba"]
 

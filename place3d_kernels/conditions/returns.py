@@ -16,42 +16,16 @@ has no return (kind 0); its ``fog_power`` is the backscatter for unit gain, ``be
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from place3d_kernels.classes import REFLECTIVITY
 from place3d_kernels.conditions._common import rng
+from place3d_kernels.conditions.return_types import FOG, NONE, SURFACE, Returns
 from place3d_kernels.pointcloud import PointCloud
 
 __all__ = ["lidar_returns", "Returns", "NONE", "SURFACE", "FOG"]
 
-NONE, SURFACE, FOG = 0, 1, 2
 _CONDITIONS = (None, "clear", "fog", "wet_ground")
-
-
-@dataclass
-class Returns:
-    """One entry per ray.
-
-    Attributes:
-        range: metres along the ray (inf: no return).
-        intensity: return intensity (0: no return).
-        hard_power: surface return power / (C_A P0) (0 on a miss or a dropped return).
-        fog_power: peak fog backscatter power / (C_A P0) (0 without fog).
-        kind: 0 no return, 1 surface, 2 fog.
-        label: class of the surface hit (-1 on a miss).
-    """
-
-    range: np.ndarray
-    intensity: np.ndarray
-    hard_power: np.ndarray
-    fog_power: np.ndarray
-    kind: np.ndarray
-    label: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.range)
 
 
 def _raycast(mesh, origins, directions, t_max, backend):
@@ -122,7 +96,7 @@ def lidar_returns(mesh, origins, directions, condition: str | None = None, model
     i0 = cloud.intensity.astype(np.float64)
 
     if condition == "fog":
-        from place3d_kernels.conditions.fog import FOG_ALPHAS, FogSensor, _fog_arrays, fog_lookup
+        from place3d_kernels.conditions.fog import FOG_ALPHAS, FogSensor, fog_arrays, fog_lookup
 
         sensor = params.pop("sensor", FogSensor())
         alpha = params.pop("alpha", None)
@@ -134,7 +108,7 @@ def lidar_returns(mesh, origins, directions, condition: str | None = None, model
         _reject(params)
         table = fog_lookup(alpha, sensor.tau_h, sensor.r1, sensor.r2)
         if len(hi):
-            pts, new_i, is_fog, _ = _fog_arrays(cloud, alpha, beta, seed, backend, noise, sensor, intensity_max)
+            pts, new_i, is_fog, _ = fog_arrays(cloud, alpha, beta, seed, backend, noise, sensor, intensity_max)
             rng_[hi] = np.linalg.norm(pts - o[hi], axis=1)
             out_i[hi] = new_i
             kind[hi] = np.where(is_fog, FOG, SURFACE)
@@ -144,7 +118,7 @@ def lidar_returns(mesh, origins, directions, condition: str | None = None, model
         fogp[miss] = beta * table.lookup(np.minimum(tm[miss], table.r0[-1]))[0]
     elif condition == "wet_ground":
         from place3d_kernels.conditions.fog import FogSensor
-        from place3d_kernels.conditions.wet_ground import _wet_arrays
+        from place3d_kernels.conditions.wet_ground import wet_arrays
 
         water_height = float(params.pop("water_height", 1.0))
         kw = dict(ground=None, normal=normals[hi], p_out=None, noise_level=None, pavement_depth=1.2,
@@ -154,7 +128,7 @@ def lidar_returns(mesh, origins, directions, condition: str | None = None, model
                 kw[key] = params.pop(key)
         _reject(params)
         if len(hi):
-            new_i, keep, _ = _wet_arrays(cloud, water_height, seed, backend, kw["ground"], kw["normal"],
+            new_i, keep, _ = wet_arrays(cloud, water_height, seed, backend, kw["ground"], kw["normal"],
                                          kw["p_out"], kw["noise_level"], kw["pavement_depth"], kw["power_factor"],
                                          kw["noise_floor"], kw["n_air"], kw["n_water"])
             kept = hi[keep]

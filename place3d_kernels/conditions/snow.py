@@ -35,7 +35,7 @@ import numpy as np
 
 from place3d_kernels.backends.conditions_base import SPEED_OF_LIGHT
 from place3d_kernels.conditions._common import check_cloud, check_range, kernels, rays, rng, scattered
-from place3d_kernels.conditions.wet_ground import _ground_geometry, laser_parameters
+from place3d_kernels.conditions.wet_ground import ground_geometry, laser_parameters
 from place3d_kernels.pointcloud import PointCloud
 
 __all__ = ["snow", "snowflakes", "Snowflakes", "snow_occupancy", "equivalent_rainfall_rate", "gunn_marshall_rate",
@@ -150,7 +150,7 @@ def snowflakes(ranges, snowfall_rate: float = 1.0, terminal_velocity: float = 1.
 
 def _noise_threshold(cloud, seed, noise_floor, r):
     """Per-point noise threshold: quadratic in range through the ground noise floor times cos theta."""
-    mask, cos_t, _ = _ground_geometry(cloud, seed, None, None)
+    mask, cos_t, _ = ground_geometry(cloud, seed, None, None)
     gi = np.nonzero(mask & (r > 0) & (cos_t > 0))[0]
     if len(gi) < 3:
         return np.zeros(len(cloud))

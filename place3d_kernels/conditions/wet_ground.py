@@ -147,7 +147,7 @@ def laser_parameters(distance, cos_theta, intensity, *, power_factor: float = 15
     return (power_factor * a, power_factor * b), (noise_floor * c, noise_floor * e)
 
 
-def _ground_geometry(cloud, seed, ground, normal):
+def ground_geometry(cloud, seed, ground, normal):
     """(ground mask, cos theta of every point (N,), ranges (N,))."""
     if ground is None:
         mask, nrm = ground_points(cloud, seed)
@@ -166,12 +166,12 @@ def _ground_geometry(cloud, seed, ground, normal):
     return mask, np.clip(cos_t, 0.0, 1.0), r
 
 
-def _wet_arrays(cloud, water_height, seed, backend, ground, normal, p_out, noise_level, pavement_depth,
-                power_factor, noise_floor, n_air, n_water):
+def wet_arrays(cloud, water_height, seed, backend, ground, normal, p_out, noise_level, pavement_depth,
+               power_factor, noise_floor, n_air, n_water):
     """(new intensity (N,), keep (N,), ground mask (N,)) behind ``wet_ground``."""
     n = len(cloud)
     f = float(np.clip(water_height / pavement_depth, 0.0, 1.0))
-    mask, cos_t, r = _ground_geometry(cloud, seed, ground, normal)
+    mask, cos_t, r = ground_geometry(cloud, seed, ground, normal)
     inten = cloud.intensity.astype(np.float64)
     keep = np.ones(n, dtype=bool)
     out = inten.copy()
@@ -210,7 +210,7 @@ def wet_ground(cloud: PointCloud, water_height: float = 1.0, seed=0, backend=Non
     cloud = check_cloud(cloud, "wet_ground")
     water_height = check_range("water_height", water_height, lo=0.0)
     check_range("pavement_depth", pavement_depth, lo=0.0, lo_open=True)
-    out, keep, _ = _wet_arrays(cloud, water_height, seed, backend, ground, normal, p_out, noise_level,
+    out, keep, _ = wet_arrays(cloud, water_height, seed, backend, ground, normal, p_out, noise_level,
                                pavement_depth, power_factor, noise_floor, n_air, n_water)
     if keep.all() and np.array_equal(out, cloud.intensity.astype(np.float64)):
         return cloud.copy()

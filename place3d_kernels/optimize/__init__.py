@@ -13,14 +13,14 @@ Backend-agnostic: the objective is any function from a batch of parameter vector
 from place3d_kernels.optimize.certificate import certificate
 from place3d_kernels.optimize.checkpoint import load_checkpoint, save_checkpoint
 from place3d_kernels.optimize.cmaes import METHODS
-from place3d_kernels.optimize.constraints import (Bounds, Callable, CallableConstraint, Constraint, FixedHeight,
-                                                  MinDistance, total_penalty)
+from place3d_kernels.optimize.constraints import (Bounds, Constraint, FixedHeight, FunctionConstraint, MinDistance,
+                                                  total_penalty)
 from place3d_kernels.optimize.objective import MSOGObjective
 from place3d_kernels.optimize.optimizer import DEFAULT_PENALTY_WEIGHT, OptimizeResult, optimize
 from place3d_kernels.optimize.space import DEFAULT_BOUNDS, DEFAULT_DELTA, POSE_KEYS, SearchSpace
 
 __all__ = ["SearchSpace", "optimize", "MSOGObjective", "OptimizeResult", "Constraint", "MinDistance", "FixedHeight", "Bounds",
-           "Callable", "CallableConstraint", "total_penalty", "certificate", "load_checkpoint", "save_checkpoint", "METHODS",
+           "FunctionConstraint", "total_penalty", "certificate", "load_checkpoint", "save_checkpoint", "METHODS",
            "DEFAULT_BOUNDS", "DEFAULT_DELTA", "DEFAULT_PENALTY_WEIGHT", "POSE_KEYS",
            "plot_convergence", "plot_rig"]
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -41,7 +42,15 @@ def add_arguments(p) -> None:
     p.add_argument("--output", default=None, help="folder for result.json, placement TOML, history.csv and plots")
 
 
-def run(args, psog_for) -> int:
+def run(args, spec, psog_for) -> int:
+    """Run ``place3d optimize``.
+
+    Args:
+        args: the parsed command line.
+        spec: the run's ``PSOGSpec`` (built once by the CLI; the Ray executor ships it to the workers).
+        psog_for: ``psog_for(backend) -> (scene, PSOG)`` builds the P-SOG locally (the CLI's progress and
+            cache options).
+    """
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.metrics import msog_batch
@@ -53,7 +62,7 @@ def run(args, psog_for) -> int:
         args.opt_seed = args.seed          # --seed S seeds the scene and the optimiser alike
     b = get_backend(args.backend)
     lidar = LidarModel.load(args.lidar)
-    _, psog = psog_for(args, b)
+    _, psog = psog_for(b)
     space = SearchSpace(n_lidars=args.lidars)
     cons = [MinDistance(args.min_distance)] if args.lidars > 1 else []
     if args.fixed_height is not None:
@@ -61,14 +70,10 @@ def run(args, psog_for) -> int:
 
     executor = None
     if getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None):
-        from place3d_kernels.cli import _condition
-        from place3d_kernels.distributed import (ConditionSpec, DistributedObjective, PSOGSpec, SceneSpec,
-                                                 executor_from_args)
+        from place3d_kernels.distributed import DistributedObjective, executor_from_args
 
         executor = executor_from_args(args)
-        spec = PSOGSpec(SceneSpec(args.scene, args.seed, args.frames), b.name, args.voxel_size,
-                        ConditionSpec.of(_condition(args, None)))
-        objective = DistributedObjective(spec, lidar, space, executor, task=args.task, occlusion=args.occlusion,
+        objective = DistributedObjective(dataclasses.replace(spec, backend=b.name), lidar, space, executor, task=args.task, occlusion=args.occlusion,
                                          backend=b.name, chunk=args.chunk)
     elif args.pose_cache:
         objective = MSOGObjective(psog, lidar, space, task=args.task, occlusion=args.occlusion, backend=b)

@@ -17,7 +17,7 @@ import numpy as np
 
 from place3d_kernels.optimize.space import DEFAULT_DELTA, POSE_KEYS, SearchSpace
 
-__all__ = ["Constraint", "MinDistance", "FixedHeight", "Bounds", "Callable", "CallableConstraint", "total_penalty",
+__all__ = ["Constraint", "MinDistance", "FixedHeight", "Bounds", "FunctionConstraint", "total_penalty",
            "prepare"]
 
 
@@ -250,16 +250,17 @@ class Bounds(Constraint):
         return out
 
 
-class Callable(Constraint):
+class FunctionConstraint(Constraint):
     """A user penalty: ``fn(poses (P, L, 6)) -> (P,)`` finite values >= 0, 0 where feasible."""
 
     def __init__(self, fn, name: str | None = None):
         if not callable(fn):
-            raise ValueError(f"Callable constraint needs a function poses -> penalties, got {fn!r}")
+            raise ValueError(f"FunctionConstraint needs a function poses -> penalties, got {fn!r}")
         self.fn = fn
         self.name = name or getattr(fn, "__qualname__", type(fn).__name__)
 
     def describe(self) -> dict:
+        # "Callable" is the class's former name; checkpoints compare this description on resume, so it stays
         return {"type": "Callable", "name": self.name}
 
     def penalty(self, poses) -> np.ndarray:
@@ -271,10 +272,6 @@ class Callable(Constraint):
         if not np.all(np.isfinite(v)) or np.any(v < 0):
             raise ValueError(f"Constraint {self.name!r} must return finite penalties >= 0, got {v.tolist()}")
         return v
-
-
-#: Alias of ``Callable`` for re-export where the name would shadow ``typing.Callable``.
-CallableConstraint = Callable
 
 
 def prepare(space: SearchSpace, constraints: Sequence[Constraint] | Constraint, delta=DEFAULT_DELTA
@@ -290,7 +287,7 @@ def prepare(space: SearchSpace, constraints: Sequence[Constraint] | Constraint, 
     for c in constraints:
         if not isinstance(c, Constraint):
             raise ValueError(f"Constraints must be Constraint objects (MinDistance, FixedHeight, Bounds, "
-                             f"Callable); got {c!r}. Wrap a function as Callable(fn).")
+                             f"FunctionConstraint); got {c!r}. Wrap a function as FunctionConstraint(fn).")
     search = space
     for c in constraints:
         search = c.adapt_space(search)

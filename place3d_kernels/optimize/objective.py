@@ -5,13 +5,12 @@ not depend on the other LiDARs (occlusion comes from the P-SOG or the scene, not
 each distinct pose is traversed once; a rig's M-SOG is then the fixed-point sum over the union of its
 LiDARs' cached voxel sets, bit-identical to ``msog_batch``.
 
-Trade-off (measured on a 2-core CPU, warp:cpu, paper rig on the default town, 2026-11-22): a new pose
-costs about 10 ms (traversal to a visit list, ~0.5 M voxel visits) against about 40 ms for a whole
-4-LiDAR rig in the fused ``score_placements`` kernel, plus a ~10 ms union per rig; so the cache wins
-when most poses of a batch were seen before (late CMA-ES generations, local search), and loses when
-few were (about a third were, over a 2,000-evaluation run). ``place3d optimize`` therefore uses the
-fused kernel unless ``--pose-cache`` is given. Each cached pose holds its distinct voxel ids
-(~0.2 M int32 on the default grid), hence the LRU bound.
+Trade-off (timings in bench/README.md): a new pose costs a traversal to a visit list, which is not
+much cheaper than scoring the whole rig in the fused ``score_placements`` kernel, and every rig then
+pays a union of its LiDARs' voxel sets; so the cache wins when most poses of a batch were seen before
+(late CMA-ES generations, local search) and loses when few were, as over most of a 2,000-evaluation
+run. ``place3d optimize`` therefore uses the fused kernel unless ``--pose-cache`` is given. Each cached
+pose holds its distinct voxel ids (a few hundred thousand int32 on the default grid), hence the LRU bound.
 """
 
 from __future__ import annotations
@@ -97,9 +96,9 @@ class MSOGObjective:
         P, L = poses.shape[:2]
         # +0.0 folds -0.0 so equal poses share one key
         flat = np.ascontiguousarray(poses.reshape(-1, 6) + 0.0)
-        from place3d_kernels.metrics import _check
+        from place3d_kernels.metrics import check_inputs
 
-        _check(self.psog, poses, self.occlusion, None)
+        check_inputs(self.psog, poses, self.occlusion, None)
         self._fill(flat)
         w = self.task_psog.weights
         out = np.empty(P)

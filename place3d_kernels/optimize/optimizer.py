@@ -157,7 +157,7 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
             chosen as best, are left out of the certificate, and raise a RuntimeWarning; if the whole
             first generation fails, ValueError.
         space: the ``SearchSpace``.
-        constraints: ``MinDistance``, ``FixedHeight``, ``Bounds``, ``Callable`` (or your own
+        constraints: ``MinDistance``, ``FixedHeight``, ``Bounds``, ``FunctionConstraint`` (or your own
             ``Constraint``). ``FixedHeight`` removes z from the searched variables (see
             ``result.search_space``); the objective still receives vectors of ``space``.
         method: ``"cma"`` (default), ``"random"`` (uniform grid points) or ``"grid"`` (exhaustive). With
@@ -197,13 +197,7 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
     Raises:
         ValueError: bad arguments, infeasible constraints, a misbehaving objective.
     """
-    # ------------------------------------------------------------ validation
-    if not callable(objective):
-        raise ValueError(f"objective must be callable X (P, D) -> scores (P,), got {objective!r}")
-    if not isinstance(space, SearchSpace):
-        raise ValueError(f"space must be a SearchSpace, got {type(space).__name__}")
-    if method not in METHODS:
-        raise ValueError(f"Unknown method {method!r}; available: {list(METHODS)}")
+    _check_basics(objective, space, method)
     max_evals = _check_int("max_evals (the evaluation budget)", max_evals, 1)
     restarts = _check_int("restarts", restarts, 0)
     if restarts:
@@ -213,6 +207,33 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
                            dict(method=method, sigma0=sigma0, popsize=popsize, max_evals=max_evals, delta=delta,
                                 seed=seed, penalty_weight=penalty_weight, progress=progress, x0=x0,
                                 max_stall_generations=max_stall_generations, cma_options=cma_options))
+    seed, popsize, max_stall_generations, sigma0, penalty_weight = _check_run(
+        seed, popsize, max_stall_generations, sigma0, penalty_weight, resume, checkpoint, callback)
+
+    grid, x0_vec, k0 = _searched_grid(space, constraints, delta, x0, penalty_weight)
+    setup = _setup(space, grid.cons, method, sigma0, popsize, delta, seed, penalty_weight, x0_vec, cma_options,
+                   max_stall_generations)
+    state, resumed = _initial_state(grid, setup, checkpoint, resume, method, k0, x0_vec, sigma0, popsize, seed,
+                                    cma_options)
+    _run_generations(grid, state, objective, max_evals, max_stall_generations, checkpoint, progress, callback)
+    if checkpoint is not None:
+        save_checkpoint(checkpoint, state)
+    return _result(state, space, grid.search, grid.cons, state["strategy"], delta, grid.steps, penalty_weight, seed,
+                   resumed, checkpoint)
+
+
+# ------------------------------------------------------------------------------ setup
+def _check_basics(objective, space, method) -> None:
+    if not callable(objective):
+        raise ValueError(f"objective must be callable X (P, D) -> scores (P,), got {objective!r}")
+    if not isinstance(space, SearchSpace):
+        raise ValueError(f"space must be a SearchSpace, got {type(space).__name__}")
+    if method not in METHODS:
+        raise ValueError(f"Unknown method {method!r}; available: {list(METHODS)}")
+
+
+def _check_run(seed, popsize, max_stall_generations, sigma0, penalty_weight, resume, checkpoint, callback):
+    """The single-run arguments, checked and normalised: (seed, popsize, max_stall, sigma0, penalty_weight)."""
     seed = _check_int("seed", seed, 0)
     if seed >= 2 ** 32:
         raise ValueError(f"seed must be below 2**32, got {seed}")
@@ -232,7 +253,26 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
         raise ValueError("resume=True needs a checkpoint path")
     if callback is not None and not callable(callback):
         raise ValueError(f"callback must be callable, got {callback!r}")
+    return seed, popsize, max_stall_generations, sigma0, penalty_weight
 
+
+@dataclass
+class _Grid:
+    """The searched grid: what a generation needs to turn strategy samples into scored candidates."""
+
+    space: SearchSpace           # the user's space (the objective's vectors)
+    search: SearchSpace          # the space actually searched (after FixedHeight)
+    cons: list
+    delta: object
+    steps: np.ndarray
+    kmin: np.ndarray             # grid-index bounds of the searched coordinates
+    kmax: np.ndarray
+    free: np.ndarray             # coordinates with more than one grid point
+    penalty_weight: float
+
+
+def _searched_grid(space, constraints, delta, x0, penalty_weight):
+    """(the ``_Grid``, x0 as a vector of ``space`` or None, the start in free grid indices)."""
     search, cons = prepare(space, constraints, delta)
     steps = search.grid_steps(delta)
     kmin, kmax = search.grid_index_bounds(delta)
@@ -245,12 +285,11 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
         k0 = search.snap_indices(search.from_poses(space.to_poses(x0_vec)), delta)[free].astype(float)
     else:
         k0 = (kmin[free] + kmax[free]) / 2.0
-    setup = _setup(space, cons, method, sigma0, popsize, delta, seed, penalty_weight, x0_vec, cma_options,
-                   max_stall_generations)
+    return _Grid(space, search, cons, delta, steps, kmin, kmax, free, penalty_weight), x0_vec, k0
 
-    # ----------------------------------------------------------------- state
-    state = None
-    resumed = False
+
+def _initial_state(grid: _Grid, setup, checkpoint, resume, method, k0, x0_vec, sigma0, popsize, seed, cma_options):
+    """(state, resumed): the checkpoint's state when resuming one of the same setup, else a fresh one."""
     if resume and Path(checkpoint).exists():
         state = load_checkpoint(checkpoint)
         if state.get("setup") != setup:
@@ -258,20 +297,35 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
             diff = sorted(k for k in set(old) | set(setup) if old.get(k) != setup.get(k))
             raise ValueError(f"Checkpoint {checkpoint} was written by a run with a different setup "
                              f"(differs in {diff}); resume with the same arguments or use resume=False")
-        resumed = True
-    if state is None:
-        strategy = make_strategy(method, x0=k0, kmin=kmin[free], kmax=kmax[free], sigma0=sigma0,
-                                 widths_idx=search.widths[free] / steps[free], popsize=popsize, seed=seed,
-                                 options=cma_options)
-        if x0_vec is not None and hasattr(strategy, "es"):
-            # the first generation scores x0 itself, so a warm start never ends below its starting rig
-            strategy.es.inject([k0], force=True)
-        state = {"setup": setup, "strategy": strategy, "cache": {}, "U": np.zeros((0, search.dim)), "F": [], "P": [],
-                 "history": [], "evaluations": 0, "generation": 0, "hits": 0, "stall": 0, "nonfinite": 0,
-                 "worst_G": None, "best": None, "seconds": 0.0, "stop_reason": None}
-    strategy = state["strategy"]
-    cache: dict = state["cache"]
+        return state, True
+    free = grid.free
+    strategy = make_strategy(method, x0=k0, kmin=grid.kmin[free], kmax=grid.kmax[free], sigma0=sigma0,
+                             widths_idx=grid.search.widths[free] / grid.steps[free], popsize=popsize, seed=seed,
+                             options=cma_options)
+    if x0_vec is not None and hasattr(strategy, "es"):
+        # the first generation scores x0 itself, so a warm start never ends below its starting rig
+        strategy.es.inject([k0], force=True)
+    state = {"setup": setup, "strategy": strategy, "cache": {}, "U": np.zeros((0, grid.search.dim)), "F": [],
+             "P": [], "history": [], "evaluations": 0, "generation": 0, "hits": 0, "stall": 0, "nonfinite": 0,
+             "worst_G": None, "best": None, "seconds": 0.0, "stop_reason": None}
+    return state, False
 
+
+# ------------------------------------------------------------------------------ the generation loop
+def _stop_reason(state, strategy, max_evals, max_stall_generations) -> str | None:
+    if state["evaluations"] >= max_evals:
+        return "max_evals"
+    if strategy.stop():
+        return ",".join(f"{strategy.name}:{k}" if strategy.name == "cma" else str(k) for k in strategy.stop())
+    if state["stall"] >= max_stall_generations:
+        return "stalled"
+    return None
+
+
+def _run_generations(grid: _Grid, state, objective, max_evals, max_stall_generations, checkpoint, progress,
+                     callback) -> None:
+    """Generations until a stop condition; updates ``state`` (incl. seconds and stop_reason) in place."""
+    strategy = state["strategy"]
     t0 = time.perf_counter()
     seconds_before = state["seconds"]
     bar = None
@@ -279,111 +333,15 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
         from tqdm.auto import tqdm
         bar = tqdm(total=max_evals, initial=min(state["evaluations"], max_evals), unit="eval",
                    desc=f"optimize[{strategy.name}]", leave=False, dynamic_ncols=True)
-    warned_nonfinite = False
+    warned = [False]                  # the non-finite warning is given once per run
     stop_reason = None
     unsaved = 0
     try:
         while True:
-            # --------------------------------------------------- termination
-            if state["evaluations"] >= max_evals:
-                stop_reason = "max_evals"
-            elif strategy.stop():
-                stop_reason = ",".join(f"{strategy.name}:{k}" if strategy.name == "cma" else str(k)
-                                       for k in strategy.stop())
-            elif state["stall"] >= max_stall_generations:
-                stop_reason = "stalled"
+            stop_reason = _stop_reason(state, strategy, max_evals, max_stall_generations)
             if stop_reason:
                 break
-
-            # --------------------------------------------------- one generation
-            sigma = strategy.sigma
-            Kf = strategy.ask()
-            n = len(Kf)
-            K = np.repeat(kmin[None], n, axis=0)
-            K[:, free] = np.clip(np.rint(Kf), kmin[free], kmax[free]).astype(np.int64)
-            U = search.grid_values(K, delta)          # searched coordinates
-            poses = search.to_poses(U)                # (n, L, 6)
-            X = space.from_poses(poses)               # the user's vectors
-            P = total_penalty(cons, poses)
-            keys = [row.tobytes() for row in X]
-            new, seen = [], set()
-            for i, k in enumerate(keys):
-                if k not in cache and k not in seen:
-                    seen.add(k)
-                    new.append(i)
-            left = max_evals - state["evaluations"]
-            partial = len(new) > left
-            if partial:
-                new = new[:left]
-            hits = n - len(seen)
-            if new:
-                Xn = np.ascontiguousarray(X[new])
-                Fn = objective(Xn)
-                try:
-                    Fn = np.asarray(Fn, dtype=np.float64)
-                except (TypeError, ValueError):
-                    raise ValueError(f"objective returned {type(Fn).__name__}, not numbers; it must return "
-                                     f"one float per row, shape ({len(new)},)") from None
-                if Fn.shape != (len(new),):
-                    raise ValueError(f"objective returned shape {Fn.shape} for a batch of {len(new)} candidates "
-                                     f"(X shape {Xn.shape}); it must return one score per row, shape "
-                                     f"({len(new)},)")
-                for i, f in zip(new, Fn):
-                    cache[keys[i]] = float(f)
-                    state["F"].append(float(f))
-                    state["P"].append(float(P[i]))
-                state["U"] = np.concatenate([state["U"], U[new]])
-                state["evaluations"] += len(new)
-            state["hits"] += hits
-
-            # values of this generation (rows cut by the budget stay unknown)
-            F = np.array([cache.get(k, np.nan) for k in keys])
-            known = np.array([k in cache for k in keys])
-            fin = np.isfinite(F)
-            G = -F + penalty_weight * P
-            if fin.any():
-                gmax = float(G[fin].max())
-                state["worst_G"] = gmax if state["worst_G"] is None else max(state["worst_G"], gmax)
-            bad = known & ~fin
-            if bad.any():
-                state["nonfinite"] += int(np.sum(bad[new])) if new else 0
-                if state["worst_G"] is None:
-                    if state["generation"] == 0:
-                        raise ValueError(f"objective returned no finite score for any of the {int(bad.sum())} "
-                                         f"candidates of the first generation (e.g. {F[bad][:3].tolist()}); "
-                                         f"check the objective on X such as {X[bad][0].tolist()}")
-                    worst = 0.0
-                else:
-                    worst = state["worst_G"]
-                G[bad] = worst + max(1.0, abs(worst)) + penalty_weight * P[bad]
-                if not warned_nonfinite:
-                    warnings.warn(f"objective returned non-finite scores for {int(bad.sum())} candidates in "
-                                  f"generation {state['generation']}; they are ranked below all finite ones "
-                                  f"and never chosen as best", RuntimeWarning, stacklevel=2)
-                    warned_nonfinite = True
-
-            # incumbent: feasible first, then lowest G; ties keep the earlier one
-            for i in np.flatnonzero(known & fin):
-                rank = (0 if P[i] == 0 else 1, float(G[i]))
-                b = state["best"]
-                if b is None or rank < b["rank"]:
-                    state["best"] = {"rank": rank, "X": X[i].copy(), "U": U[i].copy(), "F": float(F[i]),
-                                     "G": float(G[i]), "P": float(P[i])}
-
-            if not partial:
-                strategy.tell(G)
-            kf = known & fin
-            entry = {"generation": state["generation"], "evaluations": state["evaluations"], "new": len(new),
-                     "cache_hits": hits,
-                     "best": _num(float(F[kf].max())) if kf.any() else None,
-                     "mean": _num(float(F[kf].mean())) if kf.any() else None,
-                     "best_G": _num(float(G[kf].min())) if kf.any() else None,
-                     "best_so_far": state["best"]["F"] if state["best"] else None,
-                     "n_feasible": int(np.sum(kf & (P == 0))), "n_nonfinite": int(bad.sum()),
-                     "sigma": sigma}
-            state["history"].append(entry)
-            state["generation"] += 1
-            state["stall"] = 0 if new else state["stall"] + 1
+            entry, new, partial = _generation(grid, state, objective, max_evals, warned)
             state["seconds"] = seconds_before + time.perf_counter() - t0
             # A generation answered wholly from the cache is not worth an fsync: replaying it after a
             # crash costs no evaluation and, with the same cache and random state, gives the same result.
@@ -406,14 +364,117 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
     finally:
         if bar is not None:
             bar.close()
-
     state["seconds"] = seconds_before + time.perf_counter() - t0
     state["stop_reason"] = stop_reason
-    if checkpoint is not None:
-        save_checkpoint(checkpoint, state)
-    return _result(state, space, search, cons, strategy, delta, steps, penalty_weight, seed, resumed, checkpoint)
 
 
+def _evaluate(objective, X, new, keys, P, state) -> None:
+    """Score the rows ``new`` of X (not yet cached) in one objective call; record them in ``state``."""
+    Xn = np.ascontiguousarray(X[new])
+    Fn = objective(Xn)
+    try:
+        Fn = np.asarray(Fn, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"objective returned {type(Fn).__name__}, not numbers; it must return "
+                         f"one float per row, shape ({len(new)},)") from None
+    if Fn.shape != (len(new),):
+        raise ValueError(f"objective returned shape {Fn.shape} for a batch of {len(new)} candidates "
+                         f"(X shape {Xn.shape}); it must return one score per row, shape "
+                         f"({len(new)},)")
+    for i, f in zip(new, Fn):
+        state["cache"][keys[i]] = float(f)
+        state["F"].append(float(f))
+        state["P"].append(float(P[i]))
+    state["evaluations"] += len(new)
+
+
+def _generation(grid: _Grid, state, objective, max_evals, warned) -> tuple[dict, list, bool]:
+    """Ask, snap, score the new grid points, rank (penalties, failed scores), tell; returns (history entry,
+    rows scored, whether the budget cut the generation short)."""
+    strategy, cache, free, lam = state["strategy"], state["cache"], grid.free, grid.penalty_weight
+    sigma = strategy.sigma
+    Kf = strategy.ask()
+    n = len(Kf)
+    K = np.repeat(grid.kmin[None], n, axis=0)
+    K[:, free] = np.clip(np.rint(Kf), grid.kmin[free], grid.kmax[free]).astype(np.int64)
+    U = grid.search.grid_values(K, grid.delta)    # searched coordinates
+    poses = grid.search.to_poses(U)               # (n, L, 6)
+    X = grid.space.from_poses(poses)              # the user's vectors
+    P = total_penalty(grid.cons, poses)
+    keys = [row.tobytes() for row in X]
+    new, seen = [], set()
+    for i, k in enumerate(keys):
+        if k not in cache and k not in seen:
+            seen.add(k)
+            new.append(i)
+    left = max_evals - state["evaluations"]
+    partial = len(new) > left
+    if partial:
+        new = new[:left]
+    hits = n - len(seen)
+    if new:
+        _evaluate(objective, X, new, keys, P, state)
+        state["U"] = np.concatenate([state["U"], U[new]])
+    state["hits"] += hits
+
+    # values of this generation (rows cut by the budget stay unknown)
+    F = np.array([cache.get(k, np.nan) for k in keys])
+    known = np.array([k in cache for k in keys])
+    fin = np.isfinite(F)
+    G = -F + lam * P
+    if fin.any():
+        gmax = float(G[fin].max())
+        state["worst_G"] = gmax if state["worst_G"] is None else max(state["worst_G"], gmax)
+    bad = known & ~fin
+    if bad.any():
+        _rank_failed(state, G, F, P, X, bad, new, lam, warned)
+
+    # incumbent: feasible first, then lowest G; ties keep the earlier one
+    for i in np.flatnonzero(known & fin):
+        rank = (0 if P[i] == 0 else 1, float(G[i]))
+        b = state["best"]
+        if b is None or rank < b["rank"]:
+            state["best"] = {"rank": rank, "X": X[i].copy(), "U": U[i].copy(), "F": float(F[i]),
+                             "G": float(G[i]), "P": float(P[i])}
+
+    if not partial:
+        strategy.tell(G)
+    kf = known & fin
+    entry = {"generation": state["generation"], "evaluations": state["evaluations"], "new": len(new),
+             "cache_hits": hits,
+             "best": _num(float(F[kf].max())) if kf.any() else None,
+             "mean": _num(float(F[kf].mean())) if kf.any() else None,
+             "best_G": _num(float(G[kf].min())) if kf.any() else None,
+             "best_so_far": state["best"]["F"] if state["best"] else None,
+             "n_feasible": int(np.sum(kf & (P == 0))), "n_nonfinite": int(bad.sum()),
+             "sigma": sigma}
+    state["history"].append(entry)
+    state["generation"] += 1
+    state["stall"] = 0 if new else state["stall"] + 1
+    return entry, new, partial
+
+
+def _rank_failed(state, G, F, P, X, bad, new, lam, warned) -> None:
+    """Give non-finite scores a G below every finite one seen (in place), and warn once per run."""
+    state["nonfinite"] += int(np.sum(bad[new])) if new else 0
+    if state["worst_G"] is None:
+        if state["generation"] == 0:
+            raise ValueError(f"objective returned no finite score for any of the {int(bad.sum())} "
+                             f"candidates of the first generation (e.g. {F[bad][:3].tolist()}); "
+                             f"check the objective on X such as {X[bad][0].tolist()}")
+        worst = 0.0
+    else:
+        worst = state["worst_G"]
+    G[bad] = worst + max(1.0, abs(worst)) + lam * P[bad]
+    if not warned[0]:
+        # stacklevel: _rank_failed <- _generation <- _run_generations <- optimize <- the caller
+        warnings.warn(f"objective returned non-finite scores for {int(bad.sum())} candidates in "
+                      f"generation {state['generation']}; they are ranked below all finite ones "
+                      f"and never chosen as best", RuntimeWarning, stacklevel=5)
+        warned[0] = True
+
+
+# ------------------------------------------------------------------------------ result
 def _result(state, space, search, cons, strategy, delta, steps, lam, seed, resumed, checkpoint) -> OptimizeResult:
     b = state["best"]
     if b is None:

@@ -1,5 +1,10 @@
-"""Point-cloud formats: SemanticKITTI sequences with label remapping, CARLA semantic-LiDAR PLY, and P-SOGs
-built from a SemanticKITTI-layout folder.
+"""SemanticKITTI sequences: reading (with label remapping), writing simulated frames, and P-SOGs built from a
+sequence folder.
+
+A sequence folder holds ``velodyne/NNNNNN.bin`` (float32 x, y, z, intensity per point, in the sensor
+frame), ``labels/NNNNNN.label`` (uint32 per point; the class in the low 16 bits, the instance in the high
+16) and ``poses.txt`` (one 3x4 row-major sensor-to-world matrix per frame, KITTI odometry style). The
+writer stores Place3D class ids (read them back with ``labels="place3d"``).
 
 SemanticKITTI label ids -> Place3D classes (``SEMANTICKITTI_TO_PLACE3D``; the low 16 bits of each
 ``.label`` value are the class, the high 16 bits the instance and are dropped):
@@ -33,27 +38,23 @@ rails, 257 moving-bus, 258 moving-truck,
 ==========================================  =====================================================
 
 Label ids outside the table raise ValueError (``strict=True``, default) or become 0.
-
-CARLA semantic LiDAR (``sensor.lidar.ray_cast_semantic``; ``save_to_disk`` writes PLY with float x, y, z,
-CosAngle and uint ObjIdx, ObjTag per point). ``tags="legacy"`` (CARLA <= 0.9.13, the version family
-Place3D used): tags 0..12 are the Place3D ids, 13 (sky) -> 0, 14..22 -> 13..21. ``tags="cityscapes"``
-(CARLA >= 0.9.14, Cityscapes order): remapped by ``CARLA_CITYSCAPES_TO_PLACE3D``.
 """
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
 from place3d_kernels.classes import CLASS_ID, N_CLASSES
+from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import invert, pose_from_matrix, pose_matrix, transform_points
 
-__all__ = ["SEMANTICKITTI_TO_PLACE3D", "CARLA_LEGACY_TO_PLACE3D", "CARLA_CITYSCAPES_TO_PLACE3D", "remap_semantickitti",
-           "read_semantickitti", "read_carla_ply", "CarlaCloud", "read_poses", "read_sequence",
-           "psog_from_semantickitti"]
+__all__ = ["SEMANTICKITTI_TO_PLACE3D", "remap_semantickitti", "read_semantickitti", "read_poses", "read_sequence",
+           "psog_from_semantickitti", "write_semantickitti_sequence", "write_frame", "write_frame_bin",
+           "frame_paths", "sensor_matrix", "pose_row", "atomic_write"]
 
 C = CLASS_ID
 SEMANTICKITTI_TO_PLACE3D: dict[int, int] = {
@@ -67,16 +68,6 @@ SEMANTICKITTI_TO_PLACE3D: dict[int, int] = {
     252: C["vehicle"], 253: C["vehicle"], 254: C["pedestrian"], 255: C["vehicle"], 256: C["vehicle"],
     257: C["vehicle"], 258: C["vehicle"], 259: C["vehicle"],
 }
-CARLA_LEGACY_TO_PLACE3D = np.array([t if t <= 12 else (0 if t == 13 else t - 1) for t in range(23)], np.int32)
-#: CARLA >= 0.9.14 tags: 0 unlabeled, 1 roads, 2 sidewalks, 3 building, 4 wall, 5 fence, 6 pole, 7 traffic
-#: light, 8 traffic sign, 9 vegetation, 10 terrain, 11 sky, 12 pedestrian, 13 rider, 14 car, 15 truck,
-#: 16 bus, 17 train, 18 motorcycle, 19 bicycle, 20 static, 21 dynamic, 22 other, 23 water, 24 road line,
-#: 25 ground, 26 bridge, 27 rail track, 28 guard rail
-CARLA_CITYSCAPES_TO_PLACE3D = np.array([
-    0, C["road"], C["sidewalk"], C["building"], C["wall"], C["fence"], C["pole"], C["traffic light"],
-    C["traffic sign"], C["vegetation"], C["terrain"], 0, C["pedestrian"], C["pedestrian"], C["vehicle"],
-    C["vehicle"], C["vehicle"], C["vehicle"], C["vehicle"], C["vehicle"], C["static"], C["dynamic"], C["other"],
-    C["water"], C["road line"], C["ground"], C["bridge"], C["rail track"], C["guard rail"]], np.int32)
 
 _SK_LUT = np.full(260, -1, np.int32)
 for _k, _v in SEMANTICKITTI_TO_PLACE3D.items():
@@ -104,7 +95,7 @@ def read_semantickitti(path_bin, path_label=None, labels: str = "semantickitti",
 
     Args:
         labels: "semantickitti" (remap SemanticKITTI ids) or "place3d" (ids already Place3D classes, as
-            ``place3d_kernels.io.write_semantickitti_sequence`` writes them; the low 16 bits are kept).
+            ``write_semantickitti_sequence`` writes them; the low 16 bits are kept).
     Returns labels None when ``path_label`` is None.
     """
     if labels not in ("semantickitti", "place3d"):
@@ -139,90 +130,6 @@ def read_semantickitti(path_bin, path_label=None, labels: str = "semantickitti",
     return pts[:, :3], pts[:, 3], lab
 
 
-class CarlaCloud(NamedTuple):
-    points: np.ndarray      # (N, 3) float64, sensor frame
-    labels: np.ndarray      # (N,) int32 Place3D classes
-    cos_angle: np.ndarray   # (N,) float32
-    object_id: np.ndarray   # (N,) uint32 (ObjIdx)
-    tag: np.ndarray         # (N,) uint32 raw CARLA tag (ObjTag)
-
-
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
-
-
-def read_carla_ply(path, tags: str = "legacy") -> CarlaCloud:
-    """Read a CARLA semantic-LiDAR PLY (ascii or binary) into points, Place3D labels and raw fields."""
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: no such PLY file")
-    if tags not in ("legacy", "cityscapes"):
-        raise ValueError(f"tags must be 'legacy' (CARLA <= 0.9.13) or 'cityscapes' (>= 0.9.14), got {tags!r}")
-    data = path.read_bytes()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
-    nl = data.find(b"\n", end)
-    header = data[:end].decode("ascii", "replace").splitlines()
-    body = data[nl + 1:]
-    fmt, n, props, in_vertex, seen_vertex = None, None, [], False, False
-    for line in header:
-        w = line.split()
-        if not w:
-            continue
-        if w[0] == "format":
-            fmt = w[1] if len(w) > 1 else None
-        elif w[0] == "element":
-            in_vertex = len(w) == 3 and w[1] == "vertex"
-            if in_vertex:
-                seen_vertex = True
-                try:
-                    n = int(w[2])
-                except ValueError:
-                    raise ValueError(f"{path}: bad vertex count {w[2]!r}") from None
-            elif seen_vertex and n:
-                pass  # later elements (none in CARLA files) are ignored
-        elif w[0] == "property" and in_vertex:
-            if len(w) != 3 or w[1] not in _PLY_TYPES:
-                raise ValueError(f"{path}: unsupported vertex property line {line.strip()!r}")
-            props.append((w[2], _PLY_TYPES[w[1]]))
-    if n is None:
-        raise ValueError(f"{path}: no 'element vertex' in the header")
-    names = [p[0] for p in props]
-    need = ("x", "y", "z", "ObjTag")
-    missing = [k for k in need if k not in names]
-    if missing:
-        raise ValueError(f"{path}: vertex properties {missing} missing (have {names}); expected CARLA semantic "
-                         "LiDAR fields x, y, z, CosAngle, ObjIdx, ObjTag")
-    if fmt == "ascii":
-        try:
-            rows = np.loadtxt(body.decode("ascii").splitlines()[:n], dtype=np.float64, ndmin=2)
-        except ValueError as e:
-            raise ValueError(f"{path}: bad ASCII vertex data ({e})") from None
-        if rows.shape != (n, len(props)) and not (n == 0):
-            raise ValueError(f"{path}: expected {n} rows of {len(props)} values, got {rows.shape}")
-        col = {k: rows[:, i] for i, k in enumerate(names)} if n else {k: np.zeros(0) for k in names}
-    elif fmt in ("binary_little_endian", "binary_big_endian"):
-        e = "<" if fmt == "binary_little_endian" else ">"
-        dt = np.dtype([(k, e + t) for k, t in props])
-        if len(body) < n * dt.itemsize:
-            raise ValueError(f"{path}: truncated: {len(body)} bytes of vertex data for {n} x {dt.itemsize}")
-        arr = np.frombuffer(body, dtype=dt, count=n)
-        col = {k: arr[k] for k in names}
-    else:
-        raise ValueError(f"{path}: unsupported PLY format {fmt!r}")
-    pts = np.stack([col["x"], col["y"], col["z"]], 1).astype(np.float64)
-    tag = np.asarray(col["ObjTag"]).astype(np.int64)
-    lut = CARLA_LEGACY_TO_PLACE3D if tags == "legacy" else CARLA_CITYSCAPES_TO_PLACE3D
-    if tag.size and (tag.min() < 0 or tag.max() >= len(lut)):
-        raise ValueError(f"{path}: ObjTag {int(tag.max())} outside the {tags} CARLA tag table (0..{len(lut) - 1})")
-    lab = lut[tag] if tag.size else np.zeros(0, np.int32)
-    cos = np.asarray(col.get("CosAngle", np.zeros(n)), np.float32)
-    obj = np.asarray(col.get("ObjIdx", np.zeros(n)), np.float64).astype(np.uint32)
-    return CarlaCloud(pts, lab.astype(np.int32), cos, obj, tag.astype(np.uint32))
-
-
 def read_poses(path) -> np.ndarray:
     """(T, 4, 4) sensor-to-world matrices from a KITTI odometry ``poses.txt`` (12 numbers a row)."""
     path = Path(path)
@@ -249,18 +156,14 @@ def read_poses(path) -> np.ndarray:
     return np.stack(rows)
 
 
-
-
 def read_sequence(folder, labels: str = "semantickitti", mount=(0.0, 0.0, 2.5, 0.0, 0.0, 0.0), frames=None,
                   strict: bool = True):
-    """Frames (world points, Place3D labels, ego pose) of a SemanticKITTI-layout folder.
+    """Frames (``PointCloud``: world points, Place3D labels, intensity, ego pose) of a SemanticKITTI folder.
 
     ``velodyne/NNNNNN.bin`` + ``labels/NNNNNN.label`` + ``poses.txt`` (sensor-to-world 3x4 rows).
     ``mount`` is the sensor pose in the ego frame (default: 2.5 m up, as ``simulate`` mounts it); the ego
     pose is sensor @ inverse(mount), so the ego frame has z = 0 on the ground.
     """
-    from place3d_kernels.sog import Frame
-
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"{folder}: no such sequence folder")
@@ -285,7 +188,7 @@ def read_sequence(folder, labels: str = "semantickitti", mount=(0.0, 0.0, 2.5, 0
         T = poses[int(b.stem)] if int(b.stem) < len(poses) else poses[i]
         world = transform_points(T, pts.astype(np.float64))
         ego = pose_from_matrix(T @ mount_inv)
-        out.append(Frame(world, lab, ego, inten, T[:3, 3].copy()))
+        out.append(PointCloud(world, lab, inten, T[:3, 3].copy(), ego_pose=ego))
     return out
 
 
@@ -296,3 +199,59 @@ def psog_from_semantickitti(folder, grid, frames_per_subset: int = 5, labels: st
 
     fr = read_sequence(folder, labels=labels, mount=mount, frames=frames, strict=strict)
     return PSOG.from_frames(fr, grid, frames_per_subset=frames_per_subset, backend=backend)
+
+
+# ------------------------------------------------------------------------------ writing
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file and a rename (readers never see half a file)."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def write_frame_bin(path_bin, path_label, points_sensor, intensity, labels) -> None:
+    xyz = np.asarray(points_sensor, dtype=np.float32).reshape(-1, 3)
+    arr = np.concatenate([xyz, np.asarray(intensity, np.float32).reshape(-1, 1)], axis=1)
+    atomic_write(Path(path_bin), arr.astype(np.float32).tobytes())
+    atomic_write(Path(path_label), np.asarray(labels, dtype=np.uint32).tobytes())
+
+
+def frame_paths(folder, index: int) -> tuple[Path, Path]:
+    """``velodyne/NNNNNN.bin`` and ``labels/NNNNNN.label`` of one frame of a sequence folder."""
+    folder = Path(folder)
+    return folder / "velodyne" / f"{index:06d}.bin", folder / "labels" / f"{index:06d}.label"
+
+
+def sensor_matrix(frame) -> np.ndarray:
+    """Sensor-to-world 4x4 matrix of a simulated frame: the ego rotation, the sweep's origin."""
+    sensor = pose_matrix(frame.ego_pose)
+    if frame.sweep_origin is not None:
+        sensor[:3, 3] = frame.sweep_origin
+    return sensor
+
+
+def pose_row(sensor: np.ndarray) -> str:
+    """One line of ``poses.txt`` (3x4 row-major, KITTI odometry style)."""
+    return " ".join(f"{v:.9g}" for v in sensor[:3].reshape(-1))
+
+
+def write_frame(folder, index: int, frame) -> np.ndarray:
+    """Write one frame (points in the sensor frame) atomically; returns its sensor-to-world matrix."""
+    sensor = sensor_matrix(frame)
+    local = transform_points(invert(sensor), frame.points)
+    inten = frame.intensity if frame.intensity is not None else np.zeros(len(local), np.float32)
+    write_frame_bin(*frame_paths(folder, index), local, inten, frame.labels)
+    return sensor
+
+
+def write_semantickitti_sequence(frames, folder) -> Path:
+    """Write simulated frames (``PointCloud`` frames with world points, ego pose and sensor origin) as a sequence.
+
+    Reading back: ``read_semantickitti`` / ``read_sequence``.
+    """
+    folder = Path(folder)
+    (folder / "velodyne").mkdir(parents=True, exist_ok=True)
+    (folder / "labels").mkdir(parents=True, exist_ok=True)
+    rows = [pose_row(write_frame(folder, i, f)) for i, f in enumerate(frames)]
+    atomic_write(folder / "poses.txt", ("\n".join(rows) + "\n").encode())
+    return folder

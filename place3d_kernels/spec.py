@@ -1,0 +1,258 @@
+"""What a run is made of, as plain data: the scene, the ROI grid, the adverse condition and the P-SOG inputs.
+
+Every spec is a frozen, picklable dataclass with ``to_dict()`` / ``from_dict()``. The CLI builds them once
+from its arguments (``specs_from_args``); the local path and the Ray tasks (``place3d_kernels.distributed``)
+consume the same objects, so a task rebuilds exactly what the driver would have built in-process.
+
+The grid spec is called ``RoiSpec``: ``backends.base.GridSpec`` is the kernel-facing grid (voxel size and
+shape only, no ROI corners), and ``Grid.spec`` returns that one; ``RoiSpec`` is the domain choice a user
+makes (the voxel size of the default ROI) and builds a ``Grid`` with ``.grid()``.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from place3d_kernels.grid import DEFAULT_GRID, Grid
+
+__all__ = ["SceneSpec", "RoiSpec", "ConditionSpec", "PSOGSpec", "specs_from_args", "backend_name", "resolve_lidar",
+           "parse_params"]
+
+#: LiDAR whose frames build P-SOGs (the dense collection sensor).
+COLLECTION_LIDAR = "collection_64ch"
+
+
+def backend_name(backend) -> str:
+    """A backend name a worker can resolve.
+
+    Explicit names pass through unresolved (the driver may lack the device, e.g. 'warp:cuda:0' on a CPU
+    head node); None / 'auto' resolve here so that all tasks agree; an instance gives its name.
+    """
+    if backend is not None and not isinstance(backend, str):
+        return backend.name
+    if backend in (None, "auto"):
+        from place3d_kernels.backends.registry import get_backend
+
+        return get_backend(backend).name
+    return backend
+
+
+def resolve_lidar(lidar):
+    """A ``LidarModel`` from a model name / TOML path, or the model itself."""
+    from place3d_kernels.lidar import LidarModel
+
+    return LidarModel.load(lidar) if isinstance(lidar, str) else lidar
+
+
+def parse_params(pairs) -> dict:
+    """``["alpha=0.03", "mode=x"]`` -> ``{"alpha": 0.03, "mode": "x"}`` (numbers become floats)."""
+    params = {}
+    for kv in pairs or []:
+        if "=" not in kv:
+            raise ValueError(f"--param expects KEY=VALUE, got {kv!r}")
+        k, v = kv.split("=", 1)
+        try:
+            params[k] = float(v)
+        except ValueError:
+            params[k] = v
+    return params
+
+
+# ============================================================================== scene
+@dataclass(frozen=True)
+class SceneSpec:
+    """A scene from explicit inputs: 'town' (the procedural town) or 'opendrive:PATH', seed, frames."""
+
+    name: str = "town"
+    seed: int = 0
+    frames: int = 40
+
+    def build(self):
+        """The ``Scene`` (memoised per process: tasks of one worker share it)."""
+        return _build_scene(self)
+
+    @property
+    def label(self) -> str:
+        base = self.name if self.name == "town" else Path(self.name.split(":", 1)[-1]).stem
+        return f"{base}-s{self.seed}-f{self.frames}"
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "seed": self.seed, "frames": self.frames}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SceneSpec":
+        return cls(str(d.get("name", "town")), int(d.get("seed", 0)), int(d.get("frames", 40)))
+
+
+@functools.lru_cache(maxsize=4)
+def _build_scene(spec: SceneSpec):
+    from place3d_kernels import scene as scenes
+
+    if spec.name == "town":
+        return scenes.town(seed=spec.seed, n_frames=spec.frames)
+    if spec.name.startswith("opendrive:"):
+        return scenes.from_opendrive(spec.name.split(":", 1)[1], seed=spec.seed, n_frames=spec.frames)
+    raise ValueError(f"unknown scene {spec.name!r}; use 'town' or 'opendrive:PATH' (an OpenDRIVE .xodr file)")
+
+
+# ============================================================================== grid
+@dataclass(frozen=True)
+class RoiSpec:
+    """The ROI grid: the default ROI box at ``voxel_size`` metres (None: the default grid itself)."""
+
+    voxel_size: float | None = None
+
+    def grid(self) -> Grid:
+        if self.voxel_size is None:
+            return DEFAULT_GRID
+        return Grid(DEFAULT_GRID.lower, DEFAULT_GRID.upper, self.voxel_size)
+
+    def to_dict(self) -> dict:
+        return {"voxel_size": self.voxel_size}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RoiSpec":
+        v = d.get("voxel_size")
+        return cls(None if v is None else float(v))
+
+
+# ============================================================================== condition
+@dataclass(frozen=True)
+class ConditionSpec:
+    """An adverse condition as data (name, run seed, severity, sorted params); ``condition()`` builds the
+    ``FrameCondition`` that applies it to frames."""
+
+    name: str
+    seed: int = 0
+    severity: str | None = None
+    params: tuple = ()          # sorted (key, value) pairs
+
+    @classmethod
+    def of(cls, cond) -> "ConditionSpec | None":
+        """From a ``ConditionSpec``, a study-config dict, a ``FrameCondition`` or None (no condition)."""
+        if cond is None or isinstance(cond, ConditionSpec):
+            return cond
+        if isinstance(cond, dict):
+            return cls.from_dict(cond)
+        return cls(cond.name, int(cond.seed), cond.severity, tuple(sorted(cond.params.items())))
+
+    def condition(self, backend=None):
+        """The ``FrameCondition`` (callable ``(frame, index) -> frame``) for ``backend``."""
+        from place3d_kernels.pipeline import FrameCondition
+
+        return FrameCondition(self.name, seed=self.seed, backend=backend, severity=self.severity,
+                              **dict(self.params))
+
+    @property
+    def label(self) -> str:
+        extra = "".join(f"-{k}{v}" for k, v in self.params)
+        return f"{self.name}" + (f"-{self.severity}" if self.severity else "") + extra + f"-s{self.seed}"
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "seed": self.seed, "severity": self.severity, "params": dict(self.params)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ConditionSpec | None":
+        """From ``to_dict()`` output or a study ``[[conditions]]`` table (extra keys are params);
+        'clean' / 'none' / '' mean no condition (None)."""
+        d = dict(d)
+        name = d.pop("name")
+        if name in (None, "", "clean", "none"):
+            return None
+        seed, sev = int(d.pop("seed", 0)), d.pop("severity", None)
+        params = d.pop("params", {}) or {}
+        params = {**params, **d}
+        return cls(name, seed, sev, tuple(sorted(params.items())))
+
+
+# ============================================================================== P-SOG
+@dataclass(frozen=True)
+class PSOGSpec:
+    """The inputs of ``scene_psog`` as data.
+
+    Args:
+        scene: the scene; backend: backend name (or instance, locally) that builds it.
+        grid: the ROI (a ``RoiSpec``; a voxel size or None is accepted and wrapped).
+        condition: the adverse condition on the collection frames, or None.
+        lidar: the collection LiDAR; frames_per_subset: k (None: ``DEFAULT_FRAMES_PER_SUBSET``).
+        cache: cache folder, resolved in the driver (workers may have another $HOME); None: the default.
+        mount: (6,) collection-sensor pose in the ego frame (None: ``simulate.DEFAULT_MOUNT``).
+    """
+
+    scene: SceneSpec
+    backend: Any = None
+    grid: RoiSpec = field(default_factory=RoiSpec)
+    condition: ConditionSpec | None = None
+    lidar: Any = COLLECTION_LIDAR
+    frames_per_subset: int | None = None
+    cache: str | None = None
+    mount: tuple | None = None
+
+    def __post_init__(self):
+        if not isinstance(self.grid, RoiSpec):
+            object.__setattr__(self, "grid", RoiSpec(None if self.grid is None else float(self.grid)))
+        if self.mount is not None:
+            object.__setattr__(self, "mount", tuple(float(v) for v in self.mount))
+
+    @property
+    def voxel_size(self) -> float | None:
+        return self.grid.voxel_size
+
+    def build(self, backend=None, cache: bool | str = True, progress: bool = False):
+        """Run ``scene_psog`` (reading the on-disk cache when present) with an explicit backend / cache."""
+        from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET, scene_psog
+        from place3d_kernels.simulate import DEFAULT_MOUNT
+
+        b = self.backend if backend is None else backend
+        cond = None if self.condition is None else self.condition.condition(b)
+        return scene_psog(self.scene.build(), grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
+                          frames_per_subset=self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
+                          mount=DEFAULT_MOUNT if self.mount is None else self.mount, backend=b, cache=cache,
+                          progress=progress, condition=cond)
+
+    def load(self):
+        """The P-SOG with this spec's backend and cache folder (memoised per process; tasks call this)."""
+        return _load_psog(self)
+
+    def resolved(self) -> "PSOGSpec":
+        """The spec with a backend name and a cache folder fixed in the driver, ready to ship to tasks."""
+        from place3d_kernels.sog import cache_dir
+
+        return PSOGSpec(self.scene, backend_name(self.backend), self.grid, self.condition, self.lidar,
+                        self.frames_per_subset, self.cache or str(cache_dir()), self.mount)
+
+    def to_dict(self) -> dict:
+        return {"scene": self.scene.to_dict(), "backend": backend_name(self.backend) if self.backend else None,
+                "grid": self.grid.to_dict(),
+                "condition": None if self.condition is None else self.condition.to_dict(),
+                "lidar": self.lidar if isinstance(self.lidar, str) else self.lidar.name,
+                "frames_per_subset": self.frames_per_subset, "cache": self.cache,
+                "mount": None if self.mount is None else list(self.mount)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PSOGSpec":
+        cond = d.get("condition")
+        return cls(SceneSpec.from_dict(d["scene"]), d.get("backend"), RoiSpec.from_dict(d.get("grid") or {}),
+                   None if cond is None else ConditionSpec.from_dict(cond), d.get("lidar", COLLECTION_LIDAR),
+                   d.get("frames_per_subset"), d.get("cache"), d.get("mount"))
+
+
+@functools.lru_cache(maxsize=4)
+def _load_psog(spec: PSOGSpec):
+    return spec.build(cache=spec.cache if spec.cache else True)
+
+
+# ============================================================================== CLI
+def specs_from_args(args) -> PSOGSpec:
+    """The P-SOG spec named by the CLI's common options (--scene, --seed, --frames, --voxel-size,
+    --condition, --severity, --param, --backend), built once per command."""
+    cond = None
+    if getattr(args, "condition", None):
+        cond = ConditionSpec(args.condition, int(args.seed), args.severity,
+                             tuple(sorted(parse_params(getattr(args, "param", [])).items())))
+        cond.condition(None)            # an unknown name fails here, before any work starts
+    return PSOGSpec(SceneSpec(args.scene, args.seed, args.frames), getattr(args, "backend", None),
+                    RoiSpec(getattr(args, "voxel_size", None)), cond)
