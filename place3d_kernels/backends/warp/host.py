@@ -303,10 +303,10 @@ class WarpCore(Backend):
                               int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
                       block_dim=self.k.SCORE_BLOCK_DIM)
         elif P == 1 or self.threads <= 1:
+            # no block_dim on the CPU: the default keeps the kernels module's one compiled variant
             wp.launch(self.k.score_kernel, dim=P * rays, device=self.device,
                       inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
-                              int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
-                      block_dim=self.k.SCORE_BLOCK_DIM)
+                              int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums])
         else:
             # CPU threads take whole candidates: a candidate's bitset and sum are written by one thread only
             def cand_range(a, b):
