@@ -16,6 +16,7 @@ import contextlib
 import contextvars
 import importlib
 import os
+import sys
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -38,6 +39,9 @@ class Family:
         install: the command that installs the family's runtime, quoted in errors.
         no_device: the reason reported when the runtime imports but finds no device (``{install}`` is
             replaced by ``install``); ``None`` reports nothing.
+        startup_note: name of a function in ``module`` returning what the runtime said at start-up
+            (e.g. Warp's missing CUDA driver), quoted when a device of the family is asked for but
+            missing; ``None`` if the family has none.
     """
 
     module: str
@@ -46,13 +50,14 @@ class Family:
     unusable: str | None = None
     install: str = ""
     no_device: str | None = None
+    startup_note: str | None = None
 
 
 #: Every backend family, in the order ``available_backends`` lists them.
 FAMILIES: dict[str, Family] = {
     "reference": Family("place3d_kernels.backends.reference", "ReferenceBackend"),
     "warp": Family("place3d_kernels.backends.warp", "WarpBackend", devices="warp_devices",
-                   install="pip install warp-lang"),
+                   install="pip install warp-lang", startup_note="startup_note"),
     "opencl": Family("place3d_kernels.backends.opencl", "OpenCLBackend", devices="opencl_devices",
                      unusable="unusable_platforms",
                      install="pip install 'place3d-kernels[opencl]'  (PyOpenCL + PoCL CPU driver)",
@@ -80,14 +85,23 @@ def _probe_family(fam: str, spec: Family) -> tuple[list[str], list[tuple[str, st
 
 
 @lru_cache(maxsize=None)
-def _probe() -> tuple[tuple[str, ...], tuple[tuple[str, str], ...]]:
-    """(available names, (family, reason-unavailable) pairs). Cached: probing imports runtimes."""
+def _probe_cached(fam: str) -> tuple[tuple[str, ...], tuple[tuple[str, str], ...]]:
+    """``_probe_family`` of one family, cached: probing imports that family's runtime (Warp: 0.3 s and
+    more; OpenCL: PyOpenCL plus a probe kernel build), which a command naming another backend never needs."""
+    names, missing = _probe_family(fam, FAMILIES[fam])
+    return tuple(names), tuple(missing)
+
+
+def _probe(families=None) -> tuple[tuple[str, ...], tuple[tuple[str, str], ...]]:
+    """(available names, (family, reason-unavailable) pairs) of ``families`` (default: all), in
+    ``FAMILIES`` order."""
     names: list[str] = []
     missing: list[tuple[str, str]] = []
-    for fam, spec in FAMILIES.items():
-        n, m = _probe_family(fam, spec)
-        names += n
-        missing += m
+    for fam in FAMILIES:
+        if families is None or fam in families:
+            n, m = _probe_cached(fam)
+            names += n
+            missing += m
     return tuple(names), tuple(missing)
 
 
@@ -105,8 +119,11 @@ def backend_report() -> list[tuple[str, bool, str]]:
 
 
 def _canonical(name: str) -> str:
-    names = available_backends()
     n = name.strip().lower()
+    family = n.split(":")[0]
+    # a name of one family probes that family only ("opencl:pocl" never imports Warp); "auto" and
+    # unknown names probe them all
+    names = list(_probe(None if n == "auto" or family not in FAMILIES else (family,))[0])
     if n == "auto":
         # GPUs first; on the CPU, PoCL (all cores) before Warp's CPU device (why: bench/README.md, "Figures
         # behind backend code comments")
@@ -124,8 +141,12 @@ def _canonical(name: str) -> str:
     if n in names:
         return n
     missing = dict(_probe()[1])
-    fam = n.split(":")[0]
-    hint = f" ({missing[fam]})" if fam in missing else ""
+    names = available_backends()
+    hint = f" ({missing[family]})" if family in missing else ""
+    spec = FAMILIES.get(family)
+    if not hint and spec is not None and spec.startup_note and spec.module in sys.modules:
+        note = getattr(sys.modules[spec.module], spec.startup_note)()
+        hint = f" ({family} said at start-up: {note})" if note else ""
     raise ValueError(f"Unknown or unavailable backend {name!r}{hint}. Available here: {names}. "
                      f"Names: 'auto', 'reference', 'warp[:cpu|:cuda:N]', 'opencl[:platform]'. "
                      f"Install the rest with: {FAMILIES['warp'].install}; {FAMILIES['opencl'].install}")
@@ -158,7 +179,7 @@ resolve = get_backend
 def forget() -> None:
     """Probe the families again on next use and drop the cached instances (after installing a driver,
     or in tests that change ``FAMILIES``)."""
-    _probe.cache_clear()
+    _probe_cached.cache_clear()
     _instances.clear()
 
 

@@ -3,6 +3,6 @@
 Importing this package raises ImportError when warp-lang is not installed.
 """
 
-from place3d_kernels.backends.warp.host import WarpBackend, WarpCore, cpu_threads, warp_devices
+from place3d_kernels.backends.warp.host import WarpBackend, WarpCore, cpu_threads, startup_note, warp_devices
 
-__all__ = ["WarpBackend", "WarpCore", "warp_devices", "cpu_threads"]
+__all__ = ["WarpBackend", "WarpCore", "warp_devices", "cpu_threads", "startup_note"]

@@ -30,23 +30,59 @@ except ImportError as e:  # pragma: no cover - exercised only without warp insta
 from place3d_kernels.backends.warp.conditions import WarpConditions
 
 _initialised = False
+_init_output = ""     # what Warp's native init printed (kept quiet; quoted when a CUDA device is missing)
 
 
 def _init() -> None:
-    global _initialised
+    global _initialised, _init_output
     if not _initialised:
         import logging
 
         if os.environ.get("PLACE3D_WARP_VERBOSE") is None:
             wp.config.log_level = logging.WARNING   # no init banner unless asked for
-        wp.init()
+            # Warp's native library prints "Could not find or load the NVIDIA CUDA driver" straight to
+            # file descriptor 1 on every machine without one, CPU-only runs included; it is captured here
+            # and repeated only in the error for a CUDA device that is not available
+            _init_output = _quiet_call(wp.init)
+        else:
+            wp.init()
         _initialised = True
+
+
+def _quiet_call(fn) -> str:
+    """Run ``fn()`` with file descriptors 1 and 2 redirected to a temporary file; return what it wrote.
+    (Native code writes to the descriptors, not to ``sys.stdout``; output of other threads in that
+    window goes to the file too.)"""
+    import sys
+    import tempfile
+
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    with tempfile.TemporaryFile() as tmp:
+        saved = [os.dup(1), os.dup(2)]
+        try:
+            os.dup2(tmp.fileno(), 1)
+            os.dup2(tmp.fileno(), 2)
+            fn()
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+        tmp.seek(0)
+        return tmp.read().decode(errors="replace").strip()
 
 
 def warp_devices() -> list[str]:
     """Warp device names usable here, e.g. ``['cpu', 'cuda:0']``."""
     _init()
     return [str(d) for d in wp.get_devices()]
+
+
+def startup_note() -> str:
+    """What Warp's native library printed at initialisation (quiet unless ``PLACE3D_WARP_VERBOSE`` is set),
+    e.g. that no CUDA driver was found; empty if nothing or not initialised yet."""
+    return _init_output
 
 
 def cpu_threads() -> int:
@@ -99,7 +135,8 @@ class WarpCore(Backend):
         try:
             self.device = wp.get_device(device)
         except Exception as e:  # noqa: BLE001 - Warp raises several types here
-            raise BackendUnavailable(f"Warp device {device!r} is not available: {e}") from None
+            said = f" (Warp at start-up: {_init_output})" if _init_output and "cuda" in str(device) else ""
+            raise BackendUnavailable(f"Warp device {device!r} is not available: {e}{said}") from None
         self.name = f"warp:{self.device}"
         from place3d_kernels.backends.warp import kernels
 
@@ -303,10 +340,10 @@ class WarpCore(Backend):
                               int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
                       block_dim=self.k.SCORE_BLOCK_DIM)
         elif P == 1 or self.threads <= 1:
+            # no block_dim on the CPU: the default keeps the kernels module's one compiled variant
             wp.launch(self.k.score_kernel, dim=P * rays, device=self.device,
                       inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
-                              int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
-                      block_dim=self.k.SCORE_BLOCK_DIM)
+                              int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums])
         else:
             # CPU threads take whole candidates: a candidate's bitset and sum are written by one thread only
             def cand_range(a, b):
@@ -355,4 +392,4 @@ class WarpBackend(WarpCore, WarpConditions):
     """Warp backend on one device (``"cpu"``, ``"cuda:0"``, ...)."""
 
 
-__all__ = ["WarpBackend", "WarpCore", "warp_devices", "cpu_threads"]
+__all__ = ["WarpBackend", "WarpCore", "warp_devices", "cpu_threads", "startup_note"]

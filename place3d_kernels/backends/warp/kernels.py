@@ -565,6 +565,11 @@ def score_ray_brick(
 # (bench/gpu_score_variants.py; figures: bench/README.md, "Figures behind backend code comments").
 # The CPU ignores both.
 SCORE_BLOCK_DIM = 128
+# Warp builds a module once per (device, launch block_dim) and hashes block_dim into it (Warp 1.19,
+# Module.load): a 128-thread launch of a kernel of this module, whose other launches use CUDA's default
+# 256, compiled the whole file a second time on a cold CUDA host (3.4 s). So the 128-thread kernel lives
+# in a module of its own ("unique": it and the functions it calls), with this file's options restated.
+_SCORE_GPU_MODULE_OPTIONS = {"enable_backward": False, "fuse_fp": False, "block_dim": SCORE_BLOCK_DIM}
 
 
 @wp.kernel(cuda_max_registers=72)
@@ -587,7 +592,7 @@ def score_kernel(
               words_per_candidate, bits, sums)
 
 
-@wp.kernel(cuda_max_registers=80)
+@wp.kernel(cuda_max_registers=80, module="unique", module_options=_SCORE_GPU_MODULE_OPTIONS)
 def score_kernel_gpu(
     sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
     n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,

@@ -1,0 +1,228 @@
+#!/usr/bin/env python3
+"""Issue 17 ("Speed, the next order") in one command for a GPU host: what a user waits for.
+
+(a) ``place3d optimize --max-evals 2000 --task seg --backend B`` as a whole command, wall time in a
+    subprocess: warm (kernel and P-SOG caches filled by one untimed run, then 3 timed runs) and cold
+    (3 runs, each with a fresh Warp kernel cache, ``WARP_CACHE_PATH``, and a fresh P-SOG cache,
+    ``PLACE3D_CACHE``).
+(b) Ray-mesh through the API (``p3k.raycast``, NumPy in and out) against a plain Warp ``mesh_query_ray``
+    kernel on the same ``box_city`` and rays (the dense rig of bench/peers.py: 4 x 64 x 2048 rays of
+    ``LidarModel.uniform(64, (-25, 15), 2048, max_range=200)`` at ``pyramid``): the plain kernel both with
+    NumPy in and out (upload, launch, download) and kernel only.
+(c) The dense rig (bench/gpu_dense.py, 0.05 m grid, population 16), run 3 times in subprocesses.
+
+Every figure is 3 repeats: median, min and max. JSON (with machine_info) goes to ``--out`` (default $OUT,
+else bench/results/) as ``gpu-speed-<backend>.json``.
+
+    python3 bench/gpu_speed.py --out $OUT                    # the GPU host (warp:cuda:0)
+    python3 bench/gpu_speed.py --backend warp:cpu --quick    # smoke test on a CPU
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+REPEATS = 3
+
+
+def stats(xs) -> dict:
+    """Median, min, max and the values of a list of timings (seconds)."""
+    xs = [float(x) for x in xs]
+    return {"median": statistics.median(xs), "min": min(xs), "max": max(xs), "runs": xs}
+
+
+def _env(**extra) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.update({k: str(v) for k, v in extra.items()})
+    return env
+
+
+def _run(cmd, env, timeout) -> tuple[float, str]:
+    t = time.perf_counter()
+    p = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+    wall = time.perf_counter() - t
+    if p.returncode:
+        raise RuntimeError(f"{' '.join(cmd)} exited {p.returncode}:\n{p.stdout[-2000:]}\n{p.stderr[-2000:]}")
+    return wall, p.stdout[-2000:]
+
+
+# ----------------------------------------------------------------------------- (a) whole command
+def whole_command(backend: str, max_evals: int, timeout: int) -> dict:
+    cmd = [sys.executable, "-m", "place3d_kernels.cli", "optimize", "--max-evals", str(max_evals), "--task", "seg",
+           "--backend", backend, "--quiet"]
+    out = {"command": " ".join(["place3d"] + cmd[3:])}
+    with tempfile.TemporaryDirectory() as warm_dir:
+        env = _env(WARP_CACHE_PATH=Path(warm_dir, "warp"), PLACE3D_CACHE=Path(warm_dir, "psog"))
+        with tempfile.TemporaryDirectory() as o:
+            _run(cmd + ["--output", o], env, timeout)          # fills both caches; not timed
+        walls = []
+        for _ in range(REPEATS):
+            with tempfile.TemporaryDirectory() as o:
+                w, tail = _run(cmd + ["--output", o], env, timeout)
+            walls.append(w)
+        out["warm_s"] = stats(walls)
+        out["stdout_tail"] = tail
+    walls = []
+    for _ in range(REPEATS):
+        with tempfile.TemporaryDirectory() as cold_dir, tempfile.TemporaryDirectory() as o:
+            env = _env(WARP_CACHE_PATH=Path(cold_dir, "warp"), PLACE3D_CACHE=Path(cold_dir, "psog"))
+            walls.append(_run(cmd + ["--output", o], env, timeout)[0])
+    out["cold_s"] = stats(walls)
+    print(f"(a) {out['command']}: warm {out['warm_s']['median']:.2f} s, cold {out['cold_s']['median']:.2f} s",
+          flush=True)
+    return out
+
+
+# ----------------------------------------------------------------------------- (b) ray-mesh
+def _plain_warp(device: str):
+    """A plain Warp ray caster: float32 rays, SAH BVH, ``mesh_query_ray``, hit distance or -1."""
+    import warp as wp
+
+    @wp.kernel(module="unique", module_options={"enable_backward": False})
+    def plain_raycast(mesh: wp.uint64, o: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.vec3), t_max: float,
+                      out_t: wp.array(dtype=float)):
+        i = wp.tid()
+        q = wp.mesh_query_ray(mesh, o[i], d[i], t_max)
+        out_t[i] = wp.where(q.result, q.t, -1.0)
+
+    return wp, plain_raycast
+
+
+def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
+    import place3d_kernels as p3k
+    from place3d_kernels.scene.city import box_city
+
+    lidar = p3k.LidarModel.uniform(64, (-25, 15), azimuths, max_range=200)
+    o, d = p3k.lidar_rays(lidar, p3k.Placement.load("pyramid"), backend="reference")
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    t_max = float(lidar.max_range)
+    mesh = box_city(triangles)
+    b = p3k.get_backend(backend)
+    n = len(o)
+    out = {"rays": n, "triangles": int(len(mesh.faces))}
+
+    t = time.perf_counter()
+    mesh.handle(b)
+    out["api_bvh_build_s"] = time.perf_counter() - t
+    p3k.raycast(mesh, o, d, t_max, backend=b)    # warm-up (compiles on a cold cache)
+    walls = []
+    for _ in range(REPEATS):
+        t = time.perf_counter()
+        hits = p3k.raycast(mesh, o, d, t_max, backend=b)
+        walls.append(time.perf_counter() - t)
+    out["api_s"] = stats(walls)
+    out["api_mrays_s"] = n / out["api_s"]["median"] / 1e6
+
+    if backend.startswith("warp:"):
+        wp, kernel = _plain_warp(backend[5:])
+        dev = backend[5:]
+        v32 = np.ascontiguousarray(mesh.vertices - mesh.shift, dtype=np.float32)
+        t = time.perf_counter()
+        wmesh = wp.Mesh(points=wp.array(v32, dtype=wp.vec3, device=dev),
+                        indices=wp.array(np.ascontiguousarray(mesh.faces, dtype=np.int32).reshape(-1), dtype=wp.int32,
+                                         device=dev), bvh_constructor="sah")
+        wp.synchronize_device(dev)
+        out["plain_bvh_build_s"] = time.perf_counter() - t
+        o32 = np.ascontiguousarray(o - mesh.shift, dtype=np.float32)
+        d32 = np.ascontiguousarray(d, dtype=np.float32)
+
+        def numpy_io():
+            oa = wp.array(o32, dtype=wp.vec3, device=dev)
+            da = wp.array(d32, dtype=wp.vec3, device=dev)
+            ta = wp.empty(n, dtype=float, device=dev)
+            wp.launch(kernel, dim=n, inputs=[wmesh.id, oa, da, t_max, ta], device=dev)
+            return ta.numpy()
+
+        plain_t = numpy_io()
+        walls = []
+        for _ in range(REPEATS):
+            t = time.perf_counter()
+            numpy_io()
+            walls.append(time.perf_counter() - t)
+        out["plain_numpy_io_s"] = stats(walls)
+        oa, da = wp.array(o32, dtype=wp.vec3, device=dev), wp.array(d32, dtype=wp.vec3, device=dev)
+        ta = wp.empty(n, dtype=float, device=dev)
+        walls = []
+        for _ in range(REPEATS):
+            wp.synchronize_device(dev)
+            t = time.perf_counter()
+            wp.launch(kernel, dim=n, inputs=[wmesh.id, oa, da, t_max, ta], device=dev)
+            wp.synchronize_device(dev)
+            walls.append(time.perf_counter() - t)
+        out["plain_kernel_s"] = stats(walls)
+        out["plain_numpy_io_mrays_s"] = n / out["plain_numpy_io_s"]["median"] / 1e6
+        out["plain_kernel_mrays_s"] = n / out["plain_kernel_s"]["median"] / 1e6
+        out["api_over_plain_numpy_io"] = out["api_s"]["median"] / out["plain_numpy_io_s"]["median"]
+        both = np.isfinite(hits.t) & (plain_t >= 0)
+        out["hits_agree_1e-4m"] = float(np.mean(np.abs(hits.t[both] - plain_t[both]) <= 1e-4)) if both.any() else None
+        out["hit_mismatch"] = int(np.sum(np.isfinite(hits.t) != (plain_t >= 0)))
+    print(f"(b) ray-mesh {n} rays: API {out['api_mrays_s']:.1f} M rays/s"
+          + (f", plain Warp numpy-io {out['plain_numpy_io_mrays_s']:.1f}, kernel {out['plain_kernel_mrays_s']:.1f}"
+             if "plain_kernel_mrays_s" in out else ""), flush=True)
+    return out
+
+
+# ----------------------------------------------------------------------------- (c) dense rig
+def dense_rig(backend: str, voxel: float, pop: int, timeout: int) -> dict:
+    runs = []
+    for _ in range(REPEATS):
+        with tempfile.TemporaryDirectory() as o:
+            _run([sys.executable, str(ROOT / "bench" / "gpu_dense.py"), "--backends", backend, "--voxel", str(voxel),
+                  "--pop", str(pop)], _env(OUT=o), timeout)
+            runs.append(json.loads(Path(o, f"gpu-dense-{voxel}m.json").read_text())["backends"][backend])
+    out = {"voxel": voxel, "population": pop, "rig": "4 x 64 x 2048 rays"}
+    for key in ("single_eval_ms", "population_eval_ms", "amortised_eval_ms"):
+        out[key] = stats([r[key] for r in runs])
+    out["scores_head"] = runs[0]["scores_head"]
+    out["scores_identical_across_runs"] = all(r["scores_head"] == runs[0]["scores_head"] for r in runs)
+    print(f"(c) dense rig: {out['amortised_eval_ms']['median']:.2f} ms per rig amortised over {pop}", flush=True)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--backend", default="warp:cuda:0")
+    ap.add_argument("--out", default=os.environ.get("OUT") or str(ROOT / "bench" / "results"))
+    ap.add_argument("--quick", action="store_true", help="small sizes (smoke test on a CPU)")
+    ap.add_argument("--skip", default="", help="comma list of parts to skip: a,b,c")
+    args = ap.parse_args(argv)
+    sys.path.insert(0, str(ROOT))
+    from place3d_kernels.kernel_bench import machine_info
+
+    skip = set(filter(None, args.skip.split(",")))
+    q = args.quick
+    res = {"info": machine_info(), "backend": args.backend, "quick": q, "repeats": REPEATS,
+           "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+    parts = {"a": ("whole_command", lambda: whole_command(args.backend, 60 if q else 2000, 900)),
+             "b": ("ray_mesh", lambda: ray_mesh(args.backend, 20_000 if q else 1_000_000, 128 if q else 2048)),
+             "c": ("dense_rig", lambda: dense_rig(args.backend, 0.4 if q else 0.05, 2 if q else 16, 900))}
+    for key, (name, fn) in parts.items():
+        if key in skip:
+            continue
+        try:
+            res[name] = fn()
+        except Exception as e:  # noqa: BLE001 - one failing part must not lose the others' figures
+            res[name] = {"error": f"{type(e).__name__}: {e}"[-3000:]}
+            print(f"({key}) {name} failed: {res[name]['error']}", flush=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"gpu-speed-{args.backend.replace(':', '-')}{'-quick' if q else ''}.json"
+    path.write_text(json.dumps(res, indent=2))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,55 @@
+"""Imports that cost more than what a command uses from them.
+
+``import cma`` (pycma 4.x) took 0.87 s on the dev VM, most of it in two optional extras that CMA-ES
+ask/tell never touches: ``cma.s`` imports ``matplotlib.pyplot`` (0.23 s) for pycma's plotting shortcuts,
+and ``cma.fitness_models`` imports ``scipy.stats`` (0.53 s) only for ``kendalltau``, used by the surrogate
+models of ``fmin_lq_surr``. :func:`import_cma` imports pycma with both hidden from pycma's import only: a
+``None`` entry in ``sys.modules`` makes an import of that name raise ImportError (Python docs, "The import
+system", 5.3.1 The module cache), and pycma handles both ImportErrors itself:
+
+* ``cma.fitness_models`` takes its documented fallback ``_kendall_tau`` ("implemented only to potentially
+  remove dependency on scipy.stats"): the same coefficient, used only by ``fmin_lq_surr``.
+* ``cma.s`` sets its plotting shortcuts to "not available" (``cma.s.figsave``; ``cma.plot`` still imports
+  pyplot itself when called). This package never plots through pycma.
+
+The entries are removed right after, so ``scipy.stats`` and ``matplotlib.pyplot`` import normally for
+everyone else. (A lazy module, ``importlib.util.LazyLoader``, does not help here: ``cma.s`` runs
+``from matplotlib.pyplot import savefig`` at import, which loads the module at once.)
+
+Neither step runs when the module is already imported (then it costs nothing to import anyway).
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+
+__all__ = ["import_cma", "HIDDEN_FROM_CMA"]
+
+#: Optional pycma dependencies hidden while pycma is imported (see the module doc).
+HIDDEN_FROM_CMA = ("scipy.stats", "matplotlib.pyplot")
+
+
+def import_cma():
+    """``import cma`` without importing ``matplotlib.pyplot`` or ``scipy.stats`` (see the module doc).
+
+    Returns:
+        The ``cma`` package, as ``import cma`` gives it.
+
+    Raises:
+        ImportError: pycma is not installed (install with ``pip install cma``).
+    """
+    if "cma" in sys.modules:
+        return sys.modules["cma"]
+    hidden = [name for name in HIDDEN_FROM_CMA if name not in sys.modules]
+    for name in hidden:
+        sys.modules[name] = None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")   # cma.s warns that its plotting shortcuts are unavailable
+            import cma
+    finally:
+        for name in hidden:
+            if name in sys.modules and sys.modules[name] is None:
+                del sys.modules[name]
+    return cma
