@@ -46,7 +46,9 @@ class CMAStrategy:
 
     def __init__(self, x0, kmin, kmax, sigma0: float, widths_idx, popsize: int | None, seed: int,
                  options: dict | None = None):
-        import cma  # the only import of pycma: only this strategy needs it
+        from place3d_kernels.lazy_imports import import_cma
+
+        cma = import_cma()  # the only import of pycma: only this strategy needs it
 
         self._np_state = np.random.RandomState(seed).get_state()
         n = len(kmin)
