@@ -22,7 +22,7 @@ from place3d_kernels.rig_metrics import body_t_end, check_outside_body, directio
 from place3d_kernels.vehicle import VehicleBody
 
 __all__ = ["BlindSpotMap", "blind_spot_map", "ground_hits", "max_blind_extent", "footprint_distance",
-           "cmd_blindspot", "add_blindspot_parser"]
+           "vehicle_from_arg", "cmd_blindspot", "add_blindspot_parser"]
 
 
 def footprint_distance(points_xy, footprint) -> np.ndarray:
@@ -225,3 +225,65 @@ def max_blind_extent(body: VehicleBody | None, lidar, poses, ground_z: float = 0
         if "inside" in str(e):
             return float("inf")
         raise
+
+
+# ----------------------------------------------------------------------------- command line
+def vehicle_from_arg(spec: str | None) -> VehicleBody | None:
+    """``none`` -> no body; a preset name (car, suv, van, truck); else a mesh file path."""
+    if spec is None or str(spec).strip().lower() == "none":
+        return None
+    from pathlib import Path
+
+    from place3d_kernels.vehicle import PRESETS
+
+    if str(spec).strip().lower() in PRESETS:
+        return VehicleBody.preset(spec)
+    if Path(spec).suffix:
+        return VehicleBody.load(spec)
+    raise ValueError(f"unknown vehicle {spec!r}: use one of {sorted(PRESETS)}, 'none', or a mesh file path")
+
+
+def add_blindspot_parser(sub) -> None:
+    """Register ``place3d blindspot`` on an argparse subparsers object (the CLI wires it in)."""
+    p = sub.add_parser("blindspot", help="blind-spot map of a rig on a vehicle body (JSON numbers + top-view PNG)")
+    p.add_argument("placement", nargs="?", default="center", help="placement name or TOML path (default center)")
+    p.add_argument("--lidar", default="place3d_16ch", help="LiDAR model name or TOML (default place3d_16ch)")
+    p.add_argument("--vehicle", default="car",
+                   help="body: car, suv, van, truck, none, or a mesh file (OBJ, GLB, ...) in the ego frame")
+    p.add_argument("--ground-z", type=float, default=0.0, help="plane height in metres (0 road; 0.5 bumper)")
+    p.add_argument("--radius", type=float, default=10.0, help="metres around the body (default 10)")
+    p.add_argument("--cell", type=float, default=0.1, help="raster cell in metres (default 0.1)")
+    p.add_argument("--sector-deg", type=float, default=1.0, help="azimuth sector in degrees (default 1)")
+    p.add_argument("--backend", default=None, help="backend name (default: the current one)")
+    p.add_argument("--output", required=True, help="output folder (blindspot.json, blindspot.png)")
+    p.set_defaults(func=cmd_blindspot)
+
+
+def cmd_blindspot(args) -> int:
+    """``place3d blindspot``: compute everything first, then write the JSON and PNG (bad input writes
+    nothing)."""
+    import json
+    from pathlib import Path
+
+    from place3d_kernels.lidar import LidarModel
+    from place3d_kernels.placement import Placement
+
+    lidar = LidarModel.load(args.lidar)
+    placement = Placement.load(args.placement)
+    body = vehicle_from_arg(args.vehicle)
+    m = blind_spot_map(body, lidar, placement.poses, args.ground_z, args.radius, args.cell, args.sector_deg,
+                       backend=args.backend)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = {"placement": placement.name or str(args.placement), "lidar": lidar.name or str(args.lidar),
+               "vehicle": None if body is None else {"name": body.name, "key": body.key,
+                                                     "bounds_m": np.round(body.bounds, 4).tolist()},
+               "sensors_m": np.round(m.sensors, 4).tolist(), **m.summary()}
+    (out / "blindspot.json").write_text(json.dumps(summary, indent=2))
+    m.plot(out / "blindspot.png", title=f"{summary['placement']} on {body.name if body else 'no body'}: "
+                                        f"blind spots at z = {args.ground_z:g} m")
+    ext = summary["max_extent_m"]
+    print(f"blind area {m.area_m2:.2f} m^2 within {args.radius:g} m of the body at z = {args.ground_z:g} m; "
+          f"max extent {'inf' if ext is None else f'{ext:.2f} m'}; wrote {out / 'blindspot.json'} and "
+          f"{out / 'blindspot.png'}")
+    return 0

@@ -85,3 +85,26 @@ def test_bumper_height_and_constraint(tmp_path):
     assert summary["area_m2"] == pytest.approx(bumper.area_m2, abs=1e-3) and len(summary["nearest_from_body_m"]) == 360
     with pytest.raises(ValueError, match="inside"):
         blind_spot_map(body, LIDAR, np.array([[0.0, 0.0, 1.0, 0, 0, 0]]))
+
+
+def test_cli_writes_json_and_png_or_nothing(tmp_path):
+    import argparse
+    import json
+
+    from place3d_kernels.blindspot import add_blindspot_parser
+
+    parser = argparse.ArgumentParser()
+    add_blindspot_parser(parser.add_subparsers())
+    args = parser.parse_args(["blindspot", "pyramid", "--vehicle", "suv", "--ground-z", "0.5", "--backend",
+                              "reference", "--output", str(tmp_path / "ok")])
+    assert args.func(args) == 0
+    data = json.loads((tmp_path / "ok" / "blindspot.json").read_text())
+    assert data["vehicle"]["name"] == "suv" and data["area_m2"] > 0 and len(data["nearest_from_body_m"]) == 360
+    assert (tmp_path / "ok" / "blindspot.png").stat().st_size > 10_000
+    bad = parser.parse_args(["blindspot", "pyramid", "--vehicle", "van", "--output", str(tmp_path / "bad")])
+    with pytest.raises(ValueError, match="inside"):                  # the van's roof (2.47 m) swallows the rig
+        bad.func(bad)
+    with pytest.raises(ValueError, match="unknown vehicle 'bus'"):
+        bad.vehicle = "bus"
+        bad.func(bad)
+    assert not (tmp_path / "bad").exists()
