@@ -111,3 +111,20 @@ def test_bad_offsets_are_rejected(backend):
         b.score_rays(h, o, d, np.ones(4), np.array([0, 3], np.int64))
     with pytest.raises(ValueError, match="ray_offsets"):
         b.score_rays(h, o, d, np.ones(4), np.array([0, 3, 2, 4], np.int64))
+
+
+@pytest.mark.parametrize("strategy", ["private", "atomic"])
+def test_opencl_both_grid_layouts(strategy, rng):
+    # grids prepared for either score strategy (byte stop mask or bricked masks) serve score_rays alike
+    if "opencl:pocl" not in p3k.available_backends():
+        pytest.skip("OpenCL (PoCL) is not available here")
+    from place3d_kernels.backends.opencl.host import OpenCLBackend
+
+    b = OpenCLBackend("pocl", score_strategy=strategy)
+    w, stop = _grid(rng)
+    o, d, t_end, off = _hetero_batch(rng)
+    for s in (None, stop):
+        got = b.score_rays(b.prepare_grid(SPEC, w, s), o, d, t_end, off)
+        want = REF.score_rays(REF.prepare_grid(SPEC, w, s), o, d, t_end, off)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
