@@ -29,7 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE", "rotation_matrices", "sensor_directions"]
+__all__ = ["Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE", "rotation_matrices", "sensor_directions",
+           "check_ray_batch"]
 
 #: Fixed-point scale for entropy weights: weight = round(H * ENTROPY_SCALE) as int64. ln(22) * 2**32 is
 #: about 1.3e10, so 7e8 fully uncertain voxels still fit in int64 without overflow.
@@ -143,6 +144,26 @@ class Backend(abc.ABC):
             sums (P,) int64 of weights over each candidate's covered voxels, counts (P,) int64 of them.
         """
 
+    @abc.abstractmethod
+    def score_rays(self, handle: object, origins: np.ndarray, directions: np.ndarray, t_end: np.ndarray,
+                   ray_offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Batched evaluation over explicit rays: candidate p owns rays ``ray_offsets[p]:ray_offsets[p+1]``.
+
+        The general form of ``score_placements``: candidates may have different ray counts (rigs of
+        different sensors or sizes) and each ray its own segment length (e.g. clipped where the ego
+        vehicle's body blocks it). Same occlusion (stop mask of ``handle``) and exact fixed-point sums.
+
+        Args:
+            handle: from ``prepare_grid``.
+            origins, directions: (N, 3) float64, grid-local, unit directions.
+            t_end: (N,) float64 segment lengths (>= 0).
+            ray_offsets: (P+1,) int64 non-decreasing CSR offsets, ``ray_offsets[0] == 0`` and
+                ``ray_offsets[-1] == N``; an empty candidate covers nothing.
+
+        Returns:
+            sums (P,) int64 of weights over each candidate's covered voxels, counts (P,) int64 of them.
+        """
+
     # ----------------------------------------------------------------- occupancy grids
     @abc.abstractmethod
     def voxel_keys(self, grid: GridSpec, points: np.ndarray) -> np.ndarray:
@@ -219,3 +240,23 @@ def sensor_directions(elevations: np.ndarray, azimuths: np.ndarray) -> np.ndarra
     a = np.asarray(azimuths, dtype=np.float64)[None, :]
     d = np.stack(np.broadcast_arrays(np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)), -1)
     return d.reshape(-1, 3)
+
+
+def check_ray_batch(origins, directions, t_end, ray_offsets) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Validate and normalise the inputs of ``Backend.score_rays``: float64 (N, 3), (N, 3), (N,) and
+    int64 (P+1,) CSR offsets.
+
+    Raises:
+        ValueError: shapes disagree or the offsets are not a CSR partition of the N rays.
+    """
+    o = np.ascontiguousarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 3)
+    n = len(o)
+    if d.shape != (n, 3):
+        raise ValueError(f"score_rays: directions must have shape ({n}, 3) like origins, got {d.shape}")
+    te = np.ascontiguousarray(np.broadcast_to(np.asarray(t_end, dtype=np.float64), (n,)))
+    off = np.ascontiguousarray(ray_offsets, dtype=np.int64).reshape(-1)
+    if len(off) < 1 or off[0] != 0 or off[-1] != n or np.any(np.diff(off) < 0):
+        raise ValueError(f"score_rays: ray_offsets must be non-decreasing CSR offsets from 0 to the ray count "
+                         f"{n}; got {len(off)} offsets from {off[:1].tolist()} to {off[-1:].tolist()}")
+    return o, d, te, off

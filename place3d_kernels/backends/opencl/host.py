@@ -535,6 +535,61 @@ class OpenCLBackend(Backend, OpenCLConditions):
         self._launch("vote_best_label", H, t2, c2, np.int32(n_classes), bc, bl, np.int32(H))
         return voxels, self._read(bl, np.int32, M)
 
+    # ----------------------------------------------------------------- explicit-ray scores
+    def score_rays(self, handle, origins, directions, t_end, ray_offsets):
+        """``Backend.score_rays``: ``score_rays.cl`` over all rays (one work-item per ray, atomic bricked
+        bitsets per candidate), then ``count_bits``; partial sums are added per candidate on the host."""
+        from place3d_kernels.backends.base import check_ray_batch
+
+        if not isinstance(handle, CLGrid):
+            raise TypeError(f"score_rays needs the handle from {self.name}.prepare_grid, got {type(handle).__name__}")
+        o64, d64, te64, off = check_ray_batch(origins, directions, t_end, ray_offsets)
+        P, n = len(off) - 1, len(o64)
+        sums = np.zeros(P, dtype=np.int64)
+        counts = np.zeros(P, dtype=np.int64)
+        if P == 0 or n == 0:
+            return sums, counts
+        spec = handle.spec
+        if handle.masks is None:
+            # grids prepared for the private strategy hold the byte stop mask only; the bricked masks are
+            # derived once from the device copies and kept on the handle (score_placements never reads them)
+            w = self._read(handle.weights, np.int64, spec.n_voxels)
+            sm = self._read(handle.stop, np.uint8, spec.n_voxels) != 0 if handle.use_stop else None
+            handle.masks = cl.Buffer(self.ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR,
+                                     hostbuf=brick_masks(spec.shape, w != 0, sm))
+        if "score_rays_csr" not in self._kernels:
+            prg = rt.build_program(self.ctx, ("common.cl", "grid.cl", "score_rays.cl"), self._options())
+            self._kernels["score_rays_csr"] = prg.score_rays_csr
+        o, d, te = self._rays(o64, d64, te64)
+        cand = np.repeat(np.arange(P, dtype=np.int32), np.diff(off))
+        bx, by, bz = brick_shape(spec.shape)
+        words = bx * by * bz
+        per_count = 256
+        n_chunks = (words + per_count - 1) // per_count
+        # candidates in chunks whose bitsets stay below _BITSET_BYTES (whole candidates per chunk)
+        chunk = int(max(1, min(P, _BITSET_BYTES // max(words * 4, 1))))
+        bits = self._out(chunk * words * 4)
+        pc = self._out(chunk * n_chunks * 8)
+        for p0 in range(0, P, chunk):
+            pn = min(chunk, P - p0)
+            a, b = int(off[p0]), int(off[p0 + pn])
+            cl.enqueue_fill_buffer(self.queue, bits, np.uint32(0), 0, pn * words * 4)
+            if b > a:
+                part, pb = self._host_out(np.int64, b - a)
+                # named: CPU buffers use the NumPy memory in place, which must outlive the kernel
+                cand_p = cand[a:b] - np.int32(p0)
+                bufs = [self._in(o[a:b]), self._in(d[a:b]), self._in(te[a:b]), self._in(cand_p)]
+                self._launch("score_rays_csr", b - a, *bufs, self.real(spec.voxel_size),
+                             *(np.int32(v) for v in spec.shape), np.int32(by), np.int32(bz), handle.masks,
+                             handle.weights, bits, np.int64(words), pb, np.int32(b - a))
+                part = self._fetch(part, pb)
+                cs = np.concatenate([[0], np.cumsum(part, dtype=np.int64)])
+                sums[p0:p0 + pn] = cs[off[p0 + 1:p0 + pn + 1] - a] - cs[off[p0:p0 + pn] - a]
+            self._launch("count_bits", (n_chunks, pn), bits, np.int64(words), np.int32(per_count),
+                         np.int32(n_chunks), pc)
+            counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(axis=1, dtype=np.int64)
+        return sums, counts
+
 
 def _vote_numpy(k, lab, n_classes):
     ok = (k >= 0) & (lab > 0)

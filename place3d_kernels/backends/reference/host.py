@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from place3d_kernels.backends.base import Backend, GridSpec, rotation_matrices, sensor_directions
+from place3d_kernels.backends.base import Backend, GridSpec, check_ray_batch, rotation_matrices, sensor_directions
 from place3d_kernels.backends.reference.conditions import ReferenceConditions
 
 __all__ = ["ReferenceBackend", "ReferenceCore", "traverse_ray", "watertight_intersect"]
@@ -213,6 +213,19 @@ class ReferenceCore(Backend):
         for p, rig in enumerate(poses):
             o, d = self.lidar_rays(elevations, azimuths, rig)
             _, voxels = self.traverse(handle.spec, o, d, np.full(len(o), float(t_max)), handle.stop)
+            u = np.unique(voxels)
+            sums[p] = int(handle.weights[u].sum(dtype=np.int64))
+            counts[p] = len(u)
+        return sums, counts
+
+    def score_rays(self, handle, origins, directions, t_end, ray_offsets):
+        o, d, te, off = check_ray_batch(origins, directions, t_end, ray_offsets)
+        P = len(off) - 1
+        sums = np.zeros(P, dtype=np.int64)
+        counts = np.zeros(P, dtype=np.int64)
+        for p in range(P):
+            a, b = int(off[p]), int(off[p + 1])
+            _, voxels = self.traverse(handle.spec, o[a:b], d[a:b], te[a:b], handle.stop)
             u = np.unique(voxels)
             sums[p] = int(handle.weights[u].sum(dtype=np.int64))
             counts[p] = len(u)

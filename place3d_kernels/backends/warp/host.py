@@ -387,6 +387,48 @@ class WarpCore(Backend):
         sel = np.flatnonzero(lead >= 0)
         return keys_d.numpy()[sel] // n_classes, lead[sel].astype(np.int32)
 
+    # ------------------------------------------------------------------ explicit-ray scores
+    def score_rays(self, handle, origins, directions, t_end, ray_offsets):
+        """``Backend.score_rays``: the kernel of ``score_rays.py`` over all rays, each with its candidate."""
+        from place3d_kernels.backends.base import check_ray_batch
+        from place3d_kernels.backends.warp import score_rays as kr
+
+        o, d, te, off = check_ray_batch(origins, directions, t_end, ray_offsets)
+        P, n = len(off) - 1, len(o)
+        spec = handle.spec
+        nx, ny, nz = spec.shape
+        bx, by, bz = brick_shape(spec.shape)
+        words = bx * by * bz
+        bits = wp.zeros(max(P * words, 1), dtype=wp.uint32, device=self.device)
+        sums = wp.zeros(max(P, 1), dtype=wp.int64, device=self.device)
+        counts = wp.zeros(max(P, 1), dtype=wp.int64, device=self.device)
+        masks = handle.masks
+        if masks.dtype == wp.uint64:   # CUDA grids keep each brick's pair as one uint64: alias as uint32 pairs
+            masks = wp.array(ptr=masks.ptr, shape=(2 * masks.shape[0],), dtype=wp.uint32, device=self.device)
+        cand = np.repeat(np.arange(P, dtype=np.int32), np.diff(off))
+        oa, da, ta, ca = self._vec3d(o), self._vec3d(d), self._f64(te, n), wp.array(cand, dtype=wp.int32,
+                                                                                      device=self.device)
+
+        def rays(a, b):
+            return [oa[a:b], da[a:b], ta[a:b], ca[a:b], float(spec.voxel_size), int(nx), int(ny), int(nz),
+                    int(by), int(bz), masks, handle.weights, int(words), bits, sums]
+
+        if n and (self.device.is_cuda or self.threads <= 1 or P == 1):
+            wp.launch(kr.score_rays_kernel, dim=n, device=self.device, inputs=rays(0, n))
+        elif n:
+            # CPU threads take whole candidates (Warp's CPU atomics are plain read-modify-writes): cut the
+            # candidate list into runs of about equal ray counts, at candidate boundaries
+            k = min(P, self.threads * CHUNKS_PER_THREAD)
+            cuts = np.unique(np.searchsorted(off, np.linspace(0, n, k + 1), side="left").clip(0, P))
+            edges = np.unique(off[cuts])
+            self._run_chunks(kr.score_rays_kernel, [(int(a), int(b), rays(int(a), int(b)))
+                                                    for a, b in zip(edges[:-1], edges[1:]) if b > a])
+        if P:
+            chunks = -(-words // self.k.COUNT_WORDS)
+            wp.launch(self.k.count_bits_kernel, dim=P * chunks, device=self.device,
+                      inputs=[bits, int(words), int(chunks), counts])
+        return sums.numpy()[:P], counts.numpy()[:P]
+
 
 class WarpBackend(WarpCore, WarpConditions):
     """Warp backend on one device (``"cpu"``, ``"cuda:0"``, ...)."""
