@@ -156,6 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_lidars_parser(sub)
 
+    from place3d_kernels.blindspot import add_blindspot_parser
+
+    add_blindspot_parser(sub)
+
     p = sub.add_parser("evaluate", help="score the paper's placements by M-SOG on a scene")
     _add_common(p)
     p.add_argument("placements", nargs="*", help="placement names or TOML paths (default: all eleven)")
