@@ -1,4 +1,4 @@
-"""The ``place3d`` command: backends | evaluate | simulate | optimize | study | bench."""
+"""The ``place3d`` command: backends | evaluate | simulate | optimize | study | reproduce | bench."""
 
 from __future__ import annotations
 
@@ -182,6 +182,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("study", help="M-SOG over a grid of placements x conditions x scenes (one table)")
     add_study(p)
     p.set_defaults(func=cmd_study)
+
+    from place3d_kernels import reproduce
+
+    p = sub.add_parser("reproduce", help="the paper's eight placements on a pooled P-SOG, with intervals and Kendall tau")
+    reproduce.add_arguments(p)
+    p.set_defaults(func=reproduce.run)
 
     p = sub.add_parser("bench", help="kernel microbenchmarks per backend (JSON)")
     p.add_argument("--backends", nargs="*", default=None, help="backends to time (default: all available)")

@@ -1,0 +1,313 @@
+"""Pooled P-SOGs: one P-SOG from many drives (routes x scenes), the way the paper built its own.
+
+The paper builds its P-SOG from the training scenes of a dataset over four CARLA towns (Li et al.,
+NeurIPS 2024, Sec. 4 "P-SOG Synthesis": Towns 1, 3, 4, 6 with six ego routes each), not from one
+40-frame drive. A pooled P-SOG sums each voxel's per-class subset counts over every subset of every
+drive, so ``p(v = c) = count(v, c) / T_total`` with ``T_total`` the number of subsets of all drives.
+
+Each drive goes through ``pipeline.scene_psog`` (cached on disk per drive by its inputs), so adding a
+route reuses the P-SOGs of the others; only its sparse per-class counts are kept (a ``DriveRecord``,
+a few MB at 0.2 m), so memory grows with the number of occupied voxels, never with frames. Keeping the
+records separate makes resampling cheap: a bootstrap over drives (``uncertainty.py``) re-weights the
+records and sums again, without simulating anything.
+
+    >>> from place3d_kernels.pooled import Drive, build_pooled
+    >>> drives = [Drive("opendrive:Town01.xodr", seed=s) for s in range(4)]
+    >>> pooled = build_pooled(drives)                 # or executor=get_executor("ray")
+    >>> psog = pooled.psog()                          # a PSOG like any other (counts included)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from place3d_kernels.classes import N_CLASSES
+from place3d_kernels.grid import DEFAULT_GRID, Grid
+from place3d_kernels.sog import PSOG
+
+__all__ = ["Drive", "PoolSettings", "DriveRecord", "PooledPSOG", "build_pooled", "drive_record",
+           "subset_records", "backend_name"]
+
+
+@dataclass(frozen=True)
+class Drive:
+    """One ego route on one scene: ``scene`` is 'town' or 'opendrive:PATH'; ``seed`` picks the route
+    (and the generated roadside content and traffic); ``frames`` its length."""
+
+    scene: str = "town"
+    seed: int = 0
+    frames: int = 40
+
+    def spec(self):
+        from place3d_kernels.distributed import SceneSpec
+
+        return SceneSpec(self.scene, int(self.seed), int(self.frames))
+
+    def build(self):
+        """The ``Scene`` (rebuilt deterministically from the three fields)."""
+        return self.spec().build()
+
+    @property
+    def label(self) -> str:
+        return self.spec().label
+
+
+@dataclass(frozen=True)
+class PoolSettings:
+    """Everything besides the drive that decides a per-drive P-SOG (the inputs of ``scene_psog``).
+
+    Args:
+        voxel_size: ROI voxel edge in metres (None: ``DEFAULT_GRID``'s 0.2 m; the ROI box stays the same).
+        lidar: the collection LiDAR (name or TOML path) that records the drives.
+        frames_per_subset: k frames merged per SOG (None: ``pipeline.DEFAULT_FRAMES_PER_SUBSET``).
+        backend: backend name (None: ``$PLACE3D_BACKEND`` or auto, resolved once in the driver).
+        cache: P-SOG cache folder (None: ``sog.cache_dir()``); False disables the cache.
+    """
+
+    voxel_size: float | None = None
+    lidar: str = "collection_64ch"
+    frames_per_subset: int | None = None
+    backend: str | None = None
+    cache: Any = None
+
+    @property
+    def grid(self) -> Grid:
+        if self.voxel_size is None:
+            return DEFAULT_GRID
+        return Grid(DEFAULT_GRID.lower, DEFAULT_GRID.upper, float(self.voxel_size))
+
+    @property
+    def k(self) -> int:
+        from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
+
+        return int(self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET)
+
+    def to_dict(self) -> dict:
+        return {"voxel_size": self.grid.voxel_size, "collection_lidar": self.lidar, "frames_per_subset": self.k,
+                "backend": self.backend}
+
+
+@dataclass
+class DriveRecord:
+    """The sparse per-class subset counts of one drive (or one subset): what pooling sums.
+
+    Attributes:
+        label: which drive (``Drive.label``, or ``label#subset`` for a single subset).
+        n_subsets: T of this drive.
+        voxels: (E,) int64 flat voxel index of each entry (ascending, a voxel repeats per class).
+        classes: (E,) int16 class (1..K-1; "empty" is implied: T minus the occupied counts).
+        counts: (E,) int32 number of subsets in which the voxel had that class (> 0).
+    """
+
+    label: str
+    n_subsets: int
+    voxels: np.ndarray
+    classes: np.ndarray
+    counts: np.ndarray
+
+    @classmethod
+    def from_psog(cls, psog: PSOG, label: str) -> "DriveRecord":
+        """From a P-SOG built by ``PSOG.from_frames`` (it carries integer counts)."""
+        if psog.counts is None or psog.n_subsets is None:
+            raise ValueError(f"{label}: the P-SOG has no subset counts (built from probabilities?); pooling "
+                             f"needs a P-SOG from PSOG.from_frames / scene_psog")
+        c = np.asarray(psog.counts, dtype=np.int64)[:, 1:]
+        v, k = np.nonzero(c)                                  # row-major: voxels stay ascending
+        return cls(label, int(psog.n_subsets), psog.voxels[v].astype(np.int64), (k + 1).astype(np.int16),
+                   c[v, k].astype(np.int32))
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.voxels.nbytes + self.classes.nbytes + self.counts.nbytes)
+
+
+class PooledPSOG:
+    """Per-drive records over one grid and their pooled P-SOG.
+
+    Args:
+        grid: the ROI grid shared by every record.
+        records: ``DriveRecord`` list (more can be ``add``-ed).
+        n_classes: K channels (channel 0 = empty).
+    """
+
+    def __init__(self, grid: Grid, records: Sequence[DriveRecord] = (), n_classes: int = N_CLASSES):
+        self.grid = grid
+        self.n_classes = int(n_classes)
+        self.records: list[DriveRecord] = []
+        self._union = None
+        for r in records:
+            self.add(r)
+
+    def add(self, record: DriveRecord) -> None:
+        if record.classes.size and int(record.classes.max()) >= self.n_classes:
+            raise ValueError(f"{record.label}: class {int(record.classes.max())} outside the {self.n_classes} channels")
+        self.records.append(record)
+        self._union = None
+
+    @property
+    def labels(self) -> list[str]:
+        return [r.label for r in self.records]
+
+    @property
+    def n_subsets(self) -> int:
+        """T_total over all records."""
+        return int(sum(r.n_subsets for r in self.records))
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __repr__(self) -> str:
+        mb = sum(r.nbytes for r in self.records) / 2**20
+        return (f"PooledPSOG({len(self)} drives, T={self.n_subsets}, grid {self.grid.shape} @ "
+                f"{self.grid.voxel_size} m, {mb:.1f} MB of counts)")
+
+    def subset(self, indices) -> "PooledPSOG":
+        """The pool of the chosen records only (same grid)."""
+        return PooledPSOG(self.grid, [self.records[i] for i in indices], self.n_classes)
+
+    # ------------------------------------------------------------------ pooling
+    def _prepare(self):
+        """Union of (voxel, class) keys over the records, computed once per record set."""
+        if self._union is None:
+            if not self.records:
+                raise ValueError("PooledPSOG has no drives; add DriveRecords or use build_pooled(drives)")
+            K = self.n_classes
+            keys = np.concatenate([r.voxels * K + r.classes for r in self.records])
+            counts = np.concatenate([r.counts for r in self.records]).astype(np.int64)
+            owner = np.concatenate([np.full(len(r.voxels), i, np.int64) for i, r in enumerate(self.records)])
+            ukeys, inv = np.unique(keys, return_inverse=True)
+            uvox, vinv = np.unique(ukeys // K, return_inverse=True)
+            self._union = (ukeys % K, inv, counts, owner, uvox, vinv)
+        return self._union
+
+    def counts(self, multiplicity=None) -> tuple[np.ndarray, np.ndarray, int]:
+        """Pooled integer counts.
+
+        Args:
+            multiplicity: (D,) non-negative integers, how many times each record enters the pool
+                (a bootstrap resample); None = each once.
+
+        Returns:
+            voxels (M,) int64 ascending, counts (M, K) int64 (column 0 = empty), T_total; voxels never
+            occupied in the weighted pool are left out, as ``PSOG.from_frames`` leaves them out.
+        """
+        cls_, inv, counts, owner, uvox, vinv = self._prepare()
+        D = len(self.records)
+        T_each = np.array([r.n_subsets for r in self.records], dtype=np.int64)
+        if multiplicity is None:
+            m = np.ones(D, dtype=np.int64)
+        else:
+            m = np.asarray(multiplicity)
+            if m.shape != (D,) or np.any(m < 0) or not np.all(m == np.round(m)):
+                raise ValueError(f"multiplicity must be {D} non-negative integers (one per drive), got {m!r}")
+            m = m.astype(np.int64)
+        T = int((T_each * m).sum())
+        if T <= 0:
+            raise ValueError("the weighted pool has no subsets (all multiplicities zero)")
+        w = counts * m[owner]
+        # integer sums: bincount with float weights is exact below 2**53, far above any subset count
+        summed = np.rint(np.bincount(inv, weights=w.astype(np.float64), minlength=len(cls_))).astype(np.int64)
+        out = np.zeros((len(uvox), self.n_classes), dtype=np.int64)
+        out[vinv, cls_] = summed
+        occ = out[:, 1:].sum(axis=1)
+        keep = occ > 0
+        out, vox = out[keep], uvox[keep]
+        out[:, 0] = T - occ[keep]
+        return vox, out, T
+
+    def psog(self, multiplicity=None) -> PSOG:
+        """The pooled P-SOG: ``p(v = c) = count / T_total`` (see ``counts`` for ``multiplicity``).
+
+        With one record this is that drive's P-SOG exactly (same voxels, counts and float64 probs).
+        """
+        vox, c, T = self.counts(multiplicity)
+        return PSOG(self.grid, vox, c / float(T), n_subsets=T, counts=c.astype(np.int32))
+
+
+# ====================================================================== building
+def drive_record(drive: Drive, settings: PoolSettings = PoolSettings()) -> DriveRecord:
+    """The record of one drive: its P-SOG from ``scene_psog`` (on-disk cache per drive), sparsified."""
+    from place3d_kernels.pipeline import scene_psog
+
+    cache = True if settings.cache is None else settings.cache
+    ps = scene_psog(drive.build(), grid=settings.grid, lidar=settings.lidar, frames_per_subset=settings.k,
+                    backend=settings.backend, cache=cache)
+    return DriveRecord.from_psog(ps, drive.label)
+
+
+def backend_name(backend) -> str:
+    """A backend name every task resolves alike: None / 'auto' resolve here, names pass through."""
+    if backend is not None and not isinstance(backend, str):
+        return backend.name
+    if backend in (None, "auto"):
+        from place3d_kernels.backend import get_backend
+
+        return get_backend(backend).name
+    return backend
+
+
+def _record_task(t) -> DriveRecord:
+    drive, settings = t
+    return drive_record(drive, settings)
+
+
+def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(), executor=None,
+                 progress: bool = False) -> PooledPSOG:
+    """Pool the P-SOGs of ``drives`` (one executor task per drive; records come back in drive order).
+
+    Args:
+        drives: the drives (routes x scenes).
+        settings: grid, collection LiDAR, k, backend, cache (``PoolSettings``).
+        executor: ``distributed.get_executor(...)``; None runs the drives here one after the other, so at
+            most one drive's frames are in memory at a time.
+        progress: print one line per drive to stderr (local executor only).
+    """
+    from place3d_kernels.distributed import LocalExecutor
+
+    drives = list(drives)
+    if not drives:
+        raise ValueError("build_pooled needs at least one Drive")
+    # resolve the backend and the cache folder in the driver so every task agrees (see PSOGSpec.resolved)
+    from place3d_kernels.sog import cache_dir
+
+    settings = PoolSettings(settings.voxel_size, settings.lidar, settings.k, backend_name(settings.backend),
+                            str(cache_dir()) if settings.cache is None else settings.cache)
+    pooled = PooledPSOG(settings.grid)
+    if executor is None or isinstance(executor, LocalExecutor):
+        import sys
+        import time
+
+        for i, d in enumerate(drives):
+            t0 = time.perf_counter()
+            pooled.add(drive_record(d, settings))
+            if executor is not None:
+                executor.submitted += 1
+            if progress:
+                print(f"  drive {i + 1}/{len(drives)} {d.label}: {time.perf_counter() - t0:.1f} s",
+                      file=sys.stderr)
+        return pooled
+    for rec in executor.map(_record_task, [(d, settings) for d in drives]):
+        pooled.add(rec)
+    return pooled
+
+
+def subset_records(drive: Drive, settings: PoolSettings = PoolSettings()) -> list[DriveRecord]:
+    """One record per subset of k frames of a drive (T = 1 each), for a bootstrap over subsets.
+
+    Their sum equals the drive's P-SOG counts: each subset is voted exactly as ``PSOG.from_frames``
+    votes it (merged in the ego frame of its middle frame). Simulates the drive's frames (not cached).
+    """
+    from place3d_kernels.simulate import simulate
+
+    frames = simulate(drive.build(), settings.lidar, backend=settings.backend)
+    k = settings.k
+    n_sub = max(1, len(frames) // k)
+    groups = [frames[i * k:(i + 1) * k] for i in range(n_sub)] if len(frames) >= k else [frames]
+    out = []
+    for j, g in enumerate(groups):
+        ps = PSOG.from_frames(g, settings.grid, len(g), backend=settings.backend)
+        out.append(DriveRecord.from_psog(ps, f"{drive.label}#{j}"))
+    return out

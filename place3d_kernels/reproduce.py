@@ -1,0 +1,352 @@
+"""``place3d reproduce``: the paper's M-SOG study of its eight placements, pooled, with intervals.
+
+For segmentation and detection it scores the seven baselines and the task's optimised placement
+("ours") on a P-SOG pooled over the four CARLA towns (``--towns``) x ``--routes`` routes each, gives
+every score a bootstrap interval over routes, the share of resamples in which each pairwise order
+holds, and Kendall's tau of the package's order against the paper's Table 1 M-SOG and against the
+paper's downstream results (``paper_results``). ``convergence`` shows whether the order still moves
+with more routes: tau between the P-SOG of N routes per town and that of 2N routes.
+
+Output (``--output``, default ``bench/results/reproduce-<date>/``): ``reproduce.json`` (keys:
+``settings``, ``machine``, ``time_utc``, ``seconds``, ``drives``, ``tasks`` -> seg/det -> placements,
+msog, ci_low, ci_high, se, bias, rank, paper_msog, paper_rank, downstream, tau_paper, tau_paper_ci,
+tau_downstream, tau_downstream_ci, order_freq, within_noise; ``convergence``) and ``reproduce.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from place3d_kernels import paper_results as paper
+from place3d_kernels.pooled import Drive, PooledPSOG, PoolSettings, build_pooled
+from place3d_kernels.uncertainty import Bootstrap, bootstrap_pooled, kendall_tau, plot_scores
+
+__all__ = ["reproduce", "convergence", "paper_poses", "det_view", "resolve_town", "DEFAULT_TOWNS", "DET_VARIANTS",
+           "add_arguments", "run", "machine_info"]
+
+#: The paper's maps (Sec. 4 "Data Generation": Towns 1, 3, 4 and 6 of CARLA 0.9.10).
+DEFAULT_TOWNS = ("Town01", "Town03", "Town04", "Town06")
+#: Detection variants of the P-SOG: the paper keeps "car" and merges every other class (Sec. 4, "Surrogate
+#: Metric of SOG"); the alternative also keeps pedestrians, the detection benchmark's other instance class.
+DET_VARIANTS = ("vehicle", "vehicle+pedestrian")
+TASKS = ("seg", "det")
+
+
+# ---------------------------------------------------------------------------------------- inputs
+def _opendrive_dirs(extra=None) -> list[Path]:
+    dirs = [Path(extra)] if extra else []
+    if os.environ.get("PLACE3D_OPENDRIVE_DIR"):
+        dirs.append(Path(os.environ["PLACE3D_OPENDRIVE_DIR"]))
+    dirs += [Path("data/opendrive"), Path("../shared/data/opendrive"), Path("/work/shared/data/opendrive")]
+    return dirs
+
+
+def resolve_town(name: str, opendrive_dir=None) -> str:
+    """A scene string for ``Drive``: 'town', 'opendrive:PATH', a .xodr path, or a map name (Town01)
+    looked up in ``opendrive_dir``, ``$PLACE3D_OPENDRIVE_DIR``, ./data/opendrive, ../shared/data/opendrive."""
+    if name == "town" or name.startswith("opendrive:"):
+        return name
+    if name.endswith(".xodr"):
+        if not Path(name).exists():
+            raise FileNotFoundError(f"OpenDRIVE file {name} not found")
+        return f"opendrive:{Path(name).resolve()}"
+    for d in _opendrive_dirs(opendrive_dir):
+        p = d / f"{name}.xodr"
+        if p.exists():
+            return f"opendrive:{p.resolve()}"
+    raise FileNotFoundError(f"map {name!r}: no {name}.xodr in {[str(d) for d in _opendrive_dirs(opendrive_dir)]}; "
+                            f"pass --opendrive-dir DIR or set PLACE3D_OPENDRIVE_DIR (CARLA's maps are .xodr files)")
+
+
+def paper_poses(task: str, roll_units: str = "rad") -> np.ndarray:
+    """(8, 4, 6) poses of the paper's eight placements for a task, in ``paper_results.PLACEMENTS`` order.
+
+    ``roll_units="deg"`` reads the paper's roll values as degrees (as CARLA's ``carla.Rotation`` would take
+    them, see docs/assumptions.md): roll x pi / 180.
+    """
+    from place3d_kernels.placement import Placement
+
+    if roll_units not in ("rad", "deg"):
+        raise ValueError(f"roll_units must be 'rad' or 'deg', got {roll_units!r}")
+    names = [paper.OURS[task] if n == "ours" else n for n in paper.PLACEMENTS]
+    poses = np.stack([Placement.load(n).poses for n in names])
+    if roll_units == "deg":
+        poses = poses.copy()
+        poses[..., 3] *= math.pi / 180.0
+    return poses
+
+
+def det_view(psog, variant: str = "vehicle"):
+    """The detection P-SOG: 'vehicle' = the package's (empty, vehicle, other) = ``psog.detection()``;
+    'vehicle+pedestrian' = (empty, vehicle, pedestrian, other)."""
+    from place3d_kernels.classes import CLASSES
+    from place3d_kernels.sog import PSOG
+
+    if variant == "vehicle":
+        return psog.detection()
+    if variant != "vehicle+pedestrian":
+        raise ValueError(f"det variant must be one of {DET_VARIANTS}, got {variant!r}")
+    p = psog.probs
+    veh, ped = p[:, CLASSES.index("vehicle")], p[:, CLASSES.index("pedestrian")]
+    other = np.clip(1.0 - p[:, 0] - veh - ped, 0.0, 1.0)
+    return PSOG(psog.grid, psog.voxels, np.stack([p[:, 0], veh, ped, other], axis=1),
+                ("empty", "vehicle", "pedestrian", "other"), psog.n_subsets)
+
+
+def _scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: str):
+    """score(psog) -> (16,) seg scores of the eight placements, then det scores."""
+    from place3d_kernels.metrics import msog_batch
+
+    seg_poses, det_poses = paper_poses("seg", roll_units), paper_poses("det", roll_units)
+
+    def score(psog):
+        seg = msog_batch(psog, lidar, seg_poses, occlusion=occlusion, task="seg", backend=backend)
+        # a det view built here is scored as a plain P-SOG (task "seg" = its own channels as given)
+        det = msog_batch(det_view(psog, det_variant), lidar, det_poses, occlusion=occlusion, task="seg",
+                         backend=backend)
+        return np.concatenate([seg, det])
+
+    return score
+
+
+def machine_info(backend_name: str | None = None) -> dict:
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import scipy
+
+    return {"node": platform.node(), "platform": platform.platform(), "cpu": cpu, "cpu_count": os.cpu_count(),
+            "python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
+            "backend": backend_name}
+
+
+# ---------------------------------------------------------------------------------------- study
+def _task_table(task: str, boot: Bootstrap) -> dict:
+    ref, down = np.array(paper.paper_msog(task)), np.array(paper.downstream(task))
+    pt = boot.point
+    ci = boot.ci
+    taus_p = np.array([kendall_tau(s, ref) for s in boot.samples])
+    taus_d = np.array([kendall_tau(s, down) for s in boot.samples])
+    a = (1 - boot.level) / 2
+
+    def q(x):
+        return [float(v) for v in np.nanquantile(x, [a, 1 - a])] if np.any(np.isfinite(x)) else [None, None]
+
+    rank = (-pt).argsort().argsort() + 1
+    prank = (-ref).argsort().argsort() + 1
+    return {"placements": list(paper.PLACEMENTS), "ours_is": paper.OURS[task], "msog": pt.tolist(),
+            "ci_low": ci[:, 0].tolist(), "ci_high": ci[:, 1].tolist(), "se": boot.se.tolist(),
+            "bias": boot.bias.tolist(),
+            "rank": rank.tolist(), "paper_msog_1e-6": ref.tolist(), "paper_rank": prank.tolist(),
+            "downstream": [round(v, 4) for v in down.tolist()],
+            "downstream_metric": "mean clean mIoU (%) of 4 models" if task == "seg" else
+                                 "mean clean car mAP (%) of 4 models",
+            "tau_paper": kendall_tau(pt, ref), "tau_paper_ci": q(taus_p),
+            "tau_downstream": kendall_tau(pt, down), "tau_downstream_ci": q(taus_d),
+            "paper_tau_msog_vs_downstream": kendall_tau(ref, down),
+            "order_freq": np.round(boot.order_freq, 4).tolist(),
+            "within_noise": [list(p) for p in boot.within_noise()]}
+
+
+def convergence(pooled: PooledPSOG, routes_of: list[int], score, ns=None) -> list[dict]:
+    """Kendall tau between the orders from N and 2N routes per town, as N doubles.
+
+    Args:
+        pooled: records of all drives; ``routes_of[i]`` is the route index (seed) of record i.
+        score: ``score(psog) -> (16,)`` (seg then det scores, as in ``reproduce``).
+        ns: the N to try (default 1, 2, 4, ... while 2N <= routes).
+
+    Returns:
+        rows {n, tau_seg, tau_det (N vs 2N, nested: the 2N pool contains the N pool), tau_seg_disjoint,
+        tau_det_disjoint (routes [0, N) vs [N, 2N)), tau_seg_paper and tau_det_paper of the 2N pool}.
+    """
+    R = max(routes_of) + 1
+    if ns is None:
+        ns, n = [], 1
+        while 2 * n <= R:
+            ns.append(n)
+            n *= 2
+    routes_of = np.asarray(routes_of)
+    cache: dict = {}
+
+    def scores(lo, hi):
+        if (lo, hi) not in cache:
+            idx = np.flatnonzero((routes_of >= lo) & (routes_of < hi))
+            cache[(lo, hi)] = np.asarray(score(pooled.subset(idx).psog()))
+        return cache[(lo, hi)]
+
+    rows = []
+    for n in ns:
+        if 2 * n > R:
+            raise ValueError(f"convergence N={n} needs {2 * n} routes per town, only {R} were built")
+        a, b, c = scores(0, n), scores(0, 2 * n), scores(n, 2 * n)
+        rows.append({"n": n, "two_n": 2 * n,
+                     "tau_seg": kendall_tau(a[:8], b[:8]), "tau_det": kendall_tau(a[8:], b[8:]),
+                     "tau_seg_disjoint": kendall_tau(a[:8], c[:8]), "tau_det_disjoint": kendall_tau(a[8:], c[8:]),
+                     "tau_seg_paper": kendall_tau(b[:8], paper.paper_msog("seg")),
+                     "tau_det_paper": kendall_tau(b[8:], paper.paper_msog("det"))})
+    return rows
+
+
+def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size: float | None = None,
+              frames_per_subset: int | None = None, occlusion: str = "sog", rig_lidar: str = "place3d_16ch",
+              collection_lidar: str = "collection_64ch", roll_units: str = "rad", det_variant: str = "vehicle",
+              n_resamples: int = 200, seed: int = 0, backend=None, executor=None, opendrive_dir=None,
+              with_convergence: bool = True, cache=None, progress: bool = False) -> dict:
+    """Run the study; returns the JSON-able result (see the module docstring for its keys)."""
+    from place3d_kernels.backend import get_backend
+    from place3d_kernels.lidar import LidarModel
+
+    t0 = time.perf_counter()
+    if routes < 1 or frames < 1:
+        raise ValueError(f"routes and frames must be >= 1, got routes={routes}, frames={frames}")
+    if det_variant not in DET_VARIANTS:
+        raise ValueError(f"det_variant must be one of {DET_VARIANTS}, got {det_variant!r}")
+    b = get_backend(backend)
+    scenes = [resolve_town(t, opendrive_dir) for t in towns]
+    drives, routes_of, town_of = [], [], []
+    for r in range(routes):                    # route-major, so a partial pool still spans every town
+        for i, s in enumerate(scenes):
+            drives.append(Drive(s, seed=r, frames=frames))
+            routes_of.append(r)
+            town_of.append(i)
+    settings = PoolSettings(voxel_size, collection_lidar, frames_per_subset, b.name, cache)
+    t1 = time.perf_counter()
+    pooled = build_pooled(drives, settings, executor=executor, progress=progress)
+    t_pool = time.perf_counter() - t1
+    lidar = LidarModel.load(rig_lidar)
+    score = _scorer(lidar, occlusion, b, roll_units, det_variant)
+    t1 = time.perf_counter()
+    # routes are resampled within each town: the four towns are the study's design, the routes its sample
+    point, samples, _ = bootstrap_pooled(pooled, score, n_resamples, seed, progress, strata=town_of)
+    t_boot = time.perf_counter() - t1
+    names = list(paper.PLACEMENTS)
+    boots = {task: Bootstrap(names, point[i * 8:(i + 1) * 8], samples[:, i * 8:(i + 1) * 8], 0.95, "drives",
+                             len(pooled)) for i, task in enumerate(TASKS)}
+    conv = convergence(pooled, routes_of, score) if with_convergence and routes >= 2 else []
+    settings_d = {"towns": list(towns), "routes": routes, "frames": frames, **settings.to_dict(),
+                  "grid": settings.grid.to_dict(), "occlusion": occlusion, "rig_lidar": rig_lidar,
+                  "roll_units": roll_units, "det_variant": det_variant, "n_resamples": n_resamples,
+                  "bootstrap": "routes resampled with replacement within each town",
+                  "seed": seed, "executor": getattr(executor, "kind", "local"), "n_subsets_total": pooled.n_subsets}
+    return {"settings": settings_d, "machine": machine_info(b.name),
+            "time_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "seconds": {"pool": round(t_pool, 2), "bootstrap": round(t_boot, 2),
+                        "total": round(time.perf_counter() - t0, 2)},
+            "drives": pooled.labels, "tasks": {t: _task_table(t, boots[t]) for t in TASKS},
+            "convergence": conv, "_boots": boots}
+
+
+# ---------------------------------------------------------------------------------------- output
+def format_report(res: dict) -> str:
+    s = res["settings"]
+    lines = [f"Pooled M-SOG over {len(res['drives'])} drives ({len(s['towns'])} towns x {s['routes']} routes, "
+             f"{s['frames']} frames, T = {s['n_subsets_total']} subsets), voxel {s['voxel_size']} m, k = "
+             f"{s['frames_per_subset']}, occlusion {s['occlusion']}, roll in {s['roll_units']}, det = {s['det_variant']}; "
+             f"95 % intervals over {s['n_resamples']} route resamples. Higher is better."]
+    for task, t in res["tasks"].items():
+        lines.append("")
+        lines.append(f"[{task}]  'ours' = {t['ours_is']}; downstream = {t['downstream_metric']}")
+        lines.append(f"{'rank':>4} {'placement':13s} {'M-SOG':>10s} {'95 % interval':>23s}  {'paper rank':>10s} "
+                     f"{'paper x1e-6':>11s} {'downstream':>10s}")
+        for i in np.argsort(t["rank"]):
+            lines.append(f"{t['rank'][i]:>4} {t['placements'][i]:13s} {t['msog'][i]:10.5f} "
+                         f"[{t['ci_low'][i]:9.5f}, {t['ci_high'][i]:9.5f}]  {t['paper_rank'][i]:>10} "
+                         f"{t['paper_msog_1e-6'][i]:11.2f} {t['downstream'][i]:10.2f}")
+
+        def ci(c):
+            return "n/a" if c[0] is None else f"[{c[0]:+.2f}, {c[1]:+.2f}]"
+
+        lines.append(f"Kendall tau vs paper M-SOG: {t['tau_paper']:+.3f} {ci(t['tau_paper_ci'])};  vs downstream: "
+                     f"{t['tau_downstream']:+.3f} {ci(t['tau_downstream_ci'])}  (paper's own M-SOG vs downstream: "
+                     f"{t['paper_tau_msog_vs_downstream']:+.3f})")
+        noise = ", ".join(f"{a}>{b} ({f:.2f})" for a, b, f in t["within_noise"]) or "none"
+        lines.append(f"within noise (order holds in < 95 % of resamples): {noise}")
+    if res["convergence"]:
+        lines.append("")
+        lines.append("Convergence: Kendall tau of the order from N routes/town vs 2N (nested) and vs routes N..2N-1 "
+                     "(disjoint); tau of the 2N pool vs the paper")
+        lines.append(f"{'N':>3} {'2N':>3} {'seg N-2N':>9} {'det N-2N':>9} {'seg disj':>9} {'det disj':>9} "
+                     f"{'seg paper':>9} {'det paper':>9}")
+        for r in res["convergence"]:
+            lines.append(f"{r['n']:>3} {r['two_n']:>3} {r['tau_seg']:9.3f} {r['tau_det']:9.3f} "
+                         f"{r['tau_seg_disjoint']:9.3f} {r['tau_det_disjoint']:9.3f} {r['tau_seg_paper']:9.3f} "
+                         f"{r['tau_det_paper']:9.3f}")
+    lines.append(f"{res['seconds']['total']:.1f} s (pool {res['seconds']['pool']:.1f} s, bootstrap "
+                 f"{res['seconds']['bootstrap']:.1f} s) on {res['machine']['cpu']}, backend {res['machine']['backend']}")
+    return "\n".join(lines)
+
+
+def write_outputs(res: dict, out) -> dict:
+    """reproduce.json and reproduce.png into folder ``out``; returns their paths."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    js = out / "reproduce.json"
+    js.write_text(json.dumps({k: v for k, v in res.items() if not k.startswith("_")}, indent=1))
+    png = out / "reproduce.png"
+    boots = res["_boots"]
+    panels = {f"{t} ({'ours = ' + paper.OURS[t]})": boots[t] for t in TASKS}
+    ref = {f"{t} ({'ours = ' + paper.OURS[t]})": paper.paper_msog(t) for t in TASKS}
+    s = res["settings"]
+    plot_scores(panels, png, title=f"Pooled M-SOG, {len(res['drives'])} drives ({len(s['towns'])} towns x "
+                f"{s['routes']} routes), {s['voxel_size']} m voxels", reference=ref,
+                reference_label="paper Table 1 M-SOG [x 1e-6 nats/voxel]")
+    return {"json": str(js), "png": str(png)}
+
+
+def add_arguments(p) -> None:
+    from place3d_kernels.distributed import add_executor_arguments
+
+    p.add_argument("--towns", nargs="+", default=list(DEFAULT_TOWNS),
+                   help="maps: CARLA map names (Town01 ...), .xodr paths, or 'town' (default: Town01 Town03 Town04 Town06)")
+    p.add_argument("--opendrive-dir", default=None, help="folder of the .xodr maps (default: $PLACE3D_OPENDRIVE_DIR, "
+                                                         "./data/opendrive, ../shared/data/opendrive)")
+    p.add_argument("--routes", type=int, default=4, help="routes (seeds 0..N-1) per town (default 4)")
+    p.add_argument("--frames", type=int, default=40, help="frames per route (default 40, as the paper)")
+    p.add_argument("--voxel-size", type=float, default=None, help="voxel size in metres (default 0.2)")
+    p.add_argument("--frames-per-subset", type=int, default=None, help="k frames per SOG (default 4)")
+    p.add_argument("--occlusion", default="sog", choices=["sog", "none"], help="ray occlusion (default sog)")
+    p.add_argument("--lidar", default="place3d_16ch", help="the rig's LiDAR (default place3d_16ch)")
+    p.add_argument("--collection-lidar", default="collection_64ch", help="LiDAR recording the drives (default collection_64ch)")
+    p.add_argument("--roll-units", default="rad", choices=["rad", "deg"],
+                   help="read the paper's roll values as radians (default) or degrees (docs/assumptions.md)")
+    p.add_argument("--det-variant", default="vehicle", choices=list(DET_VARIANTS), help="detection P-SOG classes")
+    p.add_argument("--resamples", type=int, default=200, help="bootstrap resamples over routes (default 200)")
+    p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
+    p.add_argument("--no-convergence", action="store_true", help="skip the N vs 2N routes table")
+    p.add_argument("--backend", default=None, help="backend (default: $PLACE3D_BACKEND or auto)")
+    p.add_argument("--output", default=None, help="output folder (default bench/results/reproduce-<date>/)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_executor_arguments(p)
+
+
+def run(args) -> int:
+    from place3d_kernels.distributed import executor_from_args
+
+    ex = executor_from_args(args)
+    try:
+        res = reproduce(args.towns, args.routes, args.frames, args.voxel_size, args.frames_per_subset, args.occlusion,
+                        args.lidar, args.collection_lidar, args.roll_units, args.det_variant, args.resamples,
+                        args.seed, args.backend, ex, args.opendrive_dir, not args.no_convergence,
+                        progress=not args.quiet)
+    finally:
+        ex.shutdown()
+    out = args.output or f"bench/results/reproduce-{datetime.now(timezone.utc).date().isoformat()}"
+    paths = write_outputs(res, out)
+    print(format_report(res))
+    print(f"wrote {paths['json']} and {paths['png']}", file=sys.stderr)
+    return 0

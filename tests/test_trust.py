@@ -1,0 +1,148 @@
+"""Pooled P-SOGs, the bootstrap over drives, and ``place3d reproduce`` (issue 13)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import place3d_kernels as p3k
+from place3d_kernels.grid import Grid
+from place3d_kernels.lidar import LidarModel
+from place3d_kernels.metrics import covered_voxels
+from place3d_kernels.pipeline import scene_psog
+from place3d_kernels.pooled import Drive, DriveRecord, PooledPSOG, PoolSettings, build_pooled, subset_records
+from place3d_kernels.sog import entropy
+from place3d_kernels.uncertainty import (Bootstrap, bootstrap_drives, bootstrap_pooled, resample_multiplicities,
+                                         within_noise)
+
+
+
+def _bernoulli_records(grid, voxels, p, n_drives, seed):
+    """n_drives records of one subset each; every voxel is class 1 with probability p, independently."""
+    rng = np.random.default_rng(seed)
+    recs = []
+    for d in range(n_drives):
+        on = np.asarray(voxels)[rng.random(len(voxels)) < p]
+        recs.append(DriveRecord(f"d{d}", 1, on.astype(np.int64), np.ones(len(on), np.int16), np.ones(len(on), np.int32)))
+    return recs
+
+
+# ------------------------------------------------------------------ (a) bootstrap vs a known variance
+def test_bootstrap_se_of_pooled_probability_matches_binomial_variance():
+    # one voxel, D drives of T = 1: the pooled p is a mean of D Bernoulli(p) draws, Var = p (1 - p) / D
+    grid = Grid((0, 0, 0), (1, 1, 1), 1.0)
+    D, p = 400, 0.3
+    pooled = PooledPSOG(grid, _bernoulli_records(grid, [0], p, D, seed=1))
+
+    def score(psog):
+        return np.array([psog.probs[0, 1] if len(psog.voxels) else 0.0])
+
+    point, samples, mult = bootstrap_pooled(pooled, score, n_resamples=2000, seed=7)
+    assert mult.shape == (2000, D) and np.all(mult.sum(axis=1) == D)
+    se = samples[:, 0].std(ddof=1)
+    plug_in = np.sqrt(point[0] * (1 - point[0]) / D)       # the bootstrap's own target
+    truth = np.sqrt(p * (1 - p) / D)
+    assert abs(se / plug_in - 1) < 0.06, (se, plug_in)
+    assert abs(se / truth - 1) < 0.15, (se, truth)
+    assert abs(samples[:, 0].mean() - point[0]) < 3 * truth / np.sqrt(2000) + 1e-3   # the mean is unbiased
+
+
+def test_bootstrap_se_of_msog_matches_delta_method():
+    # N covered voxels, each occupied with probability p per drive independently: by the delta method
+    # Var(M-SOG) = H'(p)^2 p (1 - p) / (D N), H'(p) = ln((1 - p) / p) for the two-outcome entropy
+    grid = Grid((-2.05, -2.05, -0.05), (1.95, 1.95, 1.95), 0.5)
+    lidar = LidarModel.load("place3d_16ch")
+    rig = np.array([[0.0, 0.0, 1.0, 0.0, 0.0, 0.0]])
+    D, p = 300, 0.3
+    pooled_all = PooledPSOG(grid, _bernoulli_records(grid, np.arange(grid.n_voxels), p, D, seed=3))
+    cov = covered_voxels(pooled_all.psog(), lidar, rig, occlusion="none")
+    N = len(cov)
+    assert N > 20
+    pooled = PooledPSOG(grid, _bernoulli_records(grid, cov, p, D, seed=4))
+    boot = bootstrap_drives(pooled, lidar, {"rig": rig}, occlusion="none", n_resamples=600, seed=5)
+    truth = abs(np.log((1 - p) / p)) * np.sqrt(p * (1 - p) / (D * N))
+    assert abs(boot.se[0] / truth - 1) < 0.2, (boot.se[0], truth)
+    lo, hi = boot.ci[0]
+    assert lo <= boot.point[0] + 1e-12 <= hi + 2 * truth
+
+
+def test_order_frequencies_and_noise_pairs():
+    s = np.array([[1.0, 0.0, 0.5], [1.0, 0.2, 0.6], [1.0, 0.7, 0.4], [1.0, 0.1, 0.5]])
+    b = Bootstrap(["a", "b", "c"], np.array([1.0, 0.1, 0.5]), s)
+    f = b.order_freq
+    assert np.allclose(f + f.T, 1.0) and f[0, 1] == 1.0 and f[2, 1] == 0.75
+    assert within_noise(b) == [("c", "b", 0.75)]
+    m = resample_multiplicities(6, 50, seed=0, strata=[0, 0, 1, 1, 1, 2])
+    assert np.all(m[:, :2].sum(1) == 2) and np.all(m[:, 2:5].sum(1) == 3) and np.all(m[:, 5] == 1)
+
+
+# ------------------------------------------------------------------ (b) pooling is exact
+@pytest.fixture(scope="module")
+def two_drives(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("psog-cache")
+    settings = PoolSettings(0.4, "collection_64ch", 2, None, str(cache))
+    drives = [Drive("town", seed=s, frames=6) for s in (0, 1)]
+    return drives, settings, build_pooled(drives, settings)
+
+
+def test_pooled_of_one_drive_is_that_drive(two_drives):
+    drives, settings, pooled = two_drives
+    ref = scene_psog(drives[0].build(), grid=settings.grid, frames_per_subset=2, backend=settings.backend,
+                     cache=settings.cache)
+    one = pooled.subset([0]).psog()
+    assert np.array_equal(one.voxels, ref.voxels)
+    assert np.array_equal(one.probs, ref.probs)            # bit for bit, float64
+    assert np.array_equal(one.counts, ref.counts) and one.n_subsets == ref.n_subsets == 3
+    assert np.array_equal(one.weights, ref.weights)
+
+
+def test_pooled_of_two_drives_sums_counts(two_drives):
+    drives, settings, pooled = two_drives
+    ps = [scene_psog(d.build(), grid=settings.grid, frames_per_subset=2, backend=settings.backend, cache=settings.cache)
+          for d in drives]
+    both = pooled.psog()
+    dense = np.zeros((settings.grid.n_voxels, ps[0].counts.shape[1]), np.int64)
+    for q in ps:
+        dense[q.voxels, 1:] += q.counts[:, 1:]
+    dense[:, 0] = 6 - dense[:, 1:].sum(1)                 # a voxel a drive never saw was empty in its subsets
+    keep = dense[:, 1:].sum(1) > 0
+    assert np.array_equal(both.voxels, np.flatnonzero(keep))
+    assert np.array_equal(both.counts, dense[keep]) and both.n_subsets == 6
+    assert np.array_equal(both.probs, dense[keep] / 6.0)
+    twice = pooled.psog([2, 0])                           # a resample: drive 0 twice = drive 0's probabilities
+    assert np.array_equal(twice.probs, ps[0].probs) and twice.n_subsets == 6
+    assert np.allclose(entropy(both.probs).sum(), entropy(dense[keep] / 6.0).sum())
+
+
+def test_subset_records_sum_to_the_drive(two_drives):
+    drives, settings, pooled = two_drives
+    subs = PooledPSOG(settings.grid, subset_records(drives[1], settings))
+    assert len(subs) == 3
+    whole = pooled.subset([1]).psog()
+    assert np.array_equal(subs.psog().counts, whole.counts) and np.array_equal(subs.psog().probs, whole.probs)
+
+
+# ------------------------------------------------------------------ (c) reproduce end to end
+def test_reproduce_tiny_end_to_end(tmp_path):
+    from place3d_kernels.cli import main
+
+    out = tmp_path / "repro"
+    rc = main(["reproduce", "--towns", "town", "--routes", "2", "--frames", "4", "--voxel-size", "0.4",
+               "--frames-per-subset", "2", "--resamples", "8", "--output", str(out),
+               "--quiet"])
+    assert rc == 0
+    res = json.loads((out / "reproduce.json").read_text())
+    assert set(res) >= {"settings", "machine", "time_utc", "seconds", "drives", "tasks", "convergence"}
+    assert res["settings"]["voxel_size"] == 0.4 and res["settings"]["routes"] == 2 and len(res["drives"]) == 2
+    for task in ("seg", "det"):
+        t = res["tasks"][task]
+        for k in ("placements", "msog", "ci_low", "ci_high", "se", "bias", "rank", "paper_msog_1e-6", "paper_rank",
+                  "downstream", "tau_paper", "tau_paper_ci", "tau_downstream", "tau_downstream_ci", "order_freq",
+                  "within_noise"):
+            assert k in t, k
+        assert len(t["msog"]) == 8 and all(lo <= hi for lo, hi in zip(t["ci_low"], t["ci_high"]))
+        assert -1.0 <= t["tau_paper"] <= 1.0
+    assert res["convergence"][0]["n"] == 1 and "tau_seg" in res["convergence"][0]
+    assert (out / "reproduce.png").stat().st_size > 10_000
