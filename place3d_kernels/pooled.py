@@ -243,7 +243,7 @@ def backend_name(backend) -> str:
     if backend is not None and not isinstance(backend, str):
         return backend.name
     if backend in (None, "auto"):
-        from place3d_kernels.backend import get_backend
+        from place3d_kernels.backends.registry import get_backend
 
         return get_backend(backend).name
     return backend

@@ -208,7 +208,7 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
               n_resamples: int = 200, seed: int = 0, backend=None, executor=None, opendrive_dir=None,
               with_convergence: bool = True, cache=None, progress: bool = False) -> dict:
     """Run the study; returns the JSON-able result (see the module docstring for its keys)."""
-    from place3d_kernels.backend import get_backend
+    from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
 
     t0 = time.perf_counter()

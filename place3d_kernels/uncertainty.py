@@ -178,7 +178,7 @@ def bootstrap_drives(pooled: PooledPSOG, lidar, placements, task: str = "seg", o
         level: interval coverage.
         strata: optional per-drive labels to resample within (e.g. the town of each drive).
     """
-    from place3d_kernels.backend import get_backend
+    from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
 
     L = LidarModel.load(lidar) if isinstance(lidar, str) else lidar
