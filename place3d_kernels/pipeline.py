@@ -12,7 +12,7 @@ from place3d_kernels.lidar import LidarModel
 from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
 from place3d_kernels.sog import PSOG, cache_dir, cache_key
 
-__all__ = ["scene_psog", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET"]
+__all__ = ["scene_psog", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy"]
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,16 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)
     if path is not None:
         psog.save(path)
+    return psog
+
+
+def check_entropy(psog: PSOG, frames_per_subset: int | None = None) -> PSOG:
+    """``psog`` itself, or ``ValueError`` when no voxel has entropy (every stored voxel holds a single
+    class in every subset, e.g. T < 2 subsets): M-SOG would be 0 for every rig."""
+    if not psog.weights.any():
+        k = frames_per_subset or DEFAULT_FRAMES_PER_SUBSET
+        raise ValueError(f"P-SOG has no entropy: T = {psog.n_subsets} subsets of k = {k} frames, every voxel a "
+                         f"single class, so every rig would score 0; use at least {2 * k} frames (--frames)")
     return psog
 
 
