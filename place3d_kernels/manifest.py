@@ -16,6 +16,7 @@ import hashlib
 import json
 import os
 import sys
+import threading
 from pathlib import Path
 
 __all__ = ["spec_hash", "write_manifest", "read_manifest", "verify_manifest", "first_difference", "provenance",
@@ -62,7 +63,7 @@ def write_manifest(where, spec: dict) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     spec = _plain(spec)
     body = {"spec": spec, "sha256": spec_hash(spec), "version": _version(), "provenance": provenance()}
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}-{threading.get_ident()}")
     tmp.write_text(json.dumps(body, indent=2, sort_keys=True))
     os.replace(tmp, path)
     return path

@@ -9,6 +9,7 @@ import numpy as np
 
 from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.lidar import LidarModel
+from place3d_kernels.manifest import verify_manifest, write_manifest
 from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
 from place3d_kernels.sog import PSOG, cache_dir, cache_key
 
@@ -27,7 +28,8 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
 
     The result is cached on disk (``$PLACE3D_CACHE`` or ~/.cache/place3d) under a key made of every
     input (scene identity, grid, sensor, mount, subset size, condition), so a second call skips the
-    simulation. ``cache=False`` disables it; a path chooses the folder.
+    simulation. The inputs themselves are stored beside it (``psog-...json``, a manifest) and checked on
+    load; a cache whose manifest differs is rebuilt. ``cache=False`` disables it; a path chooses the folder.
 
     Args:
         condition: optional ``FrameCondition`` (or any callable ``(frame, index) -> frame`` with a ``key``
@@ -38,21 +40,27 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     path = None
     if cache:
         folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
-        key = cache_key(scene=scene.key, grid=grid.to_dict(), lidar=[lidar.name, lidar.elevations.tolist(),
-                        lidar.azimuths.size, lidar.max_range], mount=np.asarray(mount).tolist(),
-                        k=frames_per_subset, condition=getattr(condition, "key", None))
+        inputs = dict(scene=scene.key, grid=grid.to_dict(), lidar=[lidar.name, lidar.elevations.tolist(),
+                      lidar.azimuths.size, lidar.max_range], mount=np.asarray(mount).tolist(),
+                      k=frames_per_subset, condition=getattr(condition, "key", None))
+        key = cache_key(**inputs)
         path = folder / f"psog-{scene.name}-{key}.npz"
+        manifest = path.with_suffix(".json")
         if path.exists():
             try:
+                # the file name is a hash of the inputs; the manifest beside it holds the inputs themselves,
+                # so a stale or colliding file is caught here instead of silently reused
+                verify_manifest(manifest, inputs, "P-SOG cache", "it is rebuilt")
                 return PSOG.load(path)
-            except Exception as e:  # noqa: BLE001 - a broken cache file is rebuilt, not fatal
-                log.warning("ignoring unreadable P-SOG cache %s: %s", path, e)
+            except Exception as e:  # noqa: BLE001 - a broken or mismatching cache file is rebuilt, not fatal
+                log.warning("ignoring P-SOG cache %s: %s", path, e)
     frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress)
     if condition is not None:
         frames = [condition(f, i) for i, f in enumerate(frames)]
     psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)
     if path is not None:
         psog.save(path)
+        write_manifest(manifest, inputs)
     return psog
 
 
