@@ -30,10 +30,33 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="condition parameter, e.g. --param alpha=0.03 (repeatable)")
 
 
+def _check_output_file(path, suffixes=(".json",), what="--output") -> None:
+    """An output file path the writer can produce: the right extension, not an existing folder."""
+    if path is None:
+        return
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"{what} {p} is a folder; give a file path ending in {' or '.join(suffixes)}")
+    if p.suffix.lower() not in suffixes:
+        raise ValueError(f"{what} {p}: only {' or '.join(suffixes)} is written; use e.g. {p.with_suffix(suffixes[0])}")
+
+
+def _check_output_dir(path, what="--output") -> None:
+    if path is not None and Path(path).exists() and not Path(path).is_dir():
+        raise ValueError(f"{what} {path} is an existing file; give a folder")
+
+
 def _psog(spec, args, backend):
-    """(scene, P-SOG) of ``spec`` built with ``backend`` (the local path), honouring --no-cache / --quiet."""
+    """(scene, P-SOG) of ``spec`` built with ``backend`` (the local path), honouring --no-cache / --quiet.
+
+    Raises ``ValueError`` for a P-SOG without entropy (every voxel a single class: fewer than two subsets),
+    on which every rig would score 0.
+    """
+    from place3d_kernels.pipeline import check_entropy
+
     t = time.perf_counter()
     psog = spec.build(backend=backend, cache=not args.no_cache, progress=not args.quiet)
+    check_entropy(psog, spec.frames_per_subset)
     if not args.quiet:
         print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
     return spec.scene.build(), psog
@@ -58,11 +81,13 @@ def cmd_evaluate(args) -> int:
     from place3d_kernels.spec import specs_from_args
 
     t0 = time.perf_counter()
+    _check_output_file(args.output)
+    spec = specs_from_args(args)
     b = get_backend(args.backend)
     lidar = LidarModel.load(args.lidar)
     names = args.placements or list(PAPER_PLACEMENTS)
     placements = [Placement.load(n) for n in names]
-    _, psog = _psog(specs_from_args(args), args, b)
+    _, psog = _psog(spec, args, b)
     rows = []
     for name, pl in tqdm(list(zip(names, placements)), desc="evaluate", unit="placement", disable=args.quiet,
                          leave=False):
@@ -81,9 +106,13 @@ def cmd_evaluate(args) -> int:
               f"   (det rank {det_rank[r['placement']]})")
     print(f"{seconds:.1f} s")
     if args.output:
+        from place3d_kernels.manifest import provenance
+
         out = {"rows": rows, "backend": b.name, "grid": psog.grid.to_dict(), "seconds": seconds,
-               "scene": {"name": args.scene, "seed": args.seed, "frames": args.frames},
-               "occlusion": args.occlusion, "lidar": lidar.name}
+               "scene": spec.scene.to_dict(), "occlusion": args.occlusion, "lidar": lidar.name,
+               "condition": None if spec.condition is None else spec.condition.to_dict(),
+               "psog": spec.to_dict(), "n_subsets": psog.n_subsets, "seed": args.seed,
+               "provenance": provenance(backend=b.name)}
         Path(args.output).parent.mkdir(parents=True, exist_ok=True)
         Path(args.output).write_text(json.dumps(out, indent=2))
     return 0
@@ -91,10 +120,22 @@ def cmd_evaluate(args) -> int:
 
 def cmd_simulate(args) -> int:
     from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.lidar import LidarModel
 
     from place3d_kernels.spec import specs_from_args
 
+    from place3d_kernels.io import prepare_sequence_folder, write_sequence_metadata
+    from place3d_kernels.simulate import DEFAULT_MOUNT
+
     spec = specs_from_args(args)
+    lidar = LidarModel.load(args.lidar)
+    # what the frames depend on (the backends agree bit for bit, so the backend is provenance, not key)
+    meta = {"scene": spec.scene.to_dict(), "sensor": {"name": lidar.name, "elevations": lidar.elevations.tolist(),
+                                                       "azimuths": int(lidar.azimuths.size),
+                                                       "max_range": float(lidar.max_range)},
+            "mount": [float(v) for v in DEFAULT_MOUNT], "labels": "place3d", "frames": spec.scene.frames,
+            "condition": None if spec.condition is None else spec.condition.to_dict()}
+    prepare_sequence_folder(args.output, meta, overwrite=args.overwrite)
     if getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None):
         from place3d_kernels.distributed import executor_from_args, simulate_to_folder
 
@@ -104,6 +145,7 @@ def cmd_simulate(args) -> int:
                                    backend=args.backend, condition=spec.condition)
         finally:
             ex.shutdown()
+        write_sequence_metadata(args.output, meta)
         print(f"wrote {r['written']} frames ({r['skipped']} already there) to {r['out']} in {r['seconds']:.1f} s "
               f"on {ex.kind}")
         return 0
@@ -116,6 +158,7 @@ def cmd_simulate(args) -> int:
         cond = spec.condition.condition(b)
         frames = [cond(f, i) for i, f in enumerate(frames)]
     out = write_semantickitti_sequence(frames, args.output)
+    write_sequence_metadata(out, meta)
     print(f"wrote {len(frames)} frames to {out}")
     return 0
 
@@ -146,7 +189,10 @@ def cmd_optimize(args) -> int:
 
 # ---------------------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
+    from place3d_kernels import __version__
+
     ap = argparse.ArgumentParser(prog="place3d", description="Multi-LiDAR placement kernels (Place3D metric and optimiser)")
+    ap.add_argument("--version", action="version", version=f"place3d-kernels {__version__}")
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("backends", help="list available backends and why others are missing")
@@ -172,6 +218,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     p.add_argument("--lidar", default="collection_64ch", help="LiDAR model (default collection_64ch)")
     p.add_argument("--output", required=True, help="output folder")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a sequence in --output made with other settings (deletes velodyne/, labels/, "
+                        "poses.txt first)")
     from place3d_kernels.distributed import add_executor_arguments
 
     add_executor_arguments(p)
@@ -213,9 +262,15 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as e:
+    except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
         print(f"place3d: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        hint = ""
+        if getattr(args, "command", None) == "optimize" and getattr(args, "checkpoint", None):
+            hint = f"; resume with the same command and --resume (checkpoint {args.checkpoint})"
+        print(f"place3d: interrupted{hint}", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

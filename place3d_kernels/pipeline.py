@@ -9,10 +9,11 @@ import numpy as np
 
 from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.lidar import LidarModel
+from place3d_kernels.manifest import verify_manifest, write_manifest
 from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
 from place3d_kernels.sog import PSOG, cache_dir, cache_key
 
-__all__ = ["scene_psog", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET"]
+__all__ = ["scene_psog", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy"]
 
 log = logging.getLogger(__name__)
 
@@ -27,7 +28,8 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
 
     The result is cached on disk (``$PLACE3D_CACHE`` or ~/.cache/place3d) under a key made of every
     input (scene identity, grid, sensor, mount, subset size, condition), so a second call skips the
-    simulation. ``cache=False`` disables it; a path chooses the folder.
+    simulation. The inputs themselves are stored beside it (``psog-...json``, a manifest) and checked on
+    load; a cache whose manifest differs is rebuilt. ``cache=False`` disables it; a path chooses the folder.
 
     Args:
         condition: optional ``FrameCondition`` (or any callable ``(frame, index) -> frame`` with a ``key``
@@ -38,21 +40,37 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     path = None
     if cache:
         folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
-        key = cache_key(scene=scene.key, grid=grid.to_dict(), lidar=[lidar.name, lidar.elevations.tolist(),
-                        lidar.azimuths.size, lidar.max_range], mount=np.asarray(mount).tolist(),
-                        k=frames_per_subset, condition=getattr(condition, "key", None))
+        inputs = dict(scene=scene.key, grid=grid.to_dict(), lidar=[lidar.name, lidar.elevations.tolist(),
+                      lidar.azimuths.size, lidar.max_range], mount=np.asarray(mount).tolist(),
+                      k=frames_per_subset, condition=getattr(condition, "key", None))
+        key = cache_key(**inputs)
         path = folder / f"psog-{scene.name}-{key}.npz"
+        manifest = path.with_suffix(".json")
         if path.exists():
             try:
+                # the file name is a hash of the inputs; the manifest beside it holds the inputs themselves,
+                # so a stale or colliding file is caught here instead of silently reused
+                verify_manifest(manifest, inputs, "P-SOG cache", "it is rebuilt")
                 return PSOG.load(path)
-            except Exception as e:  # noqa: BLE001 - a broken cache file is rebuilt, not fatal
-                log.warning("ignoring unreadable P-SOG cache %s: %s", path, e)
+            except Exception as e:  # noqa: BLE001 - a broken or mismatching cache file is rebuilt, not fatal
+                log.warning("ignoring P-SOG cache %s: %s", path, e)
     frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress)
     if condition is not None:
         frames = [condition(f, i) for i, f in enumerate(frames)]
     psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)
     if path is not None:
         psog.save(path)
+        write_manifest(manifest, inputs)
+    return psog
+
+
+def check_entropy(psog: PSOG, frames_per_subset: int | None = None) -> PSOG:
+    """``psog`` itself, or ``ValueError`` when no voxel has entropy (every stored voxel holds a single
+    class in every subset, e.g. T < 2 subsets): M-SOG would be 0 for every rig."""
+    if not psog.weights.any():
+        k = frames_per_subset or DEFAULT_FRAMES_PER_SUBSET
+        raise ValueError(f"P-SOG has no entropy: T = {psog.n_subsets} subsets of k = {k} frames, every voxel a "
+                         f"single class, so every rig would score 0; use at least {2 * k} frames (--frames)")
     return psog
 
 

@@ -19,7 +19,7 @@ from typing import Any
 from place3d_kernels.grid import DEFAULT_GRID, Grid
 
 __all__ = ["SceneSpec", "RoiSpec", "ConditionSpec", "PSOGSpec", "specs_from_args", "backend_name", "resolve_lidar",
-           "parse_params"]
+           "parse_params", "condition_parameters", "check_condition_params"]
 
 #: LiDAR whose frames build P-SOGs (the dense collection sensor).
 COLLECTION_LIDAR = "collection_64ch"
@@ -61,6 +61,32 @@ def parse_params(pairs) -> dict:
     return params
 
 
+def condition_parameters(name: str) -> dict:
+    """``{parameter: default}`` a condition accepts through ``--param`` (its function's keyword arguments
+    besides the cloud, seed and backend); a condition TOML file takes its condition's parameters."""
+    import inspect
+
+    from place3d_kernels import conditions
+
+    if name not in conditions.CONDITIONS:
+        name = conditions.load_condition(name)["condition"]
+    sig = inspect.signature(conditions.CONDITIONS[name])
+    return {k: p.default for k, p in sig.parameters.items() if k not in ("cloud", "seed", "backend")}
+
+
+def check_condition_params(name: str, params: dict) -> None:
+    """Raise ``ValueError`` naming a parameter the condition does not take (with the allowed set) or a
+    text value where the condition expects a number."""
+    allowed = condition_parameters(name)
+    for k, v in params.items():
+        if k not in allowed:
+            raise ValueError(f"--param {k}: condition {name!r} has no parameter {k!r}; allowed: {sorted(allowed)}")
+        if isinstance(v, str) and isinstance(allowed[k], (int, float)) and not isinstance(allowed[k], bool):
+            raise ValueError(f"--param {k}={v}: {k} takes a number (default {allowed[k]})")
+        if isinstance(v, str) and allowed[k] is None and k in ("alpha", "threshold", "noise_level", "p_out"):
+            raise ValueError(f"--param {k}={v}: {k} takes a number")
+
+
 # ============================================================================== scene
 @dataclass(frozen=True)
 class SceneSpec:
@@ -73,6 +99,20 @@ class SceneSpec:
     def build(self):
         """The ``Scene`` (memoised per process: tasks of one worker share it)."""
         return _build_scene(self)
+
+    def validate(self) -> "SceneSpec":
+        """Raise ``ValueError`` / ``FileNotFoundError`` for an unknown scene kind, a missing file or a
+        frame count below 1, before any work starts."""
+        if self.frames < 1:
+            raise ValueError(f"--frames must be >= 1, got {self.frames}")
+        if self.name == "town":
+            return self
+        if self.name.startswith("opendrive:"):
+            path = Path(self.name.split(":", 1)[1])
+            if not path.is_file():
+                raise FileNotFoundError(f"scene {self.name!r}: no OpenDRIVE file {path}")
+            return self
+        raise ValueError(f"unknown scene {self.name!r}; use 'town' or 'opendrive:PATH' (an OpenDRIVE .xodr file)")
 
     @property
     def label(self) -> str:
@@ -250,9 +290,15 @@ def specs_from_args(args) -> PSOGSpec:
     """The P-SOG spec named by the CLI's common options (--scene, --seed, --frames, --voxel-size,
     --condition, --severity, --param, --backend), built once per command."""
     cond = None
+    params = parse_params(getattr(args, "param", []))
+    if params and not getattr(args, "condition", None):
+        raise ValueError(f"--param {sorted(params)} given without --condition; name the condition they belong to")
     if getattr(args, "condition", None):
-        cond = ConditionSpec(args.condition, int(args.seed), args.severity,
-                             tuple(sorted(parse_params(getattr(args, "param", [])).items())))
+        cond = ConditionSpec(args.condition, int(args.seed), args.severity, tuple(sorted(params.items())))
         cond.condition(None)            # an unknown name fails here, before any work starts
-    return PSOGSpec(SceneSpec(args.scene, args.seed, args.frames), getattr(args, "backend", None),
-                    RoiSpec(getattr(args, "voxel_size", None)), cond)
+        check_condition_params(cond.name, params)
+    voxel = getattr(args, "voxel_size", None)
+    if voxel is not None and not voxel > 0:
+        raise ValueError(f"--voxel-size must be > 0 metres, got {voxel}")
+    return PSOGSpec(SceneSpec(args.scene, args.seed, args.frames).validate(), getattr(args, "backend", None),
+                    RoiSpec(voxel), cond)

@@ -23,8 +23,10 @@ The config (``place3d_kernels/configs/study/example.toml``)::
 
 Work is split into tasks on the chosen executor: first one P-SOG per (scene, condition) that still has
 unfinished cells (cached on disk by its inputs), then one task per cell (placement, condition, scene)
-that scores seg and det and writes ``cells/<scene>__<condition>__<placement>.json`` atomically. A rerun
-submits only cells whose file is missing, so rerunning a finished study does no work; the table
+that scores seg and det and writes ``cells/<scene>__<condition>__<placement>__<settings>.json`` atomically
+(``<settings>``: hash of ``study_settings``: LiDAR, occlusion, grid, k, collection LiDAR). A rerun
+submits only cells whose file is missing, so rerunning a finished study does no work; a rerun with other
+settings is refused (``manifest.json``) unless ``--overwrite``. The table
 (``study.csv``, ``study.json``) is always rebuilt from the cell files.
 """
 
@@ -48,6 +50,8 @@ def add_arguments(p) -> None:
     p.add_argument("--output", default=None, help="output folder (default: study-<name>/)")
     p.add_argument("--backend", default=None, help="backend of the tasks (default: $PLACE3D_BACKEND or auto)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--overwrite", action="store_true",
+                   help="discard the cells of an earlier study in --output made with other settings")
     add_executor_arguments(p)
 
 
@@ -101,8 +105,45 @@ def _cell_task(t) -> dict:
     return row
 
 
-def run_study(config, output=None, executor=None, backend=None, progress: bool = False) -> dict:
-    """Run (or finish) a study; returns {rows, executed, cells, psogs, seconds, csv, json}."""
+def study_settings(cfg: dict) -> dict:
+    """The settings every cell depends on besides its own scene, condition and placement (the study
+    folder's manifest; the backend is left out: the three backends agree bit for bit)."""
+    from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
+
+    return {"lidar": cfg.get("lidar", "place3d_16ch"), "occlusion": cfg.get("occlusion", "sog"),
+            "voxel_size": cfg.get("voxel_size"), "frames_per_subset": cfg.get("frames_per_subset")
+            or DEFAULT_FRAMES_PER_SUBSET, "collection_lidar": cfg.get("collection_lidar", "collection_64ch")}
+
+
+def _check_entries(cfg: dict) -> None:
+    """Every placement, scene and condition of the study loads (before any file is written)."""
+    from place3d_kernels.placement import Placement
+    from place3d_kernels.spec import ConditionSpec, SceneSpec, resolve_lidar
+
+    for p in cfg["placements"]:
+        Placement.load(p)
+    resolve_lidar(cfg.get("lidar", "place3d_16ch"))
+    if cfg.get("occlusion", "sog") not in ("sog", "none"):
+        raise ValueError(f"study occlusion must be 'sog' or 'none', got {cfg.get('occlusion')!r}")
+    for s in cfg["scenes"]:
+        SceneSpec.from_dict(s).validate()
+    for c in cfg["conditions"]:
+        cs = ConditionSpec.from_dict(c)
+        if cs is not None:
+            cs.condition(None)
+
+
+def run_study(config, output=None, executor=None, backend=None, progress: bool = False,
+              overwrite: bool = False) -> dict:
+    """Run (or finish) a study; returns {rows, executed, cells, psogs, seconds, csv, json}.
+
+    The output folder's ``manifest.json`` records the settings the cells were computed with
+    (``study_settings``); a rerun with other settings raises ``ValueError`` naming the field, unless
+    ``overwrite`` (which deletes the old cells first).
+    """
+    import shutil
+
+    from place3d_kernels.manifest import provenance, spec_hash, verify_manifest, write_manifest
     from place3d_kernels.distributed import LocalExecutor
     from place3d_kernels.spec import ConditionSpec, PSOGSpec, RoiSpec, SceneSpec, backend_name
 
@@ -110,7 +151,18 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
     cfg = config if isinstance(config, dict) else load_config(config)
     executor = executor or LocalExecutor()
     out = Path(output or f"study-{_safe(cfg['name'])}")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"study output {out} is a file; give a folder (--output DIR)")
+    _check_entries(cfg)
+    settings = study_settings(cfg)
+    if overwrite and (out / "cells").exists():
+        shutil.rmtree(out / "cells")
+    elif (out / "cells").exists() and any((out / "cells").iterdir()) and not verify_manifest(out, settings, "study"):
+        raise ValueError(f"{out} holds study cells without a manifest (made by an older version); use "
+                         f"--overwrite to recompute them or choose a fresh folder")
     (out / "cells").mkdir(parents=True, exist_ok=True)
+    write_manifest(out, settings)
+    tag = spec_hash(settings)[:8]
     bname = backend_name(backend if backend is not None else cfg.get("backend"))
     lidar = cfg.get("lidar", "place3d_16ch")
     occlusion = cfg.get("occlusion", "sog")
@@ -126,11 +178,11 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
             clabel = "clean" if cspec is None else cspec.label
             for p in cfg["placements"]:
                 plabel = Path(p).stem if str(p).endswith(".toml") else str(p)
-                path = out / "cells" / f"{_safe(sspec.label)}__{_safe(clabel)}__{_safe(plabel)}.json"
+                path = out / "cells" / f"{_safe(sspec.label)}__{_safe(clabel)}__{_safe(plabel)}__{tag}.json"
                 meta = {"scene": sspec.name, "scene_seed": sspec.seed, "frames": sspec.frames,
                         "condition": "clean" if cspec is None else cspec.name,
                         "severity": None if cspec is None else cspec.severity,
-                        "condition_label": clabel, "placement": plabel}
+                        "condition_label": clabel, "placement": plabel, "settings": tag}
                 cells.append(path)
                 if not path.exists():
                     groups.setdefault(pspec, []).append((pspec, str(p), lidar, occlusion, bname, str(path), meta))
@@ -154,8 +206,13 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
     summary = {"name": cfg["name"], "rows": rows, "cells": len(cells), "executed": executed,
                "psogs_built_or_loaded": len(groups), "backend": bname, "executor": executor.kind,
                "lidar": lidar if isinstance(lidar, str) else lidar.name, "occlusion": occlusion,
+               "settings": settings, "settings_sha256": spec_hash(settings),
+               "scenes": cfg["scenes"], "conditions": cfg["conditions"],
                "seconds": time.perf_counter() - t0}
-    _atomic_text(out / "study.json", json.dumps({k: v for k, v in summary.items() if k != "seconds"}, indent=2))
+    # provenance: the time and command line change per run, so a finished study's table stays comparable
+    # by its rows and settings, not byte for byte
+    _atomic_text(out / "study.json", json.dumps({**{k: v for k, v in summary.items() if k != "seconds"},
+                                                 "provenance": provenance()}, indent=2, default=str))
     summary["csv"], summary["json"] = str(out / "study.csv"), str(out / "study.json")
     return summary
 
@@ -165,7 +222,8 @@ def run(args) -> int:
 
     ex = executor_from_args(args)
     try:
-        res = run_study(args.config, args.output, ex, args.backend, progress=not args.quiet)
+        res = run_study(args.config, args.output, ex, args.backend, progress=not args.quiet,
+                        overwrite=args.overwrite)
     finally:
         ex.shutdown()
     print(f"{'scene':22s} {'condition':24s} {'placement':14s} {'M-SOG seg':>11s} {'M-SOG det':>11s}")

@@ -4,7 +4,8 @@ sequence folder.
 A sequence folder holds ``velodyne/NNNNNN.bin`` (float32 x, y, z, intensity per point, in the sensor
 frame), ``labels/NNNNNN.label`` (uint32 per point; the class in the low 16 bits, the instance in the high
 16) and ``poses.txt`` (one 3x4 row-major sensor-to-world matrix per frame, KITTI odometry style). The
-writer stores Place3D class ids (read them back with ``labels="place3d"``).
+writer stores Place3D class ids; ``place3d simulate`` also writes ``sequence.json`` (sensor, mount, label
+scheme, condition, provenance), which the readers use, so its sequences read back with no options.
 
 SemanticKITTI label ids -> Place3D classes (``SEMANTICKITTI_TO_PLACE3D``; the low 16 bits of each
 ``.label`` value are the class, the high 16 bits the instance and are dropped):
@@ -54,7 +55,8 @@ from place3d_kernels.pose import invert, pose_from_matrix, pose_matrix, transfor
 
 __all__ = ["SEMANTICKITTI_TO_PLACE3D", "remap_semantickitti", "read_semantickitti", "read_poses", "read_sequence",
            "psog_from_semantickitti", "write_semantickitti_sequence", "write_frame", "write_frame_bin",
-           "frame_paths", "sensor_matrix", "pose_row", "atomic_write"]
+           "frame_paths", "sensor_matrix", "pose_row", "atomic_write", "SEQUENCE_META", "prepare_sequence_folder",
+           "read_sequence_metadata", "write_sequence_metadata"]
 
 C = CLASS_ID
 SEMANTICKITTI_TO_PLACE3D: dict[int, int] = {
@@ -156,17 +158,72 @@ def read_poses(path) -> np.ndarray:
     return np.stack(rows)
 
 
-def read_sequence(folder, labels: str = "semantickitti", mount=(0.0, 0.0, 2.5, 0.0, 0.0, 0.0), frames=None,
-                  strict: bool = True):
+#: metadata file of a sequence written by ``place3d simulate`` (a manifest: spec + sha256 + provenance)
+SEQUENCE_META = "sequence.json"
+_DEFAULT_MOUNT = (0.0, 0.0, 2.5, 0.0, 0.0, 0.0)
+
+
+def read_sequence_metadata(folder) -> dict | None:
+    """The spec stored in ``<folder>/sequence.json`` (sensor, mount, labels, condition, scene), or None."""
+    from place3d_kernels.manifest import read_manifest
+
+    m = read_manifest(Path(folder) / SEQUENCE_META)
+    return None if m is None else m.get("spec")
+
+
+def write_sequence_metadata(folder, spec: dict) -> Path:
+    """Write ``<folder>/sequence.json``: ``spec`` (sensor, mount, label scheme, condition, ...) with its
+    sha256 and the provenance block (version, command line, time)."""
+    from place3d_kernels.manifest import write_manifest
+
+    return write_manifest(Path(folder) / SEQUENCE_META, spec)
+
+
+def prepare_sequence_folder(folder, spec: dict, overwrite: bool = False) -> Path:
+    """Make ``folder`` ready for a sequence made with ``spec``, before any frame is simulated.
+
+    A folder made with other settings (its ``sequence.json`` differs), or holding frames without a
+    ``sequence.json``, is refused with ``ValueError`` naming the field, unless ``overwrite`` (which
+    deletes ``velodyne/``, ``labels/``, ``poses.txt`` and ``sequence.json`` first).
+    """
+    import shutil
+
+    from place3d_kernels.manifest import verify_manifest
+
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"output {folder} is a file; give a folder")
+    if overwrite:
+        for name in ("velodyne", "labels"):
+            if (folder / name).is_dir():
+                shutil.rmtree(folder / name)
+        for name in ("poses.txt", SEQUENCE_META):
+            (folder / name).unlink(missing_ok=True)
+        return folder
+    has_frames = (folder / "velodyne").is_dir() and any((folder / "velodyne").iterdir())
+    if not verify_manifest(folder / SEQUENCE_META, spec, "sequence") and has_frames:
+        raise ValueError(f"{folder} holds frames without {SEQUENCE_META} (settings unknown); use --overwrite "
+                         f"to replace them or choose a fresh folder")
+    return folder
+
+
+def read_sequence(folder, labels: str | None = None, mount=None, frames=None, strict: bool = True):
     """Frames (``PointCloud``: world points, Place3D labels, intensity, ego pose) of a SemanticKITTI folder.
 
     ``velodyne/NNNNNN.bin`` + ``labels/NNNNNN.label`` + ``poses.txt`` (sensor-to-world 3x4 rows).
-    ``mount`` is the sensor pose in the ego frame (default: 2.5 m up, as ``simulate`` mounts it); the ego
-    pose is sensor @ inverse(mount), so the ego frame has z = 0 on the ground.
+    ``mount`` is the sensor pose in the ego frame; the ego pose is sensor @ inverse(mount), so the ego
+    frame has z = 0 on the ground. ``labels`` and ``mount`` default to the folder's ``sequence.json``
+    (written by ``place3d simulate``: Place3D ids, its mount) and otherwise to SemanticKITTI ids and
+    2.5 m up.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"{folder}: no such sequence folder")
+    meta = read_sequence_metadata(folder) or {}
+    if labels is None:
+        labels = meta.get("labels", "semantickitti")
+    if mount is None:
+        mount = meta.get("mount") or _DEFAULT_MOUNT
     vel = folder / "velodyne"
     if not vel.is_dir():
         raise ValueError(f"{folder}: no velodyne/ folder")
@@ -192,9 +249,10 @@ def read_sequence(folder, labels: str = "semantickitti", mount=(0.0, 0.0, 2.5, 0
     return out
 
 
-def psog_from_semantickitti(folder, grid, frames_per_subset: int = 5, labels: str = "semantickitti",
-                            mount=(0.0, 0.0, 2.5, 0.0, 0.0, 0.0), frames=None, backend=None, strict: bool = True):
-    """A P-SOG from a SemanticKITTI-layout sequence (see :func:`read_sequence` and ``PSOG.from_frames``)."""
+def psog_from_semantickitti(folder, grid, frames_per_subset: int = 5, labels: str | None = None,
+                            mount=None, frames=None, backend=None, strict: bool = True):
+    """A P-SOG from a SemanticKITTI-layout sequence (see :func:`read_sequence` and ``PSOG.from_frames``;
+    ``labels`` / ``mount`` default to the folder's ``sequence.json``)."""
     from place3d_kernels.sog import PSOG
 
     fr = read_sequence(folder, labels=labels, mount=mount, frames=frames, strict=strict)
@@ -253,5 +311,10 @@ def write_semantickitti_sequence(frames, folder) -> Path:
     (folder / "velodyne").mkdir(parents=True, exist_ok=True)
     (folder / "labels").mkdir(parents=True, exist_ok=True)
     rows = [pose_row(write_frame(folder, i, f)) for i, f in enumerate(frames)]
+    # frames of an earlier, longer run beyond the new ones would otherwise sit beside a shorter poses.txt
+    for sub, ext in (("velodyne", ".bin"), ("labels", ".label")):
+        for p in (folder / sub).glob(f"*{ext}"):
+            if re.fullmatch(r"\d+", p.stem) and int(p.stem) >= len(rows):
+                p.unlink()
     atomic_write(folder / "poses.txt", ("\n".join(rows) + "\n").encode())
     return folder

@@ -37,9 +37,55 @@ def add_arguments(p) -> None:
     p.add_argument("--pose-cache", action="store_true",
                    help="cache covered voxels per LiDAR pose (pays off when rigs repeat most poses; otherwise "
                         "the fused batched kernel is faster)")
-    p.add_argument("--checkpoint", default=None, help="checkpoint file written after every generation")
-    p.add_argument("--resume", action="store_true", help="continue from --checkpoint")
+    p.add_argument("--checkpoint", default=None,
+                   help="checkpoint file written after every generation (default: OUTPUT/checkpoint.pkl with "
+                        "--output)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from --checkpoint (the run's settings must match; they are checked first)")
     p.add_argument("--output", default=None, help="folder for result.json, placement TOML, history.csv and plots")
+
+
+def run_setup(args, spec) -> dict:
+    """Everything a resumed run must share with the run that wrote the checkpoint (the checkpoint's
+    manifest, ``<checkpoint>.manifest.json``); ``--max-evals`` may grow, so it is left out."""
+    psog = spec.to_dict()
+    psog.pop("backend", None)           # the backends agree bit for bit
+    psog.pop("cache", None)
+    return {"task": args.task, "psog": psog, "lidar": args.lidar, "lidars": args.lidars,
+            "fixed_height": args.fixed_height, "min_distance": args.min_distance, "popsize": args.popsize,
+            "sigma0": args.sigma0, "x0": args.x0, "restarts": args.restarts, "delta": args.delta,
+            "seed": args.opt_seed, "occlusion": args.occlusion}
+
+
+def check_args(args, spec) -> None:
+    """Every check that needs no P-SOG, before it is built: counts, paths, the start, the checkpoint."""
+    from place3d_kernels.manifest import verify_manifest
+    from place3d_kernels.optimize import SearchSpace
+    from place3d_kernels.placement import Placement
+
+    if args.max_evals < 1:
+        raise ValueError(f"--max-evals must be >= 1, got {args.max_evals}")
+    if not 1 <= args.lidars <= 8:
+        raise ValueError(f"--lidars must be 1-8, got {args.lidars}")
+    if args.output is not None and Path(args.output).exists() and not Path(args.output).is_dir():
+        raise ValueError(f"--output {args.output} is an existing file; give a folder")
+    if args.checkpoint is None and args.output is not None and args.restarts == 0:
+        args.checkpoint = str(Path(args.output) / "checkpoint.pkl")
+    if args.checkpoint is not None and Path(args.checkpoint).is_dir():
+        raise ValueError(f"--checkpoint {args.checkpoint} is a folder; give a file path")
+    if args.resume and args.checkpoint is None:
+        raise ValueError("--resume needs --checkpoint FILE (or --output DIR, whose checkpoint.pkl is used)")
+    if args.x0 not in ("best-baseline", "centre"):
+        space = SearchSpace(n_lidars=args.lidars)
+        x = space.from_placement(Placement.load(args.x0))
+        if not np.all(space.contains(x, tol=1e-9)):
+            raise ValueError(f"--x0 {args.x0} lies outside the search box {space}; choose a placement inside it")
+    if args.resume and args.checkpoint is not None and Path(args.checkpoint).exists():
+        man = Path(str(args.checkpoint) + ".manifest.json")
+        if not verify_manifest(man, run_setup(args, spec), "checkpoint",
+                               "resume with the same settings, or start a fresh run (without --resume)"):
+            raise ValueError(f"{args.checkpoint} has no manifest ({man.name}), so its settings cannot be checked; "
+                             f"start a fresh run (without --resume)")
 
 
 def run(args, spec, psog_for) -> int:
@@ -57,9 +103,12 @@ def run(args, spec, psog_for) -> int:
     from place3d_kernels.optimize import FixedHeight, MinDistance, MSOGObjective, SearchSpace, optimize
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
 
+    from place3d_kernels.manifest import provenance, write_manifest
+
     t0 = time.perf_counter()
     if args.opt_seed is None:
         args.opt_seed = args.seed          # --seed S seeds the scene and the optimiser alike
+    check_args(args, spec)
     b = get_backend(args.backend)
     lidar = LidarModel.load(args.lidar)
     _, psog = psog_for(b)
@@ -97,6 +146,8 @@ def run(args, spec, psog_for) -> int:
     elif args.x0 != "centre":
         x0 = Placement.load(args.x0)
     sigma0 = args.sigma0 if args.sigma0 is not None else (0.15 if x0 is not None else 0.3)
+    if args.checkpoint is not None:
+        write_manifest(Path(str(args.checkpoint) + ".manifest.json"), run_setup(args, spec))
     try:
         res = optimize(objective, space, cons, sigma0=sigma0, popsize=args.popsize, max_evals=args.max_evals,
                        delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
@@ -110,6 +161,10 @@ def run(args, spec, psog_for) -> int:
     print(f"best M-SOG ({args.task}) {res.best_score:.6f} after {res.evaluations} evaluations in {seconds:.1f} s "
           f"on {b.name}" + (f"; LiDAR poses traversed {objective.pose_misses}, reused {objective.pose_hits}"
                             if args.pose_cache and executor is None else ""))
+    if not res.left_start:
+        print(f"warning: the search never left its start ({res.evaluations} evaluations found nothing better "
+              f"than {x0.name if x0 is not None else 'the box centre'}); raise --max-evals or --sigma0, or start "
+              f"elsewhere (--x0)")
     for name, s in sorted(baselines.items(), key=lambda kv: -kv[1]):
         mark = "  <" if s > res.best_score else ""
         print(f"  {name:14s} {s:.6f}{mark}")
@@ -131,11 +186,14 @@ def run(args, spec, psog_for) -> int:
                   "certificate_samples": "feasible" if cert.get("feasible") else "all",
                   "evaluations": res.evaluations, "seconds": seconds, "backend": b.name, "seed": args.opt_seed,
                   "x0": x0.name if x0 is not None else "box centre", "sigma0": sigma0,
-                  "scene": {"name": args.scene, "seed": args.seed, "frames": args.frames},
+                  "scene": spec.scene.to_dict(), "grid": psog.grid.to_dict(), "n_subsets": psog.n_subsets,
+                  "sensor": {"name": lidar.name, "n_lidars": args.lidars, "occlusion": args.occlusion},
+                  "condition": None if spec.condition is None else spec.condition.to_dict(),
+                  "setup": run_setup(args, spec), "left_start": res.left_start,
                   "feasible": res.feasible,
                   "pose_cache": ({"traversed": objective.pose_misses, "reused": objective.pose_hits}
                                  if args.pose_cache and executor is None else None),
-                  "details": res.to_dict()}
+                  "details": res.to_dict(), "provenance": provenance(backend=b.name)}
         (out / "result.json").write_text(json.dumps(result, indent=2, default=float))
         with open(out / "history.csv", "w", newline="") as fh:
             if res.history:

@@ -100,6 +100,7 @@ class OptimizeResult:
     penalty_weight: float = DEFAULT_PENALTY_WEIGHT
     resumed: bool = False
     checkpoint: str | None = None
+    left_start: bool = True
     extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -111,7 +112,8 @@ class OptimizeResult:
             "feasible": self.feasible, "evaluations": self.evaluations, "generations": self.generations,
             "seconds": self.seconds, "seed": self.seed, "method": self.method, "popsize": self.popsize,
             "stop_reason": self.stop_reason, "delta": self.delta, "penalty_weight": self.penalty_weight,
-            "resumed": self.resumed, "checkpoint": self.checkpoint, "cache": self.cache,
+            "resumed": self.resumed, "checkpoint": self.checkpoint, "left_start": self.left_start,
+            "cache": self.cache,
             "certificate": self.certificate, "space": self.space.to_dict(),
             "search_space": self.search_space.to_dict(), "names": list(self.space.names),
             "history": self.history, **self.extra})
@@ -218,8 +220,20 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
     _run_generations(grid, state, objective, max_evals, max_stall_generations, checkpoint, progress, callback)
     if checkpoint is not None:
         save_checkpoint(checkpoint, state)
-    return _result(state, space, grid.search, grid.cons, state["strategy"], delta, grid.steps, penalty_weight, seed,
-                   resumed, checkpoint)
+    res = _result(state, space, grid.search, grid.cons, state["strategy"], delta, grid.steps, penalty_weight, seed,
+                  resumed, checkpoint)
+    res.left_start = _left_start(grid, res.best_vector, k0)
+    if not res.left_start:
+        warnings.warn(f"the search never left its start: after {res.evaluations} evaluations the best placement "
+                      f"is the starting one (score {res.best_score:.6g}); nothing better was found", RuntimeWarning,
+                      stacklevel=2)
+    return res
+
+
+def _left_start(grid, best_vector, k0) -> bool:
+    """Whether the best vector lies on another grid point than the start (k0, free grid indices)."""
+    kb = grid.search.snap_indices(grid.search.from_poses(grid.space.to_poses(best_vector)), grid.delta)[grid.free]
+    return bool(np.any(np.abs(kb - np.asarray(k0)) > 0.5))
 
 
 # ------------------------------------------------------------------------------ setup
@@ -282,6 +296,10 @@ def _searched_grid(space, constraints, delta, x0, penalty_weight):
         x0_vec = space.from_placement(x0) if isinstance(x0, Placement) else np.asarray(x0, dtype=np.float64)
         if x0_vec.shape != (space.dim,) or not np.all(np.isfinite(x0_vec)):
             raise ValueError(f"x0 must be a Placement or a finite vector of length {space.dim}, got {x0!r}")
+        if not np.all(space.contains(x0_vec, tol=1e-9)):
+            bad = [f"{n}={v:.3g} not in [{lo:.3g}, {hi:.3g}]" for n, v, lo, hi
+                   in zip(space.names, x0_vec, space.lower, space.upper) if not lo - 1e-9 <= v <= hi + 1e-9]
+            raise ValueError(f"x0 lies outside the search box: {', '.join(bad)}; move it inside or widen the bounds")
         k0 = search.snap_indices(search.from_poses(space.to_poses(x0_vec)), delta)[free].astype(float)
     else:
         k0 = (kmin[free] + kmax[free]) / 2.0

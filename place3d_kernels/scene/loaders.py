@@ -57,12 +57,20 @@ def _ply_face_labels(geom):
     return None
 
 
-def load_mesh(path, labels=None, default=0, up: str = "z") -> Mesh:
+def load_mesh(path, labels=None, default=None, up: str = "z", strict: bool = False) -> Mesh:
     """Read a mesh file into one labelled :class:`Mesh` (see the module docstring for label rules).
 
+    Args:
+        default: class of parts no rule labels. None (the default) means 0 (unlabeled) with a warning
+            listing those parts (or ``ValueError`` when ``strict``); an explicit class is used silently.
+        strict: unlabelled parts are an error instead of a warning.
+
     Raises:
-        ValueError: missing / unreadable / empty file, unknown class names, labels out of range.
+        ValueError: missing / unreadable / empty file, unknown class names, labels out of range, unlabelled
+            parts with ``strict``.
     """
+    import warnings
+
     import trimesh
 
     path = Path(path)
@@ -71,7 +79,8 @@ def load_mesh(path, labels=None, default=0, up: str = "z") -> Mesh:
     kind = path.suffix.lower().lstrip(".")
     if kind not in _FORMATS:
         raise ValueError(f"{path}: unsupported mesh format {path.suffix!r}; use one of {', '.join(_FORMATS)}")
-    default = resolve_class(default, f"{path}: default ")
+    explicit_default = default is not None
+    default = resolve_class(0 if default is None else default, f"{path}: default ")
     whole = None
     mapping: dict[str, int] = {}
     if isinstance(labels, (int, np.integer, str)) and not (isinstance(labels, str) and Path(labels).suffix == ".toml"):
@@ -97,6 +106,7 @@ def load_mesh(path, labels=None, default=0, up: str = "z") -> Mesh:
     if not pieces:
         raise ValueError(f"{path}: holds no triangles")
     verts, faces, labs = [], [], []
+    unmapped: list[str] = []
     n = 0
     for v, f, names, flab in pieces:
         if whole is not None:
@@ -110,6 +120,8 @@ def load_mesh(path, labels=None, default=0, up: str = "z") -> Mesh:
             else:
                 if cls is None:
                     cls = next((c for c in map(class_from_name, names) if c is not None), None)
+                if cls is None and "*" not in mapping and not explicit_default:
+                    unmapped.append("/".join(dict.fromkeys(names)))
                 if cls is None:
                     cls = mapping.get("*", default)
                 lab = np.full(len(f), cls)
@@ -117,6 +129,12 @@ def load_mesh(path, labels=None, default=0, up: str = "z") -> Mesh:
         faces.append(np.asarray(f, np.int64) + n)
         labs.append(lab)
         n += len(v)
+    if unmapped:
+        msg = (f"{path}: {len(unmapped)} mesh part(s) match no label rule and become class 0 (unlabeled): "
+               f"{', '.join(sorted(set(unmapped)))}; map them in the labels file (or '*'), or pass default=")
+        if strict:
+            raise ValueError(msg)
+        warnings.warn(msg, UserWarning, stacklevel=2)
     v = np.concatenate(verts)
     if up.lower() == "y":
         v = np.stack([v[:, 0], -v[:, 2], v[:, 1]], 1)
