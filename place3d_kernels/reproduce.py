@@ -46,13 +46,13 @@ def _opendrive_dirs(extra=None) -> list[Path]:
     dirs = [Path(extra)] if extra else []
     if os.environ.get("PLACE3D_OPENDRIVE_DIR"):
         dirs.append(Path(os.environ["PLACE3D_OPENDRIVE_DIR"]))
-    dirs += [Path("data/opendrive"), Path("../shared/data/opendrive"), Path("/work/shared/data/opendrive")]
+    dirs += [Path("data/opendrive")]
     return dirs
 
 
 def resolve_town(name: str, opendrive_dir=None) -> str:
     """A scene string for ``Drive``: 'town', 'opendrive:PATH', a .xodr path, or a map name (Town01)
-    looked up in ``opendrive_dir``, ``$PLACE3D_OPENDRIVE_DIR``, ./data/opendrive, ../shared/data/opendrive."""
+    looked up in ``opendrive_dir``, ``$PLACE3D_OPENDRIVE_DIR``, ./data/opendrive, then the shipped CARLA maps."""
     if name == "town" or name.startswith("opendrive:"):
         return name
     if name.endswith(".xodr"):
@@ -63,6 +63,10 @@ def resolve_town(name: str, opendrive_dir=None) -> str:
         p = d / f"{name}.xodr"
         if p.exists():
             return f"opendrive:{p.resolve()}"
+    from place3d_kernels.data import CARLA_TOWNS, opendrive_path
+
+    if name in CARLA_TOWNS:  # the four maps ship with the package
+        return f"opendrive:{opendrive_path(name)}"
     raise FileNotFoundError(f"map {name!r}: no {name}.xodr in {[str(d) for d in _opendrive_dirs(opendrive_dir)]}; "
                             f"pass --opendrive-dir DIR or set PLACE3D_OPENDRIVE_DIR (CARLA's maps are .xodr files)")
 
@@ -314,7 +318,7 @@ def add_arguments(p) -> None:
     p.add_argument("--towns", nargs="+", default=list(DEFAULT_TOWNS),
                    help="maps: CARLA map names (Town01 ...), .xodr paths, or 'town' (default: Town01 Town03 Town04 Town06)")
     p.add_argument("--opendrive-dir", default=None, help="folder of the .xodr maps (default: $PLACE3D_OPENDRIVE_DIR, "
-                                                         "./data/opendrive, ../shared/data/opendrive)")
+                                                         "./data/opendrive, then the shipped CARLA maps)")
     p.add_argument("--routes", type=int, default=4, help="routes (seeds 0..N-1) per town (default 4)")
     p.add_argument("--frames", type=int, default=40, help="frames per route (default 40, as the paper)")
     p.add_argument("--voxel-size", type=float, default=None, help="voxel size in metres (default 0.2)")
