@@ -25,7 +25,7 @@ from place3d_kernels.simulate import simulate
 from place3d_kernels.smig import BernoulliGrid, scene_boxes, smig, smig_batch
 from place3d_kernels.sog import PSOG
 
-__version__ = "0.1.0"
+from place3d_kernels.version import VERSION as __version__
 
 
 def __getattr__(name):

@@ -40,9 +40,9 @@ def spec_hash(spec: dict) -> str:
 
 
 def _version() -> str:
-    from place3d_kernels import __version__
+    from place3d_kernels.version import VERSION
 
-    return __version__
+    return VERSION
 
 
 def provenance(**extra) -> dict:
