@@ -249,7 +249,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    from place3d_kernels.manifest import set_command_line
+
     args = build_parser().parse_args(argv)
+    set_command_line(None if argv is None else ["place3d", *argv])
     try:
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
