@@ -120,21 +120,14 @@ def cmd_evaluate(args) -> int:
 
 def cmd_simulate(args) -> int:
     from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.io import prepare_sequence_folder, sequence_spec, write_sequence_metadata
     from place3d_kernels.lidar import LidarModel
-
+    from place3d_kernels.simulate import DEFAULT_MOUNT
     from place3d_kernels.spec import specs_from_args
 
-    from place3d_kernels.io import prepare_sequence_folder, write_sequence_metadata
-    from place3d_kernels.simulate import DEFAULT_MOUNT
-
     spec = specs_from_args(args)
-    lidar = LidarModel.load(args.lidar)
-    # what the frames depend on (the backends agree bit for bit, so the backend is provenance, not key)
-    meta = {"scene": spec.scene.to_dict(), "sensor": {"name": lidar.name, "elevations": lidar.elevations.tolist(),
-                                                       "azimuths": int(lidar.azimuths.size),
-                                                       "max_range": float(lidar.max_range)},
-            "mount": [float(v) for v in DEFAULT_MOUNT], "labels": "place3d", "frames": spec.scene.frames,
-            "condition": None if spec.condition is None else spec.condition.to_dict()}
+    meta = sequence_spec(spec.scene.to_dict(), LidarModel.load(args.lidar),
+                         None if spec.condition is None else spec.condition.to_dict(), DEFAULT_MOUNT)
     prepare_sequence_folder(args.output, meta, overwrite=args.overwrite)
     if getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None):
         from place3d_kernels.distributed import executor_from_args, simulate_to_folder
@@ -142,10 +135,9 @@ def cmd_simulate(args) -> int:
         ex = executor_from_args(args)
         try:
             r = simulate_to_folder(spec.scene, args.lidar, args.output, ex, chunk=args.chunk or 8,
-                                   backend=args.backend, condition=spec.condition)
+                                   backend=args.backend, condition=spec.condition, overwrite=args.overwrite)
         finally:
             ex.shutdown()
-        write_sequence_metadata(args.output, meta)
         print(f"wrote {r['written']} frames ({r['skipped']} already there) to {r['out']} in {r['seconds']:.1f} s "
               f"on {ex.kind}")
         return 0

@@ -49,9 +49,9 @@ def spec_hash(spec: dict) -> str:
 
 
 def _version() -> str:
-    from place3d_kernels import __version__
-
-    return __version__
+    # the package is imported whenever this submodule is (no import statement: it would make a cycle)
+    pkg = sys.modules.get("place3d_kernels")
+    return getattr(pkg, "__version__", "unknown")
 
 
 def provenance(**extra) -> dict:

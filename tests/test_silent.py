@@ -275,6 +275,31 @@ def test_ctrl_c_is_one_line_and_exit_130(capsys, monkeypatch):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(cli, "_psog", boom)
-    assert main(["optimize", *TINY, "--output", "o"]) == 130
+    try:
+        rc = main(["optimize", *TINY, "--output", "o"])
+    except KeyboardInterrupt:
+        pytest.fail("KeyboardInterrupt escaped main()")
+    assert rc == 130
     msg = _err(capsys)
     assert "interrupted" in msg and "--resume" in msg
+
+
+# ------------------------------------------------------------------------------ units
+def test_wet_ground_water_height_carries_its_unit():
+    import inspect
+
+    from place3d_kernels import conditions as C
+    from place3d_kernels.pointcloud import PointCloud
+
+    assert "water_height_mm" in inspect.signature(C.wet_ground).parameters
+    assert "water_height_mm" in inspect.signature(C.film_transmission).parameters
+    assert C.SEVERITIES["wet_ground"]["moderate"] == {"water_height_mm": 1.0}
+    assert C.load_condition("wet_ground")["params"]["water_height_mm"] == 1.0
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-20, 20, (200, 2)), np.zeros(200)]
+    cloud = PointCloud(pts, np.full(200, 1, np.int32), rng.uniform(0.1, 1, 200).astype(np.float32),
+                       np.array([0.0, 0.0, 2.0]))
+    a = C.wet_ground(cloud, water_height_mm=0.5, seed=1)
+    with pytest.warns(DeprecationWarning, match="water_height_mm"):
+        b = C.wet_ground(cloud, water_height=0.5, seed=1)       # the old name still works, with a warning
+    np.testing.assert_array_equal(a.intensity, b.intensity)
