@@ -16,7 +16,13 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", default=None,
                    help="reference | warp[:cpu|:cuda:N] | opencl[:platform] | auto (default: $PLACE3D_BACKEND or auto)")
     p.add_argument("--scene", default="town",
-                   help="scene: 'town' (the embedded procedural town) or 'opendrive:PATH' (e.g. a CARLA .xodr map)")
+                   help="scene: 'town' (the embedded procedural town), 'opendrive:PATH' (e.g. a CARLA .xodr map), "
+                        "'mesh:PATH' (a mesh file trimesh reads or a Mitsuba XML; see --labels, --route) or "
+                        "'semantickitti:DIR' (labelled frames + poses.txt: the P-SOG is built from them)")
+    p.add_argument("--labels", default=None,
+                   help="mesh scenes: TOML label map (part name -> class) or one class for the whole file")
+    p.add_argument("--route", default=None,
+                   help="mesh scenes: ego poses, one per line: 'x y z roll pitch yaw' or 'x y yaw' (m, rad)")
     p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     p.add_argument("--frames", type=int, default=40, help="frames along the ego route (default 40, as the paper)")
     p.add_argument("--voxel-size", type=float, default=None, help="ROI voxel size in metres (default 0.2)")
@@ -59,7 +65,7 @@ def _psog(spec, args, backend):
     check_entropy(psog, spec.frames_per_subset)
     if not args.quiet:
         print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
-    return spec.scene.build(), psog
+    return (None if spec.scene.kind == "semantickitti" else spec.scene.build()), psog
 
 
 # ---------------------------------------------------------------------------------------- commands

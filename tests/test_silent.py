@@ -303,3 +303,43 @@ def test_wet_ground_water_height_carries_its_unit():
     with pytest.warns(DeprecationWarning, match="water_height_mm"):
         b = C.wet_ground(cloud, water_height=0.5, seed=1)       # the old name still works, with a warning
     np.testing.assert_array_equal(a.intensity, b.intensity)
+
+
+# ------------------------------------------------------------------------------ 5. the user's own data
+def test_mesh_scene_with_route_and_label_map_from_the_cli(tmp_path, capsys):
+    import trimesh
+
+    sc = trimesh.Scene()
+    sc.add_geometry(trimesh.creation.box((120, 30, 0.2)).apply_translation((0, 0, -0.1)), node_name="road",
+                    geom_name="road")
+    for i, x in enumerate(range(-50, 51, 10)):
+        for side in (-1, 1):
+            b = trimesh.creation.box((6, 6, 4 + (i % 3) * 3)).apply_translation((x, side * 12, 2 + (i % 3) * 1.5))
+            sc.add_geometry(b, node_name=f"house{i}{side}", geom_name=f"house{i}{side}")
+    sc.export(tmp_path / "street.glb")
+    (tmp_path / "labels.toml").write_text('"*" = "building"\nroad = "road"\n')
+    (tmp_path / "route.txt").write_text("# x y yaw\n" + "".join(f"{x} 0 0\n" for x in np.linspace(-20, 20, 8)))
+    argv = ["evaluate", "--scene", f"mesh:{tmp_path / 'street.glb'}", "--labels", str(tmp_path / "labels.toml"),
+            "--route", str(tmp_path / "route.txt"), "--voxel-size", "0.8", "--quiet", "center", "line",
+            "--output", "m.json"]
+    assert main(argv) == 0
+    rows = json.loads(Path("m.json").read_text())["rows"]
+    assert all(r["msog_seg"] < 0 for r in rows)                # entropy was found (M-SOG is -H summed)
+    capsys.readouterr()
+    # without a route: one ego pose, T = 1, no entropy -> an error that says what to do
+    assert main(argv[:5] + ["--voxel-size", "0.8", "--quiet", "center"]) == 2
+    assert "--route" in _err(capsys)
+
+
+def test_semantickitti_sequence_as_scene_equals_the_simulated_scene(capsys):
+    assert main(["simulate", "--frames", "8", "--quiet", "--output", "seq"]) == 0
+    assert main(["evaluate", "--scene", "semantickitti:seq", "--voxel-size", "0.8", "--quiet", "center",
+                 "--output", "k.json"]) == 0
+    assert main(["evaluate", *TINY, "--no-cache", "center", "--output", "t.json"]) == 0
+    k = json.loads(Path("k.json").read_text())["rows"][0]
+    t = json.loads(Path("t.json").read_text())["rows"][0]
+    # the same frames (collection LiDAR, default mount), read back from float32 files
+    assert k["msog_seg"] == pytest.approx(t["msog_seg"], rel=0.02)
+    capsys.readouterr()
+    assert main(["evaluate", "--scene", "semantickitti:nowhere", "--quiet"]) == 2
+    assert "velodyne" in _err(capsys)
