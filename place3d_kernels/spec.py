@@ -363,6 +363,8 @@ def specs_from_args(args) -> PSOGSpec:
     params = parse_params(getattr(args, "param", []))
     if params and not getattr(args, "condition", None):
         raise ValueError(f"--param {sorted(params)} given without --condition; name the condition they belong to")
+    if getattr(args, "severity", None) and not getattr(args, "condition", None):
+        raise ValueError(f"--severity {args.severity} given without --condition; name the condition it applies to")
     if getattr(args, "condition", None):
         cond = ConditionSpec(args.condition, int(args.seed), args.severity, tuple(sorted(params.items())))
         cond.condition(None)            # an unknown name fails here, before any work starts

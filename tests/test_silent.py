@@ -230,6 +230,7 @@ def test_unmapped_mesh_parts_are_listed(tmp_path):
     (["simulate", "--condition", "fog", "--param", "bogus=1", "--output", "out"], ["bogus", "alpha", "beta"]),
     (["simulate", "--condition", "fog", "--param", "alpha=abc", "--output", "out"], ["alpha=abc", "number"]),
     (["simulate", "--param", "alpha=0.1", "--output", "out"], ["--condition"]),
+    (["simulate", "--severity", "heavy", "--output", "out"], ["--severity", "--condition"]),
     (["optimize", "--max-evals", "0", "--output", "out"], ["--max-evals"]),
     (["optimize", "--lidars", "9", "--output", "out"], ["--lidars"]),
     (["evaluate", "--voxel-size", "0", "--output", "out.json"], ["--voxel-size"]),
