@@ -30,7 +30,7 @@ from place3d_kernels.backends.conditions_base import ConditionKernels
 
 PARAMS = {
     "fog": dict(alpha=0.03, beta=0.05),
-    "wet_ground": dict(water_height=1.0),
+    "wet_ground": dict(water_height_mm=1.0),
     "snow": dict(snowfall_rate=1.0, terminal_velocity=1.6),
     "motion_blur": dict(sigma=0.30),
     "crosstalk": dict(ratio=0.07),

@@ -16,7 +16,13 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", default=None,
                    help="reference | warp[:cpu|:cuda:N] | opencl[:platform] | auto (default: $PLACE3D_BACKEND or auto)")
     p.add_argument("--scene", default="town",
-                   help="scene: 'town' (the embedded procedural town) or 'opendrive:PATH' (e.g. a CARLA .xodr map)")
+                   help="scene: 'town' (the embedded procedural town), 'opendrive:PATH' (e.g. a CARLA .xodr map), "
+                        "'mesh:PATH' (a mesh file trimesh reads or a Mitsuba XML; see --labels, --route) or "
+                        "'semantickitti:DIR' (labelled frames + poses.txt: the P-SOG is built from them)")
+    p.add_argument("--labels", default=None,
+                   help="mesh scenes: TOML label map (part name -> class) or one class for the whole file")
+    p.add_argument("--route", default=None,
+                   help="mesh scenes: ego poses, one per line: 'x y z roll pitch yaw' or 'x y yaw' (m, rad)")
     p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     p.add_argument("--frames", type=int, default=40, help="frames along the ego route (default 40, as the paper)")
     p.add_argument("--voxel-size", type=float, default=None, help="ROI voxel size in metres (default 0.2)")
@@ -59,7 +65,7 @@ def _psog(spec, args, backend):
     check_entropy(psog, spec.frames_per_subset)
     if not args.quiet:
         print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
-    return spec.scene.build(), psog
+    return (None if spec.scene.kind == "semantickitti" else spec.scene.build()), psog
 
 
 # ---------------------------------------------------------------------------------------- commands
@@ -120,21 +126,14 @@ def cmd_evaluate(args) -> int:
 
 def cmd_simulate(args) -> int:
     from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.io import prepare_sequence_folder, sequence_spec, write_sequence_metadata
     from place3d_kernels.lidar import LidarModel
-
+    from place3d_kernels.simulate import DEFAULT_MOUNT
     from place3d_kernels.spec import specs_from_args
 
-    from place3d_kernels.io import prepare_sequence_folder, write_sequence_metadata
-    from place3d_kernels.simulate import DEFAULT_MOUNT
-
     spec = specs_from_args(args)
-    lidar = LidarModel.load(args.lidar)
-    # what the frames depend on (the backends agree bit for bit, so the backend is provenance, not key)
-    meta = {"scene": spec.scene.to_dict(), "sensor": {"name": lidar.name, "elevations": lidar.elevations.tolist(),
-                                                       "azimuths": int(lidar.azimuths.size),
-                                                       "max_range": float(lidar.max_range)},
-            "mount": [float(v) for v in DEFAULT_MOUNT], "labels": "place3d", "frames": spec.scene.frames,
-            "condition": None if spec.condition is None else spec.condition.to_dict()}
+    meta = sequence_spec(spec.scene.to_dict(), LidarModel.load(args.lidar),
+                         None if spec.condition is None else spec.condition.to_dict(), DEFAULT_MOUNT)
     prepare_sequence_folder(args.output, meta, overwrite=args.overwrite)
     if getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None):
         from place3d_kernels.distributed import executor_from_args, simulate_to_folder
@@ -142,10 +141,9 @@ def cmd_simulate(args) -> int:
         ex = executor_from_args(args)
         try:
             r = simulate_to_folder(spec.scene, args.lidar, args.output, ex, chunk=args.chunk or 8,
-                                   backend=args.backend, condition=spec.condition)
+                                   backend=args.backend, condition=spec.condition, overwrite=args.overwrite)
         finally:
             ex.shutdown()
-        write_sequence_metadata(args.output, meta)
         print(f"wrote {r['written']} frames ({r['skipped']} already there) to {r['out']} in {r['seconds']:.1f} s "
               f"on {ex.kind}")
         return 0
@@ -259,7 +257,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    from place3d_kernels.manifest import set_command_line
+
     args = build_parser().parse_args(argv)
+    set_command_line(None if argv is None else ["place3d", *argv])
     try:
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:

@@ -37,7 +37,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from place3d_kernels.io import atomic_write, frame_paths, pose_row, sensor_matrix
+from place3d_kernels.io import (atomic_write, frame_paths, pose_row, prepare_sequence_folder, sensor_matrix,
+                                sequence_spec, write_sequence_metadata)
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec, backend_name, resolve_lidar
 
@@ -231,7 +232,7 @@ def _simulate_task(t: _SimTask) -> list[int]:
 
 def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="seq", executor: Executor | None = None,
                        *, chunk: int = 8, mount=None, backend=None, condition=None, frames=None,
-                       task_hook: Callable | None = None) -> dict:
+                       task_hook: Callable | None = None, overwrite: bool = False) -> dict:
     """Simulate a scene's frames as tasks into a SemanticKITTI folder (resumable; identical to local).
 
     Args:
@@ -245,6 +246,8 @@ def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="s
         condition: ``FrameCondition``, ``ConditionSpec``, dict or None.
         frames: global frame indices to produce (default all); ``poses.txt`` always lists every frame.
         task_hook: ``hook(task_id, frame_index)`` called in the worker after each frame is written (tests).
+        overwrite: replace a sequence in ``out`` made with other settings (otherwise ``ValueError`` naming
+            the field that differs, before any task runs; ``sequence.json`` records the settings).
 
     Returns:
         dict: frames, written, skipped, tasks, seconds, out.
@@ -257,12 +260,14 @@ def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="s
     executor = executor or LocalExecutor()
     mount = tuple(float(v) for v in (DEFAULT_MOUNT if mount is None else np.asarray(mount, np.float64)))
     out = Path(out)
+    cspec = ConditionSpec.of(condition)
+    meta = sequence_spec(spec.to_dict(), resolve_lidar(lidar), None if cspec is None else cspec.to_dict(), mount)
+    prepare_sequence_folder(out, meta, overwrite=overwrite)   # a folder of other settings is refused here
     (out / "velodyne").mkdir(parents=True, exist_ok=True)
     (out / "labels").mkdir(parents=True, exist_ok=True)
     idx = list(range(spec.frames)) if frames is None else [int(i) for i in frames]
     todo = [i for i in idx if not _frame_done(out, i)]
     bname = backend_name(backend)
-    cspec = ConditionSpec.of(condition)
     tasks = [_SimTask(k, tuple(c), spec, lidar, mount, bname, cspec, str(out), task_hook)
              for k, c in enumerate(chunks(todo, chunk))]
     written = [i for w in executor.map(_simulate_task, tasks) for i in w]
@@ -279,6 +284,7 @@ def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="s
     missing = [i for i in idx if not _frame_done(out, i)]
     if missing:
         raise RuntimeError(f"frames {missing[:10]} were not written to {out}")
+    write_sequence_metadata(out, meta)
     return {"frames": len(idx), "written": len(written), "skipped": len(idx) - len(todo), "tasks": len(tasks),
             "seconds": time.perf_counter() - t0, "out": str(out)}
 

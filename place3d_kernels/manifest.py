@@ -20,9 +20,18 @@ import threading
 from pathlib import Path
 
 __all__ = ["spec_hash", "write_manifest", "read_manifest", "verify_manifest", "first_difference", "provenance",
-           "MANIFEST_NAME"]
+           "set_command_line", "MANIFEST_NAME"]
 
 MANIFEST_NAME = "manifest.json"
+
+#: the command line recorded in provenance blocks (``main(argv)`` sets it; otherwise ``sys.argv``)
+_command_line: list | None = None
+
+
+def set_command_line(argv) -> None:
+    """Record ``argv`` (a list, or None for ``sys.argv``) as the command line of this run's outputs."""
+    global _command_line
+    _command_line = None if argv is None else [str(a) for a in argv]
 
 
 def _canonical(d) -> str:
@@ -40,14 +49,15 @@ def spec_hash(spec: dict) -> str:
 
 
 def _version() -> str:
-    from place3d_kernels.version import VERSION
+    from place3d_kernels.version import VERSION  # a leaf module: importing the package root would be a cycle
 
     return VERSION
 
 
 def provenance(**extra) -> dict:
     """Package version, command line (``sys.argv``) and UTC time (ISO 8601), plus ``extra`` fields."""
-    return {"package": "place3d-kernels", "version": _version(), "argv": list(sys.argv),
+    argv = list(sys.argv) if _command_line is None else _command_line
+    return {"package": "place3d-kernels", "version": _version(), "argv": argv,
             "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), **extra}
 
 

@@ -70,7 +70,8 @@ def check_entropy(psog: PSOG, frames_per_subset: int | None = None) -> PSOG:
     if not psog.weights.any():
         k = frames_per_subset or DEFAULT_FRAMES_PER_SUBSET
         raise ValueError(f"P-SOG has no entropy: T = {psog.n_subsets} subsets of k = {k} frames, every voxel a "
-                         f"single class, so every rig would score 0; use at least {2 * k} frames (--frames)")
+                         f"single class, so every rig would score 0; use at least {2 * k} frames (--frames, or a --route of "
+                         f"that many poses for a mesh scene)")
     return psog
 
 

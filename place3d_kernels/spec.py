@@ -19,7 +19,7 @@ from typing import Any
 from place3d_kernels.grid import DEFAULT_GRID, Grid
 
 __all__ = ["SceneSpec", "RoiSpec", "ConditionSpec", "PSOGSpec", "specs_from_args", "backend_name", "resolve_lidar",
-           "parse_params", "condition_parameters", "check_condition_params"]
+           "parse_params", "condition_parameters", "check_condition_params", "read_route"]
 
 #: LiDAR whose frames build P-SOGs (the dense collection sensor).
 COLLECTION_LIDAR = "collection_64ch"
@@ -90,29 +90,54 @@ def check_condition_params(name: str, params: dict) -> None:
 # ============================================================================== scene
 @dataclass(frozen=True)
 class SceneSpec:
-    """A scene from explicit inputs: 'town' (the procedural town) or 'opendrive:PATH', seed, frames."""
+    """A scene from explicit inputs.
+
+    ``name``: 'town' (the procedural town), 'opendrive:PATH' (an OpenDRIVE map), 'mesh:PATH' (a mesh file
+    trimesh reads, or a Mitsuba XML scene; ``labels`` maps part names to classes, ``route`` gives the ego
+    poses) or 'semantickitti:DIR' (labelled frames with poses: the P-SOG is built from them, nothing is
+    simulated). ``seed`` and ``frames`` apply to generated scenes.
+    """
 
     name: str = "town"
     seed: int = 0
     frames: int = 40
+    labels: str | None = None
+    route: str | None = None
 
     def build(self):
         """The ``Scene`` (memoised per process: tasks of one worker share it)."""
         return _build_scene(self)
+
+    @property
+    def kind(self) -> str:
+        return self.name.split(":", 1)[0] if ":" in self.name else self.name
+
+    @property
+    def path(self) -> Path | None:
+        return Path(self.name.split(":", 1)[1]) if ":" in self.name else None
 
     def validate(self) -> "SceneSpec":
         """Raise ``ValueError`` / ``FileNotFoundError`` for an unknown scene kind, a missing file or a
         frame count below 1, before any work starts."""
         if self.frames < 1:
             raise ValueError(f"--frames must be >= 1, got {self.frames}")
+        if self.route is not None and not Path(self.route).is_file():
+            raise FileNotFoundError(f"--route {self.route}: no such file")
+        if self.route is not None and self.kind != "mesh":
+            raise ValueError(f"--route applies to mesh scenes ('mesh:PATH'), not {self.name!r}")
         if self.name == "town":
             return self
-        if self.name.startswith("opendrive:"):
-            path = Path(self.name.split(":", 1)[1])
-            if not path.is_file():
-                raise FileNotFoundError(f"scene {self.name!r}: no OpenDRIVE file {path}")
+        if self.kind in ("opendrive", "mesh"):
+            if not self.path.is_file():
+                raise FileNotFoundError(f"scene {self.name!r}: no such file {self.path}")
             return self
-        raise ValueError(f"unknown scene {self.name!r}; use 'town' or 'opendrive:PATH' (an OpenDRIVE .xodr file)")
+        if self.kind == "semantickitti":
+            if not (self.path / "velodyne").is_dir():
+                raise FileNotFoundError(f"scene {self.name!r}: {self.path} has no velodyne/ folder (a "
+                                        f"SemanticKITTI sequence: velodyne/, labels/, poses.txt)")
+            return self
+        raise ValueError(f"unknown scene {self.name!r}; use 'town', 'opendrive:PATH' (an OpenDRIVE .xodr file), "
+                         f"'mesh:PATH' (a mesh or Mitsuba XML file) or 'semantickitti:DIR' (labelled frames)")
 
     @property
     def label(self) -> str:
@@ -120,11 +145,40 @@ class SceneSpec:
         return f"{base}-s{self.seed}-f{self.frames}"
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "seed": self.seed, "frames": self.frames}
+        d = {"name": self.name, "seed": self.seed, "frames": self.frames}
+        if self.labels is not None or self.route is not None:
+            d.update(labels=self.labels, route=self.route)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "SceneSpec":
-        return cls(str(d.get("name", "town")), int(d.get("seed", 0)), int(d.get("frames", 40)))
+        return cls(str(d.get("name", "town")), int(d.get("seed", 0)), int(d.get("frames", 40)), d.get("labels"),
+                   d.get("route"))
+
+
+def read_route(path) -> "np.ndarray":
+    """Ego poses from a text file: one pose per line, 6 numbers ``x y z roll pitch yaw`` (metres, radians)
+    or 3 numbers ``x y yaw`` (on the ground); commas or spaces; ``#`` starts a comment."""
+    import numpy as np
+
+    rows = []
+    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
+        line = line.split("#", 1)[0].replace(",", " ").split()
+        if not line:
+            continue
+        try:
+            v = [float(x) for x in line]
+        except ValueError:
+            raise ValueError(f"{path}:{n}: route rows are numbers (x y z roll pitch yaw, or x y yaw)") from None
+        if len(v) == 3:
+            v = [v[0], v[1], 0.0, 0.0, 0.0, v[2]]
+        if len(v) != 6:
+            raise ValueError(f"{path}:{n}: a route row has 6 numbers (x y z roll pitch yaw) or 3 (x y yaw), "
+                             f"got {len(v)}")
+        rows.append(v)
+    if not rows:
+        raise ValueError(f"{path}: no ego poses")
+    return np.asarray(rows, dtype=np.float64)
 
 
 @functools.lru_cache(maxsize=4)
@@ -133,9 +187,16 @@ def _build_scene(spec: SceneSpec):
 
     if spec.name == "town":
         return scenes.town(seed=spec.seed, n_frames=spec.frames)
-    if spec.name.startswith("opendrive:"):
-        return scenes.from_opendrive(spec.name.split(":", 1)[1], seed=spec.seed, n_frames=spec.frames)
-    raise ValueError(f"unknown scene {spec.name!r}; use 'town' or 'opendrive:PATH' (an OpenDRIVE .xodr file)")
+    if spec.kind == "opendrive":
+        return scenes.from_opendrive(str(spec.path), seed=spec.seed, n_frames=spec.frames)
+    if spec.kind == "mesh":
+        route = None if spec.route is None else read_route(spec.route)
+        return scenes.load_scene(spec.path, labels=spec.labels, ego_poses=route)
+    if spec.kind == "semantickitti":
+        raise ValueError(f"scene {spec.name!r} is recorded frames, not a scene to simulate; its P-SOG is built "
+                         f"from the frames (evaluate / optimize)")
+    spec.validate()
+    raise ValueError(f"unknown scene {spec.name!r}")
 
 
 # ============================================================================== grid
@@ -247,6 +308,15 @@ class PSOGSpec:
         from place3d_kernels.simulate import DEFAULT_MOUNT
 
         b = self.backend if backend is None else backend
+        if self.scene.kind == "semantickitti":
+            # recorded, labelled frames: the P-SOG comes straight from them (label scheme and mount from
+            # the folder's sequence.json when it has one); nothing to simulate, so nothing to cache
+            from place3d_kernels.io import psog_from_semantickitti
+
+            if self.condition is not None:
+                raise ValueError("--condition applies to simulated frames, not to a semantickitti: sequence")
+            return psog_from_semantickitti(self.scene.path, self.grid.grid(),
+                                           self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET, backend=b)
         cond = None if self.condition is None else self.condition.condition(b)
         return scene_psog(self.scene.build(), grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
                           frames_per_subset=self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
@@ -293,6 +363,8 @@ def specs_from_args(args) -> PSOGSpec:
     params = parse_params(getattr(args, "param", []))
     if params and not getattr(args, "condition", None):
         raise ValueError(f"--param {sorted(params)} given without --condition; name the condition they belong to")
+    if getattr(args, "severity", None) and not getattr(args, "condition", None):
+        raise ValueError(f"--severity {args.severity} given without --condition; name the condition it applies to")
     if getattr(args, "condition", None):
         cond = ConditionSpec(args.condition, int(args.seed), args.severity, tuple(sorted(params.items())))
         cond.condition(None)            # an unknown name fails here, before any work starts
@@ -300,5 +372,6 @@ def specs_from_args(args) -> PSOGSpec:
     voxel = getattr(args, "voxel_size", None)
     if voxel is not None and not voxel > 0:
         raise ValueError(f"--voxel-size must be > 0 metres, got {voxel}")
-    return PSOGSpec(SceneSpec(args.scene, args.seed, args.frames).validate(), getattr(args, "backend", None),
+    scene = SceneSpec(args.scene, args.seed, args.frames, getattr(args, "labels", None), getattr(args, "route", None))
+    return PSOGSpec(scene.validate(), getattr(args, "backend", None),
                     RoiSpec(voxel), cond)

@@ -602,7 +602,7 @@ def test_lidar_returns_analytic(backend):
         else:
             assert foggy.range[0] < 3.0
         assert foggy.kind[3] == 0 and foggy.fog_power[3] > 0
-    wet = C.lidar_returns(_wall_and_road(30.0), o, d, "wet_ground", backend=backend, water_height=1.0,
+    wet = C.lidar_returns(_wall_and_road(30.0), o, d, "wet_ground", backend=backend, water_height_mm=1.0,
                           p_out=1.0, noise_level=0.0)
     clear = C.lidar_returns(_wall_and_road(30.0), o, d, backend=backend)
     assert wet.intensity[0] == clear.intensity[0]                       # the wall is not ground

@@ -20,7 +20,11 @@ SCENE = SceneSpec("town", seed=0, frames=4)
 
 
 def _files(folder: Path) -> dict:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+    """Every file's bytes; for ``sequence.json`` its spec (the provenance block holds a time and argv)."""
+    import json
+
+    return {str(p.relative_to(folder)): json.loads(p.read_text())["spec"] if p.name == "sequence.json"
+            else p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 # ------------------------------------------------------------------------------------ no Ray needed
@@ -46,7 +50,9 @@ def test_local_simulate_matches_cli_writer_and_resumes(tmp_path):
     ref = write_semantickitti_sequence([cond(f, i) for i, f in enumerate(frames)], tmp_path / "ref")
     ex = LocalExecutor()
     r = simulate_to_folder(SCENE, TINY, tmp_path / "loc", ex, chunk=3, backend=BACKEND, condition=cond)
-    assert r["written"] == 4 and _files(tmp_path / "loc") == _files(ref)
+    loc = _files(tmp_path / "loc")
+    assert loc.pop("sequence.json")["condition"]["name"] == "fog"    # the writer function alone writes none
+    assert r["written"] == 4 and loc == _files(ref)
     r = simulate_to_folder(SCENE, TINY, tmp_path / "loc", ex, chunk=3, backend=BACKEND, condition=cond)
     assert r["written"] == 0 and r["tasks"] == 0 and r["skipped"] == 4
 

@@ -19,7 +19,11 @@ TINY = LidarModel.uniform(8, fov_deg=(-25.0, 2.0), azimuth_steps=96, max_range=6
 
 
 def _files(folder: Path) -> dict:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+    """Every file's bytes; for ``sequence.json`` its spec (the provenance block holds a time and argv)."""
+    import json
+
+    return {str(p.relative_to(folder)): json.loads(p.read_text())["spec"] if p.name == "sequence.json"
+            else p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def test_specs_are_plain_data():
@@ -53,11 +57,15 @@ def test_condition_spec_from_study_table_and_clean():
 def test_specs_from_args_once_for_every_command():
     args = build_parser().parse_args(["evaluate", "--scene", "town", "--seed", "5", "--frames", "12",
                                       "--voxel-size", "0.4", "--condition", "snow", "--severity", "light",
-                                      "--param", "snowfall_rate=2"])
+                                      "--param", "snowfall_rate=2", "--param", "terminal_velocity=1.2"])
     spec = specs_from_args(args)
     assert spec.scene == SceneSpec("town", 5, 12)
     assert spec.grid == RoiSpec(0.4)
-    assert spec.condition == ConditionSpec("snow", 5, "light", (("snowfall_rate", 2.0),))
+    assert spec.condition == ConditionSpec("snow", 5, "light", (("snowfall_rate", 2.0), ("terminal_velocity", 1.2)))
+    assert parse_params(["mode=x", "a=2"]) == {"mode": "x", "a": 2.0}      # text stays text, numbers float
+    # a parameter the condition does not take is refused with the allowed set (issue 15)
+    with pytest.raises(ValueError, match="no parameter 'mode'.*snowfall_rate"):
+        specs_from_args(build_parser().parse_args(["evaluate", "--condition", "snow", "--param", "mode=x"]))
     assert specs_from_args(build_parser().parse_args(["evaluate"])).condition is None
     with pytest.raises(ValueError, match="KEY=VALUE"):
         parse_params(["alpha"])
@@ -76,11 +84,8 @@ def test_cli_local_simulate_equals_executor_path_from_the_same_specs(tmp_path):
     spec = specs_from_args(build_parser().parse_args(argv))
     simulate_to_folder(spec.scene, lidar, tmp_path / "ex", LocalExecutor(), chunk=2, backend=BACKEND,
                        condition=spec.condition)
-    cli = _files(tmp_path / "cli")
-    assert "sequence.json" in cli  # the CLI also records what made the sequence (provenance)
-    cli.pop("sequence.json")
-    assert cli == _files(tmp_path / "ex")
-    assert len(cli) == 7
+    assert _files(tmp_path / "cli") == _files(tmp_path / "ex")
+    assert len(_files(tmp_path / "cli")) == 8          # 3 frames x 2 files, poses.txt, sequence.json
 
 
 def test_psog_spec_build_equals_scene_psog(tmp_path):

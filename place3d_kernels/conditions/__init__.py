@@ -8,7 +8,7 @@ pure (the input cloud is never modified) and deterministic per seed on every bac
 condition           model                                         paper setting (Place3D appendix)
 ==================  ============================================  ====================================
 ``fog``             Hahner et al. 2021 (hard + soft target)       alpha in {0, .005, .01, .02, .03, .06}, beta 0.05
-``wet_ground``      Hahner et al. 2022 (water film, Fresnel)      water height 1.0 mm
+``wet_ground``      Hahner et al. 2022 (water film, Fresnel)      water_height_mm 1.0 (millimetres)
 ``snow``            after Hahner et al. 2022 (flakes per beam)    snowfall rate 1.0 mm/h (v = 1.6 m/s)
 ``motion_blur``     Robo3D                                        sigma 0.30
 ``crosstalk``       Robo3D                                        ratio 0.07

@@ -58,7 +58,7 @@ def lidar_returns(mesh, origins, directions, condition: str | None = None, model
         seed: seeds the condition's random draws.
         backend: backend for the raycast and the condition kernels (analytic model).
         reflectivity: per-class reflectivity table (default ``place3d_kernels.classes.REFLECTIVITY``).
-        **params: the condition's parameters (fog: alpha, beta, noise, sensor; wet_ground: water_height, ...).
+        **params: the condition's parameters (fog: alpha, beta, noise, sensor; wet_ground: water_height_mm, ...).
     """
     if condition not in _CONDITIONS:
         raise ValueError(f"lidar_returns supports condition in {list(_CONDITIONS)}, got {condition!r}")
@@ -66,6 +66,9 @@ def lidar_returns(mesh, origins, directions, condition: str | None = None, model
         condition = None
     if model == "mitsuba":
         from place3d_kernels.conditions.mitsuba_returns import mitsuba_lidar_returns
+
+        if "water_height_mm" in params:         # mitsuba_returns still takes the unit-less name (also mm)
+            params["water_height"] = params.pop("water_height_mm")
 
         return mitsuba_lidar_returns(mesh, origins, directions, condition, t_max=t_max, seed=seed,
                                      reflectivity=reflectivity, **params)
@@ -118,9 +121,9 @@ def lidar_returns(mesh, origins, directions, condition: str | None = None, model
         fogp[miss] = beta * table.lookup(np.minimum(tm[miss], table.r0[-1]))[0]
     elif condition == "wet_ground":
         from place3d_kernels.conditions.fog import FogSensor
-        from place3d_kernels.conditions.wet_ground import wet_arrays
+        from place3d_kernels.conditions.wet_ground import legacy_water_height, wet_arrays
 
-        water_height = float(params.pop("water_height", 1.0))
+        water_height = float(legacy_water_height(params.pop("water_height_mm", 1.0), params.pop("water_height", None)))
         kw = dict(ground=None, normal=normals[hi], p_out=None, noise_level=None, pavement_depth=1.2,
                   power_factor=15.0, noise_floor=0.7, n_air=1.0003, n_water=1.33)
         for key in list(params):

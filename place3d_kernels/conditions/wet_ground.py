@@ -35,22 +35,36 @@ __all__ = ["wet_ground", "film_transmission", "ground_points", "laser_parameters
 
 #: Robo3D levels (water height in mm); "moderate" is the paper's 1.0 mm. Light is Robo3D's 0.2 mm; heavy
 #: (1.2 mm, a film filling the pavement texture) is this project's choice.
-SEVERITIES = {"light": {"water_height": 0.2}, "moderate": {"water_height": 1.0}, "heavy": {"water_height": 1.2}}
+SEVERITIES = {"light": {"water_height_mm": 0.2}, "moderate": {"water_height_mm": 1.0},
+              "heavy": {"water_height_mm": 1.2}}
 
 
-def film_transmission(theta, rho, water_height=1.0, *, pavement_depth: float = 1.2, n_air: float = 1.0003,
-                      n_water: float = 1.33):
+def legacy_water_height(water_height_mm, water_height):
+    """``water_height_mm``, taking the pre-rename keyword ``water_height`` (also mm) with a warning."""
+    if water_height is None:
+        return water_height_mm
+    import warnings
+
+    warnings.warn("wet_ground: 'water_height' is now 'water_height_mm' (the film height in millimetres, the "
+                  "package's one exception to metres)", DeprecationWarning, stacklevel=3)
+    return water_height
+
+
+def film_transmission(theta, rho, water_height_mm=1.0, *, pavement_depth: float = 1.2, n_air: float = 1.0003,
+                      n_water: float = 1.33, water_height=None):
     """Wet / dry intensity ratio I'/I of the water-film model before clipping and the noise floor.
 
-    ``((1 - f) rho + f t / theta) / rho`` with ``f = clip(water_height / pavement_depth, 0, 1)`` and t the
+    ``((1 - f) rho + f t / theta) / rho`` with ``f = clip(water_height_mm / pavement_depth, 0, 1)`` and t the
     Fresnel film term (module docstring). Vectorised over theta and rho.
 
     Args:
         theta: incidence angle from the ground normal (rad).
         rho: ground reflectivity in (0, 1].
-        water_height, pavement_depth: mm.
+        water_height_mm, pavement_depth: film height and pavement texture depth, both in millimetres (the
+            model's unit, Hahner et al. 2022); ``water_height`` is the deprecated name of the former.
     """
-    f = float(np.clip(float(water_height) / float(pavement_depth), 0.0, 1.0))
+    water_height_mm = legacy_water_height(water_height_mm, water_height)
+    f = float(np.clip(float(water_height_mm) / float(pavement_depth), 0.0, 1.0))
     rho = np.asarray(rho, dtype=np.float64)
     return fresnel_film(theta, rho, f, n_air, n_water) / rho
 
@@ -166,11 +180,11 @@ def ground_geometry(cloud, seed, ground, normal):
     return mask, np.clip(cos_t, 0.0, 1.0), r
 
 
-def wet_arrays(cloud, water_height, seed, backend, ground, normal, p_out, noise_level, pavement_depth,
+def wet_arrays(cloud, water_height_mm, seed, backend, ground, normal, p_out, noise_level, pavement_depth,
                power_factor, noise_floor, n_air, n_water):
     """(new intensity (N,), keep (N,), ground mask (N,)) behind ``wet_ground``."""
     n = len(cloud)
-    f = float(np.clip(water_height / pavement_depth, 0.0, 1.0))
+    f = float(np.clip(water_height_mm / pavement_depth, 0.0, 1.0))
     mask, cos_t, r = ground_geometry(cloud, seed, ground, normal)
     inten = cloud.intensity.astype(np.float64)
     keep = np.ones(n, dtype=bool)
@@ -189,14 +203,16 @@ def wet_arrays(cloud, water_height, seed, backend, ground, normal, p_out, noise_
     return out, keep, mask
 
 
-def wet_ground(cloud: PointCloud, water_height: float = 1.0, seed=0, backend=None, *, ground=None, normal=None,
+def wet_ground(cloud: PointCloud, water_height_mm: float = 1.0, seed=0, backend=None, *, ground=None, normal=None,
                p_out=None, noise_level=None, pavement_depth: float = 1.2, power_factor: float = 15.0,
-               noise_floor: float = 0.7, n_air: float = 1.0003, n_water: float = 1.33) -> PointCloud:
+               noise_floor: float = 0.7, n_air: float = 1.0003, n_water: float = 1.33,
+               water_height=None) -> PointCloud:
     """Wet ground (Hahner et al. 2022): a water film dims ground returns and drops those below the noise floor.
 
     Args:
         cloud: the dry frame; incidence angles are taken along origin -> point.
-        water_height: film height h_w (mm); the paper uses 1.0.
+        water_height_mm: film height h_w in millimetres (not metres: the model's unit); the paper uses 1.0.
+            ``water_height`` is its deprecated name.
         seed: seeds the RANSAC plane fit (used only for clouds without labels).
         backend: backend name or instance (None: current default).
         ground: optional (N,) bool ground mask instead of labels / RANSAC.
@@ -208,9 +224,9 @@ def wet_ground(cloud: PointCloud, water_height: float = 1.0, seed=0, backend=Non
         A new PointCloud without the dropped points; other ground points dimmed, the rest unchanged.
     """
     cloud = check_cloud(cloud, "wet_ground")
-    water_height = check_range("water_height", water_height, lo=0.0)
+    water_height_mm = check_range("water_height_mm", legacy_water_height(water_height_mm, water_height), lo=0.0)
     check_range("pavement_depth", pavement_depth, lo=0.0, lo_open=True)
-    out, keep, _ = wet_arrays(cloud, water_height, seed, backend, ground, normal, p_out, noise_level,
+    out, keep, _ = wet_arrays(cloud, water_height_mm, seed, backend, ground, normal, p_out, noise_level,
                                pavement_depth, power_factor, noise_floor, n_air, n_water)
     if keep.all() and np.array_equal(out, cloud.intensity.astype(np.float64)):
         return cloud.copy()

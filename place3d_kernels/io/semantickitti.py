@@ -56,7 +56,7 @@ from place3d_kernels.pose import invert, pose_from_matrix, pose_matrix, transfor
 __all__ = ["SEMANTICKITTI_TO_PLACE3D", "remap_semantickitti", "read_semantickitti", "read_poses", "read_sequence",
            "psog_from_semantickitti", "write_semantickitti_sequence", "write_frame", "write_frame_bin",
            "frame_paths", "sensor_matrix", "pose_row", "atomic_write", "SEQUENCE_META", "prepare_sequence_folder",
-           "read_sequence_metadata", "write_sequence_metadata"]
+           "read_sequence_metadata", "write_sequence_metadata", "sequence_spec"]
 
 C = CLASS_ID
 SEMANTICKITTI_TO_PLACE3D: dict[int, int] = {
@@ -169,6 +169,16 @@ def read_sequence_metadata(folder) -> dict | None:
 
     m = read_manifest(Path(folder) / SEQUENCE_META)
     return None if m is None else m.get("spec")
+
+
+def sequence_spec(scene: dict, lidar, condition: dict | None = None, mount=_DEFAULT_MOUNT) -> dict:
+    """What a simulated sequence depends on (its ``sequence.json`` spec): scene, sensor (name, elevations,
+    azimuth count, range), mount, label scheme ("place3d"), condition. The backend is provenance only:
+    the backends agree bit for bit."""
+    return {"scene": dict(scene), "sensor": {"name": lidar.name, "elevations": np.asarray(lidar.elevations).tolist(),
+                                             "azimuths": int(np.asarray(lidar.azimuths).size),
+                                             "max_range": float(lidar.max_range)},
+            "mount": [float(v) for v in mount], "labels": "place3d", "condition": condition}
 
 
 def write_sequence_metadata(folder, spec: dict) -> Path:
