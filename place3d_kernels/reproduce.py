@@ -30,7 +30,7 @@ from place3d_kernels import paper_results as paper
 from place3d_kernels.pooled import Drive, PooledPSOG, PoolSettings, build_pooled
 from place3d_kernels.uncertainty import Bootstrap, bootstrap_pooled, kendall_tau, plot_scores
 
-__all__ = ["reproduce", "convergence", "paper_poses", "det_view", "resolve_town", "DEFAULT_TOWNS", "DET_VARIANTS",
+__all__ = ["reproduce", "convergence", "paper_poses", "placement_scorer", "det_view", "resolve_town", "DEFAULT_TOWNS", "DET_VARIANTS",
            "add_arguments", "run", "machine_info"]
 
 #: The paper's maps (Sec. 4 "Data Generation": Towns 1, 3, 4 and 6 of CARLA 0.9.10).
@@ -102,7 +102,7 @@ def det_view(psog, variant: str = "vehicle"):
                 ("empty", "vehicle", "pedestrian", "other"), psog.n_subsets)
 
 
-def _scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: str):
+def placement_scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: str):
     """score(psog) -> (16,) seg scores of the eight placements, then det scores."""
     from place3d_kernels.metrics import msog_batch
 
@@ -229,7 +229,7 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
     pooled = build_pooled(drives, settings, executor=executor, progress=progress)
     t_pool = time.perf_counter() - t1
     lidar = LidarModel.load(rig_lidar)
-    score = _scorer(lidar, occlusion, b, roll_units, det_variant)
+    score = placement_scorer(lidar, occlusion, b, roll_units, det_variant)
     t1 = time.perf_counter()
     # routes are resampled within each town: the four towns are the study's design, the routes its sample
     point, samples, _ = bootstrap_pooled(pooled, score, n_resamples, seed, progress, strata=town_of)
