@@ -10,7 +10,7 @@ with more routes: tau between the P-SOG of N routes per town and that of 2N rout
 Output (``--output``, default ``bench/results/reproduce-<date>/``): ``reproduce.json`` (keys:
 ``settings``, ``machine``, ``time_utc``, ``seconds``, ``drives``, ``tasks`` -> seg/det -> placements,
 msog, ci_low, ci_high, se, bias, rank, paper_msog, paper_rank, downstream, tau_paper, tau_paper_ci,
-tau_downstream, tau_downstream_ci, order_freq, within_noise; ``convergence``) and ``reproduce.png``.
+tau_downstream, tau_downstream_ci, order_freq, within_noise, samples; ``convergence``) and ``reproduce.png``.
 """
 
 from __future__ import annotations
@@ -159,7 +159,8 @@ def _task_table(task: str, boot: Bootstrap) -> dict:
             "tau_downstream": kendall_tau(pt, down), "tau_downstream_ci": q(taus_d),
             "paper_tau_msog_vs_downstream": kendall_tau(ref, down),
             "order_freq": np.round(boot.order_freq, 4).tolist(),
-            "within_noise": [list(p) for p in boot.within_noise()]}
+            "within_noise": [list(p) for p in boot.within_noise()],
+            "samples": boot.samples.tolist()}        # (R, 8): replot or recompute intervals from the JSON
 
 
 def convergence(pooled: PooledPSOG, routes_of: list[int], score, ns=None) -> list[dict]:
