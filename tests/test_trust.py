@@ -7,7 +7,6 @@ import json
 import numpy as np
 import pytest
 
-import place3d_kernels as p3k
 from place3d_kernels.grid import Grid
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.metrics import covered_voxels
