@@ -10,7 +10,7 @@ with more routes: tau between the P-SOG of N routes per town and that of 2N rout
 Output (``--output``, default ``bench/results/reproduce-<date>/``): ``reproduce.json`` (keys:
 ``settings``, ``machine``, ``time_utc``, ``seconds``, ``drives``, ``tasks`` -> seg/det -> placements,
 msog, ci_low, ci_high, se, bias, rank, paper_msog, paper_rank, downstream, tau_paper, tau_paper_ci,
-tau_downstream, tau_downstream_ci, order_freq, within_noise; ``convergence``) and ``reproduce.png``.
+tau_downstream, tau_downstream_ci, order_freq, within_noise, samples; ``convergence``) and ``reproduce.png``.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from place3d_kernels import paper_results as paper
 from place3d_kernels.pooled import Drive, PooledPSOG, PoolSettings, build_pooled
 from place3d_kernels.uncertainty import Bootstrap, bootstrap_pooled, kendall_tau, plot_scores
 
-__all__ = ["reproduce", "convergence", "paper_poses", "det_view", "resolve_town", "DEFAULT_TOWNS", "DET_VARIANTS",
+__all__ = ["reproduce", "convergence", "paper_poses", "placement_scorer", "det_view", "resolve_town", "DEFAULT_TOWNS", "DET_VARIANTS",
            "add_arguments", "run", "machine_info"]
 
 #: The paper's maps (Sec. 4 "Data Generation": Towns 1, 3, 4 and 6 of CARLA 0.9.10).
@@ -106,7 +106,7 @@ def det_view(psog, variant: str = "vehicle"):
                 ("empty", "vehicle", "pedestrian", "other"), psog.n_subsets)
 
 
-def _scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: str):
+def placement_scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: str):
     """score(psog) -> (16,) seg scores of the eight placements, then det scores."""
     from place3d_kernels.metrics import msog_batch
 
@@ -163,7 +163,8 @@ def _task_table(task: str, boot: Bootstrap) -> dict:
             "tau_downstream": kendall_tau(pt, down), "tau_downstream_ci": q(taus_d),
             "paper_tau_msog_vs_downstream": kendall_tau(ref, down),
             "order_freq": np.round(boot.order_freq, 4).tolist(),
-            "within_noise": [list(p) for p in boot.within_noise()]}
+            "within_noise": [list(p) for p in boot.within_noise()],
+            "samples": boot.samples.tolist()}        # (R, 8): replot or recompute intervals from the JSON
 
 
 def convergence(pooled: PooledPSOG, routes_of: list[int], score, ns=None) -> list[dict]:
@@ -233,7 +234,7 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
     pooled = build_pooled(drives, settings, executor=executor, progress=progress)
     t_pool = time.perf_counter() - t1
     lidar = LidarModel.load(rig_lidar)
-    score = _scorer(lidar, occlusion, b, roll_units, det_variant)
+    score = placement_scorer(lidar, occlusion, b, roll_units, det_variant)
     t1 = time.perf_counter()
     # routes are resampled within each town: the four towns are the study's design, the routes its sample
     point, samples, _ = bootstrap_pooled(pooled, score, n_resamples, seed, progress, strata=town_of)

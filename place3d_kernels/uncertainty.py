@@ -243,7 +243,7 @@ def plot_scores(boots: dict, path, title: str = "M-SOG with bootstrap intervals"
                              label=reference_label)
             ax2.set_ylabel(reference_label, color="tab:red")
             handles.append(h2)
-        ax.legend(handles=handles, loc="lower left", fontsize=8)
+        ax.legend(handles=handles, loc="best", fontsize=7, framealpha=0.85)
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
