@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from place3d_kernels import paper_results as paper
-from place3d_kernels.backend import get_backend
+from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.pooled import Drive, PoolSettings, build_pooled
 from place3d_kernels.reproduce import DEFAULT_TOWNS, machine_info, placement_scorer, resolve_town

@@ -42,7 +42,7 @@ class Drive:
     frames: int = 40
 
     def spec(self):
-        from place3d_kernels.distributed import SceneSpec
+        from place3d_kernels.spec import SceneSpec
 
         return SceneSpec(self.scene, int(self.seed), int(self.frames))
 
