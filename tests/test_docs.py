@@ -91,6 +91,12 @@ def test_cheap_commands_run(argv, tmp_path):
         for row in r.stdout.splitlines():
             if row.startswith("missing"):
                 assert len(row.split(None, 2)) == 3, f"missing backend without a reason: {row!r}"
+        import place3d_kernels as p3k
+
+        names = p3k.available_backends()
+        if "warp:cpu" in names and not any(n.startswith("warp:cuda") for n in names):
+            # Warp without a CUDA device: the report says why (issue 15: it never did)
+            assert re.search(r"^missing\s+warp:cuda\s+\S", r.stdout, re.M), r.stdout
 
 
 def test_readme_mentions_every_command():
