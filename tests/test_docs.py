@@ -127,3 +127,13 @@ def test_commands_doc_has_a_section_per_subcommand():
         argv = shlex.split(line)[1:]
         if argv != ["--version"] and "--help" not in argv:
             build_parser().parse_args(argv)
+
+
+def test_shipped_carla_map_by_name_from_any_folder(tmp_path, monkeypatch):
+    """The README's `--scene opendrive:Town01` names a shipped map: accepted from a folder without it."""
+    from place3d_kernels.spec import SceneSpec
+
+    monkeypatch.chdir(tmp_path)
+    assert SceneSpec("opendrive:Town01").validate().kind == "opendrive"
+    with pytest.raises(FileNotFoundError, match="shipped maps by name"):
+        SceneSpec("opendrive:Town99").validate()
