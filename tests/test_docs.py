@@ -28,13 +28,14 @@ def fenced_blocks(text: str) -> list[tuple[str, str]]:
 
 
 def place3d_lines(text: str) -> list[str]:
-    """Every line of a fenced non-Python block that starts with ``place3d ``, without its trailing comment."""
+    """Every line of a fenced non-Python block that starts with ``place3d `` (or ``$ place3d ``), without its
+    trailing comment."""
     lines = []
     for lang, body in fenced_blocks(text):
         if lang == "python":
             continue
         for line in body.splitlines():
-            line = line.strip()
+            line = line.strip().removeprefix("$ ")      # docs/commands.md shows a prompt
             if line.startswith("place3d "):
                 lines.append(line.split(" #", 1)[0].strip())
     return lines
@@ -123,7 +124,9 @@ def test_commands_doc_has_a_section_per_subcommand():
     for name in names:
         section = text.split(f"## place3d {name}", 1)[1].split("\n## ", 1)[0]
         assert "```" in section, f"docs/commands.md: section 'place3d {name}' has no example"
-    for line in place3d_lines(text):
+    lines = place3d_lines(text)
+    assert len(lines) >= len(names)
+    for line in lines:
         argv = shlex.split(line)[1:]
         if argv != ["--version"] and "--help" not in argv:
             build_parser().parse_args(argv)
