@@ -140,3 +140,13 @@ def test_shipped_carla_map_by_name_from_any_folder(tmp_path, monkeypatch):
     assert SceneSpec("opendrive:Town01").validate().kind == "opendrive"
     with pytest.raises(FileNotFoundError, match="shipped maps by name"):
         SceneSpec("opendrive:Town99").validate()
+
+
+def test_package_docstring_example_runs():
+    """The example in ``help(place3d_kernels)`` runs and prints what it shows (P-SOG cache: per test)."""
+    import doctest
+
+    import place3d_kernels
+
+    r = doctest.testmod(place3d_kernels, verbose=False)
+    assert r.attempted >= 3 and r.failed == 0
