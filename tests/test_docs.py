@@ -150,3 +150,22 @@ def test_package_docstring_example_runs():
 
     r = doctest.testmod(place3d_kernels, verbose=False)
     assert r.attempted >= 3 and r.failed == 0
+
+
+def test_bench_table_is_readable(capsys, tmp_path, monkeypatch):
+    """`place3d bench` ends in a table (workloads x backends, units in the labels), not raw dicts."""
+    from place3d_kernels.cli import main
+    from place3d_kernels.kernel_bench import format_table
+
+    res = {"info": {"cpu": "CPU", "cores": 2, "date": "2026-11-24"},
+           "backends": {"reference": {"placement_eval_ms": 3080.0, "traverse_steps": 5},
+                        "warp:cpu": {"placement_eval_ms": 42.7, "raycast_town_mrays_s": 1.9}}}
+    lines = format_table(res).splitlines()
+    assert lines[1].split() == ["workload", "reference", "warp:cpu"]
+    assert lines[3].split()[-2:] == ["3,080", "42.7"] and "[ms]" in lines[3]
+    assert lines[4].split()[-2:] == ["-", "1.9"] and "[M rays/s]" in lines[4]
+    assert len(lines) == 5                   # traverse_steps is a count, not a figure: no row
+    monkeypatch.chdir(tmp_path)
+    assert main(["bench", "--output", "b.csv"]) == 2        # refused before any timing
+    assert not list(tmp_path.iterdir())
+    assert "only .json" in capsys.readouterr().err
