@@ -1,12 +1,30 @@
 """place3d-kernels: fast, exact kernels for multi-LiDAR placement (Place3D, NeurIPS 2024).
 
-Public API (see the README and docs/architecture.md):
+Score a rig by M-SOG on the embedded town (the first call simulates 40 frames and caches the P-SOG in
+``$PLACE3D_CACHE`` or ~/.cache/place3d; higher is better):
 
 >>> import place3d_kernels as p3k
->>> p3k.available_backends()
->>> scene = p3k.scene.town(seed=0)
->>> psog = p3k.scene_psog(scene)
->>> p3k.msog(psog, p3k.LidarModel.load("place3d_16ch"), p3k.Placement.load("pyramid"))
+>>> p3k.available_backends()                            # doctest: +SKIP
+['reference', 'warp:cpu', 'opencl:pocl']
+>>> psog = p3k.scene_psog(p3k.scene.town(seed=0))
+>>> lidar = p3k.LidarModel.load("place3d_16ch")
+>>> round(p3k.msog(psog, lidar, p3k.Placement.load("pyramid"), task="seg"), 6)
+-0.033291
+
+The API by topic (each name has its own docstring):
+
+- scenes and data: ``scene`` (``town``, ``from_opendrive``, ``load_mesh``, ``load_mitsuba_xml``), ``simulate``,
+  ``PointCloud``, ``conditions`` (fog, wet_ground, snow, ...), ``place3d_kernels.io`` (SemanticKITTI);
+- the metric: ``scene_psog`` / ``PSOG``, ``Grid`` / ``DEFAULT_GRID``, ``LidarModel``, ``Placement``
+  (``PAPER_PLACEMENTS``, ``BASELINES``), ``msog``, ``msog_batch``, ``covered_voxels``; the S-MIG baseline
+  ``smig`` / ``smig_batch``;
+- optimisation: ``optimize`` with ``SearchSpace``, ``Bounds``, ``MinDistance``, ``FixedHeight``,
+  ``FunctionConstraint`` -> ``OptimizeResult``;
+- kernels: ``raycast`` (-> ``Hits``), ``traverse`` (-> ``Traversal``), ``coverage``, ``lidar_rays``, ``Mesh``;
+- backends: ``available_backends``, ``backend_report``, ``get_backend``, ``use_backend``.
+
+The same work from the shell is the ``place3d`` command (``docs/commands.md``: one section per
+subcommand with a worked example); the README's Python snippet is run by ``tests/test_docs.py``.
 """
 
 from place3d_kernels.backends.registry import available_backends, backend_report, get_backend, use_backend

@@ -162,12 +162,21 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from place3d_kernels.kernel_bench import run_kernel_bench
+    from place3d_kernels.kernel_bench import format_table, run_kernel_bench
 
+    _check_output_file(args.output)
     res = run_kernel_bench(backends=args.backends, quick=args.quick, progress=not args.quiet)
-    print(json.dumps(res, indent=2))
+    if args.json:
+        print(json.dumps(res, indent=2))
+    else:
+        print(format_table(res))
     if args.output:
+        from place3d_kernels.manifest import provenance
+
+        res["provenance"] = provenance()
+        Path(args.output).parent.mkdir(parents=True, exist_ok=True)
         Path(args.output).write_text(json.dumps(res, indent=2))
+        print(f"wrote {args.output}")
     return 0
 
 
@@ -236,11 +245,12 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_arguments(p)
     p.set_defaults(func=reproduce.run)
 
-    p = sub.add_parser("bench", help="kernel microbenchmarks per backend (JSON)")
+    p = sub.add_parser("bench", help="kernel microbenchmarks per backend (a table; JSON with --json / --output)")
     p.add_argument("--backends", nargs="*", default=None, help="backends to time (default: all available)")
-    p.add_argument("--quick", action="store_true", help="smaller workloads")
-    p.add_argument("--output", help="write JSON here")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quick", action="store_true", help="skip the 1M-triangle city (ray-mesh on the town only)")
+    p.add_argument("--output", help="also write the results as JSON to this path")
+    p.add_argument("--json", action="store_true", help="print JSON instead of the table")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_bench)
 
     try:

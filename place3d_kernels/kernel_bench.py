@@ -22,7 +22,23 @@ from datetime import date
 
 import numpy as np
 
-__all__ = ["run_kernel_bench", "machine_info"]
+__all__ = ["run_kernel_bench", "machine_info", "format_table", "METRICS"]
+
+#: (result key, row label with its unit) of every figure ``run_kernel_bench`` reports, in table order
+METRICS: list[tuple[str, str]] = [
+    ("placement_eval_ms", "M-SOG, paper rig [ms]"),
+    ("population16_eval_ms", "M-SOG, population of 16 rigs [ms]"),
+    ("lidar_rays_ms", "rig rays, 16 000 [ms]"),
+    ("traverse_gsteps_s", "voxel traversal, API [G steps/s]"),
+    ("traverse_kernel_gsteps_s", "voxel traversal, kernel [G steps/s]"),
+    ("psog_build_s", "P-SOG from 8 frames [s]"),
+    ("town_bvh_build_s", "BVH build, town [s]"),
+    ("raycast_town_mrays_s", "ray-mesh, town, API [M rays/s]"),
+    ("raycast_town_kernel_mrays_s", "ray-mesh, town, kernel [M rays/s]"),
+    ("city_bvh_build_s", "BVH build, 1M-tri city [s]"),
+    ("raycast_mrays_s", "ray-mesh, city, API [M rays/s]"),
+    ("raycast_kernel_mrays_s", "ray-mesh, city, kernel [M rays/s]"),
+]
 
 
 def machine_info() -> dict:
@@ -97,6 +113,17 @@ def run_kernel_bench(backends=None, quick: bool = False, progress: bool = True, 
                       f"{scene.static.n_faces} triangles",
         "city_dense": "1M-triangle box city, dense rig 4 x 64 x 2048 rays",
         "psog_build": "8 simulated frames, k = 4, default grid"}, "backends": {}}
+    from tqdm import tqdm
+
+    # five workloads everywhere; the kernel-only traversal and ray-mesh (town, city) off the reference
+    steps_per_backend = {n: 5 + (n != "reference") * (2 if quick else 3) for n in names}
+    bar = tqdm(total=sum(steps_per_backend.values()), desc="bench", unit="workload", disable=not progress,
+               leave=False)
+
+    def tick(backend: str, workload: str) -> None:
+        bar.set_postfix_str(f"{backend}: {workload}")
+        bar.update(1)
+
     city = None
     for name in names:
         b = p3k.get_backend(name)
@@ -104,29 +131,61 @@ def run_kernel_bench(backends=None, quick: bool = False, progress: bool = True, 
         r: dict = {}
         o, d = p3k.lidar_rays(lidar, rig, backend=b)
         r["lidar_rays_ms"] = 1e3 * _time(lambda: b.lidar_rays(lidar.elevations, lidar.azimuths, rig.poses), sync)
+        tick(b.name, "rig rays")
         tr = p3k.traverse(psog.grid, o, d, lidar.max_range, backend=b)
         steps = len(tr.voxels)
         t = _time(lambda: p3k.traverse(psog.grid, o, d, lidar.max_range, backend=b), sync, repeat=3)
         r["traverse_gsteps_s"] = steps / t / 1e9
         r["traverse_steps"] = steps
+        tick(b.name, "traversal")
         r["placement_eval_ms"] = 1e3 * _time(lambda: p3k.msog(psog, lidar, rig, backend=b), sync, repeat=5)
+        tick(b.name, "M-SOG")
         r["population16_eval_ms"] = 1e3 * _time(lambda: p3k.msog_batch(psog, lidar, pop, backend=b), sync,
                                                 repeat=3)
+        tick(b.name, "population of 16")
         r["psog_build_s"] = _time(lambda: PSOG.from_frames(frames, psog.grid, 4, backend=b), sync, repeat=2)
+        tick(b.name, "P-SOG build")
         if b.resident_kernels:    # kernel only, rays already on the device
             run = b.resident_traverse(psog.grid.spec, psog.grid.to_local(o), d, lidar.max_range)
             r["traverse_kernel_gsteps_s"] = steps / _time(run, sync, repeat=5) / 1e9
+        if name != "reference":
+            tick(b.name, "traversal kernel")
         if name != "reference":   # brute-force reference ray-mesh is far too slow for these meshes
             co, cd = b.lidar_rays(collection.elevations, collection.azimuths, ego0[None])
             mesh = p3k.Mesh(scene.static.vertices, scene.static.faces, scene.static.labels)  # fresh: no cached BVH
             _ray_mesh(r, "town", b, mesh, co, cd, 100.0, repeat=3)
+            tick(b.name, "ray-mesh, town")
             if not quick:
                 if city is None:
                     city = box_city(1_000_000, seed=seed)
                     dense = p3k.LidarModel.uniform(64, (-25, 15), 2048, max_range=200.0)
                     do, dd = p3k.get_backend("reference").lidar_rays(dense.elevations, dense.azimuths, rig.poses)
                 _ray_mesh(r, "city", b, city, do, dd, 200.0, repeat=2)
+                tick(b.name, "ray-mesh, city")
         out["backends"][b.name] = r
-        if progress:
-            print(f"{b.name}: {r}", flush=True)
+    bar.close()
     return out
+
+
+def format_table(res: dict) -> str:
+    """``run_kernel_bench``'s result as a text table: one row per workload (unit in the label), one column
+    per backend; "-" where a backend does not run a workload (the reference has no ray-mesh or kernel-only
+    figures)."""
+    cols = list(res["backends"])
+    rows = [(label, [res["backends"][c].get(key) for c in cols]) for key, label in METRICS
+            if any(key in res["backends"][c] for c in cols)]
+
+    def fmt(v) -> str:
+        if v is None:
+            return "-"
+        return f"{v:,.3g}" if abs(v) < 100 else f"{v:,.0f}"
+
+    width = max([len("workload")] + [len(label) for label, _ in rows])
+    cw = [max(len(c), 8) for c in cols]
+    info = res.get("info", {})
+    lines = [f"{info.get('cpu', '?')}, {info.get('cores', '?')} cores, {info.get('date', '?')}; "
+             f"median of repeated runs after a warm-up",
+             f"{'workload':{width}s}  " + "  ".join(f"{c:>{w}s}" for c, w in zip(cols, cw))]
+    lines.append("-" * len(lines[-1]))
+    lines += [f"{label:{width}s}  " + "  ".join(f"{fmt(v):>{w}s}" for v, w in zip(vals, cw)) for label, vals in rows]
+    return "\n".join(lines)

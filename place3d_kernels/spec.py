@@ -127,9 +127,16 @@ class SceneSpec:
             raise ValueError(f"--route applies to mesh scenes ('mesh:PATH'), not {self.name!r}")
         if self.name == "town":
             return self
+        if self.kind == "opendrive" and not self.path.is_file():
+            from place3d_kernels.data import CARLA_TOWNS
+
+            # a shipped CARLA map by name ('opendrive:Town01'), as parse_opendrive resolves it
+            if self.path.name.removesuffix(".xodr") in CARLA_TOWNS:
+                return self
         if self.kind in ("opendrive", "mesh"):
             if not self.path.is_file():
-                raise FileNotFoundError(f"scene {self.name!r}: no such file {self.path}")
+                raise FileNotFoundError(f"scene {self.name!r}: no such file {self.path}"
+                                        + (" (shipped maps by name: opendrive:Town01, ...)" if self.kind == "opendrive" else ""))
             return self
         if self.kind == "semantickitti":
             if not (self.path / "velodyne").is_dir():

@@ -115,6 +115,14 @@ def backend_report() -> list[tuple[str, bool, str]]:
     names, missing = _probe()
     rows = [(n, True, "") for n in names]
     rows += [(fam, False, why) for fam, why in missing]
+    # a family that imports but finds no CUDA device says why only in its start-up output (Warp: "Could
+    # not find or load the NVIDIA CUDA driver"); the report quotes it so that a missing GPU is explained
+    for fam, spec in FAMILIES.items():
+        if not spec.startup_note or spec.module not in sys.modules:
+            continue
+        note = getattr(sys.modules[spec.module], spec.startup_note)()
+        if note and "cuda" in note.lower() and not any(n.startswith(f"{fam}:cuda") for n in names):
+            rows.append((f"{fam}:cuda", False, f"no CUDA device usable ({fam} said at start-up: {note})"))
     return rows
 
 
