@@ -114,6 +114,7 @@ class _WarpMesh:
         self.points = points
         self.indices = indices
         self.corners64 = corners64
+        self.t_const = None       # (n, t_max) and its (n,) device array, for repeated scalar bounds
 
 
 class _WarpGrid:
@@ -249,12 +250,33 @@ class WarpCore(Backend):
         n = len(origins)
         out_t = wp.empty(n, dtype=wp.float64, device=self.device)
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
-        o, d, tm = self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n)
+        o, d, tm = self._rays_in(origins), self._rays_in(directions), self._t_in(mesh, t_max, n)
         self._launch(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], d[a:b], tm[a:b],
                                                             out_t[a:b], out_f[a:b]])
         t = out_t.numpy()
-        t[t >= 1.0e300] = np.inf
+        # the kernel writes INF64 (1e300, finite for float64 arithmetic on every device) on a miss
+        np.copyto(t, np.inf, where=t >= 1.0e300)
         return t, out_f.numpy()
+
+    def _rays_in(self, a) -> "wp.array":
+        """(N, 3) float64 rays as a vec3d array: on the CPU the NumPy memory itself when it is already
+        contiguous float64 (no copy; the caller's array outlives the launch), else a copy."""
+        if not self.device.is_cuda:
+            a = np.asarray(a)
+            if a.dtype == np.float64 and a.ndim == 2 and a.flags.c_contiguous:
+                return wp.array(a, dtype=wp.vec3d, device=self.device, copy=False)
+        return self._vec3d(a)
+
+    def _t_in(self, mesh, t, n) -> "wp.array":
+        # a scalar bound becomes an (n,) array once per (n, value) and stays on the mesh handle (read-only);
+        # per-ray bounds are copied as before
+        if np.ndim(t) != 0:
+            return self._f64(t, n)
+        key = (int(n), float(t))
+        cached = getattr(mesh, "t_const", None)
+        if cached is None or cached[0] != key:
+            cached = mesh.t_const = (key, self._f64(key[1], n))
+        return cached[1]
 
     def resident_raycast(self, mesh, origins, directions, t_max):
         """For benchmarks: a zero-argument callable that launches the ray-mesh kernel on rays already on
