@@ -118,11 +118,15 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
     out["api_bvh_build_s"] = time.perf_counter() - t
     p3k.raycast(mesh, o, d, t_max, backend=b)    # warm-up (compiles on a cold cache)
     walls = []
-    for _ in range(REPEATS):
-        t = time.perf_counter()
-        hits = p3k.raycast(mesh, o, d, t_max, backend=b)
-        walls.append(time.perf_counter() - t)
+    from place3d_kernels.profiling import profile
+
+    with profile(print_table=False) as prof:       # per-step split of the API call (validate, shift, ...)
+        for _ in range(REPEATS):
+            t = time.perf_counter()
+            hits = p3k.raycast(mesh, o, d, t_max, backend=b)
+            walls.append(time.perf_counter() - t)
     out["api_s"] = stats(walls)
+    out["api_steps_mean_s"] = {k[-1]: v[0] / v[1] for k, v in prof.totals.items()}
     out["api_mrays_s"] = n / out["api_s"]["median"] / 1e6
 
     if backend.startswith("warp:"):

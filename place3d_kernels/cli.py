@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
 from pathlib import Path
+
+from place3d_kernels.profiling import profile, section
 
 
 __all__ = ["main"]
@@ -61,11 +64,13 @@ def _psog(spec, args, backend):
     from place3d_kernels.pipeline import check_entropy
 
     t = time.perf_counter()
-    psog = spec.build(backend=backend, cache=not args.no_cache, progress=not args.quiet)
+    with section("P-SOG (cache or build)"):
+        psog = spec.build(backend=backend, cache=not args.no_cache, progress=not args.quiet)
     check_entropy(psog, spec.frames_per_subset)
     if not args.quiet:
         print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
-    return (None if spec.scene.kind == "semantickitti" else spec.scene.build()), psog
+    with section("scene build"):
+        return (None if spec.scene.kind == "semantickitti" else spec.scene.build()), psog
 
 
 # ---------------------------------------------------------------------------------------- commands
@@ -200,6 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     ap = argparse.ArgumentParser(prog="place3d", description="Multi-LiDAR placement kernels (Place3D metric and optimiser)")
     ap.add_argument("--version", action="version", version=f"place3d-kernels {__version__}")
+    ap.add_argument("--profile", action="store_true",
+                    help="print where the command's time went (sections: backend probe, scene, P-SOG, scoring, "
+                         "CMA-ES, plotting, writing) on stderr at the end")
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("backends", help="list available backends and why others are missing")
@@ -272,7 +280,8 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     set_command_line(None if argv is None else ["place3d", *argv])
     try:
-        return int(args.func(args) or 0)
+        with (profile() if args.profile else contextlib.nullcontext()):
+            return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
         print(f"place3d: error: {e}", file=sys.stderr)
         return 2

@@ -13,6 +13,7 @@ import numpy as np
 from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.grid import Grid
 from place3d_kernels.mesh import Mesh
+from place3d_kernels.profiling import section
 
 __all__ = ["Hits", "Traversal", "raycast", "traverse", "coverage", "check_rays"]
 
@@ -50,8 +51,12 @@ def _row_norm(a: np.ndarray) -> np.ndarray:
     return np.sqrt(a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1] + a[:, 2] * a[:, 2])
 
 
-def check_rays(origins, directions, t, what: str = "t_end") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Validate and normalise ray inputs; raise ValueError naming the first bad value and the fix."""
+def _bad_row(a: np.ndarray) -> int:
+    return int(np.argmax(~np.all(np.isfinite(a), axis=1)))
+
+
+def _check_od(origins, directions) -> tuple[np.ndarray, np.ndarray]:
+    """Validated float64 (N, 3) origins (possibly a broadcast view) and unit directions (contiguous)."""
     o = np.asarray(origins, dtype=np.float64)
     d = np.asarray(directions, dtype=np.float64)
     if o.ndim == 1:
@@ -64,10 +69,12 @@ def check_rays(origins, directions, t, what: str = "t_end") -> tuple[np.ndarray,
         o = np.broadcast_to(o, d.shape)
     if o.shape != d.shape:
         raise ValueError(f"origins {o.shape} and directions {d.shape} must have the same shape")
-    for a, what_ in ((o, "origin"), (d, "direction")):
-        if not np.isfinite(a).all():      # whole-array test first; the row only on failure
-            i = int(np.argmax(~np.all(np.isfinite(a), axis=1)))
-            raise ValueError(f"ray {i} has a non-finite {what_} {a[i].tolist()}; drop or fix such rays first")
+    if not np.isfinite(o[:1] if o.strides[0] == 0 else o).all():   # whole array first; the row on failure
+        i = _bad_row(o)
+        raise ValueError(f"ray {i} has a non-finite origin {o[i].tolist()}; drop or fix such rays first")
+    if not np.isfinite(d).all():
+        i = _bad_row(d)
+        raise ValueError(f"ray {i} has a non-finite direction {d[i].tolist()}; drop or fix such rays first")
     norm = _row_norm(d)
     if not norm.all():
         i = int(np.argmax(norm == 0))
@@ -79,15 +86,32 @@ def check_rays(origins, directions, t, what: str = "t_end") -> tuple[np.ndarray,
     if off.any():
         d = d.copy()
         d[off] /= norm[off, None]
+    return o, np.ascontiguousarray(d)
+
+
+def _check_t(t, n: int, what: str, scalar: bool = False):
+    """Validated ``t``: (n,) float64, or a Python float when ``scalar`` and ``t`` is one."""
     tt = np.asarray(t, dtype=np.float64)
     if tt.ndim == 0:
-        tt = np.full(len(o), float(tt))
-    if tt.shape != (len(o),):
-        raise ValueError(f"{what} must be a scalar or one value per ray ({len(o)}), got shape {tt.shape}")
-    if not (tt >= 0).all():              # NaN fails this too
+        if n and not tt >= 0:             # NaN fails this too
+            raise ValueError(f"{what} of ray 0 is {float(tt)}; it must be >= 0 (inf allowed)")
+        return float(tt) if scalar else np.full(n, float(tt))
+    if tt.shape != (n,):
+        raise ValueError(f"{what} must be a scalar or one value per ray ({n}), got shape {tt.shape}")
+    if not (tt >= 0).all():
         i = int(np.argmax(~(tt >= 0)))
         raise ValueError(f"{what} of ray {i} is {tt[i]}; it must be >= 0 (inf allowed)")
-    return np.ascontiguousarray(o), np.ascontiguousarray(d), tt
+    return tt
+
+
+def check_rays(origins, directions, t, what: str = "t_end") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate and normalise ray inputs; raise ValueError naming the first bad value and the fix.
+
+    Returns contiguous float64 (N, 3) origins, unit directions and (N,) ``t``.
+    """
+    o, d = _check_od(origins, directions)
+    tt = _check_t(t, len(o), what)
+    return np.ascontiguousarray(o), d, tt
 
 
 def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits:
@@ -100,12 +124,22 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
         t_max: scalar or (N,) maximum distance.
         backend: backend name or instance (default: the current one).
     """
-    o, d, tm = check_rays(origins, directions, t_max, "t_max")
+    with section("raycast: validate"):
+        o, d = _check_od(origins, directions)
+        tm = _check_t(t_max, len(o), "t_max", scalar=True)
     b = get_backend(backend)
-    tm32 = np.minimum(tm, 1e30)  # float32 kernels need a finite bound
-    t, face = b.raycast(mesh.handle(b), o - mesh.shift, d, tm32)
-    face = mesh.original_face(face)
-    label = np.where(face >= 0, mesh.labels[np.clip(face, 0, None)], -1)
+    # float32 kernels need a finite bound; a scalar stays a scalar (backends broadcast it)
+    tm32 = min(tm, 1e30) if isinstance(tm, float) else np.minimum(tm, 1e30)
+    with section("raycast: shift"):
+        local = np.subtract(o, mesh.shift)     # a new contiguous array, also when o is a broadcast view
+    handle = mesh.handle(b)
+    with section("raycast: backend"):
+        t, face = b.raycast(handle, local, d, tm32)
+    with section("raycast: outputs"):
+        face = mesh.original_face(face)
+        # face -1 reads the last label (NumPy's negative index) and is then overwritten: one gather
+        label = mesh.labels[face]
+        label[face < 0] = -1
     return Hits(np.asarray(t, dtype=np.float64), face, label)
 
 

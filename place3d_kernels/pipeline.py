@@ -10,6 +10,7 @@ import numpy as np
 from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.manifest import verify_manifest, write_manifest
+from place3d_kernels.profiling import section
 from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
 from place3d_kernels.sog import PSOG, cache_dir, cache_key
 
@@ -51,10 +52,12 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
                 # the file name is a hash of the inputs; the manifest beside it holds the inputs themselves,
                 # so a stale or colliding file is caught here instead of silently reused
                 verify_manifest(manifest, inputs, "P-SOG cache", "it is rebuilt")
-                return PSOG.load(path)
+                with section("P-SOG cache load"):
+                    return PSOG.load(path)
             except Exception as e:  # noqa: BLE001 - a broken or mismatching cache file is rebuilt, not fatal
                 log.warning("ignoring P-SOG cache %s: %s", path, e)
-    frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress)
+    with section("P-SOG build: simulate"):
+        frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress)
     if condition is not None:
         frames = [condition(f, i) for i, f in enumerate(frames)]
     psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)

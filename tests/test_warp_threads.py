@@ -65,6 +65,55 @@ def test_split_population_scores_equal_unsplit(pair):
     assert np.array_equal(a, p3k.msog_batch(psog, lidar, pop, backend="reference"))
 
 
+@pytest.mark.parametrize("occlusion", ["sog", "none"])
+def test_split_single_rig_equals_unsplit(pair, occlusion, monkeypatch):
+    # one rig's rays over the threads (per-thread bitsets OR-ed, sum from the union) against one launch
+    from place3d_kernels.backends.warp import host
+
+    monkeypatch.setattr(host, "SPLIT_SINGLE_RIG", True)
+    one, many = pair
+    grid = p3k.Grid(p3k.DEFAULT_GRID.lower, p3k.DEFAULT_GRID.upper, 0.4)
+    psog = p3k.scene_psog(p3k.scene.town(seed=0), grid=grid, backend=one)
+    lidar = p3k.LidarModel.load("place3d_16ch")
+    scores = {}
+    for name in ("pyramid", "line", "center"):
+        rig = p3k.Placement.load(name).poses[None]
+        a = p3k.msog_batch(psog, lidar, rig, occlusion=occlusion, backend=one)
+        b = p3k.msog_batch(psog, lidar, rig, occlusion=occlusion, backend=many)
+        assert np.array_equal(a, b), name
+        assert np.array_equal(a, p3k.msog_batch(psog, lidar, rig, occlusion=occlusion, backend="reference")), name
+        scores[name] = float(a[0])
+    assert len(set(scores.values())) == 3 and all(np.isfinite(list(scores.values())))
+
+
+
+def test_split_single_rig_path_runs_and_matches_one_launch(pair, monkeypatch):
+    # sums and covered-voxel counts straight from score_placements: split path vs the one launch
+    _, many = pair
+    calls = []
+    split = many._score_one_rig_split
+    monkeypatch.setattr(many, "_score_one_rig_split", lambda *a: calls.append(1) or split(*a))
+    grid = p3k.Grid(p3k.DEFAULT_GRID.lower, p3k.DEFAULT_GRID.upper, 0.4)
+    rng = np.random.default_rng(5)
+    weights = np.where(rng.random(grid.n_voxels) < 0.3, rng.integers(1, 1 << 32, grid.n_voxels), 0)
+    stop = (rng.random(grid.n_voxels) < 0.002).astype(np.uint8)
+    handle = many.prepare_grid(grid.spec, weights, stop)
+    lidar = p3k.LidarModel.load("place3d_16ch")
+    poses = p3k.Placement.load("pyramid").poses[None]
+    args = (handle, lidar.elevations, lidar.azimuths, 60.0, poses)
+    from place3d_kernels.backends.warp import host
+
+    monkeypatch.setattr(host, "SPLIT_SINGLE_RIG", True)
+    s1, c1 = many.score_placements(*args)
+    assert calls, "the single-rig split path did not run"
+    monkeypatch.setattr(host, "SPLIT_SINGLE_RIG", False)
+    n = len(calls)
+    s2, c2 = many.score_placements(*args)
+    assert len(calls) == n
+    assert c1[0] > 1000 and s1[0] > 0
+    assert np.array_equal(s1, s2) and np.array_equal(c1, c2)
+
+
 @pytest.mark.parametrize("value", ["0", "-2", "two"])
 def test_thread_count_variable_rejects_bad_values(monkeypatch, value):
     monkeypatch.setenv("PLACE3D_WARP_CPU_THREADS", value)

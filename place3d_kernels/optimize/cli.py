@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from place3d_kernels.profiling import section
+
 __all__ = ["add_arguments", "run", "plot_coverage"]
 
 
@@ -109,9 +111,11 @@ def run(args, spec, psog_for) -> int:
     if args.opt_seed is None:
         args.opt_seed = args.seed          # --seed S seeds the scene and the optimiser alike
     check_args(args, spec)
-    b = get_backend(args.backend)
+    with section("backend probe"):
+        b = get_backend(args.backend)
     lidar = LidarModel.load(args.lidar)
-    _, psog = psog_for(b)
+    with section("scene + P-SOG"):
+        _, psog = psog_for(b)
     space = SearchSpace(n_lidars=args.lidars)
     cons = [MinDistance(args.min_distance)] if args.lidars > 1 else []
     if args.fixed_height is not None:
@@ -133,8 +137,9 @@ def run(args, spec, psog_for) -> int:
     baselines = {}
     if args.lidars == 4:
         for name in PAPER_PLACEMENTS:
-            baselines[name] = float(msog_batch(psog, lidar, Placement.load(name).poses[None], args.occlusion,
-                                               args.task, b)[0])
+            with section("baseline scores"):
+                    baselines[name] = float(msog_batch(psog, lidar, Placement.load(name).poses[None],
+                                                   args.occlusion, args.task, b)[0])
     # A warm start from the best paper placement with a smaller step: on the default town the "center"
     # rig is a strong local optimum for detection, which 2,000-evaluation runs from the box centre
     # (sigma0 0.3) beat in none of seeds 0-3 and runs from center (sigma0 0.15) in each of them
@@ -194,7 +199,8 @@ def run(args, spec, psog_for) -> int:
                   "pose_cache": ({"traversed": objective.pose_misses, "reused": objective.pose_hits}
                                  if args.pose_cache and executor is None else None),
                   "details": res.to_dict(), "provenance": provenance(backend=b.name)}
-        (out / "result.json").write_text(json.dumps(result, indent=2, default=float))
+        with section("writing result.json"):
+            (out / "result.json").write_text(json.dumps(result, indent=2, default=float))
         with open(out / "history.csv", "w", newline="") as fh:
             if res.history:
                 w = csv.DictWriter(fh, fieldnames=list(res.history[0].keys()))
@@ -202,9 +208,10 @@ def run(args, spec, psog_for) -> int:
                 w.writerows(res.history)
         from place3d_kernels.optimize import plot_convergence, plot_rig
 
-        plot_convergence(res.history, out / "convergence.png")
-        plot_rig(best, out / "rig.png", baselines=None, bounds=space)
-        plot_coverage(psog, lidar, best, out / "coverage.png", backend=b, occlusion=args.occlusion)
+        with section("plotting"):
+            plot_convergence(res.history, out / "convergence.png")
+            plot_rig(best, out / "rig.png", baselines=None, bounds=space)
+            plot_coverage(psog, lidar, best, out / "coverage.png", backend=b, occlusion=args.occlusion)
         print(f"wrote {out}/result.json, history.csv, optimized-{args.task}.toml, convergence.png, rig.png, coverage.png")
     return 0
 

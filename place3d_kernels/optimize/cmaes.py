@@ -21,6 +21,8 @@ import warnings
 
 import numpy as np
 
+from place3d_kernels.profiling import section
+
 __all__ = ["METHODS", "make_strategy", "default_popsize"]
 
 METHODS = ("cma", "random", "grid")
@@ -48,7 +50,8 @@ class CMAStrategy:
                  options: dict | None = None):
         from place3d_kernels.lazy_imports import import_cma
 
-        cma = import_cma()  # the only import of pycma: only this strategy needs it
+        with section("import cma"):
+            cma = import_cma()  # the only import of pycma: only this strategy needs it
 
         self._np_state = np.random.RandomState(seed).get_state()
         n = len(kmin)
@@ -80,12 +83,12 @@ class CMAStrategy:
             np.random.set_state(outer)
 
     def ask(self) -> np.ndarray:
-        with self._rng():
+        with section("CMA-ES ask/tell"), self._rng():
             self._asked = self.es.ask()
         return np.array(self._asked, dtype=np.float64)
 
     def tell(self, values) -> None:
-        with self._rng():
+        with section("CMA-ES ask/tell"), self._rng():
             self.es.tell(self._asked, [float(v) for v in values])
         self._asked = None
 

@@ -24,6 +24,7 @@ from place3d_kernels.optimize.cmaes import METHODS, make_strategy
 from place3d_kernels.optimize.constraints import Constraint, prepare, total_penalty
 from place3d_kernels.optimize.space import DEFAULT_DELTA, SearchSpace
 from place3d_kernels.placement import Placement
+from place3d_kernels.profiling import section
 
 __all__ = ["optimize", "OptimizeResult", "DEFAULT_PENALTY_WEIGHT"]
 
@@ -389,7 +390,8 @@ def _run_generations(grid: _Grid, state, objective, max_evals, max_stall_generat
 def _evaluate(objective, X, new, keys, P, state) -> None:
     """Score the rows ``new`` of X (not yet cached) in one objective call; record them in ``state``."""
     Xn = np.ascontiguousarray(X[new])
-    Fn = objective(Xn)
+    with section("scoring (objective)"):
+        Fn = objective(Xn)
     try:
         Fn = np.asarray(Fn, dtype=np.float64)
     except (TypeError, ValueError):

@@ -106,6 +106,12 @@ def cpu_threads() -> int:
 # "Figures behind backend code comments")
 MIN_CHUNK = 2048
 CHUNKS_PER_THREAD = 8    # many small chunks per thread balance rays of very different lengths
+# Split a single rig on the CPU over the threads (per-thread bitsets, OR-ed; _score_one_rig_split)?
+# Exact, but off: on the 2-core dev VM under load it measured no gain (split on the pool 304-355 ms against
+# 285-289 ms for one launch, collection_64ch rig on the town, 2026-11-24); the split work alone costs
+# 8-17 % more (near-sensor voxels marked once per thread, the union's sum on the host). Turn it on where
+# idle cores make the threads pay (tests force it on to check it stays exact).
+SPLIT_SINGLE_RIG = False
 
 
 class _WarpMesh:
@@ -114,6 +120,7 @@ class _WarpMesh:
         self.points = points
         self.indices = indices
         self.corners64 = corners64
+        self.t_const = None       # (n, t_max) and its (n,) device array, for repeated scalar bounds
 
 
 class _WarpGrid:
@@ -249,12 +256,33 @@ class WarpCore(Backend):
         n = len(origins)
         out_t = wp.empty(n, dtype=wp.float64, device=self.device)
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
-        o, d, tm = self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n)
+        o, d, tm = self._rays_in(origins), self._rays_in(directions), self._t_in(mesh, t_max, n)
         self._launch(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], d[a:b], tm[a:b],
                                                             out_t[a:b], out_f[a:b]])
         t = out_t.numpy()
-        t[t >= 1.0e300] = np.inf
+        # the kernel writes INF64 (1e300, finite for float64 arithmetic on every device) on a miss
+        np.copyto(t, np.inf, where=t >= 1.0e300)
         return t, out_f.numpy()
+
+    def _rays_in(self, a) -> "wp.array":
+        """(N, 3) float64 rays as a vec3d array: on the CPU the NumPy memory itself when it is already
+        contiguous float64 (no copy; the caller's array outlives the launch), else a copy."""
+        if not self.device.is_cuda:
+            a = np.asarray(a)
+            if a.dtype == np.float64 and a.ndim == 2 and a.flags.c_contiguous:
+                return wp.array(a, dtype=wp.vec3d, device=self.device, copy=False)
+        return self._vec3d(a)
+
+    def _t_in(self, mesh, t, n) -> "wp.array":
+        # a scalar bound becomes an (n,) array once per (n, value) and stays on the mesh handle (read-only);
+        # per-ray bounds are copied as before
+        if np.ndim(t) != 0:
+            return self._f64(t, n)
+        key = (int(n), float(t))
+        cached = getattr(mesh, "t_const", None)
+        if cached is None or cached[0] != key:
+            cached = mesh.t_const = (key, self._f64(key[1], n))
+        return cached[1]
 
     def resident_raycast(self, mesh, origins, directions, t_max):
         """For benchmarks: a zero-argument callable that launches the ray-mesh kernel on rays already on
@@ -339,6 +367,8 @@ class WarpCore(Backend):
                       inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
                               int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
                       block_dim=self.k.SCORE_BLOCK_DIM)
+        elif P == 1 and self.threads > 1 and rays >= 2 * MIN_CHUNK and SPLIT_SINGLE_RIG:
+            return self._score_one_rig_split(handle, sd, rot, pos, L, t_max)
         elif P == 1 or self.threads <= 1:
             # no block_dim on the CPU: the default keeps the kernels module's one compiled variant
             wp.launch(self.k.score_kernel, dim=P * rays, device=self.device,
@@ -356,6 +386,40 @@ class WarpCore(Backend):
         wp.launch(self.k.count_bits_kernel, dim=P * chunks, device=self.device,
                   inputs=[bits, int(words), int(chunks), counts])
         return sums.numpy(), counts.numpy()
+
+    def _score_one_rig_split(self, handle, sd, rot, pos, L, t_max):
+        """CPU: one rig's rays over the thread pool, exactly. Thread c walks the sensor directions
+        ``sd[c::K]`` (interleaved, so every thread gets rays of every length) of all L LiDARs into a bitset
+        of its own; the K bitsets are OR-ed afterwards and the rig's sum is the weights of the union's
+        bits with entropy (integer sum: order-free), its count the union's set bits, as one launch gives."""
+        spec = handle.spec
+        nx, ny, nz = spec.shape
+        bx, by, bz = brick_shape(spec.shape)
+        words = bx * by * bz
+        K = min(self.threads, len(sd) // MIN_CHUNK * L) or 1
+        bits = wp.zeros(K * words, dtype=wp.uint32, device=self.device)
+        sums = wp.zeros(K, dtype=wp.int64, device=self.device)     # per-thread first-setter sums: unused
+        chunks = []
+        for c in range(K):
+            part = self._vec3d(sd[c::K])
+            chunks.append((0, L * len(sd[c::K]), [part, rot, pos, int(L), float(t_max), float(spec.voxel_size),
+                                                  int(nx), int(ny), int(nz), int(by), int(bz), handle.masks,
+                                                  handle.weights, int(words), bits[c * words:(c + 1) * words],
+                                                  sums[c:c + 1]]))
+        self._run_chunks(self.k.score_kernel, chunks)
+        union = np.bitwise_or.reduce(bits.numpy().reshape(K, words), axis=0)
+        count = int(np.bitwise_count(union).sum(dtype=np.int64))
+        ent = union & handle.masks.numpy()[1::2]          # bits of covered voxels with a nonzero weight
+        wi = np.flatnonzero(ent)
+        total = 0
+        if len(wi):
+            b = np.arange(32, dtype=np.uint32)
+            word_i, bit = np.nonzero((ent[wi, None] >> b) & np.uint32(1))
+            w = wi[word_i]
+            bk, bj, bi = w % bz, (w // bz) % by, w // (bz * by)
+            i, j, k = bi * 4 + (bit & 3), bj * 4 + ((bit >> 2) & 3), bk * 2 + (bit >> 4)
+            total = int(handle.weights.numpy()[(i * ny + j) * nz + k].sum(dtype=np.int64))
+        return np.array([total], dtype=np.int64), np.array([count], dtype=np.int64)
 
     # ------------------------------------------------------------------ occupancy
     def voxel_keys(self, grid, points):

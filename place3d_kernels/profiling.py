@@ -1,0 +1,128 @@
+"""Where the time of a command went: named wall-clock sections, off unless a profile is running.
+
+Code marks a step with ``with section("scene build"): ...``. Outside ``profile()`` a section costs one
+global test and a ``nullcontext`` (well under a microsecond), so call sites stay in hot loops. Inside,
+each section adds its ``time.perf_counter`` span to an accumulator (total seconds and number of entries).
+Nested sections are timed on their own and also inside their parent; the table indents them, so a
+parent's row includes its children's time. Sections opened on other threads are counted at top level.
+
+    place3d --profile optimize --max-evals 300     # prints the table on stderr when the command ends
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import threading
+import time
+
+__all__ = ["section", "profile", "enabled", "report", "Profile"]
+
+_ACTIVE: "Profile | None" = None
+_NULL = contextlib.nullcontext()
+
+
+class Profile:
+    """Accumulated sections: ``totals[path] = [seconds, calls]``, ``path`` a tuple of nested names."""
+
+    def __init__(self):
+        self.totals: dict[tuple[str, ...], list] = {}
+        self.start = time.perf_counter()
+        self.wall = 0.0
+        self._local = threading.local()
+
+    def _stack(self) -> list[str]:
+        s = getattr(self._local, "stack", None)
+        if s is None:
+            s = self._local.stack = []
+        return s
+
+    @contextlib.contextmanager
+    def section(self, name: str):
+        stack = self._stack()
+        stack.append(name)
+        path = tuple(stack)
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            dt = time.perf_counter() - t
+            stack.pop()
+            acc = self.totals.setdefault(path, [0.0, 0])
+            acc[0] += dt
+            acc[1] += 1
+
+    def table(self) -> str:
+        """The sections as an indented text table in first-seen order, with the whole span last."""
+        wall = self.wall or (time.perf_counter() - self.start)
+        rows = [f"{'section':44s} {'seconds':>9s} {'calls':>7s} {'share':>6s}"]
+        for path, (sec, calls) in _tree_order(self.totals):
+            name = "  " * (len(path) - 1) + path[-1]
+            rows.append(f"{name[:44]:44s} {sec:9.3f} {calls:7d} {100 * sec / wall if wall else 0:5.1f}%")
+        top = sum(v[0] for p, v in self.totals.items() if len(p) == 1)
+        rows.append(f"{'(not in a section)':44s} {max(wall - top, 0.0):9.3f}")
+        rows.append(f"{'total (profile span)':44s} {wall:9.3f}")
+        return "\n".join(rows)
+
+
+def _tree_order(totals):
+    # parents before their children, siblings in first-seen order (dicts keep insertion order; a child
+    # can finish before its parent is recorded, so order by each path prefix's first appearance)
+    first = {}
+    for i, p in enumerate(totals):
+        for k in range(1, len(p) + 1):
+            first.setdefault(p[:k], i)
+    return sorted(totals.items(), key=lambda kv: [first[kv[0][:k]] for k in range(1, len(kv[0]) + 1)])
+
+
+def enabled() -> bool:
+    """Whether a profile is being recorded."""
+    return _ACTIVE is not None
+
+
+def section(name: str):
+    """Context manager timing one step under ``name`` while a profile runs; a no-op otherwise."""
+    p = _ACTIVE
+    return _NULL if p is None else p.section(name)
+
+
+@contextlib.contextmanager
+def profile(out=None, print_table: bool = True):
+    """Record sections for the duration of the block; print the table to ``out`` (stderr) at its end.
+
+    Yields the ``Profile``; the table is printed even if the block raises.
+    """
+    global _ACTIVE
+    prev, p = _ACTIVE, Profile()
+    _ACTIVE = p
+    try:
+        yield p
+    finally:
+        p.wall = time.perf_counter() - p.start
+        _ACTIVE = prev
+        if print_table:
+            print(report(p, _since_start(p)), file=out or sys.stderr)
+
+
+def _since_start(p: Profile) -> float | None:
+    # seconds from interpreter start-up to the profile's start (imports of the package and argparse),
+    # where the platform tells the process start time
+    try:
+        import os
+
+        with open(f"/proc/{os.getpid()}/stat") as f:
+            ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+        with open("/proc/uptime") as f:
+            up = float(f.read().split()[0])
+        return max(up - ticks / os.sysconf("SC_CLK_TCK") - (time.perf_counter() - p.start), 0.0)
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+
+
+def report(p: Profile, before: float | None = None) -> str:
+    """The profile table with a header line (and the start-up time before it, if known)."""
+    head = "place3d profile (wall seconds; nested rows are part of their parent)"
+    if before is not None:
+        head += f"\nprocess start-up before the profile (interpreter, first imports): {before:.3f} s"
+    return head + "\n" + p.table()
+

@@ -1,0 +1,39 @@
+"""profiling.section / profile: off by default, nested accumulation, the table the CLI prints."""
+
+import io
+import time
+
+from place3d_kernels import profiling
+
+
+def test_section_is_a_no_op_outside_a_profile():
+    assert not profiling.enabled()
+    with profiling.section("x"):
+        pass
+    assert not profiling.enabled()
+
+
+def test_profile_accumulates_nested_sections_and_prints_a_table():
+    out = io.StringIO()
+    with profiling.profile(out=out) as p:
+        assert profiling.enabled()
+        for _ in range(3):
+            with profiling.section("outer"):
+                with profiling.section("inner"):
+                    time.sleep(0.002)
+    assert not profiling.enabled()
+    assert p.totals[("outer",)][1] == 3 and p.totals[("outer", "inner")][1] == 3
+    assert p.totals[("outer",)][0] >= p.totals[("outer", "inner")][0] >= 0.006
+    text = out.getvalue()
+    lines = text.splitlines()
+    outer = next(i for i, s in enumerate(lines) if s.startswith("outer"))
+    assert lines[outer + 1].startswith("  inner")
+    assert "total (profile span)" in text
+
+
+def test_cli_profile_flag_prints_the_table(capsys):
+    from place3d_kernels.cli import main
+
+    assert main(["--profile", "backends"]) == 0
+    err = capsys.readouterr().err
+    assert "place3d profile" in err and "total (profile span)" in err
