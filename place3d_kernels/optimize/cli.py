@@ -51,7 +51,7 @@ def add_arguments(p) -> None:
                    help="after the search, re-score the best rig and the baselines on the P-SOGs of these route "
                         "seeds (same scene) and report whether it still beats them")
     p.add_argument("--holdout-scenes", default=None, metavar="SCENE1,SCENE2",
-                   help="as --holdout-seeds, on other scenes (e.g. opendrive:Town03), with --seed (or each of "
+                   help="as --holdout-seeds, on other scenes (a map name such as Town03, or opendrive:PATH), with --seed (or each of "
                         "--holdout-seeds)")
 
 
@@ -246,6 +246,10 @@ def holdout_specs(args, spec) -> list:
     except ValueError:
         raise ValueError(f"--holdout-seeds takes comma-separated integers, e.g. 1,2; got {seeds_arg!r}") from None
     scenes = [v.strip() for v in scenes_arg.split(",") if v.strip()] if scenes_arg else [spec.scene.name]
+    from place3d_kernels.reproduce import resolve_town
+
+    # a bare map name (Town03) is looked up like `place3d reproduce` does (shipped CARLA maps included)
+    scenes = [n if ":" in n or n == "town" else resolve_town(n) for n in scenes]
     out = []
     for name in scenes:
         for seed in seeds:
