@@ -102,14 +102,15 @@ def cmd_evaluate(args) -> int:
     rows = []
     for name, pl in tqdm(list(zip(names, placements)), desc="evaluate", unit="placement", disable=args.quiet,
                          leave=False):
-        seg = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "seg", b)[0])
-        det = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "det", b)[0])
+        seg = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "seg", b, normalisation=args.normalisation)[0])
+        det = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "det", b, normalisation=args.normalisation)[0])
         rows.append({"placement": pl.name or name, "msog_seg": seg, "msog_det": det})
     rows.sort(key=lambda r: -r["msog_seg"])
     seconds = time.perf_counter() - t0
     cond = f", condition {args.condition}" if args.condition else ""
     print(f"M-SOG on scene {args.scene} (seed {args.seed}{cond}), backend {b.name}, grid {psog.grid.shape} "
-          f"@ {psog.grid.voxel_size} m, occlusion {args.occlusion}; higher is better")
+          f"@ {psog.grid.voxel_size} m, occlusion {args.occlusion}"
+          + (f", normalisation {args.normalisation}" if args.normalisation != "paper" else "") + "; higher is better")
     print(f"{'rank':>4}  {'placement':14s} {'M-SOG seg':>12s} {'M-SOG det':>12s}")
     det_rank = {r["placement"]: i + 1 for i, r in enumerate(sorted(rows, key=lambda r: -r["msog_det"]))}
     for i, r in enumerate(rows):
@@ -123,7 +124,7 @@ def cmd_evaluate(args) -> int:
                "scene": spec.scene.to_dict(), "occlusion": args.occlusion, "lidar": lidar.name,
                "condition": None if spec.condition is None else spec.condition.to_dict(),
                "psog": spec.to_dict(), "n_subsets": psog.n_subsets, "seed": args.seed,
-               "provenance": provenance(backend=b.name)}
+               "normalisation": args.normalisation, "provenance": provenance(backend=b.name)}
         Path(args.output).parent.mkdir(parents=True, exist_ok=True)
         Path(args.output).write_text(json.dumps(out, indent=2))
     return 0
@@ -227,6 +228,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lidar", default="place3d_16ch", help="LiDAR model name or TOML (default place3d_16ch)")
     p.add_argument("--occlusion", default="sog", choices=["sog", "none"], help="ray occlusion mode (default sog)")
     p.add_argument("--output", help="write the table as JSON to this path")
+    p.add_argument("--normalisation", default="paper", choices=["paper", "evidence", "uncertain"],
+                   help="M-SOG denominator (docs/metric-normalisation.md): 'paper' (default), 'evidence', 'uncertain'")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("simulate", help="simulate semantic LiDAR frames (SemanticKITTI layout)")

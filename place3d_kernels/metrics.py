@@ -3,9 +3,16 @@
 M-SOG(L) = -(1 / N_L) * sum of H(v) over the N_L distinct voxels crossed by the rays of placement L.
 Higher is better (always <= 0). Sums run in fixed-point int64 on every backend, so scores are identical
 across backends whenever the covered voxel sets are.
+
+``normalisation`` picks the denominator (docs/metric-normalisation.md): ``"paper"`` (default, the paper's
+N_L, computed exactly as before), ``"evidence"`` (covered voxels with occupancy evidence, i.e. stored in the
+P-SOG: ever occupied in a subset) or ``"uncertain"`` (covered voxels with H > 0). The alternatives count
+their voxels with a second exact integer score call (indicator weights), so they too agree bit for bit.
 """
 
 from __future__ import annotations
+
+import weakref
 
 import numpy as np
 
@@ -16,9 +23,17 @@ from place3d_kernels.mesh import Mesh
 from place3d_kernels.ops import coverage, raycast
 from place3d_kernels.sog import PSOG
 
-__all__ = ["msog", "msog_batch", "covered_voxels", "msog_from_voxels", "OCCLUSION_MODES"]
+__all__ = ["msog", "msog_batch", "covered_voxels", "msog_from_voxels", "coverage_counts", "OCCLUSION_MODES",
+           "NORMALISATIONS"]
 
 OCCLUSION_MODES = ("none", "sog", "mesh")
+#: Denominators of M-SOG: the paper's N_L, and two that do not reward rays through never-occupied air.
+NORMALISATIONS = ("paper", "evidence", "uncertain")
+#: Indicator kinds counted by ``coverage_counts``: stored (ever occupied) voxels, voxels with H > 0.
+INDICATORS = ("evidence", "uncertain")
+
+# per P-SOG (task variant): {(indicator, backend, occlusion): grid handle}; dies with the P-SOG
+_indicator_handles: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
 def _poses(placement) -> np.ndarray:
@@ -49,8 +64,89 @@ def _score(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
         return np.where(counts > 0, -(sums.astype(np.float64) / ENTROPY_SCALE) / np.maximum(counts, 1), np.nan)
 
 
+def check_normalisation(normalisation: str) -> str:
+    """Return ``normalisation`` or raise ValueError naming the choices."""
+    if normalisation not in NORMALISATIONS:
+        raise ValueError(f"normalisation must be one of {NORMALISATIONS} (docs/metric-normalisation.md), "
+                         f"got {normalisation!r}")
+    return normalisation
+
+
+def indicator_weights(p: PSOG, kind: str) -> np.ndarray:
+    """(n_voxels,) int64 0/1 weights: stored voxels (``"evidence"``) or voxels with H > 0 (``"uncertain"``).
+
+    Summed by the same integer kernels as the entropy weights, they count covered voxels exactly.
+    """
+    if kind == "evidence":
+        w = np.zeros(p.grid.n_voxels, dtype=np.int64)
+        w[p.voxels] = 1
+        return w
+    if kind == "uncertain":
+        # H > 0 in the fixed-point weights the kernels sum: a voxel whose entropy rounds to 0 adds nothing
+        return (p.weights > 0).astype(np.int64)
+    raise ValueError(f"indicator must be one of {INDICATORS}, got {kind!r}")
+
+
+def _indicator_handle(p: PSOG, kind: str, b, occlusion: str):
+    cache = _indicator_handles.setdefault(p, {})
+    key = (kind, b, occlusion)
+    if key not in cache:
+        stop = p.stop_mask if occlusion == "sog" else None
+        cache[key] = b.prepare_grid(p.grid.spec, indicator_weights(p, kind), stop)
+    return cache[key]
+
+
+def coverage_counts(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", task: str = "seg",
+                    backend=None, mesh: Mesh | None = None, kinds=INDICATORS) -> dict:
+    """Exact integer pieces of M-SOG for P rigs: entropy sums, N_L and the indicator counts.
+
+    Args:
+        psog, lidar, poses, occlusion, task, backend, mesh: as in ``msog_batch``.
+        kinds: indicator counts to add (subset of ``("evidence", "uncertain")``).
+
+    Returns:
+        dict of (P,) int64 arrays: ``sum`` (fixed-point entropy, scale ``ENTROPY_SCALE``), ``n_covered``
+        (N_L), and per kind ``n_evidence`` (covered voxels stored in the P-SOG) / ``n_uncertain``
+        (covered voxels with H > 0).
+    """
+    poses = _poses(poses)
+    if poses.ndim == 2:
+        poses = poses[None]
+    check_inputs(psog, poses, occlusion, mesh)
+    for k in kinds:
+        if k not in INDICATORS:
+            raise ValueError(f"kinds must be among {INDICATORS}, got {k!r}")
+    p = psog.for_task(task)
+    b = get_backend(backend)
+    out = {}
+    if occlusion == "mesh":
+        masks = [mesh_mask(p, lidar, rig, mesh, b) for rig in poses]
+        out["sum"] = np.array([p.weights[m].sum(dtype=np.int64) for m in masks], dtype=np.int64)
+        out["n_covered"] = np.array([m.sum() for m in masks], dtype=np.int64)
+        for k in kinds:
+            w = indicator_weights(p, k)
+            out[f"n_{k}"] = np.array([w[m].sum(dtype=np.int64) for m in masks], dtype=np.int64)
+        return out
+    local = poses.copy()
+    local[..., :3] = p.grid.to_local(poses[..., :3])
+    el, az, r = lidar.elevations, lidar.azimuths, lidar.max_range
+    sums, counts = b.score_placements(p.handle(b, occlusion), el, az, r, local)
+    out["sum"], out["n_covered"] = np.asarray(sums, np.int64), np.asarray(counts, np.int64)
+    for k in kinds:
+        n, _ = b.score_placements(_indicator_handle(p, k, b, occlusion), el, az, r, local)
+        out[f"n_{k}"] = np.asarray(n, np.int64)
+    return out
+
+
+def score_from_counts(counts: dict, normalisation: str = "paper") -> np.ndarray:
+    """M-SOG from ``coverage_counts`` output: -(sum H) / denominator of ``normalisation`` (NaN when 0)."""
+    check_normalisation(normalisation)
+    den = counts["n_covered"] if normalisation == "paper" else counts[f"n_{normalisation}"]
+    return _score(counts["sum"], den)
+
+
 def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", task: str = "seg",
-               backend=None, mesh: Mesh | None = None) -> np.ndarray:
+               backend=None, mesh: Mesh | None = None, normalisation: str = "paper") -> np.ndarray:
     """M-SOG of P candidate rigs in one backend launch.
 
     Args:
@@ -61,10 +157,17 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
             or "mesh" (stop at the first surface of ``mesh``, given in the ego frame).
         task: "seg" (22-channel P-SOG) or "det" (empty / vehicle / other).
         backend: backend name or instance.
+        normalisation: denominator of the mean: ``"paper"`` (N_L, every covered voxel; the default and
+            the paper's definition), ``"evidence"`` (covered voxels stored in the P-SOG, i.e. occupied in at
+            least one subset) or ``"uncertain"`` (covered voxels with H > 0). See
+            docs/metric-normalisation.md for why N_L rewards rays through empty air.
 
     Returns:
-        (P,) float64 scores (NaN for a rig that covers no voxel).
+        (P,) float64 scores (NaN for a rig whose denominator is 0).
     """
+    if check_normalisation(normalisation) != "paper":
+        return score_from_counts(coverage_counts(psog, lidar, poses, occlusion, task, backend, mesh,
+                                                 kinds=(normalisation,)), normalisation)
     poses = _poses(poses)
     if poses.ndim == 2:
         poses = poses[None]
@@ -81,19 +184,25 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
     return _score(sums, counts)
 
 
-def mesh_sums(p: PSOG, lidar: LidarModel, rig: np.ndarray, mesh: Mesh, b) -> tuple[int, int]:
-    """(fixed-point entropy sum, voxel count) covered by one rig whose rays stop at the mesh (occlusion 'mesh')."""
+def mesh_mask(p: PSOG, lidar: LidarModel, rig: np.ndarray, mesh: Mesh, b) -> np.ndarray:
+    """(n_voxels,) bool: voxels covered by one rig whose rays stop at the mesh (occlusion 'mesh')."""
     o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, rig)
     hits = raycast(mesh, o, d, lidar.max_range, backend=b)
     t_end = np.minimum(hits.t, lidar.max_range)
-    mask = coverage(p.grid, o, d, t_end, backend=b).reshape(-1)
+    return coverage(p.grid, o, d, t_end, backend=b).reshape(-1)
+
+
+def mesh_sums(p: PSOG, lidar: LidarModel, rig: np.ndarray, mesh: Mesh, b) -> tuple[int, int]:
+    """(fixed-point entropy sum, voxel count) covered by one rig whose rays stop at the mesh (occlusion 'mesh')."""
+    mask = mesh_mask(p, lidar, rig, mesh, b)
     return int(p.weights[mask].sum(dtype=np.int64)), int(mask.sum())
 
 
 def msog(psog: PSOG, lidar: LidarModel, placement, occlusion: str = "sog", task: str = "seg", backend=None,
-         mesh: Mesh | None = None) -> float:
+         mesh: Mesh | None = None, normalisation: str = "paper") -> float:
     """M-SOG of one placement (see ``msog_batch``)."""
-    return float(msog_batch(psog, lidar, _poses(placement)[None], occlusion, task, backend, mesh)[0])
+    return float(msog_batch(psog, lidar, _poses(placement)[None], occlusion, task, backend, mesh,
+                            normalisation)[0])
 
 
 def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", backend=None,

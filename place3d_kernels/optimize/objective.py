@@ -37,13 +37,16 @@ class MSOGObjective:
         occlusion: "sog" or "none" (mesh occlusion: use ``msog_batch`` with ``mesh=``).
         backend: backend name or instance.
         max_cached_poses: LRU bound on cached poses (each holds the pose's covered voxel ids).
+        normalisation: M-SOG denominator, as in ``msog_batch`` ("paper", "evidence", "uncertain").
 
     Attributes:
         pose_hits, pose_misses: cache statistics (LiDAR poses answered from / added to the cache).
     """
 
     def __init__(self, psog, lidar, space, task: str = "seg", occlusion: str = "sog", backend=None,
-                 max_cached_poses: int = 512):
+                 max_cached_poses: int = 512, normalisation: str = "paper"):
+        from place3d_kernels.metrics import check_normalisation, indicator_weights
+
         if occlusion not in ("sog", "none"):
             raise ValueError(f"MSOGObjective supports occlusion 'sog' or 'none', got {occlusion!r}")
         self.psog = psog
@@ -57,6 +60,9 @@ class MSOGObjective:
         self.pose_hits = 0
         self.pose_misses = 0
         self._stamp: np.ndarray | None = None
+        self.normalisation = check_normalisation(normalisation)
+        # 0/1 weights of the voxels that count in the denominator (None: every covered voxel, N_L)
+        self._den = None if normalisation == "paper" else indicator_weights(self.task_psog, normalisation)
 
     def _distinct(self, v: np.ndarray) -> np.ndarray:
         """Distinct voxel ids in O(n) with a scratch array (np.unique sorts, and dominated run time)."""
@@ -105,7 +111,7 @@ class MSOGObjective:
         for p in range(P):
             sets = [self._cache[flat[p * L + j].tobytes()] for j in range(L)]
             u = self._distinct(np.concatenate(sets)) if L > 1 else sets[0]
-            n = len(u)
+            n = len(u) if self._den is None else int(self._den[u].sum(dtype=np.int64))
             out[p] = -(float(w[u].sum(dtype=np.int64)) / ENTROPY_SCALE) / n if n else np.nan
         # evict least recently used poses, never the ones this call needed
         while len(self._cache) > max(self.max_cached_poses, P * L):

@@ -77,6 +77,10 @@ class OptimizeResult:
         stop_reason: why the run ended (``max_evals``, ``stalled``, ``callback``, ``cma:tolfun``, ...).
         method: the strategy that ran (``cma``, ``random``, ``grid``).
         space / search_space: the user's space and the one actually searched (after FixedHeight).
+        diagnostics: filled by callers that know the P-SOG (``place3d optimize``): variables on a bound,
+            entropy shares of the winner and the baselines, ``degenerate`` and its reason
+            (``optimize.diagnostics.diagnose``); None otherwise.
+        holdout: re-scoring on held-out P-SOGs (``optimize.diagnostics.holdout``), or None.
     """
 
     best_vector: np.ndarray
@@ -103,6 +107,8 @@ class OptimizeResult:
     checkpoint: str | None = None
     left_start: bool = True
     extra: dict = field(default_factory=dict)
+    diagnostics: dict | None = None
+    holdout: list | None = None
 
     def to_dict(self) -> dict:
         """JSON-safe summary (non-finite numbers become null)."""
@@ -117,7 +123,7 @@ class OptimizeResult:
             "cache": self.cache,
             "certificate": self.certificate, "space": self.space.to_dict(),
             "search_space": self.search_space.to_dict(), "names": list(self.space.names),
-            "history": self.history, **self.extra})
+            "history": self.history, "diagnostics": self.diagnostics, "holdout": self.holdout, **self.extra})
 
     def __repr__(self) -> str:
         return (f"OptimizeResult(best_score={self.best_score:.6g}, feasible={self.feasible}, "

@@ -1,0 +1,142 @@
+"""Issue 13 item 4: the optimiser must not game M-SOG by rolling beams into empty air.
+
+A synthetic P-SOG carries entropy only in its ground layer; everything above it was never occupied
+(H = 0). LiDARs whose beams all point down see only ground and the air on the way to it; rolling them to
+the bound tilts half their beams upwards, through empty voxels up to the grid's top. Under the paper's
+normalisation (divide by N_L) those free voxels raise the score, so the roll bound wins; the diagnostics
+must call that rig degenerate, and the "evidence" / "uncertain" normalisations must not reward it.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import place3d_kernels as p3k
+from place3d_kernels.classes import CLASS_ID
+from place3d_kernels.metrics import coverage_counts, covered_voxels, msog_batch, msog_from_voxels
+from place3d_kernels.optimize import SearchSpace, optimize
+from place3d_kernels.optimize.diagnostics import bound_variables, diagnose, holdout
+
+ROAD = CLASS_ID["road"]
+GRID = p3k.Grid(lower=(-8, -8, 0), upper=(8, 8, 4), voxel_size=0.5)
+# all beams point down (-0.5 ... -0.2 rad): at roll 0 every ray ends on the ground
+LIDAR = p3k.LidarModel(elevations=[-0.5, -0.35, -0.2], azimuths=np.linspace(0, 2 * np.pi, 72, endpoint=False),
+                       max_range=40.0)
+# two LiDARs at fixed positions; only their rolls vary, in the paper's box [-0.3, 0.3] rad
+SPACE = SearchSpace(2, variables=("roll",), fixed={"x": [-0.5, 0.5], "y": 0.0, "z": 2.0})
+LEVEL = SPACE.to_poses(np.array([0.0, 0.0]))
+
+
+@pytest.fixture(scope="module")
+def psog():
+    probs = np.zeros(GRID.shape + (22,))
+    probs[..., 0] = 1.0
+    # ground layer: seen occupied in half the subsets -> H = ln 2, occupancy 0.5 stops "sog" rays
+    probs[:, :, 0, 0] = 0.5
+    probs[:, :, 0, ROAD] = 0.5
+    return p3k.PSOG.from_probabilities(GRID, probs)
+
+
+def _score(normalisation, psog, backend="reference"):
+    return lambda X: msog_batch(psog, LIDAR, SPACE.to_poses(X), backend=backend, normalisation=normalisation)
+
+
+def test_bound_hugging_rig_wins_under_paper_and_is_flagged(psog):
+    res = optimize(_score("paper", psog), SPACE, method="grid", max_evals=100, progress=False)
+    rolls = res.best_vector
+    assert np.allclose(np.abs(rolls), 0.3), f"expected both rolls on the bound, got {rolls}"
+    level = msog_batch(psog, LIDAR, LEVEL[None])[0]
+    assert res.best_score > level
+    d = diagnose(psog, LIDAR, res.search_space, res.best_placement.poses, {"level": LEVEL}, delta=0.1)
+    assert d["degenerate"], d["reason"]
+    assert d["n_on_bounds"] == 2 and all("bound" in s for s in d["on_bounds"])
+    assert d["on_bounds"][0].startswith("lidar0.roll = ")
+    assert d["best"]["entropy_share"] < 0.8 * d["baselines"]["level"]["entropy_share"]
+
+
+@pytest.mark.parametrize("normalisation", ["evidence", "uncertain"])
+def test_alternative_normalisation_does_not_reward_air(psog, normalisation):
+    X = SPACE.grid_values(np.array([[k, j] for k in range(-3, 4) for j in range(-3, 4)]), 0.1)
+    s = _score(normalisation, psog)(X)
+    level = s[np.flatnonzero(np.all(X == 0, axis=1))[0]]
+    rolled = s[np.flatnonzero(np.all(np.abs(X) > 0.29, axis=1))]
+    # every ground voxel has the same entropy: the mean over evidence is ln 2 whatever the roll
+    assert np.all(rolled <= level + 1e-12), (rolled, level)
+    assert level == pytest.approx(-np.log(2), abs=1e-9)
+    paper = _score("paper", psog)(X)
+    assert paper[np.flatnonzero(np.all(np.abs(X) > 0.29, axis=1))].max() > paper[np.all(X == 0, axis=1)][0]
+
+
+def test_a_level_rig_is_not_degenerate(psog):
+    d = diagnose(psog, LIDAR, SPACE, LEVEL, {"level": LEVEL}, delta=0.1)
+    assert not d["degenerate"] and d["on_bounds"] == []
+
+
+def test_bound_variables_names_and_grid_edges():
+    s = SearchSpace(1, bounds={"roll": (-0.35, 0.3)})
+    # -0.35 is no multiple of 0.1: the outermost grid value -0.3 counts as the lower bound
+    x = s.from_poses(np.array([[[0.6, 0.0, 2.5, -0.3, 0, 0]]]))[0]
+    got = bound_variables(s, x, delta=0.1)
+    assert got == ["lidar0.x = +0.6 (upper bound)", "lidar0.roll = -0.3 (lower bound)"]
+    assert bound_variables(s, x) == ["lidar0.x = +0.6 (upper bound)"]
+
+
+def test_counts_exact_across_backends(psog, backend):
+    poses = SPACE.to_poses(np.array([[0.0, 0.0], [0.3, -0.3], [-0.1, 0.2]]))
+    ref = coverage_counts(psog, LIDAR, poses, backend="reference")
+    got = coverage_counts(psog, LIDAR, poses, backend=backend)
+    for k in ref:
+        assert np.array_equal(ref[k], got[k]), k
+    for n in ("paper", "evidence", "uncertain"):
+        a = msog_batch(psog, LIDAR, poses, backend="reference", normalisation=n)
+        b = msog_batch(psog, LIDAR, poses, backend=backend, normalisation=n)
+        assert np.array_equal(a, b), n
+
+
+def test_default_msog_is_the_paper_definition_bit_for_bit(psog, backend):
+    poses = SPACE.to_poses(np.array([[0.0, 0.0], [0.3, -0.3]]))
+    default = msog_batch(psog, LIDAR, poses, backend=backend)
+    assert np.array_equal(default, msog_batch(psog, LIDAR, poses, backend=backend, normalisation="paper"))
+    for i in range(len(poses)):
+        vox = covered_voxels(psog, LIDAR, poses[i], backend=backend)
+        assert default[i] == msog_from_voxels(psog, vox)     # exact: same integer sum, same N_L
+        w = psog.weights
+        assert default[i] == -(float(w[vox].sum(dtype=np.int64)) / p3k.backends.base.ENTROPY_SCALE) / len(vox)
+
+
+def test_unknown_normalisation_is_refused(psog):
+    with pytest.raises(ValueError, match="normalisation must be one of"):
+        msog_batch(psog, LIDAR, LEVEL[None], normalisation="per-ray")
+
+
+def test_holdout_rows(psog):
+    rolled = SPACE.to_poses(np.array([0.3, -0.3]))
+    rows = holdout([("synthetic", 1, psog)], LIDAR, rolled, {"level": LEVEL})
+    assert rows[0]["beats_all_baselines"] and rows[0]["scene"] == "synthetic" and rows[0]["seed"] == 1
+    rows = holdout([("synthetic", 1, psog)], LIDAR, rolled, {"level": LEVEL}, normalisation="uncertain")
+    assert not rows[0]["beats_all_baselines"]
+
+
+def test_cli_writes_diagnostics_and_holdout(tmp_path, capsys):
+    from place3d_kernels.backends.registry import backend_report
+    from place3d_kernels.cli import main
+
+    # the fastest CPU backend present builds the two tiny P-SOGs (the backends agree bit for bit)
+    have = {name for name, ok, _ in backend_report() if ok}
+    b = "opencl:pocl" if "opencl:pocl" in have else "reference"
+    out = tmp_path / "run"
+    assert main(["optimize", "--frames", "8", "--voxel-size", "0.8", "--max-evals", "24", "--quiet", "--backend", b,
+                 "--holdout-seeds", "1", "--output", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "diagnostics: N_L" in printed and "held out town seed 1" in printed
+    r = json.loads((out / "result.json").read_text())
+    assert r["normalisation"] == "paper"
+    assert set(r["diagnostics"]) >= {"on_bounds", "degenerate", "reason", "best", "baselines"}
+    assert r["diagnostics"]["best"]["n_covered"] > 0
+    (h,) = r["holdout"]
+    assert h["scene"] == "town" and h["seed"] == 1 and isinstance(h["beats_all_baselines"], bool)
+    assert set(h["baselines"]) == set(r["baseline_scores"])
+    assert r["details"]["holdout"] == r["holdout"]
