@@ -228,17 +228,19 @@ def plot_scores(boots: dict, path, title: str = "M-SOG with bootstrap intervals"
     for ax, (name, b) in zip(axes[0], panels):
         x = np.arange(len(b.names))
         ci = b.ci
-        err = np.abs(np.stack([b.point - ci[:, 0], ci[:, 1] - b.point]))
-        h1 = ax.errorbar(x, b.point, yerr=err, fmt="o", color="tab:blue", capsize=4,
-                         label=f"pooled M-SOG, {int(b.level * 100)} % interval ({b.n_units} {b.unit}, "
-                               f"{len(b.samples)} resamples)")
+        # the interval is drawn from its own ends, not as error bars around the point: a percentile interval
+        # need not contain the point (bootstrap bias, see Bootstrap.bias)
+        h0 = ax.errorbar(x, ci.mean(axis=1), yerr=(ci[:, 1] - ci[:, 0]) / 2.0, fmt="none", ecolor="tab:blue",
+                         capsize=4, label=f"{int(b.level * 100)} % percentile interval ({b.n_units} {b.unit}, "
+                                          f"{len(b.samples)} resamples)")
+        (h1,) = ax.plot(x, b.point, "o", color="tab:blue", label="M-SOG of the full sample")
         ax.set_xticks(x)
         ax.set_xticklabels(b.names, rotation=35, ha="right")
         ax.set_xlabel("placement")
         ax.set_ylabel("M-SOG [nats per covered voxel] (higher is better)")
         ax.set_title(name)
         ax.grid(alpha=0.3)
-        handles = [h1]
+        handles = [h1, h0]
         if reference and name in reference:
             ax2 = ax.twinx()
             (h2,) = ax2.plot(x, np.asarray(reference[name], dtype=np.float64), "s", color="tab:red", alpha=0.7,
@@ -353,13 +355,14 @@ def spec_subset_records(spec, backend=None, cache: bool = True) -> list:
 
 def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
                       n_resamples: int = 200, seed: int = 0, backend=None, level: float = 0.95,
-                      point: dict | None = None, unit: str = "subsets") -> dict:
+                      point: dict | None = None, unit: str = "subsets", progress: bool = False) -> dict:
     """{task: Bootstrap} of ``placements`` over resamples of ``records`` (one ``msog_batch`` call over all
     placements per resample and task; the resampled P-SOG is built once per resample for both tasks).
 
     Args:
         point: optional {task: (P,) scores} used as the point estimates (e.g. the scores already printed,
             so they stay bit-identical); default: the scores on the pool of all records.
+        progress: a progress bar over the distinct resamples (stderr).
     """
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
@@ -374,7 +377,12 @@ def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     # subsets many resamples repeat, e.g. 2 subsets give only 3 distinct pools)
     uniq, inv = np.unique(mult, axis=0, return_inverse=True)
     scores = {t: np.empty((len(uniq), len(names))) for t in tasks}
-    for r, m in enumerate(uniq):
+    it = uniq
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(uniq, desc="bootstrap", unit="resample", leave=False)
+    for r, m in enumerate(it):
         ps = pooled.psog(m)
         for t in tasks:
             scores[t][r] = msog_batch(ps, L, poses, occlusion, t, b)
