@@ -24,10 +24,17 @@ The config (``place3d_kernels/configs/study/example.toml``)::
 Work is split into tasks on the chosen executor: first one P-SOG per (scene, condition) that still has
 unfinished cells (cached on disk by its inputs), then one task per cell (placement, condition, scene)
 that scores seg and det and writes ``cells/<scene>__<condition>__<placement>__<settings>.json`` atomically
-(``<settings>``: hash of ``study_settings``: LiDAR, occlusion, grid, k, collection LiDAR). A rerun
+(``<settings>``: hash of ``study_settings``: LiDAR, occlusion, grid, k, collection LiDAR, bootstrap
+resamples and seed). A rerun
 submits only cells whose file is missing, so rerunning a finished study does no work; a rerun with other
 settings is refused (``manifest.json``) unless ``--overwrite``. The table
 (``study.csv``, ``study.json``) is always rebuilt from the cell files.
+
+Uncertainty: each cell also gets a 95 % percentile interval (``ci_lo_seg``, ``ci_hi_seg``, ``ci_lo_det``,
+``ci_hi_det``) from a bootstrap over the subsets of its (scene, condition) drive (``[study] resamples``,
+default 200, or ``--resamples``; 0 switches it off; ``resample_seed``, default 0). Every cell of a drive
+draws the same resamples (same seed, same subsets), so the cells' resampled scores are paired and
+``study.json`` lists, per (scene, condition), the placement pairs whose order holds in < 95 % of them.
 """
 
 from __future__ import annotations
@@ -50,6 +57,9 @@ def add_arguments(p) -> None:
     p.add_argument("--output", default=None, help="output folder (default: study-<name>/)")
     p.add_argument("--backend", default=None, help="backend of the tasks (default: $PLACE3D_BACKEND or auto)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--resamples", type=int, default=None,
+                   help="bootstrap resamples per cell over its drive's subsets (default: [study] resamples or 200; "
+                        "0: no intervals)")
     p.add_argument("--overwrite", action="store_true",
                    help="discard the cells of an earlier study in --output made with other settings")
     add_executor_arguments(p)
@@ -83,14 +93,19 @@ def _atomic_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def _psog_task(spec) -> str:
+def _psog_task(t) -> str:
+    spec, resamples = t
     spec.load()                                   # builds the cache file if it is absent
+    if resamples:
+        from place3d_kernels.uncertainty import spec_subset_records
+
+        spec_subset_records(spec)                 # per-subset records for the cells' bootstrap, cached too
     return spec.scene.label
 
 
 def _cell_task(t) -> dict:
     """Score one placement on one (scene, condition) P-SOG, both tasks; write the cell file atomically."""
-    psog_spec, placement, lidar, occlusion, backend, path, meta = t
+    psog_spec, placement, lidar, occlusion, backend, path, meta, boot = t
     from place3d_kernels.spec import resolve_lidar
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.placement import Placement
@@ -101,6 +116,16 @@ def _cell_task(t) -> dict:
     row = dict(meta)
     for task in ("seg", "det"):
         row[f"msog_{task}"] = float(msog_batch(psog, L, pl.poses[None], occlusion, task, backend)[0])
+    if boot["resamples"]:
+        from place3d_kernels.uncertainty import bootstrap_records, spec_subset_records
+
+        recs = spec_subset_records(psog_spec)
+        bs = bootstrap_records(recs, psog_spec.grid.grid(), L, {meta["placement"]: pl}, ("seg", "det"), occlusion,
+                               boot["resamples"], boot["seed"], backend,
+                               point={t: [row[f"msog_{t}"]] for t in ("seg", "det")})
+        for task, b in bs.items():
+            row[f"ci_lo_{task}"], row[f"ci_hi_{task}"] = (float(v) for v in b.ci[0])
+            row[f"samples_{task}"] = b.samples[:, 0].tolist()
     _atomic_text(Path(path), json.dumps(row, indent=1))
     return row
 
@@ -112,7 +137,12 @@ def study_settings(cfg: dict) -> dict:
 
     return {"lidar": cfg.get("lidar", "place3d_16ch"), "occlusion": cfg.get("occlusion", "sog"),
             "voxel_size": cfg.get("voxel_size"), "frames_per_subset": cfg.get("frames_per_subset")
-            or DEFAULT_FRAMES_PER_SUBSET, "collection_lidar": cfg.get("collection_lidar", "collection_64ch")}
+            or DEFAULT_FRAMES_PER_SUBSET, "collection_lidar": cfg.get("collection_lidar", "collection_64ch"),
+            "resamples": int(cfg.get("resamples", DEFAULT_RESAMPLES)), "resample_seed": int(cfg.get("resample_seed", 0))}
+
+
+#: Bootstrap resamples per cell unless the config or --resamples says otherwise.
+DEFAULT_RESAMPLES = 200
 
 
 def _check_entries(cfg: dict) -> None:
@@ -155,6 +185,9 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
         raise ValueError(f"study output {out} is a file; give a folder (--output DIR)")
     _check_entries(cfg)
     settings = study_settings(cfg)
+    if settings["resamples"] < 0:
+        raise ValueError(f"study resamples must be >= 0 (0: no intervals), got {settings['resamples']}")
+    boot = {"resamples": settings["resamples"], "seed": settings["resample_seed"]}
     if overwrite and (out / "cells").exists():
         shutil.rmtree(out / "cells")
     elif (out / "cells").exists() and any((out / "cells").iterdir()) and not verify_manifest(out, settings, "study"):
@@ -185,18 +218,21 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
                         "condition_label": clabel, "placement": plabel, "settings": tag}
                 cells.append(path)
                 if not path.exists():
-                    groups.setdefault(pspec, []).append((pspec, str(p), lidar, occlusion, bname, str(path), meta))
+                    groups.setdefault(pspec, []).append((pspec, str(p), lidar, occlusion, bname, str(path), meta,
+                                                         boot))
     todo = [t for g in groups.values() for t in g]
     if progress:
         print(f"study {cfg['name']}: {len(cells)} cells, {len(cells) - len(todo)} done, {len(todo)} to run "
               f"on {executor.kind} ({len(groups)} P-SOGs)", file=sys.stderr)
     if groups:
-        executor.map(_psog_task, list(groups))     # one P-SOG per (scene, condition), so cells never race
+        executor.map(_psog_task, [(g, boot["resamples"]) for g in groups])     # one P-SOG per (scene, condition), so cells never race
     if todo:
         executor.map(_cell_task, todo)
     rows = [json.loads(p.read_text()) for p in cells]
+    noise = _within_noise(rows, settings["resamples"])
+    rows = [{k: v for k, v in r.items() if not k.startswith("samples_")} for r in rows]
     fields = ["scene", "scene_seed", "frames", "condition", "severity", "condition_label", "placement",
-              "msog_seg", "msog_det"]
+              "msog_seg", "msog_det", "ci_lo_seg", "ci_hi_seg", "ci_lo_det", "ci_hi_det"]
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=fields, extrasaction="ignore", lineterminator="\n")
     w.writeheader()
@@ -207,7 +243,7 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
                "psogs_built_or_loaded": len(groups), "backend": bname, "executor": executor.kind,
                "lidar": lidar if isinstance(lidar, str) else lidar.name, "occlusion": occlusion,
                "settings": settings, "settings_sha256": spec_hash(settings),
-               "scenes": cfg["scenes"], "conditions": cfg["conditions"],
+               "scenes": cfg["scenes"], "conditions": cfg["conditions"], "within_noise": noise,
                "seconds": time.perf_counter() - t0}
     # provenance: the time and command line change per run, so a finished study's table stays comparable
     # by its rows and settings, not byte for byte
@@ -217,19 +253,56 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
     return summary
 
 
+def _within_noise(rows: list, resamples: int) -> dict:
+    """{"<scene>-s<seed>/<condition>": {task: [[A, B, P(A > B)], ...]}}: the placement pairs of each drive
+    whose order holds in < 95 % of the (paired) resamples; {} without a bootstrap."""
+    import numpy as np
+
+    from place3d_kernels.uncertainty import Bootstrap
+
+    if not resamples:
+        return {}
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault(f"{r['scene']}-s{r['scene_seed']}/{r['condition_label']}", []).append(r)
+    out = {}
+    for key, rs in groups.items():
+        out[key] = {}
+        for task in ("seg", "det"):
+            b = Bootstrap([r["placement"] for r in rs], np.array([r[f"msog_{task}"] for r in rs]),
+                          np.array([r[f"samples_{task}"] for r in rs]).T, unit="subsets")
+            out[key][task] = [list(p) for p in b.within_noise()]
+    return out
+
+
 def run(args) -> int:
     from place3d_kernels.distributed import executor_from_args
 
+    cfg = load_config(args.config)
+    if args.resamples is not None:
+        cfg["resamples"] = args.resamples
     ex = executor_from_args(args)
     try:
-        res = run_study(args.config, args.output, ex, args.backend, progress=not args.quiet,
+        res = run_study(cfg, args.output, ex, args.backend, progress=not args.quiet,
                         overwrite=args.overwrite)
     finally:
         ex.shutdown()
-    print(f"{'scene':22s} {'condition':24s} {'placement':14s} {'M-SOG seg':>11s} {'M-SOG det':>11s}")
+    ci = res["settings"]["resamples"] > 0
+    head = f"{'scene':22s} {'condition':24s} {'placement':14s} {'M-SOG seg':>11s} {'M-SOG det':>11s}"
+    print(head + (f"  {'95 % interval seg':>24s} {'95 % interval det':>24s}" if ci else ""))
     for r in res["rows"]:
-        print(f"{r['scene'] + '-s' + str(r['scene_seed']):22s} {r['condition_label']:24s} {r['placement']:14s} "
-              f"{r['msog_seg']:11.6f} {r['msog_det']:11.6f}")
+        line = (f"{r['scene'] + '-s' + str(r['scene_seed']):22s} {r['condition_label']:24s} {r['placement']:14s} "
+                f"{r['msog_seg']:11.6f} {r['msog_det']:11.6f}")
+        if ci:
+            line += (f"  [{r['ci_lo_seg']:10.6f}, {r['ci_hi_seg']:10.6f}] "
+                     f"[{r['ci_lo_det']:10.6f}, {r['ci_hi_det']:10.6f}]")
+        print(line)
+    for key, tasks in res["within_noise"].items():
+        for task, pairs in tasks.items():
+            if pairs:
+                shown = ", ".join(f"{a} > {b} ({p:.2f})" for a, b, p in pairs[:6])
+                more = f", and {len(pairs) - 6} more (study.json)" if len(pairs) > 6 else ""
+                print(f"within noise ({key}, {task}): {shown}{more}")
     print(f"{res['cells']} cells ({res['executed']} tasks run) in {res['seconds']:.1f} s on {res['executor']}; "
           f"wrote {res['csv']} and {res['json']}")
     return 0

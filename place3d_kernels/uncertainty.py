@@ -17,7 +17,9 @@ subset of k frames).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
@@ -226,17 +228,19 @@ def plot_scores(boots: dict, path, title: str = "M-SOG with bootstrap intervals"
     for ax, (name, b) in zip(axes[0], panels):
         x = np.arange(len(b.names))
         ci = b.ci
-        err = np.abs(np.stack([b.point - ci[:, 0], ci[:, 1] - b.point]))
-        h1 = ax.errorbar(x, b.point, yerr=err, fmt="o", color="tab:blue", capsize=4,
-                         label=f"pooled M-SOG, {int(b.level * 100)} % interval ({b.n_units} {b.unit}, "
-                               f"{len(b.samples)} resamples)")
+        # the interval is drawn from its own ends, not as error bars around the point: a percentile interval
+        # need not contain the point (bootstrap bias, see Bootstrap.bias)
+        h0 = ax.errorbar(x, ci.mean(axis=1), yerr=(ci[:, 1] - ci[:, 0]) / 2.0, fmt="none", ecolor="tab:blue",
+                         capsize=4, label=f"{int(b.level * 100)} % percentile interval ({b.n_units} {b.unit}, "
+                                          f"{len(b.samples)} resamples)")
+        (h1,) = ax.plot(x, b.point, "o", color="tab:blue", label="M-SOG of the full sample")
         ax.set_xticks(x)
         ax.set_xticklabels(b.names, rotation=35, ha="right")
         ax.set_xlabel("placement")
         ax.set_ylabel("M-SOG [nats per covered voxel] (higher is better)")
         ax.set_title(name)
         ax.grid(alpha=0.3)
-        handles = [h1]
+        handles = [h1, h0]
         if reference and name in reference:
             ax2 = ax.twinx()
             (h2,) = ax2.plot(x, np.asarray(reference[name], dtype=np.float64), "s", color="tab:red", alpha=0.7,
@@ -262,3 +266,184 @@ def kendall_tau(a: Sequence[float], b: Sequence[float]) -> float:
 
 
 __all__ += ["kendall_tau"]
+
+
+# ====================================================================== subsets of one P-SOG spec
+def frame_subset_records(frames, grid, k: int, backend=None, label: str = "drive") -> list:
+    """One ``DriveRecord`` per subset of ``k`` consecutive frames, voted as ``PSOG.from_frames`` votes
+    them (the same grouping as ``pooled.subset_records``), so the records sum to the drive's P-SOG."""
+    from place3d_kernels.pooled import DriveRecord
+    from place3d_kernels.sog import PSOG
+
+    frames = list(frames)
+    n_sub = max(1, len(frames) // k)
+    groups = [frames[i * k:(i + 1) * k] for i in range(n_sub)] if len(frames) >= k else [frames]
+    return [DriveRecord.from_psog(PSOG.from_frames(g, grid, len(g), backend=backend), f"{label}#{j}")
+            for j, g in enumerate(groups)]
+
+
+def _records_path(spec):
+    """(npz path, inputs) of the subset-record cache of a ``PSOGSpec`` (None for semantickitti: nothing
+    is simulated, the frames are read again)."""
+    from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
+    from place3d_kernels.simulate import DEFAULT_MOUNT
+    from place3d_kernels.sog import cache_dir, cache_key
+    from place3d_kernels.spec import resolve_lidar
+
+    if spec.scene.kind == "semantickitti":
+        return None, None
+    lidar = resolve_lidar(spec.lidar)
+    scene = spec.scene.build()
+    # the inputs of scene_psog's cache key, plus what makes these files different from a P-SOG
+    inputs = dict(kind="subset-records", scene=scene.key, grid=spec.grid.grid().to_dict(),
+                  lidar=[lidar.name, lidar.elevations.tolist(), lidar.azimuths.size, lidar.max_range],
+                  mount=np.asarray(DEFAULT_MOUNT if spec.mount is None else spec.mount).tolist(),
+                  k=spec.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
+                  condition=None if spec.condition is None else spec.condition.to_dict())
+    folder = Path(spec.cache) if spec.cache else cache_dir()
+    return folder / f"subsets-{scene.name}-{cache_key(**inputs)}.npz", inputs
+
+
+def spec_subset_records(spec, backend=None, cache: bool = True) -> list:
+    """Per-subset ``DriveRecord``s of a ``PSOGSpec`` (its scene, condition, grid, collection LiDAR, k).
+
+    Simulates the frames once and keeps the sparse records on disk beside the P-SOG cache (a few MB at
+    0.2 m), so later bootstraps cost no simulation. ``cache=False`` rebuilds and writes nothing.
+    """
+    from place3d_kernels.manifest import verify_manifest, write_manifest
+    from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
+    from place3d_kernels.pooled import DriveRecord
+    from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
+    from place3d_kernels.spec import resolve_lidar
+
+    b = spec.backend if backend is None else backend
+    k = spec.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET
+    grid = spec.grid.grid()
+    path, inputs = _records_path(spec) if cache else (None, None)
+    if path is not None and path.exists():
+        try:
+            if not verify_manifest(path.with_suffix(".json"), inputs, "subset-record cache", "it is rebuilt"):
+                raise ValueError(f"{path}: no manifest")
+            z = np.load(path)
+            cut = np.cumsum(z["sizes"])[:-1]
+            return [DriveRecord(str(lab), int(t), v, c, n) for lab, t, v, c, n in
+                    zip(z["labels"], z["n_subsets"], np.split(z["voxels"], cut), np.split(z["classes"], cut),
+                        np.split(z["counts"], cut))]
+        except Exception:  # noqa: BLE001 - a broken or stale cache file is rebuilt, not fatal
+            pass
+    if spec.scene.kind == "semantickitti":
+        from place3d_kernels.io.semantickitti import read_sequence
+
+        frames = read_sequence(spec.scene.path)
+    else:
+        frames = simulate(spec.scene.build(), resolve_lidar(spec.lidar),
+                          mount=DEFAULT_MOUNT if spec.mount is None else spec.mount, backend=b)
+        if spec.condition is not None:
+            cond = spec.condition.condition(b)
+            frames = [cond(f, i) for i, f in enumerate(frames)]
+    recs = frame_subset_records(frames, grid, k, b, spec.scene.label)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez(tmp, labels=np.array([r.label for r in recs]), n_subsets=np.array([r.n_subsets for r in recs]),
+                 sizes=np.array([len(r.voxels) for r in recs]), voxels=np.concatenate([r.voxels for r in recs]),
+                 classes=np.concatenate([r.classes for r in recs]), counts=np.concatenate([r.counts for r in recs]))
+        os.replace(tmp, path)
+        write_manifest(path.with_suffix(".json"), inputs)
+    return recs
+
+
+def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
+                      n_resamples: int = 200, seed: int = 0, backend=None, level: float = 0.95,
+                      point: dict | None = None, unit: str = "subsets", progress: bool = False) -> dict:
+    """{task: Bootstrap} of ``placements`` over resamples of ``records`` (one ``msog_batch`` call over all
+    placements per resample and task; the resampled P-SOG is built once per resample for both tasks).
+
+    Args:
+        point: optional {task: (P,) scores} used as the point estimates (e.g. the scores already printed,
+            so they stay bit-identical); default: the scores on the pool of all records.
+        progress: a progress bar over the distinct resamples (stderr).
+    """
+    from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.lidar import LidarModel
+    from place3d_kernels.metrics import msog_batch
+
+    L = LidarModel.load(lidar) if isinstance(lidar, str) else lidar
+    b = get_backend(backend)
+    names, poses = _poses(placements)
+    pooled = PooledPSOG(grid, records)
+    mult = resample_multiplicities(len(pooled), n_resamples, seed)
+    # a resample's score depends only on its multiplicities: score each distinct one once (with few
+    # subsets many resamples repeat, e.g. 2 subsets give only 3 distinct pools)
+    uniq, inv = np.unique(mult, axis=0, return_inverse=True)
+    scores = {t: np.empty((len(uniq), len(names))) for t in tasks}
+    it = uniq
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(uniq, desc="bootstrap", unit="resample", leave=False)
+    for r, m in enumerate(it):
+        ps = pooled.psog(m)
+        for t in tasks:
+            scores[t][r] = msog_batch(ps, L, poses, occlusion, t, b)
+    samples = {t: scores[t][np.asarray(inv).reshape(-1)] for t in tasks}
+    out = {}
+    for t in tasks:
+        pt = point[t] if point is not None else msog_batch(pooled.psog(), L, poses, occlusion, t, b)
+        out[t] = Bootstrap(names, np.asarray(pt, dtype=np.float64), samples[t], level, unit, len(pooled))
+    return out
+
+
+def pairwise(boot: Bootstrap) -> dict:
+    """{A: {B: P(A > B)}} over the resamples (ties count one half, so P(A>B) + P(B>A) = 1 exactly when
+    no score is NaN; a NaN never compares greater, so the sum may fall below 1)."""
+    f = boot.order_freq
+    return {a: {b: round(float(f[i, j]), 4) for j, b in enumerate(boot.names) if j != i}
+            for i, a in enumerate(boot.names)}
+
+
+def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, task: str = "seg",
+                               occlusion: str = "sog", backend=None, n_resamples: int = 200, seed: int = 0,
+                               level: float = 0.95, best_name: str = "best",
+                               settings=None) -> dict:
+    """Interval of an optimised rig and of each baseline, and how often the rig beats each baseline.
+
+    Args:
+        source: a ``PSOGSpec`` (resampled over its subsets, records cached as ``spec_subset_records``),
+            a ``pooled.Drive`` (over its subsets, with ``settings``) or a ``PooledPSOG`` (over its drives).
+        best_poses: (L, 6) poses of the optimised rig.
+        baseline_placements: {name: Placement or (L', 6) poses} or a list of ``Placement``.
+        task, occlusion, backend: as ``msog_batch``; n_resamples, seed, level: the bootstrap's.
+
+    Returns:
+        {"task", "level", "unit", "n_units", "n_resamples",
+         "best": {"name", "score", "ci": [lo, hi]},
+         "baselines": [{"name", "score", "ci": [lo, hi], "p_best_better": P(best > baseline),
+                        "within_noise": bool (P < NOISE_LEVEL)}, ...]}
+    """
+    from place3d_kernels.pooled import Drive, PoolSettings, subset_records
+
+    names, poses = _poses(baseline_placements)
+    best = np.asarray(best_poses, dtype=np.float64)
+    if best.ndim != 2 or best.shape[1] != 6:
+        raise ValueError(f"best_poses must be (L, 6) poses, got shape {best.shape}")
+    placements = {best_name: best, **{n: p for n, p in zip(names, poses)}}
+    if isinstance(source, PooledPSOG):
+        pooled, unit = source, "drives"
+    elif isinstance(source, Drive):
+        settings = settings or PoolSettings()
+        pooled, unit = PooledPSOG(settings.grid, subset_records(source, settings)), "subsets"
+    else:
+        pooled, unit = PooledPSOG(source.grid.grid(), spec_subset_records(source, backend)), "subsets"
+    boot = bootstrap_records(pooled.records, pooled.grid, lidar, placements, (task,), occlusion, n_resamples,
+                             seed, backend, level, unit=unit)[task]
+    ci, f = boot.ci, boot.order_freq
+    rows = [{"name": n, "score": float(boot.point[i]), "ci": ci[i].tolist(),
+             "p_best_better": round(float(f[0, i]), 4), "within_noise": bool(f[0, i] < NOISE_LEVEL)}
+            for i, n in enumerate(boot.names) if i > 0]
+    return {"task": task, "level": level, "unit": unit, "n_units": boot.n_units, "n_resamples": int(n_resamples),
+            "best": {"name": best_name, "score": float(boot.point[0]), "ci": ci[0].tolist()}, "baselines": rows}
+
+
+__all__ += ["frame_subset_records", "spec_subset_records", "bootstrap_records", "pairwise",
+            "rig_vs_baselines_intervals"]

@@ -88,7 +88,9 @@ def test_cli_evaluate_writes_json(tmp_path):
     assert r.returncode == 0, r.stderr
     data = json.loads(out.read_text())
     assert set(data) >= {"rows", "backend", "grid", "seconds"}
-    assert [set(row) for row in data["rows"]] == [{"placement", "msog_seg", "msog_det"}] * 3
+    # the bootstrap (on by default) adds per row its intervals and pairwise orders (tests/test_intervals.py)
+    assert [set(row) for row in data["rows"]] == [{"placement", "msog_seg", "msog_det", "ci", "pairwise"}] * 3
+    assert all(set(row["ci"]) == {"seg", "det"} for row in data["rows"])
     seg = [row["msog_seg"] for row in data["rows"]]
     assert seg == sorted(seg, reverse=True) and all(s < 0 for s in seg)
     assert data["backend"] == "warp:cpu"
