@@ -106,7 +106,8 @@ def cmd_evaluate(args) -> int:
         det = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "det", b, normalisation=args.normalisation)[0])
         rows.append({"placement": pl.name or name, "msog_seg": seg, "msog_det": det})
     rows.sort(key=lambda r: -r["msog_seg"])
-    boots = _evaluate_bootstrap(args, spec, b, lidar, names, placements, rows) if args.resamples else None
+    boots = (_evaluate_bootstrap(args, spec, b, lidar, names, placements, rows)
+             if args.resamples and args.interval != "none" else None)
     seconds = time.perf_counter() - t0
     cond = f", condition {args.condition}" if args.condition else ""
     print(f"M-SOG on scene {args.scene} (seed {args.seed}{cond}), backend {b.name}, grid {psog.grid.shape} "
@@ -147,24 +148,30 @@ def cmd_evaluate(args) -> int:
 
 
 def _evaluate_bootstrap(args, spec, backend, lidar, names, placements, rows) -> dict:
-    """{task: Bootstrap} over the subsets of the evaluated drive; point estimates are the printed scores
-    (bit-identical), ``ci`` and ``pairwise`` are added to each row."""
-    from place3d_kernels.uncertainty import bootstrap_records, pairwise, spec_subset_records
+    """{task: Jackknife | Bootstrap} over the subsets of the evaluated drive; point estimates are the printed
+    scores (bit-identical), ``ci`` and ``pairwise`` are added to each row."""
+    from place3d_kernels.uncertainty import bootstrap_records, jackknife_records, pairwise, spec_subset_records
 
     if args.resamples < 0:
         raise ValueError(f"--resamples must be >= 0 (0 switches the intervals off), got {args.resamples}")
     with section("bootstrap: subset records"):
         records = spec_subset_records(spec, backend, cache=not args.no_cache)
     if len(records) < 2:
-        raise ValueError(f"the bootstrap needs at least 2 subsets, the drive has {len(records)}; use more "
-                         f"--frames or --resamples 0")
+        raise ValueError(f"intervals need at least 2 subsets, the drive has {len(records)}; use more "
+                         f"--frames or --interval none")
     order = [r["placement"] for r in rows]
     by_name = {(pl.name or n): pl for n, pl in zip(names, placements)}
     point = {t: [r[f"msog_{t}"] for r in rows] for t in ("seg", "det")}
-    with section("bootstrap: rescoring"):
-        boots = bootstrap_records(records, spec.grid.grid(), lidar, {n: by_name[n] for n in order},
-                                  ("seg", "det"), args.occlusion, args.resamples, args.resample_seed, backend,
-                                  point=point, progress=not args.quiet)
+    chosen = {n: by_name[n] for n in order}
+    with section(f"{args.interval}: rescoring"):
+        if args.interval == "jackknife":
+            boots = jackknife_records(records, spec.grid.grid(), lidar, chosen, ("seg", "det"), args.occlusion,
+                                      backend, point=point, progress=not args.quiet,
+                                      normalisation=args.normalisation)
+        else:
+            boots = bootstrap_records(records, spec.grid.grid(), lidar, chosen, ("seg", "det"), args.occlusion,
+                                      args.resamples, args.resample_seed, backend, point=point,
+                                      progress=not args.quiet, normalisation=args.normalisation)
     pw = {t: pairwise(bt) for t, bt in boots.items()}
     for i, r in enumerate(rows):
         r["ci"] = {t: boots[t].ci[i].tolist() for t in boots}
@@ -187,9 +194,14 @@ def _print_intervals(rows, boots, det_rank) -> None:
         cs, cd = seg.ci[i], det.ci[i]
         print(f"{mark}  {i + 1:>4}  {r['placement']:14s} {r['msog_seg']:12.6f} [{cs[0]:10.6f}, {cs[1]:10.6f}] "
               f"{r['msog_det']:12.6f} [{cd[0]:10.6f}, {cd[1]:10.6f}]   (det rank {det_rank[r['placement']]})")
-    print(f"intervals: percentile bootstrap, {len(seg.samples)} resamples of the drive's {seg.n_units} subsets "
-          f"(within one drive: narrower than over routes); '~': order with the row above holds in < "
-          f"{int(NOISE_LEVEL * 100)} % of resamples")
+    if getattr(seg, "method", "bootstrap") == "jackknife":
+        print(f"intervals: delete-one-subset jackknife over the drive's {seg.n_units} subsets, point +- "
+              f"{seg._z():.2f} se (within one drive: narrower than over routes); '~': P(order with the row above "
+              f"holds) < {NOISE_LEVEL:.2f}, from the jackknife se of the difference")
+    else:
+        print(f"intervals: percentile bootstrap, {len(seg.samples)} resamples of the drive's {seg.n_units} subsets "
+              f"(within one drive: narrower than over routes); '~': order with the row above holds in < "
+              f"{int(NOISE_LEVEL * 100)} % of resamples")
     outside = sum(int(not lo <= x <= hi) for x, (lo, hi) in zip(seg.point, seg.ci))
     if outside:
         # entropy is concave: a resample repeats subsets, pools fewer distinct ones and scores higher, so the
@@ -207,9 +219,15 @@ def _print_intervals(rows, boots, det_rank) -> None:
 
 def _bootstrap_summary(args, boots) -> dict:
     seg = boots["seg"]
-    return {"unit": seg.unit, "n_units": seg.n_units, "n_resamples": int(args.resamples),
-            "seed": args.resample_seed, "level": seg.level, "method": "percentile bootstrap over the subsets "
-            "of the drive (rows: ci = [lo, hi], pairwise[task][B] = P(row > B), ties count one half)",
+    if args.interval == "jackknife":
+        method = ("delete-one-subset jackknife of the drive (rows: ci = point +- z se; pairwise[task][B] = "
+                  "Phi(d / se_d), d = row - B, se_d the jackknife se of the difference)")
+    else:
+        method = ("percentile bootstrap over the subsets of the drive (rows: ci = [lo, hi], pairwise[task][B] = "
+                  "P(row > B), ties count one half)")
+    return {"unit": seg.unit, "n_units": seg.n_units,
+            "n_resamples": int(args.resamples) if args.interval == "bootstrap" else seg.n_units,
+            "seed": args.resample_seed, "level": seg.level, "method": method, "interval": args.interval,
             "within_noise": {t: [list(p) for p in bt.within_noise()] for t, bt in boots.items()},
             "se": {t: dict(zip(bt.names, bt.se.tolist())) for t, bt in boots.items()},
             "bias": {t: dict(zip(bt.names, bt.bias.tolist())) for t, bt in boots.items()}}
@@ -315,9 +333,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--output", help="write the table as JSON to this path")
     p.add_argument("--normalisation", default="paper", choices=["paper", "evidence", "uncertain"],
                    help="M-SOG denominator (docs/metric-normalisation.md): 'paper' (default), 'evidence', 'uncertain'")
+    p.add_argument("--interval", default="jackknife", choices=["jackknife", "bootstrap", "none"],
+                   help="95 %% intervals and pairwise orders over the drive's subsets: 'jackknife' (default; one "
+                        "rescoring per subset, unbiased for the full drive), 'bootstrap' (--resamples draws; its "
+                        "resamples repeat subsets and score high, see docs/commands.md), or 'none'")
     p.add_argument("--resamples", type=int, default=200,
-                   help="bootstrap resamples over the drive's subsets for the 95 %% intervals and pairwise orders "
-                        "(default 200; 0 switches them off)")
+                   help="bootstrap resamples (with --interval bootstrap; default 200; 0 switches intervals off)")
     p.add_argument("--resample-seed", type=int, default=0, help="seed of the bootstrap resampling (default 0)")
     p.add_argument("--plot", default=None,
                    help="PNG of the scores with their intervals (default with --output: next to it, same stem)")

@@ -59,7 +59,7 @@ def test_resamples_zero_prints_todays_table_and_same_scores(tmp_path, capsys):
 # ------------------------------------------------------------------ (b) ci and pairwise in eval.json
 def test_eval_json_intervals_and_pairwise_match_the_resamples(tmp_path, capsys):
     out = tmp_path / "eval.json"
-    assert main(["evaluate", *TINY, *NAMES, "--resamples", "40", "--resample-seed", "3",
+    assert main(["evaluate", *TINY, *NAMES, "--interval", "bootstrap", "--resamples", "40", "--resample-seed", "3",
                  "--output", str(out)]) == 0
     printed = capsys.readouterr().out
     d = json.loads(out.read_text())
@@ -180,3 +180,42 @@ def test_study_has_interval_columns_and_within_noise(tmp_path, capsys):
     rows0 = list(csv.DictReader((out / "study.csv").open()))
     assert [(r["msog_seg"], r["msog_det"]) for r in rows0] == [(r["msog_seg"], r["msog_det"]) for r in rows]
     assert all(r["ci_lo_seg"] == "" for r in rows0)
+
+
+def test_jackknife_se_of_a_mean_is_the_textbook_standard_error():
+    # for a mean the delete-one jackknife se equals s / sqrt(n) exactly, and its bias estimate is 0
+    from place3d_kernels.uncertainty import Jackknife
+
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(12, 3)) * np.array([1.0, 2.0, 0.5]) + np.array([0.0, 0.3, 3.0])
+    n = len(x)
+    loo = (x.sum(axis=0) - x) / (n - 1)
+    jk = Jackknife(["a", "b", "c"], x.mean(axis=0), loo, level=0.95, unit="subsets", n_units=n)
+    np.testing.assert_allclose(jk.se, x.std(axis=0, ddof=1) / np.sqrt(n), rtol=1e-12)
+    np.testing.assert_allclose(jk.bias, 0.0, atol=1e-12)
+    lo, hi = jk.ci.T
+    assert np.all(lo < jk.point) and np.all(jk.point < hi)
+    # pairwise: Phi of the difference over the se of the difference, which for means is the paired-t se
+    d = x[:, 2] - x[:, 0]
+    from scipy.stats import norm
+
+    assert jk.order_freq[2, 0] == pytest.approx(norm.cdf(d.mean() / (d.std(ddof=1) / np.sqrt(n))), rel=1e-9)
+    assert jk.order_freq[2, 0] + jk.order_freq[0, 2] == pytest.approx(1.0)
+
+
+def test_evaluate_default_jackknife_matches_the_records(tmp_path):
+    from place3d_kernels.uncertainty import jackknife_records
+
+    out = tmp_path / "eval.json"
+    assert main(["evaluate", *TINY, *NAMES, "--output", str(out)]) == 0
+    d = json.loads(out.read_text())
+    rows, bs = d["rows"], d["bootstrap"]
+    assert bs["interval"] == "jackknife" and bs["n_units"] == 4
+    order = [r["placement"] for r in rows]
+    jk = jackknife_records(spec_subset_records(_spec()), _spec().grid.grid(), "place3d_16ch",
+                           {n: Placement.load(n) for n in order}, ("seg", "det"), "sog",
+                           point={t: [r[f"msog_{t}"] for r in rows] for t in ("seg", "det")})
+    for task in ("seg", "det"):
+        for i, r in enumerate(rows):
+            assert r["ci"][task] == jk[task].ci[i].tolist()
+            assert r["ci"][task][0] <= r[f"msog_{task}"] <= r["ci"][task][1]   # contains the printed score
