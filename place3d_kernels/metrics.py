@@ -50,8 +50,15 @@ def _score(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
 
 
 def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", task: str = "seg",
-               backend=None, mesh: Mesh | None = None) -> np.ndarray:
+               backend=None, mesh: Mesh | None = None, body=None) -> np.ndarray:
     """M-SOG of P candidate rigs in one backend launch.
+
+    Grid LiDARs (``lidar.is_grid``) with no minimum range and no body take the fused
+    ``score_placements`` kernel. Every other case (per-channel azimuth offsets, rosette scans,
+    ``min_range > 0``, a vehicle body) builds the rays on the host and scores them with
+    ``Backend.score_rays`` (``place3d_kernels.rig_metrics.msog_rigs``): rays start at ``min_range``
+    (origin moved along the ray in float64) and end where the body blocks them. Both paths are exact
+    and identical on every backend.
 
     Args:
         psog: the scene's P-SOG (ego frame).
@@ -61,9 +68,14 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
             or "mesh" (stop at the first surface of ``mesh``, given in the ego frame).
         task: "seg" (22-channel P-SOG) or "det" (empty / vehicle / other).
         backend: backend name or instance.
+        mesh: the scene mesh for occlusion "mesh".
+        body: optional ``VehicleBody`` (ego frame) whose surface blocks rays.
 
     Returns:
         (P,) float64 scores (NaN for a rig that covers no voxel).
+
+    Raises:
+        ValueError: bad inputs, or a LiDAR origin inside ``body`` (the message names it).
     """
     poses = _poses(poses)
     if poses.ndim == 2:
@@ -71,6 +83,15 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
     check_inputs(psog, poses, occlusion, mesh)
     p = psog.for_task(task)
     b = get_backend(backend)
+    if body is not None or not lidar.is_grid or lidar.min_range > 0:
+        from place3d_kernels.rig_metrics import msog_rigs
+
+        r = msog_rigs(psog, [([lidar] * len(rig), rig) for rig in poses], body, task,
+                      "none" if occlusion == "mesh" else occlusion, b, mesh if occlusion == "mesh" else None)
+        bad = np.flatnonzero(~r.feasible)
+        if len(bad):
+            raise ValueError(f"rig {int(bad[0])}: {r.reasons[bad[0]]}")
+        return r.msog
     if occlusion == "mesh":
         sums, counts = zip(*(mesh_sums(p, lidar, rig, mesh, b) for rig in poses))
         return _score(np.array(sums), np.array(counts))
@@ -91,9 +112,9 @@ def mesh_sums(p: PSOG, lidar: LidarModel, rig: np.ndarray, mesh: Mesh, b) -> tup
 
 
 def msog(psog: PSOG, lidar: LidarModel, placement, occlusion: str = "sog", task: str = "seg", backend=None,
-         mesh: Mesh | None = None) -> float:
-    """M-SOG of one placement (see ``msog_batch``)."""
-    return float(msog_batch(psog, lidar, _poses(placement)[None], occlusion, task, backend, mesh)[0])
+         mesh: Mesh | None = None, body=None) -> float:
+    """M-SOG of one placement (see ``msog_batch``; ``body`` is an optional ``VehicleBody``)."""
+    return float(msog_batch(psog, lidar, _poses(placement)[None], occlusion, task, backend, mesh, body)[0])
 
 
 def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", backend=None,

@@ -43,6 +43,9 @@ def add_arguments(p) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue from --checkpoint (the run's settings must match; they are checked first)")
     p.add_argument("--output", default=None, help="folder for result.json, placement TOML, history.csv and plots")
+    from place3d_kernels.rig_cli import add_rig_arguments
+
+    add_rig_arguments(p)
 
 
 def run_setup(args, spec) -> dict:
@@ -104,7 +107,10 @@ def run(args, spec, psog_for) -> int:
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
 
     from place3d_kernels.manifest import provenance, write_manifest
+    from place3d_kernels.rig_cli import run_rig, wants_rig_mode
 
+    if wants_rig_mode(args):              # sensors, surfaces, a body, cost: place3d_kernels/rig_cli.py
+        return run_rig(args, spec, psog_for)
     t0 = time.perf_counter()
     if args.opt_seed is None:
         args.opt_seed = args.seed          # --seed S seeds the scene and the optimiser alike
