@@ -71,7 +71,8 @@ class MountSurface:
     def angle(self, key: str, s) -> np.ndarray:
         """Angle ``key`` at fraction ``s`` in [0, 1] of its allowed range (clipped)."""
         lo, hi = self.orientation[key]
-        return lo + np.clip(np.asarray(s, dtype=np.float64), 0.0, 1.0) * (hi - lo)
+        s = np.clip(np.asarray(s, dtype=np.float64), 0.0, 1.0)
+        return (1.0 - s) * lo + s * hi            # exact at both ends of the range
 
     def nominal_fraction(self, key: str) -> float:
         """Where the nominal angle lies in its range, as a fraction (0.5 when the range is empty)."""
@@ -167,11 +168,11 @@ def _surface(name: str, body: VehicleBody | None, standoff: float | None) -> Mou
         o, nom = _orient(np.pi / 2 if left else -np.pi / 2, _YAW_RANGE)
         return MountSurface(name, A([x0, y, zb0]), (x1 - x0) * ex, (zb1 - zb0) * ez, ey if left else -ey, s,
                             _LIFT_M, o, nom)
-    # A-pillars: the cabin's front vertical edge on each side, from the shoulder to the roof; the normal
-    # points diagonally forward and outward; v runs a short way back along the cabin side
+    # A-pillars: a strip on the cabin side at its front edge, from 30 cm above the shoulder to the roof (u) and 20 cm
+    # back (v); the unit stands off the side (normal +-y) and looks diagonally forward (nominal yaw +-45 deg)
     left = name == "left-a-pillar"
     y = cy1 if left else cy0
-    n = np.array([1.0, 1.0 if left else -1.0, 0.0]) / np.sqrt(2.0)
-    z0 = lz1 + 0.05
+    n = ey if left else -ey
+    z0 = lz1 + 0.3                # above the belt line, so a lifted unit clears the lower body too
     o, nom = _orient(np.pi / 4 if left else -np.pi / 4, _YAW_RANGE)
     return MountSurface(name, A([cx1, y, z0]), (cz1 - 0.05 - z0) * ez, -0.2 * ex, n, s, _LIFT_M, o, nom)

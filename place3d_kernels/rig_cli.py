@@ -210,19 +210,20 @@ def _write_outputs(out: Path, result, front, best, bs, a, args) -> list:
 
 
 def _write_rig_toml(path, best, a, args) -> None:
-    keys = ("x", "y", "z", "roll", "pitch", "yaw")
-    lines = [f"# place3d optimize (real rig): M-SOG {best.msog:.6f} ({args.task}) on scene {args.scene}, "
-             f"vehicle {a['body'].name if a['body'] is not None else 'none'}",
-             "# Frame: ego, x forward, y left, z up, z = 0 on the ground under the vehicle centre.",
-             "# Units: metres and radians. [[lidar]] rows are a placement (Placement.load, place3d blindspot);",
-             "# [[mount]] rows say which sensor sits where (surface parameters u, v, w in [0, 1]).",
-             'name = "optimized-rig"', ""]
-    for p in best.poses:
-        lines += ["[[lidar]]"] + [f"{k} = {float(v)!r}" for k, v in zip(keys, p)] + [""]
+    """The rig as a placement TOML (``Placement.save``'s layout) plus ``[[mount]]`` tables."""
+    from place3d_kernels.placement import Placement
+
+    note = (f"place3d optimize (real rig): M-SOG {best.msog:.6f} ({args.task}) on scene {args.scene}, vehicle "
+            f"{a['body'].name if a['body'] is not None else 'none'}\n"
+            "[[lidar]] rows are a placement (Placement.load, place3d blindspot); [[mount]] rows say which sensor "
+            "sits where\n(surface parameters u, v, w in [0, 1], see place3d_kernels/mounting.py)")
+    Placement(best.poses, "optimized-rig").save(path, note=note)
+    lines = []
     for s, f, uvw in zip(best.sensors, best.surfaces, best.uvw):
         lines += ["[[mount]]", f'sensor = "{s}"', f'surface = "{f}"'] + \
                  [f"{k} = {float(v)!r}" for k, v in zip("uvw", uvw)] + [""]
-    Path(path).write_text("\n".join(lines))
+    with open(path, "a") as fh:
+        fh.write("\n" + "\n".join(lines))
 
 
 def plot_rig_on_body(rig, body, surfaces, path, title: str = ""):
