@@ -126,12 +126,21 @@ def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog",
     poses = _poses(poses).reshape(-1, 6)
     check_inputs(psog, poses, occlusion, mesh)
     b = get_backend(backend)
+    from place3d_kernels.ops import traverse
+
+    if not lidar.is_grid or lidar.min_range > 0:
+        # the rays msog_batch scores for such models (start at min_range; see rig_metrics.rigs_rays)
+        from place3d_kernels.rig_metrics import rigs_rays
+
+        o, d, t_end, _, _ = rigs_rays([([lidar] * len(poses), poses)], None, b,
+                                      mesh if occlusion == "mesh" else None)
+        stop = psog.stop_mask if occlusion == "sog" else None
+        return np.unique(traverse(psog.grid, o, d, t_end, backend=b, stop=stop).voxels)
     o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, poses)
     if occlusion == "mesh":
         t_end = np.minimum(raycast(mesh, o, d, lidar.max_range, backend=b).t, lidar.max_range)
     else:
         t_end = lidar.max_range
-    from place3d_kernels.ops import traverse
 
     stop = psog.stop_mask if occlusion == "sog" else None
     return np.unique(traverse(psog.grid, o, d, t_end, backend=b, stop=stop).voxels)

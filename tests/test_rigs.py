@@ -87,6 +87,12 @@ def test_msog_accepts_offset_and_rosette_models_with_min_range(backend, psog):
                            np.array([0, len(o)]), backend="reference")
         assert got == rm.msog_from_sums(s, n)[0]
         assert got == p3k.msog(psog, m, poses, backend="reference")
+        # covered_voxels (coverage plots, the pose cache) walks the same rays
+        assert p3k.metrics.msog_from_voxels(psog, p3k.covered_voxels(psog, m, poses, backend=backend)) == got
+    from place3d_kernels.optimize import MSOGObjective, SearchSpace
+
+    with pytest.raises(ValueError, match="minimum range"):          # its cache would ignore min_range
+        MSOGObjective(psog, OFFSET_M, SearchSpace(n_lidars=2))
     # a grid model with no min range and no body keeps the fused kernel, and the ray path agrees with it
     fused = p3k.msog_batch(psog, GRID_M, poses[None], backend=backend)
     rays = rm.msog_rigs(psog, [([GRID_M] * 2, poses)], backend=backend).msog
