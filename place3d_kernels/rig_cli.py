@@ -261,6 +261,9 @@ def plot_rig_on_body(rig, body, surfaces, path, title: str = ""):
             d = np.stack([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), -np.sin(pitch)], 1) * 0.6
             ax.quiver(p[:, i], p[:, j], d[:, i], d[:, j], angles="xy", scale_units="xy", scale=1, width=0.004,
                       color=colors[m])
+        for q, pose in enumerate(rig.poses):            # slot numbers, as listed in rig.toml
+            ax.annotate(str(q + 1), (pose[i], pose[j]), textcoords="offset points", xytext=(-4, 7), fontsize=8,
+                        fontweight="bold")
         ax.set_xlabel("x (m, forward)")
         ax.set_ylabel(lab)
         ax.set_aspect("equal")
@@ -271,7 +274,7 @@ def plot_rig_on_body(rig, body, surfaces, path, title: str = ""):
     axes[0].set_ylim(lo[1], hi[1])
     axes[1].set_xlim(lo[0], hi[0])
     axes[1].set_ylim(-0.1, hi[2])
-    axes[0].set_title("top view (arrows: look direction)")
+    axes[0].set_title("top view (numbers: slots; arrows: look direction)")
     axes[1].set_title("side view, from the right")
     axes[1].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     fig.suptitle(title)
