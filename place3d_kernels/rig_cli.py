@@ -38,6 +38,10 @@ def add_rig_arguments(p) -> None:
     g.add_argument("--objective", default="msog", choices=["msog", "pareto"],
                    help="msog: best rig; pareto: the front of M-SOG against cost and sensor count")
     g.add_argument("--prices", default=None, help="price TOML (default: the shipped illustrative list prices)")
+    g.add_argument("--max-blind-extent", type=float, default=None, metavar="M",
+                   help="constraint: no ground blind spot reaching more than M metres from the body (at --blind-z)")
+    g.add_argument("--blind-z", type=float, default=0.0, help="plane height of the blind-spot map and constraint, m "
+                                                              "(default 0 = road; 0.5 = bumper height)")
     g.add_argument("--azimuth-step", type=int, default=1,
                    help="keep every K-th azimuth step of spinning sensors (faster, coarser; default 1 = all)")
 
@@ -68,11 +72,26 @@ def check_rig_args(args) -> dict:
     from place3d_kernels.optimize.rig_search import DOF_NAMES
     from place3d_kernels.pricing import check_prices, load_prices
 
+    # options of the roof-box search that this mode does not implement: refuse rather than ignore them
+    unsupported = {"--fixed-height": getattr(args, "fixed_height", None) is not None,
+                   "--restarts": getattr(args, "restarts", 0) != 0, "--pose-cache": getattr(args, "pose_cache", False),
+                   "--checkpoint": getattr(args, "checkpoint", None) is not None,
+                   "--resume": getattr(args, "resume", False),
+                   "--x0": getattr(args, "x0", "best-baseline") != "best-baseline",
+                   "--executor ray": getattr(args, "executor", "local") == "ray" or bool(getattr(args, "ray_address", None))}
+    given = [k for k, v in unsupported.items() if v]
+    if given:
+        raise ValueError(f"{', '.join(given)} not supported with the real-rig options (--n-lidars, --sensors, "
+                         f"--surfaces, --dofs, --vehicle, --objective pareto); drop them")
     n = args.n_lidars if args.n_lidars is not None else args.lidars
     if not 1 <= n <= 8:
         raise ValueError(f"--n-lidars must be 1-8, got {n}")
     if args.max_evals < 1:
         raise ValueError(f"--max-evals must be >= 1, got {args.max_evals}")
+    if args.max_blind_extent is not None and not (np.isfinite(args.max_blind_extent) and args.max_blind_extent > 0):
+        raise ValueError(f"--max-blind-extent must be a positive number of metres, got {args.max_blind_extent}")
+    if not np.isfinite(args.blind_z):
+        raise ValueError(f"--blind-z must be a finite height in metres, got {args.blind_z}")
     if args.azimuth_step < 1:
         raise ValueError(f"--azimuth-step must be >= 1, got {args.azimuth_step}")
     if args.output is not None and Path(args.output).exists() and not Path(args.output).is_dir():
@@ -128,7 +147,7 @@ def run_rig(args, spec, psog_for) -> int:
     b = get_backend(args.backend)
     _, psog = psog_for(b)
     prob = RigProblem(psog, a["sensors"], a["surfaces"], a["n"], a["dofs"], a["body"], args.task, args.occlusion, b,
-                      args.min_distance)
+                      args.min_distance, args.max_blind_extent, args.blind_z)
     pareto = args.objective == "pareto"
     sizes = list(range(1, a["n"] + 1)) if pareto else None
     res = search_rigs(prob, args.max_evals, seed=seed, popsize=args.popsize,
@@ -138,7 +157,7 @@ def run_rig(args, spec, psog_for) -> int:
         raise ValueError(f"no feasible rig found in {res.evaluations} evaluations ({best.reason}); raise "
                          f"--max-evals or choose other surfaces")
     lidars = [a["sensors"][s] for s in best.sensors]
-    bs = blind_spot_map(a["body"], lidars, best.poses, backend=b)
+    bs = blind_spot_map(a["body"], lidars, best.poses, args.blind_z, backend=b)
     prices = a["prices"]
 
     def cost(c):
@@ -150,7 +169,8 @@ def run_rig(args, spec, psog_for) -> int:
                                                                for c in res.per_combination],
               "search": {"mode": res.mode, "evaluations": res.evaluations, "launches": res.launches,
                          "max_evals": args.max_evals, "seed": seed, "dofs": list(a["dofs"]),
-                         "azimuth_step": args.azimuth_step},
+                         "azimuth_step": args.azimuth_step, "max_blind_extent_m": args.max_blind_extent,
+                         "blind_z_m": args.blind_z},
               "vehicle": None if a["body"] is None else {"name": a["body"].name, "key": a["body"].key,
                                                          "bounds_m": np.round(a["body"].bounds, 4).tolist()},
               "surfaces": {k: s.to_dict() for k, s in a["surfaces"].items()},
@@ -177,7 +197,7 @@ def run_rig(args, spec, psog_for) -> int:
                                                                   zip(best.sensors, best.surfaces))
           + (f", US${cost(best):,.0f} (illustrative)" if prices is not None else "")
           + f"; {res.evaluations} rigs in {res.launches} launches, {seconds:.1f} s on {b.name}")
-    print(f"blind area {bs.area_m2:.2f} m^2 within {bs.radius:g} m of the body at ground level")
+    print(f"blind area {bs.area_m2:.2f} m^2 within {bs.radius:g} m of the body at z = {bs.ground_z:g} m")
     if args.output is None:
         return 0
     import shutil
@@ -199,7 +219,7 @@ def _write_outputs(out: Path, result, front, best, bs, a, args) -> list:
     plot_rig_on_body(best, a["body"], a["surfaces"], out / "rig.png",
                      title=f"Best rig on {a['body'].name if a['body'] is not None else 'no body'}: M-SOG "
                            f"{best.msog:.4f} ({args.task})")
-    bs.plot(out / "blindspot.png", title=f"Blind spots of the best rig at ground level "
+    bs.plot(out / "blindspot.png", title=f"Blind spots of the best rig at z = {bs.ground_z:g} m "
                                          f"({bs.area_m2:.1f} m$^2$ within {bs.radius:g} m)")
     files = ["result.json", "rig.toml", "rig.png", "blindspot.png"]
     if front is not None:

@@ -155,6 +155,26 @@ def test_search_enumerates_small_and_uses_integer_genes_for_large(psog):
     assert set(r.best.sensors) <= set(many)
 
 
+def test_blind_spot_constraint_penalises_exactly_the_rigs_that_break_it(psog):
+    from place3d_kernels.blindspot import max_blind_extent
+
+    # 0.5 deg azimuth steps, so that every 1 deg sector of the blind-spot map can get a ground hit
+    dense = LidarModel(np.radians(np.linspace(-31.0, 9.0, 5)), np.linspace(0, 2 * np.pi, 720, endpoint=False),
+                       max_range=12.0, name="dense")
+    surf = surfaces_for(CAR, ["front-bumper", "rear-bumper", "left-fender", "right-fender"])
+    args = (psog, {"dense": dense}, surf, 4, ("x", "z", "pitch", "yaw"), CAR)
+    free, tied = RigProblem(*args, backend="reference"), RigProblem(*args, backend="reference", max_blind_extent=3.0)
+    around = tied.decode(tied.x0(False), ("dense",) * 4)[2]             # one unit on each side of the car
+    front = around.copy()
+    front[1] = around[0] + [0, 0.4, 0, 0, 0, 0]                         # two on the front bumper: rear is blind
+    assert max_blind_extent(CAR, [dense] * 4, around) <= 3.0 < max_blind_extent(CAR, [dense] * 4, front)
+    rigs = [(["dense"] * 4, around), (["dense"] * 4, front)]
+    ms_free, f_free, _ = free.score(rigs)
+    ms, f, reasons = tied.score(rigs)
+    assert f[0] == f_free[0] and ms[0] == ms_free[0] and reasons[0] == ""
+    assert np.isfinite(ms_free[1]) and np.isnan(ms[1]) and f[1] > 10.0 and "blind spot at z = 0 m" in reasons[1]
+
+
 def test_pareto_front_is_non_dominated():
     rng = np.random.default_rng(9)
     s, c = rng.normal(size=60).round(1), rng.integers(1, 12, 60).astype(float)
@@ -223,6 +243,7 @@ def test_cli_writes_rig_outputs(cli_runs):
     (["--surfaces", ""], "empty"),
     (["--n-lidars", "0"], "1-8"),
     (["--objective", "pareto", "--prices", "PRICES"], "os1-64"),
+    (["--restarts", "1"], "--restarts not supported"),
 ])
 def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, bad, message):
     from place3d_kernels.cli import main

@@ -48,6 +48,11 @@ class RigProblem:
         body: the vehicle (None: no body).
         task, occlusion, backend: as ``msog_batch``.
         min_separation: metres between any two LiDAR origins.
+        max_blind_extent: optional constraint, metres: at height ``blind_z`` no azimuth sector may see
+            its nearest ground point farther than this from the body (``blindspot.max_blind_extent``);
+            a rig breaking it gets ``PENALTY`` plus its blind area / 1000 m^2 (so the search can follow
+            the area down towards feasible rigs).
+        blind_z: plane height for that constraint, metres (0 road, 0.5 bumper height).
     """
 
     psog: object
@@ -60,6 +65,8 @@ class RigProblem:
     occlusion: str = "sog"
     backend: object = None
     min_separation: float = 0.2
+    max_blind_extent: float | None = None
+    blind_z: float = 0.0
 
     def __post_init__(self):
         if not 1 <= int(self.n_slots) <= 8:
@@ -156,6 +163,19 @@ class RigProblem:
                 if short > 0:
                     f[i] = PENALTY + short
                     reasons[i] = reasons[i] or f"LiDARs closer than {self.min_separation} m"
+        if self.max_blind_extent is not None:
+            from place3d_kernels.blindspot import blind_spot_map
+
+            for i, (sn, p) in enumerate(rigs):
+                if f[i] >= PENALTY:
+                    continue
+                m = blind_spot_map(self.body, [self.sensors[s] for s in sn], p, self.blind_z, cell=0.25,  # same sectors as reports
+                                   sector_deg=1.0, backend=self.backend)
+                if not m.max_extent() <= self.max_blind_extent:
+                    f[i] = PENALTY + m.area_m2 / 1000.0
+                    ext = "a sector with no ground hit" if not np.isfinite(m.max_extent()) else \
+                        f"{m.max_extent():.2f} m"
+                    reasons[i] = f"blind spot at z = {self.blind_z:g} m reaches {ext} > {self.max_blind_extent:g} m"
         return np.where(f >= PENALTY, np.nan, r.msog), f, reasons
 
 
@@ -279,4 +299,5 @@ def _resized(problem: RigProblem, n: int) -> RigProblem:
     if n == problem.n_slots:
         return problem
     return RigProblem(problem.psog, problem.sensors, problem.surfaces, n, problem.dofs, problem.body, problem.task,
-                      problem.occlusion, problem.backend, problem.min_separation)
+                      problem.occlusion, problem.backend, problem.min_separation, problem.max_blind_extent,
+                      problem.blind_z)
