@@ -40,18 +40,28 @@ def ground_hits(body: VehicleBody | None, lidar, poses, ground_z: float = 0.0, b
 
     Args:
         body: the ego vehicle (None: nothing blocks).
-        lidar: ``LidarModel`` or (R, 3) direction table (then ``max_range`` is required).
+        lidar: ``LidarModel`` or (R, 3) direction table (then ``max_range`` is required), or a list of
+            them, one per pose (a rig of several sensor models).
         poses: (L, 6) ego-frame poses.
         ground_z: height of the plane, metres.
 
     Raises:
         ValueError: a LiDAR lies inside the body, or no range is known.
     """
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+    if isinstance(lidar, (list, tuple)):
+        # one model per LiDAR (a heterogeneous rig): the union of each LiDAR's ground hits
+        if len(lidar) != len(poses):
+            raise ValueError(f"give one LiDAR model per pose: {len(lidar)} models for {len(poses)} poses")
+        msg = check_outside_body(body, poses[:, :3])
+        if msg:
+            raise ValueError(msg)
+        parts = [ground_hits(body, m, p[None], ground_z, backend, max_range) for m, p in zip(lidar, poses)]
+        return np.concatenate(parts) if parts else np.empty((0, 2))
     table, rng = direction_table(lidar)
     rng = max_range if max_range is not None else rng
     if rng is None or not rng > 0:
         raise ValueError(f"max_range must be a positive number of metres, got {rng!r}")
-    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
     msg = check_outside_body(body, poses[:, :3])
     if msg:
         raise ValueError(msg)
@@ -128,9 +138,10 @@ class BlindSpotMap:
         under[self.region & ~self.blind] = (0.55, 0.8, 0.55, 0.35)          # seen ground
         ax.imshow(under, origin="lower", extent=ext, interpolation="nearest")
         dens = np.where(self.region & (self.hits > 0), self.hits / self.cell ** 2, np.nan)
-        im = ax.imshow(dens, origin="lower", extent=ext, cmap="viridis", interpolation="nearest",
-                       norm=matplotlib.colors.LogNorm())
-        fig.colorbar(im, ax=ax, shrink=0.8, label="ground hits per m$^2$ (log scale)")
+        if np.any(np.isfinite(dens)):       # LogNorm cannot scale an all-empty map (no ray reaches the ground)
+            im = ax.imshow(dens, origin="lower", extent=ext, cmap="viridis", interpolation="nearest",
+                           norm=matplotlib.colors.LogNorm())
+            fig.colorbar(im, ax=ax, shrink=0.8, label="ground hits per m$^2$ (log scale)")
         overlay = np.zeros(self.blind.shape + (4,))
         overlay[self.blind] = (0.85, 0.1, 0.1, 0.55)
         overlay[~self.region] = (0.6, 0.6, 0.6, 0.15)

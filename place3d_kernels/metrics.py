@@ -146,8 +146,15 @@ def score_from_counts(counts: dict, normalisation: str = "paper") -> np.ndarray:
 
 
 def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", task: str = "seg",
-               backend=None, mesh: Mesh | None = None, normalisation: str = "paper") -> np.ndarray:
+               backend=None, mesh: Mesh | None = None, normalisation: str = "paper", body=None) -> np.ndarray:
     """M-SOG of P candidate rigs in one backend launch.
+
+    Grid LiDARs (``lidar.is_grid``) with no minimum range and no body take the fused
+    ``score_placements`` kernel. Every other case (per-channel azimuth offsets, rosette scans,
+    ``min_range > 0``, a vehicle body) builds the rays on the host and scores them with
+    ``Backend.score_rays`` (``place3d_kernels.rig_metrics.msog_rigs``): rays start at ``min_range``
+    (origin moved along the ray in float64) and end where the body blocks them. Both paths are exact
+    and identical on every backend.
 
     Args:
         psog: the scene's P-SOG (ego frame).
@@ -157,15 +164,24 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
             or "mesh" (stop at the first surface of ``mesh``, given in the ego frame).
         task: "seg" (22-channel P-SOG) or "det" (empty / vehicle / other).
         backend: backend name or instance.
+        mesh: the scene mesh for occlusion "mesh".
         normalisation: denominator of the mean: ``"paper"`` (N_L, every covered voxel; the default and
             the paper's definition), ``"evidence"`` (covered voxels stored in the P-SOG, i.e. occupied in at
             least one subset) or ``"uncertain"`` (covered voxels with H > 0). See
-            docs/metric-normalisation.md for why N_L rewards rays through empty air.
+            docs/metric-normalisation.md for why N_L rewards rays through empty air. The alternatives take
+            grid LiDARs without a body or minimum range.
+        body: optional ``VehicleBody`` (ego frame) whose surface blocks rays.
 
     Returns:
         (P,) float64 scores (NaN for a rig whose denominator is 0).
+
+    Raises:
+        ValueError: bad inputs, or a LiDAR origin inside ``body`` (the message names it).
     """
     if check_normalisation(normalisation) != "paper":
+        if body is not None or not lidar.is_grid or lidar.min_range > 0:
+            raise ValueError(f"normalisation {normalisation!r} takes grid LiDARs without a body or minimum "
+                             f"range; use normalisation='paper' for {lidar.name or 'this sensor'}")
         return score_from_counts(coverage_counts(psog, lidar, poses, occlusion, task, backend, mesh,
                                                  kinds=(normalisation,)), normalisation)
     poses = _poses(poses)
@@ -174,6 +190,15 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
     check_inputs(psog, poses, occlusion, mesh)
     p = psog.for_task(task)
     b = get_backend(backend)
+    if body is not None or not lidar.is_grid or lidar.min_range > 0:
+        from place3d_kernels.rig_metrics import msog_rigs
+
+        r = msog_rigs(psog, [([lidar] * len(rig), rig) for rig in poses], body, task,
+                      "none" if occlusion == "mesh" else occlusion, b, mesh if occlusion == "mesh" else None)
+        bad = np.flatnonzero(~r.feasible)
+        if len(bad):
+            raise ValueError(f"rig {int(bad[0])}: {r.reasons[bad[0]]}")
+        return r.msog
     if occlusion == "mesh":
         sums, counts = zip(*(mesh_sums(p, lidar, rig, mesh, b) for rig in poses))
         return _score(np.array(sums), np.array(counts))
@@ -199,10 +224,10 @@ def mesh_sums(p: PSOG, lidar: LidarModel, rig: np.ndarray, mesh: Mesh, b) -> tup
 
 
 def msog(psog: PSOG, lidar: LidarModel, placement, occlusion: str = "sog", task: str = "seg", backend=None,
-         mesh: Mesh | None = None, normalisation: str = "paper") -> float:
-    """M-SOG of one placement (see ``msog_batch``)."""
+         mesh: Mesh | None = None, normalisation: str = "paper", body=None) -> float:
+    """M-SOG of one placement (see ``msog_batch``; ``body`` is an optional ``VehicleBody``)."""
     return float(msog_batch(psog, lidar, _poses(placement)[None], occlusion, task, backend, mesh,
-                            normalisation)[0])
+                            normalisation, body)[0])
 
 
 def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", backend=None,
@@ -214,12 +239,21 @@ def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog",
     poses = _poses(poses).reshape(-1, 6)
     check_inputs(psog, poses, occlusion, mesh)
     b = get_backend(backend)
+    from place3d_kernels.ops import traverse
+
+    if not lidar.is_grid or lidar.min_range > 0:
+        # the rays msog_batch scores for such models (start at min_range; see rig_metrics.rigs_rays)
+        from place3d_kernels.rig_metrics import rigs_rays
+
+        o, d, t_end, _, _ = rigs_rays([([lidar] * len(poses), poses)], None, b,
+                                      mesh if occlusion == "mesh" else None)
+        stop = psog.stop_mask if occlusion == "sog" else None
+        return np.unique(traverse(psog.grid, o, d, t_end, backend=b, stop=stop).voxels)
     o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, poses)
     if occlusion == "mesh":
         t_end = np.minimum(raycast(mesh, o, d, lidar.max_range, backend=b).t, lidar.max_range)
     else:
         t_end = lidar.max_range
-    from place3d_kernels.ops import traverse
 
     stop = psog.stop_mask if occlusion == "sog" else None
     return np.unique(traverse(psog.grid, o, d, t_end, backend=b, stop=stop).voxels)

@@ -19,7 +19,7 @@ from place3d_kernels.sog import PSOG
 from place3d_kernels.vehicle import VehicleBody
 
 __all__ = ["msog_from_sums", "direction_table", "rig_rays", "body_t_end", "rig_sums", "msog_rays", "msog_with_body",
-           "msog_with_body_batch", "BatchScores", "check_outside_body"]
+           "msog_with_body_batch", "BatchScores", "check_outside_body", "rigs_rays", "msog_rigs"]
 
 _MODES = ("sog", "none")
 
@@ -176,3 +176,84 @@ def msog_with_body(psog: PSOG, lidar, poses, body: VehicleBody | None = None, ta
     if len(bad):
         raise ValueError(f"rig {int(bad[0])}: {r.reasons[bad[0]]}")
     return r.msog
+
+
+def _min_range(lidar) -> float:
+    return float(getattr(lidar, "min_range", 0.0) or 0.0)
+
+
+def rigs_rays(rigs, body: VehicleBody | None = None, backend=None, mesh=None):
+    """Explicit rays of P heterogeneous rigs, ready for ``Backend.score_rays``.
+
+    Each rig is ``(lidars, poses)``: a sequence of L ``LidarModel`` (one per slot, any mix of spinning,
+    offset and rosette units) and (L, 6) ego-frame poses. Rigs may differ in size and sensors.
+
+    Minimum range: a sensor drops returns nearer than ``min_range``, so a ray covers voxels only from
+    ``min_range`` on. The ray's origin is moved to ``o + min_range * d`` (float64, on the host, the same
+    for every backend) and its length shortened to ``t - min_range``. Blocking is measured from the true
+    origin: a ray whose first body (or ``mesh``) hit is nearer than ``min_range`` covers nothing and is
+    dropped. Occupied P-SOG voxels inside the first ``min_range`` metres do not stop the ray (the kernels
+    start traversing at the moved origin); for min ranges of 0.3-0.8 m (the presets) that is the voxel
+    holding the sensor.
+
+    Args:
+        rigs: sequence of ``(lidars, poses)``.
+        body: ego vehicle whose surface ends rays (None: no body).
+        backend: backend for the ray-mesh hits.
+        mesh: optional scene mesh (ego frame) that also ends rays (occlusion "mesh").
+
+    Returns:
+        origins (N, 3), directions (N, 3), t_end (N,), ray_offsets (P+1,), reasons (P,) ("" when
+        feasible; an infeasible rig, a LiDAR inside the body, contributes no rays).
+    """
+    b = get_backend(backend)
+    tables: dict[int, tuple[np.ndarray, float]] = {}
+    os_, ds, rngs, mins, off, reasons = [], [], [], [], [0], []
+    for lidars, poses in rigs:
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+        lidars = list(lidars)
+        if len(lidars) != len(poses):
+            raise ValueError(f"a rig needs one LiDAR model per pose, got {len(lidars)} models and {len(poses)} poses")
+        msg = check_outside_body(body, poses[:, :3]) or ""
+        reasons.append(msg)
+        n = 0
+        if not msg:
+            for lid, pose in zip(lidars, poses):
+                if id(lid) not in tables:
+                    tables[id(lid)] = direction_table(lid)
+                table, rng = tables[id(lid)]
+                o, d = rig_rays(table, pose[None])
+                os_.append(o)
+                ds.append(d)
+                rngs.append(np.full(len(o), float(rng)))
+                mins.append(np.full(len(o), _min_range(lid)))
+                n += len(o)
+        off.append(off[-1] + n)
+    if not os_:
+        return (np.empty((0, 3)), np.empty((0, 3)), np.empty(0), np.asarray(off, np.int64), reasons)
+    o, d, rng, mn = np.concatenate(os_), np.concatenate(ds), np.concatenate(rngs), np.concatenate(mins)
+    t = rng.copy()
+    if body is not None:
+        t = np.minimum(t, raycast(body.mesh, o, d, float(rng.max()), backend=b).t)
+    if mesh is not None:
+        t = np.minimum(t, raycast(mesh, o, d, float(rng.max()), backend=b).t)
+    t = t - mn
+    keep = t > 0
+    o = o + mn[:, None] * d
+    # drop rays that end before the minimum range, rebuilding the CSR offsets
+    cum = np.concatenate([[0], np.cumsum(keep)])
+    off = cum[np.asarray(off, np.int64)].astype(np.int64)
+    return o[keep], d[keep], t[keep], off, reasons
+
+
+def msog_rigs(psog: PSOG, rigs, body: VehicleBody | None = None, task: str = "seg", occlusion: str = "sog",
+              backend=None, mesh=None) -> BatchScores:
+    """M-SOG of P heterogeneous rigs (see ``rigs_rays``) in one ``score_rays`` launch.
+
+    Infeasible rigs (a LiDAR inside the body) get NaN and a reason, never an exception.
+    """
+    b = get_backend(backend)
+    o, d, te, off, reasons = rigs_rays(rigs, body, b, mesh)
+    feasible = np.array([r == "" for r in reasons], dtype=bool)
+    sums, counts = rig_sums(psog, o, d, te, off, task, occlusion, b)
+    return BatchScores(np.where(feasible, msog_from_sums(sums, counts), np.nan), feasible, reasons, sums, counts)

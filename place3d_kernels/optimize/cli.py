@@ -55,6 +55,9 @@ def add_arguments(p) -> None:
     p.add_argument("--holdout-scenes", default=None, metavar="SCENE1,SCENE2",
                    help="as --holdout-seeds, on other scenes (a map name such as Town03, or opendrive:PATH), with --seed (or each of "
                         "--holdout-seeds)")
+    from place3d_kernels.rig_cli import add_rig_arguments
+
+    add_rig_arguments(p)
 
 
 def run_setup(args, spec) -> dict:
@@ -123,7 +126,10 @@ def run(args, spec, psog_for) -> int:
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
 
     from place3d_kernels.manifest import provenance, write_manifest
+    from place3d_kernels.rig_cli import run_rig, wants_rig_mode
 
+    if wants_rig_mode(args):              # sensors, surfaces, a body, cost: place3d_kernels/rig_cli.py
+        return run_rig(args, spec, psog_for)
     t0 = time.perf_counter()
     if args.opt_seed is None:
         args.opt_seed = args.seed          # --seed S seeds the scene and the optimiser alike

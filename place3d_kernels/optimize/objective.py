@@ -49,6 +49,11 @@ class MSOGObjective:
 
         if occlusion not in ("sog", "none"):
             raise ValueError(f"MSOGObjective supports occlusion 'sog' or 'none', got {occlusion!r}")
+        if not lidar.is_grid or lidar.min_range > 0:
+            # its cache holds grid traversals from the LiDAR origin, with no body: scores would differ from
+            # msog_batch, which starts rays at min_range (issue 16)
+            raise ValueError(f"MSOGObjective (--pose-cache) takes grid LiDARs without a minimum range; "
+                             f"{lidar.name!r} is not one: drop --pose-cache (msog_batch scores it exactly)")
         self.psog = psog
         self.task_psog = psog.for_task(task)
         self.lidar = lidar
