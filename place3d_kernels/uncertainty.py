@@ -515,7 +515,7 @@ def pairwise(boot: Bootstrap) -> dict:
 def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, task: str = "seg",
                                occlusion: str = "sog", backend=None, n_resamples: int = 200, seed: int = 0,
                                level: float = 0.95, best_name: str = "best",
-                               settings=None) -> dict:
+                               settings=None, method: str = "bootstrap", normalisation: str = "paper") -> dict:
     """Interval of an optimised rig and of each baseline, and how often the rig beats each baseline.
 
     Args:
@@ -523,7 +523,9 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
             a ``pooled.Drive`` (over its subsets, with ``settings``) or a ``PooledPSOG`` (over its drives).
         best_poses: (L, 6) poses of the optimised rig.
         baseline_placements: {name: Placement or (L', 6) poses} or a list of ``Placement``.
-        task, occlusion, backend: as ``msog_batch``; n_resamples, seed, level: the bootstrap's.
+        task, occlusion, backend, normalisation: as ``msog_batch``; n_resamples, seed, level: the bootstrap's.
+        method: ``"bootstrap"`` (resamples with replacement) or ``"jackknife"`` (each unit left out once;
+            ``n_resamples`` and ``seed`` unused).
 
     Returns:
         {"task", "level", "unit", "n_units", "n_resamples",
@@ -545,13 +547,21 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
         pooled, unit = PooledPSOG(settings.grid, subset_records(source, settings)), "subsets"
     else:
         pooled, unit = PooledPSOG(source.grid.grid(), spec_subset_records(source, backend)), "subsets"
-    boot = bootstrap_records(pooled.records, pooled.grid, lidar, placements, (task,), occlusion, n_resamples,
-                             seed, backend, level, unit=unit)[task]
+    if method == "jackknife":
+        boot = jackknife_records(pooled.records, pooled.grid, lidar, placements, (task,), occlusion, backend,
+                                 level, unit=unit, normalisation=normalisation)[task]
+        n_resamples = boot.n_units
+    elif method == "bootstrap":
+        boot = bootstrap_records(pooled.records, pooled.grid, lidar, placements, (task,), occlusion, n_resamples,
+                                 seed, backend, level, unit=unit, normalisation=normalisation)[task]
+    else:
+        raise ValueError(f"method must be 'bootstrap' or 'jackknife', got {method!r}")
     ci, f = boot.ci, boot.order_freq
     rows = [{"name": n, "score": float(boot.point[i]), "ci": ci[i].tolist(),
              "p_best_better": round(float(f[0, i]), 4), "within_noise": bool(f[0, i] < NOISE_LEVEL)}
             for i, n in enumerate(boot.names) if i > 0]
-    return {"task": task, "level": level, "unit": unit, "n_units": boot.n_units, "n_resamples": int(n_resamples),
+    return {"task": task, "method": method, "level": level, "unit": unit, "n_units": boot.n_units,
+            "n_resamples": int(n_resamples),
             "best": {"name": best_name, "score": float(boot.point[0]), "ci": ci[0].tolist()}, "baselines": rows}
 
 

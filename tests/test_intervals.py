@@ -127,7 +127,7 @@ def test_rig_vs_baselines_intervals_keys():
     base = {n: Placement.load(n) for n in ("center", "line")}
     res = rig_vs_baselines_intervals(_spec(), "place3d_16ch", Placement.load("pyramid").poses, base, task="seg",
                                      n_resamples=20, seed=1, best_name="optimised")
-    assert set(res) == {"task", "level", "unit", "n_units", "n_resamples", "best", "baselines"}
+    assert set(res) == {"task", "method", "level", "unit", "n_units", "n_resamples", "best", "baselines"}
     assert res["unit"] == "subsets" and res["n_units"] == 4 and res["n_resamples"] == 20
     assert set(res["best"]) == {"name", "score", "ci"} and res["best"]["name"] == "optimised"
     assert [r["name"] for r in res["baselines"]] == ["center", "line"]
@@ -219,3 +219,25 @@ def test_evaluate_default_jackknife_matches_the_records(tmp_path):
         for i, r in enumerate(rows):
             assert r["ci"][task] == jk[task].ci[i].tolist()
             assert r["ci"][task][0] <= r[f"msog_{task}"] <= r["ci"][task][1]   # contains the printed score
+
+
+def test_optimize_reports_intervals_of_the_best_rig_and_the_baselines(tmp_path):
+    from place3d_kernels.uncertainty import rig_vs_baselines_intervals
+
+    out = tmp_path / "opt"
+    assert main(["optimize", *TINY, "--max-evals", "24", "--output", str(out)]) == 0
+    d = json.loads((out / "result.json").read_text())
+    iv = d["intervals"]
+    assert iv["method"] == "jackknife" and iv["unit"] == "subsets" and iv["n_units"] == 4
+    assert iv["best"]["score"] == pytest.approx(d["best_score"], abs=1e-12)
+    assert {r["name"] for r in iv["baselines"]} == set(d["baseline_scores"])
+    # the same numbers from the library call
+    want = rig_vs_baselines_intervals(_spec(), "place3d_16ch", np.asarray(d["best_placement"]),
+                                      {n: Placement.load(n) for n in d["baseline_scores"]}, "seg", "sog",
+                                      method="jackknife", best_name="optimised")
+    assert iv["best"]["ci"] == want["best"]["ci"]
+    for r, w in zip(sorted(iv["baselines"], key=lambda r: r["name"]),
+                    sorted(want["baselines"], key=lambda r: r["name"])):
+        assert r == w
+    assert main(["optimize", *TINY, "--max-evals", "24", "--interval", "none", "--output", str(tmp_path / "n")]) == 0
+    assert json.loads((tmp_path / "n" / "result.json").read_text())["intervals"] is None

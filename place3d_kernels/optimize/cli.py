@@ -55,6 +55,10 @@ def add_arguments(p) -> None:
     p.add_argument("--holdout-scenes", default=None, metavar="SCENE1,SCENE2",
                    help="as --holdout-seeds, on other scenes (a map name such as Town03, or opendrive:PATH), with --seed (or each of "
                         "--holdout-seeds)")
+    p.add_argument("--interval", default="jackknife", choices=["jackknife", "bootstrap", "none"],
+                   help="95 %% intervals of the best rig and the baselines over the drive's subsets, and P(best > "
+                        "baseline): 'jackknife' (default), 'bootstrap' (--resamples draws) or 'none'")
+    p.add_argument("--resamples", type=int, default=200, help="bootstrap resamples (with --interval bootstrap)")
     from place3d_kernels.rig_cli import add_rig_arguments
 
     add_rig_arguments(p)
@@ -225,6 +229,7 @@ def run(args, spec, psog_for) -> int:
                   "pose_cache": ({"traversed": objective.pose_misses, "reused": objective.pose_hits}
                                  if args.pose_cache and executor is None else None),
                   "normalisation": args.normalisation, "diagnostics": res.diagnostics, "holdout": res.holdout,
+                  "intervals": res.intervals,
                   "details": res.to_dict(), "provenance": provenance(backend=b.name)}
         with section("writing result.json"):
             (out / "result.json").write_text(json.dumps(result, indent=2, default=float))
@@ -277,6 +282,29 @@ def holdout_specs(args, spec) -> list:
     return out
 
 
+def report_intervals(args, spec, res, lidar, b, base_poses) -> dict | None:
+    """Intervals of the best rig and each baseline over the drive's subsets, printed (issue 13, item 3)."""
+    if args.interval == "none" or not base_poses:
+        return None
+    from place3d_kernels.uncertainty import rig_vs_baselines_intervals
+
+    with section(f"intervals ({args.interval})"):
+        iv = rig_vs_baselines_intervals(spec, lidar, res.best_placement.poses, base_poses, args.task,
+                                        args.occlusion, b, args.resamples, args.opt_seed, method=args.interval,
+                                        best_name="optimised", normalisation=args.normalisation)
+    lo, hi = iv["best"]["ci"]
+    print(f"95 % intervals ({iv['method']} over the drive's {iv['n_units']} {iv['unit']}): optimised "
+          f"{iv['best']['score']:.6f} [{lo:.6f}, {hi:.6f}]")
+    noisy = [r for r in iv["baselines"] if r["within_noise"]]
+    for r in sorted(iv["baselines"], key=lambda r: -r["score"])[:4]:
+        print(f"  {r['name']:14s} {r['score']:.6f} [{r['ci'][0]:.6f}, {r['ci'][1]:.6f}]  "
+              f"P(optimised > it) = {r['p_best_better']:.2f}{'  (within noise)' if r['within_noise'] else ''}")
+    if noisy:
+        print(f"the optimised rig is within noise of {len(noisy)} baseline(s): "
+              + ", ".join(r["name"] for r in noisy))
+    return iv
+
+
 def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
     """Fill ``res.diagnostics`` (and ``res.holdout`` when asked) and print them (issue 13, item 4)."""
     from place3d_kernels.optimize.diagnostics import diagnose, format_diagnostics, format_holdout, holdout
@@ -289,6 +317,7 @@ def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
     res.diagnostics["normalisation"] = args.normalisation
     for line in format_diagnostics(res.diagnostics):
         print(line)
+    res.intervals = report_intervals(args, spec, res, lidar, b, base_poses)
     specs = holdout_specs(args, spec)
     if not specs:
         return

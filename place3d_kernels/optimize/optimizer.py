@@ -81,6 +81,8 @@ class OptimizeResult:
             entropy shares of the winner and the baselines, ``degenerate`` and its reason
             (``optimize.diagnostics.diagnose``); None otherwise.
         holdout: re-scoring on held-out P-SOGs (``optimize.diagnostics.holdout``), or None.
+        intervals: the best rig's and the baselines' intervals over the drive's subsets
+            (``uncertainty.rig_vs_baselines_intervals``, filled by ``place3d optimize``), or None.
     """
 
     best_vector: np.ndarray
@@ -109,6 +111,7 @@ class OptimizeResult:
     extra: dict = field(default_factory=dict)
     diagnostics: dict | None = None
     holdout: list | None = None
+    intervals: dict | None = None
 
     def to_dict(self) -> dict:
         """JSON-safe summary (non-finite numbers become null)."""
