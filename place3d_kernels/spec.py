@@ -93,7 +93,7 @@ class SceneSpec:
     """A scene from explicit inputs.
 
     ``name``: 'town' (the procedural town), 'opendrive:PATH' (an OpenDRIVE map), 'mesh:PATH' (a mesh file
-    trimesh reads, or a Mitsuba XML scene; ``labels`` maps part names to classes, ``route`` gives the ego
+    trimesh reads, or a Mitsuba XML scene; 'mitsuba:PATH' names the latter explicitly; ``labels`` maps part names to classes, ``route`` gives the ego
     poses) or 'semantickitti:DIR' (labelled frames with poses: the P-SOG is built from them, nothing is
     simulated). ``seed`` and ``frames`` apply to generated scenes.
     """
@@ -110,7 +110,10 @@ class SceneSpec:
 
     @property
     def kind(self) -> str:
-        return self.name.split(":", 1)[0] if ":" in self.name else self.name
+        """'town', 'opendrive', 'mesh' (also for 'mitsuba:PATH', a Mitsuba XML scene read as a mesh scene)
+        or 'semantickitti'."""
+        k = self.name.split(":", 1)[0] if ":" in self.name else self.name
+        return "mesh" if k == "mitsuba" else k
 
     @property
     def path(self) -> Path | None:
@@ -127,6 +130,9 @@ class SceneSpec:
             raise ValueError(f"--route applies to mesh scenes ('mesh:PATH'), not {self.name!r}")
         if self.name == "town":
             return self
+        if self.name.startswith("mitsuba:") and self.path.suffix.lower() != ".xml":
+            raise ValueError(f"scene {self.name!r}: 'mitsuba:PATH' takes a Mitsuba 3 XML scene (.xml); other mesh "
+                             f"files go with 'mesh:PATH'")
         if self.kind == "opendrive" and not self.path.is_file():
             from place3d_kernels.data import CARLA_TOWNS
 
@@ -144,7 +150,8 @@ class SceneSpec:
                                         f"SemanticKITTI sequence: velodyne/, labels/, poses.txt)")
             return self
         raise ValueError(f"unknown scene {self.name!r}; use 'town', 'opendrive:PATH' (an OpenDRIVE .xodr file), "
-                         f"'mesh:PATH' (a mesh or Mitsuba XML file) or 'semantickitti:DIR' (labelled frames)")
+                         f"'mesh:PATH' (a mesh or Mitsuba XML file), 'mitsuba:PATH' (a Mitsuba XML scene) or "
+                         f"'semantickitti:DIR' (labelled frames)")
 
     @property
     def label(self) -> str:

@@ -344,3 +344,28 @@ def test_semantickitti_sequence_as_scene_equals_the_simulated_scene(capsys):
     capsys.readouterr()
     assert main(["evaluate", "--scene", "semantickitti:nowhere", "--quiet"]) == 2
     assert "velodyne" in _err(capsys)
+
+
+def test_mitsuba_xml_scene_from_the_cli(tmp_path, capsys):
+    # a street of cubes on a road rectangle as a Mitsuba 3 XML scene, driven along a route
+    shapes = ['<shape type="rectangle" id="road"><transform name="to_world"><scale x="60" y="15"/></transform></shape>']
+    for i, x in enumerate(range(-50, 51, 10)):
+        for side in (-1, 1):
+            h = 2 + (i % 3)
+            shapes.append(f'<shape type="cube" id="house{i}_{side + 1}"><transform name="to_world"><scale x="3" y="3" '
+                          f'z="{h}"/><translate x="{x}" y="{side * 12}" z="{h}"/></transform></shape>')
+    xml = tmp_path / "street.xml"
+    xml.write_text('<?xml version="1.0"?>\n<scene version="3.0.0">\n' + "\n".join(shapes) + "\n</scene>\n")
+    (tmp_path / "labels.toml").write_text('"*" = "building"\nroad = "road"\n')
+    (tmp_path / "route.txt").write_text("".join(f"{x} 0 0\n" for x in np.linspace(-20, 20, 8)))
+    out = tmp_path / "x.json"
+    argv = ["evaluate", "--scene", f"mitsuba:{xml}", "--labels", str(tmp_path / "labels.toml"), "--route",
+            str(tmp_path / "route.txt"), "--voxel-size", "0.8", "--quiet", "--interval", "none", "center",
+            "--output", str(out)]
+    assert main(argv) == 0
+    assert json.loads(out.read_text())["rows"][0]["msog_seg"] < 0
+    capsys.readouterr()
+    # 'mitsuba:' takes XML only, refused before any work, nothing written
+    bad = tmp_path / "b.json"
+    assert main(["evaluate", "--scene", f"mitsuba:{tmp_path / 'labels.toml'}", "--quiet", "--output", str(bad)]) == 2
+    assert "XML" in _err(capsys) and not bad.exists()
