@@ -130,11 +130,16 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
     b = get_backend(backend)
     # float32 kernels need a finite bound; a scalar stays a scalar (backends broadcast it)
     tm32 = min(tm, 1e30) if isinstance(tm, float) else np.minimum(tm, 1e30)
-    with section("raycast: shift"):
-        local = np.subtract(o, mesh.shift)     # a new contiguous array, also when o is a broadcast view
     handle = mesh.handle(b)
-    with section("raycast: backend"):
-        t, face = b.raycast(handle, local, d, tm32)
+    if b.raycast_takes_shift:
+        # the backend subtracts the shift in float64 on the device (same bits); no host pass over origins
+        with section("raycast: backend"):
+            t, face = b.raycast(handle, o, d, tm32, shift=mesh.shift)
+    else:
+        with section("raycast: shift"):
+            local = np.subtract(o, mesh.shift)     # a new contiguous array, also when o is a broadcast view
+        with section("raycast: backend"):
+            t, face = b.raycast(handle, local, d, tm32)
     with section("raycast: outputs"):
         face = mesh.original_face(face)
         # face -1 reads the last label (NumPy's negative index) and is then overwritten: one gather
