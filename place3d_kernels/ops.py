@@ -72,10 +72,17 @@ def _check_od(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     if not np.isfinite(o[:1] if o.strides[0] == 0 else o).all():   # whole array first; the row on failure
         i = _bad_row(o)
         raise ValueError(f"ray {i} has a non-finite origin {o[i].tolist()}; drop or fix such rays first")
+    norm = _row_norm(d)
+    # Fast path, one pass over the norms: every row unit to rounding (the common case) needs no further
+    # check. Exactly the slow path's test: x - 1.0 is monotone in x, so max(norm) - 1.0 is the largest
+    # norm - 1.0 (likewise for the min); a zero norm fails it, and a non-finite direction makes its norm
+    # NaN or inf, which min/max propagate and the comparisons reject.
+    lo, hi = norm.min(initial=1.0), norm.max(initial=1.0)
+    if 1.0 - lo <= 1e-12 and hi - 1.0 <= 1e-12:
+        return o, np.ascontiguousarray(d)
     if not np.isfinite(d).all():
         i = _bad_row(d)
         raise ValueError(f"ray {i} has a non-finite direction {d[i].tolist()}; drop or fix such rays first")
-    norm = _row_norm(d)
     if not norm.all():
         i = int(np.argmax(norm == 0))
         raise ValueError(f"ray {i} has a zero-length direction; every ray needs a non-zero direction")
