@@ -72,10 +72,17 @@ def _check_od(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     if not np.isfinite(o[:1] if o.strides[0] == 0 else o).all():   # whole array first; the row on failure
         i = _bad_row(o)
         raise ValueError(f"ray {i} has a non-finite origin {o[i].tolist()}; drop or fix such rays first")
+    norm = _row_norm(d)
+    # Fast path, one pass over the norms: every row unit to rounding (the common case) needs no further
+    # check. Exactly the slow path's test: x - 1.0 is monotone in x, so max(norm) - 1.0 is the largest
+    # norm - 1.0 (likewise for the min); a zero norm fails it, and a non-finite direction makes its norm
+    # NaN or inf, which min/max propagate and the comparisons reject.
+    lo, hi = norm.min(initial=1.0), norm.max(initial=1.0)
+    if 1.0 - lo <= 1e-12 and hi - 1.0 <= 1e-12:
+        return o, np.ascontiguousarray(d)
     if not np.isfinite(d).all():
         i = _bad_row(d)
         raise ValueError(f"ray {i} has a non-finite direction {d[i].tolist()}; drop or fix such rays first")
-    norm = _row_norm(d)
     if not norm.all():
         i = int(np.argmax(norm == 0))
         raise ValueError(f"ray {i} has a zero-length direction; every ray needs a non-zero direction")
@@ -130,11 +137,16 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
     b = get_backend(backend)
     # float32 kernels need a finite bound; a scalar stays a scalar (backends broadcast it)
     tm32 = min(tm, 1e30) if isinstance(tm, float) else np.minimum(tm, 1e30)
-    with section("raycast: shift"):
-        local = np.subtract(o, mesh.shift)     # a new contiguous array, also when o is a broadcast view
     handle = mesh.handle(b)
-    with section("raycast: backend"):
-        t, face = b.raycast(handle, local, d, tm32)
+    if b.raycast_takes_shift:
+        # the backend subtracts the shift in float64 on the device (same bits); no host pass over origins
+        with section("raycast: backend"):
+            t, face = b.raycast(handle, o, d, tm32, shift=mesh.shift)
+    else:
+        with section("raycast: shift"):
+            local = np.subtract(o, mesh.shift)     # a new contiguous array, also when o is a broadcast view
+        with section("raycast: backend"):
+            t, face = b.raycast(handle, local, d, tm32)
     with section("raycast: outputs"):
         face = mesh.original_face(face)
         # face -1 reads the last label (NumPy's negative index) and is then overwritten: one gather

@@ -106,3 +106,63 @@ def test_far_from_origin_mesh(backend):
     mesh = p3k.Mesh(tm.vertices + off, tm.faces)
     h = p3k.raycast(mesh, off + [-10.0, 0.25, 0.25], [[1.0, 0, 0]], 100.0, backend=backend)
     np.testing.assert_allclose(h.t, [9.0], atol=1e-4)
+
+
+def _slow_check_directions(d):
+    # the per-row rule check_rays implements (kept here as the test's oracle): errors for non-finite or
+    # zero rows, else rows off unit by more than 1e-12 renormalised and the others left as they are
+    if not np.isfinite(d).all():
+        return "non-finite"
+    norm = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
+    if not norm.all():
+        return "zero-length"
+    off = np.abs(norm - 1.0) > 1e-12
+    out = d.copy()
+    out[off] /= norm[off, None]
+    return out
+
+
+@pytest.mark.parametrize("eps", [0.0, 1e-13, 9e-13, 1e-12, 1.1e-12, 2e-12, 3e-12, 1e-9])
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_check_rays_fast_path_keeps_the_per_row_rule(eps, sign, rng):
+    # check_rays skips its per-row checks when min and max of the norms are within 1e-12 of one; rows
+    # right at that bound must come out exactly as the per-row rule gives them
+    d = rng.normal(size=(64, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[5] = [1.0 + sign * eps, 0.0, 0.0]
+    d[9] = [0.0, (1.0 + sign * eps) * 0.6, (1.0 + sign * eps) * 0.8]
+    want = _slow_check_directions(d)
+    _, got, _ = p3k.ops.check_rays(np.zeros((64, 3)), d, 1.0)
+    assert got.tobytes() == want.tobytes()
+
+
+@pytest.mark.parametrize("bad", [[np.nan, 0.0, 1.0], [np.inf, 0.0, 0.0], [0.0, 0.0, 0.0], [1e-200, 0.0, 0.0],
+                                 [1e200, 0.0, 0.0]])
+def test_check_rays_fast_path_still_rejects(bad):
+    d = np.tile([0.0, 0.0, 1.0], (8, 1))
+    d[3] = bad
+    want = _slow_check_directions(d)
+    if isinstance(want, str):
+        with pytest.raises(ValueError, match=f"ray 3 has a {want}"):
+            p3k.ops.check_rays(np.zeros((8, 3)), d, 1.0)
+    else:    # 1e200 squares to inf: its norm is inf, and the rule divides (0 for that row)
+        _, got, _ = p3k.ops.check_rays(np.zeros((8, 3)), d, 1.0)
+        assert got.tobytes() == want.tobytes()
+
+
+def test_shift_on_device_is_bit_identical(device_backend, rng):
+    # backends that subtract the mesh shift themselves (raycast_takes_shift) must give the bits of
+    # shifting on the host first
+    b = p3k.get_backend(device_backend)
+    if not b.raycast_takes_shift:
+        pytest.skip(f"{b.name} takes shifted origins")
+    tm = trimesh.creation.icosphere(subdivisions=3, radius=2.0)
+    mesh = p3k.Mesh(tm.vertices + [12345.678, -9876.5, 321.25], tm.faces)
+    o = mesh.vertices.mean(axis=0) + rng.normal(size=(4000, 3)) * 5.0 + rng.uniform(-1, 1, (4000, 3)) * 1e-7
+    d = mesh.vertices.mean(axis=0) + rng.normal(size=(4000, 3)) - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    h = mesh.handle(b)
+    t1, f1 = b.raycast(h, o, d, 50.0, shift=mesh.shift)
+    t2, f2 = b.raycast(h, o - mesh.shift, d, 50.0)
+    assert np.isfinite(t1).sum() > 1000
+    assert t1.tobytes() == t2.tobytes() and np.array_equal(f1, f2)

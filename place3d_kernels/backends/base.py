@@ -92,10 +92,18 @@ class Backend(abc.ABC):
             faces: (F, 3) int32 vertex indices.
         """
 
+    #: True where ``raycast`` takes a ``shift`` keyword: the (3,) float64 mesh shift, subtracted from the
+    #: world-frame origins in float64 on the device (the same IEEE subtraction as on the host, so the same
+    #: bits), which saves the caller a host pass over the origins. Where False, callers pass shifted origins.
+    raycast_takes_shift: bool = False
+
     @abc.abstractmethod
     def raycast(self, mesh: object, origins: np.ndarray, directions: np.ndarray, t_max: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray]:
         """Closest hit per ray.
+
+        Origins are in the mesh's shifted frame; where ``raycast_takes_shift`` is True, a ``shift=``
+        keyword may instead give the float64 shift to subtract from world-frame origins.
 
         Returns:
             t (N,) float64 (inf on miss) and face (N,) int32 (-1 on miss).

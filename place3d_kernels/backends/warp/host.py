@@ -252,13 +252,16 @@ class WarpCore(Backend):
         pts.assign(self._vec3(corners))
         return _WarpMesh(mesh, pts, idx, self._vec3d(corners))
 
-    def raycast(self, mesh, origins, directions, t_max):
+    raycast_takes_shift = True
+
+    def raycast(self, mesh, origins, directions, t_max, shift=None):
         n = len(origins)
         out_t = wp.empty(n, dtype=wp.float64, device=self.device)
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
         o, d, tm = self._rays_in(origins), self._rays_in(directions), self._t_in(mesh, t_max, n)
-        self._launch(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], d[a:b], tm[a:b],
-                                                            out_t[a:b], out_f[a:b]])
+        s = wp.vec3d(*(np.zeros(3) if shift is None else np.asarray(shift, dtype=np.float64).reshape(3)).tolist())
+        self._launch(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], s, d[a:b],
+                                                            tm[a:b], out_t[a:b], out_f[a:b]])
         t = out_t.numpy()
         # the kernel writes INF64 (1e300, finite for float64 arithmetic on every device) on a miss
         np.copyto(t, np.inf, where=t >= 1.0e300)
@@ -291,8 +294,9 @@ class WarpCore(Backend):
         o, d, tm = self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n)
         out_t = wp.empty(n, dtype=wp.float64, device=self.device)
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
-        return self._prepare(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], d[a:b],
-                                                                    tm[a:b], out_t[a:b], out_f[a:b]])
+        zero = wp.vec3d(0.0, 0.0, 0.0)
+        return self._prepare(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], zero,
+                                                                    d[a:b], tm[a:b], out_t[a:b], out_f[a:b]])
 
     def resident_traverse(self, grid, origins, directions, t_end, stop=None):
         """For benchmarks: launch the traversal count kernel on resident rays (see ``resident_raycast``)."""
