@@ -166,3 +166,17 @@ def test_cli_evaluate_vehicle_car_differs_from_none(tmp_path):
     assert len(list((tmp_path / "c").glob("psog-*.npz"))) == 2
     r = _cli("evaluate", "center", "--quiet", "--vehicle", "bus", cache=tmp_path / "c")
     assert r.returncode != 0 and "unknown vehicle 'bus'" in r.stderr
+
+
+def test_cli_simulate_vehicle_records_the_body_and_drops_returns(tmp_path):
+    counts = {}
+    for v in ("none", "van"):
+        out = tmp_path / v
+        r = _cli("simulate", "--frames", "2", "--quiet", "--backend", "warp:cpu", "--vehicle", v, "--output", str(out),
+                 cache=tmp_path / "c")
+        assert r.returncode == 0, r.stderr
+        meta = json.loads(next(out.rglob("sequence.json")).read_text())
+        spec = meta.get("spec", meta)
+        assert (spec.get("vehicle") or {}).get("name") == (None if v == "none" else "van"), list(spec)
+        counts[v] = sum(p.stat().st_size for p in out.rglob("*.bin"))
+    assert 0 < counts["van"] < counts["none"]
