@@ -37,6 +37,11 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--severity", default=None, choices=["light", "moderate", "heavy"], help="condition severity")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="condition parameter, e.g. --param alpha=0.03 (repeatable)")
+    p.add_argument("--vehicle", default=None, metavar="car|suv|van|truck|none|PATH",
+                   help="ego vehicle body blocking the rays of the collection LiDAR (P-SOG) and of the scored "
+                        "rigs: a preset or a mesh file in the ego frame. Default none, the paper's setting (no "
+                        "body), so the paper's numbers reproduce; optimize: giving it selects real-rig mode, "
+                        "whose default is car")
 
 
 def _check_output_file(path, suffixes=(".json",), what="--output") -> None:
@@ -98,12 +103,15 @@ def cmd_evaluate(args) -> int:
     lidar = LidarModel.load(args.lidar)
     names = args.placements or list(PAPER_PLACEMENTS)
     placements = [Placement.load(n) for n in names]
+    body = spec.vehicle_body()
     _, psog = _psog(spec, args, b)
     rows = []
     for name, pl in tqdm(list(zip(names, placements)), desc="evaluate", unit="placement", disable=args.quiet,
                          leave=False):
-        seg = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "seg", b, normalisation=args.normalisation)[0])
-        det = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "det", b, normalisation=args.normalisation)[0])
+        seg = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "seg", b, normalisation=args.normalisation,
+                               body=body)[0])
+        det = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "det", b, normalisation=args.normalisation,
+                               body=body)[0])
         rows.append({"placement": pl.name or name, "msog_seg": seg, "msog_det": det})
     rows.sort(key=lambda r: -r["msog_seg"])
     boots = (_evaluate_bootstrap(args, spec, b, lidar, names, placements, rows)
@@ -111,7 +119,7 @@ def cmd_evaluate(args) -> int:
     seconds = time.perf_counter() - t0
     cond = f", condition {args.condition}" if args.condition else ""
     print(f"M-SOG on scene {args.scene} (seed {args.seed}{cond}), backend {b.name}, grid {psog.grid.shape} "
-          f"@ {psog.grid.voxel_size} m, occlusion {args.occlusion}"
+          f"@ {psog.grid.voxel_size} m, occlusion {args.occlusion}, vehicle {spec.vehicle or 'none'}"
           + (f", normalisation {args.normalisation}" if args.normalisation != "paper" else "") + "; higher is better")
     det_rank = {r["placement"]: i + 1 for i, r in enumerate(sorted(rows, key=lambda r: -r["msog_det"]))}
     if boots is None:
@@ -129,7 +137,9 @@ def cmd_evaluate(args) -> int:
                "scene": spec.scene.to_dict(), "occlusion": args.occlusion, "lidar": lidar.name,
                "condition": None if spec.condition is None else spec.condition.to_dict(),
                "psog": spec.to_dict(), "n_subsets": psog.n_subsets, "seed": args.seed,
-               "normalisation": args.normalisation, "provenance": provenance(backend=b.name)}
+               "normalisation": args.normalisation, "vehicle": None if body is None else
+               {"name": body.name, "key": body.key, "bounds_m": body.bounds.round(4).tolist()},
+               "provenance": provenance(backend=b.name)}
         if boots is not None:
             out["bootstrap"] = _bootstrap_summary(args, boots)
         Path(args.output).parent.mkdir(parents=True, exist_ok=True)
@@ -167,11 +177,12 @@ def _evaluate_bootstrap(args, spec, backend, lidar, names, placements, rows) -> 
         if args.interval == "jackknife":
             boots = jackknife_records(records, spec.grid.grid(), lidar, chosen, ("seg", "det"), args.occlusion,
                                       backend, point=point, progress=not args.quiet,
-                                      normalisation=args.normalisation)
+                                      normalisation=args.normalisation, body=spec.vehicle_body())
         else:
             boots = bootstrap_records(records, spec.grid.grid(), lidar, chosen, ("seg", "det"), args.occlusion,
                                       args.resamples, args.resample_seed, backend, point=point,
-                                      progress=not args.quiet, normalisation=args.normalisation)
+                                      progress=not args.quiet, normalisation=args.normalisation,
+                                      body=spec.vehicle_body())
     pw = {t: pairwise(bt) for t, bt in boots.items()}
     for i, r in enumerate(rows):
         r["ci"] = {t: boots[t].ci[i].tolist() for t in boots}
@@ -243,8 +254,16 @@ def cmd_simulate(args) -> int:
     spec = specs_from_args(args)
     meta = sequence_spec(spec.scene.to_dict(), LidarModel.load(args.lidar),
                          None if spec.condition is None else spec.condition.to_dict(), DEFAULT_MOUNT)
+    body = spec.vehicle_body()
+    if body is not None:
+        # a sequence made with another body is another sequence (prepare_sequence_folder compares specs)
+        meta["vehicle"] = {"name": body.name, "key": body.key}
+    distributed = getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None)
+    if distributed and body is not None:
+        raise ValueError(f"--vehicle {spec.vehicle} is not supported with --executor ray yet; simulate locally "
+                         f"(drop --executor/--ray-address) or drop --vehicle")
     prepare_sequence_folder(args.output, meta, overwrite=args.overwrite)
-    if getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None):
+    if distributed:
         from place3d_kernels.distributed import executor_from_args, simulate_to_folder
 
         ex = executor_from_args(args)
@@ -260,7 +279,7 @@ def cmd_simulate(args) -> int:
     from place3d_kernels.simulate import simulate
 
     b = get_backend(args.backend)
-    frames = simulate(spec.scene.build(), args.lidar, backend=b, progress=not args.quiet)
+    frames = simulate(spec.scene.build(), args.lidar, backend=b, progress=not args.quiet, body=body)
     if spec.condition is not None:
         cond = spec.condition.condition(b)
         frames = [cond(f, i) for i, f in enumerate(frames)]
@@ -299,6 +318,11 @@ def cmd_optimize(args) -> int:
     from place3d_kernels.optimize.cli import run as run_optimize
     from place3d_kernels.spec import specs_from_args
 
+    from place3d_kernels.rig_cli import wants_rig_mode
+
+    if wants_rig_mode(args) and args.vehicle is None:
+        # real-rig mode scores on a car by default; the P-SOG is collected from the same body
+        args.vehicle = "car"
     spec = specs_from_args(args)
     return run_optimize(args, spec, psog_for=lambda backend: _psog(spec, args, backend))
 

@@ -24,7 +24,7 @@ DEFAULT_FRAMES_PER_SUBSET = 4
 
 def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "collection_64ch",
                frames_per_subset: int = DEFAULT_FRAMES_PER_SUBSET, mount=DEFAULT_MOUNT, backend=None,
-               cache: bool | str | Path = True, progress: bool = False, condition=None) -> PSOG:
+               cache: bool | str | Path = True, progress: bool = False, condition=None, body=None) -> PSOG:
     """The P-SOG of a scene: simulate its frames with the collection LiDAR, vote, aggregate.
 
     The result is cached on disk (``$PLACE3D_CACHE`` or ~/.cache/place3d) under a key made of every
@@ -35,6 +35,9 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     Args:
         condition: optional ``FrameCondition`` (or any callable ``(frame, index) -> frame`` with a ``key``
             attribute for the cache) applied to each simulated frame before voting.
+        body: optional ``VehicleBody`` (ego frame) that blocks the collection LiDAR's rays (see
+            ``simulate``); its name and content hash enter the cache key and the manifest. None (default) is
+            the paper's setting, and its cache key is the one used before bodies existed.
     """
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
@@ -44,6 +47,9 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
         inputs = dict(scene=scene.key, grid=grid.to_dict(), lidar=[lidar.name, lidar.elevations.tolist(),
                       lidar.azimuths.size, lidar.max_range], mount=np.asarray(mount).tolist(),
                       k=frames_per_subset, condition=getattr(condition, "key", None))
+        if body is not None:
+            # only with a body, so the no-body (paper) key and the caches already on disk stay valid
+            inputs["body"] = {"name": body.name, "key": body.key}
         key = cache_key(**inputs)
         path = folder / f"psog-{scene.name}-{key}.npz"
         manifest = path.with_suffix(".json")
@@ -57,7 +63,7 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
             except Exception as e:  # noqa: BLE001 - a broken or mismatching cache file is rebuilt, not fatal
                 log.warning("ignoring P-SOG cache %s: %s", path, e)
     with section("P-SOG build: simulate"):
-        frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress)
+        frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress, body=body)
     if condition is not None:
         frames = [condition(f, i) for i, f in enumerate(frames)]
     psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)

@@ -1,4 +1,12 @@
-"""Semantic LiDAR simulation: frames of labelled returns along a scene's ego route."""
+"""Semantic LiDAR simulation: frames of labelled returns along a scene's ego route.
+
+Ego body. With ``body=`` (a ``VehicleBody`` in the ego frame) the collection LiDAR's rays are blocked by the
+ego vehicle, which moves with the ego pose: a ray whose first hit is the body gives no return (a real
+pipeline drops the sensor's own-vehicle returns; they are not part of the scene). The sensor's rays are
+the same in the ego frame every frame, so the body is cast once per sweep pattern in the ego frame (float64
+t along the unit ray) and each frame keeps the scene hits nearer than that t. ``body=None`` is the
+paper's setting (no ego body).
+"""
 
 from __future__ import annotations
 
@@ -11,8 +19,9 @@ from place3d_kernels.mesh import Mesh
 from place3d_kernels.ops import raycast
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import pose_from_matrix, pose_matrix
+from place3d_kernels.rig_metrics import check_outside_body
 
-__all__ = ["simulate_frame", "simulate", "DEFAULT_MOUNT"]
+__all__ = ["simulate_frame", "simulate", "body_hits", "DEFAULT_MOUNT"]
 
 #: Pose of the collection LiDAR in the ego frame (roof centre, 2.5 m above ground).
 DEFAULT_MOUNT = np.array([0.0, 0.0, 2.5, 0.0, 0.0, 0.0])
@@ -25,8 +34,12 @@ def _intensity(mesh: Mesh, face: np.ndarray, d: np.ndarray, labels: np.ndarray) 
 
 
 def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor_pose_world: np.ndarray,
-                   backend=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                   backend=None, body_t=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Cast one LiDAR sweep into a static mesh (+ optional dynamic mesh); keep the closest hits.
+
+    Args:
+        body_t: optional (R,) distance along each ray of the sweep to the ego body (inf where the ray
+            misses it, see :func:`body_hits`); a ray whose scene hit is not nearer than this gives no return.
 
     Returns:
         points (N, 3) world, labels (N,), intensity (N,), origin (3,) of the sweep.
@@ -43,6 +56,12 @@ def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor
         lab = np.where(closer, dh.label, lab)
         src = closer
     hit = np.isfinite(t)
+    if body_t is not None:
+        body_t = np.asarray(body_t, dtype=np.float64)
+        if body_t.shape != t.shape:
+            raise ValueError(f"body_t must hold one distance per ray ({t.shape}), got {body_t.shape}")
+        # the body is hit first (ties included): the return is the ego vehicle's own, dropped
+        hit &= t < body_t
     pts = o[hit] + t[hit, None] * d[hit]
     inten = np.empty(int(hit.sum()), dtype=np.float32)
     s_hit, d_hit = src[hit], ~src[hit]
@@ -53,8 +72,26 @@ def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor
     return pts, lab[hit].astype(np.int32), inten, o[0]
 
 
+def body_hits(body, lidar: LidarModel, mount=DEFAULT_MOUNT, backend=None) -> np.ndarray | None:
+    """(R,) float64 distance along each ray of one sweep from ``mount`` (ego frame) to ``body``; inf where
+    the ray misses it. None for no body.
+
+    Raises:
+        ValueError: the mount lies inside (or on) the body (the message names its position).
+    """
+    if body is None:
+        return None
+    b = get_backend(backend)
+    m = np.asarray(mount, dtype=np.float64).reshape(6)
+    msg = check_outside_body(body, m[None, :3])
+    if msg:
+        raise ValueError(f"collection {msg}")
+    o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, m[None])
+    return np.asarray(raycast(body.mesh, o, d, lidar.max_range, backend=b).t, dtype=np.float64)
+
+
 def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_MOUNT, frames=None,
-             backend=None, progress: bool = False) -> list[PointCloud]:
+             backend=None, progress: bool = False, body=None) -> list[PointCloud]:
     """Semantic LiDAR frames along the scene's ego route (world points, ego pose, sensor origin per return).
 
     Args:
@@ -64,11 +101,13 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         frames: indices of the frames to simulate (default: all).
         backend: backend name or instance.
         progress: show a progress bar.
+        body: optional ``VehicleBody`` (ego frame) blocking the sensor's rays (None: the paper's setting).
     """
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
     idx = range(scene.n_frames) if frames is None else frames
     mount_T = pose_matrix(np.asarray(mount, dtype=np.float64))
+    body_t = body_hits(body, lidar, mount, backend)
     it = idx
     if progress:
         from tqdm import tqdm
@@ -79,6 +118,7 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         ego_T = pose_matrix(scene.ego_poses[f])
         T = ego_T @ mount_T
         sensor_pose = pose_from_matrix(T)
-        pts, lab, inten, origin = simulate_frame(scene.static, scene.dynamic(f), lidar, sensor_pose, backend)
+        pts, lab, inten, origin = simulate_frame(scene.static, scene.dynamic(f), lidar, sensor_pose, backend,
+                                                   body_t)
         out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
     return out

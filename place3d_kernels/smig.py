@@ -22,6 +22,11 @@ at the first surface of ``mesh=``, the scene in the ego frame). Sums are the ker
 entropy sums, deterministic on every backend; :func:`smig_batch` scores a whole CMA-ES population in one
 launch, so it is usable as an optimizer objective.
 
+Ego body: ``body=`` (a ``VehicleBody`` in the ego frame) ends every ray where it first hits the body, as in
+M-SOG: the rays are built on the host and scored with ``Backend.score_rays``
+(``place3d_kernels.rig_metrics.rigs_rays``, which also honours the LiDAR's ``min_range``); a LiDAR inside
+the body raises ``ValueError``. ``body=None`` (default) keeps the original no-body setting.
+
 Defects of the original public code that this version does not repeat:
 
 1. ray directions were rotated with angles in degrees passed to functions expecting radians, so the beam
@@ -188,12 +193,23 @@ class BernoulliGrid:
         return f"BernoulliGrid(grid {self.grid.shape}, {len(self.voxels)} voxels with p > 0, T={self.n_frames})"
 
 
-def _sums(bg: BernoulliGrid, lidar: LidarModel, poses: np.ndarray, occlusion: str, backend, mesh):
+def _sums(bg: BernoulliGrid, lidar: LidarModel, poses: np.ndarray, occlusion: str, backend, mesh, body=None):
     from place3d_kernels.metrics import check_inputs, mesh_sums
 
     p = bg.psog
     check_inputs(p, poses, occlusion, mesh)
     b = get_backend(backend)
+    if body is not None:
+        from place3d_kernels.rig_metrics import rig_sums, rigs_rays
+
+        # mesh occlusion becomes a clipped t_end (rigs_rays), so the rays then traverse without SOG stops
+        o, d, te, off, reasons = rigs_rays([([lidar] * len(rig), rig) for rig in poses], body, b,
+                                           mesh if occlusion == "mesh" else None)
+        bad = [i for i, r in enumerate(reasons) if r]
+        if bad:
+            raise ValueError(f"rig {bad[0]}: {reasons[bad[0]]}")
+        sums, counts = rig_sums(p, o, d, te, off, "seg", "none" if occlusion == "mesh" else occlusion, b)
+        return np.asarray(sums, np.int64), np.asarray(counts, np.int64)
     if occlusion == "mesh":
         sums, counts = zip(*(mesh_sums(p, lidar, rig, mesh, b) for rig in poses))
         return np.array(sums, np.int64), np.array(counts, np.int64)
@@ -205,8 +221,10 @@ def _sums(bg: BernoulliGrid, lidar: LidarModel, poses: np.ndarray, occlusion: st
 
 
 def smig_batch(bgrid: BernoulliGrid, lidar: LidarModel, poses, occlusion: str = "none", reduce: str = "sum",
-               backend=None, mesh: Mesh | None = None) -> np.ndarray:
+               backend=None, mesh: Mesh | None = None, body=None) -> np.ndarray:
     """S-MIG of P candidate rigs ((P, L, 6) ego-frame poses) in one backend launch.
+
+    ``body``: optional ``VehicleBody`` (ego frame) whose surface ends the rays (see the module docstring).
 
     Returns (P,) float64: see the module docstring for ``reduce``; NaN for ``mean`` of a rig that covers
     no voxel.
@@ -216,7 +234,7 @@ def smig_batch(bgrid: BernoulliGrid, lidar: LidarModel, poses, occlusion: str = 
     poses = np.asarray(poses.poses if hasattr(poses, "poses") else poses, dtype=np.float64)
     if poses.ndim == 2:
         poses = poses[None]
-    sums, counts = _sums(bgrid, lidar, poses, occlusion, backend, mesh)
+    sums, counts = _sums(bgrid, lidar, poses, occlusion, backend, mesh, body)
     h = sums.astype(np.float64) / ENTROPY_SCALE
     if reduce == "sum":
         return h
@@ -227,10 +245,10 @@ def smig_batch(bgrid: BernoulliGrid, lidar: LidarModel, poses, occlusion: str = 
 
 
 def smig(bgrid: BernoulliGrid, lidar: LidarModel, placement, occlusion: str = "none", reduce: str = "sum",
-         backend=None, mesh: Mesh | None = None) -> float:
-    """S-MIG of one placement (see :func:`smig_batch`)."""
+         backend=None, mesh: Mesh | None = None, body=None) -> float:
+    """S-MIG of one placement (see :func:`smig_batch`; ``body`` is an optional ``VehicleBody``)."""
     p = np.asarray(placement.poses if hasattr(placement, "poses") else placement, dtype=np.float64)
-    return float(smig_batch(bgrid, lidar, p[None], occlusion, reduce, backend, mesh)[0])
+    return float(smig_batch(bgrid, lidar, p[None], occlusion, reduce, backend, mesh, body)[0])
 
 
 def scene_boxes(scene, frame: int, kinds=None) -> np.ndarray:

@@ -295,6 +295,9 @@ class PSOGSpec:
         lidar: the collection LiDAR; frames_per_subset: k (None: ``DEFAULT_FRAMES_PER_SUBSET``).
         cache: cache folder, resolved in the driver (workers may have another $HOME); None: the default.
         mount: (6,) collection-sensor pose in the ego frame (None: ``simulate.DEFAULT_MOUNT``).
+        vehicle: the ego body blocking the collection LiDAR's rays and, in the commands, the scored rigs'
+            rays: a preset name (car, suv, van, truck) or a mesh file path; None (or "none"): no body, the
+            paper's setting. The body's name and content hash enter the P-SOG cache key and manifest.
     """
 
     scene: SceneSpec
@@ -305,12 +308,19 @@ class PSOGSpec:
     frames_per_subset: int | None = None
     cache: str | None = None
     mount: tuple | None = None
+    vehicle: str | None = None
 
     def __post_init__(self):
+        if self.vehicle is not None and str(self.vehicle).strip().lower() in ("none", ""):
+            object.__setattr__(self, "vehicle", None)
         if not isinstance(self.grid, RoiSpec):
             object.__setattr__(self, "grid", RoiSpec(None if self.grid is None else float(self.grid)))
         if self.mount is not None:
             object.__setattr__(self, "mount", tuple(float(v) for v in self.mount))
+
+    def vehicle_body(self):
+        """The ``VehicleBody`` named by ``vehicle`` (None for no body); memoised per process."""
+        return _vehicle_body(self.vehicle)
 
     @property
     def voxel_size(self) -> float | None:
@@ -329,13 +339,16 @@ class PSOGSpec:
 
             if self.condition is not None:
                 raise ValueError("--condition applies to simulated frames, not to a semantickitti: sequence")
+            if self.vehicle is not None:
+                raise ValueError(f"--vehicle {self.vehicle} blocks simulated rays; a semantickitti: sequence is "
+                                 f"recorded (its own vehicle already in it): drop --vehicle for the P-SOG")
             return psog_from_semantickitti(self.scene.path, self.grid.grid(),
                                            self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET, backend=b)
         cond = None if self.condition is None else self.condition.condition(b)
         return scene_psog(self.scene.build(), grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
                           frames_per_subset=self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
                           mount=DEFAULT_MOUNT if self.mount is None else self.mount, backend=b, cache=cache,
-                          progress=progress, condition=cond)
+                          progress=progress, condition=cond, body=self.vehicle_body())
 
     def load(self):
         """The P-SOG with this spec's backend and cache folder (memoised per process; tasks call this)."""
@@ -346,7 +359,7 @@ class PSOGSpec:
         from place3d_kernels.sog import cache_dir
 
         return PSOGSpec(self.scene, backend_name(self.backend), self.grid, self.condition, self.lidar,
-                        self.frames_per_subset, self.cache or str(cache_dir()), self.mount)
+                        self.frames_per_subset, self.cache or str(cache_dir()), self.mount, self.vehicle)
 
     def to_dict(self) -> dict:
         return {"scene": self.scene.to_dict(), "backend": backend_name(self.backend) if self.backend else None,
@@ -354,14 +367,21 @@ class PSOGSpec:
                 "condition": None if self.condition is None else self.condition.to_dict(),
                 "lidar": self.lidar if isinstance(self.lidar, str) else self.lidar.name,
                 "frames_per_subset": self.frames_per_subset, "cache": self.cache,
-                "mount": None if self.mount is None else list(self.mount)}
+                "mount": None if self.mount is None else list(self.mount), "vehicle": self.vehicle}
 
     @classmethod
     def from_dict(cls, d: dict) -> "PSOGSpec":
         cond = d.get("condition")
         return cls(SceneSpec.from_dict(d["scene"]), d.get("backend"), RoiSpec.from_dict(d.get("grid") or {}),
                    None if cond is None else ConditionSpec.from_dict(cond), d.get("lidar", COLLECTION_LIDAR),
-                   d.get("frames_per_subset"), d.get("cache"), d.get("mount"))
+                   d.get("frames_per_subset"), d.get("cache"), d.get("mount"), d.get("vehicle"))
+
+
+@functools.lru_cache(maxsize=8)
+def _vehicle_body(vehicle: str | None):
+    from place3d_kernels.blindspot import vehicle_from_arg
+
+    return vehicle_from_arg(vehicle)
 
 
 @functools.lru_cache(maxsize=4)
@@ -372,7 +392,7 @@ def _load_psog(spec: PSOGSpec):
 # ============================================================================== CLI
 def specs_from_args(args) -> PSOGSpec:
     """The P-SOG spec named by the CLI's common options (--scene, --seed, --frames, --voxel-size,
-    --condition, --severity, --param, --backend), built once per command."""
+    --condition, --severity, --param, --backend, --vehicle), built once per command."""
     cond = None
     params = parse_params(getattr(args, "param", []))
     if params and not getattr(args, "condition", None):
@@ -387,5 +407,7 @@ def specs_from_args(args) -> PSOGSpec:
     if voxel is not None and not voxel > 0:
         raise ValueError(f"--voxel-size must be > 0 metres, got {voxel}")
     scene = SceneSpec(args.scene, args.seed, args.frames, getattr(args, "labels", None), getattr(args, "route", None))
-    return PSOGSpec(scene.validate(), getattr(args, "backend", None),
-                    RoiSpec(voxel), cond)
+    spec = PSOGSpec(scene.validate(), getattr(args, "backend", None), RoiSpec(voxel), cond,
+                    vehicle=getattr(args, "vehicle", None))
+    spec.vehicle_body()                 # an unknown preset or a missing mesh fails here, before any work
+    return spec

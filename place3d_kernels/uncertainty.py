@@ -300,6 +300,10 @@ def _records_path(spec):
                   mount=np.asarray(DEFAULT_MOUNT if spec.mount is None else spec.mount).tolist(),
                   k=spec.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
                   condition=None if spec.condition is None else spec.condition.to_dict())
+    body = spec.vehicle_body()
+    if body is not None:
+        # only with a body, so the no-body (paper) key and the files already on disk stay valid
+        inputs["body"] = {"name": body.name, "key": body.key}
     folder = Path(spec.cache) if spec.cache else cache_dir()
     return folder / f"subsets-{scene.name}-{cache_key(**inputs)}.npz", inputs
 
@@ -337,7 +341,8 @@ def spec_subset_records(spec, backend=None, cache: bool = True) -> list:
         frames = read_sequence(spec.scene.path)
     else:
         frames = simulate(spec.scene.build(), resolve_lidar(spec.lidar),
-                          mount=DEFAULT_MOUNT if spec.mount is None else spec.mount, backend=b)
+                          mount=DEFAULT_MOUNT if spec.mount is None else spec.mount, backend=b,
+                          body=spec.vehicle_body())
         if spec.condition is not None:
             cond = spec.condition.condition(b)
             frames = [cond(f, i) for i, f in enumerate(frames)]
@@ -356,7 +361,7 @@ def spec_subset_records(spec, backend=None, cache: bool = True) -> list:
 def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
                       n_resamples: int = 200, seed: int = 0, backend=None, level: float = 0.95,
                       point: dict | None = None, unit: str = "subsets", progress: bool = False,
-                      normalisation: str = "paper") -> dict:
+                      normalisation: str = "paper", body=None) -> dict:
     """{task: Bootstrap} of ``placements`` over resamples of ``records`` (one ``msog_batch`` call over all
     placements per resample and task; the resampled P-SOG is built once per resample for both tasks).
 
@@ -364,6 +369,7 @@ def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
         point: optional {task: (P,) scores} used as the point estimates (e.g. the scores already printed,
             so they stay bit-identical); default: the scores on the pool of all records.
         progress: a progress bar over the distinct resamples (stderr).
+        body: the ego ``VehicleBody`` the rigs are scored on (as ``msog_batch``; None: no body).
     """
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
@@ -386,12 +392,12 @@ def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     for r, m in enumerate(it):
         ps = pooled.psog(m)
         for t in tasks:
-            scores[t][r] = msog_batch(ps, L, poses, occlusion, t, b, normalisation=normalisation)
+            scores[t][r] = msog_batch(ps, L, poses, occlusion, t, b, normalisation=normalisation, body=body)
     samples = {t: scores[t][np.asarray(inv).reshape(-1)] for t in tasks}
     out = {}
     for t in tasks:
         pt = point[t] if point is not None else msog_batch(pooled.psog(), L, poses, occlusion, t, b,
-                                                           normalisation=normalisation)
+                                                           normalisation=normalisation, body=body)
         out[t] = Bootstrap(names, np.asarray(pt, dtype=np.float64), samples[t], level, unit, len(pooled))
     return out
 
@@ -470,9 +476,10 @@ class Jackknife:
 
 def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
                       backend=None, level: float = 0.95, point: dict | None = None, unit: str = "subsets",
-                      progress: bool = False, normalisation: str = "paper") -> dict:
+                      progress: bool = False, normalisation: str = "paper", body=None) -> dict:
     """{task: Jackknife} of ``placements`` leaving each record (subset or drive) out in turn: n rescorings,
-    one ``msog_batch`` call over all placements per left-out unit and task."""
+    one ``msog_batch`` call over all placements per left-out unit and task (``body``: the ego
+    ``VehicleBody`` the rigs are scored on, as ``msog_batch``)."""
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.metrics import msog_batch
@@ -495,11 +502,11 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
         m[i] = 0
         ps = pooled.psog(m)
         for t in tasks:
-            scores[t][i] = msog_batch(ps, L, poses, occlusion, t, b, normalisation=normalisation)
+            scores[t][i] = msog_batch(ps, L, poses, occlusion, t, b, normalisation=normalisation, body=body)
     out = {}
     for t in tasks:
         pt = point[t] if point is not None else msog_batch(pooled.psog(), L, poses, occlusion, t, b,
-                                                           normalisation=normalisation)
+                                                           normalisation=normalisation, body=body)
         out[t] = Jackknife(names, np.asarray(pt, dtype=np.float64), scores[t], level, unit, n)
     return out
 
