@@ -433,24 +433,17 @@ def brick_bit(w: Walk32) -> wp.uint32:
 
 
 @wp.func
-def score_ray(
-    tid: wp.int32,
-    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
-    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
-    bny: wp.int32, bnz: wp.int32, masks: wp.array(dtype=wp.uint32),
-    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
-    sums: wp.array(dtype=wp.int64),
-):
-    n = sensor_dirs.shape[0]
-    rig = tid / n                              # candidate * n_lidars + lidar
-    cand = rig / n_lidars
-    o = pos[rig]
-    d = rot[rig] * sensor_dirs[tid - rig * n]   # as lidar_rays_kernel: the reference's rays bit for bit
+def mark_walk(
+    o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks: wp.array(dtype=wp.uint32), weights: wp.array(dtype=wp.int64),
+    base: wp.int64, bits: wp.array(dtype=wp.uint32),
+) -> wp.int64:
+    """Walk one ray, set its voxels' bits in the candidate's bricked bitset (words from ``base``) and
+    return the weights of the voxels whose bit this ray set first (used by score_ray and score_rays.py)."""
     sf = wp.float32(s)
-    w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
-    base = wp.int64(cand) * words_per_candidate
+    w = walk32_begin(o, d, t_end, s, sf, nx, ny, nz)
     # the ray that sets a voxel's bit first owns it; integer partial sums make the total independent of
-    # thread order, and one atomic per ray (not per voxel) keeps contention on sums[cand] low
+    # thread order, and one atomic per ray (not per voxel) keeps contention on the candidate's sum low
     my_sum = wp.int64(0)
     for _ in range(nx + ny + nz + 3):
         if w.alive == 0:
@@ -474,6 +467,25 @@ def score_ray(
         if (masks[wp.int64(2) * word] & bit) != wp.uint32(0):      # occlusion: the ray ends after this voxel
             break
         w = walk32_next(w, o, d, s, sf, nx, ny, nz)
+    return my_sum
+
+
+@wp.func
+def score_ray(
+    tid: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks: wp.array(dtype=wp.uint32),
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64),
+):
+    n = sensor_dirs.shape[0]
+    rig = tid / n                              # candidate * n_lidars + lidar
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = rot[rig] * sensor_dirs[tid - rig * n]   # as lidar_rays_kernel: the reference's rays bit for bit
+    my_sum = mark_walk(o, d, t_max, s, nx, ny, nz, bny, bnz, masks, weights,
+                       wp.int64(cand) * words_per_candidate, bits)
     if my_sum > wp.int64(0):
         wp.atomic_add(sums, cand, my_sum)
 

@@ -1,7 +1,7 @@
 """Warp kernel of ``Backend.score_rays``: explicit rays, each tagged with its candidate.
 
-The walk and the bricked bitsets are those of the placement score kernel (``kernels.py``: ``walk32_*``,
-``brick_word``, ``brick_bit``), so the covered voxel sets, and the exact int64 sums, agree with the
+The walk and the bricked bitsets are those of the placement score kernel (``kernels.py``: ``mark_walk``),
+so the covered voxel sets, and the exact int64 sums, agree with the
 reference bit for bit. Rays come from the host (float64 origins and directions, a float64 segment end
 per ray) instead of being generated from sensor poses, so candidates may have any number of rays.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from place3d_kernels.backends.warp.kernels import brick_bit, brick_word, flat32, walk32_begin, walk32_next
+from place3d_kernels.backends.warp.kernels import mark_walk
 
 # the same module options as kernels.py (no adjoints; no FMA contraction, which would change voxel ties)
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
@@ -34,26 +34,7 @@ def score_rays_kernel(
     o = origins[tid]
     d = dirs[tid]
     c = cand[tid]
-    sf = wp.float32(s)
-    w = walk32_begin(o, d, t_end[tid], s, sf, nx, ny, nz)
-    base = wp.int64(c) * words_per_candidate
-    # as score_ray in kernels.py: the ray that sets a voxel's bit first adds its weight (integer partial
-    # sums, one atomic per ray), so the total does not depend on thread order
-    my_sum = wp.int64(0)
-    for _ in range(nx + ny + nz + 3):
-        if w.alive == 0:
-            break
-        word = brick_word(w, bny, bnz)
-        bit = brick_bit(w)
-        if (bits[base + word] & bit) == wp.uint32(0):
-            if (masks[wp.int64(2) * word + wp.int64(1)] & bit) != wp.uint32(0):
-                old = wp.atomic_or(bits, base + word, bit)
-                if (old & bit) == wp.uint32(0):
-                    my_sum += weights[flat32(w, ny, nz)]
-            else:
-                wp.atomic_or(bits, base + word, bit)
-        if (masks[wp.int64(2) * word] & bit) != wp.uint32(0):      # occlusion: the ray ends after this voxel
-            break
-        w = walk32_next(w, o, d, s, sf, nx, ny, nz)
+    my_sum = mark_walk(o, d, t_end[tid], s, nx, ny, nz, bny, bnz, masks, weights,
+                       wp.int64(c) * words_per_candidate, bits)
     if my_sum > wp.int64(0):
         wp.atomic_add(sums, c, my_sum)
