@@ -284,6 +284,36 @@ __kernel void lidar_rays(__global const real* rig, __global const real* sdir, co
  * score_walk + score_reduce (CPUs: few threads): global size (G, P); work-item (g, p) walks the g-th share
  * of p's rays into a bitset of its own (plain stores, no atomics), then score_reduce ORs the G bitsets of
  * a candidate word by word and adds the weights of the set bits. */
+/* Walk one ray and mark its voxels in a candidate's bricked bitset (mine); return the weights of the
+ * voxels with entropy whose bit this ray set first. Shared by score_rays_bricked and score_rays_csr
+ * (score_rays.cl), so both cover the same voxels as traverse. */
+long mark_walk_bricked(const real* o, const real* d, const real t_end, const real s, const int nx, const int ny,
+                       const int nz, const int bny, const int bnz, __global const uint* masks,
+                       __global const long* weights, __global volatile uint* mine)
+{
+    long sum = 0;
+    dda_t st;
+    if (!dda_init(&st, o[0], o[1], o[2], d[0], d[1], d[2], t_end, s, nx, ny, nz)) return 0;
+    int guard = nx + ny + nz;
+    for (;;) {
+        long w = ((long)(st.ix >> 2) * bny + (st.iy >> 2)) * bnz + (st.iz >> 1);
+        uint bit = 1u << (uint)((st.ix & 3) | ((st.iy & 3) << 2) | ((st.iz & 1) << 4));
+        if (!(mine[w] & bit)) {
+            /* only voxels with entropy need the old word (to add the weight once); free space takes
+             * an atomic whose result is unused, and count_bits counts the covered voxels afterwards */
+            if (masks[2 * w + 1] & bit) {
+                uint old = atomic_or(&mine[w], bit);
+                if (!(old & bit)) sum += weights[st.flat];
+            } else {
+                atomic_or(&mine[w], bit);
+            }
+        }
+        if (masks[2 * w] & bit) break;
+        if (--guard <= 0 || !dda_step(&st)) break;
+    }
+    return sum;
+}
+
 /* score_rays_bricked (the GPU path, atomic strategy, as the Warp score kernel): one
  * 32-bit word holds a 4 x 4 x 2 brick of voxels, so consecutive voxels of a walk mostly share the word
  * just read; masks holds per brick word w the occlusion bits ([2w]) and the nonzero-weight bits ([2w+1]),
@@ -305,25 +335,7 @@ __kernel void score_rays_bricked(__global const real* rig, __global const real* 
     for (long r = r0; r < r1; ++r) {
         real o[3], d[3];
         rig_ray(rig, sdir, p, r, L, CA, o, d);
-        dda_t st;
-        if (!dda_init(&st, o[0], o[1], o[2], d[0], d[1], d[2], t_max, s, nx, ny, nz)) continue;
-        int guard = nx + ny + nz;
-        for (;;) {
-            long w = ((long)(st.ix >> 2) * bny + (st.iy >> 2)) * bnz + (st.iz >> 1);
-            uint bit = 1u << (uint)((st.ix & 3) | ((st.iy & 3) << 2) | ((st.iz & 1) << 4));
-            if (!(mine[w] & bit)) {
-                /* only voxels with entropy need the old word (to add the weight once); free space takes
-                 * an atomic whose result is unused, and count_bits counts the covered voxels afterwards */
-                if (masks[2 * w + 1] & bit) {
-                    uint old = atomic_or(&mine[w], bit);
-                    if (!(old & bit)) sum += weights[st.flat];
-                } else {
-                    atomic_or(&mine[w], bit);
-                }
-            }
-            if (masks[2 * w] & bit) break;
-            if (--guard <= 0 || !dda_step(&st)) break;
-        }
+        sum += mark_walk_bricked(o, d, t_max, s, nx, ny, nz, bny, bnz, masks, weights, mine);
     }
     part_sum[p * items + item] = sum;
 }

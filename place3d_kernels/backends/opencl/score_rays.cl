@@ -1,5 +1,6 @@
 /* Backend.score_rays: explicit rays, each tagged with its candidate. Needs common.cl and grid.cl in front
- * (dda_init / dda_step, the walk every grid kernel shares, so covered sets equal traverse's).
+ * (mark_walk_bricked over dda_init / dda_step, the walk every grid kernel shares, so covered sets equal
+ * traverse's).
  *
  * One work-item per ray, as score_rays_bricked: the ray marks its voxels in its candidate's bricked bitset
  * with atomic_or; the first marker of a voxel with entropy adds its weight to the ray's partial sum, so each
@@ -13,27 +14,9 @@ __kernel void score_rays_csr(__global const real* orig, __global const real* dir
 {
     int i = get_global_id(0);
     if (i >= n) return;
-    __global const real* o = orig + 3 * (long)i;
-    __global const real* d = dir + 3 * (long)i;
-    __global volatile uint* mine = bits + (long)cand[i] * words;
-    long sum = 0;
-    dda_t st;
-    if (dda_init(&st, o[0], o[1], o[2], d[0], d[1], d[2], t_end[i], s, nx, ny, nz)) {
-        int guard = nx + ny + nz;
-        for (;;) {
-            long w = ((long)(st.ix >> 2) * bny + (st.iy >> 2)) * bnz + (st.iz >> 1);
-            uint bit = 1u << (uint)((st.ix & 3) | ((st.iy & 3) << 2) | ((st.iz & 1) << 4));
-            if (!(mine[w] & bit)) {
-                if (masks[2 * w + 1] & bit) {
-                    uint old = atomic_or(&mine[w], bit);
-                    if (!(old & bit)) sum += weights[st.flat];
-                } else {
-                    atomic_or(&mine[w], bit);
-                }
-            }
-            if (masks[2 * w] & bit) break;
-            if (--guard <= 0 || !dda_step(&st)) break;
-        }
-    }
+    real o[3] = {orig[3 * (long)i], orig[3 * (long)i + 1], orig[3 * (long)i + 2]};
+    real d[3] = {dir[3 * (long)i], dir[3 * (long)i + 1], dir[3 * (long)i + 2]};
+    long sum = mark_walk_bricked(o, d, t_end[i], s, nx, ny, nz, bny, bnz, masks, weights,
+                                 bits + (long)cand[i] * words);
     part_sum[i] = sum;
 }
