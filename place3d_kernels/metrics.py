@@ -239,7 +239,9 @@ def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog",
     poses = _poses(poses).reshape(-1, 6)
     check_inputs(psog, poses, occlusion, mesh)
     b = get_backend(backend)
-    from place3d_kernels.ops import traverse
+    # the union mask of the coverage kernel, not traverse + np.unique: the same sorted set (C order is the
+    # flat index order), without writing out every visit (0.65 s of a CPU optimise run's plot)
+    from place3d_kernels.ops import coverage
 
     if not lidar.is_grid or lidar.min_range > 0:
         # the rays msog_batch scores for such models (start at min_range; see rig_metrics.rigs_rays)
@@ -248,7 +250,7 @@ def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog",
         o, d, t_end, _, _ = rigs_rays([([lidar] * len(poses), poses)], None, b,
                                       mesh if occlusion == "mesh" else None)
         stop = psog.stop_mask if occlusion == "sog" else None
-        return np.unique(traverse(psog.grid, o, d, t_end, backend=b, stop=stop).voxels)
+        return np.flatnonzero(coverage(psog.grid, o, d, t_end, backend=b, stop=stop))
     o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, poses)
     if occlusion == "mesh":
         t_end = np.minimum(raycast(mesh, o, d, lidar.max_range, backend=b).t, lidar.max_range)
@@ -256,7 +258,7 @@ def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog",
         t_end = lidar.max_range
 
     stop = psog.stop_mask if occlusion == "sog" else None
-    return np.unique(traverse(psog.grid, o, d, t_end, backend=b, stop=stop).voxels)
+    return np.flatnonzero(coverage(psog.grid, o, d, t_end, backend=b, stop=stop))
 
 
 def msog_from_voxels(psog: PSOG, voxels: np.ndarray, task: str = "seg") -> float:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from statistics import NormalDist
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -428,9 +429,8 @@ class Jackknife:
     method: str = "jackknife"
 
     def _z(self) -> float:
-        from scipy.stats import norm
-
-        return float(norm.ppf(0.5 + self.level / 2.0))
+        # the standard library's normal quantile: importing scipy.stats for it cost 0.8 s of a 17 s optimise
+        return NormalDist().inv_cdf(0.5 + self.level / 2.0)
 
     @property
     def se(self) -> np.ndarray:
@@ -451,8 +451,6 @@ class Jackknife:
     @property
     def order_freq(self) -> np.ndarray:
         """(P, P): entry [a, b] = Phi((score_a - score_b) / se of the difference); 1/2 where both agree."""
-        from scipy.stats import norm
-
         n = len(self.samples)
         d = self.samples[:, :, None] - self.samples[:, None, :]              # (n, P, P) leave-one-out diffs
         dev = d - np.nanmean(d, axis=0)
@@ -460,7 +458,8 @@ class Jackknife:
         diff = self.point[:, None] - self.point[None, :]
         with np.errstate(divide="ignore", invalid="ignore"):
             z = np.where(se > 0, diff / se, np.where(diff > 0, np.inf, np.where(diff < 0, -np.inf, 0.0)))
-        return norm.cdf(z)
+        phi = NormalDist().cdf                                    # Phi(+-inf) = 1, 0; Phi(0) = 1/2
+        return np.array([[phi(v) for v in row] for row in z], dtype=np.float64).reshape(z.shape)
 
     def within_noise(self, level: float = NOISE_LEVEL) -> list[tuple[str, str, float]]:
         return within_noise(self, level)

@@ -372,9 +372,12 @@ __kernel void score_walk(__global const real* rig, __global const real* sdir, co
 
 /* global size (chunks, P): chunk c of candidate p covers words [c * per, (c + 1) * per) */
 __kernel void score_reduce(__global const uint* bits, const long words, const int G, const int per,
-                           const int chunks, __global const long* weights, const long n_voxels,
-                           __global long* part_sum, __global long* part_cnt)
+                           const int chunks, __global const long* weights, __global const uint* nonzero,
+                           const long n_voxels, __global long* part_sum, __global long* part_cnt)
 {
+    /* nonzero: bit b of word w set when voxel 32 w + b has a nonzero weight. Covered voxels are counted
+       with popcount, and weights are read only for covered voxels with entropy (about 8 % of them on the
+       default town): the sum is the same integer, with a tenth of the gathers */
     int c = get_global_id(0);
     long p = get_global_id(1);
     if (c >= chunks) return;
@@ -384,11 +387,12 @@ __kernel void score_reduce(__global const uint* bits, const long words, const in
     for (long w = w0; w < w1; ++w) {
         uint u = 0;
         for (int g = 0; g < G; ++g) u |= base[(long)g * words + w];
+        cnt += popcount(u);
+        u &= nonzero[w];
         while (u) {
             int b = 31 - clz(u & (~u + 1u));   /* index of the lowest set bit */
             u &= u - 1u;
             sum += weights[w * 32 + b];
-            cnt++;
         }
     }
     part_sum[p * chunks + c] = sum;

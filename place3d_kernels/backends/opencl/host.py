@@ -72,6 +72,10 @@ class CLGrid:
         self.stop = self.masks = None
         if backend.score_strategy == "private":
             self.stop = backend._stop_buffer(stop, spec, keep=True)
+            # score_reduce's nonzero-weight bits: bit b of word q for voxel 32 q + b (little-endian words)
+            nz = np.packbits(w != 0, bitorder="little")
+            nz = np.concatenate([nz, np.zeros(-len(nz) % 4 or (4 if len(nz) == 0 else 0), np.uint8)]).view("<u4")
+            self.nonzero = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(nz))
         else:
             sm = None if stop is None else np.asarray(stop).reshape(-1) != 0
             if sm is not None and sm.shape != (spec.n_voxels,):
@@ -436,7 +440,7 @@ class OpenCLBackend(Backend, OpenCLConditions):
                 self._launch("score_walk", (G, pn), rig_b, sdir_b, np.int32(L), np.int32(CA), self.real(t_max),
                              *ga, bits, np.int64(words), np.int32(G))
                 self._launch("score_reduce", (n_chunks, pn), bits, np.int64(words), np.int32(G), np.int32(per),
-                             np.int32(n_chunks), handle.weights, np.int64(spec.n_voxels), ps, pc)
+                             np.int32(n_chunks), handle.weights, handle.nonzero, np.int64(spec.n_voxels), ps, pc)
                 sums[p0:p0 + pn] = self._read(ps, np.int64, pn * n_chunks).reshape(pn, -1).sum(1, dtype=np.int64)
                 counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(1, dtype=np.int64)
             return sums, counts
