@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,8 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     Args:
         condition: optional ``FrameCondition`` (or any callable ``(frame, index) -> frame`` with a ``key``
             attribute for the cache) applied to each simulated frame before voting.
+        backend: backend name or instance, or a ``concurrent.futures.Future`` of one, waited for only when
+            the P-SOG is not in the cache.
         body: optional ``VehicleBody`` (ego frame) that blocks the collection LiDAR's rays (see
             ``simulate``); its name and content hash enter the cache key and the manifest. None (default) is
             the paper's setting, and its cache key is the one used before bodies existed.
@@ -62,6 +65,9 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
                     return PSOG.load(path)
             except Exception as e:  # noqa: BLE001 - a broken or mismatching cache file is rebuilt, not fatal
                 log.warning("ignoring P-SOG cache %s: %s", path, e)
+    if isinstance(backend, Future):
+        # a backend still being probed on another thread (optimize starts it early): needed only now
+        backend = backend.result()
     with section("P-SOG build: simulate"):
         frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress, body=body)
     if condition is not None:

@@ -12,6 +12,7 @@ makes (the voxel size of the default ROI) and builds a ``Grid`` with ``.grid()``
 from __future__ import annotations
 
 import functools
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -332,6 +333,8 @@ class PSOGSpec:
         from place3d_kernels.simulate import DEFAULT_MOUNT
 
         b = self.backend if backend is None else backend
+        if isinstance(b, Future) and (self.scene.kind == "semantickitti" or self.condition is not None):
+            b = b.result()         # scene_psog waits for a probed backend only on a cache miss; these need it now
         if self.scene.kind == "semantickitti":
             # recorded, labelled frames: the P-SOG comes straight from them (label scheme and mount from
             # the folder's sequence.json when it has one); nothing to simulate, so nothing to cache

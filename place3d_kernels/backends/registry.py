@@ -126,19 +126,47 @@ def backend_report() -> list[tuple[str, bool, str]]:
     return rows
 
 
+def _cuda_driver_loadable() -> bool:
+    """Whether the NVIDIA driver library loads (a few ms), so "auto" on a machine without one never
+    imports Warp only to learn that it has no CUDA device (0.3 s of every CPU command)."""
+    import ctypes
+
+    for lib in ("libcuda.so.1", "libcuda.so", "nvcuda.dll", "libcuda.dylib"):
+        try:
+            ctypes.CDLL(lib)
+            return True
+        except OSError:
+            continue
+    return False
+
+
+def _auto() -> str:
+    """The backend "auto" names: a CUDA GPU through Warp, then an OpenCL GPU, then PoCL (all cores) before
+    Warp's CPU device (why: bench/README.md, "Figures behind backend code comments"), then the reference.
+    Families are probed in that order and only until one answers (each probe imports a runtime)."""
+    if _cuda_driver_loadable():
+        cuda = [x for x in _probe(("warp",))[0] if x.startswith("warp:cuda")]
+        if cuda:
+            return cuda[0]
+    cl_names = _probe(("opencl",))[0]
+    gpu = [x for x in cl_names if x.startswith("opencl:") and x != "opencl:pocl"]
+    if gpu:
+        return gpu[0]
+    if "opencl:pocl" in cl_names:
+        return "opencl:pocl"
+    if "warp:cpu" in _probe(("warp",))[0]:
+        return "warp:cpu"
+    return "reference"
+
+
 def _canonical(name: str) -> str:
     n = name.strip().lower()
     family = n.split(":")[0]
-    # a name of one family probes that family only ("opencl:pocl" never imports Warp); "auto" and
-    # unknown names probe them all
-    names = list(_probe(None if n == "auto" or family not in FAMILIES else (family,))[0])
+    # a name of one family probes that family only ("opencl:pocl" never imports Warp); "auto" probes in
+    # its order until one answers (_auto); unknown names probe them all
     if n == "auto":
-        # GPUs first; on the CPU, PoCL (all cores) before Warp's CPU device (why: bench/README.md, "Figures
-        # behind backend code comments")
-        order = [x for x in names if x.startswith("warp:cuda")] + \
-                [x for x in names if x.startswith("opencl:") and x != "opencl:pocl"] + \
-                [x for x in names if x == "opencl:pocl"] + [x for x in names if x == "warp:cpu"] + ["reference"]
-        return order[0]
+        return _auto()
+    names = list(_probe(None if family not in FAMILIES else (family,))[0])
     if n in FAMILIES and FAMILIES[n].devices is not None:
         fam = [x for x in names if x.startswith(n + ":")]
         gpu = [x for x in fam if not x.endswith(":cpu") and x != "opencl:pocl"]

@@ -6,13 +6,14 @@ import csv
 import dataclasses
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
 from place3d_kernels.profiling import section
 
-__all__ = ["add_arguments", "run", "plot_coverage"]
+__all__ = ["add_arguments", "run", "plot_coverage", "start_plots"]
 
 
 def add_arguments(p) -> None:
@@ -114,14 +115,21 @@ def check_args(args, spec) -> None:
                              f"start a fresh run (without --resume)")
 
 
+def _probe(name):
+    from place3d_kernels.backends.registry import get_backend
+
+    with section("backend probe (thread)"):
+        return get_backend(name)
+
+
 def run(args, spec, psog_for) -> int:
     """Run ``place3d optimize``.
 
     Args:
         args: the parsed command line.
         spec: the run's ``PSOGSpec`` (built once by the CLI; the Ray executor ships it to the workers).
-        psog_for: ``psog_for(backend) -> (scene, PSOG)`` builds the P-SOG locally (the CLI's progress and
-            cache options).
+        psog_for: ``psog_for(backend) -> (scene, PSOG)`` builds the P-SOG locally with the CLI's progress
+            and cache options (``backend`` may be a ``Future`` of one, waited for only on a cache miss).
     """
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
@@ -138,11 +146,19 @@ def run(args, spec, psog_for) -> int:
     if args.opt_seed is None:
         args.opt_seed = args.seed          # --seed S seeds the scene and the optimiser alike
     check_args(args, spec)
-    with section("backend probe"):
-        b = get_backend(args.backend)
-    lidar = LidarModel.load(args.lidar)
-    with section("scene + P-SOG"):
-        _, psog = psog_for(b)
+    # The backend probe (importing Warp and starting CUDA: 1.1-1.5 s on the H100 host) runs on a thread
+    # while this one builds the scene and reads the cached P-SOG, which need no backend; a cache miss
+    # waits for it (scene_psog takes the Future).
+    bg = ThreadPoolExecutor(max_workers=1, thread_name_prefix="place3d-optimize")
+    probe = bg.submit(_probe, args.backend)
+    try:
+        lidar = LidarModel.load(args.lidar)
+        with section("scene + P-SOG"):
+            _, psog = psog_for(probe)
+        with section("backend probe (wait)"):
+            b = probe.result()
+    finally:
+        bg.shutdown(wait=False)
     space = SearchSpace(n_lidars=args.lidars)
     cons = [MinDistance(args.min_distance)] if args.lidars > 1 else []
     if args.fixed_height is not None:
@@ -205,11 +221,19 @@ def run(args, spec, psog_for) -> int:
     print("best placement (x, y, z, roll):")
     for p in best.poses:
         print("  " + ", ".join(f"{v:+.2f}" for v in p[:4]))
-    report_trust(args, spec, res, psog, lidar, b, baselines)
-    cert = res.certificate
+    plots = None
     if args.output:
         out = Path(args.output)
         out.mkdir(parents=True, exist_ok=True)
+        plots = start_plots(res, best, space, psog, lidar, b, args.occlusion, out)
+    try:
+        report_trust(args, spec, res, psog, lidar, b, baselines)
+    except BaseException:
+        if plots is not None:
+            plots.cancel()
+        raise
+    cert = res.certificate
+    if args.output:
         best.save(out / f"optimized-{args.task}.toml",
                   note=f"place3d optimize --task {args.task}: M-SOG {res.best_score:.6f} on scene {args.scene} "
                        f"seed {args.seed}, backend {b.name}")
@@ -238,12 +262,8 @@ def run(args, spec, psog_for) -> int:
                 w = csv.DictWriter(fh, fieldnames=list(res.history[0].keys()))
                 w.writeheader()
                 w.writerows(res.history)
-        from place3d_kernels.optimize import plot_convergence, plot_rig
-
-        with section("plotting"):
-            plot_convergence(res.history, out / "convergence.png")
-            plot_rig(best, out / "rig.png", baselines=None, bounds=space)
-            plot_coverage(psog, lidar, best, out / "coverage.png", backend=b, occlusion=args.occlusion)
+        with section("plotting (wait)"):
+            plots.result()             # re-raises a plotting error here
         print(f"wrote {out}/result.json, history.csv, optimized-{args.task}.toml, convergence.png, rig.png, coverage.png")
     return 0
 
@@ -334,15 +354,45 @@ def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
         print(line)
 
 
-def plot_coverage(psog, lidar, placement, path, backend=None, occlusion="sog"):
-    """Top view of the voxels the rig covers, over the P-SOG's column entropy."""
+def start_plots(res, best, space, psog, lidar, backend, occlusion, out: Path):
+    """Draw convergence.png, rig.png and coverage.png on a thread; returns its Future.
+
+    The rig's covered voxels are computed here, on the calling thread (the backend is not shared across
+    threads); matplotlib (importing it and drawing: 1-2 s on the H100 host) then runs beside the
+    diagnostics and the jackknife, which wait mostly on the device and on NumPy.
+    """
+    from place3d_kernels.metrics import covered_voxels
+
+    with section("plotting: covered voxels"):
+        covered = covered_voxels(psog, lidar, best.poses, occlusion=occlusion, backend=backend)
+
+    def draw():
+        from place3d_kernels.optimize import plot_convergence, plot_rig
+
+        with section("plotting (thread)"):
+            plot_convergence(res.history, out / "convergence.png")
+            plot_rig(best, out / "rig.png", baselines=None, bounds=space)
+            plot_coverage(psog, lidar, best, out / "coverage.png", covered=covered)
+
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="place3d-plots")
+    try:
+        return pool.submit(draw)
+    finally:
+        pool.shutdown(wait=False)
+
+
+def plot_coverage(psog, lidar, placement, path, backend=None, occlusion="sog", covered=None):
+    """Top view of the voxels the rig covers, over the P-SOG's column entropy (``covered``: the rig's
+    ``covered_voxels`` when already computed)."""
     from matplotlib.figure import Figure
 
     from place3d_kernels.metrics import covered_voxels
 
     g = psog.grid
     mask = np.zeros(g.n_voxels, bool)
-    mask[covered_voxels(psog, lidar, placement.poses, occlusion=occlusion, backend=backend)] = True
+    if covered is None:
+        covered = covered_voxels(psog, lidar, placement.poses, occlusion=occlusion, backend=backend)
+    mask[covered] = True
     cov = mask.reshape(g.shape).any(axis=2)
     ent = psog.entropy.sum(axis=2)
     fig = Figure(figsize=(11, 5))
