@@ -60,7 +60,7 @@ def _check_output_dir(path, what="--output") -> None:
         raise ValueError(f"{what} {path} is an existing file; give a folder")
 
 
-def _psog(spec, args, backend):
+def _psog(spec, args, backend, with_scene: bool = True):
     """(scene, P-SOG) of ``spec`` built with ``backend`` (the local path), honouring --no-cache / --quiet.
 
     Raises ``ValueError`` for a P-SOG without entropy (every voxel a single class: fewer than two subsets),
@@ -74,8 +74,10 @@ def _psog(spec, args, backend):
     check_entropy(psog, spec.frames_per_subset)
     if not args.quiet:
         print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
+    if not with_scene or spec.scene.kind == "semantickitti":
+        return None, psog       # a cached P-SOG was found without building the scene (scene.keymemo)
     with section("scene build"):
-        return (None if spec.scene.kind == "semantickitti" else spec.scene.build()), psog
+        return spec.scene.build(), psog
 
 
 # ---------------------------------------------------------------------------------------- commands
@@ -324,7 +326,7 @@ def cmd_optimize(args) -> int:
         # real-rig mode scores on a car by default; the P-SOG is collected from the same body
         args.vehicle = "car"
     spec = specs_from_args(args)
-    return run_optimize(args, spec, psog_for=lambda backend: _psog(spec, args, backend))
+    return run_optimize(args, spec, psog_for=lambda backend: _psog(spec, args, backend, with_scene=False))
 
 
 # ---------------------------------------------------------------------------------------- parser

@@ -12,6 +12,7 @@ from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.manifest import verify_manifest, write_manifest
 from place3d_kernels.profiling import section
+from place3d_kernels.scene.keymemo import SceneRef
 from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
 from place3d_kernels.sog import PSOG, cache_dir, cache_key
 
@@ -34,6 +35,7 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     load; a cache whose manifest differs is rebuilt. ``cache=False`` disables it; a path chooses the folder.
 
     Args:
+        scene: the ``Scene``, or a ``SceneRef`` (its name and key; built here only on a cache miss).
         condition: optional ``FrameCondition`` (or any callable ``(frame, index) -> frame`` with a ``key``
             attribute for the cache) applied to each simulated frame before voting.
         backend: backend name or instance, or a ``concurrent.futures.Future`` of one, waited for only when
@@ -65,6 +67,8 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
                     return PSOG.load(path)
             except Exception as e:  # noqa: BLE001 - a broken or mismatching cache file is rebuilt, not fatal
                 log.warning("ignoring P-SOG cache %s: %s", path, e)
+    if isinstance(scene, SceneRef):
+        scene = scene.build()    # known by its key only (PSOGSpec.build): the geometry is needed now
     if isinstance(backend, Future):
         # a backend still being probed on another thread (optimize starts it early): needed only now
         backend = backend.result()

@@ -109,6 +109,20 @@ class SceneSpec:
         """The ``Scene`` (memoised per process: tasks of one worker share it)."""
         return _build_scene(self)
 
+    def for_cache(self, folder):
+        """What ``scene_psog`` needs to find a cached P-SOG: a ``SceneRef`` (name and key, built only on a
+        cache miss) when this scene's key is remembered in ``folder`` (``scene.keymemo``), else the built
+        ``Scene``, whose key is then remembered."""
+        from place3d_kernels.scene.keymemo import SceneRef, identity, recall, remember
+
+        ident = identity(self.to_dict(), self.kind, self.path)
+        known = recall(folder, ident)
+        if known is not None:
+            return SceneRef(known[0], known[1], self.build)
+        scene = self.build()
+        remember(folder, ident, scene.name, scene.key)
+        return scene
+
     @property
     def kind(self) -> str:
         """'town', 'opendrive', 'mesh' (also for 'mitsuba:PATH', a Mitsuba XML scene read as a mesh scene)
@@ -348,7 +362,13 @@ class PSOGSpec:
             return psog_from_semantickitti(self.scene.path, self.grid.grid(),
                                            self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET, backend=b)
         cond = None if self.condition is None else self.condition.condition(b)
-        return scene_psog(self.scene.build(), grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
+        if cache:
+            from place3d_kernels.sog import cache_dir
+
+            scene = self.scene.for_cache(Path(cache) if isinstance(cache, (str, Path)) else cache_dir())
+        else:
+            scene = self.scene.build()
+        return scene_psog(scene, grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
                           frames_per_subset=self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
                           mount=DEFAULT_MOUNT if self.mount is None else self.mount, backend=b, cache=cache,
                           progress=progress, condition=cond, body=self.vehicle_body())
