@@ -15,18 +15,27 @@ import os
 import pickle
 from pathlib import Path
 
-__all__ = ["save_checkpoint", "load_checkpoint", "CHECKPOINT_FORMAT"]
+__all__ = ["save_checkpoint", "load_checkpoint", "snapshot", "write_snapshot", "CHECKPOINT_FORMAT"]
 
 CHECKPOINT_FORMAT = 1
 
 
 def save_checkpoint(path, state: dict) -> Path:
     """Write ``state`` atomically to ``path``."""
+    return write_snapshot(path, snapshot(state))
+
+
+def snapshot(state: dict) -> bytes:
+    """``state`` as checkpoint bytes (a pickle: taking one is cheap, writing it is not)."""
+    return pickle.dumps({"format": CHECKPOINT_FORMAT, **state}, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def write_snapshot(path, data: bytes) -> Path:
+    """Write ``snapshot`` bytes atomically to ``path`` (temporary file, fsync, rename)."""
     path = Path(path)
     if path.parent and not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    data = pickle.dumps({"format": CHECKPOINT_FORMAT, **state}, protocol=pickle.HIGHEST_PROTOCOL)
     with open(tmp, "wb") as f:
         f.write(data)
         f.flush()

@@ -41,7 +41,7 @@ def add_arguments(p) -> None:
                    help="cache covered voxels per LiDAR pose (pays off when rigs repeat most poses; otherwise "
                         "the fused batched kernel is faster)")
     p.add_argument("--checkpoint", default=None,
-                   help="checkpoint file written after every generation (default: OUTPUT/checkpoint.pkl with "
+                   help="checkpoint file written after a generation, at most once a second (default: OUTPUT/checkpoint.pkl with "
                         "--output)")
     p.add_argument("--resume", action="store_true",
                    help="continue from --checkpoint (the run's settings must match; they are checked first)")
