@@ -137,7 +137,7 @@ class PooledPSOG:
         self.grid = grid
         self.n_classes = int(n_classes)
         self.records: list[DriveRecord] = []
-        self._union = None
+        self._union = self._plain = self._spans = None
         for r in records:
             self.add(r)
 
@@ -145,7 +145,7 @@ class PooledPSOG:
         if record.classes.size and int(record.classes.max()) >= self.n_classes:
             raise ValueError(f"{record.label}: class {int(record.classes.max())} outside the {self.n_classes} channels")
         self.records.append(record)
-        self._union = None
+        self._union = self._plain = self._spans = None
 
     @property
     def labels(self) -> list[str]:
@@ -183,6 +183,15 @@ class PooledPSOG:
             self._union = (ukeys % K, inv, counts, owner, uvox, vinv)
         return self._union
 
+    def _plain_sums(self) -> np.ndarray:
+        """Per (voxel, class) key: the counts summed over every record taken once (memoised)."""
+        if self._plain is None:
+            cls_, inv, counts, _, _, _ = self._prepare()
+            self._plain = np.rint(np.bincount(inv, weights=counts.astype(np.float64),
+                                              minlength=len(cls_))).astype(np.int64)
+            self._spans = np.concatenate([[0], np.cumsum([len(r.voxels) for r in self.records])])
+        return self._plain
+
     def counts(self, multiplicity=None) -> tuple[np.ndarray, np.ndarray, int]:
         """Pooled integer counts.
 
@@ -207,9 +216,19 @@ class PooledPSOG:
         T = int((T_each * m).sum())
         if T <= 0:
             raise ValueError("the weighted pool has no subsets (all multiplicities zero)")
-        w = counts * m[owner]
-        # integer sums: bincount with float weights is exact below 2**53, far above any subset count
-        summed = np.rint(np.bincount(inv, weights=w.astype(np.float64), minlength=len(cls_))).astype(np.int64)
+        changed = np.flatnonzero(m != 1)
+        if len(changed) <= max(1, D // 4):
+            # few records weighted other than once (a jackknife leaves one out): the sums of the plain
+            # pool, corrected record by record; integers, so the same sums as summing from scratch
+            summed = self._plain_sums().copy()
+            for j in changed:
+                a, b = self._spans[j], self._spans[j + 1]      # record j's entries are contiguous
+                summed += (m[j] - 1) * np.bincount(inv[a:b], weights=counts[a:b].astype(np.float64),
+                                                   minlength=len(cls_)).round().astype(np.int64)
+        else:
+            w = counts * m[owner]
+            # integer sums: bincount with float weights is exact below 2**53, far above any subset count
+            summed = np.rint(np.bincount(inv, weights=w.astype(np.float64), minlength=len(cls_))).astype(np.int64)
         out = np.zeros((len(uvox), self.n_classes), dtype=np.int64)
         out[vinv, cls_] = summed
         occ = out[:, 1:].sum(axis=1)

@@ -294,7 +294,8 @@ def _records_path(spec):
     if spec.scene.kind == "semantickitti":
         return None, None
     lidar = resolve_lidar(spec.lidar)
-    scene = spec.scene.build()
+    folder = Path(spec.cache) if spec.cache else cache_dir()
+    scene = spec.scene.for_cache(folder)       # name and key; built only when not remembered
     # the inputs of scene_psog's cache key, plus what makes these files different from a P-SOG
     inputs = dict(kind="subset-records", scene=scene.key, grid=spec.grid.grid().to_dict(),
                   lidar=[lidar.name, lidar.elevations.tolist(), lidar.azimuths.size, lidar.max_range],
@@ -305,7 +306,6 @@ def _records_path(spec):
     if body is not None:
         # only with a body, so the no-body (paper) key and the files already on disk stay valid
         inputs["body"] = {"name": body.name, "key": body.key}
-    folder = Path(spec.cache) if spec.cache else cache_dir()
     return folder / f"subsets-{scene.name}-{cache_key(**inputs)}.npz", inputs
 
 
