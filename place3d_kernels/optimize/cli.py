@@ -155,6 +155,10 @@ def run(args, spec, psog_for) -> int:
         lidar = LidarModel.load(args.lidar)
         with section("scene + P-SOG"):
             _, psog = psog_for(probe)
+        from place3d_kernels.lazy_imports import import_cma
+
+        with section("import cma"):
+            import_cma()               # while the probe may still run (CUDA start-up does not hold the GIL)
         with section("backend probe (wait)"):
             b = probe.result()
     finally:
