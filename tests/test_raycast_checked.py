@@ -137,3 +137,18 @@ def test_other_inputs_take_the_host_path(device_backend, rng):
     _same(p3k.raycast(mesh, o, d.astype(np.float32), 20.0, backend=device_backend),
           p3k.raycast(mesh, o, d.astype(np.float32).astype(np.float64), 20.0, backend="reference"))
     assert want.hit.sum() > 50
+
+
+def test_opencl_stack_overflow_goes_to_the_host_path(rng):
+    # a tiny traversal stack overflows: raycast_checked hands the call back and the host path retraces
+    # those rays, so the hits stay the reference's
+    try:
+        from place3d_kernels.backends.opencl import OpenCLBackend
+        b = OpenCLBackend("pocl", stack_size=1, bvh_width=4)
+    except Exception as e:  # noqa: BLE001 - no PyOpenCL or no PoCL here
+        pytest.skip(f"no opencl:pocl ({e})")
+    mesh = _mesh()
+    o, d = _rays(rng, 600)
+    assert b.raycast_checked(mesh.handle(b), o, d, 20.0, shift=mesh.shift) is None
+    _same(p3k.raycast(mesh, o, d, 20.0, backend=b), p3k.raycast(mesh, o, d, 20.0, backend="reference"))
+    assert b.stats["retraced_rays"] > 0
