@@ -184,6 +184,8 @@ def _device_rays(origins, directions, t_max):
         o = o[None]
     if d.ndim == 1:
         d = d[None]
+    if o.ndim == 2 and d.ndim == 2 and len(o) == len(d) > 1 and o.strides[0] == 0:
+        o = np.ascontiguousarray(o[:1])     # a broadcast view of one origin: that origin (24 bytes)
     if (o.dtype != d.dtype or o.dtype not in (np.float32, np.float64) or o.ndim != 2 or d.ndim != 2
             or o.shape[1] != 3 or d.shape[1] != 3 or len(d) == 0 or len(o) not in (1, len(d))
             or not (o.flags.c_contiguous and d.flags.c_contiguous)):

@@ -152,3 +152,15 @@ def test_opencl_stack_overflow_goes_to_the_host_path(rng):
     assert b.raycast_checked(mesh.handle(b), o, d, 20.0, shift=mesh.shift) is None
     _same(p3k.raycast(mesh, o, d, 20.0, backend=b), p3k.raycast(mesh, o, d, 20.0, backend="reference"))
     assert b.stats["retraced_rays"] > 0
+
+
+def test_shape_errors_are_the_host_path_s(device_backend):
+    mesh = _mesh()
+    o = np.broadcast_to(SHIFT, (3, 3))
+    d = np.tile([0.0, 0.0, -1.0], (2, 1))
+    with pytest.raises(ValueError, match=r"origins \(3, 3\) and directions \(2, 3\) must have the same shape"):
+        p3k.raycast(mesh, o, d, 10.0, backend=device_backend)
+    with pytest.raises(ValueError, match="one value per ray"):
+        p3k.raycast(mesh, o[:2], d, [1.0, 2.0, 3.0], backend=device_backend)
+    with pytest.raises(ValueError, match=r"must be \(N, 3\) arrays"):
+        p3k.raycast(mesh, o[:, :2], d[:, :2], 10.0, backend=device_backend)
