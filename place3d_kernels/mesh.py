@@ -87,9 +87,12 @@ class Mesh:
                 faces, ids, labels = self.faces, None, self.labels
             else:
                 faces, ids, labels = self.faces[self.valid_faces], self.valid_faces, self.labels[self.valid_faces]
-            # the face map and labels travel with the BVH, so backends that check rays on the device
-            # (raycast_checks_rays) report this mesh's face ids and labels without a host pass
-            h = backend.upload_mesh(self.vertices - self.shift, faces, face_ids=ids, labels=labels)
+            if getattr(backend, "raycast_checks_rays", False):
+                # the face map and labels travel with the BVH, so raycast_checked reports this mesh's
+                # face ids and labels without a host pass
+                h = backend.upload_mesh(self.vertices - self.shift, faces, face_ids=ids, labels=labels)
+            else:   # backends written before upload_mesh took the tables need not know them
+                h = backend.upload_mesh(self.vertices - self.shift, faces)
             self._handles[backend] = h
         return h
 

@@ -223,13 +223,13 @@ ALWAYS_INLINE bool load_ray(int i, __global const void* orig, int o_step, __glob
 #define RAY_LOAD \
     int i = get_global_id(0); \
     if (i >= n) return; \
-    real o[3], d[3], tmr; \
-    if (!load_ray(i, orig, o_step, dir, in_f32, t_max, t_step, shx, shy, shz, flags, o, d, &tmr)) { \
+    real ray_o[3], ray_d[3], tmr; \
+    if (!load_ray(i, orig, o_step, dir, in_f32, t_max, t_step, shx, shy, shz, flags, ray_o, ray_d, &tmr)) { \
         out_t[i] = (real)INFINITY; out_face[i] = -1; if (map_faces) out_label[i] = -1; return; \
     } \
     ray_t r; \
-    ray_init(&r, o, d);
-#define RAY_STORE store_hit(i, overflow, best, best_face, tmr, o, d, out_t, out_face, out_label, face_ids, \
+    ray_init(&r, ray_o, ray_d);
+#define RAY_STORE store_hit(i, overflow, best, best_face, tmr, ray_o, ray_d, out_t, out_face, out_label, face_ids, \
                             face_labels, map_faces MESH_PASS)
 
 #ifdef HAVE_FP64
