@@ -284,12 +284,9 @@ class WarpCore(Backend):
         out_l = wp.empty(n, dtype=wp.int32, device=self.device)
         flags = wp.zeros(self.k.N_FLAGS, dtype=wp.int32, device=self.device)
         s = wp.vec3d(*np.asarray(shift, dtype=np.float64).reshape(3).tolist())
-        kernel = self.k.raycast_checked_kernel
-        # a generic kernel: Warp picks the overload from the argument types, so scalars carry theirs
-        mid, os_, ts_ = wp.uint64(mesh.mesh.id), wp.int32(o_step), wp.int32(t_step)
-        self._launch(kernel, n, lambda a, b: [
-            mid, mesh.corners64, mesh.face_ids, mesh.face_labels, o[a:b] if o_step else o, os_, s,
-            d[a:b], tm[a:b] if t_step else tm, ts_, out_t[a:b], out_f[a:b], out_l[a:b], flags])
+        self._launch(self.k.RAYCAST_CHECKED[vec], n, lambda a, b: [
+            mesh.mesh.id, mesh.corners64, mesh.face_ids, mesh.face_labels, o[a:b] if o_step else o, o_step, s,
+            d[a:b], tm[a:b] if t_step else tm, t_step, out_t[a:b], out_f[a:b], out_l[a:b], flags])
         raised = flags.numpy()
         if raised.any():
             return None

@@ -208,8 +208,10 @@ def raycast_checked_kernel(
             out_label[tid] = face_labels[f]
 
 
-for _vec in (wp.vec3f, wp.vec3d):
-    wp.overload(raycast_checked_kernel, {"origins": wp.array(dtype=_vec), "dirs": wp.array(dtype=_vec)})
+#: the concrete kernels for float32 (vec3f) and float64 (vec3d) rays: launching these skips Warp's
+#: per-launch overload lookup from the argument values (tens of microseconds per CPU chunk)
+RAYCAST_CHECKED = {v: wp.overload(raycast_checked_kernel, {"origins": wp.array(dtype=v), "dirs": wp.array(dtype=v)})
+                   for v in (wp.vec3f, wp.vec3d)}
 
 
 # ----------------------------------------------------------------------------- voxel walk
