@@ -180,7 +180,8 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
         both = np.isfinite(hits.t) & (plain_t >= 0)
         out["hits_agree_1e-4m"] = float(np.mean(np.abs(hits.t[both] - plain_t[both]) <= 1e-4)) if both.any() else None
         out["hit_mismatch"] = int(np.sum(np.isfinite(hits.t) != (plain_t >= 0)))
-    print(f"(b) ray-mesh {n} rays: API {out['api_mrays_s']:.1f} M rays/s (float32; float64 {out['api_f64_mrays_s']:.1f})"
+    print(f"(b) ray-mesh {n} rays: API {out['api_mrays_s']:.1f} M rays/s "
+          f"(float32; float64 {out['api_f64_mrays_s']:.1f})"
           + (f", plain Warp numpy-io {out['plain_numpy_io_mrays_s']:.1f}, kernel {out['plain_kernel_mrays_s']:.1f}"
              if "plain_kernel_mrays_s" in out else ""), flush=True)
     return out

@@ -193,7 +193,8 @@ def raycast_checked_kernel(
         flags[FLAG_ORIGIN] = 1
         ok = False
     d64, n = unit_like_host(dw)
-    if not (wp.isfinite(dw[0]) and wp.isfinite(dw[1]) and wp.isfinite(dw[2]) and wp.isfinite(n)) or n == wp.float64(0.0):
+    finite_d = wp.isfinite(dw[0]) and wp.isfinite(dw[1]) and wp.isfinite(dw[2]) and wp.isfinite(n)
+    if not finite_d or n == wp.float64(0.0):
         flags[FLAG_DIRECTION] = 1
         ok = False
     if not (tm >= wp.float64(0.0)):      # NaN fails this too
