@@ -5,7 +5,8 @@
     subprocess: warm (kernel and P-SOG caches filled by one untimed run, then 3 timed runs) and cold
     (3 runs, each with a fresh Warp kernel cache, ``WARP_CACHE_PATH``, and a fresh P-SOG cache,
     ``PLACE3D_CACHE``).
-(b) Ray-mesh through the API (``p3k.raycast``, NumPy in and out) against a plain Warp ``mesh_query_ray``
+(b) Ray-mesh through the API (``p3k.raycast``, NumPy in and out; float32 rays as the plain kernel gets,
+    and float64 rays) against a plain Warp ``mesh_query_ray``
     kernel on the same ``box_city`` and rays (the dense rig of bench/peers.py: 4 x 64 x 2048 rays of
     ``LidarModel.uniform(64, (-25, 15), 2048, max_range=200)`` at ``pyramid``): the plain kernel both with
     NumPy in and out (upload, launch, download) and kernel only.
@@ -116,18 +117,25 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
     t = time.perf_counter()
     mesh.handle(b)
     out["api_bvh_build_s"] = time.perf_counter() - t
-    p3k.raycast(mesh, o, d, t_max, backend=b)    # warm-up (compiles on a cold cache)
-    walls = []
+    # the API on float32 rays (the same dtype and bytes as the plain kernel's inputs below; origins in the
+    # world frame, as the API takes them) and on the float64 rays, each with its per-step split
+    o32w, d32 = np.ascontiguousarray(o, dtype=np.float32), np.ascontiguousarray(d, dtype=np.float32)
     from place3d_kernels.profiling import profile
 
-    with profile(print_table=False) as prof:       # per-step split of the API call (validate, shift, ...)
-        for _ in range(REPEATS):
-            t = time.perf_counter()
-            hits = p3k.raycast(mesh, o, d, t_max, backend=b)
-            walls.append(time.perf_counter() - t)
-    out["api_s"] = stats(walls)
-    out["api_steps_mean_s"] = {k[-1]: v[0] / v[1] for k, v in prof.totals.items()}
-    out["api_mrays_s"] = n / out["api_s"]["median"] / 1e6
+    for key, (oo, dd) in (("api", (o32w, d32)), ("api_f64", (o, d))):
+        p3k.raycast(mesh, oo, dd, t_max, backend=b)    # warm-up (compiles on a cold cache)
+        walls = []
+        with profile(print_table=False) as prof:       # per-step split of the API call (prepare, backend, ...)
+            for _ in range(REPEATS):
+                t = time.perf_counter()
+                got = p3k.raycast(mesh, oo, dd, t_max, backend=b)
+                walls.append(time.perf_counter() - t)
+        out[f"{key}_s"] = stats(walls)
+        out[f"{key}_steps_mean_s"] = {k[-1]: v[0] / v[1] for k, v in prof.totals.items()}
+        out[f"{key}_mrays_s"] = n / out[f"{key}_s"]["median"] / 1e6
+        if key == "api":
+            hits = got
+    out["api_rays"] = "float32 world-frame origins and directions (api_f64: the float64 rays)"
 
     if backend.startswith("warp:"):
         wp, kernel = _plain_warp(backend[5:])
@@ -140,7 +148,6 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
         wp.synchronize_device(dev)
         out["plain_bvh_build_s"] = time.perf_counter() - t
         o32 = np.ascontiguousarray(o - mesh.shift, dtype=np.float32)
-        d32 = np.ascontiguousarray(d, dtype=np.float32)
 
         def numpy_io():
             oa = wp.array(o32, dtype=wp.vec3, device=dev)
@@ -169,10 +176,12 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
         out["plain_numpy_io_mrays_s"] = n / out["plain_numpy_io_s"]["median"] / 1e6
         out["plain_kernel_mrays_s"] = n / out["plain_kernel_s"]["median"] / 1e6
         out["api_over_plain_numpy_io"] = out["api_s"]["median"] / out["plain_numpy_io_s"]["median"]
+        out["api_f64_over_plain_numpy_io"] = out["api_f64_s"]["median"] / out["plain_numpy_io_s"]["median"]
         both = np.isfinite(hits.t) & (plain_t >= 0)
         out["hits_agree_1e-4m"] = float(np.mean(np.abs(hits.t[both] - plain_t[both]) <= 1e-4)) if both.any() else None
         out["hit_mismatch"] = int(np.sum(np.isfinite(hits.t) != (plain_t >= 0)))
-    print(f"(b) ray-mesh {n} rays: API {out['api_mrays_s']:.1f} M rays/s"
+    print(f"(b) ray-mesh {n} rays: API {out['api_mrays_s']:.1f} M rays/s "
+          f"(float32; float64 {out['api_f64_mrays_s']:.1f})"
           + (f", plain Warp numpy-io {out['plain_numpy_io_mrays_s']:.1f}, kernel {out['plain_kernel_mrays_s']:.1f}"
              if "plain_kernel_mrays_s" in out else ""), flush=True)
     return out

@@ -17,7 +17,8 @@ class Mesh:
 
     Backends build their acceleration structure once per mesh and cache it on the object
     (``Mesh.handle(backend)``); vertices are shifted by ``Mesh.shift`` (float64, on the host) before they
-    become float32 on a device, so far-from-origin scenes keep their precision.
+    become float32 on a device, so far-from-origin scenes keep their precision. The handle also holds
+    the face labels as they are at first use: a mesh's arrays are not meant to change after construction.
     """
 
     def __init__(self, vertices, faces, labels=None):
@@ -82,8 +83,16 @@ class Mesh:
         # fp64 OpenCL backend) own buffers in different device contexts
         h = self._handles.get(backend)
         if h is None:
-            faces = self.faces if len(self.valid_faces) == len(self.faces) else self.faces[self.valid_faces]
-            h = backend.upload_mesh(self.vertices - self.shift, faces)
+            if len(self.valid_faces) == len(self.faces):
+                faces, ids, labels = self.faces, None, self.labels
+            else:
+                faces, ids, labels = self.faces[self.valid_faces], self.valid_faces, self.labels[self.valid_faces]
+            if getattr(backend, "raycast_checks_rays", False):
+                # the face map and labels travel with the BVH, so raycast_checked reports this mesh's
+                # face ids and labels without a host pass
+                h = backend.upload_mesh(self.vertices - self.shift, faces, face_ids=ids, labels=labels)
+            else:   # backends written before upload_mesh took the tables need not know them
+                h = backend.upload_mesh(self.vertices - self.shift, faces)
             self._handles[backend] = h
         return h
 

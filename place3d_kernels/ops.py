@@ -1,7 +1,9 @@
 """Public kernel entry points: ray-mesh intersection, voxel traversal and coverage.
 
 Inputs are validated here (once, on the host) so kernels can assume finite unit directions; world
-coordinates are shifted to the grid or mesh origin in float64 before they reach a device.
+coordinates are shifted to the grid or mesh origin in float64 before they reach a device. ``raycast`` on
+backends with ``raycast_checks_rays`` is the exception: the device makes the same checks (see
+``Backend.raycast_checked``) and the host path runs only for rays they reject.
 """
 
 from __future__ import annotations
@@ -127,14 +129,29 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
     Args:
         mesh: the triangle mesh; its BVH is built once per backend and cached on the mesh.
         origins, directions: (N, 3) rays (directions need not be normalised; t is in metres along the
-            normalised direction).
+            normalised direction). float32 rays give the hits of the same rays widened to float64.
         t_max: scalar or (N,) maximum distance.
         backend: backend name or instance (default: the current one).
+
+    Raises:
+        ValueError: a shape is wrong, or a ray has a non-finite origin, a non-finite or zero direction, or
+            a negative or NaN ``t_max`` (the message names the first such ray).
     """
+    b = get_backend(backend)
+    if b.raycast_checks_rays:
+        # the device checks and normalises the rays as _check_od/_check_t would; only when it raises a
+        # flag (a ray those would reject) does the host path below run, for today's error or result
+        with section("raycast: prepare"):
+            rays = _device_rays(origins, directions, t_max)
+        if rays is not None:
+            handle = mesh.handle(b)
+            with section("raycast: backend"):
+                out = b.raycast_checked(handle, *rays, shift=mesh.shift)
+            if out is not None:
+                return Hits(*out)
     with section("raycast: validate"):
         o, d = _check_od(origins, directions)
         tm = _check_t(t_max, len(o), "t_max", scalar=True)
-    b = get_backend(backend)
     # float32 kernels need a finite bound; a scalar stays a scalar (backends broadcast it)
     tm32 = min(tm, 1e30) if isinstance(tm, float) else np.minimum(tm, 1e30)
     handle = mesh.handle(b)
@@ -153,6 +170,36 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
         label = mesh.labels[face]
         label[face < 0] = -1
     return Hits(np.asarray(t, dtype=np.float64), face, label)
+
+
+def _device_rays(origins, directions, t_max):
+    """Rays for ``Backend.raycast_checked`` without a pass over their values, or None for the host path.
+
+    Takes (N, 3) C-contiguous float32 or float64 arrays of one dtype as they are (origins may be one
+    (1, 3) row), and a scalar or (N,) numeric ``t_max``; anything else (lists, other dtypes or layouts,
+    wrong shapes, no rays) goes to the host path, which converts it or raises today's error.
+    """
+    o, d = np.asarray(origins), np.asarray(directions)
+    if o.ndim == 1:
+        o = o[None]
+    if d.ndim == 1:
+        d = d[None]
+    if o.ndim == 2 and d.ndim == 2 and len(o) == len(d) > 1 and o.strides[0] == 0:
+        o = np.ascontiguousarray(o[:1])     # a broadcast view of one origin: that origin (24 bytes)
+    if (o.dtype != d.dtype or o.dtype not in (np.float32, np.float64) or o.ndim != 2 or d.ndim != 2
+            or o.shape[1] != 3 or d.shape[1] != 3 or len(d) == 0 or len(o) not in (1, len(d))
+            or not (o.flags.c_contiguous and d.flags.c_contiguous)):
+        return None
+    tt = np.asarray(t_max)
+    if tt.dtype.kind not in "fiu":
+        return None
+    if tt.ndim == 0:
+        tm = float(np.asarray(tt, dtype=np.float64))
+    elif tt.shape == (len(d),):
+        tm = np.ascontiguousarray(tt, dtype=np.float64)
+    else:
+        return None
+    return o, d, tm
 
 
 def _grid_inputs(grid: Grid, origins, directions, t_end, stop):

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE", "rotation_matrices", "sensor_directions",
-           "check_ray_batch"]
+           "check_ray_batch", "mesh_face_tables"]
 
 #: Fixed-point scale for entropy weights: weight = round(H * ENTROPY_SCALE) as int64. ln(22) * 2**32 is
 #: about 1.3e10, so 7e8 fully uncertain voxels still fit in int64 without overflow.
@@ -84,12 +84,15 @@ class Backend(abc.ABC):
 
     # ----------------------------------------------------------------- ray-mesh
     @abc.abstractmethod
-    def upload_mesh(self, vertices: np.ndarray, faces: np.ndarray) -> object:
+    def upload_mesh(self, vertices: np.ndarray, faces: np.ndarray, face_ids: np.ndarray | None = None,
+                    labels: np.ndarray | None = None) -> object:
         """Build the acceleration structure for a triangle mesh and return an opaque handle.
 
         Args:
             vertices: (V, 3) float64, already shifted near the origin by the domain.
             faces: (F, 3) int32 vertex indices.
+            face_ids: (F,) the caller's id of each face, reported by ``raycast_checked`` (default: 0..F-1).
+            labels: (F,) int32 label of each face, reported by ``raycast_checked`` (default: 0).
         """
 
     #: True where ``raycast`` takes a ``shift`` keyword: the (3,) float64 mesh shift, subtracted from the
@@ -108,6 +111,34 @@ class Backend(abc.ABC):
         Returns:
             t (N,) float64 (inf on miss) and face (N,) int32 (-1 on miss).
         """
+
+    #: True where ``raycast_checked`` is implemented: the ray-mesh call that takes the caller's rays as
+    #: given and checks them on the device (no host pass over the rays).
+    raycast_checks_rays: bool = False
+
+    def raycast_checked(self, mesh: object, origins: np.ndarray, directions: np.ndarray, t_max, shift: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Closest hit per ray on unchecked world-frame rays, checked and normalised on the device.
+
+        Args:
+            mesh: handle from ``upload_mesh`` (its ``face_ids`` and ``labels`` are reported).
+            origins: (N, 3), or (1, 3) for one origin shared by all rays; C-contiguous, float32 or float64,
+                the same dtype as ``directions``. float32 values widen to float64 exactly.
+            directions: (N, 3) C-contiguous, any length (normalised as the domain's host check does).
+            t_max: a Python float or an (N,) float64 array (not yet checked).
+            shift: (3,) float64, subtracted from the origins in float64 on the device.
+
+        Returns:
+            ``(t float64, face int64, label int32)``, each (N,), as the domain reports them (inf, -1, -1 on
+            a miss); or None when a ray has a non-finite origin, a non-finite or zero direction, a
+            direction norm that is not finite, or a negative or NaN ``t_max``: the caller then checks the
+            rays on the host (and raises, or normalises and calls again).
+
+        Raises:
+            NotImplementedError: ``raycast_checks_rays`` is False for this backend.
+        """
+        raise NotImplementedError(f"backend {self.name} does not check rays on the device (raycast_checks_rays "
+                                  f"is False); validate the rays and call raycast")
 
     # ----------------------------------------------------------------- voxel traversal
     @abc.abstractmethod
@@ -248,6 +279,20 @@ def sensor_directions(elevations: np.ndarray, azimuths: np.ndarray) -> np.ndarra
     a = np.asarray(azimuths, dtype=np.float64)[None, :]
     d = np.stack(np.broadcast_arrays(np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)), -1)
     return d.reshape(-1, 3)
+
+
+def mesh_face_tables(n_faces: int, face_ids=None, labels=None) -> tuple[np.ndarray, np.ndarray]:
+    """Per uploaded face: the caller's face id (int64, default 0..F-1) and label (int32, default 0).
+
+    Raises:
+        ValueError: a table does not have one entry per face.
+    """
+    ids = np.arange(n_faces, dtype=np.int64) if face_ids is None else np.asarray(face_ids, dtype=np.int64).reshape(-1)
+    lab = np.zeros(n_faces, dtype=np.int32) if labels is None else np.asarray(labels, dtype=np.int32).reshape(-1)
+    for name, a in (("face_ids", ids), ("labels", lab)):
+        if a.shape != (n_faces,):
+            raise ValueError(f"upload_mesh {name} must have one entry per face ({n_faces}), got shape {a.shape}")
+    return np.ascontiguousarray(ids), np.ascontiguousarray(lab)
 
 
 def check_ray_batch(origins, directions, t_end, ray_offsets) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -8,7 +8,8 @@ import threading
 import numpy as np
 import pyopencl as cl
 
-from place3d_kernels.backends.base import Backend, BackendUnavailable, GridSpec, rotation_matrices, sensor_directions
+from place3d_kernels.backends.base import (Backend, BackendUnavailable, GridSpec, mesh_face_tables, rotation_matrices,
+                                           sensor_directions)
 from place3d_kernels.backends.bricks import brick_masks, brick_shape
 from place3d_kernels.backends.opencl import _runtime as rt
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, brute_force_raycast, build_bvh, collapse_bvh4
@@ -23,6 +24,8 @@ _BITSET_BYTES = 256 * 2**20
 _DENSE_VOTE_BYTES = 256 * 2**20
 #: work-group size on CPU devices
 _CPU_GROUP = 8
+#: flag slots of the raycast kernels (load_ray in raycast.cl: origin, direction, t_max)
+N_RAY_FLAGS = 3
 
 
 def opencl_devices() -> list[str]:
@@ -37,7 +40,8 @@ def opencl_devices() -> list[str]:
 class CLMesh:
     """Handle of an uploaded mesh: the BVH on the host and its device buffers."""
 
-    def __init__(self, backend: "OpenCLBackend", vertices: np.ndarray, faces: np.ndarray, bvh: BVH):
+    def __init__(self, backend: "OpenCLBackend", vertices: np.ndarray, faces: np.ndarray, bvh: BVH,
+                 face_ids: np.ndarray, labels: np.ndarray):
         self.vertices = vertices
         self.faces = faces
         self.bvh = bvh
@@ -47,6 +51,11 @@ class CLMesh:
         nodes = self.bvh4.nodes if self.width == 4 else bvh.nodes
         self.nodes = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=nodes)
         self.tris = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=bvh.tris)
+        # the caller's face id and label of each uploaded face, for raycast_checked
+        if len(face_ids) and (face_ids.min() < 0 or face_ids.max() >= 2**31):
+            raise ValueError(f"face ids must lie in [0, 2**31), got [{face_ids.min()}, {face_ids.max()}]")
+        self.face_ids = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=face_ids.astype(np.int32))
+        self.face_labels = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=labels)
         if backend.fp64:  # float64 mesh for the final hit distance
             self.verts64 = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=vertices)
             self.faces32 = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=faces)
@@ -140,6 +149,8 @@ class OpenCLBackend(Backend, OpenCLConditions):
             raise BackendUnavailable(f"device {self.device.name!r} has no cl_khr_fp64; use fp64=None or False")
         self.fp64 = has_fp64 if fp64 is None else bool(fp64)
         self.real = np.float64 if self.fp64 else np.float32
+        #: rays are checked and normalised on the device where it has doubles (the host's rule needs them)
+        self.raycast_checks_rays = self.fp64
         self.stack_size = int(stack_size) if stack_size is not None else DEFAULT_MAX_DEPTH
         self.is_cpu = bool(self.device.type & cl.device_type.CPU)
         self.rays_per_item = int(rays_per_item) if rays_per_item else 1
@@ -274,12 +285,25 @@ class OpenCLBackend(Backend, OpenCLConditions):
         return np.ascontiguousarray(rig, dtype=self.real), np.ascontiguousarray(local, dtype=self.real)
 
     # ----------------------------------------------------------------- ray-mesh
-    def upload_mesh(self, vertices, faces):
+    def upload_mesh(self, vertices, faces, face_ids=None, labels=None):
         # private copies: the handle must not change if the caller edits its arrays later
         v = np.array(vertices, dtype=np.float64, copy=True).reshape(-1, 3)
         f = np.array(faces, dtype=np.int32, copy=True).reshape(-1, 3)
+        ids, lab = mesh_face_tables(len(f), face_ids, labels)
         bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH)
-        return CLMesh(self, v, f, bvh)
+        return CLMesh(self, v, f, bvh, ids, lab)
+
+    def _ray_args(self, mesh, o, o_step, d, tm, t_step, shift, tb, fb, lb, map_faces, flags) -> list:
+        """Arguments of the raycast/raycast4 kernels (RAY_ARGS in raycast.cl) and the mesh's."""
+        f32 = o.dtype == np.float32
+        if not f32 and not self.fp64:
+            raise TypeError(f"{self.name} has no doubles: rays must be float32 here, got {o.dtype}")
+        args = [mesh.nodes, mesh.tris, self._in(o), np.int32(o_step), self._in(d), np.int32(f32), self._in(tm),
+                np.int32(t_step), *(self.real(x) for x in shift), tb, fb, lb, mesh.face_ids, mesh.face_labels,
+                np.int32(map_faces), flags, np.int32(len(d))]
+        if self.fp64:
+            args += [mesh.verts64, mesh.faces32]
+        return args
 
     def raycast(self, mesh, origins, directions, t_max):
         if not isinstance(mesh, CLMesh):
@@ -289,9 +313,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
         if n == 0:
             return np.empty(0, np.float64), np.empty(0, np.int32)
         (t, tb), (face, fb) = self._host_out(self.real, n), self._host_out(np.int32, n)
-        args = [mesh.nodes, mesh.tris, self._in(o), self._in(d), self._in(tm), tb, fb, np.int32(n)]
-        if self.fp64:
-            args += [mesh.verts64, mesh.faces32]
+        # checked rays: the kernel's checks pass and its normalisation leaves them as they are
+        flags = self._out(4 * N_RAY_FLAGS)
+        args = self._ray_args(mesh, o, 1, d, tm, 1, (0.0, 0.0, 0.0), tb, fb, self._dummy, 0, flags)
         self._launch("raycast4" if mesh.width == 4 else "raycast", n, *args)
         t = self._fetch(t, tb).astype(np.float64, copy=False)
         face = self._fetch(face, fb)
@@ -305,6 +329,31 @@ class OpenCLBackend(Backend, OpenCLConditions):
         if len(over):  # stack overflow (cannot happen for builder trees): trace these on the host
             t[over], face[over] = brute_force_raycast(mesh.vertices, mesh.faces, o64[over], d64[over], tm64[over])
         return t, face
+
+    def raycast_checked(self, mesh, origins, directions, t_max, shift):
+        if not isinstance(mesh, CLMesh):
+            raise TypeError(f"raycast_checked needs the handle returned by {self.name}.upload_mesh, "
+                            f"got {type(mesh).__name__}")
+        if not self.fp64:
+            raise NotImplementedError(f"{self.name} has no doubles (raycast_checks_rays is False); validate the "
+                                      f"rays and call raycast")
+        n = len(directions)
+        t_step = 1 if np.ndim(t_max) else 0
+        tm = np.ascontiguousarray(t_max, dtype=np.float64) if t_step else np.full(1, float(t_max))
+        (t, tb), (face, fb), (label, lb) = (self._host_out(np.float64, n), self._host_out(np.int32, n),
+                                            self._host_out(np.int32, n))
+        flags = np.zeros(N_RAY_FLAGS, np.int32)
+        fl = cl.Buffer(self.ctx, _MF.READ_WRITE | _MF.COPY_HOST_PTR, hostbuf=flags)
+        args = self._ray_args(mesh, origins, 1 if len(origins) == n else 0, directions, tm, t_step,
+                              np.asarray(shift, dtype=np.float64).reshape(3), tb, fb, lb, 1, fl)
+        self._launch("raycast4" if mesh.width == 4 else "raycast", n, *args)
+        cl.enqueue_copy(self.queue, flags, fl)
+        if flags.any():
+            return None
+        face = self._fetch(face, fb)
+        if (face == -2).any():   # a BVH stack overflow (not for builder trees): raycast traces it on the host
+            return None
+        return self._fetch(t, tb), face.astype(np.int64), self._fetch(label, lb)
 
     # ----------------------------------------------------------------- voxel traversal
     def count_visits(self, grid, origins, directions, t_end, stop=None) -> np.ndarray:
@@ -359,10 +408,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
         o, d, tm = self._rays(origins, directions, t_max)
         n = len(o)
         tb, fb = self._out(n * np.dtype(self.real).itemsize), self._out(n * 4)
-        args = [mesh.nodes, mesh.tris, self._in(o, keep=True), self._in(d, keep=True), self._in(tm, keep=True),
-                tb, fb, np.int32(n)]
-        if self.fp64:
-            args += [mesh.verts64, mesh.faces32]
+        o, d, tm = (np.array(a, copy=True) for a in (o, d, tm))   # the buffers outlive this call
+        args = self._ray_args(mesh, o, 1, d, tm, 1, (0.0, 0.0, 0.0), tb, fb, self._dummy, 0,
+                              self._out(4 * N_RAY_FLAGS))
         kernel = "raycast4" if mesh.width == 4 else "raycast"
         self._kernel(kernel)   # compile now, not inside the first timed call
 

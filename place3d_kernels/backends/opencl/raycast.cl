@@ -104,7 +104,7 @@ double refine_t(__global const double* verts, __global const int* faces, int f, 
 }
 #endif
 
-ALWAYS_INLINE void ray_init(ray_t* r, __global const real* od, __global const real* dd)
+ALWAYS_INLINE void ray_init(ray_t* r, const real* od, const real* dd)
 {
     float dx = (float)dd[0], dy = (float)dd[1], dz = (float)dd[2];
     r->ox = (float)od[0]; r->oy = (float)od[1]; r->oz = (float)od[2];
@@ -138,10 +138,12 @@ ALWAYS_INLINE void leaf_hits(__global const float* tris, int first, int count, c
     }
 }
 
-/* write the result: distance refined in double where available, t_max applied exactly */
-ALWAYS_INLINE void store_hit(int i, bool overflow, float best, int best_face, real tmr,
-                             __global const real* orig, __global const real* dir, __global real* out_t,
-                             __global int* out_face
+/* write the result: distance refined in double where available, t_max applied exactly; with a face map
+ * (map_faces), the caller's face id and the face's label instead of the uploaded face id */
+ALWAYS_INLINE void store_hit(int i, bool overflow, float best, int best_face, real tmr, const real* o,
+                             const real* d, __global real* out_t, __global int* out_face,
+                             __global int* out_label, __global const int* face_ids,
+                             __global const int* face_labels, int map_faces
 #ifdef HAVE_FP64
                              , __global const double* verts, __global const int* faces
 #endif
@@ -156,16 +158,79 @@ ALWAYS_INLINE void store_hit(int i, bool overflow, float best, int best_face, re
     if (best_face >= 0) {
         t_hit = (real)best;
 #ifdef HAVE_FP64
-        double3 od = (double3)(orig[3 * (long)i], orig[3 * (long)i + 1], orig[3 * (long)i + 2]);
-        double3 dd = (double3)(dir[3 * (long)i], dir[3 * (long)i + 1], dir[3 * (long)i + 2]);
-        t_hit = refine_t(verts, faces, best_face, od, dd, (double)best);
+        t_hit = refine_t(verts, faces, best_face, (double3)(o[0], o[1], o[2]), (double3)(d[0], d[1], d[2]),
+                         (double)best);
         if (t_hit < 0.0) t_hit = 0.0;
         if (t_hit > tmr) { t_hit = INFINITY; best_face = -1; }
 #endif
     }
     out_t[i] = t_hit;
-    out_face[i] = best_face;
+    if (map_faces) {
+        out_face[i] = best_face >= 0 ? face_ids[best_face] : -1;
+        out_label[i] = best_face >= 0 ? face_labels[best_face] : -1;
+    } else {
+        out_face[i] = best_face;
+    }
 }
+
+/* Read ray i as the caller gave it (float, or `real` when in_f32 is 0; o_step / t_step 0: one origin /
+ * one bound for all rays), check it as the host's ops._check_od / _check_t would, and hand back the
+ * shifted origin, the direction normalised by the host's rule, and min(t_max, 1e30) (the float32 BVH
+ * needs a finite bound). A failed check stores 1 in its flag slot (every writer stores the same value, so
+ * no atomic is needed; 0 origin, 1 direction or its norm, 2 t_max) and returns false: the host then
+ * redoes the call on its own path, which raises the error.
+ *
+ * The normalisation matches NumPy's bits with doubles: norm = sqrt((x*x + y*y) + z*z) as ops._row_norm
+ * sums it, untouched when |norm - 1| <= 1e-12, else each component divided by the norm. FP_CONTRACT is
+ * off (common.cl), so every product and sum rounds on its own as in NumPy; double sqrt and division are
+ * correctly rounded in OpenCL C (no -cl-fast-relaxed-math or -cl-unsafe-math-optimizations is passed).
+ * For float inputs the squares are exact in double anyway. Without doubles the rays are used as given
+ * (the host only calls those devices with rays it has checked and normalised itself). */
+ALWAYS_INLINE bool load_ray(int i, __global const void* orig, int o_step, __global const void* dir, int in_f32,
+                            __global const real* t_max, int t_step, real sx, real sy, real sz,
+                            __global int* flags, real* o, real* d, real* tm)
+{
+    long io = 3 * (long)i * o_step, id = 3 * (long)i;
+    real ow[3], dw[3];
+    for (int k = 0; k < 3; ++k) {
+        ow[k] = in_f32 ? (real)((__global const float*)orig)[io + k] : ((__global const real*)orig)[io + k];
+        dw[k] = in_f32 ? (real)((__global const float*)dir)[id + k] : ((__global const real*)dir)[id + k];
+    }
+    bool ok = true;
+    if (!(isfinite(ow[0]) && isfinite(ow[1]) && isfinite(ow[2]))) { flags[0] = 1; ok = false; }
+    real norm = sqrt(dw[0] * dw[0] + dw[1] * dw[1] + dw[2] * dw[2]);
+    if (!(isfinite(dw[0]) && isfinite(dw[1]) && isfinite(dw[2]) && isfinite(norm)) || norm == (real)0) {
+        flags[1] = 1;
+        ok = false;
+    }
+    bool scale = false;
+#ifdef HAVE_FP64
+    scale = absd(norm - 1.0) > 1e-12;
+#endif
+    for (int k = 0; k < 3; ++k) d[k] = scale ? dw[k] / norm : dw[k];
+    real t = t_max[(long)i * t_step];
+    if (!(t >= (real)0)) { flags[2] = 1; ok = false; }   /* NaN fails this too */
+    *tm = MINF(t, (real)1e30);
+    o[0] = ow[0] - sx; o[1] = ow[1] - sy; o[2] = ow[2] - sz;
+    return ok;
+}
+
+/* the entry points' shared arguments: rays as given (see load_ray), outputs, face map, flags */
+#define RAY_ARGS __global const void* orig, const int o_step, __global const void* dir, const int in_f32, \
+    __global const real* t_max, const int t_step, const real shx, const real shy, const real shz, \
+    __global real* out_t, __global int* out_face, __global int* out_label, __global const int* face_ids, \
+    __global const int* face_labels, const int map_faces, __global int* flags, const int n
+#define RAY_LOAD \
+    int i = get_global_id(0); \
+    if (i >= n) return; \
+    real ray_o[3], ray_d[3], tmr; \
+    if (!load_ray(i, orig, o_step, dir, in_f32, t_max, t_step, shx, shy, shz, flags, ray_o, ray_d, &tmr)) { \
+        out_t[i] = (real)INFINITY; out_face[i] = -1; if (map_faces) out_label[i] = -1; return; \
+    } \
+    ray_t r; \
+    ray_init(&r, ray_o, ray_d);
+#define RAY_STORE store_hit(i, overflow, best, best_face, tmr, ray_o, ray_d, out_t, out_face, out_label, face_ids, \
+                            face_labels, map_faces MESH_PASS)
 
 #ifdef HAVE_FP64
 #define MESH_ARGS , __global const double* verts, __global const int* faces
@@ -176,15 +241,9 @@ ALWAYS_INLINE void store_hit(int i, bool overflow, float best, int best_face, re
 #endif
 
 /* Binary BVH (GPUs: the smaller stack). */
-__kernel void raycast(__global const float* nodes, __global const float* tris, __global const real* orig,
-                      __global const real* dir, __global const real* t_max, __global real* out_t,
-                      __global int* out_face, const int n MESH_ARGS)
+__kernel void raycast(__global const float* nodes, __global const float* tris, RAY_ARGS MESH_ARGS)
 {
-    int i = get_global_id(0);
-    if (i >= n) return;
-    ray_t r;
-    ray_init(&r, orig + 3 * (long)i, dir + 3 * (long)i);
-    real tmr = t_max[i];
+    RAY_LOAD
     /* a hair above t_max in float; the exact bound is applied after the double refinement */
     float best = (float)tmr * 1.00000024f;
     int best_face = -1;
@@ -224,7 +283,7 @@ __kernel void raycast(__global const float* nodes, __global const float* tris, _
         }
         if (!found) break;
     }
-    store_hit(i, overflow, best, best_face, tmr, orig, dir, out_t, out_face MESH_PASS);
+    RAY_STORE;
 }
 
 #define VMIN(a, b) ((a) < (b) ? (a) : (b))
@@ -232,15 +291,9 @@ __kernel void raycast(__global const float* nodes, __global const float* tris, _
 
 /* 4-wide BVH (CPUs): one node = four child boxes tested as float4 (SIMD), hit children visited nearest
  * first; the others are pushed farthest first. Stack bound: 3 entries per level, STACK4 = 3 * depth cap. */
-__kernel void raycast4(__global const float4* nodes, __global const float* tris, __global const real* orig,
-                       __global const real* dir, __global const real* t_max, __global real* out_t,
-                       __global int* out_face, const int n MESH_ARGS)
+__kernel void raycast4(__global const float4* nodes, __global const float* tris, RAY_ARGS MESH_ARGS)
 {
-    int i = get_global_id(0);
-    if (i >= n) return;
-    ray_t r;
-    ray_init(&r, orig + 3 * (long)i, dir + 3 * (long)i);
-    real tmr = t_max[i];
+    RAY_LOAD
     float best = (float)tmr * 1.00000024f;
     int best_face = -1;
     float4 ox = (float4)(r.ox), oy = (float4)(r.oy), oz = (float4)(r.oz);
@@ -292,5 +345,5 @@ __kernel void raycast4(__global const float4* nodes, __global const float* tris,
         }
         if (!found) break;
     }
-    store_hit(i, overflow, best, best_face, tmr, orig, dir, out_t, out_face MESH_PASS);
+    RAY_STORE;
 }

@@ -166,7 +166,8 @@ class ReferenceCore(Backend):
         o = np.repeat(poses[:, :3], len(local), axis=0)
         return o, d
 
-    def upload_mesh(self, vertices, faces):
+    def upload_mesh(self, vertices, faces, face_ids=None, labels=None):
+        # face_ids and labels serve raycast_checked, which this backend does not have (the domain maps faces)
         return _RefMesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64))
 
     def raycast(self, mesh, origins, directions, t_max):

@@ -19,7 +19,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from place3d_kernels.backends.base import Backend, BackendUnavailable, rotation_matrices, sensor_directions
+from place3d_kernels.backends.base import (Backend, BackendUnavailable, mesh_face_tables, rotation_matrices,
+                                           sensor_directions)
 from place3d_kernels.backends.bricks import brick_masks, brick_shape
 
 try:
@@ -115,11 +116,13 @@ SPLIT_SINGLE_RIG = False
 
 
 class _WarpMesh:
-    def __init__(self, mesh, points, indices, corners64):
+    def __init__(self, mesh, points, indices, corners64, face_ids, face_labels):
         self.mesh = mesh          # keep the arrays alive with the BVH
         self.points = points
         self.indices = indices
         self.corners64 = corners64
+        self.face_ids = face_ids          # int64 caller's face id per uploaded face (raycast_checked)
+        self.face_labels = face_labels    # int32 label per uploaded face (raycast_checked)
         self.t_const = None       # (n, t_max) and its (n,) device array, for repeated scalar bounds
 
 
@@ -232,7 +235,7 @@ class WarpCore(Backend):
         return out_o.numpy(), out_d.numpy()
 
     # ------------------------------------------------------------------ ray-mesh
-    def upload_mesh(self, vertices, faces):
+    def upload_mesh(self, vertices, faces, face_ids=None, labels=None):
         # Warp's mesh_query_ray culls BVH nodes with an unpadded float32 slab test, and rays aimed at
         # vertices on node boundaries slipped through (seen on boxes and cylinders). So the BVH is built
         # over padded triangle boxes: each triangle gets its own three points, first set to the corners
@@ -250,7 +253,9 @@ class WarpCore(Backend):
         mesh = wp.Mesh(points=pts, indices=idx, bvh_constructor="sah")
         corners = tri.reshape(-1, 3)
         pts.assign(self._vec3(corners))
-        return _WarpMesh(mesh, pts, idx, self._vec3d(corners))
+        ids, lab = mesh_face_tables(len(f), face_ids, labels)
+        return _WarpMesh(mesh, pts, idx, self._vec3d(corners), wp.array(ids, dtype=wp.int64, device=self.device),
+                         wp.array(lab, dtype=wp.int32, device=self.device))
 
     raycast_takes_shift = True
 
@@ -262,10 +267,35 @@ class WarpCore(Backend):
         s = wp.vec3d(*(np.zeros(3) if shift is None else np.asarray(shift, dtype=np.float64).reshape(3)).tolist())
         self._launch(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], s, d[a:b],
                                                             tm[a:b], out_t[a:b], out_f[a:b]])
-        t = out_t.numpy()
-        # the kernel writes INF64 (1e300, finite for float64 arithmetic on every device) on a miss
-        np.copyto(t, np.inf, where=t >= 1.0e300)
-        return t, out_f.numpy()
+        return out_t.numpy(), out_f.numpy()
+
+    raycast_checks_rays = True
+
+    def raycast_checked(self, mesh, origins, directions, t_max, shift):
+        n = len(directions)
+        f32 = origins.dtype == np.float32
+        vec = wp.vec3f if f32 else wp.vec3d
+        o, d = self._rays_as_given(origins, vec), self._rays_as_given(directions, vec)
+        o_step = 1 if len(origins) == n else 0
+        t_step = 1 if np.ndim(t_max) else 0
+        tm = self._f64(t_max, n) if t_step else self._t_in(mesh, t_max, 1)
+        out_t = wp.empty(n, dtype=wp.float64, device=self.device)
+        out_f = wp.empty(n, dtype=wp.int64, device=self.device)
+        out_l = wp.empty(n, dtype=wp.int32, device=self.device)
+        flags = wp.zeros(self.k.N_FLAGS, dtype=wp.int32, device=self.device)
+        s = wp.vec3d(*np.asarray(shift, dtype=np.float64).reshape(3).tolist())
+        self._launch(self.k.RAYCAST_CHECKED[vec], n, lambda a, b: [
+            mesh.mesh.id, mesh.corners64, mesh.face_ids, mesh.face_labels, o[a:b] if o_step else o, o_step, s,
+            d[a:b], tm[a:b] if t_step else tm, t_step, out_t[a:b], out_f[a:b], out_l[a:b], flags])
+        raised = flags.numpy()
+        if raised.any():
+            return None
+        return out_t.numpy(), out_f.numpy(), out_l.numpy()
+
+    def _rays_as_given(self, a, vec) -> "wp.array":
+        """(N, 3) contiguous float32 or float64 rays as a vec3f/vec3d array: on the CPU the NumPy memory
+        itself (no copy; the caller's array outlives the launch), on a GPU one upload, no conversion."""
+        return wp.array(a, dtype=vec, device=self.device, copy=self.device.is_cuda)
 
     def _rays_in(self, a) -> "wp.array":
         """(N, 3) float64 rays as a vec3d array: on the CPU the NumPy memory itself when it is already

@@ -10,6 +10,9 @@ distances recomputed in float64).
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import warp as wp
 
 # forward kernels only: no adjoints to generate, which roughly halves compile time. No fused multiply-add
@@ -18,6 +21,8 @@ import warp as wp
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 INF64 = wp.constant(wp.float64(1.0e300))
+#: hit distance of a miss (only ever stored, never computed with, so no device's inf arithmetic matters)
+MISS_T = wp.constant(wp.float64(math.inf))
 
 
 # ----------------------------------------------------------------------------- rays
@@ -92,6 +97,29 @@ def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fa
     return t
 
 
+@wp.func
+def closest_hit(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), o64: wp.vec3d, d64: wp.vec3d,
+                tm: wp.float64):
+    # Warp's ordered BVH query and watertight triangle test, on a mesh whose BVH boxes were built
+    # padded (see WarpCore.upload_mesh), so no box culls a triangle the ray touches. The winning face's
+    # distance is recomputed in float64 from float64 inputs with the reference's formula (woop_t):
+    # grazing rays otherwise inherit the float32 rounding of corners and origins (0.3 mm at 13 m was seen).
+    # Returns (t, uploaded face) or (MISS_T, -1).
+    o = wp.vec3(wp.float32(o64[0]), wp.float32(o64[1]), wp.float32(o64[2]))
+    d = wp.vec3(wp.float32(d64[0]), wp.float32(d64[1]), wp.float32(d64[2]))
+    q = wp.mesh_query_ray(mesh, o, d, wp.float32(tm * wp.float64(1.000001) + wp.float64(1.0e-6)))
+    t_out = MISS_T
+    f_out = wp.int32(-1)
+    if q.result:
+        t64 = woop_t(corners64[3 * q.face], corners64[3 * q.face + 1], corners64[3 * q.face + 2], o64, d64,
+                     wp.float64(q.t))
+        t64 = wp.max(t64, wp.float64(0.0))
+        if t64 <= tm:
+            t_out = t64
+            f_out = q.face
+    return t_out, f_out
+
+
 @wp.kernel
 def raycast_kernel(
     mesh: wp.uint64,
@@ -103,27 +131,88 @@ def raycast_kernel(
     out_t: wp.array(dtype=wp.float64),
     out_face: wp.array(dtype=wp.int32),
 ):
-    # Warp's ordered BVH query and watertight triangle test, on a mesh whose BVH boxes were built
-    # padded (see WarpCore.upload_mesh), so no box culls a triangle the ray touches. The winning face's
-    # distance is recomputed in float64 from float64 inputs with the reference's formula (woop_t):
-    # grazing rays otherwise inherit the float32 rounding of corners and origins (0.3 mm at 13 m was seen).
     tid = wp.tid()
     # componentwise float64 subtraction: bit-identical to np.subtract(origins, shift) on the host
-    o64 = origins[tid] - shift
-    d64 = dirs[tid]
-    tm = t_max[tid]
-    o = wp.vec3(wp.float32(o64[0]), wp.float32(o64[1]), wp.float32(o64[2]))
-    d = wp.vec3(wp.float32(d64[0]), wp.float32(d64[1]), wp.float32(d64[2]))
-    q = wp.mesh_query_ray(mesh, o, d, wp.float32(tm * wp.float64(1.000001) + wp.float64(1.0e-6)))
-    out_t[tid] = INF64
-    out_face[tid] = -1
-    if q.result:
-        t64 = woop_t(corners64[3 * q.face], corners64[3 * q.face + 1], corners64[3 * q.face + 2], o64, d64,
-                     wp.float64(q.t))
-        t64 = wp.max(t64, wp.float64(0.0))
-        if t64 <= tm:
-            out_t[tid] = t64
-            out_face[tid] = q.face
+    t, f = closest_hit(mesh, corners64, origins[tid] - shift, dirs[tid], t_max[tid])
+    out_t[tid] = t
+    out_face[tid] = f
+
+
+# flag slots of raycast_checked_kernel (one int32 each; a ray that fails a check writes 1 into its slot)
+FLAG_ORIGIN = wp.constant(0)       # non-finite origin
+FLAG_DIRECTION = wp.constant(1)    # non-finite or zero direction, or a norm that is not finite
+FLAG_T_MAX = wp.constant(2)        # t_max negative or NaN
+N_FLAGS = 3
+
+
+@wp.func
+def unit_like_host(d: wp.vec3d):
+    # The host's normalisation (ops._check_od) operation for operation, so the bits agree:
+    # norm = sqrt((x*x + y*y) + z*z) as ops._row_norm sums it, untouched when |norm - 1| <= 1e-12, else
+    # each component divided by the norm. Exact on every Warp device: the module is built with
+    # fuse_fp=False (no FMA contraction, so each product and sum rounds as NumPy's does) and without
+    # fast_math (Warp's default), and float64 sqrt and division are correctly rounded IEEE operations on
+    # CUDA (nvcc's fast-math and -prec-* switches only touch float32) and on the CPU. For float32 inputs
+    # the squares are exact in float64 (24-bit significands), so even a contracted sum would be the same.
+    n = wp.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    out = d
+    if wp.abs(n - wp.float64(1.0)) > wp.float64(1.0e-12):
+        out = wp.vec3d(d[0] / n, d[1] / n, d[2] / n)
+    return out, n
+
+
+@wp.kernel
+def raycast_checked_kernel(
+    mesh: wp.uint64,
+    corners64: wp.array(dtype=wp.vec3d),    # (3F,) true triangle corners, float64
+    face_ids: wp.array(dtype=wp.int64),     # (F,) caller's face id of each uploaded face
+    face_labels: wp.array(dtype=wp.int32),  # (F,) label of each uploaded face
+    origins: wp.array(dtype=Any),           # world frame, vec3f or vec3d as the caller gave them
+    o_step: wp.int32,                       # 1, or 0 for one origin shared by every ray
+    shift: wp.vec3d,                        # mesh shift, subtracted in float64
+    dirs: wp.array(dtype=Any),              # same dtype as origins; any length, not validated
+    t_max: wp.array(dtype=wp.float64),
+    t_step: wp.int32,                       # 1, or 0 for one bound shared by every ray
+    out_t: wp.array(dtype=wp.float64),
+    out_face: wp.array(dtype=wp.int64),
+    out_label: wp.array(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),        # (N_FLAGS,) zeroed by the host
+):
+    # ops.raycast's checks on the device: a ray that fails one sets its flag (a plain store of 1; every
+    # writer stores the same value, so no atomic is needed) and is not traced; the host then redoes the
+    # call on its own path, which raises today's error. float32 inputs widen to float64 exactly.
+    tid = wp.tid()
+    ow = wp.vec3d(origins[tid * o_step])
+    dw = wp.vec3d(dirs[tid])
+    tm = t_max[tid * t_step]
+    out_t[tid] = MISS_T
+    out_face[tid] = wp.int64(-1)
+    out_label[tid] = -1
+    ok = True
+    if not (wp.isfinite(ow[0]) and wp.isfinite(ow[1]) and wp.isfinite(ow[2])):
+        flags[FLAG_ORIGIN] = 1
+        ok = False
+    d64, n = unit_like_host(dw)
+    finite_d = wp.isfinite(dw[0]) and wp.isfinite(dw[1]) and wp.isfinite(dw[2]) and wp.isfinite(n)
+    if not finite_d or n == wp.float64(0.0):
+        flags[FLAG_DIRECTION] = 1
+        ok = False
+    if not (tm >= wp.float64(0.0)):      # NaN fails this too
+        flags[FLAG_T_MAX] = 1
+        ok = False
+    if ok:
+        # as ops.raycast's host path: float32 kernels need a finite bound
+        t, f = closest_hit(mesh, corners64, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)))
+        if f >= 0:
+            out_t[tid] = t
+            out_face[tid] = face_ids[f]
+            out_label[tid] = face_labels[f]
+
+
+#: the concrete kernels for float32 (vec3f) and float64 (vec3d) rays: launching these skips Warp's
+#: per-launch overload lookup from the argument values (tens of microseconds per CPU chunk)
+RAYCAST_CHECKED = {v: wp.overload(raycast_checked_kernel, {"origins": wp.array(dtype=v), "dirs": wp.array(dtype=v)})
+                   for v in (wp.vec3f, wp.vec3d)}
 
 
 # ----------------------------------------------------------------------------- voxel walk
