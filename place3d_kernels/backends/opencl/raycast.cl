@@ -229,6 +229,9 @@ __kernel void raycast(__global const float* nodes, __global const float* tris, _
 
 #define VMIN(a, b) ((a) < (b) ? (a) : (b))
 #define VMAX(a, b) ((a) > (b) ? (a) : (b))
+/* order two (distance, ref, count) entries by distance */
+#define CSWAP(ta, ra, ca, tb, rb, cb) do { if (tb < ta) { float t_ = ta; ta = tb; tb = t_; \
+    int r_ = ra; ra = rb; rb = r_; r_ = ca; ca = cb; cb = r_; } } while (0)
 
 /* 4-wide BVH (CPUs): one node = four child boxes tested as float4 (SIMD), hit children visited nearest
  * first; the others are pushed farthest first. Stack bound: 3 entries per level, STACK4 = 3 * depth cap. */
@@ -262,24 +265,31 @@ __kernel void raycast4(__global const float4* nodes, __global const float* tris,
                         * (float4)(1.0000004f);
             int4 rf = as_int4(nd[6]), ct = as_int4(nd[7]);
             int4 hit = (tn <= tf) & (ct >= (int4)(0));
-            /* gather the hit children, then insertion-sort them by entry distance, farthest first */
-            float hv[4]; int hr[4], hc[4];
-            int nh = 0;
-            if (hit.s0) { hv[nh] = tn.s0; hr[nh] = rf.s0; hc[nh] = ct.s0; nh++; }
-            if (hit.s1) { hv[nh] = tn.s1; hr[nh] = rf.s1; hc[nh] = ct.s1; nh++; }
-            if (hit.s2) { hv[nh] = tn.s2; hr[nh] = rf.s2; hc[nh] = ct.s2; nh++; }
-            if (hit.s3) { hv[nh] = tn.s3; hr[nh] = rf.s3; hc[nh] = ct.s3; nh++; }
-            if (nh == 1) { ref = hr[0]; cnt = hc[0]; continue; }
-            if (nh > 1) {
-                for (int a = 1; a < nh; ++a) {
-                    float v = hv[a]; int rr = hr[a], cc = hc[a];
-                    int b = a - 1;
-                    while (b >= 0 && hv[b] < v) { hv[b + 1] = hv[b]; hr[b + 1] = hr[b]; hc[b + 1] = hc[b]; b--; }
-                    hv[b + 1] = v; hr[b + 1] = rr; hc[b + 1] = cc;
+            /* misses get an infinite entry distance (a hit's is finite: tn <= tf <= best), so sorting
+             * the four slots by distance puts the hit children first, nearest first; no hit: pop */
+            int nh = -(hit.s0 + hit.s1 + hit.s2 + hit.s3);
+            if (nh > 0) {
+                float t0 = hit.s0 ? tn.s0 : INFINITY, t1 = hit.s1 ? tn.s1 : INFINITY;
+                float t2 = hit.s2 ? tn.s2 : INFINITY, t3 = hit.s3 ? tn.s3 : INFINITY;
+                int r0 = rf.s0, r1 = rf.s1, r2 = rf.s2, r3 = rf.s3;
+                int c0 = ct.s0, c1 = ct.s1, c2 = ct.s2, c3 = ct.s3;
+                if (nh == 1) {   /* the common case: no sort, nothing pushed */
+                    ref = hit.s0 ? r0 : (hit.s1 ? r1 : (hit.s2 ? r2 : r3));
+                    cnt = hit.s0 ? c0 : (hit.s1 ? c1 : (hit.s2 ? c2 : c3));
+                    continue;
                 }
+                /* five compare-exchanges sort four keys (a sorting network: no private arrays, no loops) */
+                CSWAP(t0, r0, c0, t1, r1, c1);
+                CSWAP(t2, r2, c2, t3, r3, c3);
+                CSWAP(t0, r0, c0, t2, r2, c2);
+                CSWAP(t1, r1, c1, t3, r3, c3);
+                CSWAP(t1, r1, c1, t2, r2, c2);
                 if (sp + nh - 1 > 3 * STACK_SIZE) { overflow = true; break; }
-                for (int a = 0; a < nh - 1; ++a) { st_ref[sp] = hr[a]; st_cnt[sp] = hc[a]; st_t[sp] = hv[a]; sp++; }
-                ref = hr[nh - 1]; cnt = hc[nh - 1];
+                /* push farthest first, so that the nearer ones are popped first */
+                if (nh == 4) { st_ref[sp] = r3; st_cnt[sp] = c3; st_t[sp] = t3; sp++; }
+                if (nh >= 3) { st_ref[sp] = r2; st_cnt[sp] = c2; st_t[sp] = t2; sp++; }
+                st_ref[sp] = r1; st_cnt[sp] = c1; st_t[sp] = t1; sp++;
+                ref = r0; cnt = c0;
                 continue;
             }
         } else {
