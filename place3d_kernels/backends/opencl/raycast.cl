@@ -248,6 +248,8 @@ __kernel void raycast4(__global const float4* nodes, __global const float* tris,
     int best_face = -1;
     float4 ox = (float4)(r.ox), oy = (float4)(r.oy), oz = (float4)(r.oz);
     float4 ix = (float4)(r.ix), iy = (float4)(r.iy), iz = (float4)(r.iz);
+    /* offsets of the near planes in a node (lo_x = 0, hi_x = 1, lo_y = 2, ...); far = near ^ 1 */
+    const int nx = r.ix < 0.0f ? 1 : 0, ny = r.iy < 0.0f ? 3 : 2, nz = r.iz < 0.0f ? 5 : 4;
 
     int st_ref[3 * STACK_SIZE], st_cnt[3 * STACK_SIZE];
     float st_t[3 * STACK_SIZE];
@@ -257,12 +259,11 @@ __kernel void raycast4(__global const float4* nodes, __global const float* tris,
     for (;;) {
         if (cnt == 0) {
             __global const float4* nd = nodes + 8 * (long)ref;
-            float4 ax = (nd[0] - ox) * ix, bx = (nd[1] - ox) * ix;
-            float4 ay = (nd[2] - oy) * iy, by = (nd[3] - oy) * iy;
-            float4 az = (nd[4] - oz) * iz, bz = (nd[5] - oz) * iz;
-            float4 tn = VMAX(VMAX(VMIN(ax, bx), VMIN(ay, by)), VMAX(VMIN(az, bz), (float4)(0.0f)));
-            float4 tf = VMIN(VMIN(VMAX(ax, bx), VMAX(ay, by)), VMIN(VMAX(az, bz), (float4)(best)))
-                        * (float4)(1.0000004f);
+            /* near and far planes picked by the direction's signs: (lo - o) * i <= (hi - o) * i when
+             * i > 0 (rounding is monotone), so this equals the min/max form bit for bit */
+            float4 tn = VMAX(VMAX((nd[nx] - ox) * ix, (nd[ny] - oy) * iy), VMAX((nd[nz] - oz) * iz, (float4)(0.0f)));
+            float4 tf = VMIN(VMIN((nd[nx ^ 1] - ox) * ix, (nd[ny ^ 1] - oy) * iy),
+                             VMIN((nd[nz ^ 1] - oz) * iz, (float4)(best))) * (float4)(1.0000004f);
             int4 rf = as_int4(nd[6]), ct = as_int4(nd[7]);
             int4 hit = (tn <= tf) & (ct >= (int4)(0));
             /* misses get an infinite entry distance (a hit's is finite: tn <= tf <= best), so sorting
