@@ -39,15 +39,31 @@ ALWAYS_INLINE bool slab(__global const float* b, const ray_t* r, float best, flo
     return tn <= tf;
 }
 
-ALWAYS_INLINE bool tri_hit(__global const float* tri, const ray_t* r, float best, float* t_out)
+/* Watertight test; `simd`: permute the vertices with one float4 shuffle each (x86 CPUs: a single
+ * permute instruction) instead of nine scalar three-way selects (kept for GPUs, where a shuffle with a
+ * run-time mask is not one instruction). Both give the same floats: a permutation of the same
+ * differences. Lane w of a vertex row holds the face id bits or 0 and is never used. */
+ALWAYS_INLINE bool tri_hit(__global const float* tri, const ray_t* r, float best, float* t_out, const bool simd)
 {
-    float ax = tri[0] - r->ox, ay = tri[1] - r->oy, az = tri[2] - r->oz;
-    float bx = tri[4] - r->ox, by = tri[5] - r->oy, bz = tri[6] - r->oz;
-    float cx = tri[8] - r->ox, cy = tri[9] - r->oy, cz = tri[10] - r->oz;
-    float Az = comp3(ax, ay, az, r->kz), Bz = comp3(bx, by, bz, r->kz), Cz = comp3(cx, cy, cz, r->kz);
-    float Ax = comp3(ax, ay, az, r->kx) - r->sx * Az, Ay = comp3(ax, ay, az, r->ky) - r->sy * Az;
-    float Bx = comp3(bx, by, bz, r->kx) - r->sx * Bz, By = comp3(bx, by, bz, r->ky) - r->sy * Bz;
-    float Cx = comp3(cx, cy, cz, r->kx) - r->sx * Cz, Cy = comp3(cx, cy, cz, r->ky) - r->sy * Cz;
+    float Ax, Ay, Az, Bx, By, Bz, Cx, Cy, Cz;
+    if (simd) {
+        __global const float4* t4 = (__global const float4*)tri;   /* rows of 12 floats: 16-byte aligned */
+        float4 o4 = (float4)(r->ox, r->oy, r->oz, 0.0f);
+        uint4 pm = (uint4)(r->kx, r->ky, r->kz, 3);
+        float4 a = shuffle(t4[0] - o4, pm), b = shuffle(t4[1] - o4, pm), c = shuffle(t4[2] - o4, pm);
+        Az = a.z; Bz = b.z; Cz = c.z;
+        Ax = a.x - r->sx * Az; Ay = a.y - r->sy * Az;
+        Bx = b.x - r->sx * Bz; By = b.y - r->sy * Bz;
+        Cx = c.x - r->sx * Cz; Cy = c.y - r->sy * Cz;
+    } else {
+        float ax = tri[0] - r->ox, ay = tri[1] - r->oy, az = tri[2] - r->oz;
+        float bx = tri[4] - r->ox, by = tri[5] - r->oy, bz = tri[6] - r->oz;
+        float cx = tri[8] - r->ox, cy = tri[9] - r->oy, cz = tri[10] - r->oz;
+        Az = comp3(ax, ay, az, r->kz); Bz = comp3(bx, by, bz, r->kz); Cz = comp3(cx, cy, cz, r->kz);
+        Ax = comp3(ax, ay, az, r->kx) - r->sx * Az; Ay = comp3(ax, ay, az, r->ky) - r->sy * Az;
+        Bx = comp3(bx, by, bz, r->kx) - r->sx * Bz; By = comp3(bx, by, bz, r->ky) - r->sy * Bz;
+        Cx = comp3(cx, cy, cz, r->kx) - r->sx * Cz; Cy = comp3(cx, cy, cz, r->ky) - r->sy * Cz;
+    }
     float U = Cx * By - Cy * Bx;
     float V = Ax * Cy - Ay * Cx;
     float W = Bx * Ay - By * Ax;
@@ -73,34 +89,42 @@ ALWAYS_INLINE bool tri_hit(__global const float* tri, const ray_t* r, float best
 }
 
 #ifdef HAVE_FP64
-/* Distance to the hit face in double, with the reference's formula (Woop et al. in float64). */
-double refine_t(__global const double* verts, __global const int* faces, int f, double3 o, double3 d,
+ALWAYS_INLINE double comp3d(double x, double y, double z, int k) { return k == 0 ? x : (k == 1 ? y : z); }
+
+/* Distance to the hit face in double, with the reference's formula (Woop et al. in float64). Components
+ * are picked with selects, not private arrays indexed at run time (which CPUs keep in memory and GPUs
+ * in local memory). */
+ALWAYS_INLINE double refine_t(__global const double* verts, __global const int* faces, int f, double3 o, double3 d,
                        double t_float)
 {
-    double ad[3] = {absd(d.x), absd(d.y), absd(d.z)};
-    double dd[3] = {d.x, d.y, d.z};
+    double ax = absd(d.x), ay = absd(d.y), az = absd(d.z);
     int kz = 0;
-    if (ad[1] > ad[kz]) kz = 1;
-    if (ad[2] > ad[kz]) kz = 2;
-    int kx = (kz + 1) % 3, ky = (kx + 1) % 3;
-    if (dd[kz] < 0.0) { int tmp = kx; kx = ky; ky = tmp; }
-    double dz = dd[kz];
-    double sx = dd[kx] / dz, sy = dd[ky] / dz, sz = 1.0 / dz;
-    double oo[3] = {o.x, o.y, o.z};
-    double px[3], py[3], pz[3];
-    for (int j = 0; j < 3; ++j) {
-        __global const double* v = verts + 3 * (long)faces[3 * (long)f + j];
-        double rx = v[kx] - oo[kx], ry = v[ky] - oo[ky], rz = v[kz] - oo[kz];
-        px[j] = rx - sx * rz;
-        py[j] = ry - sy * rz;
-        pz[j] = sz * rz;
-    }
-    double u = px[2] * py[1] - py[2] * px[1];
-    double w_ = px[1] * py[0] - py[1] * px[0];
-    double v_ = px[0] * py[2] - py[0] * px[2];
+    if (ay > ax) kz = 1;
+    if (az > comp3d(ax, ay, az, kz)) kz = 2;
+    int kx = kz == 2 ? 0 : kz + 1, ky = kx == 2 ? 0 : kx + 1;
+    double dz = comp3d(d.x, d.y, d.z, kz);
+    if (dz < 0.0) { int tmp = kx; kx = ky; ky = tmp; }
+    double sx = comp3d(d.x, d.y, d.z, kx) / dz, sy = comp3d(d.x, d.y, d.z, ky) / dz, sz = 1.0 / dz;
+    double okx = comp3d(o.x, o.y, o.z, kx), oky = comp3d(o.x, o.y, o.z, ky), okz = comp3d(o.x, o.y, o.z, kz);
+    __global const int* fv = faces + 3 * (long)f;
+    __global const double* v0 = verts + 3 * (long)fv[0];
+    __global const double* v1 = verts + 3 * (long)fv[1];
+    __global const double* v2 = verts + 3 * (long)fv[2];
+    double rz0 = comp3d(v0[0], v0[1], v0[2], kz) - okz;
+    double rz1 = comp3d(v1[0], v1[1], v1[2], kz) - okz;
+    double rz2 = comp3d(v2[0], v2[1], v2[2], kz) - okz;
+    double px0 = (comp3d(v0[0], v0[1], v0[2], kx) - okx) - sx * rz0;
+    double py0 = (comp3d(v0[0], v0[1], v0[2], ky) - oky) - sy * rz0;
+    double px1 = (comp3d(v1[0], v1[1], v1[2], kx) - okx) - sx * rz1;
+    double py1 = (comp3d(v1[0], v1[1], v1[2], ky) - oky) - sy * rz1;
+    double px2 = (comp3d(v2[0], v2[1], v2[2], kx) - okx) - sx * rz2;
+    double py2 = (comp3d(v2[0], v2[1], v2[2], ky) - oky) - sy * rz2;
+    double u = px2 * py1 - py2 * px1;
+    double w_ = px1 * py0 - py1 * px0;
+    double v_ = px0 * py2 - py0 * px2;
     double det = u + v_ + w_;
     if (det == 0.0) return t_float;
-    return (u * pz[0] + v_ * pz[1] + w_ * pz[2]) / det;
+    return (u * (sz * rz0) + v_ * (sz * rz1) + w_ * (sz * rz2)) / det;
 }
 #endif
 
@@ -126,12 +150,12 @@ ALWAYS_INLINE void ray_init(ray_t* r, __global const real* od, __global const re
 
 /* closest hit among the triangles of a leaf; equal distances go to the lower original face id */
 ALWAYS_INLINE void leaf_hits(__global const float* tris, int first, int count, const ray_t* r, float* best,
-                             int* best_face)
+                             int* best_face, const bool simd)
 {
     for (int j = first; j < first + count; ++j) {
         __global const float* tri = tris + 12 * (long)j;
         float t;
-        if (tri_hit(tri, r, *best, &t)) {
+        if (tri_hit(tri, r, *best, &t, simd)) {
             int f = as_int(tri[3]);
             if (t < *best || *best_face < 0 || f < *best_face) { *best = t; *best_face = f; }
         }
@@ -215,7 +239,7 @@ __kernel void raycast(__global const float* nodes, __global const float* tris, _
             if (h0) { ref = r0; cnt = c0; continue; }
             if (h1) { ref = r1; cnt = c1; continue; }
         } else {
-            leaf_hits(tris, ref, cnt, &r, &best, &best_face);
+            leaf_hits(tris, ref, cnt, &r, &best, &best_face, false);
         }
         bool found = false;
         while (sp > 0) {
@@ -294,7 +318,7 @@ __kernel void raycast4(__global const float4* nodes, __global const float* tris,
                 continue;
             }
         } else {
-            leaf_hits(tris, ref, cnt, &r, &best, &best_face);
+            leaf_hits(tris, ref, cnt, &r, &best, &best_face, true);
         }
         bool found = false;
         while (sp > 0) {
