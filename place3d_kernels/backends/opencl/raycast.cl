@@ -2,7 +2,10 @@
  * -DSTACK_SIZE=<n> (the builder's proven inner-depth cap).
  *
  * - Front-to-back: both child boxes of a node are tested; the nearer child is descended, the farther
- *   pushed with its entry distance; popped entries farther than the current hit are skipped.
+ *   pushed with its entry distance; a popped entry is skipped only if the box test would now reject it,
+ *   i.e. with the box test's slack (entry > best * 1.0000004). Without the slack, a leaf whose (flat)
+ *   box is entered a few ulps after a hit of equal or nearly equal float distance was dropped on pop
+ *   but not on the way down, so at shared edges and vertices the face found depended on traversal order.
  * - Box test: slab test with the far distance scaled by 1 + 2*gamma(3) (Ize 2013, "Robust BVH Ray
  *   Traversal") so that rounding never culls a box the ray touches.
  * - Triangle test: Woop, Benthin & Wald 2013, "Watertight Ray/Triangle Intersection" (JCGT 2(1)):
@@ -244,7 +247,7 @@ __kernel void raycast(__global const float* nodes, __global const float* tris, _
         bool found = false;
         while (sp > 0) {
             sp--;
-            if (st_t[sp] <= best) { ref = st_ref[sp]; cnt = st_cnt[sp]; found = true; break; }
+            if (st_t[sp] <= best * 1.0000004f) { ref = st_ref[sp]; cnt = st_cnt[sp]; found = true; break; }
         }
         if (!found) break;
     }
@@ -323,7 +326,7 @@ __kernel void raycast4(__global const float4* nodes, __global const float* tris,
         bool found = false;
         while (sp > 0) {
             sp--;
-            if (st_t[sp] <= best) { ref = st_ref[sp]; cnt = st_cnt[sp]; found = true; break; }
+            if (st_t[sp] <= best * 1.0000004f) { ref = st_ref[sp]; cnt = st_cnt[sp]; found = true; break; }
         }
         if (!found) break;
     }
