@@ -2,7 +2,10 @@
  * -DSTACK_SIZE=<n> (the builder's proven inner-depth cap).
  *
  * - Front-to-back: both child boxes of a node are tested; the nearer child is descended, the farther
- *   pushed with its entry distance; popped entries farther than the current hit are skipped.
+ *   pushed with its entry distance; a popped entry is skipped only if the box test would now reject it,
+ *   i.e. with the box test's slack (entry > best * 1.0000004). Without the slack, a leaf whose (flat)
+ *   box is entered a few ulps after a hit of equal or nearly equal float distance was dropped on pop
+ *   but not on the way down, so at shared edges and vertices the face found depended on traversal order.
  * - Box test: slab test with the far distance scaled by 1 + 2*gamma(3) (Ize 2013, "Robust BVH Ray
  *   Traversal") so that rounding never culls a box the ray touches.
  * - Triangle test: Woop, Benthin & Wald 2013, "Watertight Ray/Triangle Intersection" (JCGT 2(1)):
@@ -39,15 +42,31 @@ ALWAYS_INLINE bool slab(__global const float* b, const ray_t* r, float best, flo
     return tn <= tf;
 }
 
-ALWAYS_INLINE bool tri_hit(__global const float* tri, const ray_t* r, float best, float* t_out)
+/* Watertight test; `simd`: permute the vertices with one float4 shuffle each (x86 CPUs: a single
+ * permute instruction) instead of nine scalar three-way selects (kept for GPUs, where a shuffle with a
+ * run-time mask is not one instruction). Both give the same floats: a permutation of the same
+ * differences. Lane w of a vertex row holds the face id bits or 0 and is never used. */
+ALWAYS_INLINE bool tri_hit(__global const float* tri, const ray_t* r, float best, float* t_out, const bool simd)
 {
-    float ax = tri[0] - r->ox, ay = tri[1] - r->oy, az = tri[2] - r->oz;
-    float bx = tri[4] - r->ox, by = tri[5] - r->oy, bz = tri[6] - r->oz;
-    float cx = tri[8] - r->ox, cy = tri[9] - r->oy, cz = tri[10] - r->oz;
-    float Az = comp3(ax, ay, az, r->kz), Bz = comp3(bx, by, bz, r->kz), Cz = comp3(cx, cy, cz, r->kz);
-    float Ax = comp3(ax, ay, az, r->kx) - r->sx * Az, Ay = comp3(ax, ay, az, r->ky) - r->sy * Az;
-    float Bx = comp3(bx, by, bz, r->kx) - r->sx * Bz, By = comp3(bx, by, bz, r->ky) - r->sy * Bz;
-    float Cx = comp3(cx, cy, cz, r->kx) - r->sx * Cz, Cy = comp3(cx, cy, cz, r->ky) - r->sy * Cz;
+    float Ax, Ay, Az, Bx, By, Bz, Cx, Cy, Cz;
+    if (simd) {
+        __global const float4* t4 = (__global const float4*)tri;   /* rows of 12 floats: 16-byte aligned */
+        float4 o4 = (float4)(r->ox, r->oy, r->oz, 0.0f);
+        uint4 pm = (uint4)(r->kx, r->ky, r->kz, 3);
+        float4 a = shuffle(t4[0] - o4, pm), b = shuffle(t4[1] - o4, pm), c = shuffle(t4[2] - o4, pm);
+        Az = a.z; Bz = b.z; Cz = c.z;
+        Ax = a.x - r->sx * Az; Ay = a.y - r->sy * Az;
+        Bx = b.x - r->sx * Bz; By = b.y - r->sy * Bz;
+        Cx = c.x - r->sx * Cz; Cy = c.y - r->sy * Cz;
+    } else {
+        float ax = tri[0] - r->ox, ay = tri[1] - r->oy, az = tri[2] - r->oz;
+        float bx = tri[4] - r->ox, by = tri[5] - r->oy, bz = tri[6] - r->oz;
+        float cx = tri[8] - r->ox, cy = tri[9] - r->oy, cz = tri[10] - r->oz;
+        Az = comp3(ax, ay, az, r->kz); Bz = comp3(bx, by, bz, r->kz); Cz = comp3(cx, cy, cz, r->kz);
+        Ax = comp3(ax, ay, az, r->kx) - r->sx * Az; Ay = comp3(ax, ay, az, r->ky) - r->sy * Az;
+        Bx = comp3(bx, by, bz, r->kx) - r->sx * Bz; By = comp3(bx, by, bz, r->ky) - r->sy * Bz;
+        Cx = comp3(cx, cy, cz, r->kx) - r->sx * Cz; Cy = comp3(cx, cy, cz, r->ky) - r->sy * Cz;
+    }
     float U = Cx * By - Cy * Bx;
     float V = Ax * Cy - Ay * Cx;
     float W = Bx * Ay - By * Ax;
@@ -73,34 +92,42 @@ ALWAYS_INLINE bool tri_hit(__global const float* tri, const ray_t* r, float best
 }
 
 #ifdef HAVE_FP64
-/* Distance to the hit face in double, with the reference's formula (Woop et al. in float64). */
-double refine_t(__global const double* verts, __global const int* faces, int f, double3 o, double3 d,
+ALWAYS_INLINE double comp3d(double x, double y, double z, int k) { return k == 0 ? x : (k == 1 ? y : z); }
+
+/* Distance to the hit face in double, with the reference's formula (Woop et al. in float64). Components
+ * are picked with selects, not private arrays indexed at run time (which CPUs keep in memory and GPUs
+ * in local memory). */
+ALWAYS_INLINE double refine_t(__global const double* verts, __global const int* faces, int f, double3 o, double3 d,
                        double t_float)
 {
-    double ad[3] = {absd(d.x), absd(d.y), absd(d.z)};
-    double dd[3] = {d.x, d.y, d.z};
+    double ax = absd(d.x), ay = absd(d.y), az = absd(d.z);
     int kz = 0;
-    if (ad[1] > ad[kz]) kz = 1;
-    if (ad[2] > ad[kz]) kz = 2;
-    int kx = (kz + 1) % 3, ky = (kx + 1) % 3;
-    if (dd[kz] < 0.0) { int tmp = kx; kx = ky; ky = tmp; }
-    double dz = dd[kz];
-    double sx = dd[kx] / dz, sy = dd[ky] / dz, sz = 1.0 / dz;
-    double oo[3] = {o.x, o.y, o.z};
-    double px[3], py[3], pz[3];
-    for (int j = 0; j < 3; ++j) {
-        __global const double* v = verts + 3 * (long)faces[3 * (long)f + j];
-        double rx = v[kx] - oo[kx], ry = v[ky] - oo[ky], rz = v[kz] - oo[kz];
-        px[j] = rx - sx * rz;
-        py[j] = ry - sy * rz;
-        pz[j] = sz * rz;
-    }
-    double u = px[2] * py[1] - py[2] * px[1];
-    double w_ = px[1] * py[0] - py[1] * px[0];
-    double v_ = px[0] * py[2] - py[0] * px[2];
+    if (ay > ax) kz = 1;
+    if (az > comp3d(ax, ay, az, kz)) kz = 2;
+    int kx = kz == 2 ? 0 : kz + 1, ky = kx == 2 ? 0 : kx + 1;
+    double dz = comp3d(d.x, d.y, d.z, kz);
+    if (dz < 0.0) { int tmp = kx; kx = ky; ky = tmp; }
+    double sx = comp3d(d.x, d.y, d.z, kx) / dz, sy = comp3d(d.x, d.y, d.z, ky) / dz, sz = 1.0 / dz;
+    double okx = comp3d(o.x, o.y, o.z, kx), oky = comp3d(o.x, o.y, o.z, ky), okz = comp3d(o.x, o.y, o.z, kz);
+    __global const int* fv = faces + 3 * (long)f;
+    __global const double* v0 = verts + 3 * (long)fv[0];
+    __global const double* v1 = verts + 3 * (long)fv[1];
+    __global const double* v2 = verts + 3 * (long)fv[2];
+    double rz0 = comp3d(v0[0], v0[1], v0[2], kz) - okz;
+    double rz1 = comp3d(v1[0], v1[1], v1[2], kz) - okz;
+    double rz2 = comp3d(v2[0], v2[1], v2[2], kz) - okz;
+    double px0 = (comp3d(v0[0], v0[1], v0[2], kx) - okx) - sx * rz0;
+    double py0 = (comp3d(v0[0], v0[1], v0[2], ky) - oky) - sy * rz0;
+    double px1 = (comp3d(v1[0], v1[1], v1[2], kx) - okx) - sx * rz1;
+    double py1 = (comp3d(v1[0], v1[1], v1[2], ky) - oky) - sy * rz1;
+    double px2 = (comp3d(v2[0], v2[1], v2[2], kx) - okx) - sx * rz2;
+    double py2 = (comp3d(v2[0], v2[1], v2[2], ky) - oky) - sy * rz2;
+    double u = px2 * py1 - py2 * px1;
+    double w_ = px1 * py0 - py1 * px0;
+    double v_ = px0 * py2 - py0 * px2;
     double det = u + v_ + w_;
     if (det == 0.0) return t_float;
-    return (u * pz[0] + v_ * pz[1] + w_ * pz[2]) / det;
+    return (u * (sz * rz0) + v_ * (sz * rz1) + w_ * (sz * rz2)) / det;
 }
 #endif
 
@@ -126,12 +153,12 @@ ALWAYS_INLINE void ray_init(ray_t* r, const real* od, const real* dd)
 
 /* closest hit among the triangles of a leaf; equal distances go to the lower original face id */
 ALWAYS_INLINE void leaf_hits(__global const float* tris, int first, int count, const ray_t* r, float* best,
-                             int* best_face)
+                             int* best_face, const bool simd)
 {
     for (int j = first; j < first + count; ++j) {
         __global const float* tri = tris + 12 * (long)j;
         float t;
-        if (tri_hit(tri, r, *best, &t)) {
+        if (tri_hit(tri, r, *best, &t, simd)) {
             int f = as_int(tri[3]);
             if (t < *best || *best_face < 0 || f < *best_face) { *best = t; *best_face = f; }
         }
@@ -274,12 +301,12 @@ __kernel void raycast(__global const float* nodes, __global const float* tris, R
             if (h0) { ref = r0; cnt = c0; continue; }
             if (h1) { ref = r1; cnt = c1; continue; }
         } else {
-            leaf_hits(tris, ref, cnt, &r, &best, &best_face);
+            leaf_hits(tris, ref, cnt, &r, &best, &best_face, false);
         }
         bool found = false;
         while (sp > 0) {
             sp--;
-            if (st_t[sp] <= best) { ref = st_ref[sp]; cnt = st_cnt[sp]; found = true; break; }
+            if (st_t[sp] <= best * 1.0000004f) { ref = st_ref[sp]; cnt = st_cnt[sp]; found = true; break; }
         }
         if (!found) break;
     }
@@ -288,6 +315,9 @@ __kernel void raycast(__global const float* nodes, __global const float* tris, R
 
 #define VMIN(a, b) ((a) < (b) ? (a) : (b))
 #define VMAX(a, b) ((a) > (b) ? (a) : (b))
+/* order two (distance, ref, count) entries by distance */
+#define CSWAP(ta, ra, ca, tb, rb, cb) do { if (tb < ta) { float t_ = ta; ta = tb; tb = t_; \
+    int r_ = ra; ra = rb; rb = r_; r_ = ca; ca = cb; cb = r_; } } while (0)
 
 /* 4-wide BVH (CPUs): one node = four child boxes tested as float4 (SIMD), hit children visited nearest
  * first; the others are pushed farthest first. Stack bound: 3 entries per level, STACK4 = 3 * depth cap. */
@@ -298,6 +328,8 @@ __kernel void raycast4(__global const float4* nodes, __global const float* tris,
     int best_face = -1;
     float4 ox = (float4)(r.ox), oy = (float4)(r.oy), oz = (float4)(r.oz);
     float4 ix = (float4)(r.ix), iy = (float4)(r.iy), iz = (float4)(r.iz);
+    /* offsets of the near planes in a node (lo_x = 0, hi_x = 1, lo_y = 2, ...); far = near ^ 1 */
+    const int nx = r.ix < 0.0f ? 1 : 0, ny = r.iy < 0.0f ? 3 : 2, nz = r.iz < 0.0f ? 5 : 4;
 
     int st_ref[3 * STACK_SIZE], st_cnt[3 * STACK_SIZE];
     float st_t[3 * STACK_SIZE];
@@ -307,41 +339,47 @@ __kernel void raycast4(__global const float4* nodes, __global const float* tris,
     for (;;) {
         if (cnt == 0) {
             __global const float4* nd = nodes + 8 * (long)ref;
-            float4 ax = (nd[0] - ox) * ix, bx = (nd[1] - ox) * ix;
-            float4 ay = (nd[2] - oy) * iy, by = (nd[3] - oy) * iy;
-            float4 az = (nd[4] - oz) * iz, bz = (nd[5] - oz) * iz;
-            float4 tn = VMAX(VMAX(VMIN(ax, bx), VMIN(ay, by)), VMAX(VMIN(az, bz), (float4)(0.0f)));
-            float4 tf = VMIN(VMIN(VMAX(ax, bx), VMAX(ay, by)), VMIN(VMAX(az, bz), (float4)(best)))
-                        * (float4)(1.0000004f);
+            /* near and far planes picked by the direction's signs: (lo - o) * i <= (hi - o) * i when
+             * i > 0 (rounding is monotone), so this equals the min/max form bit for bit */
+            float4 tn = VMAX(VMAX((nd[nx] - ox) * ix, (nd[ny] - oy) * iy), VMAX((nd[nz] - oz) * iz, (float4)(0.0f)));
+            float4 tf = VMIN(VMIN((nd[nx ^ 1] - ox) * ix, (nd[ny ^ 1] - oy) * iy),
+                             VMIN((nd[nz ^ 1] - oz) * iz, (float4)(best))) * (float4)(1.0000004f);
             int4 rf = as_int4(nd[6]), ct = as_int4(nd[7]);
             int4 hit = (tn <= tf) & (ct >= (int4)(0));
-            /* gather the hit children, then insertion-sort them by entry distance, farthest first */
-            float hv[4]; int hr[4], hc[4];
-            int nh = 0;
-            if (hit.s0) { hv[nh] = tn.s0; hr[nh] = rf.s0; hc[nh] = ct.s0; nh++; }
-            if (hit.s1) { hv[nh] = tn.s1; hr[nh] = rf.s1; hc[nh] = ct.s1; nh++; }
-            if (hit.s2) { hv[nh] = tn.s2; hr[nh] = rf.s2; hc[nh] = ct.s2; nh++; }
-            if (hit.s3) { hv[nh] = tn.s3; hr[nh] = rf.s3; hc[nh] = ct.s3; nh++; }
-            if (nh == 1) { ref = hr[0]; cnt = hc[0]; continue; }
-            if (nh > 1) {
-                for (int a = 1; a < nh; ++a) {
-                    float v = hv[a]; int rr = hr[a], cc = hc[a];
-                    int b = a - 1;
-                    while (b >= 0 && hv[b] < v) { hv[b + 1] = hv[b]; hr[b + 1] = hr[b]; hc[b + 1] = hc[b]; b--; }
-                    hv[b + 1] = v; hr[b + 1] = rr; hc[b + 1] = cc;
+            /* misses get an infinite entry distance (a hit's is finite: tn <= tf <= best), so sorting
+             * the four slots by distance puts the hit children first, nearest first; no hit: pop */
+            int nh = -(hit.s0 + hit.s1 + hit.s2 + hit.s3);
+            if (nh > 0) {
+                float t0 = hit.s0 ? tn.s0 : INFINITY, t1 = hit.s1 ? tn.s1 : INFINITY;
+                float t2 = hit.s2 ? tn.s2 : INFINITY, t3 = hit.s3 ? tn.s3 : INFINITY;
+                int r0 = rf.s0, r1 = rf.s1, r2 = rf.s2, r3 = rf.s3;
+                int c0 = ct.s0, c1 = ct.s1, c2 = ct.s2, c3 = ct.s3;
+                if (nh == 1) {   /* the common case: no sort, nothing pushed */
+                    ref = hit.s0 ? r0 : (hit.s1 ? r1 : (hit.s2 ? r2 : r3));
+                    cnt = hit.s0 ? c0 : (hit.s1 ? c1 : (hit.s2 ? c2 : c3));
+                    continue;
                 }
+                /* five compare-exchanges sort four keys (a sorting network: no private arrays, no loops) */
+                CSWAP(t0, r0, c0, t1, r1, c1);
+                CSWAP(t2, r2, c2, t3, r3, c3);
+                CSWAP(t0, r0, c0, t2, r2, c2);
+                CSWAP(t1, r1, c1, t3, r3, c3);
+                CSWAP(t1, r1, c1, t2, r2, c2);
                 if (sp + nh - 1 > 3 * STACK_SIZE) { overflow = true; break; }
-                for (int a = 0; a < nh - 1; ++a) { st_ref[sp] = hr[a]; st_cnt[sp] = hc[a]; st_t[sp] = hv[a]; sp++; }
-                ref = hr[nh - 1]; cnt = hc[nh - 1];
+                /* push farthest first, so that the nearer ones are popped first */
+                if (nh == 4) { st_ref[sp] = r3; st_cnt[sp] = c3; st_t[sp] = t3; sp++; }
+                if (nh >= 3) { st_ref[sp] = r2; st_cnt[sp] = c2; st_t[sp] = t2; sp++; }
+                st_ref[sp] = r1; st_cnt[sp] = c1; st_t[sp] = t1; sp++;
+                ref = r0; cnt = c0;
                 continue;
             }
         } else {
-            leaf_hits(tris, ref, cnt, &r, &best, &best_face);
+            leaf_hits(tris, ref, cnt, &r, &best, &best_face, true);
         }
         bool found = false;
         while (sp > 0) {
             sp--;
-            if (st_t[sp] <= best) { ref = st_ref[sp]; cnt = st_cnt[sp]; found = true; break; }
+            if (st_t[sp] <= best * 1.0000004f) { ref = st_ref[sp]; cnt = st_cnt[sp]; found = true; break; }
         }
         if (!found) break;
     }

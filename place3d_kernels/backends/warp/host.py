@@ -108,10 +108,13 @@ def cpu_threads() -> int:
 MIN_CHUNK = 2048
 CHUNKS_PER_THREAD = 8    # many small chunks per thread balance rays of very different lengths
 # Split a single rig on the CPU over the threads (per-thread bitsets, OR-ed; _score_one_rig_split)?
-# Exact, but off: on the 2-core dev VM under load it measured no gain (split on the pool 304-355 ms against
-# 285-289 ms for one launch, collection_64ch rig on the town, 2026-11-24); the split work alone costs
-# 8-17 % more (near-sensor voxels marked once per thread, the union's sum on the host). Turn it on where
-# idle cores make the threads pay (tests force it on to check it stays exact).
+# Exact, but off: on the 2-core dev VM it never measured a gain (msog of pyramid on town(seed=0), split on
+# vs off, medians of 7-9 interleaved runs, 2026-11-24: place3d_16ch, 16k rays: 19.1 vs 14.0 ms at load 1.2,
+# 31.2 vs 24.0 ms at load 4; collection_64ch, 262k rays: 182.6 vs 161.8 ms at load 1.3; earlier 304-355
+# vs 285-289 ms). The split work alone costs 8-17 % more (near-sensor voxels marked once per thread) plus
+# the union's sum on the host (~5 ms at 16k rays, ~10 ms at 262k), so it can pay only for rigs of
+# ~10^5 rays or more on cores that are really idle, which this shared VM never had while measured.
+# Turn it on there (tests force it on to check it stays exact).
 SPLIT_SINGLE_RIG = False
 
 
