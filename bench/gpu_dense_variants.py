@@ -1,0 +1,243 @@
+#!/usr/bin/env python3
+"""Lane utilisation of the dense-rig score kernel (issue 17, goal 3): ray order and persistent threads.
+
+Workload as in ``gpu_dense.py``: a population of ``--pop`` perturbed ``pyramid`` rigs of the dense LiDAR
+(4 x 64 x 2048 rays each) over the default town's P-SOG on a ``--voxel`` grid, occlusion by the P-SOG's
+stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the variants of
+``gpu_dense_variants_kernels.py`` side by side:
+
+* ``tiled-CxA-rN``: one thread per ray, the 32 lanes of a warp on a C x A (channel x azimuth) tile
+  (``tiled-1x32`` is the shipped order through the permutation: the permutation's own cost);
+* ``persist-stride-tCxA-wW-rN``: persistent threads (W times as many as the GPU holds at once at N
+  registers and 128 threads per block), thread t walking rays t, t + T, ... in tile order;
+* ``persist-atomic-tCxA-cK-wW-rN``: the same, a lane whose ray has ended taking K ray numbers at a time
+  from a global atomic counter.
+
+Each variant's sums and counts (covered voxels, counted from the bitset with the shipped
+``count_bits_kernel``, which is timed with every kernel) must equal the shipped kernel's on every
+repeat; a mismatch stops the run. Timing: one warm-up launch each (compiles), then ``--repeat`` rounds,
+each launching every variant once (interleaved, so clock and thermal drift fall on all alike); median and
+range of the launch time per rig. Writes ``<--out>/gpu-dense-variants-<voxel>m.json``.
+
+    python3 bench/gpu_dense_variants.py --out $OUT                                  # CUDA, the goal workload
+    python3 bench/gpu_dense_variants.py --device cpu --voxel 0.4 --pop 2 --azimuths 256 --repeat 1  # smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+import place3d_kernels as p3k
+from place3d_kernels.backends.base import rotation_matrices, sensor_directions
+from place3d_kernels.backends.bricks import brick_masks, brick_shape
+from place3d_kernels.kernel_bench import machine_info
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gpu_dense_variants_kernels import make_persistent, make_tiled  # noqa: E402
+
+BLOCK_DIM = 128          # the shipped kernel's (SCORE_BLOCK_DIM); every variant launches with it
+REGS_PER_SM = 65536      # H100 (and every CUDA GPU since Volta): 64 K 32-bit registers per SM
+MAX_THREADS_PER_SM = 2048
+
+
+def resident_threads(sm_count: int, maxreg: int | None, block_dim: int = BLOCK_DIM) -> int:
+    """Threads the GPU runs at once for a kernel capped at ``maxreg`` registers (uncapped: taken as 128),
+    from the register file alone (registers are allocated per warp in units of 256: 8 per thread)."""
+    regs = -(-(maxreg or 128) // 8) * 8
+    warps_per_block = block_dim // 32
+    blocks = min(32, REGS_PER_SM // (regs * 32 * warps_per_block), MAX_THREADS_PER_SM // block_dim)
+    return sm_count * max(blocks, 1) * block_dim
+
+
+class Workload:
+    """The score kernel's inputs for a population ``pop`` (P, L, 6) of ``lidar`` rigs over ``psog``, on a
+    Warp ``device``, and the launches of the shipped kernel and of the variants on them."""
+
+    def __init__(self, psog, lidar, pop, device: str):
+        self.device = device
+        self.backend = p3k.get_backend(f"warp:{device}")
+        pop = np.asarray(pop, dtype=np.float64)
+        self.P, self.L = pop.shape[:2]
+        flat = pop.reshape(-1, 6)
+        self.n_el, self.n_az = len(lidar.elevations), len(lidar.azimuths)
+        spec = psog.grid.spec
+        nx, ny, nz = spec.shape
+        bx, by, bz = brick_shape(spec.shape)
+        self.words = bx * by * bz
+        masks = brick_masks(spec.shape, np.asarray(psog.weights).reshape(-1) != 0,
+                            np.asarray(psog.stop_mask).reshape(-1) != 0)
+        sd = sensor_directions(lidar.elevations, lidar.azimuths)
+        self.n_rays = self.P * self.L * len(sd)
+        # as WarpBackend.score_placements launches score_kernel_gpu (place3d_kernels/backends/warp/host.py)
+        self.inputs = [
+            wp.array(sd, dtype=wp.vec3d, device=device),
+            wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=device),
+            wp.array(psog.grid.to_local(flat[:, :3]), dtype=wp.vec3d, device=device),
+            int(self.L), float(lidar.max_range), float(spec.voxel_size), int(nx), int(ny), int(nz), int(by), int(bz),
+            wp.array(masks.view(np.uint64), dtype=wp.uint64, device=device),
+            wp.array(np.asarray(psog.weights).reshape(-1).astype(np.int64), dtype=wp.int64, device=device),
+            int(self.words)]
+        self.bits = wp.zeros(self.P * self.words, dtype=wp.uint32, device=device)
+        self.sums = wp.zeros(self.P, dtype=wp.int64, device=device)
+        self.counts = wp.zeros(self.P, dtype=wp.int64, device=device)
+        self.counter = wp.zeros(1, dtype=wp.int32, device=device)
+
+    def check_tile(self, tile_c: int) -> None:
+        if 32 % tile_c or self.n_el % tile_c or self.n_az % (32 // tile_c):
+            raise ValueError(f"tile {tile_c} x {32 // max(tile_c, 1)} (channel x azimuth) does not tile the "
+                             f"{self.n_el} x {self.n_az} LiDAR; pick tile_c in 1, 2, 4, 8, 16, 32 dividing the "
+                             f"channel count, with 32 / tile_c dividing the azimuth count")
+
+    def launch(self, v: dict) -> None:
+        """Zero the outputs, launch variant ``v`` (a dict from ``variants``) and count the covered voxels."""
+        self.bits.zero_(), self.sums.zero_(), self.counts.zero_(), self.counter.zero_()
+        io = self.inputs + [self.bits, self.sums]
+        if v["kind"] == "shipped":
+            wp.launch(self.backend.k.score_kernel_gpu, dim=self.n_rays, device=self.device, inputs=io,
+                      block_dim=BLOCK_DIM)
+        elif v["kind"] == "tiled":
+            wp.launch(v["kernel"], dim=self.n_rays, device=self.device,
+                      inputs=io + [self.n_az, v["tile_c"]], block_dim=BLOCK_DIM)
+        else:
+            wp.launch(v["kernel"], dim=v["threads"], device=self.device,
+                      inputs=io + [self.n_az, v["tile_c"], self.n_rays, v["threads"], v["mode"], v["chunk"],
+                                   self.counter], block_dim=BLOCK_DIM)
+        chunks = -(-self.words // self.backend.k.COUNT_WORDS)
+        wp.launch(self.backend.k.count_bits_kernel, dim=self.P * chunks, device=self.device,
+                  inputs=[self.bits, int(self.words), int(chunks), self.counts])
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.sums.numpy().copy(), self.counts.numpy().copy()
+
+
+def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
+    """The study's variants by name. ``cpu_threads``: the persistent launch size where there are no SMs
+    (the CPU smoke test and tests)."""
+    out = {"shipped": {"kind": "shipped"}}
+    for tile_c in (1, 2, 4, 8):
+        out[f"tiled-{tile_c}x{32 // tile_c}-r80"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": 80}
+
+    def persist(mode, tile_c, chunk, waves, maxreg):
+        threads = cpu_threads or waves * resident_threads(sm_count, maxreg)
+        name = (f"persist-{'stride' if mode == 0 else 'atomic'}-t{tile_c}x{32 // tile_c}"
+                + (f"-c{chunk}" if mode else "") + f"-w{waves}-r{maxreg or 'none'}")
+        out[name] = {"kind": "persistent", "mode": mode, "tile_c": tile_c, "chunk": chunk, "threads": int(threads),
+                     "maxreg": maxreg}
+
+    persist(0, 1, 1, 1, 80)
+    persist(0, 4, 1, 1, 80)
+    persist(1, 1, 1, 1, 80)
+    persist(1, 4, 1, 1, 80)
+    persist(1, 4, 4, 1, 80)
+    persist(1, 4, 1, 2, 80)
+    persist(1, 4, 1, 1, 96)
+    return out
+
+
+def build(vs: dict) -> None:
+    """Attach each variant's kernel (one module per kernel and register cap)."""
+    made = {}
+    for v in vs.values():
+        if v["kind"] in ("tiled", "persistent"):
+            key = (v["kind"], v["maxreg"])
+            if key not in made:
+                made[key] = (make_tiled if v["kind"] == "tiled" else make_persistent)(v["maxreg"])
+            v["kernel"] = made[key]
+
+
+def dense_population(pop_size: int, seed: int = 0) -> np.ndarray:
+    """``gpu_dense.py``'s population: ``pyramid`` with positions jittered by up to 0.3 m (0.1 m steps)."""
+    rig = p3k.Placement.load("pyramid")
+    rng = np.random.default_rng(seed)
+    pop = np.repeat(rig.poses[None], pop_size, axis=0)
+    pop[..., :3] += rng.uniform(-0.3, 0.3, pop[..., :3].shape).round(1)
+    return pop
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--voxel", type=float, default=0.05)
+    ap.add_argument("--pop", type=int, default=16)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--azimuths", type=int, default=2048)
+    ap.add_argument("--max-range", type=float, default=100.0, help="as gpu_dense.py (default 100 m)")
+    ap.add_argument("--cpu-threads", type=int, default=509, help="persistent launch size on the CPU")
+    ap.add_argument("--only", default="", help="comma-separated variant names (shipped always runs)")
+    ap.add_argument("--out", default=os.environ.get("OUT", str(Path(__file__).resolve().parent / "results")))
+    args = ap.parse_args()
+    dev = args.device
+    wp.init()
+    sm = wp.get_device(dev).sm_count if dev.startswith("cuda") else 0
+    vs = variants(sm, None if sm else args.cpu_threads)
+    only = [x for x in args.only.split(",") if x]
+    if only:
+        unknown = set(only) - set(vs)
+        if unknown:
+            raise SystemExit(f"--only: unknown variants {sorted(unknown)}; known: {sorted(vs)}")
+        vs = {k: v for k, v in vs.items() if k in only or k == "shipped"}
+    d0 = p3k.DEFAULT_GRID
+    grid = p3k.Grid(d0.lower, d0.upper, args.voxel)
+    t = time.perf_counter()
+    psog = p3k.scene_psog(p3k.scene.town(seed=0), grid=grid, backend=f"warp:{dev}")
+    psog_s = time.perf_counter() - t
+    lidar = p3k.LidarModel.uniform(64, (-25, 15), args.azimuths, max_range=args.max_range, name="dense")
+    wl = Workload(psog, lidar, dense_population(args.pop), dev)
+    for v in vs.values():
+        if "tile_c" in v:
+            wl.check_tile(v["tile_c"])
+    t = time.perf_counter()
+    build(vs)
+    ref = None
+    for name, v in vs.items():          # warm-up: compiles each module once, checks exactness
+        wl.launch(v)
+        got = wl.result()
+        ref = ref or got
+        if not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
+            raise SystemExit(f"variant {name}: sums/counts differ from the shipped kernel's")
+    compile_s = time.perf_counter() - t
+    times = {k: [] for k in vs}
+    for _ in range(args.repeat):
+        for name, v in vs.items():
+            wp.synchronize_device(dev)
+            t0 = time.perf_counter()
+            wl.launch(v)
+            wp.synchronize_device(dev)
+            times[name].append(time.perf_counter() - t0)
+            got = wl.result()
+            if not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
+                raise SystemExit(f"variant {name}: sums/counts differ from the shipped kernel's on a repeat")
+    P = wl.P
+    out = {"info": machine_info(), "device": dev, "device_name": str(wp.get_device(dev).name), "sm_count": sm,
+           "grid": grid.to_dict(), "lidar": f"uniform(64, (-25, 15), {args.azimuths}, max_range={args.max_range})",
+           "rays_per_rig": wl.n_rays // P, "population": P, "repeat": args.repeat, "psog_build_s": psog_s,
+           "warmup_and_compile_s": compile_s, "sums": ref[0].tolist(), "covered_voxels": ref[1].tolist(),
+           "all_identical_to_shipped": True, "variants": {}}
+    base = statistics.median(times["shipped"])
+    for name, v in vs.items():
+        ts = times[name]
+        out["variants"][name] = {
+            **{k: v[k] for k in ("tile_c", "mode", "chunk", "threads", "maxreg") if k in v},
+            "median_ms_per_rig": 1e3 * statistics.median(ts) / P, "min_ms_per_rig": 1e3 * min(ts) / P,
+            "max_ms_per_rig": 1e3 * max(ts) / P, "speedup_vs_shipped": base / statistics.median(ts)}
+        r = out["variants"][name]
+        print(f"{name:34s} {r['median_ms_per_rig']:8.3f} ms/rig  [{r['min_ms_per_rig']:.3f}, "
+              f"{r['max_ms_per_rig']:.3f}]  x{r['speedup_vs_shipped']:.3f}", flush=True)
+    res = Path(args.out)
+    res.mkdir(parents=True, exist_ok=True)
+    path = res / f"gpu-dense-variants-{args.voxel}m.json"
+    path.write_text(json.dumps(out, indent=2))
+    print("wrote", path)
+
+
+if __name__ == "__main__":
+    main()
