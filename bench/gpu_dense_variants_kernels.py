@@ -115,8 +115,10 @@ def make_tiled(maxreg=None):
 
 def make_persistent(maxreg=None):
     """Persistent threads with ray refill (launch dim: ``n_threads``). ``mode`` 0: thread t walks rays
-    t, t + T, t + 2T, ... (T = ``n_threads``, no atomics); ``mode`` 1: a lane whose ray has ended takes the next ``chunk`` ray numbers
-    from ``counter[0]`` (zeroed before each launch) once its previous chunk is used up."""
+    t, t + T, t + 2T, ... (T = ``n_threads``, no atomics); ``mode`` 1: a lane whose ray has ended takes
+    the next ``chunk`` ray numbers from ``counter[0]`` (zeroed before each launch) once its previous
+    chunk is used up. A walk takes at most nx + ny + nz steps, so the shipped loop's bound never binds
+    and the refill loop needs none."""
     @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
     def persistent_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
                           pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
