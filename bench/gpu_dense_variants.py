@@ -105,12 +105,11 @@ class Workload:
             wp.launch(self.backend.k.score_kernel_gpu, dim=self.n_rays, device=self.device, inputs=io,
                       block_dim=BLOCK_DIM)
         elif v["kind"] == "tiled":
-            wp.launch(v["kernel"], dim=self.n_rays, device=self.device,
-                      inputs=io + [self.n_az, v["tile_c"]], block_dim=BLOCK_DIM)
+            wp.launch(v["kernel"], dim=self.n_rays, device=self.device, inputs=io + [self.n_az],
+                      block_dim=BLOCK_DIM)
         else:
             wp.launch(v["kernel"], dim=v["threads"], device=self.device,
-                      inputs=io + [self.n_az, v["tile_c"], self.n_rays, v["threads"], v["mode"], v["chunk"],
-                                   self.counter], block_dim=BLOCK_DIM)
+                      inputs=io + [self.n_az, self.n_rays, v["threads"], self.counter], block_dim=BLOCK_DIM)
         chunks = -(-self.words // self.backend.k.COUNT_WORDS)
         wp.launch(self.backend.k.count_bits_kernel, dim=self.P * chunks, device=self.device,
                   inputs=[self.bits, int(self.words), int(chunks), self.counts])
@@ -120,38 +119,47 @@ class Workload:
 
 
 def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
-    """The study's variants by name. ``cpu_threads``: the persistent launch size where there are no SMs
-    (the CPU smoke test and tests)."""
+    """The study's variants by name (parameters only; ``build`` makes the kernels). ``cpu_threads``: the
+    persistent launch size where there are no SMs (the CPU smoke test and tests)."""
     out = {"shipped": {"kind": "shipped"}}
     for tile_c in (1, 2, 4, 8):
         out[f"tiled-{tile_c}x{32 // tile_c}-r80"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": 80}
 
-    def persist(mode, tile_c, chunk, waves, maxreg):
+    def persist(mode, tile_c, maxreg, chunk=1, waves=1, reload=False):
         threads = cpu_threads or waves * resident_threads(sm_count, maxreg)
         name = (f"persist-{'stride' if mode == 0 else 'atomic'}-t{tile_c}x{32 // tile_c}"
-                + (f"-c{chunk}" if mode else "") + f"-w{waves}-r{maxreg or 'none'}")
-        out[name] = {"kind": "persistent", "mode": mode, "tile_c": tile_c, "chunk": chunk, "threads": int(threads),
-                     "maxreg": maxreg}
+                + (f"-c{chunk}" if mode else "") + ("-reload" if reload else "")
+                + f"-w{waves}-r{maxreg or 'none'}")
+        out[name] = {"kind": "persistent", "mode": mode, "tile_c": tile_c, "chunk": chunk, "reload": reload,
+                     "waves": waves, "threads": int(threads), "maxreg": maxreg}
 
-    persist(0, 1, 1, 1, 80)
-    persist(0, 4, 1, 1, 80)
-    persist(1, 1, 1, 1, 80)
-    persist(1, 4, 1, 1, 80)
-    persist(1, 4, 4, 1, 80)
-    persist(1, 4, 1, 2, 80)
-    persist(1, 4, 1, 1, 96)
+    persist(0, 1, 80)
+    persist(0, 4, 80)
+    persist(1, 1, 80)
+    persist(1, 4, 80)
+    persist(1, 4, 80, chunk=4)
+    persist(1, 4, 80, waves=2)
+    persist(1, 4, 72)
+    persist(1, 4, 96)
     return out
 
 
+PARAMS = ("tile_c", "mode", "chunk", "reload", "maxreg")
+
+
 def build(vs: dict) -> None:
-    """Attach each variant's kernel (one module per kernel and register cap)."""
+    """Attach each variant's kernel (one module per kernel and parameter set)."""
     made = {}
     for v in vs.values():
-        if v["kind"] in ("tiled", "persistent"):
-            key = (v["kind"], v["maxreg"])
-            if key not in made:
-                made[key] = (make_tiled if v["kind"] == "tiled" else make_persistent)(v["maxreg"])
-            v["kernel"] = made[key]
+        if v["kind"] == "shipped":
+            continue
+        key = (v["kind"],) + tuple(v.get(k) for k in PARAMS)
+        if key not in made:
+            if v["kind"] == "tiled":
+                made[key] = make_tiled(v["maxreg"], v["tile_c"])
+            else:
+                made[key] = make_persistent(v["maxreg"], v["mode"], v["tile_c"], v["chunk"], v["reload"])
+        v["kernel"] = made[key]
 
 
 def dense_population(pop_size: int, seed: int = 0) -> np.ndarray:
@@ -226,7 +234,7 @@ def main() -> None:
     for name, v in vs.items():
         ts = times[name]
         out["variants"][name] = {
-            **{k: v[k] for k in ("tile_c", "mode", "chunk", "threads", "maxreg") if k in v},
+            **{k: v[k] for k in PARAMS + ("waves", "threads") if k in v},
             "median_ms_per_rig": 1e3 * statistics.median(ts) / P, "min_ms_per_rig": 1e3 * min(ts) / P,
             "max_ms_per_rig": 1e3 * max(ts) / P, "speedup_vs_shipped": base / statistics.median(ts)}
         r = out["variants"][name]

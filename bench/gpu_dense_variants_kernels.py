@@ -26,10 +26,12 @@ from __future__ import annotations
 
 import warp as wp
 
-from gpu_score_variants_kernels import brick_bit, brick_word, flush_brick, walk32_begin, walk32_next
+from gpu_score_variants_kernels import (Walk32, brick_bit, brick_word, flush_brick, walk32_begin, walk32_exact,
+                                        walk32_next)
 
-# as the shipped module: forward only, no fused multiply-add (FMA contraction flips voxel-boundary ties)
-OPTS = {"enable_backward": False, "fuse_fp": False}
+# as the shipped score_kernel_gpu: forward only, no fused multiply-add (FMA contraction flips voxel-boundary
+# ties), compiled for 128-thread blocks (the runner launches every variant with BLOCK_DIM = 128)
+OPTS = {"enable_backward": False, "fuse_fp": False, "block_dim": 128}
 
 
 @wp.func
@@ -98,97 +100,174 @@ def walk_ray_brick(
         wp.atomic_add(sums, cand, my_sum)
 
 
-def make_tiled(maxreg=None):
-    """One thread per ray, ray order permuted by ``tiled_ray`` (launch dim: all rays)."""
+def make_tiled(maxreg=None, tile_c=4):
+    """One thread per ray, ray order permuted by ``tiled_ray`` with a ``tile_c`` known at compile time
+    (divisions by it fold to shifts). Launch dim: all rays; inputs: the shipped kernel's, then ``n_az``."""
     @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
     def tiled_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
                      pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
                      nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
                      masks64: wp.array(dtype=wp.uint64), weights: wp.array(dtype=wp.int64),
                      words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
-                     sums: wp.array(dtype=wp.int64), n_az: wp.int32, tile_c: wp.int32):
-        rig, sd = tiled_ray(wp.tid(), sensor_dirs.shape[0], n_az, tile_c)
+                     sums: wp.array(dtype=wp.int64), n_az: wp.int32):
+        rig, sd = tiled_ray(wp.tid(), sensor_dirs.shape[0], n_az, wp.static(tile_c))
         walk_ray_brick(rig, sd, sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks64,
                        weights, words_per_candidate, bits, sums)
     return tiled_kernel
 
 
-def make_persistent(maxreg=None):
-    """Persistent threads with ray refill (launch dim: ``n_threads``). ``mode`` 0: thread t walks rays
-    t, t + T, t + 2T, ... (T = ``n_threads``, no atomics); ``mode`` 1: a lane whose ray has ended takes
-    the next ``chunk`` ray numbers from ``counter[0]`` (zeroed before each launch) once its previous
-    chunk is used up. A walk takes at most nx + ny + nz steps, so the shipped loop's bound never binds
-    and the refill loop needs none."""
+@wp.func
+def advance_keep(w: Walk32, o: wp.vec3d, d: wp.vec3d, rig: wp.int32, sd: wp.int32,
+                 sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                 pos: wp.array(dtype=wp.vec3d), s: wp.float64, sf: wp.float32, nx: wp.int32, ny: wp.int32,
+                 nz: wp.int32) -> Walk32:
+    # the shipped step: the ray's float64 origin and direction stay in registers for the fallback
+    return walk32_next(w, o, d, s, sf, nx, ny, nz)
+
+
+@wp.func
+def advance_reload(w: Walk32, o: wp.vec3d, d: wp.vec3d, rig: wp.int32, sd: wp.int32,
+                   sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                   pos: wp.array(dtype=wp.vec3d), s: wp.float64, sf: wp.float32, nx: wp.int32, ny: wp.int32,
+                   nz: wp.int32) -> Walk32:
+    # walk32_next whose rare float64 fallback re-derives o and d from (rig, sd) (the same products, no FMA:
+    # the same bits), so the persistent loop need not keep 12 registers of float64 ray alive
+    fast = wp.int32(0)
+    if w.exact == 0:
+        if w.tx < w.ty and w.tx < w.tz:
+            lim = w.tx + w.tol
+            if not (w.ty <= lim or w.tz <= lim or w.t1 <= lim):
+                fast = 1
+        elif w.ty < w.tz:
+            lim = w.ty + w.tol
+            if not (w.tx <= lim or w.tz <= lim or w.t1 <= lim):
+                fast = 2
+        else:
+            lim = w.tz + w.tol
+            if not (w.tx <= lim or w.ty <= lim or w.t1 <= lim):
+                fast = 3
+    if fast == 1:
+        w.i = w.i + w.si
+        w.ki = w.ki + w.si
+        w.tx = (wp.float32(w.ki) * sf - w.qx) * w.vx
+        if w.i < 0 or w.i >= nx:
+            w.alive = 0
+        return w
+    if fast == 2:
+        w.j = w.j + w.sj
+        w.kj = w.kj + w.sj
+        w.ty = (wp.float32(w.kj) * sf - w.qy) * w.vy
+        if w.j < 0 or w.j >= ny:
+            w.alive = 0
+        return w
+    if fast == 3:
+        w.k = w.k + w.sk
+        w.kk = w.kk + w.sk
+        w.tz = (wp.float32(w.kk) * sf - w.qz) * w.vz
+        if w.k < 0 or w.k >= nz:
+            w.alive = 0
+        return w
+    return walk32_exact(w, pos[rig], rot[rig] * sensor_dirs[sd], s, sf, nx, ny, nz)
+
+
+def make_persistent(maxreg=None, mode=1, tile_c=4, chunk=1, reload=False):
+    """Persistent threads with ray refill, specialised at compile time. Launch dim: ``n_threads``;
+    inputs: the shipped kernel's, then ``n_az``, ``n_rays``, ``n_threads`` and ``counter`` (one int32,
+    zeroed before each launch).
+
+    Args:
+        maxreg: CUDA register cap (None: uncapped).
+        mode: 0: thread t walks rays t, t + T, t + 2T, ... (T = ``n_threads``; no atomics); 1: a lane
+            whose ray has ended takes the next ``chunk`` ray numbers from ``counter[0]`` once its previous
+            chunk is used up.
+        tile_c: ray order (``tiled_ray``); 1 is the shipped order.
+        chunk: ray numbers per atomic fetch (mode 1).
+        reload: the float64 fallback re-derives the ray (``advance_reload``) instead of keeping it in
+            registers.
+
+    A walk takes at most nx + ny + nz steps, so the shipped loop's bound never binds and the refill loop
+    needs none. The loop has one call site of flush_brick and one mask load (a ray's end is handled as a
+    change of brick to "none"). Branches that replace the walk end in ``continue``: Warp merges a
+    variable assigned in an ``if`` with ``wp::where`` after it, which for the 25-register walk struct
+    would keep the old and the new walk alive together; a branch that jumps back to the loop's head
+    needs no merge.
+    """
+    advance = advance_reload if reload else advance_keep
+
     @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
     def persistent_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
                           pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
                           nx: wp.int32, ny: wp.int32, nz: wp.int32, bny: wp.int32, bnz: wp.int32,
                           masks64: wp.array(dtype=wp.uint64), weights: wp.array(dtype=wp.int64),
                           words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
-                          sums: wp.array(dtype=wp.int64), n_az: wp.int32, tile_c: wp.int32,
-                          n_rays: wp.int32, n_threads: wp.int32, mode: wp.int32, chunk: wp.int32,
+                          sums: wp.array(dtype=wp.int64), n_az: wp.int32, n_rays: wp.int32, n_threads: wp.int32,
                           counter: wp.array(dtype=wp.int32)):
         tid = wp.tid()
         n = sensor_dirs.shape[0]
         sf = wp.float32(s)
+        none = wp.int64(-2)            # the brick word of "no ray in hand"
         # the ray in hand: its walk and score_ray_brick's per-ray state
         o = wp.vec3d()
         d = wp.vec3d()
         w = walk32_begin(o, d, wp.float64(-1.0), s, sf, nx, ny, nz)     # t_end < 0: an empty walk (alive 0)
+        ray_rig = wp.int32(0)
+        ray_sd = wp.int32(0)
         cand = wp.int32(0)
         base = wp.int64(0)
         my_sum = wp.int64(0)
-        cur = wp.int64(-1)
+        cur = wp.int64(-1)             # brick in hand; -1 (not none): the first pass takes a ray
         seen = wp.uint32(0)
         pending = wp.uint32(0)
         stop_w = wp.uint32(0)
         nz_w = wp.uint32(0)
-        nxt = tid          # next ray number to take, and the end of the chunk in hand (mode 1)
+        nxt = tid                      # next ray number to take (mode 1: within the chunk in hand, up to end)
         end = tid
         while True:
-            if w.alive == 0:
-                # the ray in hand is done (or none was taken yet): settle it, take the next
+            word = none
+            if w.alive != 0:
+                word = brick_word(w, bny, bnz)
+            if word != cur:
+                # leaving a brick (or the ray ended): its newly marked bits go out in one atomic_or
                 if pending != wp.uint32(0):
                     my_sum += flush_brick(bits, base, cur, pending, nz_w, bny, bnz, ny, nz, weights)
                     pending = wp.uint32(0)
-                if my_sum > wp.int64(0):
-                    wp.atomic_add(sums, cand, my_sum)
-                    my_sum = wp.int64(0)
-                r = nxt
-                if mode == 0:
-                    nxt = nxt + n_threads
-                else:
-                    if nxt >= end:
-                        r = wp.atomic_add(counter, 0, chunk)
-                        end = r + chunk
-                    nxt = r + 1
-                if r >= n_rays:
-                    break
-                rig, sd = tiled_ray(r, n, n_az, tile_c)
-                cand = rig / n_lidars
-                base = wp.int64(cand) * words_per_candidate
-                o = pos[rig]
-                d = rot[rig] * sensor_dirs[sd]
-                w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
-                cur = wp.int64(-1)
-            if w.alive != 0:
-                # one step of score_ray_brick's loop
-                word = brick_word(w, bny, bnz)
-                if word != cur:
-                    if pending != wp.uint32(0):
-                        my_sum += flush_brick(bits, base, cur, pending, nz_w, bny, bnz, ny, nz, weights)
-                    cur = word
-                    pending = wp.uint32(0)
-                    m = masks64[word]
-                    stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))
-                    nz_w = wp.uint32(m >> wp.uint64(32))
-                    seen = bits[base + word]
-                bit = brick_bit(w)
-                if (seen & bit) == wp.uint32(0):
-                    seen = seen | bit
-                    pending = pending | bit
-                if (stop_w & bit) != wp.uint32(0):
-                    w.alive = 0            # occlusion: the ray ends after this voxel
-                else:
-                    w = walk32_next(w, o, d, s, sf, nx, ny, nz)
+                if word == none:
+                    # the ray in hand is done (or none was taken yet): settle it, take the next
+                    if my_sum > wp.int64(0):
+                        wp.atomic_add(sums, cand, my_sum)
+                        my_sum = wp.int64(0)
+                    r = nxt
+                    if wp.static(mode == 0):
+                        nxt = nxt + n_threads
+                    else:
+                        if nxt >= end:
+                            r = wp.atomic_add(counter, 0, wp.static(chunk))
+                            end = r + wp.static(chunk)
+                        nxt = r + 1
+                    if r >= n_rays:
+                        break
+                    rig, sd = tiled_ray(r, n, n_az, wp.static(tile_c))
+                    ray_rig = rig
+                    ray_sd = sd
+                    cand = rig / n_lidars
+                    base = wp.int64(cand) * words_per_candidate
+                    o = pos[rig]
+                    d = rot[rig] * sensor_dirs[sd]
+                    w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
+                    cur = wp.int64(-1)       # the next pass enters the new ray's first brick (or takes another)
+                    continue
+                cur = word
+                m = masks64[word]
+                stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))
+                nz_w = wp.uint32(m >> wp.uint64(32))
+                seen = bits[base + word]
+            # one step of score_ray_brick's loop
+            bit = brick_bit(w)
+            if (seen & bit) == wp.uint32(0):
+                seen = seen | bit
+                pending = pending | bit
+            if (stop_w & bit) != wp.uint32(0):
+                w.alive = 0                  # occlusion: the ray ends after this voxel
+                continue
+            w = advance(w, o, d, ray_rig, ray_sd, sensor_dirs, rot, pos, s, sf, nx, ny, nz)
     return persistent_kernel
