@@ -28,8 +28,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
+import shutil
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -97,6 +101,11 @@ class Workload:
                              f"{self.n_el} x {self.n_az} LiDAR; pick tile_c in 1, 2, 4, 8, 16, 32 dividing the "
                              f"channel count, with 32 / tile_c dividing the azimuth count")
 
+    @staticmethod
+    def shipped_kernel():
+        """The shipped CUDA score kernel (``score_kernel_gpu``)."""
+        return p3k.get_backend("warp:cpu").k.score_kernel_gpu
+
     def launch(self, v: dict) -> None:
         """Zero the outputs, launch variant ``v`` (a dict from ``variants``) and count the covered voxels."""
         self.bits.zero_(), self.sums.zero_(), self.counts.zero_(), self.counter.zero_()
@@ -162,6 +171,39 @@ def build(vs: dict) -> None:
         v["kernel"] = made[key]
 
 
+def register_report(vs: dict, arch: int = 90) -> dict:
+    """Registers and spills per variant, without a GPU: Warp compiles each kernel's module to PTX with
+    NVRTC and ``ptxas -v`` (CUDA toolkit on PATH) assembles it for ``sm_<arch>``. Where this ptxas is older
+    than the PTX NVRTC wrote, the ``.version`` line is lowered to what ptxas names and the assembly
+    retried (the kernels use no newer instruction; ptxas would refuse one)."""
+    if shutil.which("ptxas") is None:
+        raise SystemExit("--registers needs ptxas (the CUDA toolkit) on PATH")
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, v in vs.items():
+            kern = Workload.shipped_kernel() if v["kind"] == "shipped" else v["kernel"]
+            [ptx] = wp.compile_aot_module(kern.module, device=None, arch=arch, module_dir=f"{tmp}/{name}",
+                                          use_ptx=True)
+            text = Path(ptx).read_bytes().replace(b"\0", b"").decode()
+            src = Path(tmp, name, "k.ptx")
+            for _ in range(2):
+                src.write_text(text)
+                r = subprocess.run(["ptxas", f"-arch=sm_{arch}", "-v", str(src), "-o", f"{tmp}/{name}/k.cubin"],
+                                   capture_output=True, text=True)
+                low = re.search(r"Unsupported \.version \S+; current version is '([\d.]+)'", r.stderr)
+                if not low:
+                    break
+                text = re.sub(r"^\.version \S+", f".version {low.group(1)}", text, flags=re.M)
+            regs = re.search(r"Used (\d+) registers", r.stderr)
+            spill = re.search(r"(\d+) bytes spill stores, (\d+) bytes spill loads", r.stderr)
+            if r.returncode or not regs:
+                raise SystemExit(f"{name}: ptxas failed: {r.stderr[-400:]}")
+            out[name] = {"registers": int(regs.group(1)), "spill_store_bytes": int(spill.group(1)) if spill else 0,
+                         "spill_load_bytes": int(spill.group(2)) if spill else 0}
+            print(f"{name:34s} {out[name]}", flush=True)
+    return out
+
+
 def dense_population(pop_size: int, seed: int = 0) -> np.ndarray:
     """``gpu_dense.py``'s population: ``pyramid`` with positions jittered by up to 0.3 m (0.1 m steps)."""
     rig = p3k.Placement.load("pyramid")
@@ -181,11 +223,13 @@ def main() -> None:
     ap.add_argument("--max-range", type=float, default=100.0, help="as gpu_dense.py (default 100 m)")
     ap.add_argument("--cpu-threads", type=int, default=509, help="persistent launch size on the CPU")
     ap.add_argument("--only", default="", help="comma-separated variant names (shipped always runs)")
+    ap.add_argument("--registers", action="store_true",
+                    help="no timing: registers and spills per variant from ptxas for sm_90 (no GPU needed)")
     ap.add_argument("--out", default=os.environ.get("OUT", str(Path(__file__).resolve().parent / "results")))
     args = ap.parse_args()
     dev = args.device
     wp.init()
-    sm = wp.get_device(dev).sm_count if dev.startswith("cuda") else 0
+    sm = wp.get_device(dev).sm_count if dev.startswith("cuda") and not args.registers else 0
     vs = variants(sm, None if sm else args.cpu_threads)
     only = [x for x in args.only.split(",") if x]
     if only:
@@ -193,6 +237,14 @@ def main() -> None:
         if unknown:
             raise SystemExit(f"--only: unknown variants {sorted(unknown)}; known: {sorted(vs)}")
         vs = {k: v for k, v in vs.items() if k in only or k == "shipped"}
+    if args.registers:
+        build(vs)
+        report = register_report(vs)
+        res = Path(args.out)
+        res.mkdir(parents=True, exist_ok=True)
+        (res / "gpu-dense-variants-registers-sm90.json").write_text(json.dumps(
+            {"info": machine_info(), "arch": "sm_90", "block_dim": BLOCK_DIM, "variants": report}, indent=2))
+        return
     d0 = p3k.DEFAULT_GRID
     grid = p3k.Grid(d0.lower, d0.upper, args.voxel)
     t = time.perf_counter()
