@@ -11,7 +11,12 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
 * ``persist-stride-tCxA-wW-rN``: persistent threads (W times as many as the GPU holds at once at N
   registers and 128 threads per block), thread t walking rays t, t + T, ... in tile order;
 * ``persist-atomic-tCxA-cK-wW-rN``: the same, a lane whose ray has ended taking K ray numbers at a time
-  from a global atomic counter.
+  from a global atomic counter;
+* ``...-bB-...``: a lane whose ray has ended waits until B lanes of its warp are done, and they set up
+  their new rays together (a warp vote; Aila & Laine's dynamic fetch), instead of each stalling the warp
+  for its own float64 set-up.
+
+Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU).
 
 Each variant's sums and counts (covered voxels, counted from the bitset with the shipped
 ``count_bits_kernel``, which is timed with every kernel) must equal the shipped kernel's on every
@@ -134,13 +139,13 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     for tile_c in (1, 2, 4, 8):
         out[f"tiled-{tile_c}x{32 // tile_c}-r80"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": 80}
 
-    def persist(mode, tile_c, maxreg, chunk=1, waves=1, reload=False):
+    def persist(mode, tile_c, maxreg, chunk=1, waves=1, reload=False, batch=1):
         threads = cpu_threads or waves * resident_threads(sm_count, maxreg)
         name = (f"persist-{'stride' if mode == 0 else 'atomic'}-t{tile_c}x{32 // tile_c}"
-                + (f"-c{chunk}" if mode else "") + ("-reload" if reload else "")
+                + (f"-c{chunk}" if mode else "") + ("-reload" if reload else "") + (f"-b{batch}" if batch > 1 else "")
                 + f"-w{waves}-r{maxreg or 'none'}")
         out[name] = {"kind": "persistent", "mode": mode, "tile_c": tile_c, "chunk": chunk, "reload": reload,
-                     "waves": waves, "threads": int(threads), "maxreg": maxreg}
+                     "batch": batch, "waves": waves, "threads": int(threads), "maxreg": maxreg}
 
     persist(0, 1, 80)
     persist(0, 4, 80)
@@ -150,10 +155,13 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     persist(1, 4, 80, waves=2)
     persist(1, 4, 72)
     persist(1, 4, 96)
+    persist(1, 4, 80, batch=8)
+    persist(1, 4, 80, batch=16)
+    persist(0, 4, 80, batch=16)
     return out
 
 
-PARAMS = ("tile_c", "mode", "chunk", "reload", "maxreg")
+PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "maxreg")
 
 
 def build(vs: dict) -> None:
@@ -167,7 +175,7 @@ def build(vs: dict) -> None:
             if v["kind"] == "tiled":
                 made[key] = make_tiled(v["maxreg"], v["tile_c"])
             else:
-                made[key] = make_persistent(v["maxreg"], v["mode"], v["tile_c"], v["chunk"], v["reload"])
+                made[key] = make_persistent(v["maxreg"], v["mode"], v["tile_c"], v["chunk"], v["reload"], v["batch"])
         v["kernel"] = made[key]
 
 

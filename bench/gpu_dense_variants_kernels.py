@@ -34,6 +34,20 @@ from gpu_score_variants_kernels import (Walk32, brick_bit, brick_word, flush_bri
 OPTS = {"enable_backward": False, "fuse_fp": False, "block_dim": 128}
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    unsigned int mask = __activemask();
+    return __popc(__ballot_sync(mask, done != 0)) | (__popc(mask) << 8);
+#else
+    return (done != 0 ? 1 : 0) | (1 << 8);
+#endif
+""")
+def warp_vote(done: wp.int32) -> wp.int32:
+    """(lanes of this warp here whose ray is done) | (lanes here) << 8. On the CPU a thread is its own
+    warp. Lanes that have left the loop are not counted."""
+    ...
+
+
 @wp.func
 def tiled_ray(r: wp.int32, n: wp.int32, n_az: wp.int32, tile_c: wp.int32):
     """Map ray number ``r`` to (rig, sensor direction index): 32 consecutive numbers are one
@@ -170,7 +184,7 @@ def advance_reload(w: Walk32, o: wp.vec3d, d: wp.vec3d, rig: wp.int32, sd: wp.in
     return walk32_exact(w, pos[rig], rot[rig] * sensor_dirs[sd], s, sf, nx, ny, nz)
 
 
-def make_persistent(maxreg=None, mode=1, tile_c=4, chunk=1, reload=False):
+def make_persistent(maxreg=None, mode=1, tile_c=4, chunk=1, reload=False, batch=1):
     """Persistent threads with ray refill, specialised at compile time. Launch dim: ``n_threads``;
     inputs: the shipped kernel's, then ``n_az``, ``n_rays``, ``n_threads`` and ``counter`` (one int32,
     zeroed before each launch).
@@ -184,6 +198,10 @@ def make_persistent(maxreg=None, mode=1, tile_c=4, chunk=1, reload=False):
         chunk: ray numbers per atomic fetch (mode 1).
         reload: the float64 fallback re-derives the ray (``advance_reload``) instead of keeping it in
             registers.
+        batch: 1: a lane takes a new ray as soon as its own has ended; K > 1: only once K lanes of its
+            warp (or all still looping) are done, so the float64 set-up of new rays (``walk32_begin``)
+            runs for several lanes at once instead of stalling the warp once per lane (the dynamic fetch
+            of Aila & Laine; a warp vote, ``warp_vote``).
 
     A walk takes at most nx + ny + nz steps, so the shipped loop's bound never binds and the refill loop
     needs none. The loop has one call site of flush_brick and one mask load (a ray's end is handled as a
@@ -226,41 +244,50 @@ def make_persistent(maxreg=None, mode=1, tile_c=4, chunk=1, reload=False):
             word = none
             if w.alive != 0:
                 word = brick_word(w, bny, bnz)
+            if wp.static(batch > 1):
+                vote = warp_vote(wp.where(word == none, 1, 0))    # every lane still looping votes
             if word != cur:
                 # leaving a brick (or the ray ended): its newly marked bits go out in one atomic_or
                 if pending != wp.uint32(0):
                     my_sum += flush_brick(bits, base, cur, pending, nz_w, bny, bnz, ny, nz, weights)
                     pending = wp.uint32(0)
                 if word == none:
-                    # the ray in hand is done (or none was taken yet): settle it, take the next
+                    # the ray in hand is done (or none was taken yet): settle it
                     if my_sum > wp.int64(0):
                         wp.atomic_add(sums, cand, my_sum)
                         my_sum = wp.int64(0)
-                    r = nxt
-                    if wp.static(mode == 0):
-                        nxt = nxt + n_threads
-                    else:
-                        if nxt >= end:
-                            r = wp.atomic_add(counter, 0, wp.static(chunk))
-                            end = r + wp.static(chunk)
-                        nxt = r + 1
-                    if r >= n_rays:
-                        break
-                    rig, sd = tiled_ray(r, n, n_az, wp.static(tile_c))
-                    ray_rig = rig
-                    ray_sd = sd
-                    cand = rig / n_lidars
-                    base = wp.int64(cand) * words_per_candidate
-                    o = pos[rig]
-                    d = rot[rig] * sensor_dirs[sd]
-                    w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
-                    cur = wp.int64(-1)       # the next pass enters the new ray's first brick (or takes another)
-                    continue
-                cur = word
-                m = masks64[word]
-                stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))
-                nz_w = wp.uint32(m >> wp.uint64(32))
-                seen = bits[base + word]
+                    cur = none
+                else:
+                    cur = word
+                    m = masks64[word]
+                    stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))
+                    nz_w = wp.uint32(m >> wp.uint64(32))
+                    seen = bits[base + word]
+            if word == none:
+                if wp.static(batch > 1):
+                    # wait (idle this pass) until enough lanes of the warp are done to set up together
+                    if (vote & 255) < wp.min(wp.static(batch), vote >> 8):
+                        continue
+                r = nxt
+                if wp.static(mode == 0):
+                    nxt = nxt + n_threads
+                else:
+                    if nxt >= end:
+                        r = wp.atomic_add(counter, 0, wp.static(chunk))
+                        end = r + wp.static(chunk)
+                    nxt = r + 1
+                if r >= n_rays:
+                    break
+                rig, sd = tiled_ray(r, n, n_az, wp.static(tile_c))
+                ray_rig = rig
+                ray_sd = sd
+                cand = rig / n_lidars
+                base = wp.int64(cand) * words_per_candidate
+                o = pos[rig]
+                d = rot[rig] * sensor_dirs[sd]
+                w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
+                cur = wp.int64(-1)           # the next pass enters the new ray's first brick (or takes another)
+                continue
             # one step of score_ray_brick's loop
             bit = brick_bit(w)
             if (seen & bit) == wp.uint32(0):

@@ -71,9 +71,9 @@ def test_variants_match_the_shipped_kernel(small, device):
     # every tile shape, a chunked counter, uncapped registers on top of the study's own list
     threads = CPU_THREADS if not sm else vs["persist-stride-t1x32-w1-r80"]["threads"]
     vs["persist-stride-t32x1"] = {"kind": "persistent", "mode": 0, "tile_c": 32, "chunk": 1, "reload": True,
-                                  "maxreg": None, "threads": threads}
+                                  "batch": 1, "maxreg": None, "threads": threads}
     vs["persist-atomic-t2x16-c3"] = dict(vs["persist-stride-t32x1"], mode=1, tile_c=2, chunk=3, reload=False)
-    vs["persist-atomic-t16x2-c1-reload"] = dict(vs["persist-stride-t32x1"], mode=1, tile_c=16)
+    vs["persist-atomic-t16x2-c1-reload-b4"] = dict(vs["persist-stride-t32x1"], mode=1, tile_c=16, batch=4)
     vs["tiled-16x2"] = {"kind": "tiled", "tile_c": 16, "maxreg": 80}
     vs["tiled-32x1"] = {"kind": "tiled", "tile_c": 32, "maxreg": None}
     build(vs)
