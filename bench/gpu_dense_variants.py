@@ -8,6 +8,10 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
 
 * ``tiled-CxA-rN``: one thread per ray, the 32 lanes of a warp on a C x A (channel x azimuth) tile
   (``tiled-1x32`` is the shipped order through the permutation: the permutation's own cost);
+* ``select-CxA-rN``: the same with the branch-free step (``walk32_next_sel``: the axis to step chosen by
+  selects, so lanes stepping along different axes do not serialise three branches). The lane model
+  (``gpu_dense_lanes.py``) found ray lengths in the shipped order already keep some 97 % of lanes busy,
+  so Nsight's 16 of 32 active lanes point at branches inside a step rather than at ray lengths;
 * ``persist-stride-tCxA-wW-rN``: persistent threads (W times as many as the GPU holds at once at N
   registers and 128 threads per block), thread t walking rays t, t + T, ... in tile order;
 * ``persist-atomic-tCxA-cK-wW-rN``: the same, a lane whose ray has ended taking K ray numbers at a time
@@ -137,15 +141,20 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     persistent launch size where there are no SMs (the CPU smoke test and tests)."""
     out = {"shipped": {"kind": "shipped"}}
     for tile_c in (1, 2, 4, 8):
-        out[f"tiled-{tile_c}x{32 // tile_c}-r80"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": 80}
+        out[f"tiled-{tile_c}x{32 // tile_c}-r80"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": 80,
+                                                     "select": False}
+    for tile_c, maxreg in ((1, 80), (1, 72), (1, 96), (2, 80)):
+        out[f"select-{tile_c}x{32 // tile_c}-r{maxreg}"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": maxreg,
+                                                            "select": True}
 
-    def persist(mode, tile_c, maxreg, chunk=1, waves=1, reload=False, batch=1):
+    def persist(mode, tile_c, maxreg, chunk=1, waves=1, reload=False, batch=1, select=False):
         threads = cpu_threads or waves * resident_threads(sm_count, maxreg)
         name = (f"persist-{'stride' if mode == 0 else 'atomic'}-t{tile_c}x{32 // tile_c}"
                 + (f"-c{chunk}" if mode else "") + ("-reload" if reload else "") + (f"-b{batch}" if batch > 1 else "")
+                + ("-select" if select else "")
                 + f"-w{waves}-r{maxreg or 'none'}")
         out[name] = {"kind": "persistent", "mode": mode, "tile_c": tile_c, "chunk": chunk, "reload": reload,
-                     "batch": batch, "waves": waves, "threads": int(threads), "maxreg": maxreg}
+                     "batch": batch, "select": select, "waves": waves, "threads": int(threads), "maxreg": maxreg}
 
     persist(0, 1, 80)
     persist(0, 4, 80)
@@ -158,10 +167,11 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     persist(1, 4, 80, batch=8)
     persist(1, 4, 80, batch=16)
     persist(0, 4, 80, batch=16)
+    persist(1, 1, 80, batch=16, select=True)
     return out
 
 
-PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "maxreg")
+PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "select", "maxreg")
 
 
 def build(vs: dict) -> None:
@@ -173,9 +183,10 @@ def build(vs: dict) -> None:
         key = (v["kind"],) + tuple(v.get(k) for k in PARAMS)
         if key not in made:
             if v["kind"] == "tiled":
-                made[key] = make_tiled(v["maxreg"], v["tile_c"])
+                made[key] = make_tiled(v["maxreg"], v["tile_c"], v["select"])
             else:
-                made[key] = make_persistent(v["maxreg"], v["mode"], v["tile_c"], v["chunk"], v["reload"], v["batch"])
+                made[key] = make_persistent(v["maxreg"], v["mode"], v["tile_c"], v["chunk"], v["reload"], v["batch"],
+                                            v["select"])
         v["kernel"] = made[key]
 
 

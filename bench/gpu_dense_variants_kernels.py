@@ -67,6 +67,43 @@ def tiled_ray(r: wp.int32, n: wp.int32, n_az: wp.int32, tile_c: wp.int32):
 
 
 @wp.func
+def walk32_next_sel(w: Walk32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.float32, nx: wp.int32,
+                    ny: wp.int32, nz: wp.int32) -> Walk32:
+    """walk32_next with the axis chosen by selects instead of three branches: lanes stepping along
+    different axes run the same instructions (in walk32_next each takes its own branch, and the warp
+    runs the three one after another). Same comparisons, same float32 expression for the new crossing
+    (no FMA), same float64 fallback: the same voxels, bit for bit."""
+    xa = w.tx < w.ty and w.tx < w.tz
+    ya = (not xa) and w.ty < w.tz
+    za = (not xa) and (not ya)
+    tmin = wp.where(xa, w.tx, wp.where(ya, w.ty, w.tz))
+    o1 = wp.where(xa, w.ty, w.tx)                 # the two other axes' crossings
+    o2 = wp.where(za, w.ty, w.tz)
+    lim = tmin + w.tol
+    if w.exact != 0 or o1 <= lim or o2 <= lim or w.t1 <= lim:
+        return walk32_exact(w, o, d, s, sf, nx, ny, nz)
+    di = wp.where(xa, w.si, 0)
+    dj = wp.where(ya, w.sj, 0)
+    dk = wp.where(za, w.sk, 0)
+    w.i = w.i + di
+    w.j = w.j + dj
+    w.k = w.k + dk
+    w.ki = w.ki + di
+    w.kj = w.kj + dj
+    w.kk = w.kk + dk
+    kk = wp.where(xa, w.ki, wp.where(ya, w.kj, w.kk))
+    q = wp.where(xa, w.qx, wp.where(ya, w.qy, w.qz))
+    v = wp.where(xa, w.vx, wp.where(ya, w.vy, w.vz))
+    t = (wp.float32(kk) * sf - q) * v
+    w.tx = wp.where(xa, t, w.tx)
+    w.ty = wp.where(ya, t, w.ty)
+    w.tz = wp.where(za, t, w.tz)
+    out = w.i < 0 or w.i >= nx or w.j < 0 or w.j >= ny or w.k < 0 or w.k >= nz
+    w.alive = wp.where(out, 0, w.alive)
+    return w
+
+
+@wp.func
 def walk_ray_brick(
     rig: wp.int32, sd: wp.int32,
     sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
@@ -114,9 +151,60 @@ def walk_ray_brick(
         wp.atomic_add(sums, cand, my_sum)
 
 
-def make_tiled(maxreg=None, tile_c=4):
+@wp.func
+def walk_ray_brick_sel(
+    rig: wp.int32, sd: wp.int32,
+    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
+    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
+    bny: wp.int32, bnz: wp.int32, masks64: wp.array(dtype=wp.uint64),
+    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
+    sums: wp.array(dtype=wp.int64),
+):
+    # walk_ray_brick with the branch-free axis choice (walk32_next_sel)
+    cand = rig / n_lidars
+    o = pos[rig]
+    d = rot[rig] * sensor_dirs[sd]
+    sf = wp.float32(s)
+    w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
+    base = wp.int64(cand) * words_per_candidate
+    my_sum = wp.int64(0)
+    cur = wp.int64(-1)
+    seen = wp.uint32(0)
+    pending = wp.uint32(0)
+    stop_w = wp.uint32(0)
+    nz_w = wp.uint32(0)
+    for _ in range(nx + ny + nz + 3):
+        if w.alive == 0:
+            break
+        word = brick_word(w, bny, bnz)
+        if word != cur:
+            if pending != wp.uint32(0):
+                my_sum += flush_brick(bits, base, cur, pending, nz_w, bny, bnz, ny, nz, weights)
+            cur = word
+            pending = wp.uint32(0)
+            m = masks64[word]
+            stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))
+            nz_w = wp.uint32(m >> wp.uint64(32))
+            seen = bits[base + word]
+        bit = brick_bit(w)
+        if (seen & bit) == wp.uint32(0):
+            seen = seen | bit
+            pending = pending | bit
+        if (stop_w & bit) != wp.uint32(0):
+            break
+        w = walk32_next_sel(w, o, d, s, sf, nx, ny, nz)
+    if pending != wp.uint32(0):
+        my_sum += flush_brick(bits, base, cur, pending, nz_w, bny, bnz, ny, nz, weights)
+    if my_sum > wp.int64(0):
+        wp.atomic_add(sums, cand, my_sum)
+
+
+def make_tiled(maxreg=None, tile_c=4, select=False):
     """One thread per ray, ray order permuted by ``tiled_ray`` with a ``tile_c`` known at compile time
-    (divisions by it fold to shifts). Launch dim: all rays; inputs: the shipped kernel's, then ``n_az``."""
+    (divisions by it fold to shifts); ``select``: the branch-free step (``walk32_next_sel``). Launch dim:
+    all rays; inputs: the shipped kernel's, then ``n_az``."""
+    body = walk_ray_brick_sel if select else walk_ray_brick
+
     @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
     def tiled_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
                      pos: wp.array(dtype=wp.vec3d), n_lidars: wp.int32, t_max: wp.float64, s: wp.float64,
@@ -125,7 +213,7 @@ def make_tiled(maxreg=None, tile_c=4):
                      words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
                      sums: wp.array(dtype=wp.int64), n_az: wp.int32):
         rig, sd = tiled_ray(wp.tid(), sensor_dirs.shape[0], n_az, wp.static(tile_c))
-        walk_ray_brick(rig, sd, sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks64,
+        body(rig, sd, sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks64,
                        weights, words_per_candidate, bits, sums)
     return tiled_kernel
 
@@ -137,6 +225,15 @@ def advance_keep(w: Walk32, o: wp.vec3d, d: wp.vec3d, rig: wp.int32, sd: wp.int3
                  nz: wp.int32) -> Walk32:
     # the shipped step: the ray's float64 origin and direction stay in registers for the fallback
     return walk32_next(w, o, d, s, sf, nx, ny, nz)
+
+
+@wp.func
+def advance_sel(w: Walk32, o: wp.vec3d, d: wp.vec3d, rig: wp.int32, sd: wp.int32,
+                sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
+                pos: wp.array(dtype=wp.vec3d), s: wp.float64, sf: wp.float32, nx: wp.int32, ny: wp.int32,
+                nz: wp.int32) -> Walk32:
+    # the branch-free step
+    return walk32_next_sel(w, o, d, s, sf, nx, ny, nz)
 
 
 @wp.func
@@ -184,7 +281,7 @@ def advance_reload(w: Walk32, o: wp.vec3d, d: wp.vec3d, rig: wp.int32, sd: wp.in
     return walk32_exact(w, pos[rig], rot[rig] * sensor_dirs[sd], s, sf, nx, ny, nz)
 
 
-def make_persistent(maxreg=None, mode=1, tile_c=4, chunk=1, reload=False, batch=1):
+def make_persistent(maxreg=None, mode=1, tile_c=4, chunk=1, reload=False, batch=1, select=False):
     """Persistent threads with ray refill, specialised at compile time. Launch dim: ``n_threads``;
     inputs: the shipped kernel's, then ``n_az``, ``n_rays``, ``n_threads`` and ``counter`` (one int32,
     zeroed before each launch).
@@ -202,6 +299,7 @@ def make_persistent(maxreg=None, mode=1, tile_c=4, chunk=1, reload=False, batch=
             warp (or all still looping) are done, so the float64 set-up of new rays (``walk32_begin``)
             runs for several lanes at once instead of stalling the warp once per lane (the dynamic fetch
             of Aila & Laine; a warp vote, ``warp_vote``).
+        select: the branch-free step (``walk32_next_sel``).
 
     A walk takes at most nx + ny + nz steps, so the shipped loop's bound never binds and the refill loop
     needs none. The loop has one call site of flush_brick and one mask load (a ray's end is handled as a
@@ -210,7 +308,7 @@ def make_persistent(maxreg=None, mode=1, tile_c=4, chunk=1, reload=False, batch=
     would keep the old and the new walk alive together; a branch that jumps back to the loop's head
     needs no merge.
     """
-    advance = advance_reload if reload else advance_keep
+    advance = advance_sel if select else (advance_reload if reload else advance_keep)
 
     @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
     def persistent_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),

@@ -18,7 +18,8 @@ import place3d_kernels as p3k
 wp = pytest.importorskip("warp")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from gpu_dense_variants import Workload, build, variants  # noqa: E402
-from gpu_dense_variants_kernels import tiled_ray  # noqa: E402
+from gpu_dense_variants_kernels import tiled_ray, walk32_next_sel  # noqa: E402
+from gpu_score_variants_kernels import walk32_begin, walk32_next  # noqa: E402
 
 wp.init()
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
@@ -29,6 +30,49 @@ CPU_THREADS = 97     # persistent launch size on the CPU: not a multiple of 32, 
 def _hit_kernel(n: wp.int32, n_az: wp.int32, tile_c: wp.int32, hits: wp.array(dtype=wp.int32)):
     rig, sd = tiled_ray(wp.tid(), n, n_az, tile_c)
     wp.atomic_add(hits, rig * n + sd, 1)
+
+
+@wp.kernel
+def _lockstep_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), s: wp.float64, n: wp.int32,
+                     steps: wp.array(dtype=wp.int32), bad: wp.array(dtype=wp.int32)):
+    # both steps from the same start, compared field by field after every step
+    tid = wp.tid()
+    sf = wp.float32(s)
+    a = walk32_begin(o[tid], d[tid], wp.float64(1.0e3), s, sf, n, n, n)
+    b = a
+    c = wp.int32(0)
+    for _ in range(3 * n + 3):
+        if a.alive == 0 and b.alive == 0:
+            break
+        if (a.i != b.i or a.j != b.j or a.k != b.k or a.alive != b.alive or a.tx != b.tx or a.ty != b.ty
+                or a.tz != b.tz or a.ki != b.ki or a.kj != b.kj or a.kk != b.kk):
+            bad[tid] = 1
+        a = walk32_next(a, o[tid], d[tid], s, sf, n, n, n)
+        b = walk32_next_sel(b, o[tid], d[tid], s, sf, n, n, n)
+        c += 1
+    steps[tid] = c
+
+
+def test_branch_free_step_takes_the_shipped_steps():
+    """walk32_next_sel against walk32_next on rays full of ties: origins on voxel planes, edges and
+    corners; directions along axes, face and space diagonals, and random."""
+    rng = np.random.default_rng(7)
+    s, n, m = 0.25, 24, 6000
+    o = rng.uniform(0.0, n * s, (m, 3))
+    snap = rng.integers(0, 4, m)                       # 0: random, 1-3: that many coordinates on a plane
+    for k in range(3):
+        on = snap > k
+        o[on, k] = np.round(o[on, k] / s) * s
+    dirs = np.array([[1, 0, 0], [0, -1, 0], [0, 0, 1], [1, 1, 0], [1, -1, 0], [0, 1, 1], [1, 1, 1], [-1, 1, -1],
+                     [2, 1, 0], [1, 2, 2], [1e-31, 1, 0.5]], dtype=np.float64)
+    d = np.where((rng.random(m) < 0.6)[:, None], dirs[rng.integers(0, len(dirs), m)], rng.normal(size=(m, 3)))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    steps = wp.zeros(m, dtype=wp.int32, device="cpu")
+    bad = wp.zeros(m, dtype=wp.int32, device="cpu")
+    wp.launch(_lockstep_kernel, dim=m, device="cpu",
+              inputs=[wp.array(o, dtype=wp.vec3d), wp.array(d, dtype=wp.vec3d), s, n, steps, bad])
+    assert steps.numpy().sum() > 10 * m, "the rays must walk"
+    assert bad.numpy().sum() == 0, f"{int(bad.numpy().sum())} rays stepped differently"
 
 
 @pytest.fixture(scope="module")
@@ -71,11 +115,12 @@ def test_variants_match_the_shipped_kernel(small, device):
     # every tile shape, a chunked counter, uncapped registers on top of the study's own list
     threads = CPU_THREADS if not sm else vs["persist-stride-t1x32-w1-r80"]["threads"]
     vs["persist-stride-t32x1"] = {"kind": "persistent", "mode": 0, "tile_c": 32, "chunk": 1, "reload": True,
-                                  "batch": 1, "maxreg": None, "threads": threads}
+                                  "batch": 1, "select": False, "maxreg": None, "threads": threads}
     vs["persist-atomic-t2x16-c3"] = dict(vs["persist-stride-t32x1"], mode=1, tile_c=2, chunk=3, reload=False)
     vs["persist-atomic-t16x2-c1-reload-b4"] = dict(vs["persist-stride-t32x1"], mode=1, tile_c=16, batch=4)
-    vs["tiled-16x2"] = {"kind": "tiled", "tile_c": 16, "maxreg": 80}
-    vs["tiled-32x1"] = {"kind": "tiled", "tile_c": 32, "maxreg": None}
+    vs["persist-stride-t8x4-select"] = dict(vs["persist-stride-t32x1"], tile_c=8, reload=False, select=True)
+    vs["tiled-16x2"] = {"kind": "tiled", "tile_c": 16, "maxreg": 80, "select": False}
+    vs["select-32x1"] = {"kind": "tiled", "tile_c": 32, "maxreg": None, "select": True}
     build(vs)
 
     wl.launch(vs["shipped"])
