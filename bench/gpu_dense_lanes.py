@@ -13,6 +13,11 @@ models a warp as 32 lanes in lock-step:
   work) are done. ``threads_per_rig`` persistent threads serve the rig: the GPU's resident threads at
   80 registers, 101,376 on an H100, shared by 16 rigs.
 
+It also measures divergence inside a step, for the rays of one LiDAR in the shipped order (``branches``):
+how many different axes the lanes of a warp step along at the same step (walk32_next takes one branch
+per axis, and a warp runs each branch present, the other lanes idle), and how often a lane enters a new
+4 x 4 x 2 brick (the masks load, bitset read and flush run only for those lanes).
+
 Lane efficiency = useful steps / (32 x modelled warp passes). It leaves out memory (coherence of nearby
 rays, atomics), the end-of-launch tail and everything but step counts; it ranks variants for the GPU run
 (``gpu_dense_variants.py``), it does not time them. Writes ``<--out>/gpu-dense-lanes-<voxel>m.json``.
@@ -98,6 +103,46 @@ def persistent(c: np.ndarray, threads: int, setup: float, batch: int) -> float:
     return float(c.sum() / (32 * cost))
 
 
+def branch_stats(psog, lidar, pose) -> dict:
+    """Per-step branch divergence of one LiDAR's rays (``pose``: (6,)) run 32 to a warp in the shipped
+    (channel, azimuth) order, lane t of every warp at its ray's t-th step."""
+    grid = psog.grid
+    o, d = p3k.lidar_rays(lidar, pose[None])
+    tr = p3k.traverse(grid, o, d, lidar.max_range, backend="warp:cpu", stop=np.asarray(psog.stop_mask))
+    nx, ny, nz = grid.shape
+    v = tr.voxels
+    i, j, k = v // (ny * nz), (v // nz) % ny, v % nz
+    dv = np.stack([np.diff(i), np.diff(j), np.diff(k)], axis=1)
+    axis = np.where((dv != 0).sum(axis=1) == 1, np.argmax(dv != 0, axis=1), 3).astype(np.int8)   # 3: a corner
+    brick = (i >> 2) * 1_000_000_007 + (j >> 2) * 65_537 + (k >> 1)
+    enter = np.diff(brick) != 0
+    first = tr.offsets[:-1]
+    n = np.diff(tr.offsets) - 1                      # steps from one voxel to the next, per ray
+    T = int(n.max())
+    A = np.full((len(n), T), -1, dtype=np.int8)
+    E = np.zeros((len(n), T), dtype=bool)
+    r = np.repeat(np.arange(len(n)), np.maximum(n, 0))
+    t = np.arange(len(r)) - np.repeat(np.cumsum(np.maximum(n, 0)) - np.maximum(n, 0), np.maximum(n, 0))
+    src = np.repeat(first, np.maximum(n, 0)) + t     # transition voxels[src] -> voxels[src + 1]
+    A[r, t] = axis[src]
+    E[r, t] = enter[src]
+    W = len(n) // 32
+    A, E = A[:W * 32].reshape(W, 32, T), E[:W * 32].reshape(W, 32, T)
+    active = A >= 0
+    lanes = active.sum(axis=1)                       # (W, T) active lanes per warp-step
+    live = lanes > 0
+    kinds = sum((A == a).any(axis=1) for a in range(4))
+    entries = E.sum(axis=1)
+    return {"rays": int(len(n)), "warp_steps": int(live.sum()),
+            "mean_active_lanes": float(lanes[live].mean()),
+            "mean_axes_per_warp_step": float(kinds[live].mean()),
+            "share_of_warp_steps_with_2plus_axes": float((kinds[live] >= 2).mean()),
+            "lane_use_in_axis_branches": float(lanes.sum() / (32 * kinds.sum())),
+            "share_of_warp_steps_with_a_brick_entry": float((entries[live] > 0).mean()),
+            "lane_use_in_brick_entry_branch": float(entries.sum() / (32 * (entries > 0).sum())),
+            "brick_entries_per_step": float(E.sum() / active.sum())}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--voxel", type=float, default=0.1)
@@ -130,6 +175,8 @@ def main() -> None:
                 row[f"persist-t{tc}x{32 // tc}-b{batch}"] = persistent(order, args.threads_per_rig, S, batch)
         out["lane_efficiency"][f"setup={S:g}"] = row
         print(f"setup {S:g} step-equivalents:", {k: round(v, 3) for k, v in row.items()}, flush=True)
+    out["branches_lidar0"] = branch_stats(psog, lidar, poses[0])
+    print("branches (LiDAR 0):", out["branches_lidar0"], flush=True)
     res = Path(args.out)
     res.mkdir(parents=True, exist_ok=True)
     path = res / f"gpu-dense-lanes-{args.voxel}m.json"
