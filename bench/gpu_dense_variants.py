@@ -12,6 +12,8 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
   selects, so lanes stepping along different axes do not serialise three branches). The lane model
   (``gpu_dense_lanes.py``) found ray lengths in the shipped order already keep some 97 % of lanes busy,
   so Nsight's 16 of 32 active lanes point at branches inside a step rather than at ray lengths;
+* ``eager-1x32-rN``: that, and the brick's masks and bitset word loaded on every step (kept only on
+  entering a new brick), so that only the flush on leaving a brick remains a branch;
 * ``persist-stride-tCxA-wW-rN``: persistent threads (W times as many as the GPU holds at once at N
   registers and 128 threads per block), thread t walking rays t, t + T, ... in tile order;
 * ``persist-atomic-tCxA-cK-wW-rN``: the same, a lane whose ray has ended taking K ray numbers at a time
@@ -142,10 +144,13 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     out = {"shipped": {"kind": "shipped"}}
     for tile_c in (1, 2, 4, 8):
         out[f"tiled-{tile_c}x{32 // tile_c}-r80"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": 80,
-                                                     "select": False}
+                                                     "select": False, "eager": False}
     for tile_c, maxreg in ((1, 80), (1, 72), (1, 96), (2, 80)):
         out[f"select-{tile_c}x{32 // tile_c}-r{maxreg}"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": maxreg,
-                                                            "select": True}
+                                                            "select": True, "eager": False}
+    for maxreg in (72, 80, 96):
+        out[f"eager-1x32-r{maxreg}"] = {"kind": "tiled", "tile_c": 1, "maxreg": maxreg, "select": True,
+                                        "eager": True}
 
     def persist(mode, tile_c, maxreg, chunk=1, waves=1, reload=False, batch=1, select=False):
         threads = cpu_threads or waves * resident_threads(sm_count, maxreg)
@@ -171,7 +176,7 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     return out
 
 
-PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "select", "maxreg")
+PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "select", "eager", "maxreg")
 
 
 def build(vs: dict) -> None:
@@ -183,7 +188,7 @@ def build(vs: dict) -> None:
         key = (v["kind"],) + tuple(v.get(k) for k in PARAMS)
         if key not in made:
             if v["kind"] == "tiled":
-                made[key] = make_tiled(v["maxreg"], v["tile_c"], v["select"])
+                made[key] = make_tiled(v["maxreg"], v["tile_c"], v["select"], v["eager"])
             else:
                 made[key] = make_persistent(v["maxreg"], v["mode"], v["tile_c"], v["chunk"], v["reload"], v["batch"],
                                             v["select"])

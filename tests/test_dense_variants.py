@@ -119,8 +119,9 @@ def test_variants_match_the_shipped_kernel(small, device):
     vs["persist-atomic-t2x16-c3"] = dict(vs["persist-stride-t32x1"], mode=1, tile_c=2, chunk=3, reload=False)
     vs["persist-atomic-t16x2-c1-reload-b4"] = dict(vs["persist-stride-t32x1"], mode=1, tile_c=16, batch=4)
     vs["persist-stride-t8x4-select"] = dict(vs["persist-stride-t32x1"], tile_c=8, reload=False, select=True)
-    vs["tiled-16x2"] = {"kind": "tiled", "tile_c": 16, "maxreg": 80, "select": False}
-    vs["select-32x1"] = {"kind": "tiled", "tile_c": 32, "maxreg": None, "select": True}
+    vs["tiled-16x2"] = {"kind": "tiled", "tile_c": 16, "maxreg": 80, "select": False, "eager": False}
+    vs["select-32x1"] = {"kind": "tiled", "tile_c": 32, "maxreg": None, "select": True, "eager": False}
+    vs["eager-4x8"] = {"kind": "tiled", "tile_c": 4, "maxreg": None, "select": True, "eager": True}
     build(vs)
 
     wl.launch(vs["shipped"])
