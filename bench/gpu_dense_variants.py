@@ -142,10 +142,10 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     """The study's variants by name (parameters only; ``build`` makes the kernels). ``cpu_threads``: the
     persistent launch size where there are no SMs (the CPU smoke test and tests)."""
     out = {"shipped": {"kind": "shipped"}}
-    for tile_c in (1, 2, 4, 8):
+    for tile_c in (1, 4, 8):
         out[f"tiled-{tile_c}x{32 // tile_c}-r80"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": 80,
                                                      "select": False, "eager": False}
-    for tile_c, maxreg in ((1, 80), (1, 72), (1, 96), (2, 80)):
+    for tile_c, maxreg in ((1, 72), (1, 80), (1, 96)):
         out[f"select-{tile_c}x{32 // tile_c}-r{maxreg}"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": maxreg,
                                                             "select": True, "eager": False}
     for maxreg in (72, 80, 96):
@@ -162,16 +162,11 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
                      "batch": batch, "select": select, "waves": waves, "threads": int(threads), "maxreg": maxreg}
 
     persist(0, 1, 80)
-    persist(0, 4, 80)
     persist(1, 1, 80)
     persist(1, 4, 80)
     persist(1, 4, 80, chunk=4)
-    persist(1, 4, 80, waves=2)
-    persist(1, 4, 72)
-    persist(1, 4, 96)
     persist(1, 4, 80, batch=8)
     persist(1, 4, 80, batch=16)
-    persist(0, 4, 80, batch=16)
     persist(1, 1, 80, batch=16, select=True)
     return out
 
