@@ -25,7 +25,7 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
 Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU).
 
 Each variant's sums and counts (covered voxels, counted from the bitset with the shipped
-``count_bits_kernel``, which is timed with every kernel) must equal the shipped kernel's on every
+``count_bits_kernel``, which is timed with every kernel; zeroing the outputs is not) must equal the shipped kernel's on every
 repeat; a mismatch stops the run. Timing: one warm-up launch each (compiles), then ``--repeat`` rounds,
 each launching every variant once (interleaved, so clock and thermal drift fall on all alike); median and
 range of the launch time per rig. Writes ``<--out>/gpu-dense-variants-<voxel>m.json``.
@@ -117,9 +117,13 @@ class Workload:
         """The shipped CUDA score kernel (``score_kernel_gpu``)."""
         return p3k.get_backend("warp:cpu").k.score_kernel_gpu
 
-    def launch(self, v: dict) -> None:
-        """Zero the outputs, launch variant ``v`` (a dict from ``variants``) and count the covered voxels."""
+    def reset(self) -> None:
+        """Zero the bitsets, sums, counts and the ray counter (outside the timed region)."""
         self.bits.zero_(), self.sums.zero_(), self.counts.zero_(), self.counter.zero_()
+
+    def launch(self, v: dict) -> None:
+        """Launch variant ``v`` (a dict from ``variants``) on zeroed outputs and count the covered voxels
+        (the shipped ``count_bits_kernel``, part of every variant's time, as in gpu_score_variants.py)."""
         io = self.inputs + [self.bits, self.sums]
         if v["kind"] == "shipped":
             wp.launch(self.backend.k.score_kernel_gpu, dim=self.n_rays, device=self.device, inputs=io,
@@ -278,6 +282,7 @@ def main() -> None:
     build(vs)
     ref = None
     for name, v in vs.items():          # warm-up: compiles each module once, checks exactness
+        wl.reset()
         wl.launch(v)
         got = wl.result()
         ref = ref or got
@@ -287,6 +292,7 @@ def main() -> None:
     times = {k: [] for k in vs}
     for _ in range(args.repeat):
         for name, v in vs.items():
+            wl.reset()
             wp.synchronize_device(dev)
             t0 = time.perf_counter()
             wl.launch(v)

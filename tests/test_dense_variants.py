@@ -124,6 +124,7 @@ def test_variants_match_the_shipped_kernel(small, device):
     vs["eager-4x8"] = {"kind": "tiled", "tile_c": 4, "maxreg": None, "select": True, "eager": True}
     build(vs)
 
+    wl.reset()
     wl.launch(vs["shipped"])
     shipped = wl.result()
     # the harness's launch of the shipped kernel is the product's: the reference backend's sums and counts
@@ -133,6 +134,7 @@ def test_variants_match_the_shipped_kernel(small, device):
     assert shipped[1][2] != shipped[1][0], "the rig with a LiDAR outside the grid must see something else"
     for name, v in vs.items():
         wl.check_tile(v.get("tile_c", 1))
+        wl.reset()
         wl.launch(v)
         sums, counts = wl.result()
         np.testing.assert_array_equal(sums, shipped[0], err_msg=name)
