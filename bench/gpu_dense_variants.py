@@ -56,7 +56,9 @@ from place3d_kernels.backends.base import rotation_matrices, sensor_directions
 from place3d_kernels.backends.bricks import brick_masks, brick_shape
 from place3d_kernels.kernel_bench import machine_info
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# the kernels module beside this file (a script's own folder is on the path; an importing test's is not)
+if str(Path(__file__).resolve().parent) not in sys.path:
+    sys.path.append(str(Path(__file__).resolve().parent))
 from gpu_dense_variants_kernels import make_persistent, make_tiled  # noqa: E402
 
 BLOCK_DIM = 128          # the shipped kernel's (SCORE_BLOCK_DIM); every variant launches with it

@@ -16,7 +16,7 @@ import pytest
 import place3d_kernels as p3k
 
 wp = pytest.importorskip("warp")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+sys.path.append(str(Path(__file__).resolve().parents[1] / "bench"))     # appended: shadows nothing
 from gpu_dense_variants import Workload, build, variants  # noqa: E402
 from gpu_dense_variants_kernels import tiled_ray, walk32_next_sel  # noqa: E402
 from gpu_score_variants_kernels import walk32_begin, walk32_next  # noqa: E402
