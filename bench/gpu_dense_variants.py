@@ -1,0 +1,330 @@
+#!/usr/bin/env python3
+"""Lane utilisation of the dense-rig score kernel (issue 17, goal 3): ray order and persistent threads.
+
+Workload as in ``gpu_dense.py``: a population of ``--pop`` perturbed ``pyramid`` rigs of the dense LiDAR
+(4 x 64 x 2048 rays each) over the default town's P-SOG on a ``--voxel`` grid, occlusion by the P-SOG's
+stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the variants of
+``gpu_dense_variants_kernels.py`` side by side:
+
+* ``tiled-CxA-rN``: one thread per ray, the 32 lanes of a warp on a C x A (channel x azimuth) tile
+  (``tiled-1x32`` is the shipped order through the permutation: the permutation's own cost);
+* ``select-CxA-rN``: the same with the branch-free step (``walk32_next_sel``: the axis to step chosen by
+  selects, so lanes stepping along different axes do not serialise three branches). The lane model
+  (``gpu_dense_lanes.py``) found ray lengths in the shipped order already keep some 97 % of lanes busy,
+  so Nsight's 16 of 32 active lanes point at branches inside a step rather than at ray lengths;
+* ``eager-1x32-rN``: that, and the brick's masks and bitset word loaded on every step (kept only on
+  entering a new brick), so that only the flush on leaving a brick remains a branch;
+* ``persist-stride-tCxA-wW-rN``: persistent threads (W times as many as the GPU holds at once at N
+  registers and 128 threads per block), thread t walking rays t, t + T, ... in tile order;
+* ``persist-atomic-tCxA-cK-wW-rN``: the same, a lane whose ray has ended taking K ray numbers at a time
+  from a global atomic counter;
+* ``...-bB-...``: a lane whose ray has ended waits until B lanes of its warp are done, and they set up
+  their new rays together (a warp vote; Aila & Laine's dynamic fetch), instead of each stalling the warp
+  for its own float64 set-up.
+
+Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU).
+
+Each variant's sums and counts (covered voxels, counted from the bitset with the shipped
+``count_bits_kernel``, which is timed with every kernel; zeroing the outputs is not) must equal the shipped kernel's on every
+repeat; a mismatch stops the run. Timing: one warm-up launch each (compiles), then ``--repeat`` rounds,
+each launching every variant once (interleaved, so clock and thermal drift fall on all alike); median and
+range of the launch time per rig. Writes ``<--out>/gpu-dense-variants-<voxel>m.json``.
+
+    python3 bench/gpu_dense_variants.py --out $OUT                                  # CUDA, the goal workload
+    python3 bench/gpu_dense_variants.py --device cpu --voxel 0.4 --pop 2 --azimuths 256 --repeat 1  # smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+import place3d_kernels as p3k
+from place3d_kernels.backends.base import rotation_matrices, sensor_directions
+from place3d_kernels.backends.bricks import brick_masks, brick_shape
+from place3d_kernels.kernel_bench import machine_info
+
+# the kernels module beside this file (a script's own folder is on the path; an importing test's is not)
+if str(Path(__file__).resolve().parent) not in sys.path:
+    sys.path.append(str(Path(__file__).resolve().parent))
+from gpu_dense_variants_kernels import make_persistent, make_tiled  # noqa: E402
+
+BLOCK_DIM = 128          # the shipped kernel's (SCORE_BLOCK_DIM); every variant launches with it
+REGS_PER_SM = 65536      # H100 (and every CUDA GPU since Volta): 64 K 32-bit registers per SM
+MAX_THREADS_PER_SM = 2048
+
+
+def resident_threads(sm_count: int, maxreg: int | None, block_dim: int = BLOCK_DIM) -> int:
+    """Threads the GPU runs at once for a kernel capped at ``maxreg`` registers (uncapped: taken as 128),
+    from the register file alone (registers are allocated per warp in units of 256: 8 per thread)."""
+    regs = -(-(maxreg or 128) // 8) * 8
+    warps_per_block = block_dim // 32
+    blocks = min(32, REGS_PER_SM // (regs * 32 * warps_per_block), MAX_THREADS_PER_SM // block_dim)
+    return sm_count * max(blocks, 1) * block_dim
+
+
+class Workload:
+    """The score kernel's inputs for a population ``pop`` (P, L, 6) of ``lidar`` rigs over ``psog``, on a
+    Warp ``device``, and the launches of the shipped kernel and of the variants on them."""
+
+    def __init__(self, psog, lidar, pop, device: str):
+        self.device = device
+        self.backend = p3k.get_backend(f"warp:{device}")
+        pop = np.asarray(pop, dtype=np.float64)
+        self.P, self.L = pop.shape[:2]
+        flat = pop.reshape(-1, 6)
+        self.n_el, self.n_az = len(lidar.elevations), len(lidar.azimuths)
+        spec = psog.grid.spec
+        nx, ny, nz = spec.shape
+        bx, by, bz = brick_shape(spec.shape)
+        self.words = bx * by * bz
+        masks = brick_masks(spec.shape, np.asarray(psog.weights).reshape(-1) != 0,
+                            np.asarray(psog.stop_mask).reshape(-1) != 0)
+        sd = sensor_directions(lidar.elevations, lidar.azimuths)
+        self.n_rays = self.P * self.L * len(sd)
+        # as WarpBackend.score_placements launches score_kernel_gpu (place3d_kernels/backends/warp/host.py)
+        self.inputs = [
+            wp.array(sd, dtype=wp.vec3d, device=device),
+            wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=device),
+            wp.array(psog.grid.to_local(flat[:, :3]), dtype=wp.vec3d, device=device),
+            int(self.L), float(lidar.max_range), float(spec.voxel_size), int(nx), int(ny), int(nz), int(by), int(bz),
+            wp.array(masks.view(np.uint64), dtype=wp.uint64, device=device),
+            wp.array(np.asarray(psog.weights).reshape(-1).astype(np.int64), dtype=wp.int64, device=device),
+            int(self.words)]
+        self.bits = wp.zeros(self.P * self.words, dtype=wp.uint32, device=device)
+        self.sums = wp.zeros(self.P, dtype=wp.int64, device=device)
+        self.counts = wp.zeros(self.P, dtype=wp.int64, device=device)
+        self.counter = wp.zeros(1, dtype=wp.int32, device=device)
+
+    def check_tile(self, tile_c: int) -> None:
+        if 32 % tile_c or self.n_el % tile_c or self.n_az % (32 // tile_c):
+            raise ValueError(f"tile {tile_c} x {32 // max(tile_c, 1)} (channel x azimuth) does not tile the "
+                             f"{self.n_el} x {self.n_az} LiDAR; pick tile_c in 1, 2, 4, 8, 16, 32 dividing the "
+                             f"channel count, with 32 / tile_c dividing the azimuth count")
+
+    @staticmethod
+    def shipped_kernel():
+        """The shipped CUDA score kernel (``score_kernel_gpu``)."""
+        return p3k.get_backend("warp:cpu").k.score_kernel_gpu
+
+    def reset(self) -> None:
+        """Zero the bitsets, sums, counts and the ray counter (outside the timed region)."""
+        self.bits.zero_(), self.sums.zero_(), self.counts.zero_(), self.counter.zero_()
+
+    def launch(self, v: dict) -> None:
+        """Launch variant ``v`` (a dict from ``variants``) on zeroed outputs and count the covered voxels
+        (the shipped ``count_bits_kernel``, part of every variant's time, as in gpu_score_variants.py)."""
+        io = self.inputs + [self.bits, self.sums]
+        if v["kind"] == "shipped":
+            wp.launch(self.backend.k.score_kernel_gpu, dim=self.n_rays, device=self.device, inputs=io,
+                      block_dim=BLOCK_DIM)
+        elif v["kind"] == "tiled":
+            wp.launch(v["kernel"], dim=self.n_rays, device=self.device, inputs=io + [self.n_az],
+                      block_dim=BLOCK_DIM)
+        else:
+            wp.launch(v["kernel"], dim=v["threads"], device=self.device,
+                      inputs=io + [self.n_az, self.n_rays, v["threads"], self.counter], block_dim=BLOCK_DIM)
+        chunks = -(-self.words // self.backend.k.COUNT_WORDS)
+        wp.launch(self.backend.k.count_bits_kernel, dim=self.P * chunks, device=self.device,
+                  inputs=[self.bits, int(self.words), int(chunks), self.counts])
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.sums.numpy().copy(), self.counts.numpy().copy()
+
+
+def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
+    """The study's variants by name (parameters only; ``build`` makes the kernels). ``cpu_threads``: the
+    persistent launch size where there are no SMs (the CPU smoke test and tests)."""
+    out = {"shipped": {"kind": "shipped"}}
+    for tile_c in (1, 4, 8):
+        out[f"tiled-{tile_c}x{32 // tile_c}-r80"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": 80,
+                                                     "select": False, "eager": False}
+    for tile_c, maxreg in ((1, 72), (1, 80), (1, 96)):
+        out[f"select-{tile_c}x{32 // tile_c}-r{maxreg}"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": maxreg,
+                                                            "select": True, "eager": False}
+    for maxreg in (72, 80, 96):
+        out[f"eager-1x32-r{maxreg}"] = {"kind": "tiled", "tile_c": 1, "maxreg": maxreg, "select": True,
+                                        "eager": True}
+
+    def persist(mode, tile_c, maxreg, chunk=1, waves=1, reload=False, batch=1, select=False):
+        threads = cpu_threads or waves * resident_threads(sm_count, maxreg)
+        name = (f"persist-{'stride' if mode == 0 else 'atomic'}-t{tile_c}x{32 // tile_c}"
+                + (f"-c{chunk}" if mode else "") + ("-reload" if reload else "") + (f"-b{batch}" if batch > 1 else "")
+                + ("-select" if select else "")
+                + f"-w{waves}-r{maxreg or 'none'}")
+        out[name] = {"kind": "persistent", "mode": mode, "tile_c": tile_c, "chunk": chunk, "reload": reload,
+                     "batch": batch, "select": select, "waves": waves, "threads": int(threads), "maxreg": maxreg}
+
+    persist(0, 1, 80)
+    persist(1, 1, 80)
+    persist(1, 4, 80)
+    persist(1, 4, 80, chunk=4)
+    persist(1, 4, 80, batch=8)
+    persist(1, 4, 80, batch=16)
+    persist(1, 1, 80, batch=16, select=True)
+    return out
+
+
+PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "select", "eager", "maxreg")
+
+
+def build(vs: dict) -> None:
+    """Attach each variant's kernel (one module per kernel and parameter set)."""
+    made = {}
+    for v in vs.values():
+        if v["kind"] == "shipped":
+            continue
+        key = (v["kind"],) + tuple(v.get(k) for k in PARAMS)
+        if key not in made:
+            if v["kind"] == "tiled":
+                made[key] = make_tiled(v["maxreg"], v["tile_c"], v["select"], v["eager"])
+            else:
+                made[key] = make_persistent(v["maxreg"], v["mode"], v["tile_c"], v["chunk"], v["reload"], v["batch"],
+                                            v["select"])
+        v["kernel"] = made[key]
+
+
+def register_report(vs: dict, arch: int = 90) -> dict:
+    """Registers and spills per variant, without a GPU: Warp compiles each kernel's module to PTX with
+    NVRTC and ``ptxas -v`` (CUDA toolkit on PATH) assembles it for ``sm_<arch>``. Where this ptxas is older
+    than the PTX NVRTC wrote, the ``.version`` line is lowered to what ptxas names and the assembly
+    retried (the kernels use no newer instruction; ptxas would refuse one)."""
+    if shutil.which("ptxas") is None:
+        raise SystemExit("--registers needs ptxas (the CUDA toolkit) on PATH")
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, v in vs.items():
+            kern = Workload.shipped_kernel() if v["kind"] == "shipped" else v["kernel"]
+            [ptx] = wp.compile_aot_module(kern.module, device=None, arch=arch, module_dir=f"{tmp}/{name}",
+                                          use_ptx=True)
+            text = Path(ptx).read_bytes().replace(b"\0", b"").decode()
+            src = Path(tmp, name, "k.ptx")
+            for _ in range(2):
+                src.write_text(text)
+                r = subprocess.run(["ptxas", f"-arch=sm_{arch}", "-v", str(src), "-o", f"{tmp}/{name}/k.cubin"],
+                                   capture_output=True, text=True)
+                low = re.search(r"Unsupported \.version \S+; current version is '([\d.]+)'", r.stderr)
+                if not low:
+                    break
+                text = re.sub(r"^\.version \S+", f".version {low.group(1)}", text, flags=re.M)
+            regs = re.search(r"Used (\d+) registers", r.stderr)
+            spill = re.search(r"(\d+) bytes spill stores, (\d+) bytes spill loads", r.stderr)
+            if r.returncode or not regs:
+                raise SystemExit(f"{name}: ptxas failed: {r.stderr[-400:]}")
+            out[name] = {"registers": int(regs.group(1)), "spill_store_bytes": int(spill.group(1)) if spill else 0,
+                         "spill_load_bytes": int(spill.group(2)) if spill else 0}
+            print(f"{name:34s} {out[name]}", flush=True)
+    return out
+
+
+def dense_population(pop_size: int, seed: int = 0) -> np.ndarray:
+    """``gpu_dense.py``'s population: ``pyramid`` with positions jittered by up to 0.3 m (0.1 m steps)."""
+    rig = p3k.Placement.load("pyramid")
+    rng = np.random.default_rng(seed)
+    pop = np.repeat(rig.poses[None], pop_size, axis=0)
+    pop[..., :3] += rng.uniform(-0.3, 0.3, pop[..., :3].shape).round(1)
+    return pop
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--voxel", type=float, default=0.05)
+    ap.add_argument("--pop", type=int, default=16)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--azimuths", type=int, default=2048)
+    ap.add_argument("--max-range", type=float, default=100.0, help="as gpu_dense.py (default 100 m)")
+    ap.add_argument("--cpu-threads", type=int, default=509, help="persistent launch size on the CPU")
+    ap.add_argument("--only", default="", help="comma-separated variant names (shipped always runs)")
+    ap.add_argument("--registers", action="store_true",
+                    help="no timing: registers and spills per variant from ptxas for sm_90 (no GPU needed)")
+    ap.add_argument("--out", default=os.environ.get("OUT", str(Path(__file__).resolve().parent / "results")))
+    args = ap.parse_args()
+    dev = args.device
+    wp.init()
+    sm = wp.get_device(dev).sm_count if dev.startswith("cuda") and not args.registers else 0
+    vs = variants(sm, None if sm else args.cpu_threads)
+    only = [x for x in args.only.split(",") if x]
+    if only:
+        unknown = set(only) - set(vs)
+        if unknown:
+            raise SystemExit(f"--only: unknown variants {sorted(unknown)}; known: {sorted(vs)}")
+        vs = {k: v for k, v in vs.items() if k in only or k == "shipped"}
+    if args.registers:
+        build(vs)
+        report = register_report(vs)
+        res = Path(args.out)
+        res.mkdir(parents=True, exist_ok=True)
+        (res / "gpu-dense-variants-registers-sm90.json").write_text(json.dumps(
+            {"info": machine_info(), "arch": "sm_90", "block_dim": BLOCK_DIM, "variants": report}, indent=2))
+        return
+    d0 = p3k.DEFAULT_GRID
+    grid = p3k.Grid(d0.lower, d0.upper, args.voxel)
+    t = time.perf_counter()
+    psog = p3k.scene_psog(p3k.scene.town(seed=0), grid=grid, backend=f"warp:{dev}")
+    psog_s = time.perf_counter() - t
+    lidar = p3k.LidarModel.uniform(64, (-25, 15), args.azimuths, max_range=args.max_range, name="dense")
+    wl = Workload(psog, lidar, dense_population(args.pop), dev)
+    for v in vs.values():
+        if "tile_c" in v:
+            wl.check_tile(v["tile_c"])
+    t = time.perf_counter()
+    build(vs)
+    ref = None
+    for name, v in vs.items():          # warm-up: compiles each module once, checks exactness
+        wl.reset()
+        wl.launch(v)
+        got = wl.result()
+        ref = ref or got
+        if not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
+            raise SystemExit(f"variant {name}: sums/counts differ from the shipped kernel's")
+    compile_s = time.perf_counter() - t
+    times = {k: [] for k in vs}
+    for _ in range(args.repeat):
+        for name, v in vs.items():
+            wl.reset()
+            wp.synchronize_device(dev)
+            t0 = time.perf_counter()
+            wl.launch(v)
+            wp.synchronize_device(dev)
+            times[name].append(time.perf_counter() - t0)
+            got = wl.result()
+            if not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
+                raise SystemExit(f"variant {name}: sums/counts differ from the shipped kernel's on a repeat")
+    P = wl.P
+    out = {"info": machine_info(), "device": dev, "device_name": str(wp.get_device(dev).name), "sm_count": sm,
+           "grid": grid.to_dict(), "lidar": f"uniform(64, (-25, 15), {args.azimuths}, max_range={args.max_range})",
+           "rays_per_rig": wl.n_rays // P, "population": P, "repeat": args.repeat, "psog_build_s": psog_s,
+           "warmup_and_compile_s": compile_s, "sums": ref[0].tolist(), "covered_voxels": ref[1].tolist(),
+           "all_identical_to_shipped": True, "variants": {}}
+    base = statistics.median(times["shipped"])
+    for name, v in vs.items():
+        ts = times[name]
+        out["variants"][name] = {
+            **{k: v[k] for k in PARAMS + ("waves", "threads") if k in v},
+            "median_ms_per_rig": 1e3 * statistics.median(ts) / P, "min_ms_per_rig": 1e3 * min(ts) / P,
+            "max_ms_per_rig": 1e3 * max(ts) / P, "speedup_vs_shipped": base / statistics.median(ts)}
+        r = out["variants"][name]
+        print(f"{name:34s} {r['median_ms_per_rig']:8.3f} ms/rig  [{r['min_ms_per_rig']:.3f}, "
+              f"{r['max_ms_per_rig']:.3f}]  x{r['speedup_vs_shipped']:.3f}", flush=True)
+    res = Path(args.out)
+    res.mkdir(parents=True, exist_ok=True)
+    path = res / f"gpu-dense-variants-{args.voxel}m.json"
+    path.write_text(json.dumps(out, indent=2))
+    print("wrote", path)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,148 @@
+"""The dense-rig study's kernel variants (bench/gpu_dense_variants*.py) are exact: tiled ray order and
+persistent threads return the shipped score kernel's int64 sums and covered-voxel counts, bit for bit.
+
+Runs on Warp's CPU device (small and fast) and, where there is one, on CUDA, so the GPU run checks the
+same variants before timing them.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import place3d_kernels as p3k
+
+wp = pytest.importorskip("warp")
+sys.path.append(str(Path(__file__).resolve().parents[1] / "bench"))     # appended: shadows nothing
+from gpu_dense_variants import Workload, build, variants  # noqa: E402
+from gpu_dense_variants_kernels import tiled_ray, walk32_next_sel  # noqa: E402
+from gpu_score_variants_kernels import walk32_begin, walk32_next  # noqa: E402
+
+wp.init()
+DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
+CPU_THREADS = 97     # persistent launch size on the CPU: not a multiple of 32, far fewer than the rays
+
+
+@wp.kernel
+def _hit_kernel(n: wp.int32, n_az: wp.int32, tile_c: wp.int32, hits: wp.array(dtype=wp.int32)):
+    rig, sd = tiled_ray(wp.tid(), n, n_az, tile_c)
+    wp.atomic_add(hits, rig * n + sd, 1)
+
+
+@wp.kernel
+def _lockstep_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), s: wp.float64, n: wp.int32,
+                     steps: wp.array(dtype=wp.int32), bad: wp.array(dtype=wp.int32)):
+    # both steps from the same start, compared field by field after every step
+    tid = wp.tid()
+    sf = wp.float32(s)
+    a = walk32_begin(o[tid], d[tid], wp.float64(1.0e3), s, sf, n, n, n)
+    b = a
+    c = wp.int32(0)
+    for _ in range(3 * n + 3):
+        if a.alive == 0 and b.alive == 0:
+            break
+        if (a.i != b.i or a.j != b.j or a.k != b.k or a.alive != b.alive or a.tx != b.tx or a.ty != b.ty
+                or a.tz != b.tz or a.ki != b.ki or a.kj != b.kj or a.kk != b.kk):
+            bad[tid] = 1
+        a = walk32_next(a, o[tid], d[tid], s, sf, n, n, n)
+        b = walk32_next_sel(b, o[tid], d[tid], s, sf, n, n, n)
+        c += 1
+    steps[tid] = c
+
+
+def test_branch_free_step_takes_the_shipped_steps():
+    """walk32_next_sel against walk32_next on rays full of ties: origins on voxel planes, edges and
+    corners; directions along axes, face and space diagonals, and random."""
+    rng = np.random.default_rng(7)
+    s, n, m = 0.25, 24, 6000
+    o = rng.uniform(0.0, n * s, (m, 3))
+    snap = rng.integers(0, 4, m)                       # 0: random, 1-3: that many coordinates on a plane
+    for k in range(3):
+        on = snap > k
+        o[on, k] = np.round(o[on, k] / s) * s
+    dirs = np.array([[1, 0, 0], [0, -1, 0], [0, 0, 1], [1, 1, 0], [1, -1, 0], [0, 1, 1], [1, 1, 1], [-1, 1, -1],
+                     [2, 1, 0], [1, 2, 2], [1e-31, 1, 0.5]], dtype=np.float64)
+    d = np.where((rng.random(m) < 0.6)[:, None], dirs[rng.integers(0, len(dirs), m)], rng.normal(size=(m, 3)))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    steps = wp.zeros(m, dtype=wp.int32, device="cpu")
+    bad = wp.zeros(m, dtype=wp.int32, device="cpu")
+    wp.launch(_lockstep_kernel, dim=m, device="cpu",
+              inputs=[wp.array(o, dtype=wp.vec3d), wp.array(d, dtype=wp.vec3d), s, n, steps, bad])
+    assert steps.numpy().sum() > 10 * m, "the rays must walk"
+    assert bad.numpy().sum() == 0, f"{int(bad.numpy().sum())} rays stepped differently"
+
+
+@pytest.fixture(scope="module")
+def small():
+    """A 0.4 m P-SOG of the default town, a 32 x 64 LiDAR and 3 rigs: the ``pyramid`` rig, the same
+    moved by 0.3 m, and one with a LiDAR 6 m outside the grid (its rays enter from outside)."""
+    d0 = p3k.DEFAULT_GRID
+    grid = p3k.Grid(d0.lower, d0.upper, 0.4)
+    psog = p3k.scene_psog(p3k.scene.town(seed=0), grid=grid, backend="reference")
+    assert np.asarray(psog.stop_mask).any(), "the stop mask must be on (occupied voxels) for the test to bite"
+    lidar = p3k.LidarModel.uniform(32, (-25, 15), 64, max_range=100.0)
+    rig = p3k.Placement.load("pyramid").poses
+    pop = np.stack([rig, rig, rig])
+    pop[1, :, :2] += 0.3
+    pop[2, 0, 0] = d0.lower[0] - 6.0
+    return psog, lidar, pop
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("tile_c", [1, 2, 4, 8, 16, 32])
+def test_tile_order_is_a_permutation(device, tile_c):
+    n_az, n_el, rigs = 64, 32, 3
+    n = n_az * n_el
+    hits = wp.zeros(rigs * n, dtype=wp.int32, device=device)
+    wp.launch(_hit_kernel, dim=rigs * n, device=device, inputs=[n, n_az, tile_c, hits])
+    assert (hits.numpy() == 1).all(), f"tile_c={tile_c}: some rays walked twice or never"
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_variants_match_the_shipped_kernel(small, device):
+    psog, lidar, pop = small
+    ref = p3k.get_backend("reference")
+    local = pop.copy()
+    local[..., :3] = psog.grid.to_local(pop[..., :3])
+    want = ref.score_placements(psog.handle(ref, "sog"), lidar.elevations, lidar.azimuths, lidar.max_range, local)
+
+    wl = Workload(psog, lidar, pop, device)
+    sm = wp.get_device(device).sm_count if device.startswith("cuda") else 0
+    vs = variants(sm, None if sm else CPU_THREADS)
+    # every tile shape, a chunked counter, uncapped registers on top of the study's own list
+    threads = CPU_THREADS if not sm else vs["persist-stride-t1x32-w1-r80"]["threads"]
+    vs["persist-stride-t32x1"] = {"kind": "persistent", "mode": 0, "tile_c": 32, "chunk": 1, "reload": True,
+                                  "batch": 1, "select": False, "maxreg": None, "threads": threads}
+    vs["persist-atomic-t2x16-c3"] = dict(vs["persist-stride-t32x1"], mode=1, tile_c=2, chunk=3, reload=False)
+    vs["persist-atomic-t16x2-c1-reload-b4"] = dict(vs["persist-stride-t32x1"], mode=1, tile_c=16, batch=4)
+    vs["persist-stride-t8x4-select"] = dict(vs["persist-stride-t32x1"], tile_c=8, reload=False, select=True)
+    vs["tiled-16x2"] = {"kind": "tiled", "tile_c": 16, "maxreg": 80, "select": False, "eager": False}
+    vs["select-32x1"] = {"kind": "tiled", "tile_c": 32, "maxreg": None, "select": True, "eager": False}
+    vs["eager-4x8"] = {"kind": "tiled", "tile_c": 4, "maxreg": None, "select": True, "eager": True}
+    build(vs)
+
+    wl.reset()
+    wl.launch(vs["shipped"])
+    shipped = wl.result()
+    # the harness's launch of the shipped kernel is the product's: the reference backend's sums and counts
+    np.testing.assert_array_equal(shipped[0], want[0])
+    np.testing.assert_array_equal(shipped[1], want[1])
+    assert (shipped[1] > 0).all() and (shipped[0] != 0).all(), "every rig must cover voxels with entropy"
+    assert shipped[1][2] != shipped[1][0], "the rig with a LiDAR outside the grid must see something else"
+    for name, v in vs.items():
+        wl.check_tile(v.get("tile_c", 1))
+        wl.reset()
+        wl.launch(v)
+        sums, counts = wl.result()
+        np.testing.assert_array_equal(sums, shipped[0], err_msg=name)
+        np.testing.assert_array_equal(counts, shipped[1], err_msg=name)
+
+
+def test_a_tile_that_does_not_fit_is_refused(small):
+    psog, _, pop = small
+    wl = Workload(psog, p3k.LidarModel.uniform(6, (-25, 15), 64, max_range=100.0), pop[:1], "cpu")
+    with pytest.raises(ValueError, match="does not tile the 6 x 64 LiDAR"):
+        wl.check_tile(4)
