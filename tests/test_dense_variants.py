@@ -70,7 +70,8 @@ def test_branch_free_step_takes_the_shipped_steps():
     steps = wp.zeros(m, dtype=wp.int32, device="cpu")
     bad = wp.zeros(m, dtype=wp.int32, device="cpu")
     wp.launch(_lockstep_kernel, dim=m, device="cpu",
-              inputs=[wp.array(o, dtype=wp.vec3d), wp.array(d, dtype=wp.vec3d), s, n, steps, bad])
+              inputs=[wp.array(o, dtype=wp.vec3d, device="cpu"), wp.array(d, dtype=wp.vec3d, device="cpu"), s, n, steps,
+                      bad])
     assert steps.numpy().sum() > 10 * m, "the rays must walk"
     assert bad.numpy().sum() == 0, f"{int(bad.numpy().sum())} rays stepped differently"
 
