@@ -96,6 +96,13 @@ def test_shared_edge_hits_do_not_depend_on_the_tree(device, fp64):
         out[width] = b.raycast(b.upload_mesh(v, f), o, d, tm)
     assert np.array_equal(out[2][1], out[4][1]), np.flatnonzero(out[2][1] != out[4][1])[:10]
     assert np.array_equal(out[2][0], out[4][0])
+    # The float32 oracle rounds a division as IEEE does; OpenCL lets a GPU's float division be off by
+    # up to 2.5 ulp (unless built with -cl-fp32-correctly-rounded-divide-sqrt), so the distances of tied
+    # triangles, and with them the winner, can differ there. The widths must agree everywhere.
+    import pyopencl as cl
+
+    if not b.device.type & cl.device_type.CPU:
+        return
     tri = v.astype(F32)[f]
     # the rays that broke the rule before the fix, and an even sample of the rest
     check = sorted({274, 567, 660, 1767, 7428} | set(range(0, len(o), 97)))
