@@ -41,8 +41,8 @@ def add_arguments(p) -> None:
                    help="cache covered voxels per LiDAR pose (pays off when rigs repeat most poses; otherwise "
                         "the fused batched kernel is faster)")
     p.add_argument("--checkpoint", default=None,
-                   help="checkpoint file written after a generation, at most once a second (default: OUTPUT/checkpoint.pkl with "
-                        "--output)")
+                   help="checkpoint file written after a generation, at most once a second (default: "
+                        "OUTPUT/checkpoint.pkl with --output)")
     p.add_argument("--resume", action="store_true",
                    help="continue from --checkpoint (the run's settings must match; they are checked first)")
     p.add_argument("--output", default=None, help="folder for result.json, placement TOML, history.csv and plots")
@@ -131,7 +131,6 @@ def run(args, spec, psog_for) -> int:
         psog_for: ``psog_for(backend) -> (scene, PSOG)`` builds the P-SOG locally with the CLI's progress
             and cache options (``backend`` may be a ``Future`` of one, waited for only on a cache miss).
     """
-    from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.optimize import FixedHeight, MinDistance, MSOGObjective, SearchSpace, optimize
@@ -278,8 +277,6 @@ def holdout_specs(args, spec) -> list:
     Seeds alone: the training scene at each seed. Scenes alone: each scene at --seed. Both: every pair.
     A held-out P-SOG equal to the training one (same scene and seed) is refused: it validates nothing.
     """
-    from place3d_kernels.spec import SceneSpec
-
     seeds_arg, scenes_arg = getattr(args, "holdout_seeds", None), getattr(args, "holdout_scenes", None)
     if not seeds_arg and not scenes_arg:
         return []

@@ -5,9 +5,9 @@ actors. Building the procedural town only to learn that hash took 0.3 s on the d
 the H100 host, most of a warm ``place3d optimize`` start. So the key of each generated scene is
 remembered on disk under an identity that covers everything the build depends on: the scene spec (name,
 seed, frames), the source of every module of the scene builder (``place3d_kernels/scene/*.py``,
-``mesh.py``, ``classes.py``), the package and NumPy versions, and for an OpenDRIVE map the bytes of the
-map file. Any change to one of them is a new identity, so the scene is built again and the new key
-remembered: a stale key is never used. Scenes read from user files (``mesh:``, ``mitsuba:``) are always
+``mesh.py`` and ``classes.py``, all it imports from the package), the package, NumPy and SciPy versions,
+and for an OpenDRIVE map the bytes of the map file. Any change to one of them is a new identity, so the
+scene is built again and the new key remembered: a stale key is never used. Scenes read from user files (``mesh:``, ``mitsuba:``) are always
 built (their content is the scene).
 """
 
@@ -42,7 +42,13 @@ def _sources_digest() -> str:
 
     from place3d_kernels.version import VERSION
 
-    h = hashlib.sha256(f"{VERSION} numpy {np.__version__}".encode())
+    try:                        # the OpenDRIVE builder uses SciPy (KD-trees, ndimage); read its version only
+        from importlib.metadata import version
+
+        scipy_version = version("scipy")
+    except Exception:  # noqa: BLE001 - not installed: the OpenDRIVE builder would fail anyway
+        scipy_version = "none"
+    h = hashlib.sha256(f"{VERSION} numpy {np.__version__} scipy {scipy_version}".encode())
     files = sorted((_PKG / "scene").glob("*.py")) + [_PKG / "mesh.py", _PKG / "classes.py"]
     for f in files:
         h.update(f.name.encode())
