@@ -282,18 +282,21 @@ class WarpCore(Backend):
         o_step = 1 if len(origins) == n else 0
         t_step = 1 if np.ndim(t_max) else 0
         tm = self._f64(t_max, n) if t_step else self._t_in(mesh, t_max, 1)
-        out_t = wp.empty(n, dtype=wp.float64, device=self.device)
-        out_f = wp.empty(n, dtype=wp.int64, device=self.device)
-        out_l = wp.empty(n, dtype=wp.int32, device=self.device)
-        flags = wp.zeros(self.k.N_FLAGS, dtype=wp.int32, device=self.device)
+        # The four outputs share one allocation (t float64 | face int64 | label int32 | flags int32), so
+        # that they come back in one copy: one allocation and one synchronising copy instead of four.
+        buf = wp.empty(20 * n + 4 * self.k.N_FLAGS, dtype=wp.uint8, device=self.device)
+        out_t, out_f, out_l, flags = (wp.array(ptr=buf.ptr + at, dtype=dt, shape=(m,), device=self.device)
+                                      for at, dt, m in ((0, wp.float64, n), (8 * n, wp.int64, n),
+                                                        (16 * n, wp.int32, n), (20 * n, wp.int32, self.k.N_FLAGS)))
+        flags.zero_()
         s = wp.vec3d(*np.asarray(shift, dtype=np.float64).reshape(3).tolist())
         self._launch(self.k.RAYCAST_CHECKED[vec], n, lambda a, b: [
             mesh.mesh.id, mesh.corners64, mesh.face_ids, mesh.face_labels, o[a:b] if o_step else o, o_step, s,
             d[a:b], tm[a:b] if t_step else tm, t_step, out_t[a:b], out_f[a:b], out_l[a:b], flags])
-        raised = flags.numpy()
-        if raised.any():
+        host = buf.numpy()             # on the CPU device a view of buf's memory, which it keeps alive
+        if host[20 * n:].view(np.int32).any():
             return None
-        return out_t.numpy(), out_f.numpy(), out_l.numpy()
+        return host[:8 * n].view(np.float64), host[8 * n:16 * n].view(np.int64), host[16 * n:20 * n].view(np.int32)
 
     def _rays_as_given(self, a, vec) -> "wp.array":
         """(N, 3) contiguous float32 or float64 rays as a vec3f/vec3d array: on the CPU the NumPy memory
