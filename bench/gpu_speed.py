@@ -35,6 +35,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 REPEATS = 3
+PAIRED = 15      # back-to-back rounds of the ray-mesh API and the plain kernel (part (b))
 
 
 def stats(xs) -> dict:
@@ -177,9 +178,26 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
         out["plain_kernel_mrays_s"] = n / out["plain_kernel_s"]["median"] / 1e6
         out["api_over_plain_numpy_io"] = out["api_s"]["median"] / out["plain_numpy_io_s"]["median"]
         out["api_f64_over_plain_numpy_io"] = out["api_f64_s"]["median"] / out["plain_numpy_io_s"]["median"]
+        # The host's copies vary from call to call (2.5-5.5 ms for the same call on one H100 host), so the
+        # ratio is also taken in PAIRED rounds that time the API (float32 rays) and the plain kernel
+        # back to back: median and range of the per-round ratios.
+        api_w, plain_w = [], []
+        for _ in range(PAIRED):
+            t = time.perf_counter()
+            p3k.raycast(mesh, o32w, d32, t_max, backend=b)
+            api_w.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            numpy_io()
+            plain_w.append(time.perf_counter() - t)
+        out["paired_rounds"] = PAIRED
+        out["paired_api_s"], out["paired_plain_s"] = stats(api_w), stats(plain_w)
+        out["paired_api_over_plain"] = stats([a / p for a, p in zip(api_w, plain_w)])
         both = np.isfinite(hits.t) & (plain_t >= 0)
         out["hits_agree_1e-4m"] = float(np.mean(np.abs(hits.t[both] - plain_t[both]) <= 1e-4)) if both.any() else None
         out["hit_mismatch"] = int(np.sum(np.isfinite(hits.t) != (plain_t >= 0)))
+    if "paired_api_over_plain" in out:
+        r = out["paired_api_over_plain"]
+        print(f"(b) paired rounds: API / plain {r['median']:.2f} [{r['min']:.2f}-{r['max']:.2f}]", flush=True)
     print(f"(b) ray-mesh {n} rays: API {out['api_mrays_s']:.1f} M rays/s "
           f"(float32; float64 {out['api_f64_mrays_s']:.1f})"
           + (f", plain Warp numpy-io {out['plain_numpy_io_mrays_s']:.1f}, kernel {out['plain_kernel_mrays_s']:.1f}"
