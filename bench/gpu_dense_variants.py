@@ -154,7 +154,7 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     for tile_c, maxreg in ((1, 72), (1, 80), (1, 96)):
         out[f"select-{tile_c}x{32 // tile_c}-r{maxreg}"] = {"kind": "tiled", "tile_c": tile_c, "maxreg": maxreg,
                                                             "select": True, "eager": False}
-    for maxreg in (72, 80, 96):
+    for maxreg in (56, 64, 72, 80, 96):
         out[f"eager-1x32-r{maxreg}"] = {"kind": "tiled", "tile_c": 1, "maxreg": maxreg, "select": True,
                                         "eager": True}
 
