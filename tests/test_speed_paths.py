@@ -1,0 +1,154 @@
+"""The issue-17 speed paths give what the slow paths gave: each fast path is checked against the code it
+replaced (written out here), or against its own invalidation rule."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import place3d_kernels as p3k
+from place3d_kernels.backends import registry
+from place3d_kernels.pooled import DriveRecord, PooledPSOG
+from place3d_kernels.scene import keymemo
+from place3d_kernels.sog import entropy
+from place3d_kernels.spec import SceneSpec
+
+
+def _entropy_dense(p):
+    # the formula entropy() used before it took logs of the non-zero entries only
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(p > 0, -p * np.log(np.where(p > 0, p, 1.0)), 0.0).sum(axis=-1)
+
+
+def test_entropy_equals_the_dense_formula_bit_for_bit():
+    rng = np.random.default_rng(3)
+    c = rng.integers(0, 4, (5000, 22)) * (rng.random((5000, 22)) < 0.15)
+    c[:, 0] += 1
+    c[:7] = 0
+    c[:7, 0] = 10                           # single-class voxels: entropy -0.0 in both
+    p = c / c.sum(axis=1, keepdims=True)
+    a, b = entropy(p), _entropy_dense(p)
+    assert np.array_equal(a, b) and np.array_equal(np.signbit(a), np.signbit(b))
+
+
+def _records(rng, n=6, grid_voxels=4000, k=22):
+    out = []
+    for i in range(n):
+        vox = np.sort(rng.choice(grid_voxels, 300, replace=False)).astype(np.int64)
+        cls = rng.integers(1, k, 300).astype(np.int64)
+        order = np.lexsort((cls, vox))
+        out.append(DriveRecord(f"r{i}", 4, vox[order], cls[order].astype(np.int16),
+                               rng.integers(1, 4, 300).astype(np.int32)))
+    return out
+
+
+def _counts_from_scratch(pool, m):
+    # PooledPSOG.counts before the leave-one-out path: every record weighted and summed from scratch
+    cls_, inv, counts, owner, uvox, vinv = pool._prepare()
+    w = counts * np.asarray(m, np.int64)[owner]
+    summed = np.rint(np.bincount(inv, weights=w.astype(np.float64), minlength=len(cls_))).astype(np.int64)
+    out = np.zeros((len(uvox), pool.n_classes), np.int64)
+    out[vinv, cls_] = summed
+    occ = out[:, 1:].sum(axis=1)
+    keep = occ > 0
+    out, vox = out[keep], uvox[keep]
+    T = int((np.array([r.n_subsets for r in pool.records]) * np.asarray(m, np.int64)).sum())
+    out[:, 0] = T - occ[keep]
+    return vox, out, T
+
+
+def test_leave_one_out_counts_equal_counts_from_scratch():
+    rng = np.random.default_rng(5)
+    grid = p3k.Grid((0, 0, 0), (4, 10, 10), 1.0)
+    pool = PooledPSOG(grid, _records(rng))
+    n = len(pool)
+    weights = [np.where(np.arange(n) == i, 0, 1) for i in range(n)]            # the jackknife's
+    weights += [np.where(np.arange(n) == 2, 3, 1), rng.integers(0, 3, n)]     # one heavier; a bootstrap draw
+    for m in weights:
+        got, want = pool.counts(m), _counts_from_scratch(pool, m)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]) and got[2] == want[2]
+
+
+def test_covered_voxels_equal_the_unique_traversal():
+    psog = p3k.scene_psog(p3k.scene.town(seed=0), backend="warp:cpu")
+    lidar = p3k.LidarModel.load("place3d_16ch")
+    poses = p3k.Placement.load("pyramid").poses
+    b = p3k.get_backend("warp:cpu")
+    o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, poses)
+    for occlusion, stop in (("sog", psog.stop_mask), ("none", None)):
+        want = np.unique(p3k.traverse(psog.grid, o, d, lidar.max_range, backend=b, stop=stop).voxels)
+        got = p3k.covered_voxels(psog, lidar, poses, occlusion=occlusion, backend=b)
+        assert np.array_equal(got, want)
+
+
+def test_scene_keys_are_remembered_and_a_new_identity_builds_again(tmp_path, monkeypatch):
+    spec = SceneSpec("town", seed=0, frames=8)
+    first = spec.for_cache(tmp_path)                     # not remembered yet: the scene itself
+    assert isinstance(first, p3k.scene.Scene)
+    again = spec.for_cache(tmp_path)                     # now a reference with the same name and key
+    assert isinstance(again, keymemo.SceneRef) and (again.name, again.key) == (first.name, first.key)
+    assert [json.loads(f.read_text()) for f in (tmp_path / "scene-keys").iterdir()] == \
+        [{"name": first.name, "key": first.key}]
+    # another spec, or a changed builder source, is another identity: built again, never the old key
+    assert isinstance(SceneSpec("town", seed=1, frames=8).for_cache(tmp_path), p3k.scene.Scene)
+    keymemo._sources_digest.cache_clear()
+    monkeypatch.setattr(keymemo, "_sources_digest", lambda: "a changed builder")
+    assert isinstance(spec.for_cache(tmp_path), p3k.scene.Scene)
+    # a mesh scene is its file: always built, never remembered
+    assert keymemo.identity({"name": "mesh:x.obj"}, "mesh", None) is None
+
+
+def test_a_cached_psog_is_read_without_building_the_scene(tmp_path, monkeypatch):
+    from place3d_kernels.spec import PSOGSpec
+
+    spec = PSOGSpec(SceneSpec("town", seed=0, frames=8), backend="warp:cpu", cache=str(tmp_path))
+    built = spec.build(cache=str(tmp_path))
+    spec.scene.for_cache(tmp_path)                       # the first build remembered the key already
+
+    def refuse(*a, **k):
+        raise AssertionError("the scene was built although its P-SOG is cached")
+
+    monkeypatch.setattr("place3d_kernels.spec._build_scene", refuse)
+    again = spec.build(cache=str(tmp_path))
+    assert np.array_equal(again.voxels, built.voxels) and np.array_equal(again.probs, built.probs)
+
+
+def test_auto_does_not_import_warp_without_a_cuda_driver(monkeypatch):
+    monkeypatch.setattr(registry, "_cuda_driver_loadable", lambda: False)
+    probed = []
+    real = registry._probe_cached
+
+    def spy(fam):
+        probed.append(fam)
+        return real(fam)
+
+    monkeypatch.setattr(registry, "_probe_cached", spy)
+    name = registry._auto()
+    if name == "opencl:pocl" or name.startswith("opencl:"):
+        assert "warp" not in probed
+    else:                                                # no OpenCL here: Warp's CPU device or the reference
+        assert name in ("warp:cpu", "reference")
+
+
+@pytest.mark.parametrize("fails_at", [3, 6])
+def test_a_run_that_raises_keeps_its_last_completed_generation(tmp_path, fails_at):
+    from place3d_kernels.optimize import SearchSpace, optimize
+    from place3d_kernels.optimize.checkpoint import load_checkpoint
+
+    space = SearchSpace(n_lidars=1)
+    calls = {"n": 0}
+
+    def objective(X):
+        calls["n"] += 1
+        if calls["n"] == fails_at:
+            raise RuntimeError("device lost")
+        return -np.sum((X - 0.1) ** 2, axis=1)
+
+    ckpt = tmp_path / "run.ckpt"
+    with pytest.raises(RuntimeError, match="device lost"):
+        optimize(objective, space, checkpoint=ckpt, max_evals=400, seed=1, progress=False)
+    # every objective call but the failing one completed a generation; all of them are on disk although
+    # checkpoints are written at most once a second
+    assert load_checkpoint(ckpt)["generation"] == fails_at - 1
