@@ -205,20 +205,29 @@ class PSOG:
         # a name of its own per writer: processes that build the same cached P-SOG at once (tests, Ray
         # workers) each write their own file, and the last rename wins with identical content
         tmp = path.with_name(f"{path.name}.{os.getpid()}-{threading.get_ident()}.tmp.npz")
-        np.savez_compressed(tmp, voxels=self.voxels, probs=self.probs,
-                            counts=self.counts if self.counts is not None else np.zeros(0),
-                            meta=json.dumps({"grid": self.grid.to_dict(), "channels": list(self.channels),
-                                             "n_subsets": self.n_subsets, "format": _FORMAT}))
+        arrays = dict(voxels=self.voxels, counts=self.counts if self.counts is not None else np.zeros(0),
+                      meta=json.dumps({"grid": self.grid.to_dict(), "channels": list(self.channels),
+                                       "n_subsets": self.n_subsets, "format": _FORMAT}))
+        # probs left out when they are counts / T to the bit (P-SOGs from frames): a third of the bytes to
+        # decompress on every cached load (0.1-0.2 s of a warm optimise on the dev VM, more beside other work)
+        if not self._probs_from_counts():
+            arrays["probs"] = self.probs
+        np.savez_compressed(tmp, **arrays)
         os.replace(tmp, path)
         return path
+
+    def _probs_from_counts(self) -> bool:
+        return (self.counts is not None and bool(self.n_subsets) and self.counts.shape == self.probs.shape
+                and np.array_equal(self.probs, self.counts / float(self.n_subsets)))
 
     @classmethod
     def load(cls, path) -> "PSOG":
         with np.load(path) as z:
             meta = json.loads(str(z["meta"]))
             counts = z["counts"] if z["counts"].size else None
-            return cls(Grid.from_dict(meta["grid"]), z["voxels"], z["probs"], meta["channels"],
-                       meta["n_subsets"], counts)
+            # files without probs stored them as counts / T (save checked that this gives the same bits)
+            probs = z["probs"] if "probs" in z.files else counts / float(meta["n_subsets"])
+            return cls(Grid.from_dict(meta["grid"]), z["voxels"], probs, meta["channels"], meta["n_subsets"], counts)
 
     def __repr__(self) -> str:
         return (f"PSOG(grid {self.grid.shape} @ {self.grid.voxel_size} m, {len(self.voxels):,} occupied voxels, "

@@ -96,6 +96,22 @@ def test_save_load_roundtrip(tmp_path):
     np.testing.assert_array_equal(back.voxels, psog.voxels)
     np.testing.assert_array_equal(back.probs, psog.probs)
     assert back.grid == psog.grid and back.n_subsets == 1
+    with np.load(tmp_path / "p.npz") as z:
+        assert "probs" not in z.files            # from frames: counts / T, derived on load to the same bits
+
+
+def test_save_load_keeps_probs_that_are_not_counts_over_t(tmp_path):
+    rng = np.random.default_rng(2)
+    p = rng.random(G.shape + (3,))
+    p /= p.sum(axis=-1, keepdims=True)
+    psog = p3k.PSOG.from_probabilities(G, p)                 # no counts: probs are stored
+    back = p3k.PSOG.load(psog.save(tmp_path / "p.npz"))
+    np.testing.assert_array_equal(back.probs, psog.probs)
+    f = [frame([[0.5, 0.5, 0.5], [1.5, 2.5, 1.5]], [ROAD, CAR])]
+    counted = p3k.PSOG.from_frames(f, G, frames_per_subset=1, backend="reference")
+    odd = p3k.PSOG(G, counted.voxels, counted.probs * 0.5 + 0.25, counted.channels, 1, counted.counts)
+    back = p3k.PSOG.load(odd.save(tmp_path / "q.npz"))      # counts present but probs not counts / T
+    np.testing.assert_array_equal(back.probs, odd.probs)
 
 
 def test_psog_identical_across_backends(device_backend, rng):
