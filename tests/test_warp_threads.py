@@ -126,3 +126,16 @@ def test_thread_count_variable_is_used(monkeypatch):
     assert warp_backend.cpu_threads() == 5
     monkeypatch.delenv("PLACE3D_WARP_CPU_THREADS")
     assert warp_backend.cpu_threads() >= 1
+
+
+def test_single_rig_split_rule(monkeypatch):
+    """By default a single rig is split only when it is large and a core is idle beside this process."""
+    from place3d_kernels.backends.warp import host
+
+    monkeypatch.setattr(host, "SPLIT_SINGLE_RIG", None)
+    monkeypatch.setattr(host.os, "getloadavg", lambda: (0.6, 0.6, 0.6))
+    assert host._split_pays(262144, 2) and not host._split_pays(16000, 2) and not host._split_pays(262144, 1)
+    monkeypatch.setattr(host.os, "getloadavg", lambda: (1.9, 1.9, 1.9))      # another job on the other core
+    assert not host._split_pays(262144, 2)
+    monkeypatch.setattr(host, "SPLIT_SINGLE_RIG", True)
+    assert host._split_pays(16000, 2)

@@ -107,15 +107,26 @@ def cpu_threads() -> int:
 # "Figures behind backend code comments")
 MIN_CHUNK = 2048
 CHUNKS_PER_THREAD = 8    # many small chunks per thread balance rays of very different lengths
-# Split a single rig on the CPU over the threads (per-thread bitsets, OR-ed; _score_one_rig_split)?
-# Exact, but off: on the 2-core dev VM it never measured a gain (msog of pyramid on town(seed=0), split on
-# vs off, medians of 7-9 interleaved runs, 2026-11-24: place3d_16ch, 16k rays: 19.1 vs 14.0 ms at load 1.2,
-# 31.2 vs 24.0 ms at load 4; collection_64ch, 262k rays: 182.6 vs 161.8 ms at load 1.3; earlier 304-355
-# vs 285-289 ms). The split work alone costs 8-17 % more (near-sensor voxels marked once per thread) plus
-# the union's sum on the host (~5 ms at 16k rays, ~10 ms at 262k), so it can pay only for rigs of
-# ~10^5 rays or more on cores that are really idle, which this shared VM never had while measured.
-# Turn it on there (tests force it on to check it stays exact).
-SPLIT_SINGLE_RIG = False
+# Split a single rig on the CPU over the threads (per-thread bitsets, OR-ed; _score_one_rig_split)? Exact
+# either way. It pays only for large rigs on cores that are really idle: the split work costs 8-17 % more
+# (near-sensor voxels marked once per thread) plus the union's sum on the host. Figures (bench/README.md,
+# "Figures behind backend code comments"): on the idle 2-core dev VM 97 against 162 ms for a 262k-ray
+# rig and no difference at 16k rays; under other load it was slower at every size. So None (the default)
+# splits rigs of SPLIT_MIN_RAYS or more when the 1-minute load average leaves a core idle beside this
+# process; True / False force it (tests force it on to check it stays exact).
+SPLIT_SINGLE_RIG: bool | None = None
+SPLIT_MIN_RAYS = 65536
+
+
+def _split_pays(rays: int, threads: int) -> bool:
+    if SPLIT_SINGLE_RIG is not None:
+        return SPLIT_SINGLE_RIG
+    if rays < SPLIT_MIN_RAYS or threads < 2:
+        return False
+    try:
+        return os.getloadavg()[0] <= threads - 1.0     # this process counts one; another core must be free
+    except OSError:  # pragma: no cover - no load average on this platform
+        return False
 
 
 class _WarpMesh:
@@ -407,7 +418,7 @@ class WarpCore(Backend):
                       inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
                               int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
                       block_dim=self.k.SCORE_BLOCK_DIM)
-        elif P == 1 and self.threads > 1 and rays >= 2 * MIN_CHUNK and SPLIT_SINGLE_RIG:
+        elif P == 1 and self.threads > 1 and rays >= 2 * MIN_CHUNK and _split_pays(rays, self.threads):
             return self._score_one_rig_split(handle, sd, rot, pos, L, t_max)
         elif P == 1 or self.threads <= 1:
             # no block_dim on the CPU: the default keeps the kernels module's one compiled variant
