@@ -473,6 +473,43 @@ class Jackknife:
                 "within_noise": [list(p) for p in self.within_noise()]}
 
 
+#: Threads that build leave-one-out P-SOGs ahead of their scoring (NumPy work that mostly releases the
+#: GIL); each one in flight holds a P-SOG (about 100 MB on the default grid).
+LEFT_OUT_THREADS = 3
+
+
+def _left_out_psogs(pooled: PooledPSOG, tasks):
+    """The n leave-one-out P-SOGs in order, built up to LEFT_OUT_THREADS ahead on threads, each with its
+    weights and stop mask per task computed (the host work of a jackknife step; its scoring stays on the
+    caller's thread, which owns the backend)."""
+    n = len(pooled)
+    pooled.counts(np.ones(n, dtype=np.int64))       # the shared memos, before the threads read them
+
+    def build(i):
+        m = np.ones(n, dtype=np.int64)
+        m[i] = 0
+        ps = pooled.psog(m)
+        for t in tasks:
+            q = ps.for_task(t)
+            q.weights, q.stop_mask                   # noqa: B018 - computed (and cached) here
+        return ps
+
+    workers = max(1, min(LEFT_OUT_THREADS, (os.cpu_count() or 1) - 1))
+    if workers == 1:
+        yield from (build(i) for i in range(n))
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(workers, thread_name_prefix="place3d-jackknife") as ex:
+        ahead = [ex.submit(build, i) for i in range(min(workers, n))]
+        for i in range(n):
+            ps = ahead[i].result()
+            if i + workers < n:
+                ahead.append(ex.submit(build, i + workers))
+            ahead[i] = None                          # the caller holds it; drop ours
+            yield ps
+
+
 def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
                       backend=None, level: float = 0.95, point: dict | None = None, unit: str = "subsets",
                       progress: bool = False, normalisation: str = "paper", body=None) -> dict:
@@ -496,10 +533,7 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
         from tqdm import tqdm
 
         it = tqdm(it, desc="jackknife", unit="left-out", leave=False)
-    for i in it:
-        m = np.ones(n, dtype=np.int64)
-        m[i] = 0
-        ps = pooled.psog(m)
+    for i, ps in zip(it, _left_out_psogs(pooled, tasks)):
         for t in tasks:
             scores[t][i] = msog_batch(ps, L, poses, occlusion, t, b, normalisation=normalisation, body=body)
     out = {}

@@ -152,3 +152,21 @@ def test_a_run_that_raises_keeps_its_last_completed_generation(tmp_path, fails_a
     # every objective call but the failing one completed a generation; all of them are on disk although
     # checkpoints are written at most once a second
     assert load_checkpoint(ckpt)["generation"] == fails_at - 1
+
+
+def test_jackknife_with_left_out_psogs_built_on_threads_equals_one_thread(monkeypatch):
+    from place3d_kernels import uncertainty as U
+
+    rng = np.random.default_rng(9)
+    grid = p3k.Grid((-5, -5, -1), (5, 5, 3), 0.5)
+    recs = _records(rng, n=5, grid_voxels=grid.n_voxels)
+    lidar = p3k.LidarModel.uniform(8, (-20, 10), 32, max_range=20.0)
+    rigs = {"a": [[0.0, 0.0, 1.0, 0, 0, 0]], "b": [[1.0, -0.5, 1.5, 0, 0, 0.3]]}
+    runs = []
+    for threads, cpus in ((1, 1), (3, 8)):
+        monkeypatch.setattr(U, "LEFT_OUT_THREADS", threads)
+        monkeypatch.setattr(U.os, "cpu_count", lambda cpus=cpus: cpus)
+        runs.append(U.jackknife_records(recs, grid, lidar, rigs, tasks=("seg", "det"), backend="reference"))
+    for t in ("seg", "det"):
+        assert np.array_equal(runs[0][t].samples, runs[1][t].samples)
+        assert np.isfinite(runs[0][t].samples).all() and np.ptp(runs[0][t].samples) > 0   # the units differ
