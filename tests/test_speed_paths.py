@@ -170,3 +170,23 @@ def test_jackknife_with_left_out_psogs_built_on_threads_equals_one_thread(monkey
     for t in ("seg", "det"):
         assert np.array_equal(runs[0][t].samples, runs[1][t].samples)
         assert np.isfinite(runs[0][t].samples).all() and np.ptp(runs[0][t].samples) > 0   # the units differ
+
+
+@pytest.mark.parametrize("processes", [False, True])
+def test_plot_worker_draws_the_optimise_outputs_and_reports_errors(tmp_path, processes):
+    from place3d_kernels.optimize import SearchSpace
+    from place3d_kernels.optimize.plots import PlotWorker
+
+    history = [{"evaluations": 10 * (i + 1), "best": -0.05 + 0.001 * i, "gen_best": -0.05 + 0.001 * i,
+                "gen_mean": -0.06, "sigma": 0.3 / (i + 1)} for i in range(5)]
+    best = p3k.Placement.load("pyramid")
+    view = (np.random.default_rng(0).random((20, 20)), np.eye(20, dtype=bool), 20, (-4.0, 4.0, -4.0, 4.0), "pyramid")
+    worker = PlotWorker(processes=processes)
+    try:
+        paths = worker.submit(history, best, SearchSpace(n_lidars=4), view, tmp_path).result(timeout=120)
+        assert sorted(p.rsplit("/", 1)[1] for p in paths) == ["convergence.png", "coverage.png", "rig.png"]
+        assert all((tmp_path / n).stat().st_size > 1000 for n in ("convergence.png", "coverage.png", "rig.png"))
+        with pytest.raises(Exception):
+            worker.submit(history, best, None, view[:2], tmp_path / "bad").result(timeout=120)
+    finally:
+        worker.close()

@@ -131,12 +131,7 @@ def run(args, spec, psog_for) -> int:
         psog_for: ``psog_for(backend) -> (scene, PSOG)`` builds the P-SOG locally with the CLI's progress
             and cache options (``backend`` may be a ``Future`` of one, waited for only on a cache miss).
     """
-    from place3d_kernels.lidar import LidarModel
-    from place3d_kernels.metrics import msog_batch
-    from place3d_kernels.optimize import FixedHeight, MinDistance, MSOGObjective, SearchSpace, optimize
-    from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
-
-    from place3d_kernels.manifest import provenance, write_manifest
+    from place3d_kernels.optimize.plots import PlotWorker
     from place3d_kernels.rig_cli import run_rig, wants_rig_mode
 
     if wants_rig_mode(args):              # sensors, surfaces, a body, cost: place3d_kernels/rig_cli.py
@@ -145,6 +140,25 @@ def run(args, spec, psog_for) -> int:
     if args.opt_seed is None:
         args.opt_seed = args.seed          # --seed S seeds the scene and the optimiser alike
     check_args(args, spec)
+    plotter = PlotWorker() if args.output else None      # started now: it imports matplotlib meanwhile
+    failed = True
+    try:
+        code = _run(args, spec, psog_for, plotter, t0)
+        failed = False
+        return code
+    finally:
+        if plotter is not None:
+            plotter.close(cancel=failed)
+
+
+def _run(args, spec, psog_for, plotter, t0) -> int:
+    """``run`` after the checks: the P-SOG, the search, the reports and the outputs."""
+    from place3d_kernels.lidar import LidarModel
+    from place3d_kernels.manifest import provenance, write_manifest
+    from place3d_kernels.metrics import msog_batch
+    from place3d_kernels.optimize import FixedHeight, MinDistance, MSOGObjective, SearchSpace, optimize
+    from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
+
     # The backend probe (importing Warp and starting CUDA: 1.1-1.5 s on the H100 host) runs on a thread
     # while this one builds the scene and reads the cached P-SOG, which need no backend; a cache miss
     # waits for it (scene_psog takes the Future).
@@ -228,13 +242,8 @@ def run(args, spec, psog_for) -> int:
     if args.output:
         out = Path(args.output)
         out.mkdir(parents=True, exist_ok=True)
-        plots = start_plots(res, best, space, psog, lidar, b, args.occlusion, out)
-    try:
-        report_trust(args, spec, res, psog, lidar, b, baselines)
-    except BaseException:
-        if plots is not None:
-            plots.cancel()
-        raise
+        plots = start_plots(plotter, res, best, space, psog, lidar, b, args.occlusion, out)
+    report_trust(args, spec, res, psog, lidar, b, baselines)
     cert = res.certificate
     if args.output:
         best.save(out / f"optimized-{args.task}.toml",
@@ -355,59 +364,36 @@ def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
         print(line)
 
 
-def start_plots(res, best, space, psog, lidar, backend, occlusion, out: Path):
-    """Draw convergence.png, rig.png and coverage.png on a thread; returns its Future.
+def start_plots(plotter, res, best, space, psog, lidar, backend, occlusion, out: Path):
+    """Hand convergence.png, rig.png and coverage.png to ``plotter`` (a ``PlotWorker``); returns the Future.
 
-    The rig's covered voxels are computed here, on the calling thread (the backend is not shared across
-    threads); matplotlib (importing it and drawing: 1-2 s on the H100 host) then runs beside the
-    diagnostics and the jackknife, which wait mostly on the device and on NumPy.
+    The rig's covered voxels (a backend call) and the coverage view's two top-view arrays are computed
+    here, on the calling thread; matplotlib then runs beside the diagnostics and the jackknife.
     """
     from place3d_kernels.metrics import covered_voxels
 
     with section("plotting: covered voxels"):
         covered = covered_voxels(psog, lidar, best.poses, occlusion=occlusion, backend=backend)
+        view = coverage_view(psog, covered) + (best.name or "the rig",)
+    return plotter.submit(res.history, best, space, view, out)
 
-    def draw():
-        from place3d_kernels.optimize import plot_convergence, plot_rig
 
-        with section("plotting (thread)"):
-            plot_convergence(res.history, out / "convergence.png")
-            plot_rig(best, out / "rig.png", baselines=None, bounds=space)
-            plot_coverage(psog, lidar, best, out / "coverage.png", covered=covered)
-
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="place3d-plots")
-    try:
-        return pool.submit(draw)
-    finally:
-        pool.shutdown(wait=False)
+def coverage_view(psog, covered) -> tuple:
+    """(column entropy, covered columns, covered voxels, extent): ``draw_coverage``'s data for a rig's
+    ``covered_voxels`` on ``psog``."""
+    g = psog.grid
+    mask = np.zeros(g.n_voxels, bool)
+    mask[covered] = True
+    return (psog.entropy.sum(axis=2), mask.reshape(g.shape).any(axis=2), int(len(covered)),
+            (g.lower[1], g.upper[1], g.lower[0], g.upper[0]))
 
 
 def plot_coverage(psog, lidar, placement, path, backend=None, occlusion="sog", covered=None):
     """Top view of the voxels the rig covers, over the P-SOG's column entropy (``covered``: the rig's
     ``covered_voxels`` when already computed)."""
-    from matplotlib.figure import Figure
-
     from place3d_kernels.metrics import covered_voxels
+    from place3d_kernels.optimize.plots import draw_coverage
 
-    g = psog.grid
-    mask = np.zeros(g.n_voxels, bool)
     if covered is None:
         covered = covered_voxels(psog, lidar, placement.poses, occlusion=occlusion, backend=backend)
-    mask[covered] = True
-    cov = mask.reshape(g.shape).any(axis=2)
-    ent = psog.entropy.sum(axis=2)
-    fig = Figure(figsize=(11, 5))
-    ext = (g.lower[1], g.upper[1], g.lower[0], g.upper[0])
-    ax = fig.add_subplot(1, 2, 1)
-    im = ax.imshow(ent, origin="lower", extent=ext, cmap="magma")
-    ax.set_title("P-SOG entropy, summed over z (nats)")
-    ax.set_xlabel("y (m, left)")
-    ax.set_ylabel("x (m, forward)")
-    fig.colorbar(im, ax=ax, shrink=0.8)
-    ax = fig.add_subplot(1, 2, 2)
-    ax.imshow(np.where(cov, ent, np.nan), origin="lower", extent=ext, cmap="magma")
-    ax.set_title(f"covered by {placement.name or 'the rig'}: {int(mask.sum()):,} voxels")
-    ax.set_xlabel("y (m, left)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    return Path(path)
+    return draw_coverage(*coverage_view(psog, covered), placement.name or "the rig", path)

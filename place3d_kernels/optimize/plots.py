@@ -13,7 +13,7 @@ import numpy as np
 
 from place3d_kernels.placement import Placement
 
-__all__ = ["plot_convergence", "plot_rig"]
+__all__ = ["plot_convergence", "plot_rig", "draw_coverage", "draw_outputs", "PlotWorker"]
 
 
 def _figure(w, h):
@@ -145,3 +145,75 @@ def _rect(ra, rb):
 
     return Rectangle((ra[0], rb[0]), ra[1] - ra[0], rb[1] - rb[0], fill=False, ls="--", color="0.5",
                      label="search box")
+
+
+def draw_coverage(entropy2d, covered2d, n_covered: int, extent, name: str, path) -> Path:
+    """Top view of the voxels a rig covers (``covered2d``: columns with a covered voxel) over the P-SOG's
+    column entropy (``entropy2d``), as coverage.png of ``place3d optimize``."""
+    fig = _figure(11, 5)
+    fig.set_dpi(110)
+    ax = fig.add_subplot(1, 2, 1)
+    im = ax.imshow(entropy2d, origin="lower", extent=extent, cmap="magma")
+    ax.set_title("P-SOG entropy, summed over z (nats)")
+    ax.set_xlabel("y (m, left)")
+    ax.set_ylabel("x (m, forward)")
+    fig.colorbar(im, ax=ax, shrink=0.8)
+    ax = fig.add_subplot(1, 2, 2)
+    ax.imshow(np.where(covered2d, entropy2d, np.nan), origin="lower", extent=extent, cmap="magma")
+    ax.set_title(f"covered by {name}: {int(n_covered):,} voxels")
+    ax.set_xlabel("y (m, left)")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def draw_outputs(history, best: Placement, bounds, coverage: tuple, out) -> list[str]:
+    """convergence.png, rig.png and coverage.png of ``place3d optimize`` in ``out`` (``coverage``: the
+    arguments of ``draw_coverage`` before the path)."""
+    from place3d_kernels.profiling import section
+
+    out = Path(out)
+    with section("plotting (worker)"):          # recorded when drawn on a thread of a profiled command
+        paths = [plot_convergence(history, out / "convergence.png"),
+                 plot_rig(best, out / "rig.png", baselines=None, bounds=bounds),
+                 draw_coverage(*coverage, out / "coverage.png")]
+    return [str(p) for p in paths]
+
+
+def _import_matplotlib() -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
+    from matplotlib.figure import Figure  # noqa: F401
+
+
+class PlotWorker:
+    """Draws the outputs of ``place3d optimize`` beside the main thread.
+
+    Where the machine has cores to spare (4 or more) it is a process of its own, started with the command
+    so that importing matplotlib (1-1.3 s on the H100 host) overlaps the search, and drawing neither waits
+    for the main thread's Python (the GIL) nor slows it; elsewhere (the 2-core dev VM, where PoCL's
+    scoring uses both cores) a thread. ``submit`` returns a Future whose ``result()`` re-raises a
+    plotting error.
+    """
+
+    def __init__(self, processes: bool | None = None):
+        import os
+        from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+        if processes is None:
+            processes = (os.cpu_count() or 1) >= 4
+        if processes:
+            import multiprocessing
+
+            self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            self.pool.submit(_import_matplotlib)
+        else:
+            self.pool = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
+        self.processes = bool(processes)
+
+    def submit(self, history, best, bounds, coverage, out):
+        return self.pool.submit(draw_outputs, list(history), best, bounds, coverage, str(out))
+
+    def close(self, cancel: bool = False) -> None:
+        """Wait for the drawing (``cancel``: drop what has not started, as when the command failed)."""
+        self.pool.shutdown(wait=True, cancel_futures=cancel)
