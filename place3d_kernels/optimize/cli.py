@@ -13,7 +13,7 @@ import numpy as np
 
 from place3d_kernels.profiling import section
 
-__all__ = ["add_arguments", "run", "plot_coverage", "start_plots"]
+__all__ = ["add_arguments", "run", "start_plots"]
 
 
 def add_arguments(p) -> None:
@@ -386,14 +386,3 @@ def coverage_view(psog, covered) -> tuple:
     mask[covered] = True
     return (psog.entropy.sum(axis=2), mask.reshape(g.shape).any(axis=2), int(len(covered)),
             (g.lower[1], g.upper[1], g.lower[0], g.upper[0]))
-
-
-def plot_coverage(psog, lidar, placement, path, backend=None, occlusion="sog", covered=None):
-    """Top view of the voxels the rig covers, over the P-SOG's column entropy (``covered``: the rig's
-    ``covered_voxels`` when already computed)."""
-    from place3d_kernels.metrics import covered_voxels
-    from place3d_kernels.optimize.plots import draw_coverage
-
-    if covered is None:
-        covered = covered_voxels(psog, lidar, placement.poses, occlusion=occlusion, backend=backend)
-    return draw_coverage(*coverage_view(psog, covered), placement.name or "the rig", path)
