@@ -17,6 +17,7 @@ subset of k frames).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
 from statistics import NormalDist
@@ -573,6 +574,8 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
          "baselines": [{"name", "score", "ci": [lo, hi], "p_best_better": P(best > baseline),
                         "within_noise": bool (P < NOISE_LEVEL)}, ...]}
     """
+    from place3d_kernels.interval_memo import IntervalMemo, rig_key
+    from place3d_kernels.lidar import LidarModel
     from place3d_kernels.pooled import Drive, PoolSettings, subset_records
 
     names, poses = _poses(baseline_placements)
@@ -580,6 +583,7 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
     if best.ndim != 2 or best.shape[1] != 6:
         raise ValueError(f"best_poses must be (L, 6) poses, got shape {best.shape}")
     placements = {best_name: best, **{n: p for n, p in zip(names, poses)}}
+    records_path = None
     if isinstance(source, PooledPSOG):
         pooled, unit = source, "drives"
     elif isinstance(source, Drive):
@@ -587,15 +591,39 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
         pooled, unit = PooledPSOG(settings.grid, subset_records(source, settings)), "subsets"
     else:
         pooled, unit = PooledPSOG(source.grid.grid(), spec_subset_records(source, backend)), "subsets"
-    if method == "jackknife":
-        boot = jackknife_records(pooled.records, pooled.grid, lidar, placements, (task,), occlusion, backend,
-                                 level, unit=unit, normalisation=normalisation)[task]
-        n_resamples = boot.n_units
-    elif method == "bootstrap":
-        boot = bootstrap_records(pooled.records, pooled.grid, lidar, placements, (task,), occlusion, n_resamples,
-                                 seed, backend, level, unit=unit, normalisation=normalisation)[task]
-    else:
+        records_path = _records_path(source)[0]
+    if method not in ("bootstrap", "jackknife"):
         raise ValueError(f"method must be 'bootstrap' or 'jackknife', got {method!r}")
+    L = LidarModel.load(lidar) if isinstance(lidar, str) else lidar
+
+    def scores(rigs):
+        if method == "jackknife":
+            return jackknife_records(pooled.records, pooled.grid, L, rigs, (task,), occlusion, backend, level,
+                                     unit=unit, normalisation=normalisation)[task]
+        return bootstrap_records(pooled.records, pooled.grid, L, rigs, (task,), occlusion, n_resamples, seed,
+                                 backend, level, unit=unit, normalisation=normalisation)[task]
+
+    # The baselines' resampled scores depend on the scene's records, not on the search: remembered on disk
+    # (interval_memo), so a warm run rescores only the optimised rig.
+    memo = IntervalMemo(records_path) if records_path is not None else None
+    setting = dict(task=task, occlusion=occlusion, normalisation=normalisation, body=None, method=method,
+                   resamples=int(n_resamples) if method == "bootstrap" else None,
+                   seed=int(seed) if method == "bootstrap" else None)
+    keys = [rig_key(L, p, **setting) for p in poses] if memo is not None else []
+    known = [memo.get(k) for k in keys]
+    if memo is not None and all(k is not None for k in known):
+        own = scores({best_name: best})
+        boot = dataclasses.replace(own, names=[best_name, *names],
+                                   point=np.concatenate([own.point, [k[0] for k in known]]),
+                                   samples=np.column_stack([own.samples, *[k[1] for k in known]]))
+    else:
+        boot = scores(placements)
+        if memo is not None:
+            for i, k in enumerate(keys):
+                memo.put(k, boot.point[i + 1], boot.samples[:, i + 1])
+            memo.save()
+    if method == "jackknife":
+        n_resamples = boot.n_units
     ci, f = boot.ci, boot.order_freq
     rows = [{"name": n, "score": float(boot.point[i]), "ci": ci[i].tolist(),
              "p_best_better": round(float(f[0, i]), 4), "within_noise": bool(f[0, i] < NOISE_LEVEL)}
