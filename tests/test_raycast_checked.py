@@ -164,3 +164,31 @@ def test_shape_errors_are_the_host_path_s(device_backend):
         p3k.raycast(mesh, o[:2], d, [1.0, 2.0, 3.0], backend=device_backend)
     with pytest.raises(ValueError, match=r"must be \(N, 3\) arrays"):
         p3k.raycast(mesh, o[:, :2], d[:, :2], 10.0, backend=device_backend)
+
+
+def test_earlier_hits_survive_later_calls(device_backend, rng):
+    """Results come back in recycled host blocks on CUDA (backends/warp/pinned.py): a block is reused
+    only after every array of an earlier result is gone, so holding one result across later calls
+    keeps it intact."""
+    import gc
+
+    mesh = _mesh()
+    held = []
+    for seed in range(4):
+        o, d = _rays(np.random.default_rng(seed), 3000 + 500 * seed)
+        got = p3k.raycast(mesh, o, d, 20.0, backend=device_backend)
+        held.append((got, (got.t.copy(), got.face.copy(), got.label.copy())))
+        if seed % 2:
+            gc.collect()
+    for got, (t, f, lab) in held:
+        assert got.t.tobytes() == t.tobytes() and got.face.tobytes() == f.tobytes()
+        assert got.label.tobytes() == lab.tobytes()
+    # a face array kept alone (its Hits and the other arrays dropped) keeps its block
+    o, d = _rays(rng, 2000)
+    face = p3k.raycast(mesh, o, d, 20.0, backend=device_backend).face
+    want = face.copy()
+    gc.collect()
+    for seed in range(3):
+        o2, d2 = _rays(np.random.default_rng(100 + seed), 2000)
+        p3k.raycast(mesh, o2, d2, 20.0, backend=device_backend)
+    assert face.tobytes() == want.tobytes()

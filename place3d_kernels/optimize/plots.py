@@ -181,19 +181,54 @@ def draw_outputs(history, best: Placement, bounds, coverage: tuple, out) -> list
     return [str(p) for p in paths]
 
 
-def _import_matplotlib() -> None:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
-    from matplotlib.figure import Figure  # noqa: F401
+def _warm_up() -> None:
+    """Import matplotlib and draw one small figure to memory, so that the first real figure of a worker
+    process finds fonts, the Agg renderer and the PNG writer loaded."""
+    import io
+
+    fig = _figure(1, 1)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot([0, 1], [0, 1], label="x")
+    ax.set_title("warm-up")
+    ax.legend()
+    fig.savefig(io.BytesIO(), format="png")
+
+
+def _all_of(parts):
+    """A Future of the results of ``parts`` in order; it raises the first part's error, if any."""
+    import threading
+    from concurrent.futures import Future
+
+    done, lock = Future(), threading.Lock()
+
+    def check(_):
+        with lock:
+            if done.done() or not all(p.done() for p in parts):
+                return
+            errors = [p.exception() for p in parts if p.exception() is not None]
+            if errors:
+                done.set_exception(errors[0])
+            else:
+                done.set_result([str(p.result()) for p in parts])
+
+    for p in parts:
+        p.add_done_callback(check)
+    return done
+
+
+#: worker processes where there are cores to spare: one per figure, drawn at the same time
+PLOT_PROCESSES = 3
 
 
 class PlotWorker:
     """Draws the outputs of ``place3d optimize`` beside the main thread.
 
-    Where the machine has cores to spare (4 or more) it is a process of its own, started with the command
-    so that importing matplotlib (1-1.3 s on the H100 host) overlaps the search, and drawing neither waits
-    for the main thread's Python (the GIL) nor slows it; elsewhere (the 2-core dev VM, where PoCL's
-    scoring uses both cores) a thread. ``submit`` returns a Future whose ``result()`` re-raises a
-    plotting error.
+    Where the machine has cores to spare (4 or more) these are ``PLOT_PROCESSES`` processes of their own,
+    started with the command so that importing matplotlib and a first drawing (1-1.3 s on the H100 host)
+    overlap the search, and each figure is drawn in its own process, neither waiting for the main
+    thread's Python (the GIL) nor slowing it; elsewhere (the 2-core dev VM, where PoCL's scoring uses
+    both cores) one thread draws them in turn. ``submit`` returns a Future whose ``result()`` is the
+    list of paths, or re-raises a plotting error.
     """
 
     def __init__(self, processes: bool | None = None):
@@ -205,14 +240,21 @@ class PlotWorker:
         if processes:
             import multiprocessing
 
-            self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-            self.pool.submit(_import_matplotlib)
+            self.pool = ProcessPoolExecutor(PLOT_PROCESSES, mp_context=multiprocessing.get_context("spawn"))
+            for _ in range(PLOT_PROCESSES):        # each submit finds no idle worker: one process each
+                self.pool.submit(_warm_up)
         else:
             self.pool = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
         self.processes = bool(processes)
 
     def submit(self, history, best, bounds, coverage, out):
-        return self.pool.submit(draw_outputs, list(history), best, bounds, coverage, str(out))
+        if not self.processes:
+            return self.pool.submit(draw_outputs, list(history), best, bounds, coverage, str(out))
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        return _all_of([self.pool.submit(plot_convergence, list(history), out / "convergence.png"),
+                        self.pool.submit(plot_rig, best, out / "rig.png", None, bounds),
+                        self.pool.submit(draw_coverage, *coverage, out / "coverage.png")])
 
     def close(self, cancel: bool = False) -> None:
         """Wait for the drawing (``cancel``: drop what has not started, as when the command failed)."""

@@ -170,6 +170,7 @@ class WarpCore(Backend):
         self._pool = None
         self._pool_lock = threading.Lock()
         self._loaded = set()      # kernels launched once already (module compiled and loaded)
+        self._pinned = None       # PinnedPool for large device-to-host copies (CUDA only; created on first use)
 
     # ------------------------------------------------------------------ launches
     def _launch(self, kernel, n: int, inputs) -> None:
@@ -304,10 +305,24 @@ class WarpCore(Backend):
         self._launch(self.k.RAYCAST_CHECKED[vec], n, lambda a, b: [
             mesh.mesh.id, mesh.corners64, mesh.face_ids, mesh.face_labels, o[a:b] if o_step else o, o_step, s,
             d[a:b], tm[a:b] if t_step else tm, t_step, out_t[a:b], out_f[a:b], out_l[a:b], flags])
-        host = buf.numpy()             # on the CPU device a view of buf's memory, which it keeps alive
+        host = self._to_host(buf, 20 * n + 4 * self.k.N_FLAGS)
         if host[20 * n:].view(np.int32).any():
             return None
         return host[:8 * n].view(np.float64), host[8 * n:16 * n].view(np.int64), host[16 * n:20 * n].view(np.int32)
+
+    def _to_host(self, buf, nbytes: int) -> np.ndarray:
+        """(nbytes,) uint8 host copy of a uint8 device array: on the CPU device a view of ``buf`` (which it
+        keeps alive); on a GPU one DMA into a pooled pinned block that the returned view owns."""
+        if not self.device.is_cuda:
+            return buf.numpy()
+        if self._pinned is None:
+            from place3d_kernels.backends.warp.pinned import PinnedPool
+
+            self._pinned = PinnedPool(wp)
+        block, host = self._pinned.take(nbytes)
+        wp.copy(block, buf, count=nbytes)
+        wp.synchronize_device(self.device)
+        return host
 
     def _rays_as_given(self, a, vec) -> "wp.array":
         """(N, 3) contiguous float32 or float64 rays as a vec3f/vec3d array: on the CPU the NumPy memory
