@@ -26,7 +26,8 @@ DEFAULT_FRAMES_PER_SUBSET = 4
 
 def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "collection_64ch",
                frames_per_subset: int = DEFAULT_FRAMES_PER_SUBSET, mount=DEFAULT_MOUNT, backend=None,
-               cache: bool | str | Path = True, progress: bool = False, condition=None, body=None) -> PSOG:
+               cache: bool | str | Path = True, progress: bool = False, condition=None, body=None,
+               aggregate=None) -> PSOG:
     """The P-SOG of a scene: simulate its frames with the collection LiDAR, vote, aggregate.
 
     The result is cached on disk (``$PLACE3D_CACHE`` or ~/.cache/place3d) under a key made of every
@@ -43,6 +44,9 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
         body: optional ``VehicleBody`` (ego frame) that blocks the collection LiDAR's rays (see
             ``simulate``); its name and content hash enter the cache key and the manifest. None (default) is
             the paper's setting, and its cache key is the one used before bodies existed.
+        aggregate: optional ``(frames, backend) -> PSOG`` used on a cache miss instead of
+            ``PSOG.from_frames`` (it must give the same P-SOG; ``PSOGSpec.build`` passes one that keeps the
+            per-subset records of the same frames for the intervals, so they are not simulated again).
     """
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
@@ -76,7 +80,10 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
         frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress, body=body)
     if condition is not None:
         frames = [condition(f, i) for i, f in enumerate(frames)]
-    psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)
+    if aggregate is not None:
+        psog = aggregate(frames, backend)
+    else:
+        psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)
     if path is not None:
         psog.save(path)
         write_manifest(manifest, inputs)

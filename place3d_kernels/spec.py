@@ -11,6 +11,7 @@ makes (the voxel size of the default ROI) and builds a ``Grid`` with ``.grid()``
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -368,10 +369,17 @@ class PSOGSpec:
             scene = self.scene.for_cache(Path(cache) if isinstance(cache, (str, Path)) else cache_dir())
         else:
             scene = self.scene.build()
+        aggregate = None
+        if cache:
+            # on a miss, the P-SOG is pooled from per-subset records that are kept on disk, so the
+            # intervals later find them instead of simulating the same frames again
+            from place3d_kernels.uncertainty import records_aggregator
+
+            aggregate = records_aggregator(self if cache is True else dataclasses.replace(self, cache=str(cache)))
         return scene_psog(scene, grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
                           frames_per_subset=self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
                           mount=DEFAULT_MOUNT if self.mount is None else self.mount, backend=b, cache=cache,
-                          progress=progress, condition=cond, body=self.vehicle_body())
+                          progress=progress, condition=cond, body=self.vehicle_body(), aggregate=aggregate)
 
     def load(self):
         """The P-SOG with this spec's backend and cache folder (memoised per process; tasks call this)."""

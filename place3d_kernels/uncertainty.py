@@ -316,7 +316,7 @@ def spec_subset_records(spec, backend=None, cache: bool = True) -> list:
     Simulates the frames once and keeps the sparse records on disk beside the P-SOG cache (a few MB at
     0.2 m), so later bootstraps cost no simulation. ``cache=False`` rebuilds and writes nothing.
     """
-    from place3d_kernels.manifest import verify_manifest, write_manifest
+    from place3d_kernels.manifest import verify_manifest
     from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
     from place3d_kernels.pooled import DriveRecord
     from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
@@ -350,14 +350,39 @@ def spec_subset_records(spec, backend=None, cache: bool = True) -> list:
             frames = [cond(f, i) for i, f in enumerate(frames)]
     recs = frame_subset_records(frames, grid, k, b, spec.scene.label)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez(tmp, labels=np.array([r.label for r in recs]), n_subsets=np.array([r.n_subsets for r in recs]),
-                 sizes=np.array([len(r.voxels) for r in recs]), voxels=np.concatenate([r.voxels for r in recs]),
-                 classes=np.concatenate([r.classes for r in recs]), counts=np.concatenate([r.counts for r in recs]))
-        os.replace(tmp, path)
-        write_manifest(path.with_suffix(".json"), inputs)
+        _write_records(path, inputs, recs)
     return recs
+
+
+def _write_records(path: Path, inputs: dict, recs) -> None:
+    from place3d_kernels.manifest import write_manifest
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, labels=np.array([r.label for r in recs]), n_subsets=np.array([r.n_subsets for r in recs]),
+             sizes=np.array([len(r.voxels) for r in recs]), voxels=np.concatenate([r.voxels for r in recs]),
+             classes=np.concatenate([r.classes for r in recs]), counts=np.concatenate([r.counts for r in recs]))
+    os.replace(tmp, path)
+    write_manifest(path.with_suffix(".json"), inputs)
+
+
+def records_aggregator(spec) -> Callable:
+    """``(frames, backend) -> PSOG`` for ``scene_psog(aggregate=...)``: votes each subset of the frames once
+    into per-subset records, writes them to the subset-record cache of ``spec`` (where
+    ``spec_subset_records`` finds them) and returns their pool, which is the P-SOG ``PSOG.from_frames``
+    gives: the same voxels, counts and float64 probabilities (tests/test_intervals.py checks it)."""
+    from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
+
+    def aggregate(frames, backend):
+        grid = spec.grid.grid()
+        recs = frame_subset_records(frames, grid, spec.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET, backend,
+                                    spec.scene.label)
+        path, inputs = _records_path(spec)
+        if path is not None:
+            _write_records(path, inputs, recs)
+        return PooledPSOG(grid, recs).psog()
+
+    return aggregate
 
 
 def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
@@ -633,5 +658,5 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
             "best": {"name": best_name, "score": float(boot.point[0]), "ci": ci[0].tolist()}, "baselines": rows}
 
 
-__all__ += ["frame_subset_records", "spec_subset_records", "bootstrap_records", "pairwise",
+__all__ += ["frame_subset_records", "spec_subset_records", "records_aggregator", "bootstrap_records", "pairwise",
             "rig_vs_baselines_intervals"]

@@ -106,3 +106,22 @@ def test_nan_and_exact_floats_round_trip(tmp_path):
     point, back = im.IntervalMemo(tmp_path / "subsets-x.npz").get("k")
     assert point == -0.0312345678901234
     assert np.array_equal(back, s, equal_nan=True) and back.tobytes() == s.tobytes()
+
+
+def test_a_cold_build_keeps_the_subset_records_and_the_same_psog(spec, monkeypatch):
+    """On a P-SOG cache miss the P-SOG is pooled from per-subset records written beside it, so the
+    intervals do not simulate the drive again; the P-SOG is the one ``PSOG.from_frames`` gives."""
+    import sys
+
+    sim = sys.modules["place3d_kernels.simulate"]       # the package exports a function of that name
+    built = spec.build()                                  # cold: simulates, keeps the records
+    direct = spec.build(cache=False)                      # PSOG.from_frames on freshly simulated frames
+    assert np.array_equal(built.voxels, direct.voxels) and built.probs.tobytes() == direct.probs.tobytes()
+    assert np.array_equal(built.counts, direct.counts) and built.n_subsets == direct.n_subsets
+    assert built.counts.dtype == direct.counts.dtype
+    monkeypatch.setattr(sim, "simulate", lambda *a, **k: pytest.fail("the records were simulated again"))
+    recs = unc.spec_subset_records(spec)
+    assert len(recs) == built.n_subsets
+    best = Placement.load("square").poses
+    res = _run(spec, best)                                # the intervals find the records: no simulation
+    assert res["n_units"] == built.n_subsets
