@@ -27,6 +27,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from place3d_kernels.pooled import PooledPSOG
+from place3d_kernels.profiling import section
 
 __all__ = ["Bootstrap", "resample_multiplicities", "bootstrap_pooled", "bootstrap_drives",
            "bootstrap_subsets", "within_noise", "plot_scores", "NOISE_LEVEL"]
@@ -559,13 +560,20 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
         from tqdm import tqdm
 
         it = tqdm(it, desc="jackknife", unit="left-out", leave=False)
-    for i, ps in zip(it, _left_out_psogs(pooled, tasks)):
-        for t in tasks:
-            scores[t][i] = msog_batch(ps, L, poses, occlusion, t, b, normalisation=normalisation, body=body)
+    left_out = _left_out_psogs(pooled, tasks)
+    for i in it:
+        with section("jackknife: left-out P-SOG (wait)"):
+            ps = next(left_out)
+        with section("jackknife: scoring"):
+            for t in tasks:
+                scores[t][i] = msog_batch(ps, L, poses, occlusion, t, b, normalisation=normalisation, body=body)
+        del ps
+    left_out.close()                                 # its thread pool, now idle, shuts down
     out = {}
     for t in tasks:
-        pt = point[t] if point is not None else msog_batch(pooled.psog(), L, poses, occlusion, t, b,
-                                                           normalisation=normalisation, body=body)
+        with section("jackknife: point"):
+            pt = point[t] if point is not None else msog_batch(pooled.psog(), L, poses, occlusion, t, b,
+                                                               normalisation=normalisation, body=body)
         out[t] = Jackknife(names, np.asarray(pt, dtype=np.float64), scores[t], level, unit, n)
     return out
 
