@@ -135,6 +135,11 @@ class ScoringPool:
             # Ray would leave the actors pending for ever: refuse before any work
             raise ValueError(f"gpu_actors={gpu_actors} but the Ray cluster has {have:g} GPU(s); use "
                              f"--gpu-actors {int(have)} or join a cluster with more GPUs (--ray-address)")
+        cpus = ray.cluster_resources().get("CPU", 0)
+        if (gpu_actors + cpu_actors) * cpus_per_actor > cpus:
+            raise ValueError(f"{gpu_actors + cpu_actors} actors of {cpus_per_actor:g} CPU each need more than the "
+                             f"{cpus:g} CPU(s) of the Ray cluster; use fewer actors, or start the cluster with "
+                             f"more logical CPUs (--num-cpus, ray.init(num_cpus=...))")
         self._ray = ray
         if gpu_backend is None:
             gpu_backend = backend if backend and is_gpu_backend(backend) else "gpu"
@@ -200,7 +205,8 @@ class ScoringPool:
         Args:
             spec: the ``PSOGSpec`` (resolved: backend name and cache folder fixed in the driver).
             lidar: LiDAR name or model; occlusion, task: as ``msog_batch``.
-            chunk: rigs per chunk (default: the batch cut into 4 chunks per actor).
+            chunk: rigs per chunk (default: one chunk for a single actor, else the batch cut into 4
+                chunks per actor, small enough for a slow actor to help without holding up the batch).
 
         Raises:
             ActorScoringError: an actor failed; the message names it and the chunk's candidates.
@@ -211,7 +217,8 @@ class ScoringPool:
         P = len(poses)
         if P == 0:
             return np.zeros(0)
-        size = int(chunk) if chunk else -(-P // (4 * len(self.actors)))
+        n_act = len(self.actors)
+        size = int(chunk) if chunk else (P if n_act == 1 else -(-P // (4 * n_act)))
         queue = [(k, s) for k, s in enumerate(range(0, P, max(1, size)))]
         out: list = [None] * len(queue)
         inflight: dict = {}             # ObjectRef -> (actor, chunk index, first candidate, submit time)

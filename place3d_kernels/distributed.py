@@ -48,7 +48,7 @@ from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec, backend_name, resolve_lidar
 
 __all__ = ["Executor", "LocalExecutor", "RayExecutor", "get_executor", "add_executor_arguments",
-           "executor_from_args", "task_seed", "SceneSpec", "ConditionSpec", "PSOGSpec", "simulate_to_folder",
+           "executor_from_args", "check_actor_arguments", "task_seed", "SceneSpec", "ConditionSpec", "PSOGSpec", "simulate_to_folder",
            "DistributedObjective", "INSTALL_HINT", "chunks"]
 
 INSTALL_HINT = "pip install 'place3d-kernels[dist]'"
@@ -211,14 +211,25 @@ def add_executor_arguments(p) -> None:
                         "actors (default 0)")
 
 
+def check_actor_arguments(args) -> dict:
+    """``{"gpu_actors": N, "cpu_actors": M}`` from the command line; ``ValueError`` for a negative count
+    or for actors asked for without ``--executor ray`` / ``--ray-address`` (before any work starts)."""
+    actors = {"gpu_actors": getattr(args, "gpu_actors", 0) or 0, "cpu_actors": getattr(args, "cpu_actors", 0) or 0}
+    if min(actors.values()) < 0:
+        raise ValueError(f"--gpu-actors {actors['gpu_actors']} --cpu-actors {actors['cpu_actors']}: counts must "
+                         f"be >= 0")
+    ray_asked = (getattr(args, "executor", "local") or "local") == "ray" or getattr(args, "ray_address", None)
+    if any(actors.values()) and not ray_asked:
+        raise ValueError(f"--gpu-actors {actors['gpu_actors']} --cpu-actors {actors['cpu_actors']} need "
+                         f"--executor ray")
+    return actors
+
+
 def executor_from_args(args) -> Executor:
     kind = getattr(args, "executor", "local") or "local"
     if kind == "local" and getattr(args, "ray_address", None):
         raise ValueError("--ray-address needs --executor ray")
-    actors = {"gpu_actors": getattr(args, "gpu_actors", 0) or 0, "cpu_actors": getattr(args, "cpu_actors", 0) or 0}
-    if kind == "local" and any(actors.values()):
-        raise ValueError(f"--gpu-actors {actors['gpu_actors']} --cpu-actors {actors['cpu_actors']} need "
-                         f"--executor ray")
+    actors = check_actor_arguments(args)
     if kind == "ray":
         try:
             return get_executor("ray", getattr(args, "ray_address", None), getattr(args, "num_cpus", None),
@@ -356,7 +367,7 @@ class DistributedObjective:
             the cache exists before the first generation).
         lidar: LiDAR name or model of the rig; space: the ``SearchSpace``.
         executor: the executor; chunk: candidates per task (default: batch split into 2 x workers' tasks,
-            here simply ``ceil(P / n_chunks)`` with ``n_chunks`` given; on actors: 4 chunks per actor).
+            here simply ``ceil(P / n_chunks)`` with ``n_chunks`` given; on actors: see ``ScoringPool.score``).
     """
 
     psog: PSOGSpec
