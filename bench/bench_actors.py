@@ -15,7 +15,8 @@ Configurations:
   (e) today's Ray task path (``RayExecutor.map`` of ``_score_task`` chunks, k CPU workers), for contrast.
 Each configuration: pool start and warm-up (actors load the P-SOG, compile kernels) timed apart, one
 untimed generation per population, then --repeats timed generations: median, min, max seconds and
-rigs/s. Every generation's scores are compared with (a) bit for bit; the JSON records it and the script
+rigs/s; each timed generation of a pool is followed by one in-process generation, and the speed-up is
+the median of the ratios of these pairs (the dev VM is shared with other jobs; pairs see the same load). Every generation's scores are compared with (a) bit for bit; the JSON records it and the script
 exits 1 after writing it if any differs. Requested configurations that cannot run here (more GPUs than
 visible) are listed under "not_run" with the reason.
 """
@@ -70,24 +71,35 @@ def _summary(times: list[float], P: int) -> dict:
             "rigs_per_s_median": P / med, "repeats": len(times), "seconds": times}
 
 
-def _run(score, sizes, want: dict, repeats: int) -> dict:
+def _run(score, sizes, want: dict, repeats: int, paired=None) -> dict:
     """Time ``score(P)`` (one generation of P rigs) for each P: one untimed generation, then ``repeats``
-    timed ones."""
+    timed ones. With ``paired`` (the in-process scorer), each timed generation is followed by one of
+    ``paired``, so that the ratio of each pair is taken under the same load (the dev VM is shared)."""
     out = {}
     for P in sizes:
         t = time.perf_counter()
         first = score(P)
         first_s = time.perf_counter() - t
-        times, same = [], [np.array_equal(first, want[P])]
+        times, ref, same = [], [], [np.array_equal(first, want[P])]
         for _ in range(repeats):
             t = time.perf_counter()
             s = score(P)
             times.append(time.perf_counter() - t)
             same.append(np.array_equal(s, want[P]))
-        out[str(P)] = {**_summary(times, P), "first_generation_s": first_s, "identical_to_in_process": all(same)}
-        print(f"    P={P:4d}: {out[str(P)]['rigs_per_s_median']:9.1f} rigs/s, {statistics.median(times) * 1e3:8.1f} ms "
-              f"per generation [{min(times) * 1e3:.1f}-{max(times) * 1e3:.1f}], identical {all(same)}",
-              file=sys.stderr)
+            if paired is not None:
+                t = time.perf_counter()
+                paired(P)
+                ref.append(time.perf_counter() - t)
+        r = out[str(P)] = {**_summary(times, P), "first_generation_s": first_s,
+                           "identical_to_in_process": all(same)}
+        line = (f"    P={P:4d}: {r['rigs_per_s_median']:9.1f} rigs/s, {r['seconds_median'] * 1e3:8.1f} ms per "
+                f"generation [{r['seconds_min'] * 1e3:.1f}-{r['seconds_max'] * 1e3:.1f}], identical {all(same)}")
+        if paired is not None:
+            r["in_process_paired"] = _summary(ref, P)
+            r["speedup_vs_in_process_median"] = statistics.median(a / b for a, b in zip(ref, times))
+            line += (f"; paired in-process {r['in_process_paired']['seconds_median'] * 1e3:.1f} ms, speed-up "
+                     f"x{r['speedup_vs_in_process_median']:.2f}")
+        print(line, file=sys.stderr)
     return out
 
 
@@ -173,7 +185,8 @@ def main(argv=None) -> int:
                 pool.warm(spec, lidar, pops[args.pops[0]])
                 start_s = time.perf_counter() - t
                 before = [dict(s) for s in pool.stats]
-                runs = _run(lambda P: pool.score(spec, lidar, pops[P], chunk=args.chunk), pops, want, args.repeats)
+                runs = _run(lambda P: pool.score(spec, lidar, pops[P], chunk=args.chunk), pops, want, args.repeats,
+                            local)
                 share = [{"kind": d["kind"], "backend": d["backend"], "cuda_visible_devices": d["cuda_visible_devices"],
                           "rigs": s["rigs"] - b["rigs"], "chunks": s["chunks"] - b["chunks"],
                           "busy_s": s["seconds"] - b["seconds"]} for d, s, b in zip(pool.info(), pool.stats, before)]
@@ -189,7 +202,7 @@ def main(argv=None) -> int:
                 ex = get_executor("ray")
                 obj = DistributedObjective(spec, lidar, space, ex, backend=cpu_name, n_chunks=k, chunk=args.chunk)
                 obj(xs[args.pops[0]][:k])                    # warm-up: each worker loads the P-SOG once
-                runs = _run(lambda P: obj(xs[P]), pops, want, args.repeats)
+                runs = _run(lambda P: obj(xs[P]), pops, want, args.repeats, local)
                 res["configs"][name] = {"workers": k, "backend": cpu_name, "populations": runs}
     finally:
         ray.shutdown()

@@ -36,7 +36,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["ScoringPool", "ScoringActor", "ActorScoringError", "is_gpu_backend", "CPU_BACKENDS", "GPU_BACKENDS"]
+__all__ = ["ScoringPool", "ScoringActor", "ActorScoringError", "is_gpu_backend", "worth_dispatching", "CPU_BACKENDS", "GPU_BACKENDS"]
 
 #: Backends a CPU actor picks from when none is named, fastest first (README performance table).
 CPU_BACKENDS = ("opencl:pocl", "warp:cpu", "reference")
@@ -67,6 +67,19 @@ def _first_available(candidates: Sequence[str]) -> str:
             return name
     raise RuntimeError(f"none of {list(candidates)} is available in this actor (available: {have}); name a "
                        f"backend the actor's host has")
+
+
+def worth_dispatching(n: int, rate: float | None, other_rates: Sequence[float | None], left: int) -> bool:
+    """Whether an idle actor should take a chunk of ``n`` rigs while ``left`` rigs (this chunk included)
+    are queued: not when the other actors, at their measured rates (rigs/s), would clear the whole queue
+    before this one finished its chunk. Unknown rates (an actor's first chunk) always dispatch.
+
+    Args:
+        n: rigs in the chunk; rate: this actor's rate; other_rates: the others'; left: rigs queued.
+    """
+    if rate is None or not other_rates or any(r is None for r in other_rates):
+        return True
+    return n / rate <= left / sum(other_rates)
 
 
 class ScoringActor:
@@ -190,13 +203,8 @@ class ScoringPool:
             self._get(r, i, "warming up")
 
     def _worth_it(self, i: int, n: int, left: int) -> bool:
-        """Whether actor ``i`` should take a chunk of ``n`` rigs with ``left`` rigs still queued:
-        not when the other actors, at their measured rates, would clear the queue before it finishes."""
-        mine = self.stats[i]["rate"]
-        others = [s["rate"] for j, s in enumerate(self.stats) if j != i]
-        if mine is None or not others or any(r is None for r in others):
-            return True
-        return n / mine <= left / sum(others)
+        return worth_dispatching(n, self.stats[i]["rate"], [s["rate"] for j, s in enumerate(self.stats) if j != i],
+                                 left)
 
     def score(self, spec, lidar, poses, occlusion: str = "sog", task: str = "seg",
               chunk: int | None = None) -> np.ndarray:

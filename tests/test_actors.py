@@ -29,6 +29,19 @@ def test_actor_counts_need_the_ray_executor():
         executor_from_args(_args("--gpu-actors", "1"))
 
 
+def test_dispatch_rule_and_backend_kinds():
+    from place3d_kernels.actors import is_gpu_backend, worth_dispatching
+
+    # a GPU at 1000 rigs/s clears 64 queued rigs in 64 ms; a CPU actor at 20 rigs/s needs 800 ms for 16
+    assert not worth_dispatching(16, 20.0, [1000.0], 64)
+    assert worth_dispatching(16, 20.0, [1000.0], 64 * 200)       # a long queue: the CPU actor helps
+    assert worth_dispatching(16, 1000.0, [20.0], 16)             # the fast actor always takes work
+    assert worth_dispatching(16, None, [1000.0], 64) and worth_dispatching(16, 20.0, [None], 64)
+    assert worth_dispatching(4, 20.0, [], 4)                     # a single actor
+    assert [is_gpu_backend(b) for b in ("warp:cuda:0", "opencl:nvidia", "opencl:pocl", "warp:cpu", "reference")] \
+        == [True, True, False, False, False]
+
+
 try:
     import ray
 except ImportError:
