@@ -16,8 +16,9 @@ Configurations:
 Each configuration: pool start and warm-up (actors load the P-SOG, compile kernels) timed apart, one
 untimed generation per population, then --repeats timed generations: median, min, max seconds and
 rigs/s; each timed generation of a pool is followed by one in-process generation, and the speed-up is
-the median of the ratios of these pairs (the dev VM is shared with other jobs; pairs see the same load). Every generation's scores are compared with (a) bit for bit; the JSON records it and the script
-exits 1 after writing it if any differs. Requested configurations that cannot run here (more GPUs than
+the median of the ratios of these pairs (the dev VM is shared with other jobs; pairs see the same load).
+Every generation's scores are compared with (a) bit for bit; the JSON records it and the script exits 1
+after writing it if any differs. Requested configurations that cannot run here (more GPUs than
 visible) are listed under "not_run" with the reason.
 """
 
@@ -123,7 +124,7 @@ def main(argv=None) -> int:
 
     import ray
 
-    from place3d_kernels.actors import ScoringPool
+    from place3d_kernels.actors import ScoringPool, is_gpu_backend
     from place3d_kernels.backends.registry import available_backends, get_backend
     from place3d_kernels.distributed import DistributedObjective, PSOGSpec, SceneSpec, get_executor
     from place3d_kernels.lidar import LidarModel
@@ -175,7 +176,12 @@ def main(argv=None) -> int:
         for g, k in plan:
             name = f"actors-{g}gpu-{k}cpu"
             if g > visible:
-                res["not_run"][name] = f"{g} GPU actor(s) asked for, {visible} GPU(s) visible on this host"
+                gb = backend.name if is_gpu_backend(backend.name) else "warp:cuda:0"
+                res["not_run"][name] = (
+                    f"{g} GPU actor(s) asked for, {visible} GPU(s) visible on this host. It would start {g} actors of "
+                    f"num_gpus=1 (Ray gives each its own CUDA_VISIBLE_DEVICES, so each runs {gb} on its own GPU)"
+                    + (f" beside {k} CPU actor(s)" if k else "")
+                    + ", load the P-SOG once per actor and take chunks of each generation as they fall idle")
                 print(f"{name}: not run ({res['not_run'][name]})", file=sys.stderr)
                 continue
             print(f"{name}", file=sys.stderr)

@@ -36,7 +36,8 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["ScoringPool", "ScoringActor", "ActorScoringError", "is_gpu_backend", "worth_dispatching", "CPU_BACKENDS", "GPU_BACKENDS"]
+__all__ = ["ScoringPool", "ScoringActor", "ActorScoringError", "is_gpu_backend", "worth_dispatching", "CPU_BACKENDS",
+           "GPU_BACKENDS"]
 
 #: Backends a CPU actor picks from when none is named, fastest first (README performance table).
 CPU_BACKENDS = ("opencl:pocl", "warp:cpu", "reference")

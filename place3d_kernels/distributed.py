@@ -48,7 +48,8 @@ from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec, backend_name, resolve_lidar
 
 __all__ = ["Executor", "LocalExecutor", "RayExecutor", "get_executor", "add_executor_arguments",
-           "executor_from_args", "check_actor_arguments", "task_seed", "SceneSpec", "ConditionSpec", "PSOGSpec", "simulate_to_folder",
+           "executor_from_args", "check_actor_arguments", "task_seed", "SceneSpec", "ConditionSpec", "PSOGSpec",
+           "simulate_to_folder",
            "DistributedObjective", "INSTALL_HINT", "chunks"]
 
 INSTALL_HINT = "pip install 'place3d-kernels[dist]'"
