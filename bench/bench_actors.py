@@ -12,7 +12,8 @@ Configurations:
   (b) a pool of G GPU actors (G = 1 .. --gpus, those the host has);
   (c) G GPU actors + k CPU actors;
   (d) k CPU actors only (k in --cpu-actors);
-  (e) today's Ray task path (``RayExecutor.map`` of ``_score_task`` chunks, k CPU workers), for contrast.
+  (e) today's Ray task path (``DistributedObjective`` on ``RayExecutor`` tasks: k CPU tasks, or g one-GPU
+      tasks on a GPU host, per generation), for contrast.
 Each configuration: pool start and warm-up (actors load the P-SOG, compile kernels) timed apart, one
 untimed generation per population, then --repeats timed generations: median, min, max seconds and
 rigs/s; each timed generation of a pool is followed by one in-process generation, and the speed-up is
@@ -122,9 +123,11 @@ def main(argv=None) -> int:
     ap.add_argument("--output", default=None)
     args = ap.parse_args(argv)
 
-    import ray
-
-    from place3d_kernels.actors import ScoringPool, is_gpu_backend
+    try:
+        import ray
+    except ImportError:
+        ray = None
+    from place3d_kernels.actors import CPU_BACKENDS, ScoringPool, is_gpu_backend
     from place3d_kernels.backends.registry import available_backends, get_backend
     from place3d_kernels.distributed import DistributedObjective, PSOGSpec, SceneSpec, get_executor
     from place3d_kernels.lidar import LidarModel
@@ -170,8 +173,13 @@ def main(argv=None) -> int:
     plan = [(g, 0) for g in range(1, want_gpus + 1)]
     plan += [(g, k) for g in range(1, want_gpus + 1) for k in cpu_ks] + [(0, k) for k in cpu_ks]
     need_cpus = max([g + k for g, k in plan] + [max(cpu_ks, default=1)])
-    ray.init(num_cpus=max(os.cpu_count() or 1, need_cpus), num_gpus=visible, include_dashboard=False,
-             log_to_driver=False)
+    if ray is None:
+        res["not_run"]["all pools and tasks"] = "Ray is not installed: pip install 'place3d-kernels[dist]'"
+        plan, args.no_tasks = [], True
+        print(res["not_run"]["all pools and tasks"], file=sys.stderr)
+    else:
+        ray.init(num_cpus=max(os.cpu_count() or 1, need_cpus), num_gpus=visible, include_dashboard=False,
+                 log_to_driver=False)
     try:
         for g, k in plan:
             name = f"actors-{g}gpu-{k}cpu"
@@ -201,17 +209,23 @@ def main(argv=None) -> int:
             res["configs"][name] = {"gpu_actors": g, "cpu_actors": k, "start_and_warm_s": start_s, "actors": share,
                                     "populations": runs}
         if not args.no_tasks:
-            cpu_name = get_backend(args.cpu_backend if args.cpu_backend != "cpu" else "auto").name
-            for k in cpu_ks:
-                name = f"ray-tasks-{k}"
-                print(f"{name} (today's task path, {cpu_name})", file=sys.stderr)
-                ex = get_executor("ray")
-                obj = DistributedObjective(spec, lidar, space, ex, backend=cpu_name, n_chunks=k, chunk=args.chunk)
+            # today's path for contrast: k CPU tasks per generation, and g one-GPU tasks on a GPU host
+            cpu_name = (args.cpu_backend if args.cpu_backend != "cpu"
+                        else next(b for b in CPU_BACKENDS if b in have))
+            gpu_name = backend.name if is_gpu_backend(backend.name) else "warp:cuda:0"
+            for name, k, gpus, bname in ([(f"ray-tasks-{k}cpu", k, 0, cpu_name) for k in cpu_ks]
+                                         + [(f"ray-tasks-{g}gpu", g, 1, gpu_name)
+                                            for g in range(1, min(want_gpus, visible) + 1)]):
+                print(f"{name} (today's task path, {bname})", file=sys.stderr)
+                ex = get_executor("ray", num_gpus_per_task=gpus)
+                obj = DistributedObjective(spec, lidar, space, ex, backend=bname, n_chunks=k, chunk=args.chunk)
                 obj(xs[args.pops[0]][:k])                    # warm-up: each worker loads the P-SOG once
                 runs = _run(lambda P: obj(xs[P]), pops, want, args.repeats, local)
-                res["configs"][name] = {"workers": k, "backend": cpu_name, "populations": runs}
+                res["configs"][name] = {"tasks_per_generation": k, "gpus_per_task": gpus, "backend": bname,
+                                        "populations": runs}
     finally:
-        ray.shutdown()
+        if ray is not None:
+            ray.shutdown()
 
     ok = all(r["identical_to_in_process"] for c in res["configs"].values() for r in c["populations"].values())
     res["all_identical_to_in_process"] = ok
