@@ -226,6 +226,7 @@ class ScoringPool:
         P = len(poses)
         if P == 0:
             return np.zeros(0)
+        self.info()                     # once: an actor that cannot start fails here, and errors name host and pid
         n_act = len(self.actors)
         size = int(chunk) if chunk else (P if n_act == 1 else -(-P // (4 * n_act)))
         queue = [(k, s) for k, s in enumerate(range(0, P, max(1, size)))]

@@ -102,7 +102,6 @@ def test_failing_actor_names_itself_and_the_chunk(spec):
     try:
         with pytest.raises(ActorScoringError, match=r"cpu actor 0 \(warp:cpu on .*pid \d+\) failed scoring "
                                                     r"candidates 0-3: ValueError: .*occlusion"):
-            pool.info()
             pool.score(spec, TINY, _population(1, 4), occlusion="bogus", chunk=4)
     finally:
         pool.shutdown()
