@@ -118,6 +118,23 @@ def test_failing_actor_names_itself_and_the_chunk(spec):
         ScoringPool(ray)
 
 
+def test_killed_actor_restarts_with_its_state_rebuilt(spec):
+    from place3d_kernels.actors import ScoringPool
+    from place3d_kernels.metrics import msog_batch
+
+    poses = _population(1, 6, seed=3)
+    want = msog_batch(spec.load(), TINY, poses, occlusion="sog", task="seg", backend="warp:cpu")
+    pool = ScoringPool(ray, cpu_actors=1, cpu_backends="warp:cpu")
+    try:
+        pid = pool.info()[0]["pid"]
+        np.testing.assert_array_equal(pool.score(spec, TINY, poses), want)
+        ray.kill(pool.actors[0], no_restart=False)           # the process dies; Ray restarts the actor
+        np.testing.assert_array_equal(pool.score(spec, TINY, poses), want)
+        assert ray.get(pool.actors[0].info.remote())["pid"] != pid
+    finally:
+        pool.shutdown()
+
+
 def test_optimize_through_actors_same_as_local(spec):
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.optimize import MinDistance, SearchSpace, optimize
@@ -147,3 +164,25 @@ def test_optimize_through_actors_same_as_local(spec):
     drop = ("seconds", "time")
     assert ([{k: v for k, v in h.items() if k not in drop} for h in a.history]
             == [{k: v for k, v in h.items() if k not in drop} for h in b.history])
+
+
+def test_cli_optimize_on_actors_writes_the_local_result(spec, tmp_path, capsys):
+    import csv
+    import json
+
+    from place3d_kernels.cli import main
+
+    base = ["optimize", "--frames", "8", "--voxel-size", "0.8", "--lidars", "2", "--popsize", "8", "--max-evals", "24",
+            "--quiet", "--backend", "warp:cpu"]
+    assert main(base + ["--output", str(tmp_path / "local")]) == 0
+    # the module's Ray cluster is joined (not owned), so the command ends its actors and leaves Ray running
+    assert main(base + ["--executor", "ray", "--cpu-actors", "2", "--output", str(tmp_path / "actors")]) == 0
+    capsys.readouterr()
+    a, b = (json.loads((tmp_path / d / "result.json").read_text()) for d in ("local", "actors"))
+    for k in ("best_score", "best_placement", "evaluations", "baseline_scores"):
+        assert a[k] == b[k], k
+    rows = [list(csv.DictReader((tmp_path / d / "history.csv").open())) for d in ("local", "actors")]
+    drop = ("seconds", "time")
+    assert [{k: v for k, v in r.items() if k not in drop} for r in rows[0]] \
+        == [{k: v for k, v in r.items() if k not in drop} for r in rows[1]]
+    assert len(rows[0]) >= 3 and ray.is_initialized()
