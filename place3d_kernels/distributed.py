@@ -17,6 +17,11 @@ on any worker as the local executor does in-process:
   frames whose two files exist, so a killed run resumes without losing or duplicating anything.
 - ``DistributedObjective``: splits each CMA-ES batch into chunks scored as tasks; workers load the
   P-SOG from the on-disk cache of ``scene_psog`` (keyed by its inputs), building it only if absent.
+  When the Ray executor has scoring actors (``get_executor("ray", gpu_actors=N, cpu_actors=M)``,
+  ``--gpu-actors N --cpu-actors M``), the chunks go to long-lived actors instead, one per GPU plus M on
+  CPU cores, which keep the backend, its compiled kernels and the P-SOG between generations and take
+  chunks dynamically (``place3d_kernels.actors``). Same scores, bit for bit, as the tasks and as
+  ``msog_batch`` in-process.
 - The specs (``SceneSpec``, ``ConditionSpec``, ``PSOGSpec``) live in ``place3d_kernels.spec`` and are
   re-exported here.
 - ``task_seed(run_seed, task_id)``: seeds derived from the run seed and the task id only. The frame
@@ -43,7 +48,8 @@ from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec, backend_name, resolve_lidar
 
 __all__ = ["Executor", "LocalExecutor", "RayExecutor", "get_executor", "add_executor_arguments",
-           "executor_from_args", "task_seed", "SceneSpec", "ConditionSpec", "PSOGSpec", "simulate_to_folder",
+           "executor_from_args", "check_actor_arguments", "task_seed", "SceneSpec", "ConditionSpec", "PSOGSpec",
+           "simulate_to_folder",
            "DistributedObjective", "INSTALL_HINT", "chunks"]
 
 INSTALL_HINT = "pip install 'place3d-kernels[dist]'"
@@ -109,12 +115,18 @@ class RayExecutor(Executor):
         num_gpus_per_task: GPUs each task requests (0 = CPU tasks).
         cpus_per_task: CPUs each task requests (default 1).
         max_retries: retries of a task whose worker dies (Ray's ``max_retries``).
+        gpu_actors: scoring actors reserving one GPU each (``DistributedObjective`` then scores on
+            actors instead of tasks; ``place3d_kernels.actors``). Started on the first scored batch.
+        cpu_actors: scoring actors on CPU cores (alone, or beside the GPU actors).
+        cpu_backends: the CPU actors' backend: one name or one per actor (default: the run's backend when
+            it is a CPU one, else the first of opencl:pocl, warp:cpu, reference on the actor's host).
     """
 
     kind = "ray"
 
     def __init__(self, address: str | None = None, num_cpus: int | None = None, num_gpus_per_task: float = 0,
-                 cpus_per_task: float = 1, max_retries: int = 3) -> None:
+                 cpus_per_task: float = 1, max_retries: int = 3, gpu_actors: int = 0, cpu_actors: int = 0,
+                 cpu_backends: str | Sequence[str] | None = None) -> None:
         super().__init__()
         ray = _import_ray()
         self._ray = ray
@@ -128,6 +140,26 @@ class RayExecutor(Executor):
         self.num_gpus_per_task = float(num_gpus_per_task or 0)
         self.cpus_per_task = float(cpus_per_task)
         self.max_retries = int(max_retries)
+        self.gpu_actors, self.cpu_actors = int(gpu_actors or 0), int(cpu_actors or 0)
+        if self.gpu_actors < 0 or self.cpu_actors < 0:
+            raise ValueError(f"actor counts must be >= 0, got --gpu-actors {gpu_actors} --cpu-actors {cpu_actors}")
+        self.cpu_backends = cpu_backends
+        self.pool = None
+
+    @property
+    def has_actors(self) -> bool:
+        """Whether population scoring goes to actors (``gpu_actors + cpu_actors > 0``)."""
+        return self.gpu_actors + self.cpu_actors > 0
+
+    def scoring_pool(self, backend: str | None = None):
+        """The ``actors.ScoringPool`` (started on first use; ``backend`` is the run's backend name, which
+        decides the actors' backends then and is ignored afterwards)."""
+        if self.pool is None:
+            from place3d_kernels.actors import ScoringPool
+
+            self.pool = ScoringPool(self._ray, self.gpu_actors, self.cpu_actors, backend=backend,
+                                    cpu_backends=self.cpu_backends)
+        return self.pool
 
     def map(self, fn, tasks, *, num_gpus=None) -> list:
         tasks = list(tasks)
@@ -139,6 +171,9 @@ class RayExecutor(Executor):
         return self._ray.get([remote.remote(t) for t in tasks])
 
     def shutdown(self) -> None:
+        if self.pool is not None and self._ray.is_initialized():
+            self.pool.shutdown()
+        self.pool = None
         if self._owns and self._ray.is_initialized():
             self._ray.shutdown()
         self._owns = False
@@ -146,7 +181,8 @@ class RayExecutor(Executor):
 
 def get_executor(kind: str = "local", address: str | None = None, num_cpus: int | None = None,
                  num_gpus_per_task: float = 0, **kw) -> Executor:
-    """``"local"`` or ``"ray"``; a Ray address implies ``"ray"``."""
+    """``"local"`` or ``"ray"``; a Ray address implies ``"ray"``. Keywords go to ``RayExecutor`` (e.g.
+    ``gpu_actors=2, cpu_actors=1`` for population scoring on actors)."""
     kind = (kind or "local").lower()
     if kind == "local" and address:
         kind = "ray"
@@ -158,7 +194,8 @@ def get_executor(kind: str = "local", address: str | None = None, num_cpus: int 
 
 
 def add_executor_arguments(p) -> None:
-    """``--executor local|ray``, ``--ray-address``, ``--num-cpus``, ``--gpus-per-task``, ``--chunk``."""
+    """``--executor local|ray``, ``--ray-address``, ``--num-cpus``, ``--gpus-per-task``, ``--chunk``,
+    ``--gpu-actors``, ``--cpu-actors``."""
     p.add_argument("--executor", default="local", choices=["local", "ray"],
                    help=f"where tasks run (default local; ray needs {INSTALL_HINT})")
     p.add_argument("--ray-address", default=None,
@@ -167,16 +204,37 @@ def add_executor_arguments(p) -> None:
     p.add_argument("--gpus-per-task", type=float, default=0, help="GPUs each Ray task requests (default 0)")
     p.add_argument("--chunk", type=int, default=None,
                    help="frames (simulate) or candidates (optimize) per task (default: 8 / batch split over workers)")
+    p.add_argument("--gpu-actors", type=int, default=0,
+                   help="optimize with --executor ray: score the population on N long-lived actors, one per GPU "
+                        "(warm backend and P-SOG between generations; default 0: Ray tasks)")
+    p.add_argument("--cpu-actors", type=int, default=0,
+                   help="optimize with --executor ray: N scoring actors on CPU cores, alone or beside the GPU "
+                        "actors (default 0)")
+
+
+def check_actor_arguments(args) -> dict:
+    """``{"gpu_actors": N, "cpu_actors": M}`` from the command line; ``ValueError`` for a negative count
+    or for actors asked for without ``--executor ray`` / ``--ray-address`` (before any work starts)."""
+    actors = {"gpu_actors": getattr(args, "gpu_actors", 0) or 0, "cpu_actors": getattr(args, "cpu_actors", 0) or 0}
+    if min(actors.values()) < 0:
+        raise ValueError(f"--gpu-actors {actors['gpu_actors']} --cpu-actors {actors['cpu_actors']}: counts must "
+                         f"be >= 0")
+    ray_asked = (getattr(args, "executor", "local") or "local") == "ray" or getattr(args, "ray_address", None)
+    if any(actors.values()) and not ray_asked:
+        raise ValueError(f"--gpu-actors {actors['gpu_actors']} --cpu-actors {actors['cpu_actors']} need "
+                         f"--executor ray")
+    return actors
 
 
 def executor_from_args(args) -> Executor:
     kind = getattr(args, "executor", "local") or "local"
     if kind == "local" and getattr(args, "ray_address", None):
         raise ValueError("--ray-address needs --executor ray")
+    actors = check_actor_arguments(args)
     if kind == "ray":
         try:
             return get_executor("ray", getattr(args, "ray_address", None), getattr(args, "num_cpus", None),
-                                getattr(args, "gpus_per_task", 0) or 0)
+                                getattr(args, "gpus_per_task", 0) or 0, **actors)
         except ImportError as e:
             raise ValueError(str(e)) from None
     return get_executor(kind)
@@ -300,7 +358,8 @@ def _score_task(t: tuple) -> np.ndarray:
 
 @dataclass
 class DistributedObjective:
-    """``objective(X) -> (P,) M-SOG`` with each batch split into chunks scored as executor tasks.
+    """``objective(X) -> (P,) M-SOG`` with each batch split into chunks scored as executor tasks, or on
+    the executor's scoring actors when it has them (``RayExecutor(gpu_actors=..., cpu_actors=...)``).
 
     Same scores as ``msog_batch(psog, lidar, space.to_poses(X), ...)`` (each rig is scored on its own).
 
@@ -309,7 +368,7 @@ class DistributedObjective:
             the cache exists before the first generation).
         lidar: LiDAR name or model of the rig; space: the ``SearchSpace``.
         executor: the executor; chunk: candidates per task (default: batch split into 2 x workers' tasks,
-            here simply ``ceil(P / n_chunks)`` with ``n_chunks`` given).
+            here simply ``ceil(P / n_chunks)`` with ``n_chunks`` given; on actors: see ``ScoringPool.score``).
     """
 
     psog: PSOGSpec
@@ -331,9 +390,12 @@ class DistributedObjective:
         poses = np.asarray(self.space.to_poses(np.asarray(X, dtype=np.float64)))
         if poses.ndim == 2:
             poses = poses[None]
+        self.calls += 1
+        if getattr(self.executor, "has_actors", False):
+            pool = self.executor.scoring_pool(self.backend)
+            return pool.score(self.psog, self.lidar, poses, self.occlusion, self.task, chunk=self.chunk)
         size = self.chunk or -(-len(poses) // max(1, self.n_chunks))
         parts = [poses[i:i + size] for i in range(0, len(poses), size)]
-        self.calls += 1
         res = self.executor.map(_score_task, [(self.psog, self.lidar, p, self.occlusion, self.task, self.backend)
                                               for p in parts])
         return np.concatenate(res) if res else np.zeros(0)

@@ -107,6 +107,9 @@ def check_args(args, spec) -> None:
         if not np.all(space.contains(x, tol=1e-9)):
             raise ValueError(f"--x0 {args.x0} lies outside the search box {space}; choose a placement inside it")
     holdout_specs(args, spec)            # parses --holdout-seeds / --holdout-scenes, raising on bad values
+    from place3d_kernels.distributed import check_actor_arguments
+
+    check_actor_arguments(args)          # --gpu-actors / --cpu-actors need --executor ray
     if args.normalisation != "paper" and (getattr(args, "executor", "local") == "ray"
                                           or getattr(args, "ray_address", None)):
         raise ValueError(f"--normalisation {args.normalisation} is not supported with the Ray executor; "

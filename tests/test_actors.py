@@ -1,0 +1,188 @@
+"""Population scoring on Ray actors (issue 17): a pool of actors with different backends returns the
+scores of ``msog_batch`` in-process bit for bit and in candidate order, a failing actor gives a clear
+error, and a CMA-ES run through actors is the local run. A 2-CPU Ray cluster is started here."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pytest
+
+from place3d_kernels.distributed import (DistributedObjective, PSOGSpec, SceneSpec, add_executor_arguments,
+                                         executor_from_args, get_executor)
+from place3d_kernels.lidar import LidarModel
+
+TINY = LidarModel.uniform(8, fov_deg=(-25.0, 2.0), azimuth_steps=96, max_range=60.0, name="tiny8")
+SCENE = SceneSpec("town", seed=0, frames=4)
+PAIR = ["warp:cpu", "opencl:pocl"]         # one actor each: a heterogeneous pool
+
+
+def _args(*argv):
+    p = argparse.ArgumentParser()
+    add_executor_arguments(p)
+    return p.parse_args(list(argv))
+
+
+def test_actor_counts_need_the_ray_executor():
+    with pytest.raises(ValueError, match="--gpu-actors 1 --cpu-actors 0 need --executor ray"):
+        executor_from_args(_args("--gpu-actors", "1"))
+
+
+def test_dispatch_rule_and_backend_kinds():
+    from place3d_kernels.actors import is_gpu_backend, worth_dispatching
+
+    # a GPU at 1000 rigs/s clears 64 queued rigs in 64 ms; a CPU actor at 20 rigs/s needs 800 ms for 16
+    assert not worth_dispatching(16, 20.0, [1000.0], 64)
+    assert worth_dispatching(16, 20.0, [1000.0], 64 * 200)       # a long queue: the CPU actor helps
+    assert worth_dispatching(16, 1000.0, [20.0], 16)             # the fast actor always takes work
+    assert worth_dispatching(16, None, [1000.0], 64) and worth_dispatching(16, 20.0, [None], 64)
+    assert worth_dispatching(4, 20.0, [], 4)                     # a single actor
+    assert [is_gpu_backend(b) for b in ("warp:cuda:0", "opencl:nvidia", "opencl:pocl", "warp:cpu", "reference")] \
+        == [True, True, False, False, False]
+
+
+try:
+    import ray
+except ImportError:
+    ray = None
+
+
+@pytest.fixture(scope="module")
+def spec():
+    if ray is None:
+        pytest.skip("Ray is not installed (pip install 'place3d-kernels[dist]')")
+    from place3d_kernels.backends.registry import available_backends
+
+    missing = [b for b in PAIR if b not in available_backends()]
+    if missing:
+        pytest.skip(f"backends {missing} are not available here")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    s = PSOGSpec(SCENE, "warp:cpu", frames_per_subset=2).resolved()
+    s.load()                                 # the driver fills the cache; actors read it
+    yield s
+    ray.shutdown()
+
+
+def _population(n_lidars: int, n: int, seed: int = 0) -> np.ndarray:
+    from place3d_kernels.optimize import SearchSpace
+
+    space = SearchSpace(n_lidars=n_lidars)
+    X = np.random.default_rng(seed).uniform(space.lower, space.upper, size=(n, space.dim))
+    return np.asarray(space.to_poses(X))
+
+
+def test_mixed_pool_scores_equal_in_process_in_candidate_order(spec):
+    from place3d_kernels.actors import ScoringPool
+    from place3d_kernels.metrics import msog_batch
+
+    poses = _population(2, 10)
+    psog = spec.load()
+    want = {b: msog_batch(psog, TINY, poses, occlusion="sog", task="seg", backend=b) for b in PAIR}
+    np.testing.assert_array_equal(want["warp:cpu"], want["opencl:pocl"])
+    pool = ScoringPool(ray, cpu_actors=2, cpu_backends=PAIR)
+    try:
+        assert [d["backend"] for d in pool.info()] == PAIR
+        for chunk in (2, 3, None):                      # 5, 4 (last one short) and 2 chunks
+            got = pool.score(spec, TINY, poses, chunk=chunk)
+            assert got.dtype == np.float64 and got.shape == (10,)
+            np.testing.assert_array_equal(got, want["warp:cpu"])
+        assert all(s["chunks"] >= 1 for s in pool.stats), pool.stats       # both actors took work
+        assert sum(s["rigs"] for s in pool.stats) == 30
+        det = msog_batch(psog, TINY, poses[:7], occlusion="none", task="det", backend="warp:cpu")
+        np.testing.assert_array_equal(pool.score(spec, TINY, poses[:7], "none", "det", chunk=1), det)
+    finally:
+        pool.shutdown()
+
+
+def test_failing_actor_names_itself_and_the_chunk(spec):
+    from place3d_kernels.actors import ActorScoringError, ScoringPool
+
+    pool = ScoringPool(ray, cpu_actors=1, cpu_backends="warp:cpu")
+    try:
+        with pytest.raises(ActorScoringError, match=r"cpu actor 0 \(warp:cpu on .*pid \d+\) failed scoring "
+                                                    r"candidates 0-3: ValueError: .*occlusion"):
+            pool.score(spec, TINY, _population(1, 4), occlusion="bogus", chunk=4)
+    finally:
+        pool.shutdown()
+    bad = ScoringPool(ray, cpu_actors=1, cpu_backends="warp:nosuchdevice")
+    try:
+        with pytest.raises(ActorScoringError, match=r"cpu actor 0 \(backend 'warp:nosuchdevice'\) failed starting: "
+                                                    r"ValueError: Unknown .*'warp:nosuchdevice'"):
+            bad.info()
+    finally:
+        bad.shutdown()
+    with pytest.raises(ValueError, match=r"gpu_actors=1 but the Ray cluster has 0 GPU\(s\)"):
+        ScoringPool(ray, gpu_actors=1)
+    with pytest.raises(ValueError, match="at least one actor"):
+        ScoringPool(ray)
+
+
+def test_killed_actor_restarts_with_its_state_rebuilt(spec):
+    from place3d_kernels.actors import ScoringPool
+    from place3d_kernels.metrics import msog_batch
+
+    poses = _population(1, 6, seed=3)
+    want = msog_batch(spec.load(), TINY, poses, occlusion="sog", task="seg", backend="warp:cpu")
+    pool = ScoringPool(ray, cpu_actors=1, cpu_backends="warp:cpu")
+    try:
+        pid = pool.info()[0]["pid"]
+        np.testing.assert_array_equal(pool.score(spec, TINY, poses), want)
+        ray.kill(pool.actors[0], no_restart=False)           # the process dies; Ray restarts the actor
+        np.testing.assert_array_equal(pool.score(spec, TINY, poses), want)
+        assert ray.get(pool.actors[0].info.remote())["pid"] != pid
+    finally:
+        pool.shutdown()
+
+
+def test_optimize_through_actors_same_as_local(spec):
+    from place3d_kernels.metrics import msog_batch
+    from place3d_kernels.optimize import MinDistance, SearchSpace, optimize
+
+    psog = spec.load()
+    space = SearchSpace(n_lidars=2)
+    lidar = "place3d_16ch"
+    L = LidarModel.load(lidar)
+
+    def local(X):
+        return msog_batch(psog, L, space.to_poses(X), occlusion="sog", task="seg", backend="warp:cpu")
+
+    kw = dict(max_evals=24, popsize=8, seed=5, progress=False)
+    a = optimize(local, space, [MinDistance(0.2)], **kw)
+    ex = get_executor("ray", cpu_actors=2, cpu_backends=PAIR)
+    try:
+        dist = DistributedObjective(spec, lidar, space, ex, task="seg", backend="warp:cpu", chunk=3)
+        b = optimize(dist, space, [MinDistance(0.2)], **kw)
+        assert dist.calls >= 2 and ex.pool is not None and ex.submitted == 0      # actors, not tasks
+        assert all(s["chunks"] >= 1 for s in ex.pool.stats)
+    finally:
+        ex.shutdown()
+    assert ex.pool is None and ray.is_initialized()         # the executor did not own the cluster
+    assert a.evaluations == b.evaluations
+    assert a.best_score == b.best_score
+    np.testing.assert_array_equal(a.best_placement.poses, b.best_placement.poses)
+    drop = ("seconds", "time")
+    assert ([{k: v for k, v in h.items() if k not in drop} for h in a.history]
+            == [{k: v for k, v in h.items() if k not in drop} for h in b.history])
+
+
+def test_cli_optimize_on_actors_writes_the_local_result(spec, tmp_path, capsys):
+    import csv
+    import json
+
+    from place3d_kernels.cli import main
+
+    base = ["optimize", "--frames", "8", "--voxel-size", "0.8", "--lidars", "2", "--popsize", "8", "--max-evals", "24",
+            "--quiet", "--backend", "warp:cpu"]
+    assert main(base + ["--output", str(tmp_path / "local")]) == 0
+    # the module's Ray cluster is joined (not owned), so the command ends its actors and leaves Ray running
+    assert main(base + ["--executor", "ray", "--cpu-actors", "2", "--output", str(tmp_path / "actors")]) == 0
+    capsys.readouterr()
+    a, b = (json.loads((tmp_path / d / "result.json").read_text()) for d in ("local", "actors"))
+    for k in ("best_score", "best_placement", "evaluations", "baseline_scores"):
+        assert a[k] == b[k], k
+    rows = [list(csv.DictReader((tmp_path / d / "history.csv").open())) for d in ("local", "actors")]
+    drop = ("seconds", "time")
+    assert [{k: v for k, v in r.items() if k not in drop} for r in rows[0]] \
+        == [{k: v for k, v in r.items() if k not in drop} for r in rows[1]]
+    assert len(rows[0]) >= 3 and ray.is_initialized()
