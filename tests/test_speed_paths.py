@@ -190,3 +190,35 @@ def test_plot_worker_draws_the_optimise_outputs_and_reports_errors(tmp_path, pro
             worker.submit(history, best, None, view[:2], tmp_path / "bad").result(timeout=120)
     finally:
         worker.close()
+
+
+def test_plot_worker_falls_back_to_a_thread(tmp_path, monkeypatch):
+    """A worker process that died (or could not start, as for a program read from standard input) does not
+    fail the command: the figures are drawn on a thread instead."""
+    import os
+    import signal
+    import sys
+    import time
+
+    from place3d_kernels.optimize import SearchSpace, plots
+
+    monkeypatch.setattr(sys.modules["__main__"], "__file__", "<stdin>", raising=False)
+    assert not plots._spawn_can_start()
+    w = plots.PlotWorker()
+    w.close()
+    assert w.processes is False                                    # on any machine: no process could start
+    monkeypatch.undo()
+    history = [{"evaluations": 10 * (i + 1), "best": -0.05 + 0.001 * i, "sigma": 0.3} for i in range(4)]
+    view = (np.random.default_rng(0).random((8, 8)), np.eye(8, dtype=bool), 8, (-4.0, 4.0, -4.0, 4.0), "pyramid")
+    worker = plots.PlotWorker(processes=True)
+    try:
+        worker.pool.submit(time.sleep, 0).result(timeout=120)          # the processes are up
+        for pid in list(worker.pool._processes):
+            os.kill(pid, signal.SIGKILL)
+        time.sleep(1.0)
+        paths = worker.submit(history, p3k.Placement.load("pyramid"), SearchSpace(n_lidars=4), view,
+                              tmp_path).result(timeout=120)
+        assert worker.processes is False
+        assert sorted(p.rsplit("/", 1)[1] for p in paths) == ["convergence.png", "coverage.png", "rig.png"]
+    finally:
+        worker.close()

@@ -220,6 +220,16 @@ def _all_of(parts):
 PLOT_PROCESSES = 3
 
 
+def _spawn_can_start() -> bool:
+    """Whether a spawned process can start here: it re-runs the main module from its file, which a
+    program read from standard input or a string (``python -``, ``python -c``) does not have."""
+    import sys
+
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    return path is None or Path(path).is_file()
+
+
 class PlotWorker:
     """Draws the outputs of ``place3d optimize`` beside the main thread.
 
@@ -236,7 +246,7 @@ class PlotWorker:
         from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
         if processes is None:
-            processes = (os.cpu_count() or 1) >= 4
+            processes = (os.cpu_count() or 1) >= 4 and _spawn_can_start()
         if processes:
             import multiprocessing
 
@@ -250,11 +260,21 @@ class PlotWorker:
     def submit(self, history, best, bounds, coverage, out):
         if not self.processes:
             return self.pool.submit(draw_outputs, list(history), best, bounds, coverage, str(out))
+        from concurrent.futures.process import BrokenProcessPool
+
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        return _all_of([self.pool.submit(plot_convergence, list(history), out / "convergence.png"),
-                        self.pool.submit(plot_rig, best, out / "rig.png", None, bounds),
-                        self.pool.submit(draw_coverage, *coverage, out / "coverage.png")])
+        try:
+            return _all_of([self.pool.submit(plot_convergence, list(history), out / "convergence.png"),
+                            self.pool.submit(plot_rig, best, out / "rig.png", None, bounds),
+                            self.pool.submit(draw_coverage, *coverage, out / "coverage.png")])
+        except BrokenProcessPool:
+            # a worker process died (killed, or it could not start): the figures are drawn on a thread
+            from concurrent.futures import ThreadPoolExecutor
+
+            self.pool.shutdown(wait=False, cancel_futures=True)
+            self.pool, self.processes = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots"), False
+            return self.submit(history, best, bounds, coverage, out)
 
     def close(self, cancel: bool = False) -> None:
         """Wait for the drawing (``cancel``: drop what has not started, as when the command failed)."""
