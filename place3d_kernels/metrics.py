@@ -23,7 +23,7 @@ from place3d_kernels.mesh import Mesh
 from place3d_kernels.ops import coverage, raycast
 from place3d_kernels.sog import PSOG
 
-__all__ = ["msog", "msog_batch", "covered_voxels", "msog_from_voxels", "coverage_counts", "OCCLUSION_MODES",
+__all__ = ["msog", "msog_batch", "msog_on_grid", "covered_voxels", "msog_from_voxels", "coverage_counts", "OCCLUSION_MODES",
            "NORMALISATIONS"]
 
 OCCLUSION_MODES = ("none", "sog", "mesh")
@@ -48,12 +48,16 @@ def check_inputs(psog: PSOG, poses: np.ndarray, occlusion: str, mesh) -> None:
         raise ValueError(f"occlusion must be one of {OCCLUSION_MODES}, got {occlusion!r}")
     if occlusion == "mesh" and mesh is None:
         raise ValueError("occlusion='mesh' needs mesh= (the scene in the ego frame)")
+    _check_poses(psog.grid, poses)
+
+
+def _check_poses(grid, poses: np.ndarray) -> None:
     if poses.shape[-1] != 6 or not np.all(np.isfinite(poses)):
         raise ValueError(f"poses must be finite (..., 6) rows (x, y, z, roll, pitch, yaw); got shape {poses.shape}")
-    inside = psog.grid.contains(poses[..., :3].reshape(-1, 3))
+    inside = grid.contains(poses[..., :3].reshape(-1, 3))
     if not np.all(inside):
         bad = poses[..., :3].reshape(-1, 3)[~inside][0]
-        raise ValueError(f"LiDAR at {bad.tolist()} lies outside the grid {psog.grid.lower}..{psog.grid.upper}; "
+        raise ValueError(f"LiDAR at {bad.tolist()} lies outside the grid {grid.lower}..{grid.upper}; "
                          f"place LiDARs inside the ROI (ego frame, z up from the ground)")
 
 
@@ -202,11 +206,32 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
     if occlusion == "mesh":
         sums, counts = zip(*(mesh_sums(p, lidar, rig, mesh, b) for rig in poses))
         return _score(np.array(sums), np.array(counts))
+    return _fused_scores(p.grid, p.handle(b, occlusion), lidar, poses, b)
+
+
+def _fused_scores(grid, handle, lidar: LidarModel, poses: np.ndarray, b) -> np.ndarray:
+    """Scores of rigs (P, L, 6) in the ego frame by the fused kernel on a prepared grid handle."""
     local = poses.copy()
-    local[..., :3] = p.grid.to_local(poses[..., :3])
-    sums, counts = b.score_placements(p.handle(b, occlusion), lidar.elevations, lidar.azimuths,
-                                      lidar.max_range, local)
+    local[..., :3] = grid.to_local(poses[..., :3])
+    sums, counts = b.score_placements(handle, lidar.elevations, lidar.azimuths, lidar.max_range, local)
     return _score(sums, counts)
+
+
+def msog_on_grid(grid, weights: np.ndarray, stop: np.ndarray | None, lidar: LidarModel, poses,
+                 backend=None) -> np.ndarray:
+    """``msog_batch`` (paper normalisation, a grid LiDAR without minimum range or body) on a grid given by
+    its fixed-point weights and stop mask instead of a ``PSOG``: the values a P-SOG's ``weights`` and
+    ``stop_mask`` hold (``stop`` None: occlusion "none"). The jackknife scores its leave-one-out grids so
+    (``place3d_kernels.left_out``); the kernel and the arithmetic are ``msog_batch``'s."""
+    if not lidar.is_grid or lidar.min_range > 0:
+        raise ValueError(f"msog_on_grid takes grid LiDARs without a minimum range; use msog_batch for "
+                         f"{lidar.name or 'this sensor'}")
+    poses = _poses(poses)
+    if poses.ndim == 2:
+        poses = poses[None]
+    _check_poses(grid, poses)
+    b = get_backend(backend)
+    return _fused_scores(grid, b.prepare_grid(grid.spec, weights, stop), lidar, poses, b)
 
 
 def mesh_mask(p: PSOG, lidar: LidarModel, rig: np.ndarray, mesh: Mesh, b) -> np.ndarray:

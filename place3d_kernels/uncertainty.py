@@ -554,28 +554,45 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     n = len(pooled)
     if n < 2:
         raise ValueError(f"the jackknife needs at least 2 units, got {n}")
+    # the point first: msog_batch checks the poses before any left-out grid is scored
+    point_scores = dict(point) if point is not None else {}
+    with section("jackknife: point"):
+        full = None if point is not None else pooled.psog()
+        for t in tasks:
+            if point is None:
+                point_scores[t] = msog_batch(full, L, poses, occlusion, t, b, normalisation=normalisation,
+                                             body=body)
+        del full
     scores = {t: np.empty((n, len(names))) for t in tasks}
     it = range(n)
     if progress:
         from tqdm import tqdm
 
         it = tqdm(it, desc="jackknife", unit="left-out", leave=False)
-    left_out = _left_out_psogs(pooled, tasks)
-    for i in it:
-        with section("jackknife: left-out P-SOG (wait)"):
-            ps = next(left_out)
-        with section("jackknife: scoring"):
+    if normalisation == "paper" and body is None and L.is_grid and L.min_range == 0 and occlusion in ("sog", "none"):
+        # msog_batch's fused path: each left-out grid patched from the full pool (left_out.py, 5x faster)
+        from place3d_kernels.left_out import LeftOutGrids
+        from place3d_kernels.metrics import msog_on_grid
+
+        grids = {t: LeftOutGrids(pooled, t) for t in tasks}
+        for i in it:
             for t in tasks:
-                scores[t][i] = msog_batch(ps, L, poses, occlusion, t, b, normalisation=normalisation, body=body)
-        del ps
-    left_out.close()                                 # its thread pool, now idle, shuts down
-    out = {}
-    for t in tasks:
-        with section("jackknife: point"):
-            pt = point[t] if point is not None else msog_batch(pooled.psog(), L, poses, occlusion, t, b,
-                                                               normalisation=normalisation, body=body)
-        out[t] = Jackknife(names, np.asarray(pt, dtype=np.float64), scores[t], level, unit, n)
-    return out
+                with section("jackknife: left-out grid"):
+                    w, stop = grids[t].fields(i)
+                with section("jackknife: scoring"):
+                    scores[t][i] = msog_on_grid(pooled.grid, w, stop if occlusion == "sog" else None, L, poses, b)
+    else:
+        left_out = _left_out_psogs(pooled, tasks)
+        for i in it:
+            with section("jackknife: left-out P-SOG (wait)"):
+                ps = next(left_out)
+            with section("jackknife: scoring"):
+                for t in tasks:
+                    scores[t][i] = msog_batch(ps, L, poses, occlusion, t, b, normalisation=normalisation, body=body)
+            del ps
+        left_out.close()                             # its thread pool, now idle, shuts down
+    return {t: Jackknife(names, np.asarray(point_scores[t], dtype=np.float64), scores[t], level, unit, n)
+            for t in tasks}
 
 
 def pairwise(boot: Bootstrap) -> dict:
