@@ -329,11 +329,19 @@ def cmd_optimize(args) -> int:
     return run_optimize(args, spec, psog_for=lambda backend: _psog(spec, args, backend, with_scene=False))
 
 
+def cmd_serve(args) -> int:
+    from place3d_kernels.serve import serve
+
+    return serve(args, command=main, warm=build_parser)
+
+
 # ---------------------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     from place3d_kernels import __version__
 
-    ap = argparse.ArgumentParser(prog="place3d", description="Multi-LiDAR placement kernels (Place3D metric and optimiser)")
+    ap = argparse.ArgumentParser(prog="place3d", description="Multi-LiDAR placement kernels (Place3D metric and optimiser)",
+                                 epilog="place3d --server[=SOCKET] COMMAND ... (or PLACE3D_SERVER=1) runs the command in "
+                                        "a warm 'place3d serve' process if one is running, here otherwise")
     ap.add_argument("--version", action="version", version=f"place3d-kernels {__version__}")
     ap.add_argument("--profile", action="store_true",
                     help="print where the command's time went (sections: backend probe, scene, P-SOG, scoring, "
@@ -412,6 +420,13 @@ def build_parser() -> argparse.ArgumentParser:
         add_opt(p)
         add_executor_arguments(p)
         p.set_defaults(func=cmd_optimize)
+
+    from place3d_kernels.serve import add_arguments as add_serve
+
+    p = sub.add_parser("serve", help="a resident process that runs commands sent with --server, imports and "
+                                     "backend already loaded")
+    add_serve(p)
+    p.set_defaults(func=cmd_serve)
     return ap
 
 
