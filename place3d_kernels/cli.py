@@ -431,8 +431,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    from place3d_client import server_request
     from place3d_kernels.manifest import set_command_line
 
+    if server_request(sys.argv[1:] if argv is None else argv, {})[1]:
+        # --server reached this parser (python -m place3d_kernels.cli, or a console script installed before
+        # the entry point moved to place3d_client): the launcher forwards, or strips the flag and runs here
+        from place3d_client import main as launch
+
+        return launch(argv)
     args = build_parser().parse_args(argv)
     set_command_line(None if argv is None else ["place3d", *argv])
     try:

@@ -125,6 +125,12 @@ class Server:
         import tqdm  # noqa: F401
         self.backend = get_backend(backend).name      # imports Warp / PyOpenCL, starts CUDA or the OpenCL device
         keep_loaded(KEEP_PSOGS)
+        # multiprocessing's resource tracker lives as long as this process once a command spawns a process
+        # (optimize's plot worker on 4+ cores); started by a command it would inherit that client's stdout
+        # and stderr and hold its pipe open after the command ends. Started now it holds the server's own.
+        from multiprocessing import resource_tracker
+
+        resource_tracker.ensure_running()
         self.say(f"pid {os.getpid()}, backend {self.backend}, loaded in {time.perf_counter() - t:.2f} s")
 
     # ------------------------------------------------------------------ the loop

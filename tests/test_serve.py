@@ -173,6 +173,31 @@ def test_ctrl_c_on_the_client_interrupts_the_command_not_the_server(server, tmp_
     _same(_place3d("backends"), _place3d(f"--server={path}", "backends"))
 
 
+def test_plot_process_inside_the_server_leaves_no_child_holding_the_clients_pipe(tmp_path):
+    """On 4+ cores optimize draws its plots in a spawned process; through the server (told here it has 8
+    cores) the command must end, with its outputs, when the client's pipes close (capture_output waits for
+    EOF, so a helper process that kept them would hang this test)."""
+    folder = Path(tempfile.mkdtemp(prefix="p3s-", dir="/tmp"))
+    path = folder / "s.sock"
+    code = ("import os, sys; os.cpu_count = lambda: 8; from place3d_client import main; "
+            f"sys.exit(main(['serve', '--socket', '{path}', '--backend', '{BACKEND}']))")
+    proc = subprocess.Popen([sys.executable, "-c", code], env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not _listening(path):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        for run in ("a", "b"):
+            r = _place3d(f"--server={path}", "optimize", *SMALL, "--max-evals", "44", "--output", run, cwd=tmp_path)
+            assert r.returncode == 0, r.stderr
+            assert {"convergence.png", "rig.png", "coverage.png"} <= {p.name for p in (tmp_path / run).iterdir()}
+    finally:
+        out = _stop(proc)
+        shutil.rmtree(folder, ignore_errors=True)
+    assert "terminated, exiting" in out, out
+
+
 def test_no_server_runs_here(tmp_path):
     missing = Path(tempfile.gettempdir()) / f"p3s-none-{os.getpid()}.sock"
     here = _place3d("backends")
