@@ -97,6 +97,9 @@ class Server:
 
     def __init__(self, path: Path, command, idle_timeout: float = DEFAULT_IDLE_TIMEOUT_S):
         self.path, self.command, self.idle_timeout = Path(path), command, float(idle_timeout)
+        # a command may chdir (the server does, per client): an import path relative to the folder the server
+        # started in ("" with python -c) must keep naming that folder
+        sys.path[:] = [os.path.abspath(p) if not os.path.isabs(p) else p for p in sys.path]
         self.identity = wire.identity()
         self.startup_env = wire.startup_env()
         self.backend = None
@@ -387,7 +390,7 @@ def _detach(args, path: Path) -> int:
         if not _listening(path):
             time.sleep(0.05)
             continue
-        print(f"place3d serve: pid {proc.pid} listening on {path} (log {log}); use it with "
+        print(f"server started: pid {proc.pid}, listening on {path} (log {log}); use it with "
               f"place3d --server{'' if args.socket is None else '=' + str(path)} COMMAND")
         return 0
     raise ValueError(f"the server (pid {proc.pid}) did not listen on {path} within 300 s; its log: {log}")
