@@ -31,10 +31,11 @@ PACKAGES = ("place3d_kernels", "place3d_client")
 DEPENDENCIES = ("numpy", "warp", "cma", "pyopencl", "scipy", "trimesh", "tqdm", "matplotlib")
 
 #: Environment variables read when a library loads or a device starts (CUDA, OpenCL/PoCL, Warp, OpenMP and
-#: BLAS thread pools); a warm process cannot apply a different value, so a client whose values differ is
-#: refused instead of being served with the server's.
+#: BLAS thread pools, matplotlib's MPLBACKEND / MPLCONFIGDIR, the interpreter's own); a warm process cannot
+#: apply a different value, so a client whose values differ is refused instead of being served with the
+#: server's.
 STARTUP_ENV_PREFIXES = ("CUDA_", "PYOPENCL_", "POCL_", "OCL_", "WARP_", "PLACE3D_WARP_", "OMP_", "MKL_",
-                        "OPENBLAS_", "NVIDIA_", "LD_", "PYTHON")
+                        "OPENBLAS_", "NVIDIA_", "LD_", "PYTHON", "MPL")
 
 _HEADER = struct.Struct(">I")
 _MAX_FDS = 3

@@ -121,6 +121,7 @@ class Server:
 
         from place3d_kernels.backends.registry import get_backend
         from place3d_kernels.lazy_imports import import_cma
+        from place3d_kernels.optimize.plots import keep_worker
         from place3d_kernels.sog import keep_loaded
 
         warm()                   # the CLI's parser: imports every subcommand's module
@@ -134,6 +135,7 @@ class Server:
         from multiprocessing import resource_tracker
 
         resource_tracker.ensure_running()
+        keep_worker()            # optimize's plots: a pool with matplotlib imported, shared by the commands
         self.say(f"pid {os.getpid()}, backend {self.backend}, loaded in {time.perf_counter() - t:.2f} s")
 
     # ------------------------------------------------------------------ the loop
@@ -226,6 +228,7 @@ class Server:
                 self.say(f"refused pid {pid}: {refusal}")
                 wire.send(conn, {"type": "refused", "message": refusal})
                 return
+            self._check_plot_worker()
             wire.send(conn, {"type": "started"})
             t = time.perf_counter()
             code = self._run(conn, hello, fds)
@@ -238,6 +241,13 @@ class Server:
                 os.close(fd)
             with contextlib.suppress(OSError):
                 conn.shutdown(socket.SHUT_RDWR)         # ends the watcher's read
+
+    def _check_plot_worker(self) -> None:
+        """Before a command, with the server's own streams: replace the plot pool if its process died."""
+        from place3d_kernels.optimize.plots import keep_worker
+
+        if keep_worker():
+            self.say("the plot worker had stopped; started a new one")
 
     def _refusal(self, hello: dict, fds: list) -> str | None:
         if hello.get("identity") != self.identity:

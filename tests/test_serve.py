@@ -131,7 +131,7 @@ def test_optimize_outputs_are_the_same(server, tmp_path):
     b = _place3d(f"--server={path}", *args, cwd=there)
     _same(a, b, timing_free=False)
     assert sorted(p.name for p in (here / "out").iterdir()) == sorted(p.name for p in (there / "out").iterdir())
-    for name in ("history.csv", "optimized-seg.toml"):
+    for name in ("history.csv", "optimized-seg.toml", "convergence.png", "rig.png", "coverage.png"):
         assert (here / "out" / name).read_bytes() == (there / "out" / name).read_bytes(), name
     ra, rb = (json.loads((d / "out" / "result.json").read_text()) for d in (here, there))
     assert _untimed(ra) == _untimed(rb)
@@ -173,10 +173,11 @@ def test_ctrl_c_on_the_client_interrupts_the_command_not_the_server(server, tmp_
     _same(_place3d("backends"), _place3d(f"--server={path}", "backends"))
 
 
-def test_plot_process_inside_the_server_leaves_no_child_holding_the_clients_pipe(tmp_path):
-    """On 4+ cores optimize draws its plots in a spawned process; through the server (told here it has 8
-    cores) the command must end, with its outputs, when the client's pipes close (capture_output waits for
-    EOF, so a helper process that kept them would hang this test)."""
+def test_plot_process_inside_the_server_is_kept_and_holds_no_clients_pipe(tmp_path):
+    """On 4+ cores optimize draws its plots in a spawned process; the server (told here it has 8 cores)
+    keeps one from its start. The command must end when the client's pipes close (capture_output waits
+    for EOF, so a helper process that kept them would hang this test), with the same figures as
+    in-process, and a plot process that died is replaced."""
     folder = Path(tempfile.mkdtemp(prefix="p3s-", dir="/tmp"))
     path = folder / "s.sock"
     code = ("import os, sys; os.cpu_count = lambda: 8; from place3d_client import main; "
@@ -188,14 +189,38 @@ def test_plot_process_inside_the_server_leaves_no_child_holding_the_clients_pipe
         while not _listening(path):
             assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
             time.sleep(0.05)
-        for run in ("a", "b"):
-            r = _place3d(f"--server={path}", "optimize", *SMALL, "--max-evals", "44", "--output", run, cwd=tmp_path)
+        pngs = ("convergence.png", "rig.png", "coverage.png")
+        args = ["optimize", *SMALL, "--max-evals", "44", "--output"]
+        assert _place3d(*args, "here", cwd=tmp_path).returncode == 0
+        for run in ("a", "b", "c"):
+            if run == "c":
+                # the kept plot process dies between commands: the next command gets a new one
+                for pid in _children(proc.pid, "spawn_main"):
+                    os.kill(pid, signal.SIGKILL)
+                time.sleep(0.5)
+            r = _place3d(f"--server={path}", *args, run, cwd=tmp_path)
             assert r.returncode == 0, r.stderr
-            assert {"convergence.png", "rig.png", "coverage.png"} <= {p.name for p in (tmp_path / run).iterdir()}
+            for name in pngs:
+                assert (tmp_path / run / name).read_bytes() == (tmp_path / "here" / name).read_bytes(), (run, name)
     finally:
         out = _stop(proc)
         shutil.rmtree(folder, ignore_errors=True)
     assert "terminated, exiting" in out, out
+    assert out.count("the plot worker had stopped") == 1, out
+
+
+def _children(ppid: int, word: str) -> list[int]:
+    """Pids of the child processes of ``ppid`` whose command line contains ``word`` (Linux /proc)."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            cmdline = (stat.parent / "cmdline").read_bytes().decode(errors="replace")
+        except OSError:
+            continue
+        if int(fields[1]) == ppid and word in cmdline:
+            pids.append(int(stat.parent.name))
+    return pids
 
 
 def test_no_server_runs_here(tmp_path):
