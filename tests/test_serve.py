@@ -158,17 +158,25 @@ def test_bad_input_gives_the_same_error_and_the_server_survives(server, tmp_path
     _same(_place3d("backends"), _place3d(f"--server={path}", "backends"))
 
 
-def test_ctrl_c_on_the_client_interrupts_the_command_not_the_server(server, tmp_path):
+def test_ctrl_c_on_the_client_interrupts_the_command_not_the_server_and_the_next_client_waits(server, tmp_path):
     path, proc = server
     client = subprocess.Popen([sys.executable, "-m", "place3d_client", f"--server={path}", "optimize", *SMALL,
                                "--max-evals", "1000000"], cwd=tmp_path, env=_env(), stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True)
     time.sleep(4)                      # connected, P-SOG built, searching
     assert client.poll() is None, client.communicate()
+    # a second client waits for its turn, and says so
+    second = subprocess.Popen([sys.executable, "-m", "place3d_client", f"--server={path}", "backends"],
+                              cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(2.5)
+    assert second.poll() is None
     client.send_signal(signal.SIGINT)
     out, err = client.communicate(timeout=60)
     assert client.returncode == 130, err
     assert err.strip().endswith("place3d: interrupted"), err
+    out2, err2 = second.communicate(timeout=60)
+    assert second.returncode == 0 and out2 == _place3d("backends").stdout
+    assert err2.count("is busy with another command; waiting") == 1, err2
     assert proc.poll() is None
     _same(_place3d("backends"), _place3d(f"--server={path}", "backends"))
 
