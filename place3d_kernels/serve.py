@@ -35,6 +35,7 @@ import traceback
 from pathlib import Path
 
 from place3d_client import wire
+from place3d_kernels.profiling import count_start_up_of
 
 __all__ = ["add_arguments", "serve", "Server", "DEFAULT_IDLE_TIMEOUT_S", "KEEP_PSOGS"]
 
@@ -231,7 +232,7 @@ class Server:
             self._check_plot_worker()
             wire.send(conn, {"type": "started"})
             t = time.perf_counter()
-            code = self._run(conn, hello, fds)
+            code = self._run(conn, hello, fds, pid)
             self.say(f"pid {pid} in {hello['cwd']}: {' '.join(hello['argv'][1:])} -> exit {code} in "
                      f"{time.perf_counter() - t:.2f} s")
             with contextlib.suppress(OSError):          # the client may have gone (Ctrl-C twice)
@@ -266,14 +267,18 @@ class Server:
             return f"the working directory {hello.get('cwd')!r} is not a folder here"
         return None
 
-    def _run(self, conn: socket.socket, hello: dict, fds: list) -> int:
+    def _run(self, conn: socket.socket, hello: dict, fds: list, pid: int) -> int:
         watcher = threading.Thread(target=self._watch, args=(conn,), name="place3d-serve-watch", daemon=True)
         with self._lock:
             self._busy, self._client_interrupt = True, False
         watcher.start()
         try:
             with client_side(hello, fds):
-                return run_command(self.command)
+                count_start_up_of(pid)          # --profile: the client's start-up, not the server's age
+                try:
+                    return run_command(self.command)
+                finally:
+                    count_start_up_of(None)
         finally:
             with self._lock:
                 self._busy = False
