@@ -118,6 +118,8 @@ def main(argv=None) -> int:
                 run_dir = work / f"{name}-{i}"
                 run_dir.mkdir()
                 wall, r = _timed(cmd + ["--output", "out"], run_dir, args.timeout)
+                if "running here" in r.stderr:
+                    raise RuntimeError(f"the server did not take the command: {r.stderr[-2000:]}")
                 texts[name] = TIMING.sub("<t> s", r.stdout).replace(str(run_dir), "<dir>")
                 if i:
                     walls[name].append(wall)

@@ -24,8 +24,11 @@ from pathlib import Path
 __all__ = ["default_socket", "identity", "startup_env", "send", "recv", "send_with_fds", "recv_with_fds",
            "STARTUP_ENV_PREFIXES", "PACKAGES"]
 
-#: The packages whose source makes up the command: an edit to any ``.py`` file in them is new code.
+#: The packages whose source makes up the command: an edit to any of their ``SOURCE_SUFFIXES`` files is new code.
 PACKAGES = ("place3d_kernels", "place3d_client")
+#: Files a warm process holds in memory in some form: Python modules, OpenCL kernel sources (built once
+#: per backend instance), TOML presets and configs.
+SOURCE_SUFFIXES = (".py", ".cl", ".toml")
 
 #: Third-party packages a command runs; an upgrade (a new ``__init__.py``) is new code as well.
 DEPENDENCIES = ("numpy", "warp", "cma", "pyopencl", "scipy", "trimesh", "tqdm", "matplotlib")
@@ -53,7 +56,7 @@ def _package_dir(name: str) -> Path | None:
 def identity() -> str:
     """A digest of the code a command would run: interpreter, package sources, dependency versions.
 
-    Covers the path, size and modification time (ns) of every ``.py`` file of ``PACKAGES`` and the
+    Covers the path, size and modification time (ns) of every source file of ``PACKAGES`` and the
     ``__init__.py`` of each of ``DEPENDENCIES``, plus the interpreter's path and version. Stat calls only
     (about 200 files: a few milliseconds), so the client can afford it on every command.
     """
@@ -63,9 +66,8 @@ def identity() -> str:
         h.update(f"|{name}={root}".encode())
         if root is None:
             continue
-        for f in sorted(root.rglob("*.py")):
-            st = f.stat()
-            h.update(f"|{f.relative_to(root)} {st.st_size} {st.st_mtime_ns}".encode())
+        for line in sorted(_source_stamps(str(root))):
+            h.update(line.encode())
     for name in DEPENDENCIES:
         try:
             spec = importlib.util.find_spec(name)
@@ -78,6 +80,22 @@ def identity() -> str:
         else:
             h.update(f"|{name} absent".encode())
     return h.hexdigest()[:32]
+
+
+def _source_stamps(root: str) -> list[str]:
+    """'relative path, size, mtime (ns)' of every source file under ``root`` (``os.scandir``: one stat each)."""
+    out, todo = [], [root]
+    while todo:
+        folder = todo.pop()
+        with os.scandir(folder) as entries:
+            for e in entries:
+                if e.is_dir(follow_symlinks=False):
+                    if e.name != "__pycache__":
+                        todo.append(e.path)
+                elif e.name.endswith(SOURCE_SUFFIXES):
+                    st = e.stat()
+                    out.append(f"|{os.path.relpath(e.path, root)} {st.st_size} {st.st_mtime_ns}")
+    return out
 
 
 def startup_env(env=None) -> dict:
