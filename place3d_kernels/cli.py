@@ -430,13 +430,29 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def asks_for_server(argv) -> bool:
+    """Whether ``--server`` (``--server=PATH``) comes before the subcommand, as ``place3d_client`` reads it."""
+    for a in argv:
+        if a == "--server" or a.startswith("--server="):
+            return True
+        if not a.startswith("-"):
+            return False
+    return False
+
+
 def main(argv=None) -> int:
-    from place3d_client import server_request
     from place3d_kernels.manifest import set_command_line
 
-    if server_request(sys.argv[1:] if argv is None else argv, {})[1]:
+    if asks_for_server(sys.argv[1:] if argv is None else argv):
         # --server reached this parser (python -m place3d_kernels.cli, or a console script installed before
         # the entry point moved to place3d_client): the launcher forwards, or strips the flag and runs here
+        from place3d_kernels.serve import client_wire
+
+        try:
+            client_wire()
+        except ValueError as e:        # place3d_client not installed beside the package
+            print(f"place3d: error: {e}", file=sys.stderr)
+            return 2
         from place3d_client import main as launch
 
         return launch(argv)

@@ -34,10 +34,9 @@ import time
 import traceback
 from pathlib import Path
 
-from place3d_client import wire
 from place3d_kernels.profiling import count_start_up_of
 
-__all__ = ["add_arguments", "serve", "Server", "DEFAULT_IDLE_TIMEOUT_S", "KEEP_PSOGS"]
+__all__ = ["add_arguments", "serve", "Server", "client_wire", "DEFAULT_IDLE_TIMEOUT_S", "KEEP_PSOGS"]
 
 #: Seconds without a command after which the server exits.
 DEFAULT_IDLE_TIMEOUT_S = 900.0
@@ -65,6 +64,7 @@ def add_arguments(p) -> None:
 
 def serve(args, command, warm) -> int:
     """Run ``place3d serve`` (``command``: the CLI's ``main``; ``warm``: a call that imports its subcommands)."""
+    wire = client_wire()
     path = Path(args.socket) if args.socket else wire.default_socket()
     if args.idle_timeout < 0:
         raise ValueError(f"--idle-timeout must be >= 0 seconds (0 = never), got {args.idle_timeout}")
@@ -74,6 +74,22 @@ def serve(args, command, warm) -> int:
     server = Server(path, command, idle_timeout=args.idle_timeout)
     server.warm(args.backend, warm)
     return server.serve_forever()
+
+
+def client_wire():
+    """``place3d_client.wire`` (the socket, messages and identity the client shares), imported on use: the
+    CLI imports this module for its parser, and a checkout installed before ``place3d_client`` existed
+    must still run every other command.
+
+    Raises:
+        ValueError: ``place3d_client`` is not importable (reinstall the package: ``pip install -e .``).
+    """
+    try:
+        from place3d_client import wire
+    except ImportError as e:
+        raise ValueError(f"place3d serve needs the place3d_client package beside place3d_kernels ({e}); "
+                         f"reinstall the package (pip install -e . in the checkout)") from None
+    return wire
 
 
 def _check_socket_path(path: Path) -> None:
@@ -101,6 +117,7 @@ class Server:
         # a command may chdir (the server does, per client): an import path relative to the folder the server
         # started in ("" with python -c) must keep naming that folder
         sys.path[:] = [os.path.abspath(p) if not os.path.isabs(p) else p for p in sys.path]
+        self.wire = wire = client_wire()
         self.identity = wire.identity()
         self.startup_env = wire.startup_env()
         self.backend = None
@@ -217,8 +234,8 @@ class Server:
             self.say(f"refused a client of uid {uid} (pid {pid})")
             return
         try:
-            wire.send(conn, {"type": "ready", "pid": os.getpid(), "backend": self.backend})
-            hello, fds = wire.recv_with_fds(conn)
+            self.wire.send(conn, {"type": "ready", "pid": os.getpid(), "backend": self.backend})
+            hello, fds = self.wire.recv_with_fds(conn)
         except (BrokenPipeError, ConnectionResetError):
             return                              # a client that only checked the server is up, and left
         try:
@@ -227,16 +244,16 @@ class Server:
             refusal = self._refusal(hello, fds)
             if refusal:
                 self.say(f"refused pid {pid}: {refusal}")
-                wire.send(conn, {"type": "refused", "message": refusal})
+                self.wire.send(conn, {"type": "refused", "message": refusal})
                 return
             self._check_plot_worker()
-            wire.send(conn, {"type": "started"})
+            self.wire.send(conn, {"type": "started"})
             t = time.perf_counter()
             code = self._run(conn, hello, fds, pid)
             self.say(f"pid {pid} in {hello['cwd']}: {' '.join(hello['argv'][1:])} -> exit {code} in "
                      f"{time.perf_counter() - t:.2f} s")
             with contextlib.suppress(OSError):          # the client may have gone (Ctrl-C twice)
-                wire.send(conn, {"type": "exit", "code": code})
+                self.wire.send(conn, {"type": "exit", "code": code})
         finally:
             for fd in fds:
                 os.close(fd)
@@ -256,7 +273,7 @@ class Server:
             return (f"the server (pid {os.getpid()}) runs the package, interpreter or dependencies as they were "
                     f"when it started, and they have changed since; it stops now. Start it again with "
                     f"'place3d serve' to use the server")
-        env = wire.startup_env(hello.get("env", {}))
+        env = self.wire.startup_env(hello.get("env", {}))
         if env != self.startup_env:
             names = sorted(k for k in set(env) | set(self.startup_env) if env.get(k) != self.startup_env.get(k))
             return (f"start-up variables differ from the server's ({', '.join(names)}), and a running process "
@@ -287,7 +304,7 @@ class Server:
         """Pass a client's interrupt (or its leaving) to the main thread as SIGINT, while a command runs."""
         while True:
             try:
-                msg = wire.recv(conn)
+                msg = self.wire.recv(conn)
             except (OSError, ValueError):
                 msg = None
             if msg is None or msg.get("type") == "interrupt":

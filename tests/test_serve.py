@@ -24,6 +24,7 @@ import pytest
 
 import place3d_kernels as p3k
 from place3d_client import server_request, wire
+from place3d_kernels.cli import asks_for_server
 from place3d_kernels.sog import PSOG, keep_loaded
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -105,6 +106,14 @@ def test_flag_is_read_before_the_subcommand_only():
     assert server_request(["backends"], {"PLACE3D_SERVER": "1"}) == ("", False, ["backends"])
     assert server_request(["backends"], {"PLACE3D_SERVER": "/y.sock"}) == ("/y.sock", False, ["backends"])
     assert server_request(["backends"], {"PLACE3D_SERVER": "0"}) == (None, False, ["backends"])
+
+
+@pytest.mark.parametrize("argv", [["--server", "backends"], ["--server=/s", "--profile", "x"], ["optimize", "--server"],
+                                  ["--profile", "optimize"], [], ["--server"]])
+def test_cli_reads_the_flag_as_the_client_does(argv):
+    """``place3d_kernels.cli`` hands ``--server`` to the client (python -m place3d_kernels.cli, old scripts)
+    by its own reading of the flag, which must be the client's."""
+    assert asks_for_server(argv) == server_request(argv, {})[1]
 
 
 def test_backends_output_is_the_same(server):
