@@ -329,11 +329,19 @@ def cmd_optimize(args) -> int:
     return run_optimize(args, spec, psog_for=lambda backend: _psog(spec, args, backend, with_scene=False))
 
 
+def cmd_serve(args) -> int:
+    from place3d_kernels.serve import serve
+
+    return serve(args, command=main, warm=build_parser)
+
+
 # ---------------------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     from place3d_kernels import __version__
 
-    ap = argparse.ArgumentParser(prog="place3d", description="Multi-LiDAR placement kernels (Place3D metric and optimiser)")
+    ap = argparse.ArgumentParser(prog="place3d", description="Multi-LiDAR placement kernels (Place3D metric and optimiser)",
+                                 epilog="place3d --server[=SOCKET] COMMAND ... (or PLACE3D_SERVER=1) runs the command in "
+                                        "a warm 'place3d serve' process if one is running, here otherwise")
     ap.add_argument("--version", action="version", version=f"place3d-kernels {__version__}")
     ap.add_argument("--profile", action="store_true",
                     help="print where the command's time went (sections: backend probe, scene, P-SOG, scoring, "
@@ -412,12 +420,42 @@ def build_parser() -> argparse.ArgumentParser:
         add_opt(p)
         add_executor_arguments(p)
         p.set_defaults(func=cmd_optimize)
+
+    from place3d_kernels.serve import add_arguments as add_serve
+
+    p = sub.add_parser("serve", help="a resident process that runs commands sent with --server, imports and "
+                                     "backend already loaded")
+    add_serve(p)
+    p.set_defaults(func=cmd_serve)
     return ap
+
+
+def asks_for_server(argv) -> bool:
+    """Whether ``--server`` (``--server=PATH``) comes before the subcommand, as ``place3d_client`` reads it."""
+    for a in argv:
+        if a == "--server" or a.startswith("--server="):
+            return True
+        if not a.startswith("-"):
+            return False
+    return False
 
 
 def main(argv=None) -> int:
     from place3d_kernels.manifest import set_command_line
 
+    if asks_for_server(sys.argv[1:] if argv is None else argv):
+        # --server reached this parser (python -m place3d_kernels.cli, or a console script installed before
+        # the entry point moved to place3d_client): the launcher forwards, or strips the flag and runs here
+        from place3d_kernels.serve import client_wire
+
+        try:
+            client_wire()
+        except ValueError as e:        # place3d_client not installed beside the package
+            print(f"place3d: error: {e}", file=sys.stderr)
+            return 2
+        from place3d_client import main as launch
+
+        return launch(argv)
     args = build_parser().parse_args(argv)
     set_command_line(None if argv is None else ["place3d", *argv])
     try:

@@ -22,7 +22,8 @@ Neither step runs when the module is already imported (then it costs nothing to 
 from __future__ import annotations
 
 import sys
-import warnings
+
+from place3d_kernels.backends.warnfilters import ignoring
 
 __all__ = ["import_cma", "HIDDEN_FROM_CMA"]
 
@@ -45,8 +46,9 @@ def import_cma():
     for name in hidden:
         sys.modules[name] = None
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")   # cma.s warns that its plotting shortcuts are unavailable
+        # cma.s warns that its plotting shortcuts are unavailable; ``ignoring`` holds the package's lock on
+        # the warning filters, which the OpenCL probe on another thread may be changing at the same time
+        with ignoring():
             import cma
     finally:
         for name in hidden:

@@ -16,9 +16,10 @@ import sys
 import threading
 import time
 
-__all__ = ["section", "profile", "enabled", "report", "Profile"]
+__all__ = ["section", "profile", "enabled", "report", "Profile", "count_start_up_of"]
 
 _ACTIVE: "Profile | None" = None
+_START_PID: "int | None" = None     # whose start the table's start-up line counts from (None: this process)
 _NULL = contextlib.nullcontext()
 
 
@@ -104,13 +105,23 @@ def profile(out=None, print_table: bool = True):
             print(report(p, _since_start(p)), file=out or sys.stderr)
 
 
+def count_start_up_of(pid: int | None) -> None:
+    """Count the table's "process start-up" line from the start of process ``pid`` (None: this process).
+
+    ``place3d serve`` names the client for the span of its command: the start-up a user waits for is the
+    client's, not the server's age.
+    """
+    global _START_PID
+    _START_PID = pid
+
+
 def _since_start(p: Profile) -> float | None:
     # seconds from interpreter start-up to the profile's start (imports of the package and argparse),
     # where the platform tells the process start time
     try:
         import os
 
-        with open(f"/proc/{os.getpid()}/stat") as f:
+        with open(f"/proc/{_START_PID or os.getpid()}/stat") as f:
             ticks = int(f.read().rsplit(")", 1)[1].split()[19])
         with open("/proc/uptime") as f:
             up = float(f.read().split()[0])

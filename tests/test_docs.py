@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from place3d_client import server_request
 from place3d_kernels.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -25,6 +26,12 @@ CHEAP = {("backends",), ("lidars",), ("--version",)}
 def fenced_blocks(text: str) -> list[tuple[str, str]]:
     """(language, body) of every ``` fenced block, in order."""
     return [(m.group(1), m.group(2)) for m in re.finditer(r"^```(\w*)\n(.*?)^```$", text, re.S | re.M)]
+
+
+def _argv(line: str) -> list[str]:
+    """The arguments the CLI's parser gets for a ``place3d ...`` line: the ``place3d`` entry point
+    (``place3d_client``) takes ``--server`` before the parser sees the command."""
+    return server_request(shlex.split(line)[1:], {})[2]
 
 
 def place3d_lines(text: str) -> list[str]:
@@ -71,7 +78,7 @@ def test_readme_python_block_runs(index, tmp_path):
 @pytest.mark.parametrize("line", place3d_lines(README.read_text()))
 def test_readme_place3d_line_parses(line):
     """Every `place3d ...` line in the README is accepted by the CLI's parser (names, options, choices)."""
-    argv = shlex.split(line)[1:]
+    argv = _argv(line)
     if argv == ["--version"]:
         return    # argparse's version action exits; run below
     args = build_parser().parse_args(argv)
@@ -127,7 +134,7 @@ def test_commands_doc_has_a_section_per_subcommand():
     lines = place3d_lines(text)
     assert len(lines) >= len(names)
     for line in lines:
-        argv = shlex.split(line)[1:]
+        argv = _argv(line)
         if argv != ["--version"] and "--help" not in argv:
             build_parser().parse_args(argv)
 

@@ -6,6 +6,7 @@ never change the backend of an interactive session.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -13,7 +14,10 @@ import numpy as np
 
 from place3d_kernels.placement import Placement
 
-__all__ = ["plot_convergence", "plot_rig", "draw_coverage", "draw_outputs", "PlotWorker"]
+__all__ = ["plot_convergence", "plot_rig", "draw_coverage", "draw_outputs", "PlotWorker", "keep_worker"]
+
+#: The pool a resident process keeps for every command's ``PlotWorker`` (``keep_worker``), or None.
+_kept = None
 
 
 def _figure(w, h):
@@ -230,6 +234,51 @@ def _spawn_can_start() -> bool:
     return path is None or Path(path).is_file()
 
 
+def _default_processes() -> bool:
+    return (os.cpu_count() or 1) >= 4 and _spawn_can_start()
+
+
+def _new_pool(processes: bool):
+    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+    if processes:
+        import multiprocessing
+
+        pool = ProcessPoolExecutor(PLOT_PROCESSES, mp_context=multiprocessing.get_context("spawn"))
+        for _ in range(PLOT_PROCESSES):        # each submit finds no idle worker: one process each
+            pool.submit(_warm_up)
+        return pool
+    pool = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
+    return pool
+
+
+def keep_worker() -> bool:
+    """Start the plot pool every later ``PlotWorker()`` of this process shares (``place3d serve``).
+
+    A resident process calls it at start and after each command: the pool (processes on 4 or more cores,
+    else a thread, as for one command) then has matplotlib imported before a command needs it, instead
+    of each command spawning processes that import NumPy, the package and matplotlib again (about 2 s on
+    the H100 host). Call it between commands only (``place3d serve`` calls it before each): a process
+    spawned during one would inherit that command's standard streams. A pool found broken (a process
+    died) is replaced.
+
+    Returns:
+        True when a new pool was started (the first call, or after a broken one).
+    """
+    global _kept
+    if _kept is not None:
+        try:
+            _kept.submit(int).result(timeout=60)          # a no-op round trip: raises if the process died
+            return False
+        except Exception:  # noqa: BLE001 - BrokenProcessPool or a hung worker: start a fresh one
+            _kept.shutdown(wait=False, cancel_futures=True)
+    processes = _default_processes()
+    _kept = _new_pool(processes)
+    if not processes:
+        _kept.submit(_warm_up)
+    return True
+
+
 class PlotWorker:
     """Draws the outputs of ``place3d optimize`` beside the main thread.
 
@@ -237,45 +286,52 @@ class PlotWorker:
     started with the command so that importing matplotlib and a first drawing (1-1.3 s on the H100 host)
     overlap the search, and each figure is drawn in its own process, neither waiting for the main
     thread's Python (the GIL) nor slowing it; elsewhere (the 2-core dev VM, where PoCL's scoring uses
-    both cores) one thread draws them in turn. ``submit`` returns a Future whose ``result()`` is the
-    list of paths, or re-raises a plotting error.
+    both cores) one thread draws them in turn. In a process that called ``keep_worker`` it uses that
+    pool, and ``close`` waits for this worker's drawings only. A pool whose process died (or could not
+    start) is replaced by a thread. ``submit`` returns a Future whose ``result()`` is the list of paths,
+    or re-raises a plotting error.
     """
 
     def __init__(self, processes: bool | None = None):
-        import os
-        from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
-
         if processes is None:
-            processes = (os.cpu_count() or 1) >= 4 and _spawn_can_start()
-        if processes:
-            import multiprocessing
-
-            self.pool = ProcessPoolExecutor(PLOT_PROCESSES, mp_context=multiprocessing.get_context("spawn"))
-            for _ in range(PLOT_PROCESSES):        # each submit finds no idle worker: one process each
-                self.pool.submit(_warm_up)
-        else:
-            self.pool = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
+            processes = _default_processes()
+        self.shared = _kept is not None and processes == _default_processes()
+        self.pool = _kept if self.shared else _new_pool(processes)
         self.processes = bool(processes)
+        self._futures = []
 
     def submit(self, history, best, bounds, coverage, out):
+        # absolute: a kept pool's process (keep_worker) has the working directory of the server, not the command's
+        out = Path(os.path.abspath(out))
         if not self.processes:
-            return self.pool.submit(draw_outputs, list(history), best, bounds, coverage, str(out))
-        from concurrent.futures.process import BrokenProcessPool
-
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        try:
-            return _all_of([self.pool.submit(plot_convergence, list(history), out / "convergence.png"),
-                            self.pool.submit(plot_rig, best, out / "rig.png", None, bounds),
-                            self.pool.submit(draw_coverage, *coverage, out / "coverage.png")])
-        except BrokenProcessPool:
-            # a worker process died (killed, or it could not start): the figures are drawn on a thread
+            f = self.pool.submit(draw_outputs, list(history), best, bounds, coverage, str(out))
+        else:
             from concurrent.futures import ThreadPoolExecutor
+            from concurrent.futures.process import BrokenProcessPool
 
-            self.pool.shutdown(wait=False, cancel_futures=True)
-            self.pool, self.processes = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots"), False
-            return self.submit(history, best, bounds, coverage, out)
+            out.mkdir(parents=True, exist_ok=True)
+            try:
+                f = _all_of([self.pool.submit(plot_convergence, list(history), out / "convergence.png"),
+                             self.pool.submit(plot_rig, best, out / "rig.png", None, bounds),
+                             self.pool.submit(draw_coverage, *coverage, out / "coverage.png")])
+            except BrokenProcessPool:
+                # a worker process died (killed, or it could not start): the figures are drawn on a thread
+                if not self.shared:
+                    self.pool.shutdown(wait=False, cancel_futures=True)
+                self.pool = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
+                self.processes = self.shared = False
+                return self.submit(history, best, bounds, coverage, out)
+        self._futures.append(f)
+        return f
 
     def close(self, cancel: bool = False) -> None:
         """Wait for the drawing (``cancel``: drop what has not started, as when the command failed)."""
-        self.pool.shutdown(wait=True, cancel_futures=cancel)
+        if not self.shared:
+            self.pool.shutdown(wait=True, cancel_futures=cancel)
+            return
+        from concurrent.futures import wait
+
+        if cancel:
+            for f in self._futures:
+                f.cancel()
+        wait(self._futures)

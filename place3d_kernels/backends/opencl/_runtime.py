@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import re
 import threading
-import warnings
 from functools import lru_cache
 from pathlib import Path
+
+from place3d_kernels.backends.warnfilters import ignoring
 
 try:
     import pyopencl as cl
@@ -60,8 +61,7 @@ POCL_CPU_HINT = ("this PoCL's LLVM does not know the host CPU; install a PoCL wh
 def _compiles(ctx: "cl.Context") -> str | None:
     """None if the platform builds a one-line kernel, else the compiler's first error line."""
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", cl.CompilerWarning)
+        with ignoring(cl.CompilerWarning):
             cl.Program(ctx, _PROBE_SOURCE).build()
     except cl.Error as e:  # RuntimeError subclasses: BUILD_PROGRAM_FAILURE and the like
         lines = [ln.strip() for ln in str(e).splitlines() if "error" in ln.lower() and "clBuild" not in ln]
@@ -127,8 +127,7 @@ def build_program(ctx: "cl.Context", files: tuple[str, ...], options: tuple[str,
         prg = _programs.get(key)
         if prg is None:
             src = kernel_source(*files)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", cl.CompilerWarning)
+            with ignoring(cl.CompilerWarning):
                 prg = cl.Program(ctx, src).build(options=list(options))
             _programs[key] = prg
         return prg
