@@ -67,10 +67,14 @@ def _psog(spec, args, backend, with_scene: bool = True):
     on which every rig would score 0.
     """
     from place3d_kernels.pipeline import check_entropy
+    from place3d_kernels.uncertainty import records_aggregator
 
     t = time.perf_counter()
+    # on a cache miss the P-SOG is pooled from per-subset records kept on disk, so the intervals find
+    # them instead of simulating the same frames again
+    aggregate = None if args.no_cache else records_aggregator(spec)
     with section("P-SOG (cache or build)"):
-        psog = spec.build(backend=backend, cache=not args.no_cache, progress=not args.quiet)
+        psog = spec.build(backend=backend, cache=not args.no_cache, progress=not args.quiet, aggregate=aggregate)
     check_entropy(psog, spec.frames_per_subset)
     if not args.quiet:
         print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)

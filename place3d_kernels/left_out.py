@@ -5,7 +5,8 @@ from scratch, each is a dense (M, K) table of counts and probabilities (some 100
 its entropies and its stop mask: 50 ms on the dev VM and most of a warm optimise's jackknife. Yet a
 voxel the left-out record never saw keeps its counts; only the number of subsets T changes. So the
 weights and stop mask of every voxel are computed once per T (the "base"), and for each left-out record
-only the rows of the voxels it touched are recomputed and written over a copy of the base.
+only the rows of the voxels it touched are recomputed and written over the base (in one working copy,
+the previous record's rows restored first).
 
 Exact: a voxel's weight is a function of its own count row and T alone (``PSOG.weights`` reduces each
 row on its own), and ``left_out_fields`` mirrors ``PooledPSOG.psog``, ``PSOG.detection``, ``PSOG.weights``
@@ -53,6 +54,7 @@ class LeftOutGrids:
         self.n_voxels = pooled.grid.n_voxels
         self.voxels, self.counts, self.T = pooled.counts()    # the plain pool: every record once
         self._base: dict = {}
+        self._work: dict = {}       # T -> (weights, stop, voxels last written): the base, patched in place
 
     def __len__(self) -> int:
         return len(self.pooled.records)
@@ -71,7 +73,10 @@ class LeftOutGrids:
         return self._base[T]
 
     def fields(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """(weights (n_voxels,) int64, stop (n_voxels,) uint8) of the pool without record ``i``."""
+        """(weights (n_voxels,) int64, stop (n_voxels,) uint8) of the pool without record ``i``.
+
+        The arrays are reused: they hold record ``i``'s grid until the next call (copy them to keep one).
+        """
         r = self.pooled.records[i]
         T = self.T - int(r.n_subsets)
         if T <= 0:
@@ -83,6 +88,12 @@ class LeftOutGrids:
         sub[:, 0] = T - sub[:, 1:].sum(axis=1)
         w, s = left_out_fields(sub, T, self.task)
         wb, sb = self._base_fields(T)
-        wd, sd = wb.copy(), sb.copy()
-        wd[self.voxels[rows]], sd[self.voxels[rows]] = w, s   # a voxel no longer occupied: weight 0, no stop
+        if T not in self._work:
+            self._work[T] = (wb.copy(), sb.copy(), None)
+        wd, sd, last = self._work[T]
+        if last is not None:                                  # undo the previous record's rows
+            wd[last], sd[last] = wb[last], sb[last]
+        at = self.voxels[rows]
+        wd[at], sd[at] = w, s                                 # a voxel no longer occupied: weight 0, no stop
+        self._work[T] = (wd, sd, at)
         return wd, sd

@@ -11,7 +11,6 @@ makes (the voxel size of the default ROI) and builds a ``Grid`` with ``.grid()``
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -342,8 +341,10 @@ class PSOGSpec:
     def voxel_size(self) -> float | None:
         return self.grid.voxel_size
 
-    def build(self, backend=None, cache: bool | str = True, progress: bool = False):
-        """Run ``scene_psog`` (reading the on-disk cache when present) with an explicit backend / cache."""
+    def build(self, backend=None, cache: bool | str = True, progress: bool = False, aggregate=None):
+        """Run ``scene_psog`` (reading the on-disk cache when present) with an explicit backend / cache
+        (``aggregate``: as ``scene_psog``'s, e.g. ``uncertainty.records_aggregator(spec)``, which keeps the
+        per-subset records of a cache miss for the intervals)."""
         from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET, scene_psog
         from place3d_kernels.simulate import DEFAULT_MOUNT
 
@@ -369,13 +370,6 @@ class PSOGSpec:
             scene = self.scene.for_cache(Path(cache) if isinstance(cache, (str, Path)) else cache_dir())
         else:
             scene = self.scene.build()
-        aggregate = None
-        if cache:
-            # on a miss, the P-SOG is pooled from per-subset records that are kept on disk, so the
-            # intervals later find them instead of simulating the same frames again
-            from place3d_kernels.uncertainty import records_aggregator
-
-            aggregate = records_aggregator(self if cache is True else dataclasses.replace(self, cache=str(cache)))
         return scene_psog(scene, grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
                           frames_per_subset=self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
                           mount=DEFAULT_MOUNT if self.mount is None else self.mount, backend=b, cache=cache,

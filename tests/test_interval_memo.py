@@ -114,7 +114,7 @@ def test_a_cold_build_keeps_the_subset_records_and_the_same_psog(spec, monkeypat
     import sys
 
     sim = sys.modules["place3d_kernels.simulate"]       # the package exports a function of that name
-    built = spec.build()                                  # cold: simulates, keeps the records
+    built = spec.build(aggregate=unc.records_aggregator(spec))   # cold: simulates, keeps the records
     direct = spec.build(cache=False)                      # PSOG.from_frames on freshly simulated frames
     assert np.array_equal(built.voxels, direct.voxels) and built.probs.tobytes() == direct.probs.tobytes()
     assert np.array_equal(built.counts, direct.counts) and built.n_subsets == direct.n_subsets

@@ -35,7 +35,9 @@ TIMING = re.compile(r"\d+(\.\d+)? s\b")
 
 
 def _env(**extra) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    # the checkout first, then whatever the caller's path holds (hosts that install packages there)
+    path = os.pathsep.join([str(ROOT)] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else []))
+    env = dict(os.environ, PYTHONPATH=path)
     env.pop("PLACE3D_SERVER", None)
     env.update(extra)
     return env

@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -15,9 +14,6 @@ import numpy as np
 from place3d_kernels.profiling import section
 
 __all__ = ["add_arguments", "run", "start_plots"]
-
-#: the GIL switch interval (s) while the backend probe runs beside the P-SOG read (CPython's default: 0.005)
-STARTUP_SWITCH_INTERVAL = 0.0005
 
 
 def add_arguments(p) -> None:
@@ -169,11 +165,6 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     # The backend probe (importing Warp and starting CUDA: 1.1-1.5 s on the H100 host) runs on a thread
     # while this one builds the scene and reads the cached P-SOG, which need no backend; a cache miss
     # waits for it (scene_psog takes the Future).
-    # While both threads run, this one mostly waits on short I/O (module files, the P-SOG file's zlib
-    # chunks), after each of which it must win the GIL back from the probe's Python: with CPython's 5 ms
-    # switch interval every such wait could cost up to 5 ms. A shorter interval for this window only.
-    switch = sys.getswitchinterval()
-    sys.setswitchinterval(STARTUP_SWITCH_INTERVAL)
     bg = ThreadPoolExecutor(max_workers=1, thread_name_prefix="place3d-optimize")
     probe = bg.submit(_probe, args.backend)
     try:
@@ -187,7 +178,6 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
         with section("backend probe (wait)"):
             b = probe.result()
     finally:
-        sys.setswitchinterval(switch)
         bg.shutdown(wait=False)
     space = SearchSpace(n_lidars=args.lidars)
     cons = [MinDistance(args.min_distance)] if args.lidars > 1 else []
