@@ -71,12 +71,15 @@ def _first_available(candidates: Sequence[str]) -> str:
 
 
 def worth_dispatching(n: int, rate: float | None, other_rates: Sequence[float | None], left: int) -> bool:
-    """Whether an idle actor should take a chunk of ``n`` rigs while ``left`` rigs (this chunk included)
-    are queued: not when the other actors, at their measured rates (rigs/s), would clear the whole queue
-    before this one finished its chunk. Unknown rates (an actor's first chunk) always dispatch.
+    """Whether an idle actor should take a chunk of ``n`` rigs while ``left`` rigs (this chunk included,
+    and those the busy actors still hold) remain: not when the other actors, at their measured rates
+    (rigs/s), would clear all of them before this one finished its chunk. Unknown rates (an actor's first
+    chunk) always dispatch. Counting the rigs in flight matters: two equal GPUs with one chunk each left
+    would otherwise leave the one measured a little slower idle for good (seen on a 2 x H200 host).
 
     Args:
-        n: rigs in the chunk; rate: this actor's rate; other_rates: the others'; left: rigs queued.
+        n: rigs in the chunk; rate: this actor's rate; other_rates: the others'; left: rigs queued or in
+            flight on the other actors.
     """
     if rate is None or not other_rates or any(r is None for r in other_rates):
         return True
@@ -235,15 +238,18 @@ class ScoringPool:
         idle = list(range(len(self.actors)))
         while queue or inflight:
             left = sum(min(size, P - s) for _, s in queue)
+            # rigs the busy actors hold: they finish those before they could take a queued chunk
+            busy = sum(min(size, P - s) for _, _, s, _ in inflight.values())
             for i in sorted(idle, key=lambda j: -(self.stats[j]["rate"] or np.inf)):
                 if not queue:
                     break
                 k, s = queue[0]
                 n = min(size, P - s)
-                if inflight and not self._worth_it(i, n, left):
+                if inflight and not self._worth_it(i, n, left + busy):
                     continue
                 queue.pop(0)
                 left -= n
+                busy += n
                 idle.remove(i)
                 ref = self.actors[i].score.remote(spec, lidar, poses[s:s + n], occlusion, task)
                 inflight[ref] = (i, k, s, time.perf_counter())

@@ -38,6 +38,9 @@ def test_dispatch_rule_and_backend_kinds():
     assert worth_dispatching(16, 1000.0, [20.0], 16)             # the fast actor always takes work
     assert worth_dispatching(16, None, [1000.0], 64) and worth_dispatching(16, 20.0, [None], 64)
     assert worth_dispatching(4, 20.0, [], 4)                     # a single actor
+    # two equal GPUs, one 1024-rig chunk queued and one in flight on the other: the slightly slower one
+    # still takes it (the other would finish its own first)
+    assert worth_dispatching(1024, 0.99e4, [1.0e4], 1024 + 1024)
     assert [is_gpu_backend(b) for b in ("warp:cuda:0", "opencl:nvidia", "opencl:pocl", "warp:cpu", "reference")] \
         == [True, True, False, False, False]
 
@@ -187,3 +190,19 @@ def test_cli_optimize_on_actors_writes_the_local_result(spec, tmp_path, capsys):
     assert [{k: v for k, v in r.items() if k not in drop} for r in rows[0]] \
         == [{k: v for k, v in r.items() if k not in drop} for r in rows[1]]
     assert len(rows[0]) >= 3 and ray.is_initialized()
+
+
+def test_equal_actors_share_a_batch_whatever_their_measured_rates(spec):
+    """Two actors of about the same speed each take one of two chunks, also when one was measured a
+    little slower: the busy actor's rigs count as work the others cannot take (issue 17, 2 x H200)."""
+    from place3d_kernels.actors import ScoringPool
+
+    pool = ScoringPool(ray, cpu_actors=2, cpu_backends="warp:cpu")
+    try:
+        # recorded rates (rigs/s) far below what either really does: actor 0 at two thirds of actor 1. Its
+        # chunk of 4 takes 4 s, the other needs 8 / 1.5 = 5.3 s for its own chunk and this one: worth it
+        pool.stats[0]["rate"], pool.stats[1]["rate"] = 1.0, 1.5
+        pool.score(spec, TINY, _population(2, 8), chunk=4)
+        assert [s["chunks"] for s in pool.stats] == [1, 1]
+    finally:
+        pool.shutdown()
