@@ -20,7 +20,7 @@ only its ``msog_batch`` launch:
 - Dispatch is dynamic: the batch is cut into chunks, and an idle actor takes the next one, so a fast
   actor takes more chunks than a slow one. From the measured rate of each actor (rigs per second,
   kept across calls) an actor is left idle for a chunk it would finish after the faster actors could
-  have finished all that is left; results are placed by chunk index, so the order never depends on
+  have finished all that is left, counting what they are still scoring; results are placed by chunk index, so the order never depends on
   timing.
 - An exception in an actor reaches the caller as ``ActorScoringError`` naming the actor, its backend
   and the candidates of the chunk. An actor process that dies is restarted and its chunk retried
