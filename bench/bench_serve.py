@@ -23,7 +23,6 @@ import platform
 import re
 import shutil
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -32,6 +31,10 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from place3d_kernels.kernel_bench import machine_info  # noqa: E402
+from place3d_kernels.serve import is_listening  # noqa: E402
+
 TIMING = re.compile(r"\d+(\.\d+)? s\b")
 
 
@@ -53,27 +56,6 @@ def _timed(cmd: list[str], cwd: Path, timeout: float) -> tuple[float, subprocess
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stderr[-3000:]}")
     return wall, r
-
-
-def _listening(path: Path) -> bool:
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    try:
-        s.connect(str(path))
-        return True
-    except OSError:
-        return False
-    finally:
-        s.close()
-
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def main(argv=None) -> int:
@@ -105,7 +87,7 @@ def main(argv=None) -> int:
                                       "--idle-timeout", "0"], env=_env(), stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True)
     try:
-        while not _listening(sock):
+        while not is_listening(sock):
             if server.poll() is not None:
                 raise RuntimeError(f"server exited: {server.stdout.read()}")
             time.sleep(0.05)
@@ -132,7 +114,7 @@ def main(argv=None) -> int:
         log = server.communicate(timeout=60)[0]
         shutil.rmtree(work, ignore_errors=True)
     res = {
-        "machine": machine, "cpu": _cpu(), "cores": os.cpu_count(), "python": platform.python_version(),
+        "machine": machine, "cpu": machine_info()["cpu"], "cores": os.cpu_count(), "python": platform.python_version(),
         "date": today, "backend": args.backend,
         "command": "place3d " + " ".join(command) + " --output DIR",
         "in_process_s": stats(walls["in_process"]), "server_s": stats(walls["server"]),

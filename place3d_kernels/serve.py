@@ -36,7 +36,7 @@ from pathlib import Path
 
 from place3d_kernels.profiling import count_start_up_of
 
-__all__ = ["add_arguments", "serve", "Server", "client_wire", "DEFAULT_IDLE_TIMEOUT_S", "KEEP_PSOGS"]
+__all__ = ["add_arguments", "serve", "Server", "client_wire", "is_listening", "DEFAULT_IDLE_TIMEOUT_S", "KEEP_PSOGS"]
 
 #: Seconds without a command after which the server exits.
 DEFAULT_IDLE_TIMEOUT_S = 900.0
@@ -201,7 +201,7 @@ class Server:
     def _bind(self) -> socket.socket:
         self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         if self.path.exists():
-            if _listening(self.path):
+            if is_listening(self.path):
                 raise ValueError(f"a server already listens on {self.path}; use it (place3d --server ...), stop it "
                                  f"(SIGTERM to its pid), or start this one with another --socket")
             self.path.unlink()                  # left by a server that did not exit cleanly
@@ -388,7 +388,7 @@ def _text_stream(fd: int, opts: dict, write: bool) -> io.TextIOWrapper:
                             write_through=bool(opts.get("write_through", False)))
 
 
-def _listening(path: Path) -> bool:
+def is_listening(path: Path) -> bool:
     """Whether a server accepts connections on ``path`` (it greets, sees no command and carries on)."""
     probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
@@ -404,7 +404,7 @@ def _detach(args, path: Path) -> int:
     """Start ``place3d serve`` in a session of its own and return once it listens."""
     import subprocess
 
-    if _listening(path):
+    if is_listening(path):
         raise ValueError(f"a server already listens on {path}; use it (place3d --server ...), stop it (SIGTERM to "
                          f"its pid), or start this one with another --socket")
     path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
@@ -419,7 +419,7 @@ def _detach(args, path: Path) -> int:
         code = proc.poll()
         if code is not None:
             raise ValueError(f"the server exited with code {code} before listening; its log: {log}")
-        if not _listening(path):
+        if not is_listening(path):
             time.sleep(0.05)
             continue
         print(f"server started: pid {proc.pid}, listening on {path} (log {log}); use it with "

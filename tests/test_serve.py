@@ -25,6 +25,7 @@ import pytest
 import place3d_kernels as p3k
 from place3d_client import server_request, wire
 from place3d_kernels.cli import asks_for_server
+from place3d_kernels.serve import is_listening
 from place3d_kernels.sog import PSOG, keep_loaded
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,23 +49,12 @@ def _place3d(*args, cwd=None, env=None, **kw) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=300, **kw)
 
 
-def _listening(path) -> bool:
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    try:
-        s.connect(str(path))
-        return True
-    except OSError:
-        return False
-    finally:
-        s.close()
-
-
 def _start_server(path, *extra) -> subprocess.Popen:
     proc = subprocess.Popen([sys.executable, "-m", "place3d_client", "serve", "--socket", str(path),
                              "--backend", BACKEND, *extra], env=_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 120
-    while not _listening(path):
+    while not is_listening(path):
         assert proc.poll() is None, f"server exited: {proc.stdout.read()}"
         assert time.monotonic() < deadline, "server did not listen within 120 s"
         time.sleep(0.05)
@@ -218,7 +208,7 @@ def test_plot_process_inside_the_server_is_kept_and_holds_no_clients_pipe(tmp_pa
                             stderr=subprocess.STDOUT, text=True)
     try:
         deadline = time.monotonic() + 120
-        while not _listening(path):
+        while not is_listening(path):
             assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
             time.sleep(0.05)
         pngs = ("convergence.png", "rig.png", "coverage.png")
