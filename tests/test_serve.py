@@ -189,7 +189,8 @@ def test_ctrl_c_on_the_client_interrupts_the_command_not_the_server_and_the_next
     assert client.returncode == 130, err
     assert err.strip().endswith("place3d: interrupted"), err
     out2, err2 = second.communicate(timeout=60)
-    assert second.returncode == 0 and out2 == _place3d("backends").stdout
+    assert second.returncode == 0, (second.returncode, err2[-3000:])
+    assert out2 == _place3d("backends").stdout
     assert err2.count("is busy with another command; waiting") == 1, err2
     assert proc.poll() is None
     _same(_place3d("backends"), _place3d(f"--server={path}", "backends"))
