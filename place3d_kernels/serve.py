@@ -125,6 +125,7 @@ class Server:
         self._lock = threading.Lock()
         self._busy = False
         self._client_interrupt = False
+        self._run_id = 0                       # which command runs: a late watcher of an earlier one stays quiet
         # the server's own messages go to its stderr as it was at start, never into a client's
         self.log = open(os.dup(2), "w", buffering=1, encoding="utf-8", errors="backslashreplace")
 
@@ -285,9 +286,12 @@ class Server:
         return None
 
     def _run(self, conn: socket.socket, hello: dict, fds: list, pid: int) -> int:
-        watcher = threading.Thread(target=self._watch, args=(conn,), name="place3d-serve-watch", daemon=True)
         with self._lock:
+            self._run_id += 1
             self._busy, self._client_interrupt = True, False
+            run_id = self._run_id
+        watcher = threading.Thread(target=self._watch, args=(conn, run_id), name="place3d-serve-watch",
+                                   daemon=True)
         watcher.start()
         try:
             with client_side(hello, fds):
@@ -300,8 +304,11 @@ class Server:
             with self._lock:
                 self._busy = False
 
-    def _watch(self, conn: socket.socket) -> None:
-        """Pass a client's interrupt (or its leaving) to the main thread as SIGINT, while a command runs."""
+    def _watch(self, conn: socket.socket, run_id: int) -> None:
+        """Pass a client's interrupt (or its leaving) to the main thread as SIGINT, while its command runs.
+
+        A watcher can see its client's connection close after the next command has started (a loaded
+        machine); ``run_id`` keeps it from interrupting that command."""
         while True:
             try:
                 msg = self.wire.recv(conn)
@@ -309,7 +316,7 @@ class Server:
                 msg = None
             if msg is None or msg.get("type") == "interrupt":
                 with self._lock:
-                    if self._busy and not self._client_interrupt:
+                    if self._busy and self._run_id == run_id and not self._client_interrupt:
                         self._client_interrupt = True
                         signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
             if msg is None:

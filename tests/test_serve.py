@@ -323,3 +323,26 @@ def test_loaded_psogs_are_kept_by_file_identity(tmp_path):
         assert PSOG.load(path) is not again
     finally:
         keep_loaded(0)
+
+
+def test_a_late_watcher_does_not_interrupt_the_next_command(tmp_path, monkeypatch):
+    """A command's watcher that sees its client leave only after the next command started (a loaded
+    machine: a CI run once saw the next client's command end with exit 1) stays quiet; the watcher of the
+    running command still passes its client's leaving on."""
+    from place3d_kernels import serve
+
+    srv = serve.Server(tmp_path / "s.sock", command=lambda argv: 0)
+    sent = []
+    monkeypatch.setattr(serve.signal, "pthread_kill", lambda *a: sent.append(a))
+    srv._busy, srv._run_id, srv._client_interrupt = True, 2, False
+    old, gone = socket.socketpair()
+    gone.close()
+    srv._watch(old, 1)                      # command 1's client left while command 2 runs
+    assert sent == [] and not srv._client_interrupt
+    cur, gone = socket.socketpair()
+    gone.close()
+    srv._watch(cur, 2)                      # command 2's client left: its command is interrupted
+    assert len(sent) == 1 and srv._client_interrupt
+    old.close()
+    cur.close()
+    srv.log.close()
