@@ -67,7 +67,7 @@ def _psog(spec, args, backend, with_scene: bool = True):
     on which every rig would score 0.
     """
     from place3d_kernels.pipeline import check_entropy
-    from place3d_kernels.uncertainty import records_aggregator
+    from place3d_kernels.subset_records import records_aggregator
 
     t = time.perf_counter()
     # on a cache miss the P-SOG is pooled from per-subset records kept on disk, so the intervals find
@@ -166,7 +166,8 @@ def cmd_evaluate(args) -> int:
 def _evaluate_bootstrap(args, spec, backend, lidar, names, placements, rows) -> dict:
     """{task: Jackknife | Bootstrap} over the subsets of the evaluated drive; point estimates are the printed
     scores (bit-identical), ``ci`` and ``pairwise`` are added to each row."""
-    from place3d_kernels.uncertainty import bootstrap_records, jackknife_records, pairwise, spec_subset_records
+    from place3d_kernels.subset_records import spec_subset_records
+    from place3d_kernels.uncertainty import bootstrap_records, jackknife_records, pairwise
 
     if args.resamples < 0:
         raise ValueError(f"--resamples must be >= 0 (0 switches the intervals off), got {args.resamples}")

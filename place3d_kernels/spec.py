@@ -343,7 +343,7 @@ class PSOGSpec:
 
     def build(self, backend=None, cache: bool | str = True, progress: bool = False, aggregate=None):
         """Run ``scene_psog`` (reading the on-disk cache when present) with an explicit backend / cache
-        (``aggregate``: as ``scene_psog``'s, e.g. ``uncertainty.records_aggregator(spec)``, which keeps the
+        (``aggregate``: as ``scene_psog``'s, e.g. ``subset_records.records_aggregator(spec)``, which keeps the
         per-subset records of a cache miss for the intervals)."""
         from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET, scene_psog
         from place3d_kernels.simulate import DEFAULT_MOUNT

@@ -97,7 +97,7 @@ def _psog_task(t) -> str:
     spec, resamples = t
     spec.load()                                   # builds the cache file if it is absent
     if resamples:
-        from place3d_kernels.uncertainty import spec_subset_records
+        from place3d_kernels.subset_records import spec_subset_records
 
         spec_subset_records(spec)                 # per-subset records for the cells' bootstrap, cached too
     return spec.scene.label
@@ -117,7 +117,8 @@ def _cell_task(t) -> dict:
     for task in ("seg", "det"):
         row[f"msog_{task}"] = float(msog_batch(psog, L, pl.poses[None], occlusion, task, backend)[0])
     if boot["resamples"]:
-        from place3d_kernels.uncertainty import bootstrap_records, spec_subset_records
+        from place3d_kernels.subset_records import spec_subset_records
+        from place3d_kernels.uncertainty import bootstrap_records
 
         recs = spec_subset_records(psog_spec)
         bs = bootstrap_records(recs, psog_spec.grid.grid(), L, {meta["placement"]: pl}, ("seg", "det"), occlusion,

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import place3d_kernels.interval_memo as im
+import place3d_kernels.subset_records as sr
 import place3d_kernels.uncertainty as unc
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.placement import Placement
@@ -114,13 +115,13 @@ def test_a_cold_build_keeps_the_subset_records_and_the_same_psog(spec, monkeypat
     import sys
 
     sim = sys.modules["place3d_kernels.simulate"]       # the package exports a function of that name
-    built = spec.build(aggregate=unc.records_aggregator(spec))   # cold: simulates, keeps the records
+    built = spec.build(aggregate=sr.records_aggregator(spec))   # cold: simulates, keeps the records
     direct = spec.build(cache=False)                      # PSOG.from_frames on freshly simulated frames
     assert np.array_equal(built.voxels, direct.voxels) and built.probs.tobytes() == direct.probs.tobytes()
     assert np.array_equal(built.counts, direct.counts) and built.n_subsets == direct.n_subsets
     assert built.counts.dtype == direct.counts.dtype
     monkeypatch.setattr(sim, "simulate", lambda *a, **k: pytest.fail("the records were simulated again"))
-    recs = unc.spec_subset_records(spec)
+    recs = sr.spec_subset_records(spec)
     assert len(recs) == built.n_subsets
     best = Placement.load("square").poses
     res = _run(spec, best)                                # the intervals find the records: no simulation

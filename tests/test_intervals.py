@@ -13,8 +13,8 @@ from place3d_kernels.cli import main
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.placement import Placement
 from place3d_kernels.spec import PSOGSpec, RoiSpec, SceneSpec
-from place3d_kernels.uncertainty import (NOISE_LEVEL, bootstrap_records, pairwise, rig_vs_baselines_intervals,
-                                         spec_subset_records)
+from place3d_kernels.subset_records import spec_subset_records
+from place3d_kernels.uncertainty import NOISE_LEVEL, bootstrap_records, pairwise, rig_vs_baselines_intervals
 
 #: 16 frames at k = 4: T = 4 subsets, so resamples differ (35 distinct pools) and intervals are not trivial
 TINY = ["--frames", "16", "--voxel-size", "0.8", "--quiet"]

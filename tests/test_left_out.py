@@ -12,7 +12,8 @@ from place3d_kernels.metrics import msog_batch, msog_on_grid
 from place3d_kernels.placement import Placement
 from place3d_kernels.pooled import DriveRecord, PooledPSOG
 from place3d_kernels.spec import PSOGSpec, RoiSpec, SceneSpec
-from place3d_kernels.uncertainty import jackknife_records, spec_subset_records
+from place3d_kernels.subset_records import spec_subset_records
+from place3d_kernels.uncertainty import jackknife_records
 
 
 def _spec(seed=0, frames=16):
