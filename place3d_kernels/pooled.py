@@ -237,6 +237,18 @@ class PooledPSOG:
         out[:, 0] = T - occ[keep]
         return vox, out, T
 
+    def plain_psog(self, reference: PSOG | None = None) -> PSOG:
+        """``psog()`` (every record once), or ``reference`` itself when it is exactly that P-SOG: the same
+        grid, voxels, counts, T and float64 probabilities (checked here). The scene's own P-SOG is, for
+        records of its drive; reusing it reuses its weights and the grids already on the device."""
+        vox, c, T = self.counts()
+        if (reference is not None and reference.n_subsets == T and reference.counts is not None
+                and reference.grid.to_dict() == self.grid.to_dict() and len(reference.channels) == self.n_classes
+                and np.array_equal(reference.voxels, vox) and np.array_equal(reference.counts, c)
+                and np.array_equal(reference.probs, c / float(T))):
+            return reference
+        return PSOG(self.grid, vox, c / float(T), n_subsets=T, counts=c.astype(np.int32))
+
     def psog(self, multiplicity=None) -> PSOG:
         """The pooled P-SOG: ``p(v = c) = count / T_total`` (see ``counts`` for ``multiplicity``).
 

@@ -273,7 +273,7 @@ __all__ += ["kendall_tau"]
 def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
                       n_resamples: int = 200, seed: int = 0, backend=None, level: float = 0.95,
                       point: dict | None = None, unit: str = "subsets", progress: bool = False,
-                      normalisation: str = "paper", body=None) -> dict:
+                      normalisation: str = "paper", body=None, reference=None) -> dict:
     """{task: Bootstrap} of ``placements`` over resamples of ``records`` (one ``msog_batch`` call over all
     placements per resample and task; the resampled P-SOG is built once per resample for both tasks).
 
@@ -282,6 +282,8 @@ def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
             so they stay bit-identical); default: the scores on the pool of all records.
         progress: a progress bar over the distinct resamples (stderr).
         body: the ego ``VehicleBody`` the rigs are scored on (as ``msog_batch``; None: no body).
+        reference: the scene's P-SOG, used for the point estimates when it is exactly the records' pool
+            (``PooledPSOG.plain_psog``), so its weights and device grids are not built again.
     """
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
@@ -308,7 +310,7 @@ def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     samples = {t: scores[t][np.asarray(inv).reshape(-1)] for t in tasks}
     out = {}
     for t in tasks:
-        pt = point[t] if point is not None else msog_batch(pooled.psog(), L, poses, occlusion, t, b,
+        pt = point[t] if point is not None else msog_batch(pooled.plain_psog(reference), L, poses, occlusion, t, b,
                                                            normalisation=normalisation, body=body)
         out[t] = Bootstrap(names, np.asarray(pt, dtype=np.float64), samples[t], level, unit, len(pooled))
     return out
@@ -423,10 +425,10 @@ def _left_out_psogs(pooled: PooledPSOG, tasks):
 
 def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
                       backend=None, level: float = 0.95, point: dict | None = None, unit: str = "subsets",
-                      progress: bool = False, normalisation: str = "paper", body=None) -> dict:
+                      progress: bool = False, normalisation: str = "paper", body=None, reference=None) -> dict:
     """{task: Jackknife} of ``placements`` leaving each record (subset or drive) out in turn: n rescorings,
     one ``msog_batch`` call over all placements per left-out unit and task (``body``: the ego
-    ``VehicleBody`` the rigs are scored on, as ``msog_batch``)."""
+    ``VehicleBody`` the rigs are scored on, as ``msog_batch``; ``reference``: as ``bootstrap_records``)."""
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.metrics import msog_batch
@@ -441,7 +443,7 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     # the point first: msog_batch checks the poses before any left-out grid is scored
     point_scores = dict(point) if point is not None else {}
     with section("jackknife: point"):
-        full = None if point is not None else pooled.psog()
+        full = None if point is not None else pooled.plain_psog(reference)
         for t in tasks:
             if point is None:
                 point_scores[t] = msog_batch(full, L, poses, occlusion, t, b, normalisation=normalisation,
@@ -490,7 +492,8 @@ def pairwise(boot: Bootstrap) -> dict:
 def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, task: str = "seg",
                                occlusion: str = "sog", backend=None, n_resamples: int = 200, seed: int = 0,
                                level: float = 0.95, best_name: str = "best",
-                               settings=None, method: str = "bootstrap", normalisation: str = "paper") -> dict:
+                               settings=None, method: str = "bootstrap", normalisation: str = "paper",
+                               reference=None) -> dict:
     """Interval of an optimised rig and of each baseline, and how often the rig beats each baseline.
 
     Args:
@@ -499,6 +502,7 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
         best_poses: (L, 6) poses of the optimised rig.
         baseline_placements: {name: Placement or (L', 6) poses} or a list of ``Placement``.
         task, occlusion, backend, normalisation: as ``msog_batch``; n_resamples, seed, level: the bootstrap's.
+        reference: the scene's P-SOG (see ``bootstrap_records``).
         method: ``"bootstrap"`` (resamples with replacement) or ``"jackknife"`` (each unit left out once;
             ``n_resamples`` and ``seed`` unused).
 
@@ -534,9 +538,9 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
     def scores(rigs):
         if method == "jackknife":
             return jackknife_records(pooled.records, pooled.grid, L, rigs, (task,), occlusion, backend, level,
-                                     unit=unit, normalisation=normalisation)[task]
+                                     unit=unit, normalisation=normalisation, reference=reference)[task]
         return bootstrap_records(pooled.records, pooled.grid, L, rigs, (task,), occlusion, n_resamples, seed,
-                                 backend, level, unit=unit, normalisation=normalisation)[task]
+                                 backend, level, unit=unit, normalisation=normalisation, reference=reference)[task]
 
     # The baselines' resampled scores depend on the scene's records, not on the search: remembered on disk
     # (interval_memo), so a warm run rescores only the optimised rig.

@@ -77,3 +77,21 @@ def test_msog_on_grid_checks_its_inputs(subsets):
         msog_on_grid(ps.grid, ps.weights, ps.stop_mask,
                      LidarModel(lidar.elevations, lidar.azimuths, lidar.max_range, min_range=1.0),
                      Placement.load("center").poses, "warp:cpu")
+
+
+def test_the_scene_psog_serves_as_the_point_when_it_is_the_pool(subsets):
+    """The jackknife's point estimate reuses the scene's P-SOG (its weights and device grids) only when it
+    is exactly the records' pool; another P-SOG is ignored, and the intervals are the same either way."""
+    scene = _spec().build()
+    assert subsets.plain_psog(scene) is scene
+    other = _spec(1).build()
+    rebuilt = subsets.plain_psog(other)
+    assert rebuilt is not other
+    assert np.array_equal(rebuilt.voxels, scene.voxels) and rebuilt.probs.tobytes() == scene.probs.tobytes()
+    lidar = LidarModel.load("place3d_16ch")
+    rigs = {n: Placement.load(n).poses for n in ("center", "pyramid")}
+    plain = jackknife_records(subsets.records, subsets.grid, lidar, rigs, ("seg",), "sog", "warp:cpu")["seg"]
+    for ref in (scene, other):
+        got = jackknife_records(subsets.records, subsets.grid, lidar, rigs, ("seg",), "sog", "warp:cpu",
+                                reference=ref)["seg"]
+        assert got.point.tobytes() == plain.point.tobytes() and got.samples.tobytes() == plain.samples.tobytes()

@@ -315,7 +315,7 @@ def holdout_specs(args, spec) -> list:
     return out
 
 
-def report_intervals(args, spec, res, lidar, b, base_poses) -> dict | None:
+def report_intervals(args, spec, res, lidar, b, base_poses, psog=None) -> dict | None:
     """Intervals of the best rig and each baseline over the drive's subsets, printed (issue 13, item 3)."""
     if args.interval == "none" or not base_poses:
         return None
@@ -324,7 +324,7 @@ def report_intervals(args, spec, res, lidar, b, base_poses) -> dict | None:
     with section(f"intervals ({args.interval})"):
         iv = rig_vs_baselines_intervals(spec, lidar, res.best_placement.poses, base_poses, args.task,
                                         args.occlusion, b, args.resamples, args.opt_seed, method=args.interval,
-                                        best_name="optimised", normalisation=args.normalisation)
+                                        best_name="optimised", normalisation=args.normalisation, reference=psog)
     lo, hi = iv["best"]["ci"]
     print(f"95 % intervals ({iv['method']} over the drive's {iv['n_units']} {iv['unit']}): optimised "
           f"{iv['best']['score']:.6f} [{lo:.6f}, {hi:.6f}]")
@@ -350,7 +350,7 @@ def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
     res.diagnostics["normalisation"] = args.normalisation
     for line in format_diagnostics(res.diagnostics):
         print(line)
-    res.intervals = report_intervals(args, spec, res, lidar, b, base_poses)
+    res.intervals = report_intervals(args, spec, res, lidar, b, base_poses, psog)
     specs = holdout_specs(args, spec)
     if not specs:
         return
