@@ -40,3 +40,14 @@ def assert_visits_close(grid, o, d, t_end, got, want, eps=EPS):
         lo, hi = voxel_box(grid, v)
         assert segment_overlap(o, d, t_end, lo + eps, hi - eps, glo + eps, ghi - eps) == 0, \
             f"voxel {v} skipped although the ray passes through its interior by more than {eps} m"
+
+
+def assert_same_run(a, b):
+    """Two ``OptimizeResult``s of the same search: evaluations, best score and rig, and the history with
+    its wall-clock fields left out, all equal."""
+    assert a.evaluations == b.evaluations
+    assert a.best_score == b.best_score
+    np.testing.assert_array_equal(a.best_placement.poses, b.best_placement.poses)
+    drop = ("seconds", "time")
+    assert ([{k: v for k, v in h.items() if k not in drop} for h in a.history]
+            == [{k: v for k, v in h.items() if k not in drop} for h in b.history])

@@ -8,6 +8,7 @@ import argparse
 
 import numpy as np
 import pytest
+from checks import assert_same_run
 
 from place3d_kernels.distributed import (DistributedObjective, PSOGSpec, SceneSpec, add_executor_arguments,
                                          executor_from_args, get_executor)
@@ -162,12 +163,7 @@ def test_optimize_through_actors_same_as_local(spec):
     finally:
         ex.shutdown()
     assert ex.pool is None and ray.is_initialized()         # the executor did not own the cluster
-    assert a.evaluations == b.evaluations
-    assert a.best_score == b.best_score
-    np.testing.assert_array_equal(a.best_placement.poses, b.best_placement.poses)
-    drop = ("seconds", "time")
-    assert ([{k: v for k, v in h.items() if k not in drop} for h in a.history]
-            == [{k: v for k, v in h.items() if k not in drop} for h in b.history])
+    assert_same_run(a, b)
 
 
 def test_cli_optimize_on_actors_writes_the_local_result(spec, tmp_path, capsys):

@@ -7,8 +7,8 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
+from checks import assert_same_run
 
 from place3d_kernels.distributed import (ConditionSpec, DistributedObjective, LocalExecutor, PSOGSpec, SceneSpec,
                                          get_executor, simulate_to_folder, task_seed)
@@ -119,12 +119,7 @@ def test_ray_optimize_same_as_local(tmp_path, ray_executor):
     dist = DistributedObjective(spec, lidar, space, ray_executor, task="seg", backend=BACKEND, n_chunks=2)
     b = optimize(dist, space, [MinDistance(0.2)], **kw)
     assert dist.calls >= 2
-    assert a.evaluations == b.evaluations
-    assert a.best_score == b.best_score
-    np.testing.assert_array_equal(a.best_placement.poses, b.best_placement.poses)
-    drop = ("seconds", "time")
-    assert ([{k: v for k, v in h.items() if k not in drop} for h in a.history]
-            == [{k: v for k, v in h.items() if k not in drop} for h in b.history])
+    assert_same_run(a, b)
 
 
 @needs_ray
