@@ -137,7 +137,7 @@ class PooledPSOG:
         self.grid = grid
         self.n_classes = int(n_classes)
         self.records: list[DriveRecord] = []
-        self._union = self._plain = self._spans = None
+        self._union = self._plain = self._spans = self._plain_counts = None
         for r in records:
             self.add(r)
 
@@ -145,7 +145,7 @@ class PooledPSOG:
         if record.classes.size and int(record.classes.max()) >= self.n_classes:
             raise ValueError(f"{record.label}: class {int(record.classes.max())} outside the {self.n_classes} channels")
         self.records.append(record)
-        self._union = self._plain = self._spans = None
+        self._union = self._plain = self._spans = self._plain_counts = None
 
     @property
     def labels(self) -> list[str]:
@@ -201,8 +201,11 @@ class PooledPSOG:
 
         Returns:
             voxels (M,) int64 ascending, counts (M, K) int64 (column 0 = empty), T_total; voxels never
-            occupied in the weighted pool are left out, as ``PSOG.from_frames`` leaves them out.
+            occupied in the weighted pool are left out, as ``PSOG.from_frames`` leaves them out. For
+            ``multiplicity=None`` the same read-only arrays on every call.
         """
+        if multiplicity is None and self._plain_counts is not None:
+            return self._plain_counts
         cls_, inv, counts, owner, uvox, vinv = self._prepare()
         D = len(self.records)
         T_each = np.array([r.n_subsets for r in self.records], dtype=np.int64)
@@ -235,6 +238,12 @@ class PooledPSOG:
         keep = occ > 0
         out, vox = out[keep], uvox[keep]
         out[:, 0] = T - occ[keep]
+        if multiplicity is None:
+            # every record once is asked for several times per interval (the point, each task's left-out
+            # grids): kept, read-only, so no caller can change what the next one reads
+            vox.setflags(write=False)
+            out.setflags(write=False)
+            self._plain_counts = (vox, out, T)
         return vox, out, T
 
     def plain_psog(self, reference: PSOG | None = None) -> PSOG:
