@@ -503,6 +503,44 @@ def test_score_strategies_agree(rng):
         np.testing.assert_array_equal(r[1], res[0][1])
 
 
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("n_az", [1, 3, 50])
+def test_lane_walk_equals_one_ray_walk_and_reference(variant, n_az, rng):
+    """The CPU walk in vector lanes (walk_lanes.cl) against score_walk (one ray per work-item), and with
+    doubles against the reference: rays from voxel corners along 45-degree and 1:2 diagonals (exact ties, so lanes take the
+    slow step), rays leaving the grid or ending inside it, stop voxels, and fewer rays than lanes (n_az = 1: 5 rays per LiDAR,
+    idle lanes from the start)."""
+    b = _backend(variant)
+    if not b.is_cpu:
+        pytest.skip("the lane walk is the CPU strategy's")
+    spec = GridSpec(0.25, (32, 28, 12))                 # exact binary planes: ties are exact
+    el = np.radians([-45.0, -np.degrees(np.arctan(0.5)), -10.0, 0.0, 30.0])
+    az = np.radians(np.concatenate([[45.0, 0.0, 90.0], np.degrees(np.arctan2([1, 2, -1], [2, 1, 2]))]))[:n_az]
+    if n_az == 50:
+        az = rng.uniform(-np.pi, np.pi, 50)
+    poses = np.zeros((6, 2, 6))
+    poses[..., :3] = rng.integers(2, 24, (6, 2, 3)) * 0.25 * np.array([1, 1, 0.5])
+    poses[..., 5] = np.radians(rng.choice([0.0, 45.0, 90.0, -135.0], (6, 2)))
+    poses[4:, :, 3:] = rng.uniform(-0.5, 0.5, (2, 2, 3))  # two rigs off the lattice
+    w = rng.integers(0, 2**40, spec.n_voxels)
+    w[rng.uniform(size=spec.n_voxels) < 0.6] = 0
+    stop = (rng.uniform(size=spec.n_voxels) < 0.02).astype(np.uint8)
+    for s, t_max in ((stop, 12.0), (None, 12.0), (None, 2.3)):     # 2.3 m: segments ending inside the grid
+        ref = REF.score_placements(REF.prepare_grid(spec, w, s), el, az, t_max, poses)
+        got = {}
+        for lanes in (True, False):
+            b.walk_lanes = lanes
+            try:
+                got[lanes] = b.score_placements(b.prepare_grid(spec, w, s), el, az, t_max, poses)
+            finally:
+                b.walk_lanes = b.is_cpu
+        np.testing.assert_array_equal(got[True][0], got[False][0])
+        np.testing.assert_array_equal(got[True][1], got[False][1])
+        if b.fp64:      # without doubles, near-ties are settled in float32: within the contract, not the bits
+            np.testing.assert_array_equal(got[True][0], ref[0])
+            np.testing.assert_array_equal(got[True][1], ref[1])
+
 # ============================================================================ rays, keys, vote
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_lidar_rays_vs_reference(variant, rng):

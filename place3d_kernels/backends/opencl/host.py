@@ -157,6 +157,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
         if score_strategy not in (None, "private", "atomic"):
             raise ValueError(f"score_strategy must be 'private' or 'atomic', got {score_strategy!r}")
         self.score_strategy = score_strategy or ("private" if self.is_cpu else "atomic")
+        #: on CPUs the private strategy walks 16 rays per work-item in vector lanes (walk_lanes.cl); False: one
+        #: at a time (score_walk). Same bitsets; bench/bench_pocl_walk.py compares the two.
+        self.walk_lanes = self.is_cpu
         if bvh_width not in (None, 2, 4):
             raise ValueError(f"bvh_width must be 2 or 4, got {bvh_width!r}")
         self.bvh_width = bvh_width or (4 if self.is_cpu else 2)
@@ -177,6 +180,8 @@ class OpenCLBackend(Backend, OpenCLConditions):
                 files, opts = ("common.cl", "raycast.cl"), self._options() + (f"-DSTACK_SIZE={self.stack_size}",)
             elif name.startswith("vote_"):
                 files, opts = ("common.cl", "vote.cl"), self._options()
+            elif self.walk_lanes:   # walk_lanes.cl: the CPU walk, 32-bit voxel indices (see score_placements)
+                files, opts = ("common.cl", "grid.cl", "walk_lanes.cl"), self._options() + ("-DFLAT32",)
             else:
                 files, opts = ("common.cl", "grid.cl"), self._options()
             prg = rt.build_program(self.ctx, files, opts)
@@ -479,13 +484,15 @@ class OpenCLBackend(Backend, OpenCLConditions):
             chunk = int(max(1, min(P, _BITSET_BYTES // max(words * 4 * G, 1))))
             per = 4096
             n_chunks = (words + per - 1) // per
+            # rays in vector lanes (walk_lanes.cl), where voxel indices fit its 32 bits
+            walk = "score_walk_lanes" if self.walk_lanes and spec.n_voxels < 2**31 else "score_walk"
             bits = self._out(chunk * G * words * 4)
             ps, pc = self._out(chunk * n_chunks * 8), self._out(chunk * n_chunks * 8)
             for p0 in range(0, P, chunk):
                 pn = min(chunk, P - p0)
                 cl.enqueue_fill_buffer(self.queue, bits, np.uint32(0), 0, pn * G * words * 4)
                 rig_b = self._in(rig[p0 * L:(p0 + pn) * L])
-                self._launch("score_walk", (G, pn), rig_b, sdir_b, np.int32(L), np.int32(CA), self.real(t_max),
+                self._launch(walk, (G, pn), rig_b, sdir_b, np.int32(L), np.int32(CA), self.real(t_max),
                              *ga, bits, np.int64(words), np.int32(G))
                 self._launch("score_reduce", (n_chunks, pn), bits, np.int64(words), np.int32(G), np.int32(per),
                              np.int32(n_chunks), handle.weights, handle.nonzero, np.int64(spec.n_voxels), ps, pc)
