@@ -13,8 +13,8 @@
  * On the dev VM (2-core AMD EPYC Zen 5, Debian PoCL 3.1, AVX-512), 22 paper rigs on the default town:
  * 94 -> 64 ms a call (1.46x, 7 alternating rounds; bench/bench_pocl_walk.py,
  * bench/results/pocl-walk-lanes-dev-2core-2026-11-24.json). SW = 8 was slower than 16;
- * so were spilling the lanes to private arrays for the marking, and 64-bit voxel indices where 32 bits do
- * (FLAT32, set by the host when the grid has fewer than 2^31 voxels).
+ * so were spilling the lanes to private arrays for the marking, and 64-bit voxel indices: the host builds
+ * it with FLAT32 (32-bit indices) and uses it for grids of fewer than 2^31 voxels, score_walk beyond.
  */
 #ifndef SW
 #define SW 16

@@ -171,6 +171,19 @@ class WarpCore(Backend):
         self._pool_lock = threading.Lock()
         self._loaded = set()      # kernels launched once already (module compiled and loaded)
         self._pinned = None       # PinnedPool for large device-to-host copies (CUDA only; created on first use)
+        #: what ``aot.load`` did: the shipped CUDA binaries loaded (e.g. "cubin sm90"), or why not (Warp then
+        #: compiles on first launch); None on the CPU. PLACE3D_WARP_AOT=0 skips them (to time the JIT).
+        self.aot = None
+        if self.device.is_cuda:
+            if os.environ.get("PLACE3D_WARP_AOT", "1") == "0":
+                self.aot = "off (PLACE3D_WARP_AOT=0)"
+            else:
+                from place3d_kernels.backends.warp import aot
+
+                try:
+                    self.aot = aot.load(self.device)
+                except (OSError, RuntimeError) as e:   # a damaged file or a driver too old for the CUBIN
+                    self.aot = f"failed, compiling instead: {e}"
 
     # ------------------------------------------------------------------ launches
     def _launch(self, kernel, n: int, inputs) -> None:
