@@ -166,13 +166,13 @@ def cmd_evaluate(args) -> int:
 def _evaluate_bootstrap(args, spec, backend, lidar, names, placements, rows) -> dict:
     """{task: Jackknife | Bootstrap} over the subsets of the evaluated drive; point estimates are the printed
     scores (bit-identical), ``ci`` and ``pairwise`` are added to each row."""
-    from place3d_kernels.subset_records import spec_subset_records
+    from place3d_kernels.subset_records import keyed_subset_records
     from place3d_kernels.uncertainty import bootstrap_records, jackknife_records, pairwise
 
     if args.resamples < 0:
         raise ValueError(f"--resamples must be >= 0 (0 switches the intervals off), got {args.resamples}")
     with section("bootstrap: subset records"):
-        records = spec_subset_records(spec, backend, cache=not args.no_cache)
+        records, pool_key = keyed_subset_records(spec, backend, cache=not args.no_cache)
     if len(records) < 2:
         raise ValueError(f"intervals need at least 2 subsets, the drive has {len(records)}; use more "
                          f"--frames or --interval none")
@@ -184,7 +184,8 @@ def _evaluate_bootstrap(args, spec, backend, lidar, names, placements, rows) -> 
         if args.interval == "jackknife":
             boots = jackknife_records(records, spec.grid.grid(), lidar, chosen, ("seg", "det"), args.occlusion,
                                       backend, point=point, progress=not args.quiet,
-                                      normalisation=args.normalisation, body=spec.vehicle_body())
+                                      normalisation=args.normalisation, body=spec.vehicle_body(),
+                                      pool_key=pool_key)
         else:
             boots = bootstrap_records(records, spec.grid.grid(), lidar, chosen, ("seg", "det"), args.occlusion,
                                       args.resamples, args.resample_seed, backend, point=point,

@@ -12,9 +12,21 @@ Exact: a voxel's weight is a function of its own count row and T alone (``PSOG.w
 row on its own), and ``left_out_fields`` mirrors ``PooledPSOG.psog``, ``PSOG.detection``, ``PSOG.weights``
 and ``PSOG.stop_mask`` step for step; tests/test_left_out.py checks every left-out grid of the default
 town against ``pooled.psog(m).for_task(task)`` bit for bit, for both tasks.
+
+A resident process (``place3d serve``) runs the same jackknife again and again on the same records: the
+left-out grids depend on the records, the task and the occlusion, never on the rigs scored. ``HANDLES``
+keeps their prepared backend grids between calls (see ``PreparedLeftOut``) and remembers that the
+scene's P-SOG passed ``PooledPSOG.plain_psog``'s identity check, so a warm jackknife on a known
+pool patches, uploads and compares nothing: it only launches the scoring.
 """
 
 from __future__ import annotations
+
+import json
+import threading
+import weakref
+from collections import OrderedDict
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -22,7 +34,7 @@ from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.classes import VEHICLE
 from place3d_kernels.sog import entropy
 
-__all__ = ["LeftOutGrids", "left_out_fields"]
+__all__ = ["LeftOutGrids", "left_out_fields", "PreparedLeftOut", "HANDLES", "KEEP_LEFT_OUT"]
 
 
 def left_out_fields(counts: np.ndarray, T: int, task: str) -> tuple[np.ndarray, np.ndarray]:
@@ -97,3 +109,113 @@ class LeftOutGrids:
         wd[at], sd[at] = w, s                                 # a voxel no longer occupied: weight 0, no stop
         self._work[T] = (wd, sd, at)
         return wd, sd
+
+
+#: Sets of prepared left-out grids (one set: the n grids of one pool, task, occlusion and backend) that
+#: ``HANDLES`` keeps; 2 holds both tasks of one pool. One grid is its int64 weights plus masks, about
+#: 40 MB on the default 0.2 m grid, so a set of 10 subsets is about 400 MB of device (or, on a CPU
+#: backend, host) memory.
+KEEP_LEFT_OUT = 2
+
+
+class PreparedLeftOut:
+    """A bounded memo of the prepared backend grids of left-out P-SOGs, most recently used kept.
+
+    A key names everything a left-out grid is made of, so an entry is never served for other data:
+
+    - ``pool_key``, the records' content identity, given by the caller: for records read from the
+      subset-record cache, the file's resolved path, device, inode, size and modification time in ns
+      (``subset_records.records_file_identity``), taken before and after the read. A rewritten file
+      (``os.replace``: a new inode) or a touched one gets another key. Callers without such an identity
+      pass None and nothing is kept.
+    - the grid (its bounds and voxel size), the task and the occlusion mode (the stop mask or none);
+    - the backend instance itself, not its name: two instances of one name may hold different contexts,
+      and a handle is only valid on the one that prepared it (as ``PSOG.handle`` keys its grids).
+
+    Handles are opaque and read-only to their users (``Backend.prepare_grid`` copies its inputs), so one
+    set serves any number of jackknifes. The memo lives as long as the process: a one-shot command frees
+    it at exit, ``place3d serve`` keeps it between commands. Thread-safe; ``keep(0)`` or ``clear()``
+    frees every handle.
+    """
+
+    def __init__(self, keep: int = KEEP_LEFT_OUT):
+        self._sets: OrderedDict = OrderedDict()
+        # (pool_key, grid) -> weak reference to the P-SOG that passed PooledPSOG.plain_psog's check for that
+        # pool; a P-SOG that dies is never matched again (its weak reference then returns None)
+        self._verified: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
+        self._keep = 0
+        self.keep(keep)
+
+    def keep(self, n: int) -> None:
+        """Keep at most ``n`` sets (0: none, and nothing kept now)."""
+        if n < 0:
+            raise ValueError(f"keep needs n >= 0 sets of left-out grids, got {n}")
+        with self._lock:
+            self._keep = int(n)
+            self._trim()
+
+    def _trim(self) -> None:
+        for d in (self._sets, self._verified):
+            while len(d) > self._keep:
+                d.popitem(last=False)
+
+    def clear(self) -> None:
+        """Forget every set (their device memory is freed with the last reference) and every check."""
+        with self._lock:
+            self._sets.clear()
+            self._verified.clear()
+
+    def __len__(self) -> int:
+        return len(self._sets)
+
+    def get(self, pool_key, grid, task: str, occlusion: str, backend, prepare: Callable[[], Iterable]) -> Iterable:
+        """The prepared left-out grids (one handle per record, in record order) of this pool, task,
+        occlusion and backend: the kept list; or ``prepare()``'s handles, collected into a list and kept
+        when ``pool_key`` is not None (and ``keep`` > 0), else ``prepare()`` itself, returned as it is (an
+        iterator that prepares each grid when asked keeps one grid in memory at a time)."""
+        if pool_key is None or not self._keep:
+            return prepare()
+        key = (pool_key, _grid_key(grid), task, occlusion, backend)
+        with self._lock:
+            handles = self._sets.get(key)
+            if handles is not None:
+                self._sets.move_to_end(key)
+                return handles
+        handles = list(prepare())
+        with self._lock:
+            self._sets[key] = handles
+            self._trim()
+        return handles
+
+    def plain_psog(self, pooled, reference=None, pool_key=None):
+        """``pooled.plain_psog(reference)``, without its check when ``reference`` already passed it for the
+        pool ``pool_key`` names (None: always checked).
+
+        The check compares the pool's summed counts, voxels and probabilities with the reference's (a sum
+        over every record and three full-array comparisons); its answer depends only on the records and on
+        the reference's arrays, which nothing writes to after a P-SOG is made. So the same P-SOG object on
+        the same records passes again, and the point estimate reuses its weights and device grids at once.
+        """
+        if pool_key is None or reference is None or not self._keep:
+            return pooled.plain_psog(reference)
+        key = (pool_key, _grid_key(pooled.grid))
+        with self._lock:
+            ref = self._verified.get(key)
+            if ref is not None and ref() is reference:
+                self._verified.move_to_end(key)
+                return reference
+        full = pooled.plain_psog(reference)
+        if full is reference:
+            with self._lock:
+                self._verified[key] = weakref.ref(reference)
+                self._trim()
+        return full
+
+
+#: The process's memo of prepared left-out grids (``uncertainty.jackknife_records`` uses it).
+HANDLES = PreparedLeftOut()
+
+
+def _grid_key(grid) -> str:
+    return json.dumps(grid.to_dict(), sort_keys=True)

@@ -23,8 +23,8 @@ from place3d_kernels.mesh import Mesh
 from place3d_kernels.ops import coverage, raycast
 from place3d_kernels.sog import PSOG
 
-__all__ = ["msog", "msog_batch", "msog_on_grid", "covered_voxels", "msog_from_voxels", "coverage_counts", "OCCLUSION_MODES",
-           "NORMALISATIONS"]
+__all__ = ["msog", "msog_batch", "msog_on_grid", "msog_on_handle", "covered_voxels", "msog_from_voxels",
+           "coverage_counts", "OCCLUSION_MODES", "NORMALISATIONS"]
 
 OCCLUSION_MODES = ("none", "sog", "mesh")
 #: Denominators of M-SOG: the paper's N_L, and two that do not reward rays through never-occupied air.
@@ -223,15 +223,29 @@ def msog_on_grid(grid, weights: np.ndarray, stop: np.ndarray | None, lidar: Lida
     its fixed-point weights and stop mask instead of a ``PSOG``: the values a P-SOG's ``weights`` and
     ``stop_mask`` hold (``stop`` None: occlusion "none"). The jackknife scores its leave-one-out grids so
     (``place3d_kernels.left_out``); the kernel and the arithmetic are ``msog_batch``'s."""
+    poses = _grid_lidar_poses(grid, lidar, poses, "msog_on_grid")
+    b = get_backend(backend)
+    return _fused_scores(grid, b.prepare_grid(grid.spec, weights, stop), lidar, poses, b)
+
+
+def msog_on_handle(grid, handle, lidar: LidarModel, poses, backend) -> np.ndarray:
+    """``msog_on_grid`` on a grid already prepared by ``backend.prepare_grid(grid.spec, weights, stop)``
+    (``handle``; ``backend`` the same instance): the same checks and scores, without the upload. The
+    jackknife keeps its left-out grids prepared so (``left_out.PreparedLeftOut``)."""
+    poses = _grid_lidar_poses(grid, lidar, poses, "msog_on_handle")
+    return _fused_scores(grid, handle, lidar, poses, get_backend(backend))
+
+
+def _grid_lidar_poses(grid, lidar: LidarModel, poses, caller: str) -> np.ndarray:
+    """(P, L, 6) float64 poses, checked: a grid LiDAR without minimum range, finite poses inside ``grid``."""
     if not lidar.is_grid or lidar.min_range > 0:
-        raise ValueError(f"msog_on_grid takes grid LiDARs without a minimum range; use msog_batch for "
+        raise ValueError(f"{caller} takes grid LiDARs without a minimum range; use msog_batch for "
                          f"{lidar.name or 'this sensor'}")
     poses = _poses(poses)
     if poses.ndim == 2:
         poses = poses[None]
     _check_poses(grid, poses)
-    b = get_backend(backend)
-    return _fused_scores(grid, b.prepare_grid(grid.spec, weights, stop), lidar, poses, b)
+    return poses
 
 
 def mesh_mask(p: PSOG, lidar: LidarModel, rig: np.ndarray, mesh: Mesh, b) -> np.ndarray:

@@ -425,10 +425,15 @@ def _left_out_psogs(pooled: PooledPSOG, tasks):
 
 def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
                       backend=None, level: float = 0.95, point: dict | None = None, unit: str = "subsets",
-                      progress: bool = False, normalisation: str = "paper", body=None, reference=None) -> dict:
+                      progress: bool = False, normalisation: str = "paper", body=None, reference=None,
+                      pool_key=None) -> dict:
     """{task: Jackknife} of ``placements`` leaving each record (subset or drive) out in turn: n rescorings,
     one ``msog_batch`` call over all placements per left-out unit and task (``body``: the ego
-    ``VehicleBody`` the rigs are scored on, as ``msog_batch``; ``reference``: as ``bootstrap_records``)."""
+    ``VehicleBody`` the rigs are scored on, as ``msog_batch``; ``reference``: as ``bootstrap_records``).
+
+    ``pool_key``: the records' content identity (``subset_records.keyed_subset_records``), or None. With
+    one, the prepared left-out grids and the reference's identity check are kept in the process
+    (``left_out.HANDLES``), so the next jackknife on the same records patches and uploads nothing."""
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.metrics import msog_batch
@@ -442,8 +447,10 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
         raise ValueError(f"the jackknife needs at least 2 units, got {n}")
     # the point first: msog_batch checks the poses before any left-out grid is scored
     point_scores = dict(point) if point is not None else {}
+    from place3d_kernels.left_out import HANDLES
+
     with section("jackknife: point"):
-        full = None if point is not None else pooled.plain_psog(reference)
+        full = None if point is not None else HANDLES.plain_psog(pooled, reference, pool_key)
         for t in tasks:
             if point is None:
                 point_scores[t] = msog_batch(full, L, poses, occlusion, t, b, normalisation=normalisation,
@@ -456,17 +463,28 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
 
         it = tqdm(it, desc="jackknife", unit="left-out", leave=False)
     if normalisation == "paper" and body is None and L.is_grid and L.min_range == 0 and occlusion in ("sog", "none"):
-        # msog_batch's fused path: each left-out grid patched from the full pool (left_out.py, 5x faster)
+        # msog_batch's fused path: each left-out grid patched from the full pool (left_out.py, 5x faster) and
+        # prepared once; with a pool_key the prepared grids are kept for the next jackknife on these records
         from place3d_kernels.left_out import LeftOutGrids
-        from place3d_kernels.metrics import msog_on_grid
+        from place3d_kernels.metrics import msog_on_handle
 
-        grids = {t: LeftOutGrids(pooled, t) for t in tasks}
+        def prepare(t):
+            grids = LeftOutGrids(pooled, t)
+            for i in range(n):
+                with section("jackknife: left-out grid"):
+                    w, stop = grids.fields(i)
+                with section("jackknife: grid upload"):
+                    h = b.prepare_grid(pooled.grid.spec, w, stop if occlusion == "sog" else None)
+                yield h
+
+        # an iterator per task: kept handles, or (not kept) each grid prepared just before its scoring
+        handles = {t: iter(HANDLES.get(pool_key, pooled.grid, t, occlusion, b, lambda t=t: prepare(t)))
+                   for t in tasks}
         for i in it:
             for t in tasks:
-                with section("jackknife: left-out grid"):
-                    w, stop = grids[t].fields(i)
+                h = next(handles[t])
                 with section("jackknife: scoring"):
-                    scores[t][i] = msog_on_grid(pooled.grid, w, stop if occlusion == "sog" else None, L, poses, b)
+                    scores[t][i] = msog_on_handle(pooled.grid, h, L, poses, b)
     else:
         left_out = _left_out_psogs(pooled, tasks)
         for i in it:
@@ -515,21 +533,22 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
     from place3d_kernels.interval_memo import IntervalMemo, rig_key
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.pooled import Drive, PoolSettings, subset_records
-    from place3d_kernels.subset_records import spec_subset_records, subset_records_path
+    from place3d_kernels.subset_records import keyed_subset_records, subset_records_path
 
     names, poses = _poses(baseline_placements)
     best = np.asarray(best_poses, dtype=np.float64)
     if best.ndim != 2 or best.shape[1] != 6:
         raise ValueError(f"best_poses must be (L, 6) poses, got shape {best.shape}")
     placements = {best_name: best, **{n: p for n, p in zip(names, poses)}}
-    records_path = None
+    records_path = pool_key = None
     if isinstance(source, PooledPSOG):
         pooled, unit = source, "drives"
     elif isinstance(source, Drive):
         settings = settings or PoolSettings()
         pooled, unit = PooledPSOG(settings.grid, subset_records(source, settings)), "subsets"
     else:
-        pooled, unit = PooledPSOG(source.grid.grid(), spec_subset_records(source, backend)), "subsets"
+        records, pool_key = keyed_subset_records(source, backend)
+        pooled, unit = PooledPSOG(source.grid.grid(), records), "subsets"
         records_path = subset_records_path(source)[0]
     if method not in ("bootstrap", "jackknife"):
         raise ValueError(f"method must be 'bootstrap' or 'jackknife', got {method!r}")
@@ -538,7 +557,8 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
     def scores(rigs):
         if method == "jackknife":
             return jackknife_records(pooled.records, pooled.grid, L, rigs, (task,), occlusion, backend, level,
-                                     unit=unit, normalisation=normalisation, reference=reference)[task]
+                                     unit=unit, normalisation=normalisation, reference=reference,
+                                     pool_key=pool_key)[task]
         return bootstrap_records(pooled.records, pooled.grid, L, rigs, (task,), occlusion, n_resamples, seed,
                                  backend, level, unit=unit, normalisation=normalisation, reference=reference)[task]
 

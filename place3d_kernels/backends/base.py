@@ -165,7 +165,9 @@ class Backend(abc.ABC):
     def prepare_grid(self, grid: GridSpec, weights: np.ndarray, stop: np.ndarray | None) -> object:
         """Upload per-voxel int64 fixed-point weights and an optional uint8 stop mask once.
 
-        Returns an opaque handle for ``score_placements``.
+        Returns an opaque handle for ``score_placements``. The handle holds its own copy: the caller may
+        change or reuse ``weights`` and ``stop`` afterwards (the jackknife keeps handles of grids it patched
+        in one working array).
         """
 
     @abc.abstractmethod

@@ -148,8 +148,10 @@ class _RefMesh:
 class _RefGrid:
     def __init__(self, spec, weights, stop):
         self.spec = spec
-        self.weights = np.asarray(weights, dtype=np.int64)
-        self.stop = None if stop is None else np.asarray(stop, dtype=np.uint8)
+        # copies, as the device backends' uploads are: a caller may reuse its arrays for the next grid while
+        # this handle is still kept (left_out.PreparedLeftOut keeps the jackknife's)
+        self.weights = np.array(weights, dtype=np.int64)
+        self.stop = None if stop is None else np.array(stop, dtype=np.uint8)
 
 
 class ReferenceCore(Backend):

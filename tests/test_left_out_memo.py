@@ -1,0 +1,215 @@
+"""The prepared left-out grids kept between jackknifes of one process (left_out.HANDLES, what a warm
+``place3d serve`` reuses): a second jackknife on the same record file prepares no grid and gives the same
+intervals bit for bit; a rewritten or touched record file is never served from the memo; the memo keeps
+at most its bound. Tiny settings (0.8 m voxels, 16 frames) as in test_interval_memo.py, on both CPU device
+backends of the dev VM; every backend's prepared grid is its own copy (the memo relies on it)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from place3d_kernels.backends.registry import get_backend
+from place3d_kernels.left_out import HANDLES, KEEP_LEFT_OUT
+from place3d_kernels.lidar import LidarModel
+from place3d_kernels.metrics import msog_batch
+from place3d_kernels.placement import Placement
+from place3d_kernels.pooled import PooledPSOG
+from place3d_kernels.spec import PSOGSpec, RoiSpec, SceneSpec
+from place3d_kernels.subset_records import keyed_subset_records, records_aggregator, subset_records_path
+from place3d_kernels.uncertainty import jackknife_records, rig_vs_baselines_intervals
+
+BACKENDS = ["warp:cpu", "opencl:pocl", "reference"]
+LIDAR = "place3d_16ch"
+
+
+def _spec(folder, backend="warp:cpu"):
+    return PSOGSpec(SceneSpec("town", 0, 16), backend, RoiSpec(0.8), cache=str(folder)).resolved()
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """A cache folder holding the scene's P-SOG and its subset records, built once (copied per test)."""
+    folder = tmp_path_factory.mktemp("left-out-memo")
+    spec = _spec(folder)
+    spec.build(cache=spec.cache, aggregate=records_aggregator(spec))
+    return folder
+
+
+@pytest.fixture
+def spec(built, tmp_path, request):
+    """A fresh copy of the cache folder (its record file may be rewritten) and the spec on it."""
+    shutil.copytree(built, tmp_path / "cache")
+    return _spec(tmp_path / "cache", request.param)
+
+
+@pytest.fixture
+def prepared(monkeypatch):
+    """Counts the grids every backend instance prepares (the wrapped method of the instance itself: the
+    memo keys on the instance, so the wrapper must not change which one the code gets)."""
+    calls = []
+    for name in BACKENDS:
+        b = get_backend(name)
+        real = b.prepare_grid
+
+        def counting(*a, _real=real, **kw):
+            calls.append(1)
+            return _real(*a, **kw)
+
+        monkeypatch.setattr(b, "prepare_grid", counting)
+    HANDLES.clear()
+    yield calls
+    HANDLES.keep(KEEP_LEFT_OUT)
+    HANDLES.clear()
+
+
+def _rigs():
+    return {n: Placement.load(n).poses for n in ("center", "pyramid")}
+
+
+def _same(a, b):
+    for t in a:
+        assert a[t].point.tobytes() == b[t].point.tobytes(), t
+        assert a[t].samples.tobytes() == b[t].samples.tobytes(), t
+
+
+@pytest.mark.parametrize("spec", ["warp:cpu", "opencl:pocl"], indirect=True)
+def test_a_second_jackknife_prepares_no_grid(spec, prepared):
+    b = get_backend(spec.backend)
+    scene = spec.build(cache=spec.cache)
+    records, key = keyed_subset_records(spec, b)
+    assert key is not None and key[0] == os.path.realpath(subset_records_path(spec)[0])
+    n = len(records)
+    grid = spec.grid.grid()
+    rigs = _rigs()
+
+    def run(**kw):
+        return jackknife_records(records, grid, LIDAR, rigs, ("seg", "det"), "sog", b, **kw)
+
+    computed = run()                                     # no key: nothing kept, the point computed
+    assert len(HANDLES) == 0
+    want_point = msog_batch(PooledPSOG(grid, records).psog(), LidarModel.load(LIDAR), np.stack(list(rigs.values())),
+                            "sog", "seg", b)
+    assert computed["seg"].point.tobytes() == want_point.tobytes()
+    first = run(reference=scene, pool_key=key)
+    assert len(HANDLES) == 2                             # both tasks
+    del prepared[:]
+    second = run(reference=scene, pool_key=key)
+    assert len(prepared) == 0                            # no left-out grid, no point grid
+    _same(second, computed)
+    _same(first, computed)
+    HANDLES.keep(0)                                      # switched off: every grid prepared again
+    assert len(HANDLES) == 0
+    del prepared[:]
+    _same(run(reference=scene, pool_key=key), computed)
+    assert len(prepared) == 2 * n
+
+
+@pytest.mark.parametrize("spec", ["warp:cpu", "opencl:pocl"], indirect=True)
+def test_warm_intervals_are_the_cold_ones(spec, prepared):
+    """Through rig_vs_baselines_intervals (what ``place3d optimize`` calls): the second call, with the
+    baselines remembered on disk and the left-out grids in memory, prepares nothing."""
+    b = get_backend(spec.backend)
+    scene = spec.build(cache=spec.cache)
+    best = Placement.load("line-roll").poses
+    base = {n: Placement.load(n).poses for n in ("center", "line", "pyramid")}
+
+    def run():
+        return rig_vs_baselines_intervals(spec, LIDAR, best, base, "seg", "sog", b, method="jackknife",
+                                          reference=scene)
+
+    cold = run()
+    del prepared[:]
+    warm = run()
+    assert len(prepared) == 0
+    assert warm == cold
+    HANDLES.clear()
+    assert run() == cold
+
+
+@pytest.mark.parametrize("spec", ["warp:cpu", "opencl:pocl"], indirect=True)
+def test_a_changed_record_file_is_not_served(spec, prepared):
+    b = get_backend(spec.backend)
+    scene = spec.build(cache=spec.cache)
+    grid = spec.grid.grid()
+    rigs = _rigs()
+    path = subset_records_path(spec)[0]
+
+    def run():
+        records, key = keyed_subset_records(spec, b)
+        assert key is not None
+        del prepared[:]
+        got = jackknife_records(records, grid, LIDAR, rigs, ("seg",), "sog", b, reference=scene, pool_key=key)
+        count = len(prepared)
+        HANDLES.keep(0)                                   # the same records, nothing kept: computed afresh
+        want = jackknife_records(records, grid, LIDAR, rigs, ("seg",), "sog", b, reference=scene)
+        HANDLES.keep(KEEP_LEFT_OUT)
+        _same(got, want)
+        return got, count
+
+    before, count = run()
+    assert count >= len(before["seg"].samples)
+    n = len(before["seg"].samples)
+    # touched: same content, another modification time, so another key: prepared again
+    st = os.stat(path)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+    records, key = keyed_subset_records(spec, b)
+    del prepared[:]
+    jackknife_records(records, grid, LIDAR, rigs, ("seg",), "sog", b, reference=scene, pool_key=key)
+    assert len(prepared) == n
+    # rewritten (a new file replaces it, as the cache writes it) with the last subset left out
+    with np.load(path) as z:
+        d = {k: z[k] for k in z.files}
+    keep = int(d["sizes"][:-1].sum())
+    d.update(labels=d["labels"][:-1], n_subsets=d["n_subsets"][:-1], sizes=d["sizes"][:-1],
+             voxels=d["voxels"][:keep], classes=d["classes"][:keep], counts=d["counts"][:keep])
+    tmp = path.with_name("rewritten.npz")
+    np.savez(tmp, **d)
+    os.replace(tmp, path)
+    after, count = run()
+    assert len(after["seg"].samples) == n - 1 and count >= n - 1
+    assert after["seg"].point.tobytes() != before["seg"].point.tobytes()
+
+
+@pytest.mark.parametrize("spec", ["warp:cpu"], indirect=True)
+def test_the_memo_keeps_its_bound(spec, prepared):
+    b = get_backend(spec.backend)
+    records, _ = keyed_subset_records(spec, b)
+    n, grid, rigs = len(records), spec.grid.grid(), _rigs()
+
+    def run(key):
+        del prepared[:]
+        jackknife_records(records, grid, LIDAR, rigs, ("seg",), "none", b, pool_key=key)
+        return len(prepared) - 1                          # the point's grid: no reference, built each time
+
+    for key in ("a", "b", "c"):
+        assert run(key) == n
+        assert len(HANDLES) <= KEEP_LEFT_OUT
+    assert run("c") == 0 and run("b") == 0
+    assert run("a") == n                                  # the oldest went first
+    HANDLES.keep(1)
+    assert len(HANDLES) == 1 and run("a") == 0 and run("b") == n
+    with pytest.raises(ValueError, match="n >= 0"):
+        HANDLES.keep(-1)
+
+
+@pytest.mark.parametrize("name", BACKENDS)
+def test_a_prepared_grid_is_a_copy_of_its_inputs(built, name):
+    """The jackknife prepares every left-out grid from one working array it patches in place: a handle
+    that aliased its inputs would change under the kept ones (the reference backend's once did)."""
+    b = get_backend(name)
+    ps = _spec(built).build(cache=str(built)).for_task("seg")
+    w, stop = ps.weights.copy(), ps.stop_mask.copy()
+    lidar, rig = LidarModel.load(LIDAR), Placement.load("center").poses[None]
+    local = rig.copy()
+    local[..., :3] = ps.grid.to_local(rig[..., :3])
+    h = b.prepare_grid(ps.grid.spec, w, stop)
+    want = b.score_placements(h, lidar.elevations, lidar.azimuths, lidar.max_range, local)
+    assert want[0][0] > 0
+    w[:] = 0
+    stop[:] = 1 - stop
+    got = b.score_placements(h, lidar.elevations, lidar.azimuths, lidar.max_range, local)
+    assert got[0].tobytes() == want[0].tobytes() and got[1].tobytes() == want[1].tobytes()
