@@ -65,6 +65,13 @@ class CLMesh:
         return f"<CLMesh {len(self.faces)} faces, BVH{self.width} of {tree.n_nodes} nodes, depth {tree.depth}>"
 
 
+def _bit_words(ctx, mask: np.ndarray) -> cl.Buffer:
+    """A read-only buffer of ``mask`` (n,) bool as bits: bit b of uint32 word q is element 32 q + b."""
+    b = np.packbits(mask, bitorder="little")
+    b = np.concatenate([b, np.zeros(-len(b) % 4 or (4 if len(b) == 0 else 0), np.uint8)]).view("<u4")
+    return cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(b))
+
+
 class CLGrid:
     """Handle of a prepared grid: fixed-point weights and the stop mask on the device."""
 
@@ -82,9 +89,9 @@ class CLGrid:
         if backend.score_strategy == "private":
             self.stop = backend._stop_buffer(stop, spec, keep=True)
             # score_reduce's nonzero-weight bits: bit b of word q for voxel 32 q + b (little-endian words)
-            nz = np.packbits(w != 0, bitorder="little")
-            nz = np.concatenate([nz, np.zeros(-len(nz) % 4 or (4 if len(nz) == 0 else 0), np.uint8)]).view("<u4")
-            self.nonzero = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(nz))
+            self.nonzero = _bit_words(ctx, w != 0)
+            # score_walk_lanes reads the stop mask as bits in the same layout
+            self.stop_bits = _bit_words(ctx, np.asarray(stop).reshape(-1) != 0) if self.use_stop else backend._dummy
         else:
             sm = None if stop is None else np.asarray(stop).reshape(-1) != 0
             if sm is not None and sm.shape != (spec.n_voxels,):
@@ -492,8 +499,10 @@ class OpenCLBackend(Backend, OpenCLConditions):
                 pn = min(chunk, P - p0)
                 cl.enqueue_fill_buffer(self.queue, bits, np.uint32(0), 0, pn * G * words * 4)
                 rig_b = self._in(rig[p0 * L:(p0 + pn) * L])
+                # the lane walk takes the stop mask as bits (walk_lanes.cl), score_walk as bytes
+                grid_args = (*ga[:4], handle.stop_bits, ga[5]) if walk == "score_walk_lanes" else ga
                 self._launch(walk, (G, pn), rig_b, sdir_b, np.int32(L), np.int32(CA), self.real(t_max),
-                             *ga, bits, np.int64(words), np.int32(G))
+                             *grid_args, bits, np.int64(words), np.int32(G))
                 self._launch("score_reduce", (n_chunks, pn), bits, np.int64(words), np.int32(G), np.int32(per),
                              np.int32(n_chunks), handle.weights, handle.nonzero, np.int64(spec.n_voxels), ps, pc)
                 sums[p0:p0 + pn] = self._read(ps, np.int64, pn * n_chunks).reshape(pn, -1).sum(1, dtype=np.int64)

@@ -10,11 +10,13 @@
  * two and the segment end by more than tol, so it is the unique minimum), and the voxels are marked in
  * score_walk's bitset, so score_reduce sums the same integers.
  *
- * On the dev VM (2-core AMD EPYC Zen 5, Debian PoCL 3.1, AVX-512), 22 paper rigs on the default town:
- * 94 -> 64 ms a call (1.46x, 7 alternating rounds; bench/bench_pocl_walk.py,
- * bench/results/pocl-walk-lanes-dev-2core-2026-11-24.json). SW = 8 was slower than 16;
- * so were spilling the lanes to private arrays for the marking, and 64-bit voxel indices: the host builds
- * it with FLAT32 (32-bit indices) and uses it for grids of fewer than 2^31 voxels, score_walk beyond.
+ * On the dev VM (2-core AMD EPYC Zen 5, Debian PoCL 3.1, AVX-512), 22 rigs a call on the default town,
+ * 5 alternating rounds (bench/bench_pocl_walk.py, bench/results/pocl-walk-lanes-dev-2core-2026-11-24.json):
+ * 98.8 -> 65.8 ms a call on a real CMA-ES run's generations (1.50x), 95.9 -> 62.4 ms on perturbed
+ * pyramid rigs (1.54x). Of that, the stop mask as bits (below) gave 1.17x (77.8 -> 66.6 ms, one run). SW = 8 was
+ * slower than 16; so were one ray per work-item written branch-free (2.4x slower: each step waits for the
+ * last), spilling the lanes to private arrays for the marking, and 64-bit voxel indices: the host builds
+ * this with FLAT32 (32-bit indices) and uses it for grids of fewer than 2^31 voxels, score_walk beyond.
  */
 #ifndef SW
 #define SW 16
@@ -65,9 +67,14 @@ ALWAYS_INLINE bool lane_next_ray(dda_t* st, long* next, long r1, __global const 
                       t1[J] = lane[J].t1; tol[J] = lane[J].tol; guard[J] = nx + ny + nz; live[J] = -1; }
 
 /* global size (G, P), as score_walk: work-item (g, p) walks the g-th share of candidate p's rays into
- * its own bitset. Vector comparisons give -1 (all bits) for true, so masks combine with & and |. */
+ * its own bitset. The stop mask comes as bits in the bitset's layout (bit b of word w: voxel 32 w + b):
+ * the byte mask is 4 MB on the default grid and a step along x lands on another cache line of it, where
+ * the bits are an eighth of that and share the marked word's index. Vector comparisons give -1 (all bits)
+ * for true, so masks combine with & and |. */
 __kernel void score_walk_lanes(__global const real* rig, __global const real* sdir, const int L, const int CA,
-                               const real t_max, GRID_ARGS, __global uint* bits, const long words, const int G)
+                               const real t_max, const real s, const int nx, const int ny, const int nz,
+                               __global const uint* stop_bits, const int use_stop, __global uint* bits,
+                               const long words, const int G)
 {
     int g = get_global_id(0);
     long p = get_global_id(1);
@@ -91,8 +98,9 @@ __kernel void score_walk_lanes(__global const real* rig, __global const real* sd
         for (int j = 0; j < SW; ++j) {
             if (live[j]) {
                 flat_t f = flat[j];
-                mine[f >> 5] |= 1u << (uint)(f & 31);
-                if (use_stop && stop[f]) done[j] = -1;
+                uint bit = 1u << (uint)(f & 31);
+                mine[f >> 5] |= bit;
+                if (use_stop && (stop_bits[f >> 5] & bit)) done[j] = -1;
             }
         }
         guard -= (live != 0) ? 1 : 0;
