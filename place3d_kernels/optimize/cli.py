@@ -345,8 +345,9 @@ def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
     from place3d_kernels.placement import Placement
 
     base_poses = {name: Placement.load(name).poses for name in baselines}
-    res.diagnostics = diagnose(psog, lidar, res.search_space, res.best_placement.poses, base_poses, delta=args.delta,
-                               occlusion=args.occlusion, task=args.task, backend=b)
+    with section("diagnostics"):
+        res.diagnostics = diagnose(psog, lidar, res.search_space, res.best_placement.poses, base_poses,
+                                   delta=args.delta, occlusion=args.occlusion, task=args.task, backend=b)
     res.diagnostics["normalisation"] = args.normalisation
     for line in format_diagnostics(res.diagnostics):
         print(line)

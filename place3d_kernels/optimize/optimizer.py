@@ -534,9 +534,11 @@ def _result(state, space, search, cons, strategy, delta, steps, lam, seed, resum
     P = np.asarray(state["P"])
     G = -F + lam * P
     kw = dict(delta=float(np.max(steps)), side_lengths=search.widths, delta_l2=search.covering_radius(delta))
-    cert = certificate(U, G, **kw)
-    feas = P == 0
-    cert["feasible"] = certificate(U[feas], G[feas], **kw)
+    with section("certificate"):
+        cert = certificate(U, G, **kw)
+        feas = P == 0
+        # over the feasible samples: when every sample is feasible, the same inputs and so the same dict
+        cert["feasible"] = dict(cert) if feas.all() else certificate(U[feas], G[feas], **kw)
     cert["penalty_weight"] = lam
     n = state["evaluations"]
     hits = state["hits"]

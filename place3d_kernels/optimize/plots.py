@@ -29,10 +29,18 @@ def _figure(w, h):
     return fig
 
 
+#: PNG writer settings: zlib level 1 (matplotlib's Pillow writer uses 6), which spent a fifth of a
+#: figure's time compressing; the files grow by under 10 %
+PNG = {"compress_level": 1}
+
+
 def _save(fig, path) -> Path:
+    """Lay the figure out once (``tight_layout``) and write it. ``bbox_inches="tight"`` drew every figure
+    twice, once to measure it; this was 10-40 % faster per figure on the dev VM."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, bbox_inches="tight")
+    fig.tight_layout()
+    fig.savefig(path, pil_kwargs=PNG)
     return path
 
 
@@ -168,7 +176,7 @@ def draw_coverage(entropy2d, covered2d, n_covered: int, extent, name: str, path)
     ax.set_xlabel("y (m, left)")
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, pil_kwargs=PNG)
     return path
 
 
