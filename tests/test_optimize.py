@@ -446,6 +446,32 @@ def test_certificate_by_hand():
     assert certificate(np.zeros((0, 2)), [], 0.1, [1, 1])["k_G"] is None
 
 
+
+def _all_pairs_slope(U, G):
+    """k_G by its definition: every pair i < j of distinct points, the slope in float64 (the sum of
+    squares over the contiguous last axis, as certificate's exact recheck takes it)."""
+    U, G = np.asarray(U, float), np.asarray(G, float)
+    i, j = np.triu_indices(len(U), 1)
+    d = np.sqrt(((U[i] - U[j]) ** 2).sum(-1))
+    keep = d > 0
+    return (float((np.abs(G[i] - G[j])[keep] / d[keep]).max()) if keep.any() else 0.0), int(keep.sum())
+
+
+def test_certificate_slope_is_the_all_pairs_maximum_bit_for_bit():
+    """k_G is screened with SciPy's pdist (another summation order) and then recomputed exactly near
+    the maximum: the value must be the all-pairs definition's to the bit, with lattice points (many equal
+    slopes), duplicates and up to 29 variables."""
+    rng = np.random.default_rng(5)
+    for t in range(150):
+        n, D = int(rng.integers(2, 160)), int(rng.integers(1, 30))
+        U = rng.integers(-5, 5, (n, D)) * rng.choice([0.05, 0.1, 1 / 3])
+        if t % 3 == 0:
+            U[: n // 2] = U[n // 2: 2 * (n // 2)]           # duplicated points: no slope
+        G = rng.normal(size=n) if t % 2 else rng.integers(0, 3, n) * 0.1
+        c = certificate(U, G, 0.1, np.ones(D))
+        k, pairs = _all_pairs_slope(U, G)
+        assert c["k_G"] == k and c["n_pairs"] == pairs, (t, n, D)
+
 def test_result_certificate_matches_samples_and_json(tmp_path):
     space = SearchSpace(1, variables=("x", "y"), fixed={"z": 2.4})
     f = sphere(np.array([0.2, -0.3]))

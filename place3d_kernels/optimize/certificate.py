@@ -23,26 +23,44 @@ import numpy as np
 __all__ = ["certificate"]
 
 
+def _pair_slopes(U: np.ndarray, G: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """|G_i - G_j| / ||U_i - U_j||_2 for index pairs (i, j), the sum of squares taken over the last axis of a
+    contiguous array: the arithmetic that defines k_G's value here, bit for bit."""
+    d = np.sqrt(((U[i] - U[j]) ** 2).sum(-1))
+    return np.abs(G[i] - G[j]) / d
+
+
+#: relative slack of the screening pass: ``pdist`` sums the squares in another order than NumPy, within
+#: 24 u relative for 24 variables (u = 2^-53), far inside this
+_SCREEN_SLACK = 1e-12
+
+
 def _max_slope(U: np.ndarray, G: np.ndarray) -> tuple[float, int]:
-    n, D = U.shape
-    chunk = max(1, 4_000_000 // max(1, n * max(D, 1)))  # rows per block: about 32 MB of differences
-    best, pairs = 0.0, 0
-    for a in range(0, n, chunk):
-        Ua, Ga = U[a:a + chunk], G[a:a + chunk]
-        # pairs (i, j) with j > i only
-        j0 = a + 1
-        if j0 >= n:
-            break
-        Ub, Gb = U[j0:], G[j0:]
-        d = np.sqrt(((Ua[:, None, :] - Ub[None, :, :]) ** 2).sum(-1))
-        dg = np.abs(Ga[:, None] - Gb[None, :])
-        ii = np.arange(a, a + len(Ua))[:, None]
-        jj = np.arange(j0, n)[None, :]
-        mask = (jj > ii) & (d > 0)
-        pairs += int(mask.sum())
-        if mask.any():
-            best = max(best, float(np.max(np.where(mask, dg / np.where(d > 0, d, 1.0), 0.0))))
-    return best, pairs
+    """(largest slope over the pairs of distinct points, number of such pairs).
+
+    Screened with SciPy's ``pdist`` (all n (n-1) / 2 distances in C, 10-20x faster than broadcasting the
+    differences in NumPy, which took 0.3-0.4 s of a warm optimise through ``place3d serve`` on the H100
+    host for 2,000 samples), then recomputed exactly (``_pair_slopes``) for every pair within
+    ``_SCREEN_SLACK`` of the screened maximum. The pair that attains the exact maximum is among those, so
+    the value is the exact one, whatever order ``pdist`` sums in.
+    """
+    from scipy.spatial.distance import pdist
+
+    n = len(U)
+    if n < 2:
+        return 0.0, 0
+    d = pdist(U)                                   # condensed: pairs (i, j), i < j, row by row
+    pos = d > 0                                    # d = 0 exactly when the points are equal
+    pairs = int(pos.sum())
+    if pairs == 0:
+        return 0.0, 0
+    k = np.flatnonzero(pos)
+    screened = pdist(G[:, None], "cityblock")[k] / d[k]
+    cand = k[screened >= screened.max() * (1.0 - _SCREEN_SLACK)]
+    row_start = np.arange(n) * n - np.arange(n) * (np.arange(n) + 1) // 2
+    i = np.searchsorted(row_start, cand, side="right") - 1
+    j = cand - row_start[i] + i + 1
+    return float(_pair_slopes(U, G, i, j).max()), pairs
 
 
 def certificate(points, values, delta, side_lengths, delta_l2: float | None = None,
