@@ -10,13 +10,11 @@
  * two and the segment end by more than tol, so it is the unique minimum), and the voxels are marked in
  * score_walk's bitset, so score_reduce sums the same integers.
  *
- * On the dev VM (2-core AMD EPYC Zen 5, Debian PoCL 3.1, AVX-512), 22 rigs a call on the default town,
- * 5 alternating rounds (bench/bench_pocl_walk.py, bench/results/pocl-walk-lanes-dev-2core-2026-11-24.json):
- * 98.8 -> 65.8 ms a call on a real CMA-ES run's generations (1.50x), 95.9 -> 62.4 ms on perturbed
- * pyramid rigs (1.54x). Of that, the stop mask as bits (below) gave 1.17x (77.8 -> 66.6 ms, one run). SW = 8 was
- * slower than 16; so were one ray per work-item written branch-free (2.4x slower: each step waits for the
- * last), spilling the lanes to private arrays for the marking, and 64-bit voxel indices: the host builds
- * this with FLAT32 (32-bit indices) and uses it for grids of fewer than 2^31 voxels, score_walk beyond.
+ * Measured against score_walk on the dev VM's PoCL (figures: bench/README.md, "Figures behind backend code
+ * comments"): 1.5x on a CMA-ES run's generations, of which the stop mask as bits (below) gave 1.17x.
+ * Slower and not kept: 8 lanes, one ray per work-item written branch-free (each step then waits for the
+ * last), spilling the lanes to private arrays for the marking, 64-bit voxel indices. The host builds this
+ * file with FLAT32 (32-bit indices) and uses it for grids of fewer than 2^31 voxels, score_walk beyond.
  */
 #ifndef SW
 #define SW 16

@@ -1,12 +1,11 @@
 """Compiled CUDA kernels shipped with the package, so that a cold host does not wait for NVRTC.
 
 On a CUDA device Warp compiles a module the first time one of its kernels runs, and keeps the result in
-its kernel cache. On a host whose cache is empty (a fresh machine, container or CI runner) that was the
-largest part of a cold ``place3d optimize`` on the H100 host: 3.5 s for ``kernels.py`` and 1.0 s for the
-score kernel's module of its own (bench/results/aot-load-H100-2026-11-24.txt, three runs with empty
-Warp and driver caches: JIT 3.86-4.84 s for both; the shipped sm_90 CUBINs 0.13-0.14 s; PTX for
-compute_75, which the driver compiles for the device, 1.54-2.07 s). The results were the same bits in
-every mode (the digest of scores, counts, hit distances and faces of one computation).
+its kernel cache. On a host whose cache is empty (a fresh machine, container or CI runner) compiling
+``kernels.py`` and the score kernel's module of its own was the largest part of a cold ``place3d
+optimize``; loading the shipped CUBINs instead takes about a tenth of a second, and the PTX, which the driver
+compiles for the device, well under half the compile time, with the same result bits (figures:
+bench/README.md, "Figures behind backend code comments").
 
 What is shipped: for each of the two modules, CUBINs for the architectures in ``CUBIN_ARCHS`` and PTX
 for ``PTX_ARCH`` (which every later GPU can run through the driver's compiler), under
