@@ -72,7 +72,8 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
             except Exception as e:  # noqa: BLE001 - a broken or mismatching cache file is rebuilt, not fatal
                 log.warning("ignoring P-SOG cache %s: %s", path, e)
     if isinstance(scene, SceneRef):
-        scene = scene.build()    # known by its key only (PSOGSpec.build): the geometry is needed now
+        with section("P-SOG build: scene"):
+            scene = scene.build()    # known by its key only (PSOGSpec.build): the geometry is needed now
     if isinstance(backend, Future):
         # a backend still being probed on another thread (optimize starts it early): needed only now
         backend = backend.result()
@@ -80,13 +81,15 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
         frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress, body=body)
     if condition is not None:
         frames = [condition(f, i) for i, f in enumerate(frames)]
-    if aggregate is not None:
-        psog = aggregate(frames, backend)
-    else:
-        psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)
+    with section("P-SOG build: aggregate"):
+        if aggregate is not None:
+            psog = aggregate(frames, backend)
+        else:
+            psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)
     if path is not None:
-        psog.save(path)
-        write_manifest(manifest, inputs)
+        with section("P-SOG build: save"):
+            psog.save(path)
+            write_manifest(manifest, inputs)
     return psog
 
 
