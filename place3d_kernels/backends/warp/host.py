@@ -182,8 +182,9 @@ class WarpCore(Backend):
 
                 try:
                     self.aot = aot.load(self.device)
-                except (OSError, RuntimeError) as e:   # a damaged file or a driver too old for the CUBIN
-                    self.aot = f"failed, compiling instead: {e}"
+                except Exception as e:  # noqa: BLE001 - a damaged file, a driver too old for the CUBIN, a
+                    # Warp whose loader differs: none may cost the backend, which then compiles as before
+                    self.aot = f"failed, compiling instead: {type(e).__name__}: {e}"
 
     # ------------------------------------------------------------------ launches
     def _launch(self, kernel, n: int, inputs) -> None:
