@@ -1,0 +1,28 @@
+"""Warm-process drawing time of the three `place3d optimize` figures (4 rounds, then a profile of two),
+and a pure-Python loop as a yardstick of the host's single-thread speed:
+
+    python3 bench/plot_speed.py > bench/results/plot-speed-<machine>-<date>.txt
+"""
+import cProfile, io, pstats, time, sys
+import numpy as np
+from pathlib import Path
+from place3d_kernels.optimize import plots
+from place3d_kernels.placement import Placement
+t = time.perf_counter(); s = 0
+for i in range(3_000_000): s += i * i
+print(f"python loop 3M: {time.perf_counter() - t:.3f} s")
+t = time.perf_counter(); plots._warm_up(); print(f"warm-up: {time.perf_counter() - t:.3f} s")
+rng = np.random.default_rng(0)
+hist = [{"generation": g, "evaluations": 22 * (g + 1), "new": 22, "cache_hits": 0, "best": -0.03 - rng.random() * 0.003,
+         "mean": -0.034 + g * 1e-5, "best_G": 0.03, "best_so_far": -0.0315, "sigma": 0.1 * 0.99 ** g} for g in range(92)]
+best = Placement.load("pyramid")
+ent = rng.random((400, 400)); cov = rng.random((400, 400)) < 0.3
+out = Path("/tmp/plt"); out.mkdir(exist_ok=True)
+for rep in range(4):
+    a = time.perf_counter(); plots.plot_convergence(hist, out / "c.png"); b = time.perf_counter()
+    plots.plot_rig(best, out / "r.png", None, None); c = time.perf_counter()
+    plots.draw_coverage(ent, cov, 123456, (-40, 40, -40, 40), "x", out / "v.png"); d = time.perf_counter()
+    print(f"convergence {b - a:.3f} rig {c - b:.3f} coverage {d - c:.3f}")
+pr = cProfile.Profile(); pr.enable()
+plots.plot_rig(best, out / "r.png", None, None); plots.draw_coverage(ent, cov, 123456, (-40, 40, -40, 40), "x", out / "v.png")
+pr.disable(); st = io.StringIO(); pstats.Stats(pr, stream=st).sort_stats("tottime").print_stats(8); print(st.getvalue()[-2500:])
