@@ -488,6 +488,23 @@ def test_result_certificate_matches_samples_and_json(tmp_path):
     assert d["best_vector"] == [0.2, -0.3] and d["certificate"]["feasible"]["n_samples"] == 169
 
 
+
+def test_on_search_end_gets_what_the_result_holds_once():
+    """The hook runs once, before the certificate, with the result's history and best placement (the
+    command starts its figures there); with restarts once at the end; a non-callable is refused."""
+    space = SearchSpace(1, variables=("x", "y"), fixed={"z": 2.4})
+    f = sphere(np.array([0.2, -0.3]))
+    for restarts in (0, 2):
+        calls = []
+        res = optimize(f, space, max_evals=200, progress=False, restarts=restarts,
+                       on_search_end=lambda h, p: calls.append((h, p)))
+        assert len(calls) == 1
+        history, placement = calls[0]
+        assert history == res.history and placement.name == res.best_placement.name == "optimized"
+        np.testing.assert_array_equal(placement.poses, res.best_placement.poses)
+    with pytest.raises(ValueError, match="on_search_end must be callable"):
+        optimize(f, space, max_evals=10, progress=False, on_search_end="plots")
+
 def test_plots(tmp_path):
     from place3d_kernels.optimize import plot_convergence, plot_rig
 

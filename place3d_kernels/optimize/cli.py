@@ -218,10 +218,22 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     sigma0 = args.sigma0 if args.sigma0 is not None else (0.15 if x0 is not None else 0.3)
     if args.checkpoint is not None:
         write_manifest(Path(str(args.checkpoint) + ".manifest.json"), run_setup(args, spec))
+    out = Path(args.output) if args.output else None
+    plots = None
+
+    def search_ended(history, placement):
+        # the figures need only the search's history and best rig: they are drawn while the certificate,
+        # the diagnostics and the intervals are computed (the rig is named as the command names it below)
+        nonlocal plots
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            placement.name = f"optimized-{args.task}"
+            plots = start_plots(plotter, history, placement, space, psog, lidar, b, args.occlusion, out)
+
     try:
         res = optimize(objective, space, cons, sigma0=sigma0, popsize=args.popsize, max_evals=args.max_evals,
                        delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
-                       progress=not args.quiet, restarts=args.restarts, x0=x0)
+                       progress=not args.quiet, restarts=args.restarts, x0=x0, on_search_end=search_ended)
     finally:
         if executor is not None:
             executor.shutdown()
@@ -241,11 +253,6 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     print("best placement (x, y, z, roll):")
     for p in best.poses:
         print("  " + ", ".join(f"{v:+.2f}" for v in p[:4]))
-    plots = None
-    if args.output:
-        out = Path(args.output)
-        out.mkdir(parents=True, exist_ok=True)
-        plots = start_plots(plotter, res, best, space, psog, lidar, b, args.occlusion, out)
     report_trust(args, spec, res, psog, lidar, b, baselines)
     cert = res.certificate
     if args.output:
@@ -368,7 +375,7 @@ def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
         print(line)
 
 
-def start_plots(plotter, res, best, space, psog, lidar, backend, occlusion, out: Path):
+def start_plots(plotter, history, best, space, psog, lidar, backend, occlusion, out: Path):
     """Hand convergence.png, rig.png and coverage.png to ``plotter`` (a ``PlotWorker``); returns the Future.
 
     The rig's covered voxels (a backend call) and the coverage view's two top-view arrays are computed
@@ -379,7 +386,7 @@ def start_plots(plotter, res, best, space, psog, lidar, backend, occlusion, out:
     with section("plotting: covered voxels"):
         covered = covered_voxels(psog, lidar, best.poses, occlusion=occlusion, backend=backend)
         view = coverage_view(psog, covered) + (best.name or "the rig",)
-    return plotter.submit(res.history, best, space, view, out)
+    return plotter.submit(history, best, space, view, out)
 
 
 def coverage_view(psog, covered) -> tuple:

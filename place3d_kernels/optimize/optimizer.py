@@ -157,7 +157,7 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
              delta=DEFAULT_DELTA, seed: int = 0, penalty_weight: float = DEFAULT_PENALTY_WEIGHT,
              checkpoint=None, resume: bool = False, progress: bool = True, callback: _Fn | None = None,
              x0=None, max_stall_generations: int = 30, cma_options: dict | None = None,
-             restarts: int = 0) -> OptimizeResult:
+             restarts: int = 0, on_search_end: _Fn | None = None) -> OptimizeResult:
     """Maximise ``objective`` over placements on the delta grid of ``space`` (paper, Algorithm 1).
 
     Minimises ``G = -F + penalty_weight * P`` with CMA-ES (pycma ask/tell), F the objective and P the
@@ -205,6 +205,10 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
             and ``seconds`` summed, the histories concatenated (each entry has ``run``), and
             ``extra["runs"]`` one summary per run. A callback returning True stops all runs. Not
             combinable with ``checkpoint``.
+        on_search_end: ``on_search_end(history, best_placement)`` once the search has ended and before
+            the certificate is estimated, with what the result will hold (``history``, and
+            ``best_placement`` named ``"optimized"``), so that work on them (the command's figures) can
+            start meanwhile. With ``restarts``, once at the end.
 
     Returns:
         OptimizeResult.
@@ -215,13 +219,18 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
     _check_basics(objective, space, method)
     max_evals = _check_int("max_evals (the evaluation budget)", max_evals, 1)
     restarts = _check_int("restarts", restarts, 0)
+    if on_search_end is not None and not callable(on_search_end):
+        raise ValueError(f"on_search_end must be callable, got {on_search_end!r}")
     if restarts:
         if checkpoint is not None:
             raise ValueError("restarts cannot be combined with checkpoint; checkpoint each run on its own")
-        return _multistart(objective, space, constraints, restarts, callback,
-                           dict(method=method, sigma0=sigma0, popsize=popsize, max_evals=max_evals, delta=delta,
-                                seed=seed, penalty_weight=penalty_weight, progress=progress, x0=x0,
-                                max_stall_generations=max_stall_generations, cma_options=cma_options))
+        res = _multistart(objective, space, constraints, restarts, callback,
+                          dict(method=method, sigma0=sigma0, popsize=popsize, max_evals=max_evals, delta=delta,
+                               seed=seed, penalty_weight=penalty_weight, progress=progress, x0=x0,
+                               max_stall_generations=max_stall_generations, cma_options=cma_options))
+        if on_search_end is not None:
+            on_search_end(res.history, res.best_placement)
+        return res
     seed, popsize, max_stall_generations, sigma0, penalty_weight = _check_run(
         seed, popsize, max_stall_generations, sigma0, penalty_weight, resume, checkpoint, callback)
 
@@ -233,6 +242,9 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
     _run_generations(grid, state, objective, max_evals, max_stall_generations, checkpoint, progress, callback)
     if checkpoint is not None:
         save_checkpoint(checkpoint, state)
+    if on_search_end is not None and state["best"] is not None:
+        # what _result will hold, before its certificate (all pairs of evaluated points) is estimated
+        on_search_end([dict(h) for h in state["history"]], space.to_placement(state["best"]["X"], name="optimized"))
     res = _result(state, space, grid.search, grid.cons, state["strategy"], delta, grid.steps, penalty_weight, seed,
                   resumed, checkpoint)
     res.left_start = _left_start(grid, res.best_vector, k0)
