@@ -195,6 +195,8 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
         both = np.isfinite(hits.t) & (plain_t >= 0)
         out["hits_agree_1e-4m"] = float(np.mean(np.abs(hits.t[both] - plain_t[both]) <= 1e-4)) if both.any() else None
         out["hit_mismatch"] = int(np.sum(np.isfinite(hits.t) != (plain_t >= 0)))
+    if getattr(b, "resident_kernels", False):
+        _kernel_only(out, b, mesh, o, d, t_max, backend)
     if "paired_api_over_plain" in out:
         r = out["paired_api_over_plain"]
         print(f"(b) paired rounds: API / plain {r['median']:.2f} [{r['min']:.2f}-{r['max']:.2f}]", flush=True)
@@ -206,6 +208,51 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
 
 
 # ----------------------------------------------------------------------------- (c) dense rig
+def _kernel_only(out: dict, b, mesh, o, d, t_max: float, backend: str) -> None:
+    """This backend's ray-mesh kernel alone (``resident_raycast``: rays already on the device, float64 hit
+    distances, watertight BVH) against the plain Warp ``mesh_query_ray`` kernel on the same GPU, same
+    rays (float32) and same city with a SAH BVH, launched back to back in ``PAIRED`` rounds, each launch
+    synchronised: per-round ratio, median and range (issue 17 goal 2: the kernel at or above the plain one)."""
+    import warp as wp
+
+    dev = backend[5:] if backend.startswith("warp:") else "cuda:0"
+    wp_, plain = _plain_warp(dev)
+    run = b.resident_raycast(mesh.handle(b), o - mesh.shift, d, t_max)
+    v32 = np.ascontiguousarray(mesh.vertices - mesh.shift, dtype=np.float32)
+    wmesh = wp.Mesh(points=wp.array(v32, dtype=wp.vec3, device=dev),
+                    indices=wp.array(np.ascontiguousarray(mesh.faces, dtype=np.int32).reshape(-1), dtype=wp.int32,
+                                     device=dev), bvh_constructor="sah")
+    oa = wp.array(np.ascontiguousarray(o - mesh.shift, dtype=np.float32), dtype=wp.vec3, device=dev)
+    da = wp.array(np.ascontiguousarray(d, dtype=np.float32), dtype=wp.vec3, device=dev)
+    ta = wp.empty(len(o), dtype=float, device=dev)
+
+    def ours():
+        run()
+        b.synchronize()
+
+    def theirs():
+        wp.launch(plain, dim=len(o), inputs=[wmesh.id, oa, da, t_max, ta], device=dev)
+        wp.synchronize_device(dev)
+
+    ours(), theirs()                              # compile and warm both
+    mine, plain_w = [], []
+    for _ in range(PAIRED):
+        for fn, acc in ((ours, mine), (theirs, plain_w)):
+            t = time.perf_counter()
+            fn()
+            acc.append(time.perf_counter() - t)
+    n = len(o)
+    out["kernel_only_paired_rounds"] = PAIRED
+    out["kernel_only_s"], out["kernel_only_plain_s"] = stats(mine), stats(plain_w)
+    out["kernel_only_mrays_s"] = n / out["kernel_only_s"]["median"] / 1e6
+    out["kernel_only_plain_mrays_s"] = n / out["kernel_only_plain_s"]["median"] / 1e6
+    out["kernel_only_over_plain"] = stats([a / p for a, p in zip(mine, plain_w)])
+    r = out["kernel_only_over_plain"]
+    print(f"(b) kernel only, {PAIRED} paired rounds: {out['kernel_only_mrays_s']:.0f} M rays/s against plain Warp "
+          f"{out['kernel_only_plain_mrays_s']:.0f}; time ratio {r['median']:.2f} [{r['min']:.2f}-{r['max']:.2f}]",
+          flush=True)
+
+
 def dense_rig(backend: str, voxel: float, pop: int, timeout: int) -> dict:
     runs = []
     for _ in range(REPEATS):
