@@ -46,7 +46,7 @@ def modules() -> list:
     on first use as before."""
     from place3d_kernels.backends.warp import kernels
 
-    return [kernels.raycast_kernel.module, kernels.score_kernel_gpu.module]
+    return [kernels.raycast_query_kernel.module, kernels.score_kernel_gpu.module]
 
 
 def binary_for(identifier: str, arch: int, where: Path | None = None) -> tuple[int, bool] | None:

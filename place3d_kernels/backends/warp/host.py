@@ -294,9 +294,22 @@ class WarpCore(Backend):
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
         o, d, tm = self._rays_in(origins), self._rays_in(directions), self._t_in(mesh, t_max, n)
         s = wp.vec3d(*(np.zeros(3) if shift is None else np.asarray(shift, dtype=np.float64).reshape(3)).tolist())
-        self._launch(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], s, d[a:b],
-                                                            tm[a:b], out_t[a:b], out_f[a:b]])
+        self._raycast_passes(mesh, o, s, d, tm, out_t, out_f)()
         return out_t.numpy(), out_f.numpy()
+
+    def _raycast_passes(self, mesh, o, s, d, tm, out_t, out_f):
+        """The two passes of the ray-mesh query (kernels.py: the BVH walk, then the exact distance) on
+        device arrays, as one zero-argument launch."""
+        walk = self._prepare(self.k.raycast_query_kernel, len(out_t), lambda a, b: [
+            mesh.mesh.id, o[a:b], s, d[a:b], tm[a:b], out_t[a:b], out_f[a:b]])
+        exact = self._prepare(self.k.raycast_exact_kernel, len(out_t), lambda a, b: [
+            mesh.corners64, o[a:b], s, d[a:b], tm[a:b], out_t[a:b], out_f[a:b]])
+
+        def run() -> None:
+            walk()
+            exact()
+
+        return run
 
     raycast_checks_rays = True
 
@@ -316,9 +329,14 @@ class WarpCore(Backend):
                                                         (16 * n, wp.int32, n), (20 * n, wp.int32, self.k.N_FLAGS)))
         flags.zero_()
         s = wp.vec3d(*np.asarray(shift, dtype=np.float64).reshape(3).tolist())
-        self._launch(self.k.RAYCAST_CHECKED[vec], n, lambda a, b: [
-            mesh.mesh.id, mesh.corners64, mesh.face_ids, mesh.face_labels, o[a:b] if o_step else o, o_step, s,
-            d[a:b], tm[a:b] if t_step else tm, t_step, out_t[a:b], out_f[a:b], out_l[a:b], flags])
+        walk, exact = self.k.RAYCAST_CHECKED[vec]
+
+        def rays(a, b):
+            return [o[a:b] if o_step else o, o_step, s, d[a:b], tm[a:b] if t_step else tm, t_step]
+
+        self._launch(walk, n, lambda a, b: [mesh.mesh.id, *rays(a, b), out_t[a:b], out_f[a:b], out_l[a:b], flags])
+        self._launch(exact, n, lambda a, b: [mesh.corners64, mesh.face_ids, mesh.face_labels, *rays(a, b),
+                                             out_t[a:b], out_f[a:b], out_l[a:b]])
         host = self._to_host(buf, 20 * n + 4 * self.k.N_FLAGS)
         if host[20 * n:].view(np.int32).any():
             return None
@@ -370,9 +388,7 @@ class WarpCore(Backend):
         o, d, tm = self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n)
         out_t = wp.empty(n, dtype=wp.float64, device=self.device)
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
-        zero = wp.vec3d(0.0, 0.0, 0.0)
-        return self._prepare(self.k.raycast_kernel, n, lambda a, b: [mesh.mesh.id, mesh.corners64, o[a:b], zero,
-                                                                    d[a:b], tm[a:b], out_t[a:b], out_f[a:b]])
+        return self._raycast_passes(mesh, o, wp.vec3d(0.0, 0.0, 0.0), d, tm, out_t, out_f)
 
     def resident_traverse(self, grid, origins, directions, t_end, stop=None):
         """For benchmarks: launch the traversal count kernel on resident rays (see ``resident_raycast``)."""

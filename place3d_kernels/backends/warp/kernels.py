@@ -97,43 +97,73 @@ def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fa
     return t
 
 
+# The ray-mesh query runs in two passes. The first walks Warp's BVH in float32 and keeps the query's t
+# and face; the second computes the winning face's distance in float64. In one kernel the float64 part
+# (three float64 corners gathered, Woop-Benthin-Wald in float64) made the whole walk slower: 1.37-1.39x
+# a plain mesh_query_ray kernel's time on the H100 against 1.20-1.23x as two passes, with the same bits
+# (figures: bench/README.md, "Figures behind backend code comments").
 @wp.func
-def closest_hit(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), o64: wp.vec3d, d64: wp.vec3d,
-                tm: wp.float64):
-    # Warp's ordered BVH query and watertight triangle test, on a mesh whose BVH boxes were built
-    # padded (see WarpCore.upload_mesh), so no box culls a triangle the ray touches. The winning face's
-    # distance is recomputed in float64 from float64 inputs with the reference's formula (woop_t):
-    # grazing rays otherwise inherit the float32 rounding of corners and origins (0.3 mm at 13 m was seen).
-    # Returns (t, uploaded face) or (MISS_T, -1).
+def query_hit(mesh: wp.uint64, o64: wp.vec3d, d64: wp.vec3d, tm: wp.float64):
+    # Warp's ordered BVH query and watertight triangle test, on a mesh whose BVH boxes were built padded
+    # (see WarpCore.upload_mesh), so no box culls a triangle the ray touches. Returns the query's
+    # (t, uploaded face), or (MISS_T, -1).
     o = wp.vec3(wp.float32(o64[0]), wp.float32(o64[1]), wp.float32(o64[2]))
     d = wp.vec3(wp.float32(d64[0]), wp.float32(d64[1]), wp.float32(d64[2]))
     q = wp.mesh_query_ray(mesh, o, d, wp.float32(tm * wp.float64(1.000001) + wp.float64(1.0e-6)))
+    t = MISS_T
+    f = wp.int32(-1)
+    if q.result:
+        t = wp.float64(q.t)
+        f = q.face
+    return t, f
+
+
+@wp.func
+def exact_hit(corners64: wp.array(dtype=wp.vec3d), o64: wp.vec3d, d64: wp.vec3d, tm: wp.float64,
+              t_query: wp.float64, f: wp.int32):
+    # The second pass: the winning face's distance recomputed in float64 from float64 inputs with the
+    # reference's formula (woop_t; grazing rays otherwise inherit the float32 rounding of corners and
+    # origins: 0.3 mm at 13 m was seen). Returns (t, uploaded face) or (MISS_T, -1).
     t_out = MISS_T
     f_out = wp.int32(-1)
-    if q.result:
-        t64 = woop_t(corners64[3 * q.face], corners64[3 * q.face + 1], corners64[3 * q.face + 2], o64, d64,
-                     wp.float64(q.t))
+    if f >= 0:
+        t64 = woop_t(corners64[3 * f], corners64[3 * f + 1], corners64[3 * f + 2], o64, d64, t_query)
         t64 = wp.max(t64, wp.float64(0.0))
         if t64 <= tm:
             t_out = t64
-            f_out = q.face
+            f_out = f
     return t_out, f_out
 
 
 @wp.kernel
-def raycast_kernel(
+def raycast_query_kernel(
     mesh: wp.uint64,
-    corners64: wp.array(dtype=wp.vec3d),    # (3F,) true triangle corners, float64
     origins: wp.array(dtype=wp.vec3d),
     shift: wp.vec3d,                        # subtracted from origins in float64 (zero: already shifted)
     dirs: wp.array(dtype=wp.vec3d),
     t_max: wp.array(dtype=wp.float64),
-    out_t: wp.array(dtype=wp.float64),
+    out_t: wp.array(dtype=wp.float64),      # the query's t, then raycast_exact_kernel's
     out_face: wp.array(dtype=wp.int32),
 ):
     tid = wp.tid()
     # componentwise float64 subtraction: bit-identical to np.subtract(origins, shift) on the host
-    t, f = closest_hit(mesh, corners64, origins[tid] - shift, dirs[tid], t_max[tid])
+    t, f = query_hit(mesh, origins[tid] - shift, dirs[tid], t_max[tid])
+    out_t[tid] = t
+    out_face[tid] = f
+
+
+@wp.kernel
+def raycast_exact_kernel(
+    corners64: wp.array(dtype=wp.vec3d),    # (3F,) true triangle corners, float64
+    origins: wp.array(dtype=wp.vec3d),
+    shift: wp.vec3d,
+    dirs: wp.array(dtype=wp.vec3d),
+    t_max: wp.array(dtype=wp.float64),
+    out_t: wp.array(dtype=wp.float64),      # in: raycast_query_kernel's; out: the hit distance
+    out_face: wp.array(dtype=wp.int32),
+):
+    tid = wp.tid()
+    t, f = exact_hit(corners64, origins[tid] - shift, dirs[tid], t_max[tid], out_t[tid], out_face[tid])
     out_t[tid] = t
     out_face[tid] = f
 
@@ -161,30 +191,37 @@ def unit_like_host(d: wp.vec3d):
     return out, n
 
 
+@wp.func
+def checked_ray(origins: wp.array(dtype=Any), o_step: wp.int32, dirs: wp.array(dtype=Any),
+                t_max: wp.array(dtype=wp.float64), t_step: wp.int32, tid: wp.int32):
+    # ray tid as ops.raycast's host path takes it: (world origin, unit direction, its norm, t_max); float32
+    # inputs widen to float64 exactly. Both passes of the checked ray caster derive the ray here, so
+    # they see the same bits.
+    ow = wp.vec3d(origins[tid * o_step])
+    dw = wp.vec3d(dirs[tid])
+    d64, n = unit_like_host(dw)
+    return ow, dw, d64, n, t_max[tid * t_step]
+
+
 @wp.kernel
 def raycast_checked_kernel(
     mesh: wp.uint64,
-    corners64: wp.array(dtype=wp.vec3d),    # (3F,) true triangle corners, float64
-    face_ids: wp.array(dtype=wp.int64),     # (F,) caller's face id of each uploaded face
-    face_labels: wp.array(dtype=wp.int32),  # (F,) label of each uploaded face
     origins: wp.array(dtype=Any),           # world frame, vec3f or vec3d as the caller gave them
     o_step: wp.int32,                       # 1, or 0 for one origin shared by every ray
     shift: wp.vec3d,                        # mesh shift, subtracted in float64
     dirs: wp.array(dtype=Any),              # same dtype as origins; any length, not validated
     t_max: wp.array(dtype=wp.float64),
     t_step: wp.int32,                       # 1, or 0 for one bound shared by every ray
-    out_t: wp.array(dtype=wp.float64),
-    out_face: wp.array(dtype=wp.int64),
+    out_t: wp.array(dtype=wp.float64),      # the query's t, then raycast_checked_exact_kernel's
+    out_face: wp.array(dtype=wp.int64),     # the uploaded face, then the caller's face id
     out_label: wp.array(dtype=wp.int32),
     flags: wp.array(dtype=wp.int32),        # (N_FLAGS,) zeroed by the host
 ):
     # ops.raycast's checks on the device: a ray that fails one sets its flag (a plain store of 1; every
     # writer stores the same value, so no atomic is needed) and is not traced; the host then redoes the
-    # call on its own path, which raises today's error. float32 inputs widen to float64 exactly.
+    # call on its own path, which raises today's error. Then the first pass of the query (query_hit).
     tid = wp.tid()
-    ow = wp.vec3d(origins[tid * o_step])
-    dw = wp.vec3d(dirs[tid])
-    tm = t_max[tid * t_step]
+    ow, dw, d64, n, tm = checked_ray(origins, o_step, dirs, t_max, t_step, tid)
     out_t[tid] = MISS_T
     out_face[tid] = wp.int64(-1)
     out_label[tid] = -1
@@ -192,7 +229,6 @@ def raycast_checked_kernel(
     if not (wp.isfinite(ow[0]) and wp.isfinite(ow[1]) and wp.isfinite(ow[2])):
         flags[FLAG_ORIGIN] = 1
         ok = False
-    d64, n = unit_like_host(dw)
     finite_d = wp.isfinite(dw[0]) and wp.isfinite(dw[1]) and wp.isfinite(dw[2]) and wp.isfinite(n)
     if not finite_d or n == wp.float64(0.0):
         flags[FLAG_DIRECTION] = 1
@@ -202,16 +238,38 @@ def raycast_checked_kernel(
         ok = False
     if ok:
         # as ops.raycast's host path: float32 kernels need a finite bound
-        t, f = closest_hit(mesh, corners64, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)))
-        if f >= 0:
-            out_t[tid] = t
-            out_face[tid] = face_ids[f]
-            out_label[tid] = face_labels[f]
+        t, f = query_hit(mesh, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)))
+        out_t[tid] = t
+        out_face[tid] = wp.int64(f)
+
+
+@wp.kernel
+def raycast_checked_exact_kernel(
+    corners64: wp.array(dtype=wp.vec3d),    # (3F,) true triangle corners, float64
+    face_ids: wp.array(dtype=wp.int64),     # (F,) caller's face id of each uploaded face
+    face_labels: wp.array(dtype=wp.int32),  # (F,) label of each uploaded face
+    origins: wp.array(dtype=Any), o_step: wp.int32, shift: wp.vec3d, dirs: wp.array(dtype=Any),
+    t_max: wp.array(dtype=wp.float64), t_step: wp.int32,
+    out_t: wp.array(dtype=wp.float64), out_face: wp.array(dtype=wp.int64), out_label: wp.array(dtype=wp.int32),
+):
+    # the second pass (exact_hit) for the rays the first one traced to a face
+    tid = wp.tid()
+    f = wp.int32(out_face[tid])
+    if f >= 0:
+        ow, dw, d64, n, tm = checked_ray(origins, o_step, dirs, t_max, t_step, tid)
+        t, g = exact_hit(corners64, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)), out_t[tid], f)
+        out_t[tid] = t
+        if g >= 0:
+            out_face[tid] = face_ids[g]
+            out_label[tid] = face_labels[g]
+        else:
+            out_face[tid] = wp.int64(-1)
 
 
 #: the concrete kernels for float32 (vec3f) and float64 (vec3d) rays: launching these skips Warp's
 #: per-launch overload lookup from the argument values (tens of microseconds per CPU chunk)
-RAYCAST_CHECKED = {v: wp.overload(raycast_checked_kernel, {"origins": wp.array(dtype=v), "dirs": wp.array(dtype=v)})
+RAYCAST_CHECKED = {v: (wp.overload(raycast_checked_kernel, {"origins": wp.array(dtype=v), "dirs": wp.array(dtype=v)}),
+                       wp.overload(raycast_checked_exact_kernel, {"origins": wp.array(dtype=v), "dirs": wp.array(dtype=v)}))
                    for v in (wp.vec3f, wp.vec3d)}
 
 
