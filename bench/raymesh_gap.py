@@ -8,12 +8,12 @@ A in the same round). The steps from the plain kernel to the shipped one:
   A. plain: shared float32 vertices, SAH BVH, float32 rays, ``mesh_query_ray``, float32 t out;
   B. A's query on the backend's mesh (per-triangle vertices, BVH built over ulp-padded triangles);
   C. B reading float64 rays and t_max and writing float64 t and int32 faces, as the shipped kernel does;
-  D. the shipped ``raycast_kernel``: C plus the float64 distance of the winning face (three float64
-     corners gathered, Woop-Benthin-Wald in float64);
-  E. C followed by a second kernel that computes D's float64 distance (the same function and inputs): the
-     same results as D, with the traversal kernel kept free of the float64 work.
-B-A is the mesh, C-B the float64 inputs and outputs, D-C the exact distance. Only D is exact; the others
-exist to measure.
+  D. C plus the float64 distance of the winning face (three float64 corners gathered, Woop-Benthin-Wald
+     in float64) in the same kernel: the shipped form until 2026-11-25, kept here as a frozen copy;
+  E. the shipped two passes (``raycast_query_kernel``, then ``raycast_exact_kernel``): D's results bit
+     for bit, with the walk's kernel kept free of the float64 work (checked on every run).
+B-A is the mesh, C-B the float64 inputs and outputs, D-C and E-C the exact distance in one kernel and in
+a second. Only D and E are exact; the others exist to measure.
 """
 
 from __future__ import annotations
@@ -77,21 +77,15 @@ def main(argv=None) -> int:
     from place3d_kernels.backends.warp import kernels as K
 
     @wp.kernel(module="unique", module_options={"enable_backward": False, "fuse_fp": False})
-    def k_refine(corners64: wp.array(dtype=wp.vec3d), o64: wp.array(dtype=wp.vec3d), d64: wp.array(dtype=wp.vec3d),
-                 tm: wp.array(dtype=wp.float64), out_t: wp.array(dtype=wp.float64), out_f: wp.array(dtype=wp.int32)):
-        # the shipped closest_hit's float64 distance, as a second pass over C's output (query t, face)
+    def k_one_kernel(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), o64: wp.array(dtype=wp.vec3d),
+                     d64: wp.array(dtype=wp.vec3d), tm: wp.array(dtype=wp.float64), out_t: wp.array(dtype=wp.float64),
+                     out_f: wp.array(dtype=wp.int32)):
+        # the shipped kernel's form until 2026-11-25: the walk and the exact distance in one kernel
         i = wp.tid()
-        f = out_f[i]
-        if f >= 0:
-            t64 = K.woop_t(corners64[3 * f], corners64[3 * f + 1], corners64[3 * f + 2], o64[i], d64[i], out_t[i])
-            t64 = wp.max(t64, wp.float64(0.0))
-            if t64 <= tm[i]:
-                out_t[i] = t64
-            else:
-                out_t[i] = K.MISS_T
-                out_f[i] = -1
-        else:
-            out_t[i] = K.MISS_T
+        t, f = K.query_hit(mesh, o64[i], d64[i], tm[i])
+        t, f = K.exact_hit(corners64, o64[i], d64[i], tm[i], t, f)
+        out_t[i] = t
+        out_f[i] = f
 
     lidar = p3k.LidarModel.uniform(64, (-25, 15), 2048, max_range=200)
     o, d = p3k.lidar_rays(lidar, p3k.Placement.load("pyramid"), backend="reference")
@@ -115,9 +109,9 @@ def main(argv=None) -> int:
         "A_plain": lambda: wp.launch(k_f32, dim=n, inputs=[plain_mesh.id, o32, d32, t_max, t32], device=dev),
         "B_backend_mesh": lambda: wp.launch(k_f32, dim=n, inputs=[h.mesh.id, o32, d32, t_max, t32], device=dev),
         "C_float64_io": lambda: wp.launch(k_f64io, dim=n, inputs=[h.mesh.id, o64, d64, tm, t64, f32], device=dev),
-        "D_shipped": shipped,
-        "E_two_passes": lambda: (wp.launch(k_f64io, dim=n, inputs=[h.mesh.id, o64, d64, tm, t64, f32], device=dev),
-                                 wp.launch(k_refine, dim=n, inputs=[h.corners64, o64, d64, tm, t64, f32], device=dev)),
+        "D_one_kernel": lambda: wp.launch(k_one_kernel, dim=n, inputs=[h.mesh.id, h.corners64, o64, d64, tm, t64, f32],
+                                          device=dev),
+        "E_shipped": shipped,
     }
     for fn in steps.values():                         # compile and warm each
         fn()
@@ -130,14 +124,11 @@ def main(argv=None) -> int:
             fn()
             wp.synchronize_device(dev)
             walls[k].append(time.perf_counter() - t)
-    steps["E_two_passes"]()
-    shipped()
+    steps["D_one_kernel"]()
     wp.synchronize_device(dev)
-    e_t, e_f = t64.numpy().copy(), f32.numpy().copy()
-    d_t, d_f = wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.int32, device=dev)
-    wp.launch(K.raycast_kernel, dim=n, inputs=[h.mesh.id, h.corners64, o64, wp.vec3d(0.0, 0.0, 0.0), d64, tm, d_t, d_f],
-              device=dev)
-    same = bool(np.array_equal(e_t, d_t.numpy()) and np.array_equal(e_f, d_f.numpy()))
+    d_t, d_f = t64.numpy().copy(), f32.numpy().copy()
+    e_t, e_f = b.raycast(h, ol, d, t_max)           # the shipped two passes, through the backend
+    same = bool(np.array_equal(e_t, d_t) and np.array_equal(e_f, d_f))
     print(f"E gives D's distances and faces bit for bit: {same}", flush=True)
     res = {"info": machine_info(), "device": dev, "rays": n, "triangles": int(len(city.faces)),
            "rounds": args.rounds, "E_equals_D": same, "steps": {}}
