@@ -98,10 +98,10 @@ def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fa
 
 
 # The ray-mesh query runs in two passes. The first walks Warp's BVH in float32 and keeps the query's t
-# and face; the second computes the winning face's distance in float64. In one kernel the float64 part
-# (three float64 corners gathered, Woop-Benthin-Wald in float64) made the whole walk slower: 1.37-1.39x
-# a plain mesh_query_ray kernel's time on the H100 against 1.20-1.23x as two passes, with the same bits
-# (figures: bench/README.md, "Figures behind backend code comments").
+# and face; the second computes the winning face's distance in float64. As one kernel of this module the
+# query ran markedly slower on the H100 than these two passes, with the same bits; the same one-kernel
+# code built in a module of its own did not, and why was not found (figures: bench/README.md, "Figures
+# behind backend code comments").
 @wp.func
 def query_hit(mesh: wp.uint64, o64: wp.vec3d, d64: wp.vec3d, tm: wp.float64):
     # Warp's ordered BVH query and watertight triangle test, on a mesh whose BVH boxes were built padded
