@@ -29,7 +29,7 @@ from place3d_kernels.pooled import PooledPSOG
 from place3d_kernels.profiling import section
 
 __all__ = ["Bootstrap", "resample_multiplicities", "bootstrap_pooled", "bootstrap_drives",
-           "bootstrap_subsets", "within_noise", "plot_scores", "NOISE_LEVEL", "prepare_left_out"]
+           "bootstrap_subsets", "within_noise", "plot_scores", "NOISE_LEVEL"]
 
 #: An order of two placements counts as settled when it holds in at least this share of resamples.
 NOISE_LEVEL = 0.95
@@ -423,56 +423,6 @@ def _left_out_psogs(pooled: PooledPSOG, tasks):
             yield ps
 
 
-def _fused(normalisation: str, body, lidar, occlusion: str) -> bool:
-    """Whether the jackknife scores its left-out grids on msog_batch's fused path (prepared grids)."""
-    return (normalisation == "paper" and body is None and lidar.is_grid and lidar.min_range == 0
-            and occlusion in ("sog", "none"))
-
-
-def _prepared_left_out(pooled: PooledPSOG, task: str, occlusion: str, b):
-    """The backend handles of ``pooled``'s left-out grids for ``task``, in record order, each patched
-    (left_out.LeftOutGrids) and prepared when asked for."""
-    from place3d_kernels.left_out import LeftOutGrids
-
-    grids = LeftOutGrids(pooled, task)
-    for i in range(len(pooled)):
-        with section("jackknife: left-out grid"):
-            w, stop = grids.fields(i)
-        with section("jackknife: grid upload"):
-            h = b.prepare_grid(pooled.grid.spec, w, stop if occlusion == "sog" else None)
-        yield h
-
-
-def prepare_left_out(spec, lidar, task: str = "seg", occlusion: str = "sog", backend=None,
-                     normalisation: str = "paper") -> bool:
-    """Prepare the left-out grids that ``rig_vs_baselines_intervals(spec, ..., method="jackknife")`` will
-    score on in this process, and keep them (``left_out.HANDLES``): a command can call it on a thread
-    while its search runs, so that the jackknife afterwards only scores.
-
-    Prepares nothing and returns False when that jackknife would not keep its grids: it does not take the
-    fused path (``normalisation``, ``lidar``, ``occlusion`` as there), or the subset records are not a
-    cache file already on disk (they would be simulated here). Same grids, same handles, so the same
-    intervals bit for bit (tests/test_left_out_memo.py)."""
-    from place3d_kernels.backends.registry import get_backend
-    from place3d_kernels.left_out import HANDLES
-    from place3d_kernels.lidar import LidarModel
-    from place3d_kernels.subset_records import keyed_subset_records, subset_records_path
-
-    L = LidarModel.load(lidar) if isinstance(lidar, str) else lidar
-    path = subset_records_path(spec)[0]
-    if not _fused(normalisation, None, L, occlusion) or path is None or not path.exists():
-        return False
-    b = get_backend(backend)
-    records, pool_key = keyed_subset_records(spec, b)
-    if pool_key is None:
-        return False
-    pooled = PooledPSOG(spec.grid.grid(), records)
-    for _ in HANDLES.get(pool_key, pooled.grid, task, occlusion, b,
-                         lambda: _prepared_left_out(pooled, task, occlusion, b)):
-        pass
-    return True
-
-
 def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
                       backend=None, level: float = 0.95, point: dict | None = None, unit: str = "subsets",
                       progress: bool = False, normalisation: str = "paper", body=None, reference=None,
@@ -512,14 +462,23 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
         from tqdm import tqdm
 
         it = tqdm(it, desc="jackknife", unit="left-out", leave=False)
-    if _fused(normalisation, body, L, occlusion):
+    if normalisation == "paper" and body is None and L.is_grid and L.min_range == 0 and occlusion in ("sog", "none"):
         # msog_batch's fused path: each left-out grid patched from the full pool (left_out.py, 5x faster) and
         # prepared once; with a pool_key the prepared grids are kept for the next jackknife on these records
+        from place3d_kernels.left_out import LeftOutGrids
         from place3d_kernels.metrics import msog_on_handle
 
+        def prepare(t):
+            grids = LeftOutGrids(pooled, t)
+            for i in range(n):
+                with section("jackknife: left-out grid"):
+                    w, stop = grids.fields(i)
+                with section("jackknife: grid upload"):
+                    h = b.prepare_grid(pooled.grid.spec, w, stop if occlusion == "sog" else None)
+                yield h
+
         # an iterator per task: kept handles, or (not kept) each grid prepared just before its scoring
-        handles = {t: iter(HANDLES.get(pool_key, pooled.grid, t, occlusion, b,
-                                       lambda t=t: _prepared_left_out(pooled, t, occlusion, b)))
+        handles = {t: iter(HANDLES.get(pool_key, pooled.grid, t, occlusion, b, lambda t=t: prepare(t)))
                    for t in tasks}
         for i in it:
             for t in tasks:

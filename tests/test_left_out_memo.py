@@ -20,7 +20,7 @@ from place3d_kernels.placement import Placement
 from place3d_kernels.pooled import PooledPSOG
 from place3d_kernels.spec import PSOGSpec, RoiSpec, SceneSpec
 from place3d_kernels.subset_records import keyed_subset_records, records_aggregator, subset_records_path
-from place3d_kernels.uncertainty import jackknife_records, prepare_left_out, rig_vs_baselines_intervals
+from place3d_kernels.uncertainty import jackknife_records, rig_vs_baselines_intervals
 
 BACKENDS = ["warp:cpu", "opencl:pocl", "reference"]
 LIDAR = "place3d_16ch"
@@ -129,34 +129,6 @@ def test_warm_intervals_are_the_cold_ones(spec, prepared):
     HANDLES.clear()
     assert run() == cold
 
-
-@pytest.mark.parametrize("spec", ["warp:cpu", "opencl:pocl"], indirect=True)
-def test_grids_prepared_ahead_serve_the_intervals(spec, prepared):
-    """prepare_left_out (what ``place3d optimize`` runs on a thread during a CUDA search) prepares the
-    grids the intervals then score on: the intervals prepare nothing more and are the same bits as without
-    it; settings the fused path does not take, or records not yet on disk, prepare nothing."""
-    b = get_backend(spec.backend)
-    scene = spec.build(cache=spec.cache)
-    best = Placement.load("line-roll").poses
-    base = {n: Placement.load(n).poses for n in ("center", "pyramid")}
-
-    def run():
-        return rig_vs_baselines_intervals(spec, LIDAR, best, base, "seg", "sog", b, method="jackknife",
-                                          reference=scene)
-
-    plain = run()
-    HANDLES.clear()
-    del prepared[:]
-    assert prepare_left_out(spec, LIDAR, "seg", "sog", b)
-    assert len(prepared) == len(keyed_subset_records(spec, b)[0])      # one grid per left-out record
-    del prepared[:]
-    assert run() == plain
-    assert len(prepared) == 0
-    HANDLES.clear()
-    assert not prepare_left_out(spec, LIDAR, "seg", "sog", b, normalisation="evidence")
-    os.remove(subset_records_path(spec)[0])
-    assert not prepare_left_out(spec, LIDAR, "seg", "sog", b)
-    assert len(prepared) == 0
 
 @pytest.mark.parametrize("spec", ["warp:cpu", "opencl:pocl"], indirect=True)
 def test_a_changed_record_file_is_not_served(spec, prepared):

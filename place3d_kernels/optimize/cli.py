@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -221,7 +220,6 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
         write_manifest(Path(str(args.checkpoint) + ".manifest.json"), run_setup(args, spec))
     out = Path(args.output) if args.output else None
     plots = None
-    left_out = _prepare_left_out_meanwhile(args, spec, lidar, b, baselines)
 
     def search_ended(history, placement):
         # the figures need only the search's history and best rig: they are drawn while the certificate,
@@ -255,9 +253,6 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     print("best placement (x, y, z, roll):")
     for p in best.poses:
         print("  " + ", ".join(f"{v:+.2f}" for v in p[:4]))
-    if left_out is not None:
-        with section("jackknife: left-out grids (wait)"):
-            left_out.result()      # re-raises its error here
     report_trust(args, spec, res, psog, lidar, b, baselines)
     cert = res.certificate
     if args.output:
@@ -293,26 +288,6 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
             plots.result()             # re-raises a plotting error here
         print(f"wrote {out}/result.json, history.csv, optimized-{args.task}.toml, convergence.png, rig.png, coverage.png")
     return 0
-
-
-#: cores from which a CUDA command prepares the jackknife's left-out grids on a thread during the search
-LEFT_OUT_MEANWHILE_CORES = 4
-
-
-def _prepare_left_out_meanwhile(args, spec, lidar, b, baselines):
-    """A Future of ``uncertainty.prepare_left_out`` started on a thread, or None: on a CUDA Warp backend
-    with cores to spare, the left-out grids (patched on the host, uploaded) are ready when the search
-    ends, instead of being made after it. The search's own work is on the GPU and in pycma; elsewhere
-    (the CPU backends, whose scoring uses every core) the grids are made after the search as before."""
-    if (args.interval != "jackknife" or not baselines or args.no_cache or not b.name.startswith("warp:cuda")
-            or (os.cpu_count() or 1) < LEFT_OUT_MEANWHILE_CORES):
-        return None
-    from place3d_kernels.uncertainty import prepare_left_out
-
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="place3d-left-out")
-    f = pool.submit(prepare_left_out, spec, lidar, args.task, args.occlusion, b, args.normalisation)
-    pool.shutdown(wait=False)
-    return f
 
 
 def holdout_specs(args, spec) -> list:
