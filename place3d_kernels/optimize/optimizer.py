@@ -228,8 +228,8 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
                           dict(method=method, sigma0=sigma0, popsize=popsize, max_evals=max_evals, delta=delta,
                                seed=seed, penalty_weight=penalty_weight, progress=progress, x0=x0,
                                max_stall_generations=max_stall_generations, cma_options=cma_options))
-        if on_search_end is not None:
-            on_search_end(res.history, res.best_placement)
+        if on_search_end is not None:   # copies, as for a single run: the hook may rename or keep them
+            on_search_end([dict(h) for h in res.history], space.to_placement(res.best_vector, name="optimized"))
         return res
     seed, popsize, max_stall_generations, sigma0, penalty_weight = _check_run(
         seed, popsize, max_stall_generations, sigma0, penalty_weight, resume, checkpoint, callback)
