@@ -346,3 +346,30 @@ def test_a_late_watcher_does_not_interrupt_the_next_command(tmp_path, monkeypatc
     old.close()
     cur.close()
     srv.log.close()
+
+
+def test_settle_memory_freezes_survivors_and_frees_what_a_command_left():
+    """Between commands the server freezes what survives (its collections then skip it) and, first, frees
+    reference cycles an earlier command left behind, even ones frozen while still in use."""
+    import gc
+    import weakref
+
+    from place3d_kernels.serve import settle_memory
+
+    class Node:
+        pass
+
+    try:
+        a, b = Node(), Node()
+        a.other, b.other = b, a                  # a cycle: only the cyclic collector frees it
+        alive = weakref.ref(a)
+        settle_memory()                          # the cycle is in use now: frozen with the rest
+        assert gc.get_freeze_count() > 0
+        assert alive() is not None
+        del a, b                                 # the command that held it has ended
+        gc.collect()
+        assert alive() is not None               # frozen: an ordinary collection skips it
+        settle_memory()
+        assert alive() is None                   # unfrozen and collected before the next freeze
+    finally:
+        gc.unfreeze()
