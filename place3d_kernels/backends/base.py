@@ -25,6 +25,7 @@ Semantics (``reference`` is the executable specification):
 from __future__ import annotations
 
 import abc
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -281,6 +282,35 @@ def sensor_directions(elevations: np.ndarray, azimuths: np.ndarray) -> np.ndarra
     a = np.asarray(azimuths, dtype=np.float64)[None, :]
     d = np.stack(np.broadcast_arrays(np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)), -1)
     return d.reshape(-1, 3)
+
+
+class DirectionCache:
+    """The last few sensor-direction tables of a backend, uploaded: ``get(elevations, azimuths)`` returns
+    ``upload(sensor_directions(elevations, azimuths))``, computed once per (elevations, azimuths).
+
+    A search scores every generation with the same LiDAR model; building its (C*A, 3) table and copying it
+    to the device took a large share of a generation's host time on the H100 host (``bench/README.md``,
+    "A warm optimize's host time"). Keyed by the arrays' bytes, so a changed model is a new entry; the
+    oldest of ``size`` entries is dropped."""
+
+    def __init__(self, upload, size: int = 4):
+        self._upload = upload
+        self._size = int(size)
+        self._entries: dict = {}
+        self._lock = threading.Lock()        # scoring threads (the jackknife's) share a backend
+
+    def get(self, elevations, azimuths):
+        e = np.ascontiguousarray(elevations, dtype=np.float64).reshape(-1)
+        a = np.ascontiguousarray(azimuths, dtype=np.float64).reshape(-1)
+        key = (e.tobytes(), a.tobytes())
+        with self._lock:
+            hit = self._entries.pop(key, None)
+            if hit is None:
+                hit = self._upload(sensor_directions(e, a))
+            self._entries[key] = hit                      # most recent last
+            while len(self._entries) > self._size:
+                self._entries.pop(next(iter(self._entries)))
+        return hit
 
 
 def mesh_face_tables(n_faces: int, face_ids=None, labels=None) -> tuple[np.ndarray, np.ndarray]:

@@ -8,8 +8,8 @@ import threading
 import numpy as np
 import pyopencl as cl
 
-from place3d_kernels.backends.base import (Backend, BackendUnavailable, GridSpec, mesh_face_tables, rotation_matrices,
-                                           sensor_directions)
+from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, GridSpec, mesh_face_tables,
+                                           rotation_matrices, sensor_directions)
 from place3d_kernels.backends.bricks import brick_masks, brick_shape
 from place3d_kernels.backends.opencl import _runtime as rt
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, brute_force_raycast, build_bvh, collapse_bvh4
@@ -175,6 +175,7 @@ class OpenCLBackend(Backend, OpenCLConditions):
         #: counters of the last calls (``retraced_rays``: rays the ray caster handed back to the host)
         self.stats: dict[str, int] = {"retraced_rays": 0}
         self._dummy = cl.Buffer(self.ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=np.zeros(8, np.uint8))
+        self._directions = DirectionCache(self._direction_table)
 
     # ----------------------------------------------------------------- plumbing
     def _options(self) -> tuple[str, ...]:
@@ -291,10 +292,19 @@ class OpenCLBackend(Backend, OpenCLConditions):
 
     def _rig(self, poses: np.ndarray, elevations, azimuths) -> tuple[np.ndarray, np.ndarray]:
         """(P*L, 12) origin + row-major rotation, and (C*A, 3) sensor-frame directions, in `real`."""
+        local = sensor_directions(elevations, azimuths)
+        return self._rig_poses(poses), np.ascontiguousarray(local, dtype=self.real)
+
+    def _rig_poses(self, poses: np.ndarray) -> np.ndarray:
+        """(P*L, 12) origin + row-major rotation of (P*L, 6) poses, in `real`."""
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
         rig = np.concatenate([poses[:, :3], rotation_matrices(poses).reshape(-1, 9)], axis=1)
-        local = sensor_directions(elevations, azimuths)
-        return np.ascontiguousarray(rig, dtype=self.real), np.ascontiguousarray(local, dtype=self.real)
+        return np.ascontiguousarray(rig, dtype=self.real)
+
+    def _direction_table(self, sd: np.ndarray) -> tuple[np.ndarray, "cl.Buffer"]:
+        """DirectionCache's entry: the table in `real` and a buffer of its own (kept across calls)."""
+        local = np.ascontiguousarray(sd, dtype=self.real)
+        return local, self._in(local, keep=True)
 
     # ----------------------------------------------------------------- ray-mesh
     def upload_mesh(self, vertices, faces, face_ids=None, labels=None):
@@ -475,14 +485,14 @@ class OpenCLBackend(Backend, OpenCLConditions):
         P, L = poses.shape[:2]
         sums = np.zeros(P, dtype=np.int64)
         counts = np.zeros(P, dtype=np.int64)
-        rig, local = self._rig(poses.reshape(-1, 6), elevations, azimuths)
+        rig = self._rig_poses(poses.reshape(-1, 6))
+        local, sdir_b = self._directions.get(elevations, azimuths)      # host table and its kept buffer
         CA = len(local)
         n_rays = L * CA
         if P == 0 or n_rays == 0:
             return sums, counts
         spec = handle.spec
         words = (spec.n_voxels + 31) // 32
-        sdir_b = self._in(local)
         if self.score_strategy == "private":
             ga = self._grid_args(spec, handle.stop, handle.use_stop)
             # few threads: a private bitset per work-item, no atomics, then an OR-reduction per candidate

@@ -19,8 +19,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from place3d_kernels.backends.base import (Backend, BackendUnavailable, mesh_face_tables, rotation_matrices,
-                                           sensor_directions)
+from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, mesh_face_tables,
+                                           rotation_matrices, sensor_directions)
 from place3d_kernels.backends.bricks import brick_masks, brick_shape
 
 try:
@@ -166,6 +166,7 @@ class WarpCore(Backend):
 
         self.k = kernels
         self._empty_u8 = wp.zeros(1, dtype=wp.uint8, device=self.device)
+        self._directions = DirectionCache(lambda sd: (sd, self._vec3d(sd)))
         self.threads = 1 if self.device.is_cuda else cpu_threads()
         self._pool = None
         self._pool_lock = threading.Lock()
@@ -447,7 +448,7 @@ class WarpCore(Backend):
         poses = np.asarray(poses, dtype=np.float64)
         P, L = poses.shape[:2]
         flat = poses.reshape(-1, 6)
-        sd = sensor_directions(elevations, azimuths)
+        sd, sd_a = self._directions.get(elevations, azimuths)     # host and device tables
         spec = handle.spec
         nx, ny, nz = spec.shape
         bx, by, bz = brick_shape(spec.shape)
@@ -456,7 +457,7 @@ class WarpCore(Backend):
         sums = wp.zeros(P, dtype=wp.int64, device=self.device)
         counts = wp.zeros(P, dtype=wp.int64, device=self.device)
         rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=self.device)
-        sd_a, pos = self._vec3d(sd), self._vec3d(flat[:, :3])
+        pos = self._vec3d(flat[:, :3])
         rays = L * len(sd)     # per candidate
         if self.device.is_cuda:
             wp.launch(self.k.score_kernel_gpu, dim=P * rays, device=self.device,

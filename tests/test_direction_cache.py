@@ -1,0 +1,61 @@
+"""Backends keep the last few sensor-direction tables uploaded (``DirectionCache``): one table per LiDAR
+model, rebuilt when the model changes (even when the caller edits its arrays in place), and the scores of
+a search that reuses them equal the reference's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import place3d_kernels as p3k
+from place3d_kernels.backends.base import DirectionCache, GridSpec, sensor_directions
+
+
+def test_a_table_is_built_once_per_model_and_the_oldest_is_dropped():
+    built = []
+
+    def upload(sd):
+        built.append(sd)
+        return ("device", sd)
+
+    cache = DirectionCache(upload, size=2)
+    e, a = np.radians([-10.0, 0.0, 5.0]), np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    first = cache.get(e, a)
+    assert cache.get(e.copy(), a.copy()) is first           # equal values: the same entry
+    assert len(built) == 1
+    np.testing.assert_array_equal(first[1], sensor_directions(e, a))
+    e[1] = 0.25                                              # the caller edits its array in place
+    edited = cache.get(e, a)
+    assert len(built) == 2 and edited is not first
+    np.testing.assert_array_equal(edited[1], sensor_directions(e, a))
+    cache.get(e[:2], a)                                      # a third model: the oldest (first) goes
+    assert len(built) == 3
+    e[1] = 0.0
+    assert cache.get(e, a) is not first                      # rebuilt
+    assert len(built) == 4
+
+
+@pytest.mark.parametrize("name", [b for b in p3k.available_backends() if b != "reference"])
+def test_scores_with_a_reused_table_equal_the_reference(name):
+    """Two LiDAR models scored alternately on one backend (each call finds the other's table cached)."""
+    from place3d_kernels.backends.registry import get_backend
+
+    rng = np.random.default_rng(3)
+    spec = GridSpec(0.4, (40, 40, 10))
+    weights = (rng.integers(1, 2**32, spec.shape) * (rng.random(spec.shape) < 0.2)).astype(np.int64)
+    stop = (rng.random(spec.shape) < 0.02).astype(np.uint8)
+    models = [(np.radians(np.linspace(-15, 10, 8)), np.linspace(0, 2 * np.pi, 90, endpoint=False)),
+              (np.radians(np.linspace(-25, 5, 5)), np.linspace(0, 2 * np.pi, 64, endpoint=False))]
+    poses = np.zeros((3, 2, 6))
+    poses[..., :3] = rng.uniform(4, 12, (3, 2, 3)) * [1, 1, 0.25]     # grid-local, inside
+    poses[..., 3:] = rng.uniform(-0.3, 0.3, (3, 2, 3))
+    ref, b = get_backend("reference"), get_backend(name)
+    weights, stop = weights.reshape(-1), stop.reshape(-1)      # flat voxel order, as prepare_grid takes them
+    hr, hb = ref.prepare_grid(spec, weights, stop), b.prepare_grid(spec, weights, stop)
+    for _ in range(2):
+        for e, a in models:
+            want = ref.score_placements(hr, e, a, 12.0, poses)
+            assert np.all(np.asarray(want[0]) > 0) and np.all(np.asarray(want[1]) > 0)    # rays cover weights
+            got = b.score_placements(hb, e, a, 12.0, poses)
+            for w, g in zip(want, got):
+                np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
