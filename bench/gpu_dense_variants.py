@@ -59,6 +59,7 @@ from place3d_kernels.kernel_bench import machine_info
 # the kernels module beside this file (a script's own folder is on the path; an importing test's is not)
 if str(Path(__file__).resolve().parent) not in sys.path:
     sys.path.append(str(Path(__file__).resolve().parent))
+from gpu_dense_lean_kernels import make_eager_skip, make_lean, make_walk_only  # noqa: E402
 from gpu_dense_variants_kernels import make_persistent, make_tiled  # noqa: E402
 
 BLOCK_DIM = 128          # the shipped kernel's (SCORE_BLOCK_DIM); every variant launches with it
@@ -107,6 +108,7 @@ class Workload:
         self.sums = wp.zeros(self.P, dtype=wp.int64, device=device)
         self.counts = wp.zeros(self.P, dtype=wp.int64, device=device)
         self.counter = wp.zeros(1, dtype=wp.int32, device=device)
+        self.stats = wp.zeros(4, dtype=wp.int64, device=device)      # the lean kernels' counters (count builds)
 
     def check_tile(self, tile_c: int) -> None:
         if 32 % tile_c or self.n_el % tile_c or self.n_az % (32 // tile_c):
@@ -121,7 +123,7 @@ class Workload:
 
     def reset(self) -> None:
         """Zero the bitsets, sums, counts and the ray counter (outside the timed region)."""
-        self.bits.zero_(), self.sums.zero_(), self.counts.zero_(), self.counter.zero_()
+        self.bits.zero_(), self.sums.zero_(), self.counts.zero_(), self.counter.zero_(), self.stats.zero_()
 
     def launch(self, v: dict) -> None:
         """Launch variant ``v`` (a dict from ``variants``) on zeroed outputs and count the covered voxels
@@ -129,6 +131,12 @@ class Workload:
         io = self.inputs + [self.bits, self.sums]
         if v["kind"] == "shipped":
             wp.launch(self.backend.k.score_kernel_gpu, dim=self.n_rays, device=self.device, inputs=io,
+                      block_dim=BLOCK_DIM)
+        elif v["kind"] == "lean":
+            if self.words >= 2 ** 31:
+                raise ValueError(f"{self.words} bitset words per candidate: the lean kernels keep a brick's word "
+                                 f"in int32; use a coarser voxel (or fewer voxels) so that they fit")
+            wp.launch(v["kernel"], dim=self.n_rays, device=self.device, inputs=io + [self.stats],
                       block_dim=BLOCK_DIM)
         elif v["kind"] == "tiled":
             wp.launch(v["kernel"], dim=self.n_rays, device=self.device, inputs=io + [self.n_az],
@@ -174,10 +182,21 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     persist(1, 4, 80, batch=8)
     persist(1, 4, 80, batch=16)
     persist(1, 1, 80, batch=16, select=True)
+    # third round (gpu_dense_lean_kernels.py): lean address arithmetic, full bricks skipped, loads one
+    # step ahead, and the walk-only floor with today's step
+    for body, skip, ahead, caps in (("lean", False, False, (64, 72, 80)), ("eager", True, False, (72, 80)),
+                                    ("lean", True, False, (72, 80)), ("lean", False, True, (72, 80))):
+        for maxreg in caps:
+            name = ("lean" if body == "lean" else "") + ("-skip" if skip else "") + ("-ahead" if ahead else "")
+            out[f"{name.lstrip('-')}-r{maxreg}"] = {"kind": "lean", "body": body, "skip": skip, "ahead": ahead,
+                                                    "maxreg": maxreg}
+    out["walk-only"] = {"kind": "lean", "body": "walk", "skip": False, "ahead": False, "maxreg": 72,
+                        "diagnostic": "floor: today's step (walk32_next_sel) and stop read only, no bitset, no "
+                                      "weights; sums are step counts (wrong on purpose, not compared)"}
     return out
 
 
-PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "select", "eager", "maxreg")
+PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "select", "eager", "maxreg", "body", "skip", "ahead")
 
 
 def build(vs: dict) -> None:
@@ -188,12 +207,45 @@ def build(vs: dict) -> None:
             continue
         key = (v["kind"],) + tuple(v.get(k) for k in PARAMS)
         if key not in made:
-            if v["kind"] == "tiled":
+            if v["kind"] == "lean":
+                made[key] = make_lean_kind(v)
+            elif v["kind"] == "tiled":
                 made[key] = make_tiled(v["maxreg"], v["tile_c"], v["select"], v["eager"])
             else:
                 made[key] = make_persistent(v["maxreg"], v["mode"], v["tile_c"], v["chunk"], v["reload"], v["batch"],
                                             v["select"])
         v["kernel"] = made[key]
+
+
+def make_lean_kind(v: dict, count: bool = False):
+    """The kernel of a variant of kind ``lean`` (``count``: the build that fills ``Workload.stats``)."""
+    if v["body"] == "walk":
+        return make_walk_only(v["maxreg"], count)
+    if v["body"] == "eager":
+        return make_eager_skip(v["maxreg"], count)
+    return make_lean(v["maxreg"], v["skip"], v["ahead"], count)
+
+
+def skip_stats(wl: Workload, ref: tuple) -> dict:
+    """Counting builds of ``lean-r72``, ``skip-r72`` and ``lean-skip-r72`` (and ``walk-only``), one launch
+    each on zeroed outputs: loop iterations, jumps, and the fraction of the lean kernel's steps the skip
+    saves (on the CPU rays run in order; on the GPU the fraction depends on which rays run first). Sums
+    and counts of the exact ones are checked against ``ref``."""
+    vs = {k: v for k, v in variants(0, 1).items() if k in ("lean-r72", "skip-r72", "lean-skip-r72", "walk-only")}
+    out = {}
+    for name, v in vs.items():
+        wl.reset()
+        wl.launch(dict(v, kernel=make_lean_kind(v, count=True)))
+        got = wl.result()
+        if "diagnostic" not in v and not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
+            raise SystemExit(f"variant {name} (count build): sums/counts differ from the shipped kernel's")
+        st = [int(x) for x in wl.stats.numpy()]
+        out[name] = {"steps": st[0], "jumps": st[1], "jump_crossings": st[2], "full_brick_single_steps": st[3]}
+    for name in ("skip-r72", "lean-skip-r72"):
+        out[name]["steps_saved_vs_lean"] = 1.0 - out[name]["steps"] / out["lean-r72"]["steps"]
+    for name, r in out.items():
+        print(f"{name:16s} {r}", flush=True)
+    return out
 
 
 def register_report(vs: dict, arch: int = 90) -> dict:
@@ -248,6 +300,8 @@ def main() -> None:
     ap.add_argument("--max-range", type=float, default=100.0, help="as gpu_dense.py (default 100 m)")
     ap.add_argument("--cpu-threads", type=int, default=509, help="persistent launch size on the CPU")
     ap.add_argument("--only", default="", help="comma-separated variant names (shipped always runs)")
+    ap.add_argument("--skip-stats", action="store_true",
+                    help="also run counting builds of lean/skip once and report steps, jumps and steps saved")
     ap.add_argument("--registers", action="store_true",
                     help="no timing: registers and spills per variant from ptxas for sm_90 (no GPU needed)")
     ap.add_argument("--out", default=os.environ.get("OUT", str(Path(__file__).resolve().parent / "results")))
@@ -288,7 +342,7 @@ def main() -> None:
         wl.launch(v)
         got = wl.result()
         ref = ref or got
-        if not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
+        if "diagnostic" not in v and not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
             raise SystemExit(f"variant {name}: sums/counts differ from the shipped kernel's")
     compile_s = time.perf_counter() - t
     times = {k: [] for k in vs}
@@ -301,24 +355,27 @@ def main() -> None:
             wp.synchronize_device(dev)
             times[name].append(time.perf_counter() - t0)
             got = wl.result()
-            if not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
+            if "diagnostic" not in v and not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
                 raise SystemExit(f"variant {name}: sums/counts differ from the shipped kernel's on a repeat")
     P = wl.P
     out = {"info": machine_info(), "device": dev, "device_name": str(wp.get_device(dev).name), "sm_count": sm,
            "grid": grid.to_dict(), "lidar": f"uniform(64, (-25, 15), {args.azimuths}, max_range={args.max_range})",
            "rays_per_rig": wl.n_rays // P, "population": P, "repeat": args.repeat, "psog_build_s": psog_s,
            "warmup_and_compile_s": compile_s, "sums": ref[0].tolist(), "covered_voxels": ref[1].tolist(),
-           "all_identical_to_shipped": True, "variants": {}}
+           "all_identical_to_shipped": True,
+           "diagnostics_not_compared": sorted(k for k, v in vs.items() if "diagnostic" in v), "variants": {}}
     base = statistics.median(times["shipped"])
     for name, v in vs.items():
         ts = times[name]
         out["variants"][name] = {
-            **{k: v[k] for k in PARAMS + ("waves", "threads") if k in v},
+            **{k: v[k] for k in PARAMS + ("waves", "threads", "diagnostic") if k in v},
             "median_ms_per_rig": 1e3 * statistics.median(ts) / P, "min_ms_per_rig": 1e3 * min(ts) / P,
             "max_ms_per_rig": 1e3 * max(ts) / P, "speedup_vs_shipped": base / statistics.median(ts)}
         r = out["variants"][name]
         print(f"{name:34s} {r['median_ms_per_rig']:8.3f} ms/rig  [{r['min_ms_per_rig']:.3f}, "
               f"{r['max_ms_per_rig']:.3f}]  x{r['speedup_vs_shipped']:.3f}", flush=True)
+    if args.skip_stats:
+        out["skip_stats"] = skip_stats(wl, ref)
     res = Path(args.out)
     res.mkdir(parents=True, exist_ok=True)
     path = res / f"gpu-dense-variants-{args.voxel}m.json"
