@@ -77,6 +77,42 @@ def load_word(p: wp.uint64, i: wp.int32) -> wp.uint32:
     ...
 
 
+@wp.func_native("""
+return wp::atomic_or(reinterpret_cast<wp::uint32*>(p) + i, v);
+""")
+def atomic_or_word(p: wp.uint64, i: wp.int32, v: wp.uint32) -> wp.uint32:
+    """``atomic_or`` on the bitset word ``i`` after address ``p``; returns the old word (a result left unused
+    compiles to a reduction the GPU does not wait for, as Warp's own atomic_or)."""
+    ...
+
+
+@wp.func
+def flush_brick32(p: wp.uint64, word: wp.int32, pending: wp.uint32, nz_w: wp.uint32, bny: wp.int32,
+                  bnz: wp.int32, ny: wp.int32, nz: wp.int32, weights: wp.array(dtype=wp.int64)) -> wp.int64:
+    # flush_brick on the raw address with an int32 word: the brick's coordinates by 32-bit unsigned
+    # divisions (the int64 ones call a slow subroutine), the same bits, the same sums
+    add = wp.int64(0)
+    if pending != wp.uint32(0):
+        if (pending & nz_w) != wp.uint32(0):
+            old = atomic_or_word(p, word, pending)
+            m = pending & ~old & nz_w
+            uw = wp.uint32(word)
+            bk = wp.int32(uw % wp.uint32(bnz))
+            r = uw / wp.uint32(bnz)
+            bj = wp.int32(r % wp.uint32(bny))
+            bi = wp.int32(r / wp.uint32(bny))
+            while m != wp.uint32(0):
+                b = wp.bit_count((m & (~m + wp.uint32(1))) - wp.uint32(1))     # index of the lowest set bit
+                i = bi * 4 + (b & 3)
+                j = bj * 4 + ((b >> 2) & 3)
+                k = bk * 2 + (b >> 4)
+                add += weights[(wp.int64(i) * wp.int64(ny) + wp.int64(j)) * wp.int64(nz) + wp.int64(k)]
+                m = m & (m - wp.uint32(1))
+        else:
+            atomic_or_word(p, word, pending)
+    return add
+
+
 # ----------------------------------------------------------------------------- steps
 @wp.func
 def walk32_next_lean(w: Walk32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.float32, nx: wp.int32,
@@ -291,9 +327,11 @@ def make_eager_skip(maxreg=None, count=False):
     return eager_skip_kernel
 
 
-def make_lean(maxreg=None, skip=False, ahead=False, count=False):
+def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True):
     """``walk_ray_brick_eager`` with the lean address arithmetic (module docstring); ``skip``: full bricks
-    jumped; ``ahead``: the next voxel's loads issued one step early (not combined with ``skip``)."""
+    jumped; ``ahead``: the next voxel's loads issued one step early (not combined with ``skip``); ``inc``:
+    the brick word kept incrementally (``word_delta``), else recomputed from (i, j, k) in int32 each step
+    (``word32``: three shifts and two multiply-adds by kernel constants, no registers of its own)."""
     if skip and ahead:
         raise ValueError("make_lean: skip and ahead are not combined (the jump needs the entry word before "
                          "the step, which ahead loads after it); pick one")
@@ -315,9 +353,13 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False):
         w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
         base = wp.int64(cand) * words_per_candidate
         cbits = word_address(bits, base)
-        wsx = bny * bnz * w.si
-        wsy = bnz * w.sj
-        wsz = w.sk
+        wsx = wp.int32(0)
+        wsy = wp.int32(0)
+        wsz = wp.int32(0)
+        if wp.static(inc):
+            wsx = bny * bnz * w.si
+            wsy = bnz * w.sj
+            wsz = w.sk
         word = wp.where(w.alive != 0, word32(w, bny, bnz), 0)
         my_sum = wp.int64(0)
         cur = wp.int32(-1)
@@ -338,9 +380,11 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False):
                 break
             if wp.static(count):
                 steps += wp.int64(1)
+            if wp.static(not inc and not ahead):
+                word = word32(w, bny, bnz)
             change = word != cur
             if change and pending != wp.uint32(0):
-                my_sum += flush_brick(bits, base, wp.int64(cur), pending, nz_w, bny, bnz, ny, nz, weights)
+                my_sum += flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
             bit = wp.uint32(1) << wp.uint32((w.i & 3) | ((w.j & 3) << 2) | ((w.k & 1) << 4))
             wcur = word
             i0 = w.i
@@ -349,7 +393,10 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False):
             if wp.static(ahead):
                 # step first and issue the next voxel's loads; this voxel's masks came one step earlier
                 w = walk32_next_lean(w, o, d, s, sf, nx, ny, nz)
-                word = word + word_delta(i0, j0, k0, w, wsx, wsy, wsz)
+                if wp.static(inc):
+                    word = word + word_delta(i0, j0, k0, w, wsx, wsy, wsz)
+                else:
+                    word = word32(w, bny, bnz)
                 nxt = wp.where(w.alive != 0, word, wcur)
                 m_next = load_mask(masks64, nxt)
                 fresh_next = load_word(cbits, nxt)
@@ -371,11 +418,12 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False):
             elif wp.static(skip):
                 full = seen == FULL and stop_w == wp.uint32(0)
                 w = step_or_skip_lean(w, full, o, d, s, sf, nx, ny, nz)
-                if full:
-                    # a jump moves coordinates by more than one: the word from the new voxel
-                    word = word32(w, bny, bnz)
-                else:
-                    word = word + word_delta(i0, j0, k0, w, wsx, wsy, wsz)
+                if wp.static(inc):
+                    if full:
+                        # a jump moves coordinates by more than one: the word from the new voxel
+                        word = word32(w, bny, bnz)
+                    else:
+                        word = word + word_delta(i0, j0, k0, w, wsx, wsy, wsz)
                 if wp.static(count):
                     if full:
                         c = wp.abs(w.i - i0) + wp.abs(w.j - j0) + wp.abs(w.k - k0)
@@ -386,9 +434,10 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False):
                             refused += wp.int64(1)
             else:
                 w = walk32_next_lean(w, o, d, s, sf, nx, ny, nz)
-                word = word + word_delta(i0, j0, k0, w, wsx, wsy, wsz)
+                if wp.static(inc):
+                    word = word + word_delta(i0, j0, k0, w, wsx, wsy, wsz)
         if pending != wp.uint32(0):
-            my_sum += flush_brick(bits, base, wp.int64(cur), pending, nz_w, bny, bnz, ny, nz, weights)
+            my_sum += flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
         if my_sum > wp.int64(0):
             wp.atomic_add(sums, cand, my_sum)
         if wp.static(count):

@@ -182,12 +182,15 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     persist(1, 4, 80, batch=8)
     persist(1, 4, 80, batch=16)
     persist(1, 1, 80, batch=16, select=True)
-    # third round (gpu_dense_lean_kernels.py): lean address arithmetic, full bricks skipped, loads one
-    # step ahead, and the walk-only floor with today's step
-    for body, skip, ahead, caps in (("lean", False, False, (64, 72, 80)), ("eager", True, False, (72, 80)),
-                                    ("lean", True, False, (72, 80)), ("lean", False, True, (72, 80))):
+    # third round (gpu_dense_lean_kernels.py): lean address arithmetic (lean: the brick word kept
+    # incrementally; lean32: recomputed in int32), full bricks skipped, loads one step ahead, and the
+    # walk-only floor with today's step
+    for body, skip, ahead, caps in (("lean", False, False, (64, 72, 80)), ("lean32", False, False, (64, 72, 80)),
+                                    ("eager", True, False, (72, 80)), ("lean", True, False, (72, 80)),
+                                    ("lean32", True, False, (72, 80)), ("lean", False, True, (72, 80)),
+                                    ("lean32", False, True, (72, 80))):
         for maxreg in caps:
-            name = ("lean" if body == "lean" else "") + ("-skip" if skip else "") + ("-ahead" if ahead else "")
+            name = (body if body != "eager" else "") + ("-skip" if skip else "") + ("-ahead" if ahead else "")
             out[f"{name.lstrip('-')}-r{maxreg}"] = {"kind": "lean", "body": body, "skip": skip, "ahead": ahead,
                                                     "maxreg": maxreg}
     out["walk-only"] = {"kind": "lean", "body": "walk", "skip": False, "ahead": False, "maxreg": 72,
@@ -223,7 +226,7 @@ def make_lean_kind(v: dict, count: bool = False):
         return make_walk_only(v["maxreg"], count)
     if v["body"] == "eager":
         return make_eager_skip(v["maxreg"], count)
-    return make_lean(v["maxreg"], v["skip"], v["ahead"], count)
+    return make_lean(v["maxreg"], v["skip"], v["ahead"], count, inc=v["body"] == "lean")
 
 
 def skip_stats(wl: Workload, ref: tuple) -> dict:
@@ -231,7 +234,8 @@ def skip_stats(wl: Workload, ref: tuple) -> dict:
     each on zeroed outputs: loop iterations, jumps, and the fraction of the lean kernel's steps the skip
     saves (on the CPU rays run in order; on the GPU the fraction depends on which rays run first). Sums
     and counts of the exact ones are checked against ``ref``."""
-    vs = {k: v for k, v in variants(0, 1).items() if k in ("lean-r72", "skip-r72", "lean-skip-r72", "walk-only")}
+    vs = {k: v for k, v in variants(0, 1).items()
+          if k in ("lean-r72", "skip-r72", "lean-skip-r72", "lean32-skip-r72", "walk-only")}
     out = {}
     for name, v in vs.items():
         wl.reset()
@@ -241,7 +245,7 @@ def skip_stats(wl: Workload, ref: tuple) -> dict:
             raise SystemExit(f"variant {name} (count build): sums/counts differ from the shipped kernel's")
         st = [int(x) for x in wl.stats.numpy()]
         out[name] = {"steps": st[0], "jumps": st[1], "jump_crossings": st[2], "full_brick_single_steps": st[3]}
-    for name in ("skip-r72", "lean-skip-r72"):
+    for name in ("skip-r72", "lean-skip-r72", "lean32-skip-r72"):
         out[name]["steps_saved_vs_lean"] = 1.0 - out[name]["steps"] / out["lean-r72"]["steps"]
     for name, r in out.items():
         print(f"{name:16s} {r}", flush=True)
