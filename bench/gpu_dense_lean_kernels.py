@@ -62,27 +62,45 @@ def load_mask(arr: wp.array(dtype=wp.uint64), i: wp.int32) -> wp.uint64:
 
 
 @wp.func_native("""
-return (wp::uint64)(arr.data + base);
+wp::uint64 p = (wp::uint64)(arr.data + base);
+#if defined(__CUDA_ARCH__)
+asm("mov.b64 %0, %0;" : "+l"(p));
+#endif
+return p;
 """)
 def word_address(arr: wp.array(dtype=wp.uint32), base: wp.int64) -> wp.uint64:
-    """Address of ``arr[base]`` (a candidate's first bitset word), computed once per ray."""
+    """Address of ``arr[base]`` (a candidate's first bitset word), computed once per ray. On CUDA an empty
+    inline-asm move hides where it came from: otherwise nvcc, short of registers, recomputes
+    ``(cand * words_per_candidate + word) * 4 + data`` on every step (seven instructions in the SASS of
+    the study's kernels) instead of keeping the address."""
     ...
 
 
 @wp.func_native("""
-return reinterpret_cast<const unsigned int*>(p)[i];
+const unsigned int* q = reinterpret_cast<const unsigned int*>(p) + i;
+#if defined(__CUDA_ARCH__)
+__builtin_assume(__isGlobal(q));
+#endif
+return *q;
 """)
 def load_word(p: wp.uint64, i: wp.int32) -> wp.uint32:
-    """The bitset word ``i`` after address ``p`` (a plain load, as Warp's indexing emits)."""
+    """The bitset word ``i`` after address ``p``, a plain load as Warp's indexing emits. On CUDA the
+    address is declared global (it passed through ``word_address``'s asm, after which nvcc only knows a
+    generic address and would emit LD instead of LDG)."""
     ...
 
 
 @wp.func_native("""
-return wp::atomic_or(reinterpret_cast<wp::uint32*>(p) + i, v);
+wp::uint32* q = reinterpret_cast<wp::uint32*>(p) + i;
+#if defined(__CUDA_ARCH__)
+__builtin_assume(__isGlobal(q));
+#endif
+return wp::atomic_or(q, v);
 """)
 def atomic_or_word(p: wp.uint64, i: wp.int32, v: wp.uint32) -> wp.uint32:
-    """``atomic_or`` on the bitset word ``i`` after address ``p``; returns the old word (a result left unused
-    compiles to a reduction the GPU does not wait for, as Warp's own atomic_or)."""
+    """``atomic_or`` on the bitset word ``i`` after address ``p`` (declared global on CUDA, as in
+    ``load_word``); returns the old word (a result left unused compiles to a reduction the GPU does not
+    wait for, as Warp's own atomic_or)."""
     ...
 
 
