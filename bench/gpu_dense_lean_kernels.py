@@ -10,23 +10,30 @@ on every step and kept on entry, one ``atomic_or`` per brick left.
   (a coordinate crossing a brick boundary flips bit 2 of i or j, bit 1 of k, so one XOR per axis finds
   it, also when walk32_exact steps two or three axes at once), instead of three int64 multiplies per
   step; the loads use the raw address (one 32-bit multiply-add) instead of Warp's indexing (negative
-  index wrap, int32 stride multiply, 64-bit add); the walk's grid test is three unsigned compares.
+  index wrap, int32 stride multiply, 64-bit add); the walk's grid test is three unsigned compares; the
+  flush works on the raw address and finds the brick's coordinates with 32-bit divisions.
+* **lean32** (``make_lean(inc=False)``): lean with the word recomputed from (i, j, k) in int32 on every
+  step: three shifts and two multiply-adds by kernel constants, fewer instructions than the XOR form
+  and no registers for the word strides (nvcc's SASS for sm_90, counted by the study).
 * **skip** (``make_eager_skip``, and ``make_lean(skip=True)``): a brick whose bits are all set in this
   candidate's bitset (the word read on entry plus the ray's own bits) and that holds no stop bit cannot
   give the ray a new voxel or stop it, so the walk jumps to the voxel where it leaves the brick
-  (``walk32_skip_brick``).
+  (``walk32_skip_brick``). Bits only ever get set, so a brick seen full stays full.
 * **ahead** (``make_lean(ahead=True)``): lean, with the loads for the next voxel issued right after the
   step, before the current voxel's masks are used (software pipelining by one step), so a load's latency
-  overlaps the next iteration's work instead of stalling the stop test that follows it.
+  overlaps the next iteration's work instead of stalling the stop test that follows it. The bitset word
+  is then read before the previous brick's flush, an earlier snapshot of another word: a snapshot only
+  filters which bits a ray sends to its atomic_or, and the atomic decides who set a bit first, so the
+  sums do not change.
 * **walk-only** (``make_walk_only``): a floor diagnostic with today's step (``walk32_next_sel``) and
   today's stop read (``masks64[brick_word]``), no bitset, no weights; it adds each ray's step count to
   the sums (wrong on purpose; it keeps the walk from being optimised away).
 
 Every kernel has the shipped kernel's inputs followed by ``stats`` (int64, 4 slots). Built with
-``count=True``, a kernel adds there: [0] loop iterations (voxels visited, the last one included), [1] full-brick jumps that moved the
-ray past at least one voxel (two or more plane crossings at once), [2] the plane crossings those jumps
-took, [3] steps from a full brick with one crossing (a jump that was not certain and stepped instead, or
-a ray already on the brick's exit face). Without ``count`` the
+``count=True``, a kernel adds there: [0] loop iterations (voxels visited, the last one included),
+[1] full-brick jumps that moved the ray past at least one voxel (two or more plane crossings at once),
+[2] the plane crossings those jumps took, [3] steps from a full brick with one crossing (a jump that
+was not certain and stepped instead, or a ray already on the brick's exit face). Without ``count`` the
 slots are untouched (no atomics).
 
 Why a jump is exact: the reference walk visits voxels in the order of its float64 plane-crossing times
@@ -39,7 +46,9 @@ every comparison it makes is certain by ``tol`` as the walk's step test is: the 
 other axes' exit crossings and the segment end, and each interior crossing of the other axes against
 the exit crossing. Otherwise it takes one ordinary step. The crossing times after the jump are
 recomputed from the new plane indices with the same expression, so the walk's state is the one that
-stepping would have reached, bit for bit.
+stepping would have reached, bit for bit. Where the grid ends inside the brick (bricks cut by the grid's
+edge, or a ray leaving through a side), stepping ends the ray at the first voxel outside; the jump lands
+outside too (coordinates only move one way), so the ray ends with nothing marked either way.
 """
 
 from __future__ import annotations
@@ -466,9 +475,9 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True):
     return lean_kernel
 
 
-def make_walk_only(maxreg=None, count=False):
+def make_walk_only(maxreg=None, count=False, lean=False):
     """The floor diagnostic: today's step and stop read, nothing else; sums get step counts (wrong on
-    purpose, never compared)."""
+    purpose, never compared). ``lean``: lean32's step, word and mask load instead (its own floor)."""
 
     @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
     def walk_only_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
@@ -490,10 +499,17 @@ def make_walk_only(maxreg=None, count=False):
             if w.alive == 0:
                 break
             steps += wp.int64(1)
-            stop_w = wp.uint32(masks64[brick_word(w, bny, bnz)] & wp.uint64(0xFFFFFFFF))
-            if (stop_w & brick_bit(w)) != wp.uint32(0):
-                break
-            w = walk32_next_sel(w, o, d, s, sf, nx, ny, nz)
+            if wp.static(lean):
+                stop_w = wp.uint32(load_mask(masks64, word32(w, bny, bnz)) & wp.uint64(0xFFFFFFFF))
+                bit = wp.uint32(1) << wp.uint32((w.i & 3) | ((w.j & 3) << 2) | ((w.k & 1) << 4))
+                if (stop_w & bit) != wp.uint32(0):
+                    break
+                w = walk32_next_lean(w, o, d, s, sf, nx, ny, nz)
+            else:
+                stop_w = wp.uint32(masks64[brick_word(w, bny, bnz)] & wp.uint64(0xFFFFFFFF))
+                if (stop_w & brick_bit(w)) != wp.uint32(0):
+                    break
+                w = walk32_next_sel(w, o, d, s, sf, nx, ny, nz)
         if steps > wp.int64(0):
             wp.atomic_add(sums, cand, steps)      # keeps the walk live; wrong sums on purpose
         if wp.static(count):

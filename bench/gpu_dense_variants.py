@@ -22,16 +22,25 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
   their new rays together (a warp vote; Aila & Laine's dynamic fetch), instead of each stalling the warp
   for its own float64 set-up.
 
+* third round (``gpu_dense_lean_kernels.py``; every one at a register cap ``-rN``): ``lean`` (the eager
+  kernel with the brick word kept incrementally in int32, raw-address loads, an unsigned grid test, the
+  flush on the raw address), ``lean32`` (the same with the word recomputed in int32 each step), ``skip``
+  (the eager kernel jumping full bricks without stop bits), ``lean-skip`` / ``lean32-skip``, ``lean-ahead``
+  / ``lean32-ahead`` (the next voxel's loads issued right after the step), and ``walk-only``, a floor
+  diagnostic (today's step and stop read only; wrong sums on purpose: it is left out of the equality
+  checks and labelled in the JSON). ``--skip-stats`` adds counting builds' steps and jumps.
+
 Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU).
 
 Each variant's sums and counts (covered voxels, counted from the bitset with the shipped
 ``count_bits_kernel``, which is timed with every kernel; zeroing the outputs is not) must equal the shipped kernel's on every
-repeat; a mismatch stops the run. Timing: one warm-up launch each (compiles), then ``--repeat`` rounds,
+repeat (diagnostics excepted); a mismatch stops the run. Timing: one warm-up launch each (compiles), then ``--repeat`` rounds,
 each launching every variant once (interleaved, so clock and thermal drift fall on all alike); median and
 range of the launch time per rig. Writes ``<--out>/gpu-dense-variants-<voxel>m.json``.
 
     python3 bench/gpu_dense_variants.py --out $OUT                                  # CUDA, the goal workload
     python3 bench/gpu_dense_variants.py --device cpu --voxel 0.4 --pop 2 --azimuths 256 --repeat 1  # smoke
+    python3 bench/gpu_dense_variants.py --out $OUT --only eager-1x32-r72,lean32-r72,lean32-skip-r72 --skip-stats
 """
 
 from __future__ import annotations
@@ -196,6 +205,9 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     out["walk-only"] = {"kind": "lean", "body": "walk", "skip": False, "ahead": False, "maxreg": 72,
                         "diagnostic": "floor: today's step (walk32_next_sel) and stop read only, no bitset, no "
                                       "weights; sums are step counts (wrong on purpose, not compared)"}
+    out["walk-only-lean32"] = {"kind": "lean", "body": "walk-lean32", "skip": False, "ahead": False, "maxreg": 72,
+                               "diagnostic": "floor of lean32: its step (unsigned grid test), int32 word and raw "
+                                             "mask load only; sums are step counts (wrong on purpose)"}
     return out
 
 
@@ -222,8 +234,8 @@ def build(vs: dict) -> None:
 
 def make_lean_kind(v: dict, count: bool = False):
     """The kernel of a variant of kind ``lean`` (``count``: the build that fills ``Workload.stats``)."""
-    if v["body"] == "walk":
-        return make_walk_only(v["maxreg"], count)
+    if v["body"] in ("walk", "walk-lean32"):
+        return make_walk_only(v["maxreg"], count, lean=v["body"] == "walk-lean32")
     if v["body"] == "eager":
         return make_eager_skip(v["maxreg"], count)
     return make_lean(v["maxreg"], v["skip"], v["ahead"], count, inc=v["body"] == "lean")
@@ -377,7 +389,8 @@ def main() -> None:
             "max_ms_per_rig": 1e3 * max(ts) / P, "speedup_vs_shipped": base / statistics.median(ts)}
         r = out["variants"][name]
         print(f"{name:34s} {r['median_ms_per_rig']:8.3f} ms/rig  [{r['min_ms_per_rig']:.3f}, "
-              f"{r['max_ms_per_rig']:.3f}]  x{r['speedup_vs_shipped']:.3f}", flush=True)
+              f"{r['max_ms_per_rig']:.3f}]  x{r['speedup_vs_shipped']:.3f}"
+              + ("  (diagnostic)" if "diagnostic" in v else ""), flush=True)
     if args.skip_stats:
         out["skip_stats"] = skip_stats(wl, ref)
     res = Path(args.out)

@@ -272,9 +272,10 @@ def test_skip_on_full_bricks_matches_the_shipped_kernel(small, device):
                     assert st[1] == st[2] == st[3] == 0 and st[0] > 0, st
                     visits = st[0]
     # the floor diagnostic walks the same voxels as the exact kernels: its sums are each rig's visits
-    diag = dict(variants(sm, None if sm else CPU_THREADS)["walk-only"])
-    sums, counts, st = _launch(wl, dict(diag, kernel=make_lean_kind(diag)))
-    assert sums.sum() == visits and (counts == 0).all()
+    for name in ("walk-only", "walk-only-lean32"):
+        diag = dict(variants(sm, None if sm else CPU_THREADS)[name])
+        sums, counts, st = _launch(wl, dict(diag, kernel=make_lean_kind(diag)))
+        assert sums.sum() == visits and (counts == 0).all(), name
 
 
 def test_a_tile_that_does_not_fit_is_refused(small):
