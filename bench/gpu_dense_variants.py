@@ -68,6 +68,7 @@ from place3d_kernels.kernel_bench import machine_info
 # the kernels module beside this file (a script's own folder is on the path; an importing test's is not)
 if str(Path(__file__).resolve().parent) not in sys.path:
     sys.path.append(str(Path(__file__).resolve().parent))
+import sass_hot_path  # noqa: E402
 from gpu_dense_lean_kernels import make_eager_skip, make_lean, make_walk_only  # noqa: E402
 from gpu_dense_variants_kernels import make_persistent, make_tiled  # noqa: E402
 
@@ -268,7 +269,8 @@ def register_report(vs: dict, arch: int = 90) -> dict:
     """Registers and spills per variant, without a GPU: Warp compiles each kernel's module to PTX with
     NVRTC and ``ptxas -v`` (CUDA toolkit on PATH) assembles it for ``sm_<arch>``. Where this ptxas is older
     than the PTX NVRTC wrote, the ``.version`` line is lowered to what ptxas names and the assembly
-    retried (the kernels use no newer instruction; ptxas would refuse one)."""
+    retried (the kernels use no newer instruction; ptxas would refuse one). Where ``cuobjdump`` is on
+    PATH, also the instructions of the inner loop's common step (``sass_hot_path.py``)."""
     if shutil.which("ptxas") is None:
         raise SystemExit("--registers needs ptxas (the CUDA toolkit) on PATH")
     out = {}
@@ -293,6 +295,8 @@ def register_report(vs: dict, arch: int = 90) -> dict:
                 raise SystemExit(f"{name}: ptxas failed: {r.stderr[-400:]}")
             out[name] = {"registers": int(regs.group(1)), "spill_store_bytes": int(spill.group(1)) if spill else 0,
                          "spill_load_bytes": int(spill.group(2)) if spill else 0}
+            if sass_hot_path.available():
+                out[name].update(sass_hot_path.common_step(sass_hot_path.sass(f"{tmp}/{name}/k.cubin")))
             print(f"{name:34s} {out[name]}", flush=True)
     return out
 
