@@ -247,6 +247,54 @@ def walk32_skip_brick(w: Walk32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp
 
 
 @wp.func
+def walk32_step_or_jump(w: Walk32, full: wp.bool, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.float32,
+                        nx: wp.int32, ny: wp.int32, nz: wp.int32) -> Walk32:
+    """``walk32_skip_brick`` where ``full``, else the ordinary step, in one body: a lane that is not in a
+    full brick jumps over a "brick" of one voxel (no interior crossings; the exit crossings are the next
+    crossings, the test is walk32_next_sel's), which is exactly the float32 step. So the lanes of a warp
+    that jump and those that step run the same instructions instead of both branches one after the
+    other; the price is three crossing times per step instead of one."""
+    if w.exact != 0:
+        return walk32_exact(w, o, d, s, sf, nx, ny, nz)
+    ni = wp.where(full, wp.where(w.si > 0, 3 - (w.i & 3), wp.where(w.si < 0, w.i & 3, 0)), 0)
+    nj = wp.where(full, wp.where(w.sj > 0, 3 - (w.j & 3), wp.where(w.sj < 0, w.j & 3, 0)), 0)
+    nk = wp.where(full, wp.where(w.sk > 0, 1 - (w.k & 1), wp.where(w.sk < 0, w.k & 1, 0)), 0)
+    ex = wp.where(w.si != 0, crossing(w.ki + w.si * ni, sf, w.qx, w.vx), FLT_BIG)
+    ey = wp.where(w.sj != 0, crossing(w.kj + w.sj * nj, sf, w.qy, w.vy), FLT_BIG)
+    ez = wp.where(w.sk != 0, crossing(w.kk + w.sk * nk, sf, w.qz, w.vz), FLT_BIG)
+    xa = ex < ey and ex < ez
+    ya = (not xa) and ey < ez
+    za = (not xa) and (not ya)
+    e = wp.where(xa, ex, wp.where(ya, ey, ez))
+    o1 = wp.where(xa, ey, ex)
+    o2 = wp.where(za, ey, ez)
+    lim = e + w.tol
+    if o1 <= lim or o2 <= lim or w.t1 <= lim:
+        return walk32_next_lean(w, o, d, s, sf, nx, ny, nz)
+    ci, oki = crossings_before(w.ki, w.si, ni, w.qx, w.vx, sf, e, w.tol)
+    cj, okj = crossings_before(w.kj, w.sj, nj, w.qy, w.vy, sf, e, w.tol)
+    ck, okk = crossings_before(w.kk, w.sk, nk, w.qz, w.vz, sf, e, w.tol)
+    ci = wp.where(xa, ni + 1, ci)
+    cj = wp.where(ya, nj + 1, cj)
+    ck = wp.where(za, nk + 1, ck)
+    if (xa or oki != 0) and (ya or okj != 0) and (za or okk != 0):
+        w.i = w.i + w.si * ci
+        w.j = w.j + w.sj * cj
+        w.k = w.k + w.sk * ck
+        w.ki = w.ki + w.si * ci
+        w.kj = w.kj + w.sj * cj
+        w.kk = w.kk + w.sk * ck
+        w.tx = wp.where(ci > 0, crossing(w.ki, sf, w.qx, w.vx), w.tx)
+        w.ty = wp.where(cj > 0, crossing(w.kj, sf, w.qy, w.vy), w.ty)
+        w.tz = wp.where(ck > 0, crossing(w.kk, sf, w.qz, w.vz), w.tz)
+        out = (wp.uint32(w.i) >= wp.uint32(nx) or wp.uint32(w.j) >= wp.uint32(ny)
+               or wp.uint32(w.k) >= wp.uint32(nz))
+        w.alive = wp.where(out, 0, w.alive)
+        return w
+    return walk32_next_lean(w, o, d, s, sf, nx, ny, nz)
+
+
+@wp.func
 def step_or_skip(w: Walk32, full: wp.bool, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.float32,
                  nx: wp.int32, ny: wp.int32, nz: wp.int32) -> Walk32:
     # one function with two returns: no merge of two walk structs after an if in the caller
@@ -356,9 +404,14 @@ def make_eager_skip(maxreg=None, count=False):
 
 def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True):
     """``walk_ray_brick_eager`` with the lean address arithmetic (module docstring); ``skip``: full bricks
-    jumped; ``ahead``: the next voxel's loads issued one step early (not combined with ``skip``); ``inc``:
+    jumped (``True``: a branch between the jump and the step; ``"unified"``: ``walk32_step_or_jump``,
+    only with ``inc=False``); ``ahead``: the next voxel's loads issued one step early (not combined with ``skip``); ``inc``:
     the brick word kept incrementally (``word_delta``), else recomputed from (i, j, k) in int32 each step
     (``word32``: three shifts and two multiply-adds by kernel constants, no registers of its own)."""
+    if skip == "unified" and inc:
+        raise ValueError("make_lean: the unified skip recomputes the word each step; pass inc=False with it")
+    unified = skip == "unified"     # booleans only: Warp hashes a kernel's closure constants, and refuses str
+    skip = bool(skip)
     if skip and ahead:
         raise ValueError("make_lean: skip and ahead are not combined (the jump needs the entry word before "
                          "the step, which ahead loads after it); pick one")
@@ -444,7 +497,10 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True):
                 fresh = fresh_next
             elif wp.static(skip):
                 full = seen == FULL and stop_w == wp.uint32(0)
-                w = step_or_skip_lean(w, full, o, d, s, sf, nx, ny, nz)
+                if wp.static(unified):
+                    w = walk32_step_or_jump(w, full, o, d, s, sf, nx, ny, nz)
+                else:
+                    w = step_or_skip_lean(w, full, o, d, s, sf, nx, ny, nz)
                 if wp.static(inc):
                     if full:
                         # a jump moves coordinates by more than one: the word from the new voxel

@@ -25,7 +25,8 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
 * third round (``gpu_dense_lean_kernels.py``; every one at a register cap ``-rN``): ``lean`` (the eager
   kernel with the brick word kept incrementally in int32, raw-address loads, an unsigned grid test, the
   flush on the raw address), ``lean32`` (the same with the word recomputed in int32 each step), ``skip``
-  (the eager kernel jumping full bricks without stop bits), ``lean-skip`` / ``lean32-skip``, ``lean-ahead``
+  (the eager kernel jumping full bricks without stop bits), ``lean-skip`` / ``lean32-skip``, ``lean32-skipu``
+  (jump and step in one branch-free body), ``lean-ahead``
   / ``lean32-ahead`` (the next voxel's loads issued right after the step), and ``walk-only``, a floor
   diagnostic (today's step and stop read only; wrong sums on purpose: it is left out of the equality
   checks and labelled in the JSON). ``--skip-stats`` adds counting builds' steps and jumps.
@@ -198,9 +199,10 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     for body, skip, ahead, caps in (("lean", False, False, (64, 72, 80)), ("lean32", False, False, (64, 72, 80)),
                                     ("eager", True, False, (72, 80)), ("lean", True, False, (72, 80)),
                                     ("lean32", True, False, (72, 80)), ("lean", False, True, (72, 80)),
-                                    ("lean32", False, True, (72, 80))):
+                                    ("lean32", False, True, (72, 80)), ("lean32", "unified", False, (72, 80))):
         for maxreg in caps:
-            name = (body if body != "eager" else "") + ("-skip" if skip else "") + ("-ahead" if ahead else "")
+            name = (body if body != "eager" else "") + ("-skipu" if skip == "unified" else "-skip" if skip else "") \
+                + ("-ahead" if ahead else "")
             out[f"{name.lstrip('-')}-r{maxreg}"] = {"kind": "lean", "body": body, "skip": skip, "ahead": ahead,
                                                     "maxreg": maxreg}
     out["walk-only"] = {"kind": "lean", "body": "walk", "skip": False, "ahead": False, "maxreg": 72,
@@ -248,7 +250,7 @@ def skip_stats(wl: Workload, ref: tuple) -> dict:
     saves (on the CPU rays run in order; on the GPU the fraction depends on which rays run first). Sums
     and counts of the exact ones are checked against ``ref``."""
     vs = {k: v for k, v in variants(0, 1).items()
-          if k in ("lean-r72", "skip-r72", "lean-skip-r72", "lean32-skip-r72", "walk-only")}
+          if k in ("lean-r72", "skip-r72", "lean-skip-r72", "lean32-skip-r72", "lean32-skipu-r72", "walk-only")}
     out = {}
     for name, v in vs.items():
         wl.reset()
@@ -258,7 +260,7 @@ def skip_stats(wl: Workload, ref: tuple) -> dict:
             raise SystemExit(f"variant {name} (count build): sums/counts differ from the shipped kernel's")
         st = [int(x) for x in wl.stats.numpy()]
         out[name] = {"steps": st[0], "jumps": st[1], "jump_crossings": st[2], "full_brick_single_steps": st[3]}
-    for name in ("skip-r72", "lean-skip-r72", "lean32-skip-r72"):
+    for name in ("skip-r72", "lean-skip-r72", "lean32-skip-r72", "lean32-skipu-r72"):
         out[name]["steps_saved_vs_lean"] = 1.0 - out[name]["steps"] / out["lean-r72"]["steps"]
     for name, r in out.items():
         print(f"{name:16s} {r}", flush=True)

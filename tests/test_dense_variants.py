@@ -18,7 +18,7 @@ import place3d_kernels as p3k
 
 wp = pytest.importorskip("warp")
 sys.path.append(str(Path(__file__).resolve().parents[1] / "bench"))     # appended: shadows nothing
-from gpu_dense_lean_kernels import walk32_next_lean, walk32_skip_brick  # noqa: E402
+from gpu_dense_lean_kernels import walk32_next_lean, walk32_skip_brick, walk32_step_or_jump  # noqa: E402
 from gpu_dense_variants import Workload, build, make_lean_kind, variants  # noqa: E402
 from gpu_dense_variants_kernels import tiled_ray, walk32_next_sel  # noqa: E402
 from gpu_score_variants_kernels import walk32_begin, walk32_next  # noqa: E402
@@ -49,7 +49,9 @@ def _lockstep_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), s
         if (a.i != b.i or a.j != b.j or a.k != b.k or a.alive != b.alive or a.tx != b.tx or a.ty != b.ty
                 or a.tz != b.tz or a.ki != b.ki or a.kj != b.kj or a.kk != b.kk):
             bad[tid] = 1
-        if lean != 0:
+        if lean == 2:
+            b = walk32_step_or_jump(b, False, o[tid], d[tid], s, sf, n, n, n)
+        elif lean == 1:
             b = walk32_next_lean(b, o[tid], d[tid], s, sf, n, n, n)
         else:
             b = walk32_next_sel(b, o[tid], d[tid], s, sf, n, n, n)
@@ -89,12 +91,13 @@ def near_tie_rays(m: int, s: float, seed: int = 5):
     return o, d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-@pytest.mark.parametrize("lean", [0, 1])
-def test_branch_free_step_takes_the_shipped_steps(lean):
-    """walk32_next_sel (lean=0) and walk32_next_lean (lean=1: unsigned grid test) against walk32_next on
-    rays full of ties (``tie_rays``)."""
+@pytest.mark.parametrize("rays", ["ties", "near-ties"])
+@pytest.mark.parametrize("lean", [0, 1, 2])
+def test_branch_free_step_takes_the_shipped_steps(lean, rays):
+    """walk32_next_sel (lean=0), walk32_next_lean (1: unsigned grid test) and walk32_step_or_jump outside a
+    full brick (2) against walk32_next on rays full of ties (``tie_rays``) and near-ties."""
     s, n, m = 0.25, 24, 6000
-    o, d = tie_rays(m, s, n)
+    o, d = tie_rays(m, s, n) if rays == "ties" else near_tie_rays(m, s)
     steps = wp.zeros(m, dtype=wp.int32, device="cpu")
     bad = wp.zeros(m, dtype=wp.int32, device="cpu")
     wp.launch(_lockstep_kernel, dim=m, device="cpu",
@@ -106,7 +109,8 @@ def test_branch_free_step_takes_the_shipped_steps(lean):
 
 @wp.kernel
 def _jump_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), s: wp.float64, nx: wp.int32,
-                 ny: wp.int32, nz: wp.int32, jumps: wp.array(dtype=wp.int32), bad: wp.array(dtype=wp.int32)):
+                 ny: wp.int32, nz: wp.int32, unified: wp.int32, jumps: wp.array(dtype=wp.int32),
+                 bad: wp.array(dtype=wp.int32)):
     # from every voxel of a walk: walk32_skip_brick is either one ordinary step, or the state that stepping
     # voxel by voxel reaches on leaving the brick (4 x 4 x 2), field by field (or both walks end)
     tid = wp.tid()
@@ -116,6 +120,8 @@ def _jump_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), s: wp
         if a.alive == 0:
             break
         jmp = walk32_skip_brick(a, o[tid], d[tid], s, sf, nx, ny, nz)
+        if unified != 0:
+            jmp = walk32_step_or_jump(a, True, o[tid], d[tid], s, sf, nx, ny, nz)
         one = walk32_next(a, o[tid], d[tid], s, sf, nx, ny, nz)
         if (jmp.i != one.i or jmp.j != one.j or jmp.k != one.k or jmp.alive != one.alive or jmp.tx != one.tx
                 or jmp.ty != one.ty or jmp.tz != one.tz or jmp.ki != one.ki or jmp.kj != one.kj or jmp.kk != one.kk):
@@ -134,19 +140,20 @@ def _jump_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), s: wp
         a = one
 
 
+@pytest.mark.parametrize("unified", [0, 1])
 @pytest.mark.parametrize("rays", ["ties", "near-ties"])
-def test_brick_jump_lands_where_steps_do(rays):
+def test_brick_jump_lands_where_steps_do(rays, unified):
     """walk32_skip_brick from every voxel of rays full of ties (``tie_rays``) or of near-ties that float32
     cannot order (``near_tie_rays``; without the certainty margin ``tol`` some jumps land elsewhere), in a
     grid whose edges cut bricks (23 x 22 x 21 voxels): where it jumps, it lands on the state stepping
-    reaches, bit for bit."""
+    reaches, bit for bit. unified=1: walk32_step_or_jump in a full brick."""
     s, m = 0.25, 6000 if rays == "ties" else 20000
     o, d = tie_rays(m, s, (23, 22, 21), seed=11) if rays == "ties" else near_tie_rays(m, s)
     jumps = wp.zeros(m, dtype=wp.int32, device="cpu")
     bad = wp.zeros(m, dtype=wp.int32, device="cpu")
     wp.launch(_jump_kernel, dim=m, device="cpu",
               inputs=[wp.array(o, dtype=wp.vec3d, device="cpu"), wp.array(d, dtype=wp.vec3d, device="cpu"), s, 23, 22,
-                      21, jumps, bad])
+                      21, unified, jumps, bad])
     assert jumps.numpy().sum() > 3 * m, "the jump must run"
     assert bad.numpy().sum() == 0, f"{int(bad.numpy().sum())} jumps landed elsewhere than the steps"
 
@@ -241,7 +248,7 @@ def test_skip_on_full_bricks_matches_the_shipped_kernel(small, device):
     wl = Workload(psog, lidar, pop, device)
     sm = wp.get_device(device).sm_count if device.startswith("cuda") else 0
     vs = variants(sm, None if sm else CPU_THREADS)
-    names = ["skip-r72", "lean-skip-r72", "lean32-skip-r72", "lean-r72", "lean32-r72", "lean-ahead-r72",
+    names = ["skip-r72", "lean-skip-r72", "lean32-skip-r72", "lean32-skipu-r72", "lean-r72", "lean32-r72", "lean-ahead-r72",
              "lean32-ahead-r72"]
     vs = {k: vs[k] for k in ["shipped"] + names}
     build(vs)
