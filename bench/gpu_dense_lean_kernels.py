@@ -71,6 +71,18 @@ def load_mask(arr: wp.array(dtype=wp.uint64), i: wp.int32) -> wp.uint64:
 
 
 @wp.func_native("""
+if (pred)
+    return reinterpret_cast<const unsigned long long*>(arr.data)[i];
+return old;
+""")
+def load_mask_if(arr: wp.array(dtype=wp.uint64), i: wp.int32, pred: wp.bool, old: wp.uint64) -> wp.uint64:
+    """``arr[i]`` where ``pred``, else ``old``: a load in a branch of native code, which nvcc cannot hoist
+    out of it (it may not speculate a load it cannot prove safe), so it becomes a predicated load; the
+    same where() in Warp code let nvcc load on every step and select."""
+    ...
+
+
+@wp.func_native("""
 wp::uint64 p = (wp::uint64)(arr.data + base);
 #if defined(__CUDA_ARCH__)
 asm("mov.b64 %0, %0;" : "+l"(p));
@@ -402,16 +414,19 @@ def make_eager_skip(maxreg=None, count=False):
     return eager_skip_kernel
 
 
-def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True):
+def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=False):
     """``walk_ray_brick_eager`` with the lean address arithmetic (module docstring); ``skip``: full bricks
     jumped (``True``: a branch between the jump and the step; ``"unified"``: ``walk32_step_or_jump``,
-    only with ``inc=False``); ``ahead``: the next voxel's loads issued one step early (not combined with ``skip``); ``inc``:
+    only with ``inc=False``); ``keep``: the brick's masks kept from its entry (so that nvcc predicates
+    their load on entering a brick, as it does the bitset word's); ``ahead``: the next voxel's loads issued one step early (not combined with ``skip``); ``inc``:
     the brick word kept incrementally (``word_delta``), else recomputed from (i, j, k) in int32 each step
     (``word32``: three shifts and two multiply-adds by kernel constants, no registers of its own)."""
     if skip == "unified" and inc:
         raise ValueError("make_lean: the unified skip recomputes the word each step; pass inc=False with it")
     unified = skip == "unified"     # booleans only: Warp hashes a kernel's closure constants, and refuses str
     skip = bool(skip)
+    if keep and ahead:
+        raise ValueError("make_lean: keep and ahead are not combined (ahead loads before the entry is known)")
     if skip and ahead:
         raise ValueError("make_lean: skip and ahead are not combined (the jump needs the entry word before "
                          "the step, which ahead loads after it); pick one")
@@ -480,9 +495,14 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True):
                 nxt = wp.where(w.alive != 0, word, wcur)
                 m_next = load_mask(masks64, nxt)
                 fresh_next = load_word(cbits, nxt)
+            elif wp.static(keep):
+                m = load_mask_if(masks64, wcur, change, m)
+                fresh = load_word(cbits, wcur)
             else:
                 m = load_mask(masks64, wcur)
                 fresh = load_word(cbits, wcur)
+            # keep: m is the masks word loaded on the brick's entry (load_mask_if), so a step within the
+            # brick need not wait for L1
             stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))
             nz_w = wp.uint32(m >> wp.uint64(32))
             seen = wp.where(change, fresh, seen)

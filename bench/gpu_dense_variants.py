@@ -26,7 +26,8 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
   kernel with the brick word kept incrementally in int32, raw-address loads, an unsigned grid test, the
   flush on the raw address), ``lean32`` (the same with the word recomputed in int32 each step), ``skip``
   (the eager kernel jumping full bricks without stop bits), ``lean-skip`` / ``lean32-skip``, ``lean32-skipu``
-  (jump and step in one branch-free body), ``lean-ahead``
+  (jump and step in one branch-free body), ``lean32-keep`` / ``lean32-keep-skip`` (the brick's masks kept
+  from its entry, so that their load is predicated on entry), ``lean-ahead``
   / ``lean32-ahead`` (the next voxel's loads issued right after the step), and ``walk-only``, a floor
   diagnostic (today's step and stop read only; wrong sums on purpose: it is left out of the equality
   checks and labelled in the JSON). ``--skip-stats`` adds counting builds' steps and jumps.
@@ -199,7 +200,8 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     for body, skip, ahead, caps in (("lean", False, False, (64, 72, 80)), ("lean32", False, False, (64, 72, 80)),
                                     ("eager", True, False, (72, 80)), ("lean", True, False, (72, 80)),
                                     ("lean32", True, False, (72, 80)), ("lean", False, True, (72, 80)),
-                                    ("lean32", False, True, (72, 80)), ("lean32", "unified", False, (72, 80))):
+                                    ("lean32", False, True, (72, 80)), ("lean32", "unified", False, (72, 80)),
+                                    ("lean32-keep", False, False, (72, 80)), ("lean32-keep", True, False, (72, 80))):
         for maxreg in caps:
             name = (body if body != "eager" else "") + ("-skipu" if skip == "unified" else "-skip" if skip else "") \
                 + ("-ahead" if ahead else "")
@@ -241,7 +243,8 @@ def make_lean_kind(v: dict, count: bool = False):
         return make_walk_only(v["maxreg"], count, lean=v["body"] == "walk-lean32")
     if v["body"] == "eager":
         return make_eager_skip(v["maxreg"], count)
-    return make_lean(v["maxreg"], v["skip"], v["ahead"], count, inc=v["body"] == "lean")
+    return make_lean(v["maxreg"], v["skip"], v["ahead"], count, inc=v["body"] == "lean",
+                     keep=v["body"] == "lean32-keep")
 
 
 def skip_stats(wl: Workload, ref: tuple) -> dict:

@@ -248,7 +248,8 @@ def test_skip_on_full_bricks_matches_the_shipped_kernel(small, device):
     wl = Workload(psog, lidar, pop, device)
     sm = wp.get_device(device).sm_count if device.startswith("cuda") else 0
     vs = variants(sm, None if sm else CPU_THREADS)
-    names = ["skip-r72", "lean-skip-r72", "lean32-skip-r72", "lean32-skipu-r72", "lean-r72", "lean32-r72", "lean-ahead-r72",
+    names = ["skip-r72", "lean-skip-r72", "lean32-skip-r72", "lean32-skipu-r72", "lean32-keep-skip-r72",
+             "lean32-keep-r72", "lean-r72", "lean32-r72", "lean-ahead-r72",
              "lean32-ahead-r72"]
     vs = {k: vs[k] for k in ["shipped"] + names}
     build(vs)
