@@ -19,6 +19,11 @@ on every step and kept on entry, one ``atomic_or`` per brick left.
   candidate's bitset (the word read on entry plus the ray's own bits) and that holds no stop bit cannot
   give the ray a new voxel or stop it, so the walk jumps to the voxel where it leaves the brick
   (``walk32_skip_brick``). Bits only ever get set, so a brick seen full stays full.
+* **skipu** (``make_lean(skip="unified")``): the jump and the step in one body (``walk32_step_or_jump``),
+  so that lanes of a warp that jump and lanes that step do not run both; longer common step.
+* **keep** (``make_lean(keep=True)``): lean32 with the brick's masks kept from its entry, loaded in a
+  native branch (``load_mask_if``), so nvcc predicates both loads on entering a brick and a step inside
+  it touches no memory and waits for none (the shipped kernel waits for an L1 hit on every step).
 * **ahead** (``make_lean(ahead=True)``): lean, with the loads for the next voxel issued right after the
   step, before the current voxel's masks are used (software pipelining by one step), so a load's latency
   overlaps the next iteration's work instead of stalling the stop test that follows it. The bitset word
