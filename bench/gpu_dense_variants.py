@@ -22,16 +22,27 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
   their new rays together (a warp vote; Aila & Laine's dynamic fetch), instead of each stalling the warp
   for its own float64 set-up.
 
+* third round (``gpu_dense_lean_kernels.py``; every one at a register cap ``-rN``): ``lean`` (the eager
+  kernel with the brick word kept incrementally in int32, raw-address loads, an unsigned grid test, the
+  flush on the raw address), ``lean32`` (the same with the word recomputed in int32 each step), ``skip``
+  (the eager kernel jumping full bricks without stop bits), ``lean-skip`` / ``lean32-skip``, ``lean32-skipu``
+  (jump and step in one branch-free body), ``lean32-keep`` / ``lean32-keep-skip`` (the brick's masks kept
+  from its entry, so that their load is predicated on entry), ``lean-ahead``
+  / ``lean32-ahead`` (the next voxel's loads issued right after the step), and ``walk-only``, a floor
+  diagnostic (today's step and stop read only; wrong sums on purpose: it is left out of the equality
+  checks and labelled in the JSON). ``--skip-stats`` adds counting builds' steps and jumps.
+
 Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU).
 
 Each variant's sums and counts (covered voxels, counted from the bitset with the shipped
 ``count_bits_kernel``, which is timed with every kernel; zeroing the outputs is not) must equal the shipped kernel's on every
-repeat; a mismatch stops the run. Timing: one warm-up launch each (compiles), then ``--repeat`` rounds,
+repeat (diagnostics excepted); a mismatch stops the run. Timing: one warm-up launch each (compiles), then ``--repeat`` rounds,
 each launching every variant once (interleaved, so clock and thermal drift fall on all alike); median and
 range of the launch time per rig. Writes ``<--out>/gpu-dense-variants-<voxel>m.json``.
 
     python3 bench/gpu_dense_variants.py --out $OUT                                  # CUDA, the goal workload
     python3 bench/gpu_dense_variants.py --device cpu --voxel 0.4 --pop 2 --azimuths 256 --repeat 1  # smoke
+    python3 bench/gpu_dense_variants.py --out $OUT --only eager-1x32-r72,lean32-r72,lean32-skip-r72 --skip-stats
 """
 
 from __future__ import annotations
@@ -59,6 +70,8 @@ from place3d_kernels.kernel_bench import machine_info
 # the kernels module beside this file (a script's own folder is on the path; an importing test's is not)
 if str(Path(__file__).resolve().parent) not in sys.path:
     sys.path.append(str(Path(__file__).resolve().parent))
+import sass_hot_path  # noqa: E402
+from gpu_dense_lean_kernels import make_eager_skip, make_lean, make_walk_only  # noqa: E402
 from gpu_dense_variants_kernels import make_persistent, make_tiled  # noqa: E402
 
 BLOCK_DIM = 128          # the shipped kernel's (SCORE_BLOCK_DIM); every variant launches with it
@@ -107,6 +120,7 @@ class Workload:
         self.sums = wp.zeros(self.P, dtype=wp.int64, device=device)
         self.counts = wp.zeros(self.P, dtype=wp.int64, device=device)
         self.counter = wp.zeros(1, dtype=wp.int32, device=device)
+        self.stats = wp.zeros(4, dtype=wp.int64, device=device)      # the lean kernels' counters (count builds)
 
     def check_tile(self, tile_c: int) -> None:
         if 32 % tile_c or self.n_el % tile_c or self.n_az % (32 // tile_c):
@@ -121,7 +135,7 @@ class Workload:
 
     def reset(self) -> None:
         """Zero the bitsets, sums, counts and the ray counter (outside the timed region)."""
-        self.bits.zero_(), self.sums.zero_(), self.counts.zero_(), self.counter.zero_()
+        self.bits.zero_(), self.sums.zero_(), self.counts.zero_(), self.counter.zero_(), self.stats.zero_()
 
     def launch(self, v: dict) -> None:
         """Launch variant ``v`` (a dict from ``variants``) on zeroed outputs and count the covered voxels
@@ -129,6 +143,12 @@ class Workload:
         io = self.inputs + [self.bits, self.sums]
         if v["kind"] == "shipped":
             wp.launch(self.backend.k.score_kernel_gpu, dim=self.n_rays, device=self.device, inputs=io,
+                      block_dim=BLOCK_DIM)
+        elif v["kind"] == "lean":
+            if self.words >= 2 ** 31:
+                raise ValueError(f"{self.words} bitset words per candidate: the lean kernels keep a brick's word "
+                                 f"in int32; use a coarser voxel (or fewer voxels) so that they fit")
+            wp.launch(v["kernel"], dim=self.n_rays, device=self.device, inputs=io + [self.stats],
                       block_dim=BLOCK_DIM)
         elif v["kind"] == "tiled":
             wp.launch(v["kernel"], dim=self.n_rays, device=self.device, inputs=io + [self.n_az],
@@ -174,10 +194,29 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     persist(1, 4, 80, batch=8)
     persist(1, 4, 80, batch=16)
     persist(1, 1, 80, batch=16, select=True)
+    # third round (gpu_dense_lean_kernels.py): lean address arithmetic (lean: the brick word kept
+    # incrementally; lean32: recomputed in int32), full bricks skipped, loads one step ahead, and the
+    # walk-only floor with today's step
+    for body, skip, ahead, caps in (("lean", False, False, (64, 72, 80)), ("lean32", False, False, (64, 72, 80)),
+                                    ("eager", True, False, (72, 80)), ("lean", True, False, (72, 80)),
+                                    ("lean32", True, False, (72, 80)), ("lean", False, True, (72, 80)),
+                                    ("lean32", False, True, (72, 80)), ("lean32", "unified", False, (72, 80)),
+                                    ("lean32-keep", False, False, (72, 80)), ("lean32-keep", True, False, (72, 80))):
+        for maxreg in caps:
+            name = (body if body != "eager" else "") + ("-skipu" if skip == "unified" else "-skip" if skip else "") \
+                + ("-ahead" if ahead else "")
+            out[f"{name.lstrip('-')}-r{maxreg}"] = {"kind": "lean", "body": body, "skip": skip, "ahead": ahead,
+                                                    "maxreg": maxreg}
+    out["walk-only"] = {"kind": "lean", "body": "walk", "skip": False, "ahead": False, "maxreg": 72,
+                        "diagnostic": "floor: today's step (walk32_next_sel) and stop read only, no bitset, no "
+                                      "weights; sums are step counts (wrong on purpose, not compared)"}
+    out["walk-only-lean32"] = {"kind": "lean", "body": "walk-lean32", "skip": False, "ahead": False, "maxreg": 72,
+                               "diagnostic": "floor of lean32: its step (unsigned grid test), int32 word and raw "
+                                             "mask load only; sums are step counts (wrong on purpose)"}
     return out
 
 
-PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "select", "eager", "maxreg")
+PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "select", "eager", "maxreg", "body", "skip", "ahead")
 
 
 def build(vs: dict) -> None:
@@ -188,7 +227,9 @@ def build(vs: dict) -> None:
             continue
         key = (v["kind"],) + tuple(v.get(k) for k in PARAMS)
         if key not in made:
-            if v["kind"] == "tiled":
+            if v["kind"] == "lean":
+                made[key] = make_lean_kind(v)
+            elif v["kind"] == "tiled":
                 made[key] = make_tiled(v["maxreg"], v["tile_c"], v["select"], v["eager"])
             else:
                 made[key] = make_persistent(v["maxreg"], v["mode"], v["tile_c"], v["chunk"], v["reload"], v["batch"],
@@ -196,11 +237,45 @@ def build(vs: dict) -> None:
         v["kernel"] = made[key]
 
 
+def make_lean_kind(v: dict, count: bool = False):
+    """The kernel of a variant of kind ``lean`` (``count``: the build that fills ``Workload.stats``)."""
+    if v["body"] in ("walk", "walk-lean32"):
+        return make_walk_only(v["maxreg"], count, lean=v["body"] == "walk-lean32")
+    if v["body"] == "eager":
+        return make_eager_skip(v["maxreg"], count)
+    return make_lean(v["maxreg"], v["skip"], v["ahead"], count, inc=v["body"] == "lean",
+                     keep=v["body"] == "lean32-keep")
+
+
+def skip_stats(wl: Workload, ref: tuple) -> dict:
+    """Counting builds of ``lean-r72``, ``skip-r72`` and ``lean-skip-r72`` (and ``walk-only``), one launch
+    each on zeroed outputs: loop iterations, jumps, and the fraction of the lean kernel's steps the skip
+    saves (on the CPU rays run in order; on the GPU the fraction depends on which rays run first). Sums
+    and counts of the exact ones are checked against ``ref``."""
+    vs = {k: v for k, v in variants(0, 1).items()
+          if k in ("lean-r72", "skip-r72", "lean-skip-r72", "lean32-skip-r72", "lean32-skipu-r72", "walk-only")}
+    out = {}
+    for name, v in vs.items():
+        wl.reset()
+        wl.launch(dict(v, kernel=make_lean_kind(v, count=True)))
+        got = wl.result()
+        if "diagnostic" not in v and not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
+            raise SystemExit(f"variant {name} (count build): sums/counts differ from the shipped kernel's")
+        st = [int(x) for x in wl.stats.numpy()]
+        out[name] = {"steps": st[0], "jumps": st[1], "jump_crossings": st[2], "full_brick_single_steps": st[3]}
+    for name in ("skip-r72", "lean-skip-r72", "lean32-skip-r72", "lean32-skipu-r72"):
+        out[name]["steps_saved_vs_lean"] = 1.0 - out[name]["steps"] / out["lean-r72"]["steps"]
+    for name, r in out.items():
+        print(f"{name:16s} {r}", flush=True)
+    return out
+
+
 def register_report(vs: dict, arch: int = 90) -> dict:
     """Registers and spills per variant, without a GPU: Warp compiles each kernel's module to PTX with
     NVRTC and ``ptxas -v`` (CUDA toolkit on PATH) assembles it for ``sm_<arch>``. Where this ptxas is older
     than the PTX NVRTC wrote, the ``.version`` line is lowered to what ptxas names and the assembly
-    retried (the kernels use no newer instruction; ptxas would refuse one)."""
+    retried (the kernels use no newer instruction; ptxas would refuse one). Where ``cuobjdump`` is on
+    PATH, also the instructions of the inner loop's common step (``sass_hot_path.py``)."""
     if shutil.which("ptxas") is None:
         raise SystemExit("--registers needs ptxas (the CUDA toolkit) on PATH")
     out = {}
@@ -225,6 +300,8 @@ def register_report(vs: dict, arch: int = 90) -> dict:
                 raise SystemExit(f"{name}: ptxas failed: {r.stderr[-400:]}")
             out[name] = {"registers": int(regs.group(1)), "spill_store_bytes": int(spill.group(1)) if spill else 0,
                          "spill_load_bytes": int(spill.group(2)) if spill else 0}
+            if sass_hot_path.available():
+                out[name].update(sass_hot_path.common_step(sass_hot_path.sass(f"{tmp}/{name}/k.cubin")))
             print(f"{name:34s} {out[name]}", flush=True)
     return out
 
@@ -248,6 +325,8 @@ def main() -> None:
     ap.add_argument("--max-range", type=float, default=100.0, help="as gpu_dense.py (default 100 m)")
     ap.add_argument("--cpu-threads", type=int, default=509, help="persistent launch size on the CPU")
     ap.add_argument("--only", default="", help="comma-separated variant names (shipped always runs)")
+    ap.add_argument("--skip-stats", action="store_true",
+                    help="also run counting builds of lean/skip once and report steps, jumps and steps saved")
     ap.add_argument("--registers", action="store_true",
                     help="no timing: registers and spills per variant from ptxas for sm_90 (no GPU needed)")
     ap.add_argument("--out", default=os.environ.get("OUT", str(Path(__file__).resolve().parent / "results")))
@@ -288,7 +367,7 @@ def main() -> None:
         wl.launch(v)
         got = wl.result()
         ref = ref or got
-        if not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
+        if "diagnostic" not in v and not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
             raise SystemExit(f"variant {name}: sums/counts differ from the shipped kernel's")
     compile_s = time.perf_counter() - t
     times = {k: [] for k in vs}
@@ -301,24 +380,28 @@ def main() -> None:
             wp.synchronize_device(dev)
             times[name].append(time.perf_counter() - t0)
             got = wl.result()
-            if not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
+            if "diagnostic" not in v and not (np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])):
                 raise SystemExit(f"variant {name}: sums/counts differ from the shipped kernel's on a repeat")
     P = wl.P
     out = {"info": machine_info(), "device": dev, "device_name": str(wp.get_device(dev).name), "sm_count": sm,
            "grid": grid.to_dict(), "lidar": f"uniform(64, (-25, 15), {args.azimuths}, max_range={args.max_range})",
            "rays_per_rig": wl.n_rays // P, "population": P, "repeat": args.repeat, "psog_build_s": psog_s,
            "warmup_and_compile_s": compile_s, "sums": ref[0].tolist(), "covered_voxels": ref[1].tolist(),
-           "all_identical_to_shipped": True, "variants": {}}
+           "all_identical_to_shipped": True,
+           "diagnostics_not_compared": sorted(k for k, v in vs.items() if "diagnostic" in v), "variants": {}}
     base = statistics.median(times["shipped"])
     for name, v in vs.items():
         ts = times[name]
         out["variants"][name] = {
-            **{k: v[k] for k in PARAMS + ("waves", "threads") if k in v},
+            **{k: v[k] for k in PARAMS + ("waves", "threads", "diagnostic") if k in v},
             "median_ms_per_rig": 1e3 * statistics.median(ts) / P, "min_ms_per_rig": 1e3 * min(ts) / P,
             "max_ms_per_rig": 1e3 * max(ts) / P, "speedup_vs_shipped": base / statistics.median(ts)}
         r = out["variants"][name]
         print(f"{name:34s} {r['median_ms_per_rig']:8.3f} ms/rig  [{r['min_ms_per_rig']:.3f}, "
-              f"{r['max_ms_per_rig']:.3f}]  x{r['speedup_vs_shipped']:.3f}", flush=True)
+              f"{r['max_ms_per_rig']:.3f}]  x{r['speedup_vs_shipped']:.3f}"
+              + ("  (diagnostic)" if "diagnostic" in v else ""), flush=True)
+    if args.skip_stats:
+        out["skip_stats"] = skip_stats(wl, ref)
     res = Path(args.out)
     res.mkdir(parents=True, exist_ok=True)
     path = res / f"gpu-dense-variants-{args.voxel}m.json"

@@ -1,5 +1,6 @@
-"""The dense-rig study's kernel variants (bench/gpu_dense_variants*.py) are exact: tiled ray order and
-persistent threads return the shipped score kernel's int64 sums and covered-voxel counts, bit for bit.
+"""The dense-rig study's kernel variants (bench/gpu_dense_variants*.py, bench/gpu_dense_lean_kernels.py) are
+exact: tiled ray order, persistent threads, lean address arithmetic, full-brick skips and loads one step
+ahead return the shipped score kernel's int64 sums and covered-voxel counts, bit for bit.
 
 Runs on Warp's CPU device (small and fast) and, where there is one, on CUDA, so the GPU run checks the
 same variants before timing them.
@@ -17,7 +18,8 @@ import place3d_kernels as p3k
 
 wp = pytest.importorskip("warp")
 sys.path.append(str(Path(__file__).resolve().parents[1] / "bench"))     # appended: shadows nothing
-from gpu_dense_variants import Workload, build, variants  # noqa: E402
+from gpu_dense_lean_kernels import walk32_next_lean, walk32_skip_brick, walk32_step_or_jump  # noqa: E402
+from gpu_dense_variants import Workload, build, make_lean_kind, variants  # noqa: E402
 from gpu_dense_variants_kernels import tiled_ray, walk32_next_sel  # noqa: E402
 from gpu_score_variants_kernels import walk32_begin, walk32_next  # noqa: E402
 
@@ -34,7 +36,7 @@ def _hit_kernel(n: wp.int32, n_az: wp.int32, tile_c: wp.int32, hits: wp.array(dt
 
 @wp.kernel
 def _lockstep_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), s: wp.float64, n: wp.int32,
-                     steps: wp.array(dtype=wp.int32), bad: wp.array(dtype=wp.int32)):
+                     lean: wp.int32, steps: wp.array(dtype=wp.int32), bad: wp.array(dtype=wp.int32)):
     # both steps from the same start, compared field by field after every step
     tid = wp.tid()
     sf = wp.float32(s)
@@ -47,33 +49,113 @@ def _lockstep_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), s
         if (a.i != b.i or a.j != b.j or a.k != b.k or a.alive != b.alive or a.tx != b.tx or a.ty != b.ty
                 or a.tz != b.tz or a.ki != b.ki or a.kj != b.kj or a.kk != b.kk):
             bad[tid] = 1
+        if lean == 2:
+            b = walk32_step_or_jump(b, False, o[tid], d[tid], s, sf, n, n, n)
+        elif lean == 1:
+            b = walk32_next_lean(b, o[tid], d[tid], s, sf, n, n, n)
+        else:
+            b = walk32_next_sel(b, o[tid], d[tid], s, sf, n, n, n)
         a = walk32_next(a, o[tid], d[tid], s, sf, n, n, n)
-        b = walk32_next_sel(b, o[tid], d[tid], s, sf, n, n, n)
         c += 1
     steps[tid] = c
 
 
-def test_branch_free_step_takes_the_shipped_steps():
-    """walk32_next_sel against walk32_next on rays full of ties: origins on voxel planes, edges and
-    corners; directions along axes, face and space diagonals, and random."""
-    rng = np.random.default_rng(7)
-    s, n, m = 0.25, 24, 6000
-    o = rng.uniform(0.0, n * s, (m, 3))
+def tie_rays(m: int, s: float, n, seed: int = 7):
+    """``m`` rays full of ties in a grid of ``n`` voxels of size ``s`` per axis: origins on voxel planes,
+    edges and corners; directions along axes, face and space diagonals, and random."""
+    rng = np.random.default_rng(seed)
+    o = rng.uniform(0.0, 1.0, (m, 3)) * np.asarray(n) * s
     snap = rng.integers(0, 4, m)                       # 0: random, 1-3: that many coordinates on a plane
     for k in range(3):
         on = snap > k
         o[on, k] = np.round(o[on, k] / s) * s
     dirs = np.array([[1, 0, 0], [0, -1, 0], [0, 0, 1], [1, 1, 0], [1, -1, 0], [0, 1, 1], [1, 1, 1], [-1, 1, -1],
-                     [2, 1, 0], [1, 2, 2], [1e-31, 1, 0.5]], dtype=np.float64)
+                     [2, 1, 0], [1, 2, 2], [1e-31, 1, 0.5], [4, 4, 2], [-4, 4, 2], [2, -2, -1],
+                     # near-ties: diagonals off by about a float32 rounding, where float32 may misorder crossings
+                     [1, 1 + 2 ** -22, 0.5], [1, 1 - 2 ** -23, 1 + 2 ** -22], [-2 - 2 ** -21, 2, 1],
+                     [1 + 3e-7, -1, 1 - 3e-7]], dtype=np.float64)
     d = np.where((rng.random(m) < 0.6)[:, None], dirs[rng.integers(0, len(dirs), m)], rng.normal(size=(m, 3)))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return o, d
+
+
+def near_tie_rays(m: int, s: float, seed: int = 5):
+    """``m`` rays whose crossings of different axes nearly coincide, closer than float32 can order them:
+    origins on a voxel-lattice diagonal (the same fraction of a voxel on every axis, plus ~1e-7 voxels of
+    noise) and directions a diagonal off by 1e-8.5 to 1e-6 relative."""
+    rng = np.random.default_rng(seed)
+    o = (rng.integers(0, 20, (m, 3)) + rng.uniform(0, 1, (m, 1)) + rng.normal(size=(m, 3)) * 1e-7) * s
+    base = np.array([[1, 1, 1], [1, 1, 0.5], [2, 1, 1], [1, -1, 1], [1, 1, 0], [4, 4, 2]], dtype=np.float64)
+    d = base[rng.integers(0, len(base), m)] * rng.choice([-1, 1], (m, 3))
+    d = d + rng.normal(size=(m, 3)) * 10 ** rng.uniform(-8.5, -6, (m, 1))
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("rays", ["ties", "near-ties"])
+@pytest.mark.parametrize("lean", [0, 1, 2])
+def test_branch_free_step_takes_the_shipped_steps(lean, rays):
+    """walk32_next_sel (lean=0), walk32_next_lean (1: unsigned grid test) and walk32_step_or_jump outside a
+    full brick (2) against walk32_next on rays full of ties (``tie_rays``) and near-ties."""
+    s, n, m = 0.25, 24, 6000
+    o, d = tie_rays(m, s, n) if rays == "ties" else near_tie_rays(m, s)
     steps = wp.zeros(m, dtype=wp.int32, device="cpu")
     bad = wp.zeros(m, dtype=wp.int32, device="cpu")
     wp.launch(_lockstep_kernel, dim=m, device="cpu",
-              inputs=[wp.array(o, dtype=wp.vec3d, device="cpu"), wp.array(d, dtype=wp.vec3d, device="cpu"), s, n, steps,
-                      bad])
+              inputs=[wp.array(o, dtype=wp.vec3d, device="cpu"), wp.array(d, dtype=wp.vec3d, device="cpu"), s, n, lean,
+                      steps, bad])
     assert steps.numpy().sum() > 10 * m, "the rays must walk"
     assert bad.numpy().sum() == 0, f"{int(bad.numpy().sum())} rays stepped differently"
+
+
+@wp.kernel
+def _jump_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), s: wp.float64, nx: wp.int32,
+                 ny: wp.int32, nz: wp.int32, unified: wp.int32, jumps: wp.array(dtype=wp.int32),
+                 bad: wp.array(dtype=wp.int32)):
+    # from every voxel of a walk: walk32_skip_brick is either one ordinary step, or the state that stepping
+    # voxel by voxel reaches on leaving the brick (4 x 4 x 2), field by field (or both walks end)
+    tid = wp.tid()
+    sf = wp.float32(s)
+    a = walk32_begin(o[tid], d[tid], wp.float64(1.0e3), s, sf, nx, ny, nz)
+    for _ in range(nx + ny + nz + 3):
+        if a.alive == 0:
+            break
+        jmp = walk32_skip_brick(a, o[tid], d[tid], s, sf, nx, ny, nz)
+        if unified != 0:
+            jmp = walk32_step_or_jump(a, True, o[tid], d[tid], s, sf, nx, ny, nz)
+        one = walk32_next(a, o[tid], d[tid], s, sf, nx, ny, nz)
+        if (jmp.i != one.i or jmp.j != one.j or jmp.k != one.k or jmp.alive != one.alive or jmp.tx != one.tx
+                or jmp.ty != one.ty or jmp.tz != one.tz or jmp.ki != one.ki or jmp.kj != one.kj or jmp.kk != one.kk):
+            b = one
+            for _ in range(12):
+                if b.alive == 0 or b.i >> 2 != a.i >> 2 or b.j >> 2 != a.j >> 2 or b.k >> 1 != a.k >> 1:
+                    break
+                b = walk32_next(b, o[tid], d[tid], s, sf, nx, ny, nz)
+            if b.alive == 0 and jmp.alive == 0:
+                jumps[tid] += 1
+            elif (jmp.i != b.i or jmp.j != b.j or jmp.k != b.k or jmp.alive != b.alive or jmp.tx != b.tx
+                    or jmp.ty != b.ty or jmp.tz != b.tz or jmp.ki != b.ki or jmp.kj != b.kj or jmp.kk != b.kk):
+                bad[tid] += 1
+            else:
+                jumps[tid] += 1
+        a = one
+
+
+@pytest.mark.parametrize("unified", [0, 1])
+@pytest.mark.parametrize("rays", ["ties", "near-ties"])
+def test_brick_jump_lands_where_steps_do(rays, unified):
+    """walk32_skip_brick from every voxel of rays full of ties (``tie_rays``) or of near-ties that float32
+    cannot order (``near_tie_rays``; without the certainty margin ``tol`` some jumps land elsewhere), in a
+    grid whose edges cut bricks (23 x 22 x 21 voxels): where it jumps, it lands on the state stepping
+    reaches, bit for bit. unified=1: walk32_step_or_jump in a full brick."""
+    s, m = 0.25, 6000 if rays == "ties" else 20000
+    o, d = tie_rays(m, s, (23, 22, 21), seed=11) if rays == "ties" else near_tie_rays(m, s)
+    jumps = wp.zeros(m, dtype=wp.int32, device="cpu")
+    bad = wp.zeros(m, dtype=wp.int32, device="cpu")
+    wp.launch(_jump_kernel, dim=m, device="cpu",
+              inputs=[wp.array(o, dtype=wp.vec3d, device="cpu"), wp.array(d, dtype=wp.vec3d, device="cpu"), s, 23, 22,
+                      21, unified, jumps, bad])
+    assert jumps.numpy().sum() > 3 * m, "the jump must run"
+    assert bad.numpy().sum() == 0, f"{int(bad.numpy().sum())} jumps landed elsewhere than the steps"
 
 
 @pytest.fixture(scope="module")
@@ -139,8 +221,69 @@ def test_variants_match_the_shipped_kernel(small, device):
         wl.reset()
         wl.launch(v)
         sums, counts = wl.result()
+        if "diagnostic" in v:
+            # walk-only: wrong sums on purpose (each candidate's voxel visits), no bitset
+            assert (sums > 0).all() and (counts == 0).all(), name
+            continue
         np.testing.assert_array_equal(sums, shipped[0], err_msg=name)
         np.testing.assert_array_equal(counts, shipped[1], err_msg=name)
+
+
+def _launch(wl, v, pre=None, count=False):
+    wl.reset()
+    if pre is not None:
+        wl.bits.assign(pre)
+    if count:
+        v = dict(v, kernel=make_lean_kind(v, count=True))
+    wl.launch(v)
+    return wl.result() + (wl.stats.numpy().copy(),)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_skip_on_full_bricks_matches_the_shipped_kernel(small, device):
+    """Bitsets with full bricks before the launch (a random third of the words all ones, a fifth random
+    bits), and a second launch on the bitset the shipped kernel left: the skip and lean variants (and their
+    counting builds) return the shipped kernel's sums and counts, and the skip variants do jump."""
+    psog, lidar, pop = small
+    wl = Workload(psog, lidar, pop, device)
+    sm = wp.get_device(device).sm_count if device.startswith("cuda") else 0
+    vs = variants(sm, None if sm else CPU_THREADS)
+    names = ["skip-r72", "lean-skip-r72", "lean32-skip-r72", "lean32-skipu-r72", "lean32-keep-skip-r72",
+             "lean32-keep-r72", "lean-r72", "lean32-r72", "lean-ahead-r72",
+             "lean32-ahead-r72"]
+    vs = {k: vs[k] for k in ["shipped"] + names}
+    build(vs)
+    rng = np.random.default_rng(3)
+    pre = np.zeros(wl.P * wl.words, dtype=np.uint32)
+    r = rng.random(pre.size)
+    pre[r < 0.33] = 0xFFFFFFFF
+    part = (r >= 0.33) & (r < 0.53)
+    pre[part] = rng.integers(0, 2 ** 32, int(part.sum()), dtype=np.uint64).astype(np.uint32)
+    want = _launch(wl, vs["shipped"], pre)
+    assert (want[0] > 0).all(), "the rays must still find new voxels with entropy"
+    first = _launch(wl, vs["shipped"])
+    filled = wl.bits.numpy().copy()
+    again = _launch(wl, vs["shipped"], filled)
+    # nothing new the second time: no weights, the same covered voxels
+    assert (again[0] == 0).all() and (again[1] == first[1]).all()
+    visits = None
+    for name in names:
+        for count in (False, True):
+            for bits, ref in ((pre, want), (filled, again)):
+                sums, counts, st = _launch(wl, vs[name], bits, count)
+                tag = f"{name} count={count} {'prefilled' if bits is pre else 'second launch'}"
+                np.testing.assert_array_equal(sums, ref[0], err_msg=tag)
+                np.testing.assert_array_equal(counts, ref[1], err_msg=tag)
+                if count and "skip" in name:
+                    assert st[1] > 0 and st[2] > 2 * st[1], f"{tag}: no brick was jumped ({st})"
+                if count and name == "lean-r72" and bits is pre:
+                    assert st[1] == st[2] == st[3] == 0 and st[0] > 0, st
+                    visits = st[0]
+    # the floor diagnostic walks the same voxels as the exact kernels: its sums are each rig's visits
+    for name in ("walk-only", "walk-only-lean32"):
+        diag = dict(variants(sm, None if sm else CPU_THREADS)[name])
+        sums, counts, st = _launch(wl, dict(diag, kernel=make_lean_kind(diag)))
+        assert sums.sum() == visits and (counts == 0).all(), name
 
 
 def test_a_tile_that_does_not_fit_is_refused(small):
