@@ -131,7 +131,7 @@ class Workload:
     @staticmethod
     def shipped_kernel():
         """The shipped CUDA score kernel (``score_kernel_gpu``)."""
-        return p3k.get_backend("warp:cpu").k.score_kernel_gpu
+        return p3k.get_backend("warp:cpu").score_gpu.score_kernel_gpu
 
     def reset(self) -> None:
         """Zero the bitsets, sums, counts and the ray counter (outside the timed region)."""
@@ -142,7 +142,7 @@ class Workload:
         (the shipped ``count_bits_kernel``, part of every variant's time, as in gpu_score_variants.py)."""
         io = self.inputs + [self.bits, self.sums]
         if v["kind"] == "shipped":
-            wp.launch(self.backend.k.score_kernel_gpu, dim=self.n_rays, device=self.device, inputs=io,
+            wp.launch(self.backend.score_gpu.score_kernel_gpu, dim=self.n_rays, device=self.device, inputs=io,
                       block_dim=BLOCK_DIM)
         elif v["kind"] == "lean":
             if self.words >= 2 ** 31:
@@ -197,11 +197,11 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     # third round (gpu_dense_lean_kernels.py): lean address arithmetic (lean: the brick word kept
     # incrementally; lean32: recomputed in int32), full bricks skipped, loads one step ahead, and the
     # walk-only floor with today's step
-    for body, skip, ahead, caps in (("lean", False, False, (64, 72, 80)), ("lean32", False, False, (64, 72, 80)),
+    for body, skip, ahead, caps in (("lean", False, False, (64, 72, 80)), ("lean32", False, False, (48, 56, 64, 72, 80)),
                                     ("eager", True, False, (72, 80)), ("lean", True, False, (72, 80)),
                                     ("lean32", True, False, (72, 80)), ("lean", False, True, (72, 80)),
                                     ("lean32", False, True, (72, 80)), ("lean32", "unified", False, (72, 80)),
-                                    ("lean32-keep", False, False, (72, 80)), ("lean32-keep", True, False, (72, 80))):
+                                    ("lean32-keep", False, False, (56, 64, 72, 80)), ("lean32-keep", True, False, (72, 80))):
         for maxreg in caps:
             name = (body if body != "eager" else "") + ("-skipu" if skip == "unified" else "-skip" if skip else "") \
                 + ("-ahead" if ahead else "")

@@ -28,10 +28,11 @@ Workload as in ``gpu_dense.py``: a population of ``--pop`` perturbed ``pyramid``
 * ``w32-perbrick-*``: the float32 walk with ``perbrick-*``'s bookkeeping;
 * ``w32-cached-*``: the float32 walk reading a brick's masks (one 64-bit load) and a snapshot of its
   bitset word once per brick entered, one atomic per newly marked voxel;
-* ``shipped``: ``score_kernel_gpu`` as the backend launches it on CUDA (``score_ray_brick``): as
-  ``w32-cached``, but the bits newly marked in a brick go out in one ``atomic_or`` when the ray leaves it,
-  whose result is waited for only when some of them have entropy; 80 registers, 128 threads;
-  ``w32-brick-rN-bD`` is the same body with other caps / block sizes;
+* ``shipped``: the CUDA score kernel the backend launches today (``warp/score_gpu.py``; until
+  2026-11-25 ``score_ray_brick``, the ``w32-brick`` body: as ``w32-cached``, but the bits newly marked in a
+  brick go out in one ``atomic_or`` when the ray leaves it, whose result is waited for only when some of
+  them have entropy; 80 registers, 128 threads); ``w32-brick-rN-bD`` is that body with other caps / block
+  sizes;
 * ``diag-walkonly`` / ``diag-nonatomic`` (diagnostics, wrong sums on purpose): the walk reading only the
   occlusion bits (no bitset, no weights: the floor of the walk itself), and the shipped per-voxel body
   with plain read-modify-writes instead of atomics (the cost of the atomics);
@@ -781,8 +782,8 @@ def main() -> None:
         "pervoxel-r72-b128": (_pervoxel(72), shipped_tail, brick_words, 128),
         "perbrick-b128": (_perbrick(), shipped_tail, brick_words, 128),
         "f64-resultfree-r72-b128": (_sumonly(f64_ray, 72), shipped_tail, brick_words, 128),
-        "w32-r72-b128-cpu-kernel": (b.k.score_kernel, shipped_tail, brick_words, b.k.SCORE_BLOCK_DIM),
-        "shipped": (b.k.score_kernel_gpu, tail64, brick_words, b.k.SCORE_BLOCK_DIM),
+        "w32-r72-b128-cpu-kernel": (b.k.score_kernel, shipped_tail, brick_words, b.score_gpu.SCORE_BLOCK_DIM),
+        "shipped": (b.score_gpu.score_kernel_gpu, tail64, brick_words, b.score_gpu.SCORE_BLOCK_DIM),
         "w32-rnone-b128": (_sumonly(score_ray), shipped_tail, brick_words, 128),
         "w32-r56-b128": (_sumonly(score_ray, 56), shipped_tail, brick_words, 128),
         "w32-r64-b128": (_sumonly(score_ray, 64), shipped_tail, brick_words, 128),

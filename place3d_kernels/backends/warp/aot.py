@@ -44,9 +44,9 @@ def modules() -> list:
     """The Warp modules shipped compiled: ``kernels.py`` and the score kernel's module of its own. They are
     what ``place3d optimize`` and ``evaluate`` run on a GPU; others (conditions, per-ray scores) compile
     on first use as before."""
-    from place3d_kernels.backends.warp import kernels
+    from place3d_kernels.backends.warp import kernels, score_gpu
 
-    return [kernels.raycast_query_kernel.module, kernels.score_kernel_gpu.module]
+    return [kernels.raycast_query_kernel.module, score_gpu.score_kernel_gpu.module]
 
 
 def binary_for(identifier: str, arch: int, where: Path | None = None) -> tuple[int, bool] | None:

@@ -162,9 +162,10 @@ class WarpCore(Backend):
             said = f" (Warp at start-up: {_init_output})" if _init_output and "cuda" in str(device) else ""
             raise BackendUnavailable(f"Warp device {device!r} is not available: {e}{said}") from None
         self.name = f"warp:{self.device}"
-        from place3d_kernels.backends.warp import kernels
+        from place3d_kernels.backends.warp import kernels, score_gpu
 
         self.k = kernels
+        self.score_gpu = score_gpu       # the CUDA score kernel's module of its own
         self._empty_u8 = wp.zeros(1, dtype=wp.uint8, device=self.device)
         self._directions = DirectionCache(lambda sd: (sd, self._vec3d(sd)))
         self.threads = 1 if self.device.is_cuda else cpu_threads()
@@ -460,10 +461,15 @@ class WarpCore(Backend):
         pos = self._vec3d(flat[:, :3])
         rays = L * len(sd)     # per candidate
         if self.device.is_cuda:
-            wp.launch(self.k.score_kernel_gpu, dim=P * rays, device=self.device,
+            g = self.score_gpu
+            if words > g.MAX_WORDS:
+                raise ValueError(f"grid of shape {spec.shape} needs {words:,} bitset words per candidate; the CUDA "
+                                 f"score kernel indexes at most {g.MAX_WORDS:,} (a coarser voxel size or a "
+                                 f"smaller grid)")
+            wp.launch(g.score_kernel_gpu, dim=P * rays, device=self.device,
                       inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
                               int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
-                      block_dim=self.k.SCORE_BLOCK_DIM)
+                      block_dim=g.SCORE_BLOCK_DIM)
         elif P == 1 and self.threads > 1 and rays >= 2 * MIN_CHUNK and _split_pays(rays, self.threads):
             return self._score_one_rig_split(handle, sd, rot, pos, L, t_max)
         elif P == 1 or self.threads <= 1:

@@ -490,45 +490,6 @@ def walk32_next(w: Walk32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.float
 
 
 @wp.func
-def walk32_next_sel(w: Walk32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.float32, nx: wp.int32,
-                    ny: wp.int32, nz: wp.int32) -> Walk32:
-    # walk32_next with the axis chosen by selects instead of three branches (the GPU score kernel's step):
-    # lanes of a warp stepping along different axes run the same instructions, where walk32_next runs
-    # the three branches one after another (2.5 axes per warp-step on the dense rig; bench/README.md).
-    # Same comparisons, same float32 crossing (no FMA: fuse_fp is off), same float64 fallback: the same
-    # voxels bit for bit (tests/test_dense_variants.py steps both in lockstep on tie-heavy rays). On the
-    # CPU it is slower, so mark_walk keeps walk32_next.
-    xa = w.tx < w.ty and w.tx < w.tz
-    ya = (not xa) and w.ty < w.tz
-    za = (not xa) and (not ya)
-    tmin = wp.where(xa, w.tx, wp.where(ya, w.ty, w.tz))
-    o1 = wp.where(xa, w.ty, w.tx)                 # the two other axes' crossings
-    o2 = wp.where(za, w.ty, w.tz)
-    lim = tmin + w.tol
-    if w.exact != 0 or o1 <= lim or o2 <= lim or w.t1 <= lim:
-        return walk32_exact(w, o, d, s, sf, nx, ny, nz)
-    di = wp.where(xa, w.si, 0)
-    dj = wp.where(ya, w.sj, 0)
-    dk = wp.where(za, w.sk, 0)
-    w.i = w.i + di
-    w.j = w.j + dj
-    w.k = w.k + dk
-    w.ki = w.ki + di
-    w.kj = w.kj + dj
-    w.kk = w.kk + dk
-    kk = wp.where(xa, w.ki, wp.where(ya, w.kj, w.kk))
-    q = wp.where(xa, w.qx, wp.where(ya, w.qy, w.qz))
-    v = wp.where(xa, w.vx, wp.where(ya, w.vy, w.vz))
-    t = (wp.float32(kk) * sf - q) * v
-    w.tx = wp.where(xa, t, w.tx)
-    w.ty = wp.where(ya, t, w.ty)
-    w.tz = wp.where(za, t, w.tz)
-    out = w.i < 0 or w.i >= nx or w.j < 0 or w.j >= ny or w.k < 0 or w.k >= nz
-    w.alive = wp.where(out, 0, w.alive)
-    return w
-
-
-@wp.func
 def flat32(w: Walk32, ny: wp.int32, nz: wp.int32) -> wp.int64:
     return (wp.int64(w.i) * wp.int64(ny) + wp.int64(w.j)) * wp.int64(nz) + wp.int64(w.k)
 
@@ -676,104 +637,8 @@ def score_ray(
         wp.atomic_add(sums, cand, my_sum)
 
 
-@wp.func
-def flush_brick(bits: wp.array(dtype=wp.uint32), base: wp.int64, word: wp.int64, pending: wp.uint32,
-                nz_w: wp.uint32, bny: wp.int32, bnz: wp.int32, ny: wp.int32, nz: wp.int32,
-                weights: wp.array(dtype=wp.int64)) -> wp.int64:
-    # one atomic_or for the bits a ray marked in one brick; only when some have entropy is its result
-    # waited for (the bits the ray set first are its own: it adds their weights)
-    add = wp.int64(0)
-    if pending != wp.uint32(0):
-        at = base + word
-        if (pending & nz_w) != wp.uint32(0):
-            old = wp.atomic_or(bits, at, pending)
-            m = pending & ~old & nz_w
-            # the brick's coordinates from its word (rare: only bricks with entropy the ray marked first)
-            bk = wp.int32(word % wp.int64(bnz))
-            bj = wp.int32((word / wp.int64(bnz)) % wp.int64(bny))
-            bi = wp.int32(word / (wp.int64(bnz) * wp.int64(bny)))
-            while m != wp.uint32(0):
-                b = wp.bit_count((m & (~m + wp.uint32(1))) - wp.uint32(1))     # index of the lowest set bit
-                i = bi * 4 + (b & 3)
-                j = bj * 4 + ((b >> 2) & 3)
-                k = bk * 2 + (b >> 4)
-                add += weights[(wp.int64(i) * wp.int64(ny) + wp.int64(j)) * wp.int64(nz) + wp.int64(k)]
-                m = m & (m - wp.uint32(1))
-        else:
-            wp.atomic_or(bits, at, pending)
-    return add
-
-
-@wp.func
-def score_ray_brick(
-    tid: wp.int32,
-    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
-    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
-    bny: wp.int32, bnz: wp.int32, masks64: wp.array(dtype=wp.uint64),
-    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64, bits: wp.array(dtype=wp.uint32),
-    sums: wp.array(dtype=wp.int64),
-):
-    # The GPU form of score_ray (same sums). Memory is touched per brick a ray passes, not per voxel: the
-    # brick's masks (occlusion bits low, nonzero-weight bits high, one 64-bit load) and its bitset word
-    # are read on every step (cache hits while the ray stays in the brick) but kept only when the ray
-    # enters a new brick, so the bitset snapshot is the word read on entry (bits only ever get set, so a
-    # stale copy is safe: it only filters); on leaving, one atomic_or with the bits the ray newly marked
-    # there (flush_brick). The first ray to set a voxel's bit owns it and adds its weight. Loading on
-    # every step instead of in an "entered a new brick" branch, and the branch-free step
-    # (walk32_next_sel), leave only the flush as a branch: 2.59 against 3.12 ms per dense rig on the
-    # H100 (bench/gpu_dense_variants.py, "eager"). On the CPU score_ray is faster (no atomics to save
-    # there), so the CPU keeps score_ray (figures: bench/README.md).
-    n = sensor_dirs.shape[0]
-    rig = tid / n
-    cand = rig / n_lidars
-    o = pos[rig]
-    d = rot[rig] * sensor_dirs[tid - rig * n]
-    sf = wp.float32(s)
-    w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
-    base = wp.int64(cand) * words_per_candidate
-    my_sum = wp.int64(0)
-    cur = wp.int64(-1)
-    seen = wp.uint32(0)
-    pending = wp.uint32(0)
-    nz_w = wp.uint32(0)
-    for _ in range(nx + ny + nz + 3):
-        if w.alive == 0:
-            break
-        word = brick_word(w, bny, bnz)
-        change = word != cur
-        if change and pending != wp.uint32(0):
-            my_sum += flush_brick(bits, base, cur, pending, nz_w, bny, bnz, ny, nz, weights)
-        m = masks64[word]
-        fresh = bits[base + word]
-        stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))
-        nz_w = wp.uint32(m >> wp.uint64(32))
-        seen = wp.where(change, fresh, seen)
-        pending = wp.where(change, wp.uint32(0), pending)
-        cur = word
-        bit = brick_bit(w)
-        pending = pending | (bit & ~seen)
-        seen = seen | bit
-        if (stop_w & bit) != wp.uint32(0):
-            break
-        w = walk32_next_sel(w, o, d, s, sf, nx, ny, nz)
-    if pending != wp.uint32(0):
-        my_sum += flush_brick(bits, base, cur, pending, nz_w, bny, bnz, ny, nz, weights)
-    if my_sum > wp.int64(0):
-        wp.atomic_add(sums, cand, my_sum)
-
-
-# 128-thread blocks and a register cap: uncapped, the kernels take so many registers that few warps fit on
-# an SM; the caps below ran the dense rig on the 0.05 m grid fastest, with identical sums
-# (bench/gpu_score_variants.py; figures: bench/README.md, "Figures behind backend code comments").
-# The CPU ignores both.
-SCORE_BLOCK_DIM = 128
-# Warp builds a module once per (device, launch block_dim) and hashes block_dim into it (Warp 1.19,
-# Module.load): a 128-thread launch of a kernel of this module, whose other launches use CUDA's default
-# 256, compiled the whole file a second time on a cold CUDA host (3.4 s). So the 128-thread kernel lives
-# in a module of its own ("unique": it and the functions it calls), with this file's options restated.
-_SCORE_GPU_MODULE_OPTIONS = {"enable_backward": False, "fuse_fp": False, "block_dim": SCORE_BLOCK_DIM}
-
-
+# a register cap of 72, kept from the GPU study of this kernel's form (bench/gpu_score_variants.py); the
+# CPU, which runs it, ignores it. CUDA runs score_gpu.score_kernel_gpu.
 @wp.kernel(cuda_max_registers=72)
 def score_kernel(
     sensor_dirs: wp.array(dtype=wp.vec3d),      # (C*A,)
@@ -789,23 +654,9 @@ def score_kernel(
     bits: wp.array(dtype=wp.uint32),           # (P * words_per_candidate,) zeroed, bricked
     sums: wp.array(dtype=wp.int64),            # (P,) zeroed
 ):
-    # the CPU's score kernel (and the GPU study's baseline)
+    # the CPU's score kernel (CUDA runs score_gpu.score_kernel_gpu)
     score_ray(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks, weights,
               words_per_candidate, bits, sums)
-
-
-@wp.kernel(cuda_max_registers=72, module="unique", module_options=_SCORE_GPU_MODULE_OPTIONS)
-def score_kernel_gpu(
-    sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d), pos: wp.array(dtype=wp.vec3d),
-    n_lidars: wp.int32, t_max: wp.float64, s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
-    bny: wp.int32, bnz: wp.int32,
-    masks64: wp.array(dtype=wp.uint64),         # per brick: occlusion bits | nonzero-weight bits << 32
-    weights: wp.array(dtype=wp.int64), words_per_candidate: wp.int64,
-    bits: wp.array(dtype=wp.uint32), sums: wp.array(dtype=wp.int64),
-):
-    # the CUDA score kernel: per-brick memory traffic (score_ray_brick)
-    score_ray_brick(wp.tid(), sensor_dirs, rot, pos, n_lidars, t_max, s, nx, ny, nz, bny, bnz, masks64, weights,
-                    words_per_candidate, bits, sums)
 
 
 COUNT_WORDS = 64   # bitset words per thread of count_bits_kernel (the literal in its loop)
