@@ -21,6 +21,16 @@ cap spills less, and a shorter common step.
   the clip's three float64 divisions on the rare path raised register pressure so that nvcc spilled hot
   values (sm_90, 64-register cap: 13 spill loads on the common step against 2, 94 instructions against 81).
 
+With ``med=True`` (``lean32xm``) the common step decides by the minimum and the median of (tx, ty, tz),
+fewer instructions than the shipped chain of strict compares and selects, and the same decision. Proof: the
+shipped test picks tmin by ``tx < ty and tx < tz``, then ``ty < tz``, else z; each branch's pick is the
+smallest value (e.g. not xa and ty < tz: tx >= ty, or else tx >= tz > ty, a contradiction), and o1, o2 are
+the two other values, ties kept; so "o1 > lim and o2 > lim" is "median > lim". min and max return one of
+their operands unchanged (no NaN arises: a float32 walk's crossings are finite, a float64-only walk's are
+0), so lim = tmin + tol has the same operands and bits. Where the test passes the minimum is unique
+(median > tmin + tol >= tmin), so ``tx == tmin`` picks the shipped axis. tests/test_dense_variants.py
+fails if the tolerance or the segment-end test is dropped from it.
+
 With ``reload=True`` the float64 step also reloads the ray (``o = pos[rig]``, ``d = rot[rig] * dir``, the
 kernel's own expressions, so the same bits) instead of keeping o and d (12 registers) live across the
 loop; rig and the direction's index come from the thread index.
@@ -182,6 +192,22 @@ def walk32x_certain(w: Walk32x):
 
 
 @wp.func
+def walk32x_certain_med(w: Walk32x):
+    """``walk32x_certain`` by minimum and median (``med`` in the module docstring): the same ``go``, and
+    where ``go`` holds the same axis."""
+    a = wp.min(w.tx, w.ty)
+    b = wp.max(w.tx, w.ty)
+    tmin = wp.min(a, w.tz)
+    med = wp.max(a, wp.min(b, w.tz))
+    lim = tmin + w.tol
+    go = med > lim and w.t1 > lim
+    xa = w.tx == tmin
+    ya = (not xa) and w.ty == tmin
+    za = (not xa) and (not ya)
+    return xa, ya, za, go
+
+
+@wp.func
 def walk32x_step32(w: Walk32x, xa: wp.bool, ya: wp.bool, za: wp.bool, sf: wp.float32) -> Walk32x:
     # the certain float32 step along the first axis (walk32_next_lean's, without the grid test: the loop's
     # head makes it)
@@ -216,6 +242,16 @@ def walk32x_next(w: Walk32x, o: wp.vec3d, d: wp.vec3d, t1d: wp.float64, s: wp.fl
 
 
 @wp.func
+def walk32x_next_med(w: Walk32x, o: wp.vec3d, d: wp.vec3d, t1d: wp.float64, s: wp.float64, sf: wp.float32,
+                     nx: wp.int32, ny: wp.int32, nz: wp.int32) -> Walk32x:
+    """``walk32x_next`` deciding by minimum and median (``walk32x_certain_med``)."""
+    xa, ya, za, go = walk32x_certain_med(w)
+    if not go:
+        return walk32x_exact(w, o, d, t1d, s, sf, nx, ny, nz)
+    return walk32x_step32(w, xa, ya, za, sf)
+
+
+@wp.func
 def walk32x_next_reload(w: Walk32x, pos: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
                         sensor_dirs: wp.array(dtype=wp.vec3d), tid: wp.int32, n: wp.int32, t1d: wp.float64,
                         s: wp.float64, sf: wp.float32, nx: wp.int32, ny: wp.int32, nz: wp.int32) -> Walk32x:
@@ -233,7 +269,7 @@ def word32x(w: Walk32x, bny: wp.int32, bnz: wp.int32) -> wp.int32:
 
 
 # ----------------------------------------------------------------------------- kernel
-def make_lean32x(maxreg=None, reload=False):
+def make_lean32x(maxreg=None, reload=False, med=False):
     """The shipped ``score_kernel_gpu`` on a ``Walk32x`` (module docstring); ``reload``: the float64 step
     reloads the ray instead of keeping o and d live. Inputs: the shipped kernel's, then ``stats`` (unused,
     as the study's other kernels take it)."""
@@ -282,6 +318,8 @@ def make_lean32x(maxreg=None, reload=False):
                 break
             if wp.static(reload):
                 w = walk32x_next_reload(w, pos, rot, sensor_dirs, tid, n, t1d, s, sf, nx, ny, nz)
+            elif wp.static(med):
+                w = walk32x_next_med(w, o, d, t1d, s, sf, nx, ny, nz)
             else:
                 w = walk32x_next(w, o, d, t1d, s, sf, nx, ny, nz)
         if pending != wp.uint32(0):

@@ -32,7 +32,13 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
   diagnostic (today's step and stop read only; wrong sums on purpose: it is left out of the equality
   checks and labelled in the JSON). ``--skip-stats`` adds counting builds' steps and jumps.
 
-Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU).
+* fourth round (``gpu_dense_round4_kernels.py``, each at ``-r48``, ``-r56``, ``-r64``): ``lean32x`` (the shipped
+  kernel on a walk state without the alive, exact and t1d fields), ``lean32xm`` (that, with the step test by
+  minimum and median of the three crossings: fewer instructions, the same decisions) and ``lean32xr``
+  (lean32x whose float64 step reloads the ray instead of keeping o and d live).
+
+Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU; with
+``cuobjdump`` on PATH also the common step's instruction count, and with ``--listing`` its SASS).
 
 Each variant's sums and counts (covered voxels, counted from the bitset with the shipped
 ``count_bits_kernel``, which is timed with every kernel; zeroing the outputs is not) must equal the shipped kernel's on every
@@ -210,7 +216,7 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
                                                     "maxreg": maxreg}
     # fourth round (gpu_dense_round4_kernels.py): the shipped kernel on a smaller walk state (no alive,
     # exact or t1d fields); -reload: the float64 step reloads the ray instead of keeping o and d live
-    for body in ("lean32x", "lean32xr"):
+    for body in ("lean32x", "lean32xr", "lean32xm"):
         for maxreg in (48, 56, 64):
             out[f"{body}-r{maxreg}"] = {"kind": "lean", "body": body, "skip": False, "ahead": False, "maxreg": maxreg}
     out["walk-only"] = {"kind": "lean", "body": "walk", "skip": False, "ahead": False, "maxreg": 72,
@@ -247,8 +253,8 @@ def make_lean_kind(v: dict, count: bool = False):
     """The kernel of a variant of kind ``lean`` (``count``: the build that fills ``Workload.stats``)."""
     if v["body"] in ("walk", "walk-lean32"):
         return make_walk_only(v["maxreg"], count, lean=v["body"] == "walk-lean32")
-    if v["body"] in ("lean32x", "lean32xr"):
-        return make_lean32x(v["maxreg"], reload=v["body"] == "lean32xr")
+    if v["body"] in ("lean32x", "lean32xr", "lean32xm"):
+        return make_lean32x(v["maxreg"], reload=v["body"] == "lean32xr", med=v["body"] == "lean32xm")
     if v["body"] == "eager":
         return make_eager_skip(v["maxreg"], count)
     return make_lean(v["maxreg"], v["skip"], v["ahead"], count, inc=v["body"] == "lean",
