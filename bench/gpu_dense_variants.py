@@ -32,7 +32,13 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
   diagnostic (today's step and stop read only; wrong sums on purpose: it is left out of the equality
   checks and labelled in the JSON). ``--skip-stats`` adds counting builds' steps and jumps.
 
-Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU).
+* fourth round (``gpu_dense_round4_kernels.py``, each at ``-r48``, ``-r56``, ``-r64``): ``lean32x`` (the shipped
+  kernel on a walk state without the alive, exact and t1d fields), ``lean32xm`` (that, with the step test by
+  minimum and median of the three crossings: fewer instructions, the same decisions) and ``lean32xr``
+  (lean32x whose float64 step reloads the ray instead of keeping o and d live).
+
+Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU; with
+``cuobjdump`` on PATH also the common step's instruction count, and with ``--listing`` its SASS).
 
 Each variant's sums and counts (covered voxels, counted from the bitset with the shipped
 ``count_bits_kernel``, which is timed with every kernel; zeroing the outputs is not) must equal the shipped kernel's on every
@@ -72,6 +78,7 @@ if str(Path(__file__).resolve().parent) not in sys.path:
     sys.path.append(str(Path(__file__).resolve().parent))
 import sass_hot_path  # noqa: E402
 from gpu_dense_lean_kernels import make_eager_skip, make_lean, make_walk_only  # noqa: E402
+from gpu_dense_round4_kernels import make_lean32x  # noqa: E402
 from gpu_dense_variants_kernels import make_persistent, make_tiled  # noqa: E402
 
 BLOCK_DIM = 128          # the shipped kernel's (SCORE_BLOCK_DIM); every variant launches with it
@@ -207,6 +214,11 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
                 + ("-ahead" if ahead else "")
             out[f"{name.lstrip('-')}-r{maxreg}"] = {"kind": "lean", "body": body, "skip": skip, "ahead": ahead,
                                                     "maxreg": maxreg}
+    # fourth round (gpu_dense_round4_kernels.py): the shipped kernel on a smaller walk state (no alive,
+    # exact or t1d fields); -reload: the float64 step reloads the ray instead of keeping o and d live
+    for body in ("lean32x", "lean32xr", "lean32xm"):
+        for maxreg in (48, 56, 64):
+            out[f"{body}-r{maxreg}"] = {"kind": "lean", "body": body, "skip": False, "ahead": False, "maxreg": maxreg}
     out["walk-only"] = {"kind": "lean", "body": "walk", "skip": False, "ahead": False, "maxreg": 72,
                         "diagnostic": "floor: today's step (walk32_next_sel) and stop read only, no bitset, no "
                                       "weights; sums are step counts (wrong on purpose, not compared)"}
@@ -241,6 +253,8 @@ def make_lean_kind(v: dict, count: bool = False):
     """The kernel of a variant of kind ``lean`` (``count``: the build that fills ``Workload.stats``)."""
     if v["body"] in ("walk", "walk-lean32"):
         return make_walk_only(v["maxreg"], count, lean=v["body"] == "walk-lean32")
+    if v["body"] in ("lean32x", "lean32xr", "lean32xm"):
+        return make_lean32x(v["maxreg"], reload=v["body"] == "lean32xr", med=v["body"] == "lean32xm")
     if v["body"] == "eager":
         return make_eager_skip(v["maxreg"], count)
     return make_lean(v["maxreg"], v["skip"], v["ahead"], count, inc=v["body"] == "lean",
@@ -270,12 +284,13 @@ def skip_stats(wl: Workload, ref: tuple) -> dict:
     return out
 
 
-def register_report(vs: dict, arch: int = 90) -> dict:
+def register_report(vs: dict, arch: int = 90, listing: bool = False) -> dict:
     """Registers and spills per variant, without a GPU: Warp compiles each kernel's module to PTX with
     NVRTC and ``ptxas -v`` (CUDA toolkit on PATH) assembles it for ``sm_<arch>``. Where this ptxas is older
     than the PTX NVRTC wrote, the ``.version`` line is lowered to what ptxas names and the assembly
     retried (the kernels use no newer instruction; ptxas would refuse one). Where ``cuobjdump`` is on
-    PATH, also the instructions of the inner loop's common step (``sass_hot_path.py``)."""
+    PATH, also the instructions of the inner loop's common step (``sass_hot_path.py``; ``listing``: the
+    instructions themselves too, in the JSON only)."""
     if shutil.which("ptxas") is None:
         raise SystemExit("--registers needs ptxas (the CUDA toolkit) on PATH")
     out = {}
@@ -301,8 +316,8 @@ def register_report(vs: dict, arch: int = 90) -> dict:
             out[name] = {"registers": int(regs.group(1)), "spill_store_bytes": int(spill.group(1)) if spill else 0,
                          "spill_load_bytes": int(spill.group(2)) if spill else 0}
             if sass_hot_path.available():
-                out[name].update(sass_hot_path.common_step(sass_hot_path.sass(f"{tmp}/{name}/k.cubin")))
-            print(f"{name:34s} {out[name]}", flush=True)
+                out[name].update(sass_hot_path.common_step(sass_hot_path.sass(f"{tmp}/{name}/k.cubin"), listing))
+            print(f"{name:34s} {({k: x for k, x in out[name].items() if k != 'common_step_listing'})}", flush=True)
     return out
 
 
@@ -329,6 +344,8 @@ def main() -> None:
                     help="also run counting builds of lean/skip once and report steps, jumps and steps saved")
     ap.add_argument("--registers", action="store_true",
                     help="no timing: registers and spills per variant from ptxas for sm_90 (no GPU needed)")
+    ap.add_argument("--listing", action="store_true",
+                    help="with --registers: also each kernel's common-step SASS in the JSON")
     ap.add_argument("--out", default=os.environ.get("OUT", str(Path(__file__).resolve().parent / "results")))
     args = ap.parse_args()
     dev = args.device
@@ -343,7 +360,7 @@ def main() -> None:
         vs = {k: v for k, v in vs.items() if k in only or k == "shipped"}
     if args.registers:
         build(vs)
-        report = register_report(vs)
+        report = register_report(vs, listing=args.listing)
         res = Path(args.out)
         res.mkdir(parents=True, exist_ok=True)
         (res / "gpu-dense-variants-registers-sm90.json").write_text(json.dumps(

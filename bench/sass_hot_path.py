@@ -44,9 +44,10 @@ def _target(op: str) -> int | None:
     return int(m.group(1), 16) if m else None
 
 
-def common_step(ins: list[tuple[int, str]]) -> dict:
+def common_step(ins: list[tuple[int, str]], listing: bool = False) -> dict:
     """The inner loop's common-path iteration: instruction count (without BSSY/BSYNC/YIELD/NOP, which
-    mark reconvergence and scheduling), global loads and local-memory (spill) loads on it."""
+    mark reconvergence and scheduling), global loads and local-memory (spill) loads on it; ``listing``:
+    also the path's instructions themselves (``common_step_listing``), to read what a step costs."""
     at = {a: i for i, (a, _) in enumerate(ins)}
     backs = sorted((at[a] - at[_target(op)], _target(op), a) for a, op in ins
                    if "BRA" in op and _target(op) is not None and _target(op) < a)
@@ -77,6 +78,9 @@ def common_step(ins: list[tuple[int, str]]) -> dict:
     while path[-1] != head:
         path.append(prev[path[-1]])
     ops = [ins[at[a]][1] for a in reversed(path)]
-    return {"common_step_instructions": sum(not BOOKKEEPING.match(o) for o in ops),
-            "common_step_global_loads": sum("LDG" in o for o in ops),
-            "common_step_spill_loads": sum("LDL" in o for o in ops)}
+    out = {"common_step_instructions": sum(not BOOKKEEPING.match(o) for o in ops),
+           "common_step_global_loads": sum("LDG" in o for o in ops),
+           "common_step_spill_loads": sum("LDL" in o for o in ops)}
+    if listing:
+        out["common_step_listing"] = [o for o in ops if not BOOKKEEPING.match(o)]
+    return out

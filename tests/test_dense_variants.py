@@ -19,9 +19,12 @@ import place3d_kernels as p3k
 wp = pytest.importorskip("warp")
 sys.path.append(str(Path(__file__).resolve().parents[1] / "bench"))     # appended: shadows nothing
 from gpu_dense_lean_kernels import walk32_next_lean, walk32_skip_brick, walk32_step_or_jump  # noqa: E402
+from gpu_dense_round4_kernels import inside, walk32x_from, walk32x_next, walk32x_next_med  # noqa: E402
 from gpu_dense_variants import Workload, build, make_lean_kind, variants  # noqa: E402
 from gpu_dense_variants_kernels import tiled_ray, walk32_next_sel  # noqa: E402
 from gpu_score_variants_kernels import walk32_begin, walk32_next  # noqa: E402
+
+from place3d_kernels.backends.warp import kernels as shipped_k  # noqa: E402   (Walk32x converts its Walk32)
 
 wp.init()
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
@@ -104,6 +107,66 @@ def test_branch_free_step_takes_the_shipped_steps(lean, rays):
               inputs=[wp.array(o, dtype=wp.vec3d, device="cpu"), wp.array(d, dtype=wp.vec3d, device="cpu"), s, n, lean,
                       steps, bad])
     assert steps.numpy().sum() > 10 * m, "the rays must walk"
+    assert bad.numpy().sum() == 0, f"{int(bad.numpy().sum())} rays stepped differently"
+
+
+@wp.kernel
+def _lockstep_x_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), t_end: wp.array(dtype=wp.float64),
+                       s: wp.float64, nx: wp.int32,
+                       ny: wp.int32, nz: wp.int32, med: wp.int32, steps: wp.array(dtype=wp.int32),
+                       exact: wp.array(dtype=wp.int32), bad: wp.array(dtype=wp.int32)):
+    # walk32x_next (round four's smaller state) against walk32_next from the same start, after every step:
+    # on while the shipped walk is alive, the same voxel, planes and (float32 walks) crossing times
+    tid = wp.tid()
+    sf = wp.float32(s)
+    a = shipped_k.walk32_begin(o[tid], d[tid], t_end[tid], s, sf, nx, ny, nz)
+    b = walk32x_from(a)
+    exact[tid] = a.exact
+    c = wp.int32(0)
+    for _ in range(nx + ny + nz + 3):
+        on = inside(b, nx, ny, nz)
+        if on != (a.alive != 0):
+            bad[tid] = 1
+        if a.alive == 0 or not on:
+            break
+        if a.i != b.i or a.j != b.j or a.k != b.k or a.ki != b.ki or a.kj != b.kj or a.kk != b.kk:
+            bad[tid] = 1
+        if a.exact == 0 and (a.tx != b.tx or a.ty != b.ty or a.tz != b.tz or a.t1 != b.t1 or a.tol != b.tol):
+            bad[tid] = 1
+        if a.exact != 0 and b.t1 >= wp.float32(0.0):
+            bad[tid] = 1
+        if med != 0:
+            b = walk32x_next_med(b, o[tid], d[tid], a.t1d, s, sf, nx, ny, nz)
+        else:
+            b = walk32x_next(b, o[tid], d[tid], a.t1d, s, sf, nx, ny, nz)
+        a = shipped_k.walk32_next(a, o[tid], d[tid], s, sf, nx, ny, nz)
+        c += 1
+    steps[tid] = c
+
+
+@pytest.mark.parametrize("med", [0, 1])
+@pytest.mark.parametrize("rays", ["ties", "near-ties"])
+def test_small_walk_state_takes_the_shipped_steps(rays, med):
+    """Round four's Walk32x (no alive, exact or t1d fields; gpu_dense_round4_kernels.py) steps as walk32_next
+    on rays full of ties and near-ties, float64-only rays among them, in a grid whose edges cut bricks, and
+    ends where it ends: a third of the segments end inside the grid (some on a voxel plane, where the
+    float32 step must defer to the float64 one), the others leave it. med=1: the step test by minimum and
+    median (walk32x_next_med)."""
+    s, m, n = 0.25, 6000, (23, 22, 21)
+    o, d = tie_rays(m, s, n, seed=13) if rays == "ties" else near_tie_rays(m, s, seed=17)
+    rng = np.random.default_rng(19)
+    t_end = np.where(rng.random(m) < 0.33, rng.uniform(0.0, 4.0, m), 1.0e3)
+    plane = rng.random(m) < 0.1        # segments ending on an x plane of the grid: ties with the end
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_plane = ((np.floor(o[:, 0] / s) + np.sign(d[:, 0]) * rng.integers(1, 6, m)) * s - o[:, 0]) / d[:, 0]
+    t_end = np.where(plane & np.isfinite(t_plane) & (t_plane > 0), t_plane, t_end)
+    steps, exact, bad = (wp.zeros(m, dtype=wp.int32, device="cpu") for _ in range(3))
+    wp.launch(_lockstep_x_kernel, dim=m, device="cpu",
+              inputs=[wp.array(o, dtype=wp.vec3d, device="cpu"), wp.array(d, dtype=wp.vec3d, device="cpu"),
+                      wp.array(t_end, dtype=wp.float64, device="cpu"), s, *n, med, steps, exact, bad])
+    assert steps.numpy().sum() > 10 * m, "the rays must walk"
+    if rays == "ties":
+        assert exact.numpy().sum() > 0, "some rays must be float64-only (a direction component below DIR_SMALL)"
     assert bad.numpy().sum() == 0, f"{int(bad.numpy().sum())} rays stepped differently"
 
 
@@ -250,7 +313,7 @@ def test_skip_on_full_bricks_matches_the_shipped_kernel(small, device):
     vs = variants(sm, None if sm else CPU_THREADS)
     names = ["skip-r72", "lean-skip-r72", "lean32-skip-r72", "lean32-skipu-r72", "lean32-keep-skip-r72",
              "lean32-keep-r72", "lean-r72", "lean32-r72", "lean-ahead-r72",
-             "lean32-ahead-r72"]
+             "lean32-ahead-r72", "lean32x-r56", "lean32xr-r56", "lean32xm-r56"]
     vs = {k: vs[k] for k in ["shipped"] + names}
     build(vs)
     rng = np.random.default_rng(3)
