@@ -1,0 +1,108 @@
+"""The cold P-SOG build's faster data paths give the arrays the earlier code gave, bit for bit.
+
+The earlier code is kept here, frozen, as the oracle: ``PSOG.from_frames`` pooled its subset votes with
+``np.unique`` and ``np.add.at`` on a 2-D index, the subset records were ``DriveRecord.from_psog`` of a
+one-subset ``PSOG.from_frames`` each, and the cold aggregate returned ``PooledPSOG(grid, recs).psog()``.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+import place3d_kernels as p3k
+from place3d_kernels.classes import N_CLASSES
+from place3d_kernels.grid import Grid
+from place3d_kernels.pooled import DriveRecord, PooledPSOG
+from place3d_kernels.pose import invert, pose_matrix, transform_points
+from place3d_kernels.sog import PSOG, pool_votes
+from place3d_kernels.spec import PSOGSpec, SceneSpec
+
+GRID = Grid((-20.0, -20.0, -2.0), (20.0, 20.0, 4.0), 0.4)
+
+
+def _old_from_frames(frames, grid, k, backend):
+    """``PSOG.from_frames`` as it was before the votes were pooled on dense voxel ranks."""
+    b = p3k.get_backend(backend)
+    n_sub = max(1, len(frames) // k)
+    groups = [frames[i * k:(i + 1) * k] for i in range(n_sub)] if len(frames) >= k else [frames]
+    all_vox, all_lab = [], []
+    for g in groups:
+        to_ref = invert(pose_matrix(g[len(g) // 2].ego_pose))
+        pts = np.concatenate([transform_points(to_ref, f.points) for f in g])
+        lab = np.concatenate([np.asarray(f.labels, dtype=np.int32) for f in g])
+        vox, win = b.vote(b.voxel_keys(grid.spec, grid.to_local(pts)), lab, N_CLASSES)
+        all_vox.append(np.asarray(vox, np.int64))
+        all_lab.append(np.asarray(win, np.int64))
+    uniq, inv = np.unique(np.concatenate(all_vox), return_inverse=True)
+    counts = np.zeros((len(uniq), N_CLASSES), dtype=np.int32)
+    np.add.at(counts, (inv, np.concatenate(all_lab)), 1)
+    counts[:, 0] = len(groups) - counts[:, 1:].sum(axis=1)
+    return PSOG(grid, uniq, counts / float(len(groups)), n_subsets=len(groups), counts=counts)
+
+
+def _old_records(frames, grid, k, backend, label):
+    n_sub = max(1, len(frames) // k)
+    groups = [frames[i * k:(i + 1) * k] for i in range(n_sub)] if len(frames) >= k else [frames]
+    return [DriveRecord.from_psog(_old_from_frames(g, grid, len(g), backend), f"{label}#{j}")
+            for j, g in enumerate(groups)]
+
+
+def _same_psog(a: PSOG, b: PSOG) -> None:
+    assert a.voxels.dtype == b.voxels.dtype and np.array_equal(a.voxels, b.voxels)
+    assert a.probs.dtype == b.probs.dtype and a.probs.tobytes() == b.probs.tobytes()
+    assert a.counts.dtype == b.counts.dtype and np.array_equal(a.counts, b.counts)
+    assert a.n_subsets == b.n_subsets and a.channels == b.channels
+
+
+@pytest.fixture(scope="module")
+def town_frames():
+    sim = sys.modules["place3d_kernels.simulate"]        # the package exports a function of that name
+    return sim.simulate(SceneSpec("town", 3, 10).build())      # the default backend: same frames, faster
+
+
+@pytest.mark.parametrize("k", [1, 3, 4, 20])
+def test_from_frames_matches_earlier_pooling(town_frames, k, backend):
+    for grid in (GRID, Grid((-20.0, -20.0, -2.0), (20.0, 20.0, 4.0), 0.1)):
+        _same_psog(PSOG.from_frames(town_frames, grid, k, backend=backend),
+                   _old_from_frames(town_frames, grid, k, backend))
+
+
+def test_records_and_aggregate_match_earlier(town_frames, backend, tmp_path, monkeypatch):
+    from place3d_kernels import subset_records as sr
+
+    spec = PSOGSpec(SceneSpec("town", 3, 10), grid=0.4, frames_per_subset=3, cache=str(tmp_path))
+    grid = spec.grid.grid()
+    label = spec.scene.label
+    new = sr.frame_subset_records(town_frames, grid, 3, backend, label)
+    old = _old_records(town_frames, grid, 3, backend, label)
+    assert len(new) == len(old) == 3
+    for a, b in zip(new, old):
+        assert (a.label, a.n_subsets) == (b.label, b.n_subsets)
+        for x, y in ((a.voxels, b.voxels), (a.classes, b.classes), (a.counts, b.counts)):
+            assert x.dtype == y.dtype and np.array_equal(x, y)
+    built = sr.records_aggregator(spec)(town_frames, backend)
+    _same_psog(built, PooledPSOG(grid, old).psog())
+    _same_psog(built, _old_from_frames(town_frames, grid, 3, backend))
+    sim = sys.modules["place3d_kernels.simulate"]
+    monkeypatch.setattr(sim, "simulate", lambda *a, **k: pytest.fail("the records were not found on disk"))
+    read = sr.spec_subset_records(spec)
+    assert [(r.label, r.voxels.tolist(), r.classes.tolist()) for r in read] == \
+        [(r.label, r.voxels.tolist(), r.classes.tolist()) for r in old]
+
+
+def test_pool_votes_sparse_path_and_bad_classes():
+    votes = [(np.array([5, 9, 2**40]), np.array([1, 2, 3])), (np.array([9, 2**40]), np.array([2, 1]))]
+    vox, counts = pool_votes(votes, n_voxels=2**41)                    # too many voxels for dense ranks
+    assert vox.tolist() == [5, 9, 2**40]
+    assert counts[:, :4].tolist() == [[1, 1, 0, 0], [0, 0, 2, 0], [0, 1, 0, 1]]
+    with pytest.raises(ValueError, match="classes in"):
+        pool_votes([(np.array([1]), np.array([N_CLASSES]))], n_voxels=10)
+
+
+def test_saved_psog_loads_identically(town_frames, tmp_path):
+    ps = PSOG.from_frames(town_frames, GRID, 3, backend="reference")
+    loaded = PSOG.load(ps.save(tmp_path / "p.npz"))
+    _same_psog(loaded, ps)
