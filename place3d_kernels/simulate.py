@@ -62,14 +62,21 @@ def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor
             raise ValueError(f"body_t must hold one distance per ray ({t.shape}), got {body_t.shape}")
         # the body is hit first (ties included): the return is the ego vehicle's own, dropped
         hit &= t < body_t
-    pts = o[hit] + t[hit, None] * d[hit]
-    inten = np.empty(int(hit.sum()), dtype=np.float32)
-    s_hit, d_hit = src[hit], ~src[hit]
-    if d_hit.any():
-        inten[d_hit] = _intensity(static, face[hit][d_hit], d[hit][d_hit], lab[hit][d_hit])
-    if s_hit.any():
-        inten[s_hit] = _intensity(dynamic, face[hit][s_hit], d[hit][s_hit], lab[hit][s_hit])
-    return pts, lab[hit].astype(np.int32), inten, o[0]
+    # one gather per array, by index (the hits' values as boolean masks gave them, each taken once)
+    at = np.flatnonzero(hit)
+    d_hit, face_hit, lab_hit = d[at], face[at], lab[at]
+    pts = o[at] + t[at, None] * d_hit
+    if dynamic is None:                         # every return is the static mesh's
+        inten = _intensity(static, face_hit, d_hit, lab_hit)
+    else:
+        inten = np.empty(len(at), dtype=np.float32)
+        s_hit = src[at]
+        s_at, d_at = np.flatnonzero(s_hit), np.flatnonzero(~s_hit)
+        if len(d_at):
+            inten[d_at] = _intensity(static, face_hit[d_at], d_hit[d_at], lab_hit[d_at])
+        if len(s_at):
+            inten[s_at] = _intensity(dynamic, face_hit[s_at], d_hit[s_at], lab_hit[s_at])
+    return pts, lab_hit.astype(np.int32), inten, o[0]
 
 
 def body_hits(body, lidar: LidarModel, mount=DEFAULT_MOUNT, backend=None) -> np.ndarray | None:

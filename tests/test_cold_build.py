@@ -106,3 +106,59 @@ def test_saved_psog_loads_identically(town_frames, tmp_path):
     ps = PSOG.from_frames(town_frames, GRID, 3, backend="reference")
     loaded = PSOG.load(ps.save(tmp_path / "p.npz"))
     _same_psog(loaded, ps)
+
+
+def test_scene_dynamic_is_the_concatenation_of_moved_actors():
+    from place3d_kernels.mesh import Mesh
+    from place3d_kernels.pose import pose_matrix
+
+    scene = SceneSpec("town", 3, 10).build()
+    assert scene.actors
+    for f in (0, 7):
+        parts = []
+        for a in scene.actors:               # the earlier Scene.dynamic: one validated Mesh per actor
+            T = pose_matrix(a.poses[f])
+            parts.append(Mesh(a.mesh.vertices @ T[:3, :3].T + T[:3, 3], a.mesh.faces, a.mesh.labels))
+        old, new = Mesh.concatenate(parts), scene.dynamic(f)
+        for x, y in ((old.vertices, new.vertices), (old.faces, new.faces), (old.labels, new.labels),
+                     (old.valid_faces, new.valid_faces), (old.shift, new.shift)):
+            assert x.dtype == y.dtype and x.tobytes() == y.tobytes()
+
+
+def test_simulate_frame_matches_earlier_masks():
+    # the gathers do not depend on the backend: the default one (the reference's BVH of the town takes 40 s)
+    from place3d_kernels.lidar import LidarModel
+    from place3d_kernels.ops import raycast
+    from place3d_kernels.classes import REFLECTIVITY
+    from place3d_kernels.pose import pose_from_matrix
+
+    def intensity(mesh, face, d, labels):                   # simulate._intensity, frozen
+        cos = np.abs(np.einsum("ij,ij->i", mesh.normals[face], d))
+        return (REFLECTIVITY[np.clip(labels, 0, len(REFLECTIVITY) - 1)] * cos).astype(np.float32)
+
+    sim = sys.modules["place3d_kernels.simulate"]
+    scene = SceneSpec("town", 3, 10).build()
+    lidar = LidarModel.load("collection_64ch")
+    lidar = LidarModel(lidar.elevations[::4], lidar.azimuths[::16], lidar.max_range, "coarse")
+    b = p3k.get_backend(None)
+    pose = pose_from_matrix(pose_matrix(scene.ego_poses[4]) @ pose_matrix(sim.DEFAULT_MOUNT))
+    dyn = scene.dynamic(4)
+    for dynamic in (dyn, None):
+        pts, lab, inten, origin = sim.simulate_frame(scene.static, dynamic, lidar, pose, b)
+        # the earlier gathers: boolean masks, the intensity per source mesh
+        o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, pose[None])
+        h = raycast(scene.static, o, d, lidar.max_range, backend=b)
+        t, face, lb, src = h.t, h.face, h.label, np.zeros(len(o), dtype=bool)
+        if dynamic is not None:
+            dh = raycast(dynamic, o, d, lidar.max_range, backend=b)
+            src = dh.t < t
+            t, face, lb = np.where(src, dh.t, t), np.where(src, dh.face, face), np.where(src, dh.label, lb)
+        hit = np.isfinite(t)
+        want = np.empty(int(hit.sum()), dtype=np.float32)
+        s_hit, d_hit = src[hit], ~src[hit]
+        want[d_hit] = intensity(scene.static, face[hit][d_hit], d[hit][d_hit], lb[hit][d_hit])
+        if s_hit.any():
+            want[s_hit] = intensity(dynamic, face[hit][s_hit], d[hit][s_hit], lb[hit][s_hit])
+        assert pts.tobytes() == (o[hit] + t[hit, None] * d[hit]).tobytes()
+        assert np.array_equal(lab, lb[hit].astype(np.int32)) and inten.tobytes() == want.tobytes()
+        assert dynamic is None or s_hit.any()
