@@ -296,7 +296,7 @@ class PSOG:
         # decompress on every cached load (0.1-0.2 s of a warm optimise on the dev VM, more beside other work)
         if not self._probs_from_counts():
             arrays["probs"] = self.probs
-        np.savez_compressed(tmp, **arrays)
+        _write_npz(tmp, arrays)
         os.replace(tmp, path)
         return path
 
@@ -337,6 +337,26 @@ class PSOG:
     def __repr__(self) -> str:
         return (f"PSOG(grid {self.grid.shape} @ {self.grid.voxel_size} m, {len(self.voxels):,} occupied voxels, "
                 f"T={self.n_subsets}, {len(self.channels)} channels)")
+
+
+#: zlib level per member of a saved P-SOG (others: zlib's default, 6, as ``np.savez_compressed`` uses).
+#: The ascending voxel ids compress to 383 KB at level 1 against 371 KB at 6, in 10 ms instead of 82 ms
+#: (default town, dev VM), and inflate as fast; the counts keep level 6, which halves their size and
+#: makes every cached load inflate them faster than a level-1 file would.
+_ZLIB_LEVEL = {"voxels": 1}
+
+
+def _write_npz(path: Path, arrays: dict) -> None:
+    """``np.savez_compressed(path, **arrays)`` with the zlib level of ``_ZLIB_LEVEL`` per member: the same
+    .npz layout (one deflated ``NAME.npy`` per array), so ``np.load`` gives the same arrays."""
+    import io
+    import zipfile
+
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
+        for name, value in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asanyarray(value), allow_pickle=False)
+            zf.writestr(f"{name}.npy", buf.getvalue(), compresslevel=_ZLIB_LEVEL.get(name, 6))
 
 
 def cache_key(**inputs) -> str:

@@ -103,9 +103,24 @@ def test_pool_votes_sparse_path_and_bad_classes():
 
 
 def test_saved_psog_loads_identically(town_frames, tmp_path):
+    import json
+
     ps = PSOG.from_frames(town_frames, GRID, 3, backend="reference")
     loaded = PSOG.load(ps.save(tmp_path / "p.npz"))
     _same_psog(loaded, ps)
+    # the file np.savez_compressed wrote before (its members per zlib level now): the same arrays
+    with np.load(tmp_path / "p.npz") as z:
+        meta = str(z["meta"])
+    assert json.loads(meta)["n_subsets"] == ps.n_subsets
+    np.savez_compressed(tmp_path / "old.npz", voxels=ps.voxels, counts=ps.counts, meta=meta)
+    with np.load(tmp_path / "p.npz") as new, np.load(tmp_path / "old.npz") as old:
+        assert new.files == old.files
+        for k in old.files:
+            assert new[k].dtype == old[k].dtype and new[k].tobytes() == old[k].tobytes()
+    # a P-SOG whose probs are not counts / T keeps them in the file
+    odd = PSOG(GRID, ps.voxels, ps.probs * 0.5 + 0.5 * np.eye(ps.probs.shape[1])[0], n_subsets=ps.n_subsets,
+               counts=ps.counts)
+    _same_psog(PSOG.load(odd.save(tmp_path / "odd.npz")), odd)
 
 
 def test_scene_dynamic_is_the_concatenation_of_moved_actors():
