@@ -236,8 +236,13 @@ class PooledPSOG:
         out[vinv, cls_] = summed
         occ = out[:, 1:].sum(axis=1)
         keep = occ > 0
-        out, vox = out[keep], uvox[keep]
-        out[:, 0] = T - occ[keep]
+        if keep.all():              # every voxel still occupied (the plain pool, a jackknife): no row copy
+            vox = uvox.copy()
+        else:
+            # rows by index: the rows a boolean mask selects, without its slow 2-D path (80 ms here)
+            rows = np.flatnonzero(keep)
+            out, vox, occ = out.take(rows, axis=0), uvox[rows], occ[rows]
+        out[:, 0] = T - occ
         if multiplicity is None:
             # every record once is asked for several times per interval (the point, each task's left-out
             # grids): kept, read-only, so no caller can change what the next one reads
@@ -254,7 +259,7 @@ class PooledPSOG:
         if (reference is not None and reference.n_subsets == T and reference.counts is not None
                 and reference.grid.to_dict() == self.grid.to_dict() and len(reference.channels) == self.n_classes
                 and np.array_equal(reference.voxels, vox) and np.array_equal(reference.counts, c)
-                and np.array_equal(reference.probs, c / float(T))):
+                and reference.probs_are_counts()):      # its counts are c and its T is T: probs == c / T
             return reference
         return PSOG(self.grid, vox, c / float(T), n_subsets=T, counts=c.astype(np.int32))
 

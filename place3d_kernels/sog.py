@@ -294,17 +294,21 @@ class PSOG:
                                        "n_subsets": self.n_subsets, "format": _FORMAT}))
         # probs left out when they are counts / T to the bit (P-SOGs from frames): a third of the bytes to
         # decompress on every cached load (0.1-0.2 s of a warm optimise on the dev VM, more beside other work)
-        if not self._probs_from_counts():
+        if not self.probs_are_counts():
             arrays["probs"] = self.probs
         _write_npz(tmp, arrays)
         os.replace(tmp, path)
         return path
 
-    def _probs_from_counts(self) -> bool:
-        if self._cache.get("probs_from_counts"):
-            return True         # set where probs were made as counts / T (from_frames, the pooled P-SOG)
-        return (self.counts is not None and bool(self.n_subsets) and self.counts.shape == self.probs.shape
+    def probs_are_counts(self) -> bool:
+        """Whether ``probs`` is ``counts / n_subsets`` to the bit (P-SOGs from frames or subset records, and
+        loaded from their files); known without a look at the arrays where the P-SOG was made so, else
+        checked (and remembered: a P-SOG's arrays do not change after it is made)."""
+        if "probs_from_counts" not in self._cache:
+            self._cache["probs_from_counts"] = (
+                self.counts is not None and bool(self.n_subsets) and self.counts.shape == self.probs.shape
                 and np.array_equal(self.probs, self.counts / float(self.n_subsets)))
+        return self._cache["probs_from_counts"]
 
     @classmethod
     def load(cls, path) -> "PSOG":
@@ -331,8 +335,12 @@ class PSOG:
             meta = json.loads(str(z["meta"]))
             counts = z["counts"] if z["counts"].size else None
             # files without probs stored them as counts / T (save checked that this gives the same bits)
-            probs = z["probs"] if "probs" in z.files else counts / float(meta["n_subsets"])
-            return cls(Grid.from_dict(meta["grid"]), z["voxels"], probs, meta["channels"], meta["n_subsets"], counts)
+            derived = "probs" not in z.files
+            probs = counts / float(meta["n_subsets"]) if derived else z["probs"]
+            psog = cls(Grid.from_dict(meta["grid"]), z["voxels"], probs, meta["channels"], meta["n_subsets"], counts)
+            if derived:
+                psog._cache["probs_from_counts"] = True
+            return psog
 
     def __repr__(self) -> str:
         return (f"PSOG(grid {self.grid.shape} @ {self.grid.voxel_size} m, {len(self.voxels):,} occupied voxels, "

@@ -177,3 +177,22 @@ def test_simulate_frame_matches_earlier_masks():
         assert pts.tobytes() == (o[hit] + t[hit, None] * d[hit]).tobytes()
         assert np.array_equal(lab, lb[hit].astype(np.int32)) and inten.tobytes() == want.tobytes()
         assert dynamic is None or s_hit.any()
+
+
+def test_plain_psog_needs_probs_that_are_counts_over_T(town_frames, tmp_path):
+    from place3d_kernels import subset_records as sr
+
+    recs = sr.frame_subset_records(town_frames, GRID, 3, None, "d")
+    pooled = PooledPSOG(GRID, recs)
+    ref = pooled.psog()
+    assert ref.probs_are_counts() and pooled.plain_psog(ref) is ref
+    loaded = PSOG.load(ref.save(tmp_path / "r.npz"))       # probs not stored: derived from the counts
+    assert loaded.probs_are_counts() and pooled.plain_psog(loaded) is loaded
+    probs = ref.probs.copy()
+    probs[7, 0] = np.nextafter(probs[7, 0], 2.0)          # one ulp off counts / T
+    off = PSOG(GRID, ref.voxels, probs, n_subsets=ref.n_subsets, counts=ref.counts)
+    assert not off.probs_are_counts()
+    rebuilt = pooled.plain_psog(off)
+    assert rebuilt is not off and rebuilt.probs.tobytes() == ref.probs.tobytes()
+    kept = PSOG.load(off.save(tmp_path / "off.npz"))       # probs stored, read back as they were
+    assert kept.probs.tobytes() == probs.tobytes() and not kept.probs_are_counts()
