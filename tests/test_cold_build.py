@@ -196,3 +196,21 @@ def test_plain_psog_needs_probs_that_are_counts_over_T(town_frames, tmp_path):
     assert rebuilt is not off and rebuilt.probs.tobytes() == ref.probs.tobytes()
     kept = PSOG.load(off.save(tmp_path / "off.npz"))       # probs stored, read back as they were
     assert kept.probs.tobytes() == probs.tobytes() and not kept.probs_are_counts()
+
+
+@pytest.mark.parametrize("block", [1, 7, 1 << 20])
+def test_left_out_base_in_blocks(town_frames, monkeypatch, block):
+    from place3d_kernels import left_out
+    from place3d_kernels import subset_records as sr
+
+    monkeypatch.setattr(left_out, "BASE_BLOCK", block)
+    recs = sr.frame_subset_records(town_frames[:6], GRID, 2, None, "d")
+    pooled = PooledPSOG(GRID, recs)
+    for task in ("seg", "det"):
+        grids = left_out.LeftOutGrids(pooled, task)
+        for i in (0, 2, 1):
+            w, stop = grids.fields(i)
+            m = np.ones(len(recs), dtype=np.int64)
+            m[i] = 0
+            want = pooled.psog(m).for_task(task)
+            assert w.tobytes() == want.weights.tobytes() and stop.tobytes() == want.stop_mask.tobytes()
