@@ -214,3 +214,50 @@ def test_left_out_base_in_blocks(town_frames, monkeypatch, block):
             m[i] = 0
             want = pooled.psog(m).for_task(task)
             assert w.tobytes() == want.weights.tobytes() and stop.tobytes() == want.stop_mask.tobytes()
+
+
+def _old_fillet_points(corners, radii, step=0.25):
+    """``scene.paths.fillet``'s points as they were built row by row before."""
+    import math
+
+    P = np.asarray(corners, float)
+    radii = np.broadcast_to(np.asarray(radii, float), (len(P),))
+    pts = [P[0]]
+    for i in range(1, len(P) - 1):
+        u, w = P[i] - P[i - 1], P[i + 1] - P[i]
+        lu, lw = np.linalg.norm(u), np.linalg.norm(w)
+        u, w = u / lu, w / lw
+        cross = u[0] * w[1] - u[1] * w[0]
+        theta = math.acos(float(np.clip(u @ w, -1.0, 1.0)))
+        if theta < 1e-6:
+            pts.append(P[i])
+            continue
+        t = min(radii[i] * math.tan(theta / 2), 0.49 * lu, 0.49 * lw)
+        r = t / math.tan(theta / 2)
+        A = P[i] - u * t
+        sgn = 1.0 if cross > 0 else -1.0
+        centre = A + sgn * r * np.array([-u[1], u[0]])
+        a0 = math.atan2(A[1] - centre[1], A[0] - centre[0])
+        k = max(2, int(math.ceil(r * theta / step)))
+        a = a0 + sgn * theta * np.linspace(0, 1, k + 1)
+        pts.extend(np.stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)], 1))
+    pts.append(P[-1])
+    pts = np.array(pts)
+    out = [pts[0]]
+    for a, b in zip(pts[:-1], pts[1:]):
+        n = max(1, int(math.ceil(np.linalg.norm(b - a) / step)))
+        out.extend(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    return np.array(out)
+
+
+def test_fillet_points_match_earlier_rows(rng):
+    from place3d_kernels.scene.paths import Path as CurvePath, fillet
+
+    for n in (2, 3, 6):
+        corners = np.cumsum(rng.uniform(-40, 40, size=(n, 2)), axis=0)
+        if n == 6:                      # a straight corner (no fillet): corners 0, 1, 2 on one line
+            corners[2] = corners[1] + 2 * (corners[1] - corners[0])
+        radii = rng.uniform(0, 15, size=n)
+        want = CurvePath(_old_fillet_points(corners, radii))
+        got = fillet(corners, radii)
+        assert got.points.tobytes() == want.points.tobytes() and got.yaw.tobytes() == want.yaw.tobytes()
