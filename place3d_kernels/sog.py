@@ -60,9 +60,25 @@ def cache_dir() -> Path:
     return Path(os.environ.get("PLACE3D_CACHE", Path.home() / ".cache" / "place3d"))
 
 
+#: Rows per block in ``entropy``: 8192 rows of 22 float64 channels are 1.4 MB, so a block's temporaries
+#: stay in the cache and are reused, where whole-array ones (40 MB on the default town) are fresh memory
+#: that every cold process first has to fault in.
+ENTROPY_BLOCK = 8192
+
+
 def entropy(probs: np.ndarray) -> np.ndarray:
     """Shannon entropy (natural log, 0 log 0 = 0) over the last axis, float64."""
     p = np.asarray(probs, dtype=np.float64)
+    if p.ndim < 2 or len(p) <= ENTROPY_BLOCK:
+        return _entropy_rows(p)
+    # each row's entropy depends on that row alone: blocks of rows give the same sums
+    out = np.empty(p.shape[:-1], dtype=np.float64)
+    for a in range(0, len(p), ENTROPY_BLOCK):
+        out[a:a + ENTROPY_BLOCK] = _entropy_rows(p[a:a + ENTROPY_BLOCK])
+    return out
+
+
+def _entropy_rows(p: np.ndarray) -> np.ndarray:
     # logs of the nonzero probabilities only (about a tenth of a P-SOG's entries): 17x faster than a log
     # of every entry, and the same terms in the same places, so the row sums are bit-identical
     nz = p > 0

@@ -261,3 +261,16 @@ def test_fillet_points_match_earlier_rows(rng):
         want = CurvePath(_old_fillet_points(corners, radii))
         got = fillet(corners, radii)
         assert got.points.tobytes() == want.points.tobytes() and got.yaw.tobytes() == want.yaw.tobytes()
+
+
+def test_entropy_in_blocks_is_the_whole_array_entropy(town_frames, monkeypatch):
+    from place3d_kernels import sog
+
+    probs = PSOG.from_frames(town_frames, GRID, 2, backend="reference").probs
+    monkeypatch.setattr(sog, "ENTROPY_BLOCK", len(probs))
+    whole = sog.entropy(probs)                              # the whole array at once, as before
+    for block in (1, 5, 4096):
+        monkeypatch.setattr(sog, "ENTROPY_BLOCK", block)
+        assert sog.entropy(probs).tobytes() == whole.tobytes()
+        head = probs[:100].reshape(50, 2, probs.shape[1])  # more axes: blocks along the first
+        assert sog.entropy(head).tobytes() == whole[:100].reshape(50, 2).tobytes()
