@@ -98,7 +98,7 @@ def body_hits(body, lidar: LidarModel, mount=DEFAULT_MOUNT, backend=None) -> np.
 
 
 def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_MOUNT, frames=None,
-             backend=None, progress: bool = False, body=None) -> list[PointCloud]:
+             backend=None, progress: bool = False, body=None, dynamic=None) -> list[PointCloud]:
     """Semantic LiDAR frames along the scene's ego route (world points, ego pose, sensor origin per return).
 
     Args:
@@ -109,6 +109,9 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         backend: backend name or instance.
         progress: show a progress bar.
         body: optional ``VehicleBody`` (ego frame) blocking the sensor's rays (None: the paper's setting).
+        dynamic: optional dict {frame: ``scene.dynamic(frame)``} of meshes already built (``scene_psog``
+            builds some while the backend is still being probed); each is taken out of the dict when its
+            frame is cast, and frames not in it are built here.
     """
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
@@ -125,7 +128,7 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         ego_T = pose_matrix(scene.ego_poses[f])
         T = ego_T @ mount_T
         sensor_pose = pose_from_matrix(T)
-        pts, lab, inten, origin = simulate_frame(scene.static, scene.dynamic(f), lidar, sensor_pose, backend,
-                                                   body_t)
+        dyn = dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f)
+        pts, lab, inten, origin = simulate_frame(scene.static, dyn, lidar, sensor_pose, backend, body_t)
         out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
     return out

@@ -274,3 +274,37 @@ def test_entropy_in_blocks_is_the_whole_array_entropy(town_frames, monkeypatch):
         assert sog.entropy(probs).tobytes() == whole.tobytes()
         head = probs[:100].reshape(50, 2, probs.shape[1])  # more axes: blocks along the first
         assert sog.entropy(head).tobytes() == whole[:100].reshape(50, 2).tobytes()
+
+
+def test_scene_psog_builds_actors_while_the_backend_is_probed(monkeypatch):
+    import threading
+    from concurrent.futures import Future
+
+    from place3d_kernels.pipeline import scene_psog
+
+    sim = sys.modules["place3d_kernels.simulate"]
+    scene = SceneSpec("town", 3, 8).build()
+    direct = scene_psog(scene, GRID, frames_per_subset=2, backend=None, cache=False)
+    seen = {}
+    real = sim.simulate
+
+    def spy(*a, dynamic=None, **k):
+        seen["prebuilt"] = sorted(dynamic)
+        return real(*a, dynamic=dynamic, **k)
+
+    monkeypatch.setattr(sys.modules["place3d_kernels.pipeline"], "simulate", spy)
+    probe = Future()
+    calls = []
+    real_dynamic = type(scene).dynamic
+
+    def dynamic(self, f):                    # the probe ends while the third frame's actors are built
+        calls.append(f)
+        if len(calls) == 3:
+            threading.Timer(0.0, probe.set_result, (p3k.get_backend(None),)).start()
+            threading.Event().wait(0.2)
+        return real_dynamic(self, f)
+
+    monkeypatch.setattr(type(scene), "dynamic", dynamic)
+    late = scene_psog(scene, GRID, frames_per_subset=2, backend=probe, cache=False)
+    assert seen["prebuilt"] == [0, 1, 2] and sorted(calls) == list(range(8))   # each frame's actors once
+    _same_psog(late, direct)
