@@ -198,6 +198,18 @@ class PreparedLeftOut:
             self._trim()
         return handles
 
+    def remember_plain(self, pool_key, psog) -> None:
+        """Remember ``psog`` as exactly the plain pool of the records ``pool_key`` names, without the check of
+        ``plain_psog``: for a P-SOG pooled from those very records (``subset_records.records_aggregator``
+        writes the records of a cold build and pools its P-SOG from them). None keeps nothing."""
+        if pool_key is None or not self._keep:
+            return
+        key = (pool_key, _grid_key(psog.grid))
+        with self._lock:
+            self._verified[key] = weakref.ref(psog)
+            self._verified.move_to_end(key)
+            self._trim()
+
     def plain_psog(self, pooled, reference=None, pool_key=None):
         """``pooled.plain_psog(reference)``, without its check when ``reference`` already passed it for the
         pool ``pool_key`` names (None: always checked).
@@ -214,6 +226,7 @@ class PreparedLeftOut:
             ref = self._verified.get(key)
             if ref is not None and ref() is reference:
                 self._verified.move_to_end(key)
+                pooled.known_plain(reference)      # its counts, should the left-out grids ask for them
                 return reference
         full = pooled.plain_psog(reference)
         if full is reference:

@@ -138,6 +138,7 @@ class PooledPSOG:
         self.n_classes = int(n_classes)
         self.records: list[DriveRecord] = []
         self._union = self._plain = self._spans = self._plain_counts = None
+        self._plain_psog = None      # a P-SOG known to be exactly the plain pool (``known_plain``)
         for r in records:
             self.add(r)
 
@@ -145,7 +146,7 @@ class PooledPSOG:
         if record.classes.size and int(record.classes.max()) >= self.n_classes:
             raise ValueError(f"{record.label}: class {int(record.classes.max())} outside the {self.n_classes} channels")
         self.records.append(record)
-        self._union = self._plain = self._spans = self._plain_counts = None
+        self._union = self._plain = self._spans = self._plain_counts = self._plain_psog = None
 
     @property
     def labels(self) -> list[str]:
@@ -204,6 +205,13 @@ class PooledPSOG:
             occupied in the weighted pool are left out, as ``PSOG.from_frames`` leaves them out. For
             ``multiplicity=None`` the same read-only arrays on every call.
         """
+        if multiplicity is None and self._plain_counts is None and self._plain_psog is not None:
+            # the pool's own P-SOG (known_plain): its voxels and counts are these sums, without summing
+            ps = self._plain_psog
+            vox, out = ps.voxels.copy(), ps.counts.astype(np.int64)
+            vox.setflags(write=False)
+            out.setflags(write=False)
+            self._plain_counts = (vox, out, int(ps.n_subsets))
         if multiplicity is None and self._plain_counts is not None:
             return self._plain_counts
         cls_, inv, counts, owner, uvox, vinv = self._prepare()
@@ -250,6 +258,12 @@ class PooledPSOG:
             out.setflags(write=False)
             self._plain_counts = (vox, out, T)
         return vox, out, T
+
+    def known_plain(self, psog: PSOG) -> None:
+        """Take ``psog`` as exactly this pool's P-SOG (every record once: the same voxels, counts, T and
+        float64 probabilities), as ``left_out.HANDLES`` knows it for records it has seen pooled: ``counts()``
+        then reads its arrays instead of summing the records. Only for a P-SOG known so (not checked here)."""
+        self._plain_psog = psog
 
     def plain_psog(self, reference: PSOG | None = None) -> PSOG:
         """``psog()`` (every record once), or ``reference`` itself when it is exactly that P-SOG: the same

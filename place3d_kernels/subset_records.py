@@ -16,7 +16,6 @@ from typing import Callable
 
 import numpy as np
 
-from place3d_kernels.pooled import PooledPSOG
 
 __all__ = ["frame_subset_records", "votes_records", "subset_records_path", "spec_subset_records", "records_aggregator",
            "records_file_identity", "keyed_subset_records"]
@@ -177,6 +176,8 @@ def records_aggregator(spec) -> Callable:
     def aggregate(frames, backend):
         from place3d_kernels.sog import PSOG, pool_votes, subset_votes
 
+        from place3d_kernels.left_out import HANDLES
+
         grid = spec.grid.grid()
         votes = subset_votes(frames, grid, spec.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET, backend)
         recs = votes_records(votes, spec.scene.label)
@@ -186,6 +187,11 @@ def records_aggregator(spec) -> Callable:
         # the pool of the records (PooledPSOG(grid, recs).psog()) counted straight from their entries: the
         # same voxels (those with a voting class), counts and float64 probabilities (counts / T)
         voxels, counts = pool_votes([(r.voxels, r.classes.astype(np.int64)) for r in recs], grid.n_voxels)
-        return PSOG.from_counts(grid, voxels, counts, n_subsets=len(recs))
+        psog = PSOG.from_counts(grid, voxels, counts, n_subsets=len(recs))
+        if path is not None:
+            # the intervals read these records back (keyed_subset_records: this file's identity while it is
+            # not rewritten) and find this P-SOG their pool without pooling and comparing them again
+            HANDLES.remember_plain(records_file_identity(path), psog)
+        return psog
 
     return aggregate

@@ -308,3 +308,38 @@ def test_scene_psog_builds_actors_while_the_backend_is_probed(monkeypatch):
     late = scene_psog(scene, GRID, frames_per_subset=2, backend=probe, cache=False)
     assert seen["prebuilt"] == [0, 1, 2] and sorted(calls) == list(range(8))   # each frame's actors once
     _same_psog(late, direct)
+
+
+def test_cold_records_find_their_psog_without_pooling_again(town_frames, tmp_path, monkeypatch):
+    import os
+
+    from place3d_kernels import left_out
+    from place3d_kernels import subset_records as sr
+
+    handles = left_out.PreparedLeftOut()                 # this test's own memo (the aggregator reads HANDLES)
+    monkeypatch.setattr(left_out, "HANDLES", handles)
+    spec = PSOGSpec(SceneSpec("town", 3, 10), grid=0.4, frames_per_subset=3, cache=str(tmp_path))
+    built = sr.records_aggregator(spec)(town_frames, None)
+    recs, key = sr.keyed_subset_records(spec)
+    assert key is not None
+    fresh = PooledPSOG(spec.grid.grid(), recs)
+    want = fresh.counts()
+    pooled = PooledPSOG(spec.grid.grid(), recs)
+    monkeypatch.setattr(pooled, "plain_psog", lambda ref=None: pytest.fail("pooled and compared again"))
+    assert handles.plain_psog(pooled, built, key) is built
+    got = pooled.counts()
+    for a, b in zip(got[:2], want[:2]):
+        assert a.dtype == b.dtype and np.array_equal(a, b) and not a.flags.writeable
+    assert got[2] == want[2]
+    # the file rewritten (a new identity): checked as before, and still the pool
+    path = sr.subset_records_path(spec)[0]
+    os.replace(path, path.with_name("moved.npz"))
+    os.replace(path.with_name("moved.npz"), path)
+    os.utime(path, ns=(1, 1))
+    recs2, key2 = sr.keyed_subset_records(spec)
+    assert key2 is not None and key2 != key
+    checked = []
+    again = PooledPSOG(spec.grid.grid(), recs2)
+    real = again.plain_psog
+    monkeypatch.setattr(again, "plain_psog", lambda ref=None: checked.append(1) or real(ref))
+    assert handles.plain_psog(again, built, key2) is built and checked == [1]
