@@ -66,22 +66,22 @@ class LeftOutGrids:
         self.n_voxels = pooled.grid.n_voxels
         self.voxels, self.counts, self.T = pooled.counts()    # the plain pool: every record once
         self._base: dict = {}
-        self._work: dict = {}       # T -> (weights, stop, voxels last written): the base, patched in place
-
-    def __len__(self) -> int:
-        return len(self.pooled.records)
+        self._work: dict = {}       # T -> (weights, stop, rows last written): the base, patched in place
 
     def _base_fields(self, T: int):
-        """Dense (weights, stop) of the plain pool's count rows taken over T subsets: right for every voxel
-        a left-out record did not touch (the others are overwritten)."""
+        """(weights (M,) int64, stop (M,) bool) of the plain pool's count rows taken over T subsets: right
+        for every voxel a left-out record did not touch (the others are overwritten).
+
+        Computed in blocks of rows: each row's fields depend on that row alone, and blocks that stay in
+        the cache spare the passes over fresh (M, K) temporaries (some 40 MB each on the default grid)."""
         if T not in self._base:
-            c = self.counts.copy()
-            c[:, 0] = T - c[:, 1:].sum(axis=1)
-            w, s = left_out_fields(c, T, self.task)
-            wd = np.zeros(self.n_voxels, dtype=np.int64)
-            sd = np.zeros(self.n_voxels, dtype=np.uint8)
-            wd[self.voxels], sd[self.voxels] = w, s
-            self._base[T] = (wd, sd)
+            M = len(self.voxels)
+            w, s = np.empty(M, dtype=np.int64), np.empty(M, dtype=bool)
+            for a in range(0, M, BASE_BLOCK):
+                c = self.counts[a:a + BASE_BLOCK].copy()
+                c[:, 0] = T - c[:, 1:].sum(axis=1)
+                w[a:a + BASE_BLOCK], s[a:a + BASE_BLOCK] = left_out_fields(c, T, self.task)
+            self._base[T] = (w, s)
         return self._base[T]
 
     def fields(self, i: int) -> tuple[np.ndarray, np.ndarray]:
@@ -101,14 +101,24 @@ class LeftOutGrids:
         w, s = left_out_fields(sub, T, self.task)
         wb, sb = self._base_fields(T)
         if T not in self._work:
-            self._work[T] = (wb.copy(), sb.copy(), None)
+            # one dense copy of the base per T, patched and restored from the base's rows
+            wd = np.zeros(self.n_voxels, dtype=np.int64)
+            sd = np.zeros(self.n_voxels, dtype=np.uint8)
+            wd[self.voxels], sd[self.voxels] = wb, sb
+            self._work[T] = (wd, sd, None)
         wd, sd, last = self._work[T]
         if last is not None:                                  # undo the previous record's rows
-            wd[last], sd[last] = wb[last], sb[last]
+            at = self.voxels[last]
+            wd[at], sd[at] = wb[last], sb[last]
         at = self.voxels[rows]
         wd[at], sd[at] = w, s                                 # a voxel no longer occupied: weight 0, no stop
-        self._work[T] = (wd, sd, at)
+        self._work[T] = (wd, sd, rows)
         return wd, sd
+
+
+#: Rows of the plain pool's counts per block when the base fields are computed (``LeftOutGrids``): 8192
+#: rows of 22 float64 channels are 1.4 MB, so a block's temporaries stay in the cache.
+BASE_BLOCK = 8192
 
 
 #: Sets of prepared left-out grids (one set: the n grids of one pool, task, occlusion and backend) that
@@ -188,6 +198,18 @@ class PreparedLeftOut:
             self._trim()
         return handles
 
+    def remember_plain(self, pool_key, psog) -> None:
+        """Remember ``psog`` as exactly the plain pool of the records ``pool_key`` names, without the check of
+        ``plain_psog``: for a P-SOG pooled from those very records (``subset_records.records_aggregator``
+        writes the records of a cold build and pools its P-SOG from them). None keeps nothing."""
+        if pool_key is None or not self._keep:
+            return
+        key = (pool_key, _grid_key(psog.grid))
+        with self._lock:
+            self._verified[key] = weakref.ref(psog)
+            self._verified.move_to_end(key)
+            self._trim()
+
     def plain_psog(self, pooled, reference=None, pool_key=None):
         """``pooled.plain_psog(reference)``, without its check when ``reference`` already passed it for the
         pool ``pool_key`` names (None: always checked).
@@ -204,6 +226,7 @@ class PreparedLeftOut:
             ref = self._verified.get(key)
             if ref is not None and ref() is reference:
                 self._verified.move_to_end(key)
+                pooled.known_plain(reference)      # its counts, should the left-out grids ask for them
                 return reference
         full = pooled.plain_psog(reference)
         if full is reference:

@@ -74,11 +74,23 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     if isinstance(scene, SceneRef):
         with section("P-SOG build: scene"):
             scene = scene.build()    # known by its key only (PSOGSpec.build): the geometry is needed now
+    dynamic = {}
     if isinstance(backend, Future):
-        # a backend still being probed on another thread (optimize starts it early): needed only now
-        backend = backend.result()
+        # a backend still being probed on another thread (optimize starts it early): needed only now.
+        # Meanwhile, what the simulation needs and no backend computes: the actors' meshes of the first
+        # frames and the static mesh's normals (the same arrays simulate would make)
+        with section("P-SOG build: actors (probe)"):
+            for f in range(scene.n_frames):
+                if backend.done():
+                    break
+                dynamic[f] = scene.dynamic(f)
+            if not backend.done():
+                scene.static.normals        # noqa: B018 - computed and kept on the mesh
+        with section("P-SOG build: backend wait"):
+            backend = backend.result()
     with section("P-SOG build: simulate"):
-        frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress, body=body)
+        frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress, body=body,
+                          dynamic=dynamic)
     if condition is not None:
         frames = [condition(f, i) for i, f in enumerate(frames)]
     with section("P-SOG build: aggregate"):

@@ -62,14 +62,21 @@ def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor
             raise ValueError(f"body_t must hold one distance per ray ({t.shape}), got {body_t.shape}")
         # the body is hit first (ties included): the return is the ego vehicle's own, dropped
         hit &= t < body_t
-    pts = o[hit] + t[hit, None] * d[hit]
-    inten = np.empty(int(hit.sum()), dtype=np.float32)
-    s_hit, d_hit = src[hit], ~src[hit]
-    if d_hit.any():
-        inten[d_hit] = _intensity(static, face[hit][d_hit], d[hit][d_hit], lab[hit][d_hit])
-    if s_hit.any():
-        inten[s_hit] = _intensity(dynamic, face[hit][s_hit], d[hit][s_hit], lab[hit][s_hit])
-    return pts, lab[hit].astype(np.int32), inten, o[0]
+    # one gather per array, by index (the hits' values as boolean masks gave them, each taken once)
+    at = np.flatnonzero(hit)
+    d_hit, face_hit, lab_hit = d[at], face[at], lab[at]
+    pts = o[at] + t[at, None] * d_hit
+    if dynamic is None:                         # every return is the static mesh's
+        inten = _intensity(static, face_hit, d_hit, lab_hit)
+    else:
+        inten = np.empty(len(at), dtype=np.float32)
+        s_hit = src[at]
+        s_at, d_at = np.flatnonzero(s_hit), np.flatnonzero(~s_hit)
+        if len(d_at):
+            inten[d_at] = _intensity(static, face_hit[d_at], d_hit[d_at], lab_hit[d_at])
+        if len(s_at):
+            inten[s_at] = _intensity(dynamic, face_hit[s_at], d_hit[s_at], lab_hit[s_at])
+    return pts, lab_hit.astype(np.int32), inten, o[0]
 
 
 def body_hits(body, lidar: LidarModel, mount=DEFAULT_MOUNT, backend=None) -> np.ndarray | None:
@@ -91,7 +98,7 @@ def body_hits(body, lidar: LidarModel, mount=DEFAULT_MOUNT, backend=None) -> np.
 
 
 def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_MOUNT, frames=None,
-             backend=None, progress: bool = False, body=None) -> list[PointCloud]:
+             backend=None, progress: bool = False, body=None, dynamic=None) -> list[PointCloud]:
     """Semantic LiDAR frames along the scene's ego route (world points, ego pose, sensor origin per return).
 
     Args:
@@ -102,6 +109,9 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         backend: backend name or instance.
         progress: show a progress bar.
         body: optional ``VehicleBody`` (ego frame) blocking the sensor's rays (None: the paper's setting).
+        dynamic: optional dict {frame: ``scene.dynamic(frame)``} of meshes already built (``scene_psog``
+            builds some while the backend is still being probed); each is taken out of the dict when its
+            frame is cast, and frames not in it are built here.
     """
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
@@ -118,7 +128,7 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         ego_T = pose_matrix(scene.ego_poses[f])
         T = ego_T @ mount_T
         sensor_pose = pose_from_matrix(T)
-        pts, lab, inten, origin = simulate_frame(scene.static, scene.dynamic(f), lidar, sensor_pose, backend,
-                                                   body_t)
+        dyn = dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f)
+        pts, lab, inten, origin = simulate_frame(scene.static, dyn, lidar, sensor_pose, backend, body_t)
         out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
     return out

@@ -16,23 +16,48 @@ from typing import Callable
 
 import numpy as np
 
-from place3d_kernels.pooled import PooledPSOG
 
-__all__ = ["frame_subset_records", "subset_records_path", "spec_subset_records", "records_aggregator",
+__all__ = ["frame_subset_records", "votes_records", "subset_records_path", "spec_subset_records", "records_aggregator",
            "records_file_identity", "keyed_subset_records"]
 
 
 def frame_subset_records(frames, grid, k: int, backend=None, label: str = "drive") -> list:
     """One ``DriveRecord`` per subset of ``k`` consecutive frames, voted as ``PSOG.from_frames`` votes
     them (the same grouping as ``pooled.subset_records``), so the records sum to the drive's P-SOG."""
-    from place3d_kernels.pooled import DriveRecord
-    from place3d_kernels.sog import PSOG
+    from place3d_kernels.sog import subset_votes
 
-    frames = list(frames)
-    n_sub = max(1, len(frames) // k)
-    groups = [frames[i * k:(i + 1) * k] for i in range(n_sub)] if len(frames) >= k else [frames]
-    return [DriveRecord.from_psog(PSOG.from_frames(g, grid, len(g), backend=backend), f"{label}#{j}")
-            for j, g in enumerate(groups)]
+    return votes_records(subset_votes(list(frames), grid, k, backend=backend), label)
+
+
+def votes_records(votes, label: str = "drive") -> list:
+    """One ``DriveRecord`` (T = 1) per subset SOG of ``sog.subset_votes``, named ``label#j``.
+
+    The record ``DriveRecord.from_psog`` gives for ``PSOG.from_frames`` of that subset alone, without
+    building it: a one-subset P-SOG counts 1 for the winning class of each voxel, so its record is the
+    voxels with a voting class (ascending, as the vote returns them), those classes and counts of 1.
+    """
+    from place3d_kernels.pooled import DriveRecord
+
+    recs = []
+    for j, (vox, win) in enumerate(votes):
+        vox, win = _ascending(vox, win)
+        occ = win > 0                      # class 0 (no vote) is "empty", never a record entry
+        recs.append(DriveRecord(f"{label}#{j}", 1, vox[occ].astype(np.int64), win[occ].astype(np.int16),
+                                np.ones(int(occ.sum()), dtype=np.int32)))
+    return recs
+
+
+def _ascending(vox, win):
+    """A subset's votes in ascending voxel order (``Backend.vote`` returns them so; this keeps a backend
+    that does not from giving records out of order), or ``ValueError`` for a voxel voted twice."""
+    vox, win = np.asarray(vox, np.int64), np.asarray(win, np.int64)
+    if len(vox) < 2 or bool((vox[1:] > vox[:-1]).all()):
+        return vox, win
+    order = np.argsort(vox, kind="stable")
+    vox, win = vox[order], win[order]
+    if bool((vox[1:] == vox[:-1]).any()):
+        raise ValueError("Backend.vote returned a voxel twice; it must return each voted voxel once")
+    return vox, win
 
 
 def subset_records_path(spec):
@@ -149,12 +174,24 @@ def records_aggregator(spec) -> Callable:
     from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
 
     def aggregate(frames, backend):
+        from place3d_kernels.sog import PSOG, pool_votes, subset_votes
+
+        from place3d_kernels.left_out import HANDLES
+
         grid = spec.grid.grid()
-        recs = frame_subset_records(frames, grid, spec.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET, backend,
-                                    spec.scene.label)
+        votes = subset_votes(frames, grid, spec.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET, backend)
+        recs = votes_records(votes, spec.scene.label)
         path, inputs = subset_records_path(spec)
         if path is not None:
             _write_records(path, inputs, recs)
-        return PooledPSOG(grid, recs).psog()
+        # the pool of the records (PooledPSOG(grid, recs).psog()) counted straight from their entries: the
+        # same voxels (those with a voting class), counts and float64 probabilities (counts / T)
+        voxels, counts = pool_votes([(r.voxels, r.classes.astype(np.int64)) for r in recs], grid.n_voxels)
+        psog = PSOG.from_counts(grid, voxels, counts, n_subsets=len(recs))
+        if path is not None:
+            # the intervals read these records back (keyed_subset_records: this file's identity while it is
+            # not rewritten) and find this P-SOG their pool without pooling and comparing them again
+            HANDLES.remember_plain(records_file_identity(path), psog)
+        return psog
 
     return aggregate

@@ -59,7 +59,7 @@ def fillet(corners: np.ndarray, radii, step: float = 0.25) -> Path:
     """Polyline through ``corners`` with circular fillets of ``radii`` at interior corners."""
     P = np.asarray(corners, float)
     radii = np.broadcast_to(np.asarray(radii, float), (len(P),))
-    pts = [P[0]]
+    pts = [P[:1]]                 # blocks of rows, joined once
     for i in range(1, len(P) - 1):
         u, w = P[i] - P[i - 1], P[i + 1] - P[i]
         lu, lw = np.linalg.norm(u), np.linalg.norm(w)
@@ -67,7 +67,7 @@ def fillet(corners: np.ndarray, radii, step: float = 0.25) -> Path:
         cross = u[0] * w[1] - u[1] * w[0]
         theta = math.acos(float(np.clip(u @ w, -1.0, 1.0)))
         if theta < 1e-6:
-            pts.append(P[i])
+            pts.append(P[i:i + 1])
             continue
         t = min(radii[i] * math.tan(theta / 2), 0.49 * lu, 0.49 * lw)
         r = t / math.tan(theta / 2)
@@ -77,15 +77,15 @@ def fillet(corners: np.ndarray, radii, step: float = 0.25) -> Path:
         a0 = math.atan2(A[1] - centre[1], A[0] - centre[0])
         k = max(2, int(math.ceil(r * theta / step)))
         a = a0 + sgn * theta * np.linspace(0, 1, k + 1)
-        pts.extend(np.stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)], 1))
-    pts.append(P[-1])
-    pts = np.array(pts)
-    # densify straight stretches
-    out = [pts[0]]
+        pts.append(np.stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)], 1))
+    pts.append(P[-1:])
+    pts = np.concatenate(pts)
+    # densify straight stretches: one block of rows per stretch, joined once (the rows a per-row list gave)
+    out = [pts[:1]]
     for a, b in zip(pts[:-1], pts[1:]):
         n = max(1, int(math.ceil(np.linalg.norm(b - a) / step)))
-        out.extend(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
-    return Path(np.array(out))
+        out.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    return Path(np.concatenate(out))
 
 
 def lane_path(nodes, centres, offset, step=0.25) -> Path:
