@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from place3d_kernels.grid import DEFAULT_GRID, Grid
+from place3d_kernels.profiling import section
 
 __all__ = ["SceneSpec", "RoiSpec", "ConditionSpec", "PSOGSpec", "specs_from_args", "backend_name", "resolve_lidar",
            "parse_params", "condition_parameters", "check_condition_params", "read_route"]
@@ -367,9 +368,12 @@ class PSOGSpec:
         if cache:
             from place3d_kernels.sog import cache_dir
 
-            scene = self.scene.for_cache(Path(cache) if isinstance(cache, (str, Path)) else cache_dir())
+            # the scene is built here unless its key is remembered (then scene_psog builds it on a cache miss)
+            with section("P-SOG build: scene"):
+                scene = self.scene.for_cache(Path(cache) if isinstance(cache, (str, Path)) else cache_dir())
         else:
-            scene = self.scene.build()
+            with section("P-SOG build: scene"):
+                scene = self.scene.build()
         return scene_psog(scene, grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
                           frames_per_subset=self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
                           mount=DEFAULT_MOUNT if self.mount is None else self.mount, backend=b, cache=cache,
