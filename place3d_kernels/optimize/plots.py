@@ -38,7 +38,7 @@ def _save(fig, path, margins: Mapping[str, float]) -> Path:
     """Place the axes at fixed ``margins`` (``Figure.subplots_adjust`` fractions, sized for each figure's
     labels) and write the figure. Measuring the labels instead (``tight_layout``) lays out every text
     once more before drawing: it took a quarter to a third of each figure's time (bench/README.md,
-    "The optimize figures"), and ``bbox_inches="tight"`` drew every figure twice."""
+    "A warm command's host time and figures"), and ``bbox_inches="tight"`` drew every figure twice."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.subplots_adjust(**margins)
