@@ -117,6 +117,24 @@ def load_word(p: wp.uint64, i: wp.int32) -> wp.uint32:
 
 
 @wp.func_native("""
+wp::uint32 r = old;
+if (pred) {
+    const unsigned int* q = reinterpret_cast<const unsigned int*>(p) + i;
+#if defined(__CUDA_ARCH__)
+    __builtin_assume(__isGlobal(q));
+#endif
+    r = *q;
+}
+return r;
+""")
+def load_word_if(p: wp.uint64, i: wp.int32, pred: wp.bool, old: wp.uint32) -> wp.uint32:
+    """Bitset word ``i`` after ``p`` where ``pred``, else ``old``: a load in native code that nvcc predicates
+    instead of hoisting, so the register is written when the load lands and nothing waits for it until
+    the value is used (``lazy``: at the flush, several steps later)."""
+    ...
+
+
+@wp.func_native("""
 wp::uint32* q = reinterpret_cast<wp::uint32*>(p) + i;
 #if defined(__CUDA_ARCH__)
 __builtin_assume(__isGlobal(q));
@@ -419,7 +437,7 @@ def make_eager_skip(maxreg=None, count=False):
     return eager_skip_kernel
 
 
-def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=False):
+def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=False, lazy=False):
     """``walk_ray_brick_eager`` with the lean address arithmetic (module docstring); ``skip``: full bricks
     jumped (``True``: a branch between the jump and the step; ``"unified"``: ``walk32_step_or_jump``,
     only with ``inc=False``); ``keep``: the brick's masks kept from its entry (so that nvcc predicates
@@ -432,6 +450,8 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=
     skip = bool(skip)
     if keep and ahead:
         raise ValueError("make_lean: keep and ahead are not combined (ahead loads before the entry is known)")
+    if lazy and (inc or ahead or skip):
+        raise ValueError("make_lean: lazy is lean32's plain body (inc=False, no ahead, no skip)")
     if skip and ahead:
         raise ValueError("make_lean: skip and ahead are not combined (the jump needs the entry word before "
                          "the step, which ahead loads after it); pick one")
@@ -483,7 +503,11 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=
             if wp.static(not inc and not ahead):
                 word = word32(w, bny, bnz)
             change = word != cur
-            if change and pending != wp.uint32(0):
+            if wp.static(lazy):
+                # the brick left: the bits this ray visited there, less those already set when it entered
+                if change and (pending & ~seen) != wp.uint32(0):
+                    my_sum += flush_brick32(cbits, cur, pending & ~seen, nz_w, bny, bnz, ny, nz, weights)
+            elif change and pending != wp.uint32(0):
                 my_sum += flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
             bit = wp.uint32(1) << wp.uint32((w.i & 3) | ((w.j & 3) << 2) | ((w.k & 1) << 4))
             wcur = word
@@ -500,6 +524,13 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=
                 nxt = wp.where(w.alive != 0, word, wcur)
                 m_next = load_mask(masks64, nxt)
                 fresh_next = load_word(cbits, nxt)
+            elif wp.static(lazy):
+                # the snapshot is loaded on entering a brick and used only when the ray leaves it
+                if wp.static(keep):
+                    m = load_mask_if(masks64, wcur, change, m)
+                else:
+                    m = load_mask(masks64, wcur)
+                seen = load_word_if(cbits, wcur, change, seen)
             elif wp.static(keep):
                 m = load_mask_if(masks64, wcur, change, m)
                 fresh = load_word(cbits, wcur)
@@ -510,11 +541,14 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=
             # brick need not wait for L1
             stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))
             nz_w = wp.uint32(m >> wp.uint64(32))
-            seen = wp.where(change, fresh, seen)
-            pending = wp.where(change, wp.uint32(0), pending)
+            if wp.static(lazy):
+                pending = wp.where(change, wp.uint32(0), pending) | bit
+            else:
+                seen = wp.where(change, fresh, seen)
+                pending = wp.where(change, wp.uint32(0), pending)
+                pending = pending | (bit & ~seen)
+                seen = seen | bit
             cur = wcur
-            pending = pending | (bit & ~seen)
-            seen = seen | bit
             if (stop_w & bit) != wp.uint32(0):
                 break
             if wp.static(ahead):
@@ -544,6 +578,8 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=
                 w = walk32_next_lean(w, o, d, s, sf, nx, ny, nz)
                 if wp.static(inc):
                     word = word + word_delta(i0, j0, k0, w, wsx, wsy, wsz)
+        if wp.static(lazy):
+            pending = pending & ~seen
         if pending != wp.uint32(0):
             my_sum += flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
         if my_sum > wp.int64(0):
