@@ -10,17 +10,17 @@ little for). On CUDA this kernel walks the same voxels with the same float32/flo
 * the bits a ray marks in a brick are sent with one ``atomic_or`` when it leaves (``flush_brick32``);
   only bricks holding entropy wait for the old word, to add the weights of the bits this ray set first.
 
-What makes it cheap is the address arithmetic of a step, which the dense rig takes 280 M times: the
-brick word is an int32 from (i, j, k) (three shifts, two multiply-adds by kernel constants), loads and
-atomics use raw addresses (no index wrap, no 64-bit stride multiplies), and the grid test is three
-unsigned compares. A step's common path is 85 instructions in nvcc's sm_90 code against 133 for the
-previous form with int64 indices, and the kernel ran the dense rig 1.49x faster on the H100 at a
-64-register cap (figures: bench/README.md, "The dense rig's score kernel, third round"). The walk's
-decisions are untouched, so the voxels, sums and counts are the same bits (tests/test_dense_variants.py
-steps both forms in lockstep; the cross-backend suites compare scores with the reference).
+What makes it cheap is the address arithmetic of a step, which a dense rig takes hundreds of millions
+of times: the brick word is an int32 from (i, j, k) (three shifts, two multiply-adds by kernel
+constants), loads and atomics use raw addresses (no index wrap, no 64-bit stride multiplies), and the
+grid test is three unsigned compares. That took about a third of the instructions out of a step's common
+path against the previous form with int64 indices, which this replaced (figures: bench/README.md, "The
+dense rig's score kernel, third round"). The walk's decisions are untouched, so the voxels, sums and
+counts are the same bits (tests/test_dense_variants.py runs the previous form against this one; the
+cross-backend suites compare scores with the reference).
 
-Limits: a candidate's bitset must have fewer than 2^31 words (grids under 68 G voxels) and each grid
-axis fewer than 2^31 voxels; ``WarpBackend.score_placements`` checks the first.
+Limits: a candidate's bitset must have fewer than 2^31 words (32 x that many voxels) and each grid axis
+fewer than 2^31 voxels; ``WarpBackend.score_placements`` checks the first.
 """
 
 from __future__ import annotations
