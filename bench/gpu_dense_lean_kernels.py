@@ -175,6 +175,44 @@ def flush_brick32(p: wp.uint64, word: wp.int32, pending: wp.uint32, nz_w: wp.uin
     return add
 
 
+@wp.func_native("""
+if (pred) {
+    wp::uint32* q = reinterpret_cast<wp::uint32*>(p) + i;
+#if defined(__CUDA_ARCH__)
+    __builtin_assume(__isGlobal(q));
+#endif
+    wp::atomic_or(q, v);
+}
+""")
+def red_or_if(p: wp.uint64, i: wp.int32, v: wp.uint32, pred: wp.bool):
+    """``atomic_or`` of ``v`` on bitset word ``i`` after ``p`` where ``pred``, its result unused: one
+    predicated reduction instead of a branch around it (``pred`` variant)."""
+    ...
+
+
+@wp.func
+def flush_entropy32(p: wp.uint64, word: wp.int32, pending: wp.uint32, nz_w: wp.uint32, bny: wp.int32,
+                    bnz: wp.int32, ny: wp.int32, nz: wp.int32, weights: wp.array(dtype=wp.int64)) -> wp.int64:
+    # flush_brick32's rare path alone (some of the pending bits have entropy): the atomic whose old word
+    # tells which bits this ray set first, and their weights
+    old = atomic_or_word(p, word, pending)
+    m = pending & ~old & nz_w
+    uw = wp.uint32(word)
+    bk = wp.int32(uw % wp.uint32(bnz))
+    r = uw / wp.uint32(bnz)
+    bj = wp.int32(r % wp.uint32(bny))
+    bi = wp.int32(r / wp.uint32(bny))
+    add = wp.int64(0)
+    while m != wp.uint32(0):
+        b = wp.bit_count((m & (~m + wp.uint32(1))) - wp.uint32(1))
+        i = bi * 4 + (b & 3)
+        j = bj * 4 + ((b >> 2) & 3)
+        k = bk * 2 + (b >> 4)
+        add += weights[(wp.int64(i) * wp.int64(ny) + wp.int64(j)) * wp.int64(nz) + wp.int64(k)]
+        m = m & (m - wp.uint32(1))
+    return add
+
+
 # ----------------------------------------------------------------------------- steps
 @wp.func
 def walk32_next_lean(w: Walk32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.float32, nx: wp.int32,
@@ -437,7 +475,7 @@ def make_eager_skip(maxreg=None, count=False):
     return eager_skip_kernel
 
 
-def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=False, lazy=False):
+def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=False, lazy=False, pred=False):
     """``walk_ray_brick_eager`` with the lean address arithmetic (module docstring); ``skip``: full bricks
     jumped (``True``: a branch between the jump and the step; ``"unified"``: ``walk32_step_or_jump``,
     only with ``inc=False``); ``keep``: the brick's masks kept from its entry (so that nvcc predicates
@@ -450,6 +488,8 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=
     skip = bool(skip)
     if keep and ahead:
         raise ValueError("make_lean: keep and ahead are not combined (ahead loads before the entry is known)")
+    if pred and (inc or ahead or skip or lazy):
+        raise ValueError("make_lean: pred is lean32's plain body (inc=False, no ahead, skip or lazy)")
     if lazy and (inc or ahead or skip):
         raise ValueError("make_lean: lazy is lean32's plain body (inc=False, no ahead, no skip)")
     if skip and ahead:
@@ -507,6 +547,14 @@ def make_lean(maxreg=None, skip=False, ahead=False, count=False, inc=True, keep=
                 # the brick left: the bits this ray visited there, less those already set when it entered
                 if change and (pending & ~seen) != wp.uint32(0):
                     my_sum += flush_brick32(cbits, cur, pending & ~seen, nz_w, bny, bnz, ny, nz, weights)
+            elif wp.static(pred):
+                # the common flush (no entropy among the bits) as one predicated reduction; only the rare
+                # one branches
+                send = change and pending != wp.uint32(0)
+                rare = send and (pending & nz_w) != wp.uint32(0)
+                red_or_if(cbits, cur, pending, send and not rare)
+                if rare:
+                    my_sum += flush_entropy32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
             elif change and pending != wp.uint32(0):
                 my_sum += flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
             bit = wp.uint32(1) << wp.uint32((w.i & 3) | ((w.j & 3) << 2) | ((w.k & 1) << 4))

@@ -221,7 +221,7 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
             out[f"{body}-r{maxreg}"] = {"kind": "lean", "body": body, "skip": False, "ahead": False, "maxreg": maxreg}
     # fifth round: the bitset snapshot loaded on a brick's entry and used only at its flush ("lazy"), so a
     # step never waits for it (the old filter, applied at the flush instead of each step: the same bits)
-    for body in ("lean32-lazy", "lean32-lazy-keep"):
+    for body in ("lean32-lazy", "lean32-lazy-keep", "lean32-pred"):
         for maxreg in (56, 64, 72):
             out[f"{body}-r{maxreg}"] = {"kind": "lean", "body": body, "skip": False, "ahead": False,
                                         "maxreg": maxreg}
@@ -264,7 +264,8 @@ def make_lean_kind(v: dict, count: bool = False):
     if v["body"] == "eager":
         return make_eager_skip(v["maxreg"], count)
     return make_lean(v["maxreg"], v["skip"], v["ahead"], count, inc=v["body"] == "lean",
-                     keep=v["body"] in ("lean32-keep", "lean32-lazy-keep"), lazy=v["body"].startswith("lean32-lazy"))
+                     keep=v["body"] in ("lean32-keep", "lean32-lazy-keep"), lazy=v["body"].startswith("lean32-lazy"),
+                     pred=v["body"] == "lean32-pred")
 
 
 def skip_stats(wl: Workload, ref: tuple) -> dict:

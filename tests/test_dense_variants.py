@@ -314,7 +314,7 @@ def test_skip_on_full_bricks_matches_the_shipped_kernel(small, device):
     names = ["skip-r72", "lean-skip-r72", "lean32-skip-r72", "lean32-skipu-r72", "lean32-keep-skip-r72",
              "lean32-keep-r72", "lean-r72", "lean32-r72", "lean-ahead-r72",
              "lean32-ahead-r72", "lean32x-r56", "lean32xr-r56", "lean32xm-r56", "lean32-lazy-r64",
-             "lean32-lazy-keep-r64"]
+             "lean32-lazy-keep-r64", "lean32-pred-r64"]
     vs = {k: vs[k] for k in ["shipped"] + names}
     build(vs)
     rng = np.random.default_rng(3)
