@@ -25,6 +25,7 @@ from gpu_dense_variants_kernels import tiled_ray, walk32_next_sel  # noqa: E402
 from gpu_score_variants_kernels import walk32_begin, walk32_next  # noqa: E402
 
 from place3d_kernels.backends.warp import kernels as shipped_k  # noqa: E402   (Walk32x converts its Walk32)
+from place3d_kernels.backends.warp import score_gpu  # noqa: E402
 
 wp.init()
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
@@ -144,15 +145,39 @@ def _lockstep_x_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d),
     steps[tid] = c
 
 
-@pytest.mark.parametrize("med", [0, 1])
-@pytest.mark.parametrize("rays", ["ties", "near-ties"])
-def test_small_walk_state_takes_the_shipped_steps(rays, med):
-    """Round four's Walk32x (no alive, exact or t1d fields; gpu_dense_round4_kernels.py) steps as walk32_next
-    on rays full of ties and near-ties, float64-only rays among them, in a grid whose edges cut bricks, and
-    ends where it ends: a third of the segments end inside the grid (some on a voxel plane, where the
-    float32 step must defer to the float64 one), the others leave it. med=1: the step test by minimum and
-    median (walk32x_next_med)."""
-    s, m, n = 0.25, 6000, (23, 22, 21)
+@wp.kernel
+def _lockstep_gpu_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), t_end: wp.array(dtype=wp.float64),
+                         s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32, steps: wp.array(dtype=wp.int32),
+                         exact: wp.array(dtype=wp.int32), bad: wp.array(dtype=wp.int32)):
+    # the shipped CUDA score kernel's walk (score_gpu.WalkGPU, next_step) against walk32_next, as above
+    tid = wp.tid()
+    sf = wp.float32(s)
+    a = shipped_k.walk32_begin(o[tid], d[tid], t_end[tid], s, sf, nx, ny, nz)
+    b = score_gpu.walk_from(a)
+    exact[tid] = a.exact
+    c = wp.int32(0)
+    for _ in range(nx + ny + nz + 3):
+        on = score_gpu.inside(b, nx, ny, nz)
+        if on != (a.alive != 0):
+            bad[tid] = 1
+        if a.alive == 0 or not on:
+            break
+        if a.i != b.i or a.j != b.j or a.k != b.k or a.ki != b.ki or a.kj != b.kj or a.kk != b.kk:
+            bad[tid] = 1
+        if a.exact == 0 and (a.tx != b.tx or a.ty != b.ty or a.tz != b.tz or a.t1 != b.t1 or a.tol != b.tol):
+            bad[tid] = 1
+        if a.exact != 0 and b.t1 >= wp.float32(0.0):
+            bad[tid] = 1
+        b = score_gpu.next_step(b, o[tid], d[tid], a.t1d, s, sf)
+        a = shipped_k.walk32_next(a, o[tid], d[tid], s, sf, nx, ny, nz)
+        c += 1
+    steps[tid] = c
+
+
+def _tie_segments(rays: str, s: float, m: int, n: tuple):
+    """Rays full of ties (or near-ties) in a grid whose edges cut bricks, with segment ends: a third end
+    inside the grid (some on a voxel plane, where the float32 step must defer to the float64 one), the
+    others leave it."""
     o, d = tie_rays(m, s, n, seed=13) if rays == "ties" else near_tie_rays(m, s, seed=17)
     rng = np.random.default_rng(19)
     t_end = np.where(rng.random(m) < 0.33, rng.uniform(0.0, 4.0, m), 1.0e3)
@@ -160,10 +185,24 @@ def test_small_walk_state_takes_the_shipped_steps(rays, med):
     with np.errstate(divide="ignore", invalid="ignore"):
         t_plane = ((np.floor(o[:, 0] / s) + np.sign(d[:, 0]) * rng.integers(1, 6, m)) * s - o[:, 0]) / d[:, 0]
     t_end = np.where(plane & np.isfinite(t_plane) & (t_plane > 0), t_plane, t_end)
+    return (wp.array(o, dtype=wp.vec3d, device="cpu"), wp.array(d, dtype=wp.vec3d, device="cpu"),
+            wp.array(t_end, dtype=wp.float64, device="cpu"))
+
+
+@pytest.mark.parametrize("med", [0, 1, "shipped"])
+@pytest.mark.parametrize("rays", ["ties", "near-ties"])
+def test_small_walk_state_takes_the_shipped_steps(rays, med):
+    """Round four's Walk32x (no alive, exact or t1d fields; gpu_dense_round4_kernels.py) steps as walk32_next
+    on rays full of ties and near-ties, float64-only rays among them, and ends where it ends (``_tie_segments``).
+    med=1: the step test by minimum and median (walk32x_next_med); "shipped": that form as the CUDA score
+    kernel runs it (place3d_kernels/backends/warp/score_gpu.py)."""
+    s, m, n = 0.25, 6000, (23, 22, 21)
+    o, d, t_end = _tie_segments(rays, s, m, n)
     steps, exact, bad = (wp.zeros(m, dtype=wp.int32, device="cpu") for _ in range(3))
-    wp.launch(_lockstep_x_kernel, dim=m, device="cpu",
-              inputs=[wp.array(o, dtype=wp.vec3d, device="cpu"), wp.array(d, dtype=wp.vec3d, device="cpu"),
-                      wp.array(t_end, dtype=wp.float64, device="cpu"), s, *n, med, steps, exact, bad])
+    if med == "shipped":
+        wp.launch(_lockstep_gpu_kernel, dim=m, device="cpu", inputs=[o, d, t_end, s, *n, steps, exact, bad])
+    else:
+        wp.launch(_lockstep_x_kernel, dim=m, device="cpu", inputs=[o, d, t_end, s, *n, med, steps, exact, bad])
     assert steps.numpy().sum() > 10 * m, "the rays must walk"
     if rays == "ties":
         assert exact.numpy().sum() > 0, "some rays must be float64-only (a direction component below DIR_SMALL)"

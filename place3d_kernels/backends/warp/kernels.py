@@ -318,7 +318,8 @@ def _start_index(p: wp.float64, d: wp.float64, s: wp.float64, n: wp.int32):
 
 
 @wp.func
-def _next_t(i: wp.int32, step: wp.int32, o: wp.float64, d: wp.float64, s: wp.float64):
+def next_t(i: wp.int32, step: wp.int32, o: wp.float64, d: wp.float64, s: wp.float64):
+    # the reference's float64 time of the next boundary plane along one axis (INF64: the axis never steps)
     if step == 0:
         return INF64
     b = i
@@ -427,9 +428,9 @@ def walk32_begin(o: wp.vec3d, d: wp.vec3d, t_end: wp.float64, s: wp.float64, sf:
 def walk32_exact(w: Walk32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.float32, nx: wp.int32,
                  ny: wp.int32, nz: wp.int32) -> Walk32:
     # the reference's float64 step (every axis whose boundary comes first steps; the segment may end)
-    tx = _next_t(w.i, w.si, o[0], d[0], s)
-    ty = _next_t(w.j, w.sj, o[1], d[1], s)
-    tz = _next_t(w.k, w.sk, o[2], d[2], s)
+    tx = next_t(w.i, w.si, o[0], d[0], s)
+    ty = next_t(w.j, w.sj, o[1], d[1], s)
+    tz = next_t(w.k, w.sk, o[2], d[2], s)
     tn = wp.min(tx, wp.min(ty, tz))
     if tn >= w.t1d:
         w.alive = 0

@@ -19,6 +19,12 @@ dense rig's score kernel, third round"). The walk's decisions are untouched, so 
 counts are the same bits (tests/test_dense_variants.py runs the previous form against this one; the
 cross-backend suites compare scores with the reference).
 
+The walk's state is a ``WalkGPU``, ``kernels.Walk32`` without the fields a step seldom needs (a walk that
+has ended has i = -1 and fails the loop's grid test; a float64-only walk has t1 = -1; the float64 segment
+end is a local of the kernel), and the float32 step's certainty test is written with the minimum and the
+median of the three crossings: the same decision and axis as ``walk32_next``'s chain of compares (proof
+at ``certain_step``), fewer instructions and registers (bench/README.md, the dense rig's rounds).
+
 Limits: a candidate's bitset must have fewer than 2^31 words (32 x that many voxels) and each grid axis
 fewer than 2^31 voxels; ``WarpBackend.score_placements`` checks the first.
 """
@@ -27,7 +33,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from place3d_kernels.backends.warp.kernels import Walk32, walk32_begin, walk32_exact
+from place3d_kernels.backends.warp.kernels import Walk32, next_t, walk32_begin
 
 # Warp builds a module once per (device, launch block_dim) and hashes block_dim into it (Warp 1.19,
 # Module.load): a 128-thread launch of a kernel in kernels.py, whose other launches use CUDA's default
@@ -92,26 +98,133 @@ def atomic_or_word(p: wp.uint64, i: wp.int32, v: wp.uint32) -> wp.uint32:
 
 
 # ----------------------------------------------------------------------------- walk and bookkeeping
-@wp.func
-def word32(w: Walk32, bny: wp.int32, bnz: wp.int32) -> wp.int32:
-    # the brick's word within the candidate's bitset (kernels.brick_word in int32)
-    return ((w.i >> 2) * bny + (w.j >> 2)) * bnz + (w.k >> 1)
+DEAD = wp.constant(wp.int32(-1))       # i of a walk that has ended
+
+
+@wp.struct
+class WalkGPU:
+    i: wp.int32            # current voxel (i = DEAD: the walk has ended)
+    j: wp.int32
+    k: wp.int32
+    si: wp.int32           # step per axis: -1, 0, +1
+    sj: wp.int32
+    sk: wp.int32
+    ki: wp.int32           # next boundary plane minus the first voxel, per axis
+    kj: wp.int32
+    kk: wp.int32
+    tx: wp.float32         # next crossing after t0 per axis (0 for a float64-only walk)
+    ty: wp.float32
+    tz: wp.float32
+    qx: wp.float32         # rebased entry point p0 - b s
+    qy: wp.float32
+    qz: wp.float32
+    vx: wp.float32         # 1 / d
+    vy: wp.float32
+    vz: wp.float32
+    t1: wp.float32         # segment end after t0 (-1: every step in float64)
+    tol: wp.float32        # certainty threshold (0 for a float64-only walk)
 
 
 @wp.func
-def walk32_next_lean(w: Walk32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.float32, nx: wp.int32,
-                     ny: wp.int32, nz: wp.int32) -> Walk32:
-    # kernels.walk32_next_sel with the grid test as three unsigned compares (a coordinate of -1 wraps to
-    # 2^32 - 1): the same comparisons, crossing expression and float64 fallback, so the same voxels
-    xa = w.tx < w.ty and w.tx < w.tz
-    ya = (not xa) and w.ty < w.tz
-    za = (not xa) and (not ya)
-    tmin = wp.where(xa, w.tx, wp.where(ya, w.ty, w.tz))
-    o1 = wp.where(xa, w.ty, w.tx)                 # the two other axes' crossings
-    o2 = wp.where(za, w.ty, w.tz)
+def walk_from(a: Walk32) -> WalkGPU:
+    # kernels.walk32_begin's state with its flags turned into markers (the same values otherwise)
+    w = WalkGPU()
+    w.i = wp.where(a.alive != 0, a.i, DEAD)
+    w.j = a.j
+    w.k = a.k
+    w.si = a.si
+    w.sj = a.sj
+    w.sk = a.sk
+    w.ki = a.ki
+    w.kj = a.kj
+    w.kk = a.kk
+    w.tx = a.tx
+    w.ty = a.ty
+    w.tz = a.tz
+    w.qx = a.qx
+    w.qy = a.qy
+    w.qz = a.qz
+    w.vx = a.vx
+    w.vy = a.vy
+    w.vz = a.vz
+    w.t1 = a.t1
+    w.tol = a.tol
+    if a.exact != 0:
+        # t1 = -1 fails the certainty test below on every step, so each goes to the float64 step, which
+        # leaves these float32 fields alone; any other walk has t1 = float32(t1d - t0) >= 0
+        w.t1 = wp.float32(-1.0)
+        w.tx = wp.float32(0.0)
+        w.ty = wp.float32(0.0)
+        w.tz = wp.float32(0.0)
+        w.tol = wp.float32(0.0)
+    return w
+
+
+@wp.func
+def inside(w: WalkGPU, nx: wp.int32, ny: wp.int32, nz: wp.int32) -> wp.bool:
+    # the walk goes on: its voxel is in the grid (a coordinate of -1, DEAD included, wraps to 2^32 - 1)
+    return wp.uint32(w.i) < wp.uint32(nx) and wp.uint32(w.j) < wp.uint32(ny) and wp.uint32(w.k) < wp.uint32(nz)
+
+
+@wp.func
+def exact_step(w: WalkGPU, o: wp.vec3d, d: wp.vec3d, t1d: wp.float64, s: wp.float64, sf: wp.float32) -> WalkGPU:
+    # kernels.walk32_exact on a WalkGPU: the reference's float64 step (every axis whose boundary comes
+    # first steps), the walk ending at the segment end t1d
+    tx = next_t(w.i, w.si, o[0], d[0], s)
+    ty = next_t(w.j, w.sj, o[1], d[1], s)
+    tz = next_t(w.k, w.sk, o[2], d[2], s)
+    tn = wp.min(tx, wp.min(ty, tz))
+    if tn >= t1d:
+        w.i = DEAD
+        return w
+    f32 = w.t1 >= wp.float32(0.0)         # not a float64-only walk: keep the float32 crossings current
+    if tx == tn:
+        w.i = w.i + w.si
+        w.ki = w.ki + w.si
+        if f32:
+            w.tx = (wp.float32(w.ki) * sf - w.qx) * w.vx
+    if ty == tn:
+        w.j = w.j + w.sj
+        w.kj = w.kj + w.sj
+        if f32:
+            w.ty = (wp.float32(w.kj) * sf - w.qy) * w.vy
+    if tz == tn:
+        w.k = w.k + w.sk
+        w.kk = w.kk + w.sk
+        if f32:
+            w.tz = (wp.float32(w.kk) * sf - w.qz) * w.vz
+    return w
+
+
+@wp.func
+def certain_step(w: WalkGPU):
+    """(xa, ya, za, go): the axis of the first crossing, and whether the float32 step along it is certain.
+
+    kernels.walk32_next picks tmin by ``tx < ty and tx < tz``, then ``ty < tz``, else z, and goes when
+    both other crossings and the segment end exceed tmin + tol. Each branch's pick is the smallest value
+    (ties kept), so "both others > lim" is "median > lim"; min and max return one of their operands
+    unchanged (the crossings are finite: no NaN), so lim has the same operands and bits. Where go holds
+    the minimum is unique (median > tmin + tol >= tmin), so ``tx == tmin`` picks the same axis.
+    tests/test_dense_variants.py steps this walk against walk32_next field by field."""
+    a = wp.min(w.tx, w.ty)
+    b = wp.max(w.tx, w.ty)
+    tmin = wp.min(a, w.tz)
+    med = wp.max(a, wp.min(b, w.tz))
     lim = tmin + w.tol
-    if w.exact != 0 or o1 <= lim or o2 <= lim or w.t1 <= lim:
-        return walk32_exact(w, o, d, s, sf, nx, ny, nz)
+    go = med > lim and w.t1 > lim
+    xa = w.tx == tmin
+    ya = (not xa) and w.ty == tmin
+    za = (not xa) and (not ya)
+    return xa, ya, za, go
+
+
+@wp.func
+def next_step(w: WalkGPU, o: wp.vec3d, d: wp.vec3d, t1d: wp.float64, s: wp.float64, sf: wp.float32) -> WalkGPU:
+    # the certain float32 step along the first axis (no grid test: the loop's head makes it), else the
+    # float64 one; no FMA (fuse_fp off), so the new crossing rounds as the reference's expression
+    xa, ya, za, go = certain_step(w)
+    if not go:
+        return exact_step(w, o, d, t1d, s, sf)
     di = wp.where(xa, w.si, 0)
     dj = wp.where(ya, w.sj, 0)
     dk = wp.where(za, w.sk, 0)
@@ -128,9 +241,13 @@ def walk32_next_lean(w: Walk32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, sf: wp.
     w.tx = wp.where(xa, t, w.tx)
     w.ty = wp.where(ya, t, w.ty)
     w.tz = wp.where(za, t, w.tz)
-    out = wp.uint32(w.i) >= wp.uint32(nx) or wp.uint32(w.j) >= wp.uint32(ny) or wp.uint32(w.k) >= wp.uint32(nz)
-    w.alive = wp.where(out, 0, w.alive)
     return w
+
+
+@wp.func
+def word32(w: WalkGPU, bny: wp.int32, bnz: wp.int32) -> wp.int32:
+    # the brick's word within the candidate's bitset (kernels.brick_word in int32)
+    return ((w.i >> 2) * bny + (w.j >> 2)) * bnz + (w.k >> 1)
 
 
 @wp.func
@@ -182,7 +299,9 @@ def score_kernel_gpu(
     o = pos[rig]
     d = rot[rig] * sensor_dirs[tid - rig * n]   # as lidar_rays_kernel: the reference's rays bit for bit
     sf = wp.float32(s)
-    w = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
+    w0 = walk32_begin(o, d, t_max, s, sf, nx, ny, nz)
+    t1d = w0.t1d
+    w = walk_from(w0)
     cbits = word_address(bits, wp.int64(cand) * words_per_candidate)
     my_sum = wp.int64(0)
     cur = wp.int32(-1)
@@ -190,7 +309,7 @@ def score_kernel_gpu(
     pending = wp.uint32(0)
     nz_w = wp.uint32(0)
     for _ in range(nx + ny + nz + 3):
-        if w.alive == 0:
+        if not inside(w, nx, ny, nz):
             break
         word = word32(w, bny, bnz)
         change = word != cur
@@ -210,7 +329,7 @@ def score_kernel_gpu(
         seen = seen | bit
         if (stop_w & bit) != wp.uint32(0):      # occlusion: the ray ends after this voxel
             break
-        w = walk32_next_lean(w, o, d, s, sf, nx, ny, nz)
+        w = next_step(w, o, d, t1d, s, sf)
     if pending != wp.uint32(0):
         my_sum += flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
     if my_sum > wp.int64(0):
