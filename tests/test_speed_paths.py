@@ -222,27 +222,3 @@ def test_plot_worker_falls_back_to_a_thread(tmp_path, monkeypatch):
         assert sorted(p.rsplit("/", 1)[1] for p in paths) == ["convergence.png", "coverage.png", "rig.png"]
     finally:
         worker.close()
-
-
-def test_plot_worker_processes_freeze_what_they_loaded_and_threads_do_not(tmp_path):
-    """A worker process freezes matplotlib's and NumPy's objects after its warm-up (its collections then
-    skip them); a worker thread leaves the calling process's objects alone."""
-    import gc
-
-    from place3d_kernels.optimize import plots
-
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    # one spawned process, as the plot pool starts them: the warm-up, then the count, in that order
-    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-        assert pool.submit(gc.get_freeze_count).result(timeout=120) == 0
-        pool.submit(plots._warm_up).result(timeout=120)
-        assert pool.submit(gc.get_freeze_count).result(timeout=120) > 10_000
-    before = gc.get_freeze_count()
-    thread = plots.PlotWorker(processes=False)
-    try:
-        thread.pool.submit(plots._warm_up).result(timeout=120)
-        assert gc.get_freeze_count() == before
-    finally:
-        thread.close()

@@ -204,15 +204,8 @@ def draw_outputs(history, best: Placement, bounds, coverage: tuple, out) -> list
 
 def _warm_up() -> None:
     """Import matplotlib and draw one small figure to memory, so that the first real figure of a worker
-    process finds fonts, the Agg renderer and the PNG writer loaded.
-
-    In a worker process of its own, what is loaded then is frozen (``gc.freeze``): a figure makes tens of
-    thousands of objects, and the oldest-generation collections they trigger walked matplotlib's and
-    NumPy's long-lived objects too, which made some drawings slower than others (bench/README.md, "A warm
-    command's host time and figures"). Not in a thread of the calling process, whose objects are not
-    ours to freeze."""
+    process finds fonts, the Agg renderer and the PNG writer loaded."""
     import io
-    import multiprocessing
 
     fig = _figure(1, 1)
     ax = fig.add_subplot(1, 1, 1)
@@ -220,11 +213,6 @@ def _warm_up() -> None:
     ax.set_title("warm-up")
     ax.legend()
     fig.savefig(io.BytesIO(), format="png")
-    if multiprocessing.parent_process() is not None:
-        import gc
-
-        gc.collect()
-        gc.freeze()
 
 
 def _all_of(parts):
