@@ -59,3 +59,30 @@ def test_scores_with_a_reused_table_equal_the_reference(name):
             got = b.score_placements(hb, e, a, 12.0, poses)
             for w, g in zip(want, got):
                 np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+
+
+def test_a_kept_bitset_comes_back_zeroed_and_is_not_shared():
+    """The CUDA score path keeps its bitset buffer between calls (WarpBackend._take_bits/_give_bits; the
+    logic is device-independent, exercised here on Warp's CPU device): a buffer taken again is zeroed
+    over the words asked for, a larger request gets a larger buffer, and a buffer that is out (another
+    thread scoring) is not handed out twice."""
+    pytest.importorskip("warp")
+    from place3d_kernels.backends.registry import get_backend
+
+    if "warp:cpu" not in p3k.available_backends():
+        pytest.skip("no Warp CPU backend")
+    b = get_backend("warp:cpu")
+    first = b._take_bits(100)
+    first.fill_(7)
+    other = b._take_bits(50)                      # the first is out: a buffer of its own
+    assert other.ptr != first.ptr
+    b._give_bits(first)
+    b._give_bits(other)                           # smaller: the kept one stays the larger
+    again = b._take_bits(60)
+    assert again.ptr == first.ptr
+    assert not again.numpy()[:60].any() and (again.numpy()[60:] == 7).all()
+    b._give_bits(again)
+    bigger = b._take_bits(200)
+    assert bigger.shape[0] >= 200 and not bigger.numpy()[:200].any()
+    b._give_bits(bigger)
+    assert b._take_bits(10).ptr == bigger.ptr

@@ -171,6 +171,7 @@ class WarpCore(Backend):
         self.threads = 1 if self.device.is_cuda else cpu_threads()
         self._pool = None
         self._pool_lock = threading.Lock()
+        self._bits = None         # the kept bitset buffer (CUDA; _take_bits)
         self._loaded = set()      # kernels launched once already (module compiled and loaded)
         self._pinned = None       # PinnedPool for large device-to-host copies (CUDA only; created on first use)
         #: what ``aot.load`` did: the shipped CUDA binaries loaded (e.g. "cubin sm90"), or why not (Warp then
@@ -450,11 +451,38 @@ class WarpCore(Backend):
         P, L = poses.shape[:2]
         flat = poses.reshape(-1, 6)
         sd, sd_a = self._directions.get(elevations, azimuths)     # host and device tables
+        words = int(np.prod(brick_shape(handle.spec.shape)))
+        kept = self._take_bits(P * words) if self.device.is_cuda else None
+        bits = wp.zeros(P * words, dtype=wp.uint32, device=self.device) if kept is None else kept[:P * words]
+        try:
+            return self._score_into(handle, bits, sd, sd_a, flat, P, L, t_max, words)
+        finally:
+            if kept is not None:
+                self._give_bits(kept)
+
+    # CUDA: the bitsets of a score call are kept for the next one. Allocating them through Warp's memory pool
+    # (hundreds of MB for a population of dense rigs) cost about 1 ms a call on the H100, whose pool hands
+    # freed memory back at once; zeroing a kept buffer costs a sixth of that (figures: bench/README.md, "A
+    # warm command's host time and figures"). One buffer per backend, the largest recently needed; a call
+    # that finds it taken (another thread scoring) allocates its own.
+    def _take_bits(self, n: int):
+        with self._pool_lock:
+            buf, self._bits = self._bits, None
+        if buf is None or buf.shape[0] < n:
+            buf = wp.empty(n, dtype=wp.uint32, device=self.device)
+        buf[:n].zero_()                 # stream-ordered after the previous call's kernels, as a fresh array
+        return buf
+
+    def _give_bits(self, buf) -> None:
+        with self._pool_lock:
+            if self._bits is None or self._bits.shape[0] < buf.shape[0]:
+                self._bits = buf
+
+    def _score_into(self, handle, bits, sd, sd_a, flat, P, L, t_max, words):
+        """score_placements on zeroed bitsets ``bits`` (P * words words)."""
         spec = handle.spec
         nx, ny, nz = spec.shape
-        bx, by, bz = brick_shape(spec.shape)
-        words = bx * by * bz
-        bits = wp.zeros(P * words, dtype=wp.uint32, device=self.device)
+        _, by, bz = brick_shape(spec.shape)
         sums = wp.zeros(P, dtype=wp.int64, device=self.device)
         counts = wp.zeros(P, dtype=wp.int64, device=self.device)
         rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=self.device)
