@@ -81,9 +81,10 @@ def main(argv=None) -> int:
                           state["sums"]], block_dim=g.SCORE_BLOCK_DIM)
 
     def count():
-        chunks = -(-words // b.k.COUNT_WORDS)
+        per = b.k.count_words_per_thread(P * words)       # as the backend counts
+        chunks = -(-words // per)
         wp.launch(b.k.count_bits_kernel, dim=P * chunks, device=dev,
-                  inputs=[state["bits"], int(words), int(chunks), state["counts"]])
+                  inputs=[state["bits"], int(words), int(chunks), int(per), state["counts"]])
 
     def download():
         state["out"] = (state["sums"].numpy(), state["counts"].numpy())

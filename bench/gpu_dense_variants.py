@@ -165,7 +165,7 @@ class Workload:
                       inputs=io + [self.n_az, self.n_rays, v["threads"], self.counter], block_dim=BLOCK_DIM)
         chunks = -(-self.words // self.backend.k.COUNT_WORDS)
         wp.launch(self.backend.k.count_bits_kernel, dim=self.P * chunks, device=self.device,
-                  inputs=[self.bits, int(self.words), int(chunks), self.counts])
+                  inputs=[self.bits, int(self.words), int(chunks), int(self.backend.k.COUNT_WORDS), self.counts])
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
         return self.sums.numpy().copy(), self.counts.numpy().copy()

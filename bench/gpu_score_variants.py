@@ -756,7 +756,7 @@ def main() -> None:
                           block_dim=block_dim or 256)
                 chunks = -(-words // b.k.COUNT_WORDS)
                 wp.launch(b.k.count_bits_kernel, dim=P * chunks, device=dev,
-                          inputs=[bits, int(words), int(chunks), counts])
+                          inputs=[bits, int(words), int(chunks), int(b.k.COUNT_WORDS), counts])
             else:
                 wp.launch(kernel, dim=n, device=dev, inputs=common + inputs_tail(words) + [bits, sums, counts],
                           block_dim=block_dim or 256)

@@ -222,3 +222,23 @@ def test_plot_worker_falls_back_to_a_thread(tmp_path, monkeypatch):
         assert sorted(p.rsplit("/", 1)[1] for p in paths) == ["convergence.png", "coverage.png", "rig.png"]
     finally:
         worker.close()
+
+
+@pytest.mark.parametrize("per", [64, 1024, 4096])
+def test_bit_count_equals_numpy_whatever_the_words_per_thread(per):
+    """count_bits_kernel gives each candidate's set bits for any words per thread, including a last chunk
+    cut short and a chunk larger than the bitset (the CUDA path uses 1024 for large bitsets)."""
+    wp = pytest.importorskip("warp")
+    from place3d_kernels.backends.warp import kernels as k
+
+    rng = np.random.default_rng(per)
+    P, words = 3, 5003
+    host = rng.integers(0, 2**32, P * words, dtype=np.uint64).astype(np.uint32)
+    host[words:2 * words] = 0                       # a candidate with nothing covered
+    counts = wp.zeros(P, dtype=wp.int64, device="cpu")
+    chunks = -(-words // per)
+    wp.launch(k.count_bits_kernel, dim=P * chunks, device="cpu",
+              inputs=[wp.array(host, dtype=wp.uint32, device="cpu"), words, chunks, per, counts])
+    want = np.bitwise_count(host.reshape(P, words)).sum(axis=1)
+    np.testing.assert_array_equal(counts.numpy(), want)
+    assert k.count_words_per_thread(2**24) == 1024 and k.count_words_per_thread(2**24 - 1) == k.COUNT_WORDS

@@ -513,10 +513,15 @@ class WarpCore(Backend):
                         bits[a * words:b * words], sums[a:b]]
 
             self._launch_groups(self.k.score_kernel, P, rays, cand_range)
-        chunks = -(-words // self.k.COUNT_WORDS)
-        wp.launch(self.k.count_bits_kernel, dim=P * chunks, device=self.device,
-                  inputs=[bits, int(words), int(chunks), counts])
+        self._count_bits(bits, P, words, counts)
         return sums.numpy(), counts.numpy()
+
+    def _count_bits(self, bits, P: int, words: int, counts) -> None:
+        """counts[c] = set bits of candidate c's bitset (P candidates of ``words`` words each)."""
+        per = self.k.count_words_per_thread(P * words)
+        chunks = -(-words // per)
+        wp.launch(self.k.count_bits_kernel, dim=P * chunks, device=self.device,
+                  inputs=[bits, int(words), int(chunks), int(per), counts])
 
     def _score_one_rig_split(self, handle, sd, rot, pos, L, t_max):
         """CPU: one rig's rays over the thread pool, exactly. Thread c walks the sensor directions
@@ -619,9 +624,7 @@ class WarpCore(Backend):
             self._run_chunks(kr.score_rays_kernel, [(int(a), int(b), rays(int(a), int(b)))
                                                     for a, b in zip(edges[:-1], edges[1:]) if b > a])
         if P:
-            chunks = -(-words // self.k.COUNT_WORDS)
-            wp.launch(self.k.count_bits_kernel, dim=P * chunks, device=self.device,
-                      inputs=[bits, int(words), int(chunks), counts])
+            self._count_bits(bits, P, words, counts)
         return sums.numpy()[:P], counts.numpy()[:P]
 
 

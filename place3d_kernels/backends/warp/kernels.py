@@ -660,19 +660,27 @@ def score_kernel(
               words_per_candidate, bits, sums)
 
 
-COUNT_WORDS = 64   # bitset words per thread of count_bits_kernel (the literal in its loop)
+COUNT_WORDS = 64   # bitset words per thread of count_bits_kernel for small bitsets (count_words_per_thread)
+
+
+def count_words_per_thread(total_words: int) -> int:
+    """Words per thread of ``count_bits_kernel`` for ``total_words`` bitset words in all: each thread ends
+    with one atomic add on its candidate's counter, and for the dense rig's 512 MB of bitsets those
+    atomics, not the reads, made the count slow (64 words per thread 1.88 ms, 1024 0.62 ms on the H100;
+    bench/README.md, "A warm command's host time and figures"). Small bitsets keep 64, for threads enough."""
+    return 1024 if total_words >= 2**24 else COUNT_WORDS
 
 
 @wp.kernel
 def count_bits_kernel(bits: wp.array(dtype=wp.uint32), words_per_candidate: wp.int64,
-                      chunks_per_candidate: wp.int64, counts: wp.array(dtype=wp.int64)):
-    # covered voxels of each candidate = set bits of its bitset; one atomic add per COUNT_WORDS words
+                      chunks_per_candidate: wp.int64, per_thread: wp.int32, counts: wp.array(dtype=wp.int64)):
+    # covered voxels of each candidate = set bits of its bitset; one atomic add per per_thread words
     tid = wp.int64(wp.tid())
     cand = tid / chunks_per_candidate
-    w0 = (tid - cand * chunks_per_candidate) * wp.int64(64)
+    w0 = (tid - cand * chunks_per_candidate) * wp.int64(per_thread)
     base = cand * words_per_candidate
     c = wp.int64(0)
-    for q in range(64):
+    for q in range(per_thread):
         at = w0 + wp.int64(q)
         if at < words_per_candidate:
             c += wp.int64(wp.bit_count(bits[base + at]))
