@@ -4,8 +4,10 @@
 Workload as ``gpu_dense.py``: 16 perturbed ``pyramid`` rigs of the dense LiDAR (4 x 64 x 2048 rays) on the
 default town's P-SOG at 0.05 m. Times, each synchronised, 5 rounds after a warm-up, median [min-max] ms:
 ``msog_batch`` as a user calls it; ``score_placements`` on local poses; and the parts that
-``WarpBackend.score_placements`` runs on CUDA, one at a time: zeroed bitsets (``wp.zeros``), the score
-kernel, the bit count, the two downloads. Checks that the parts' sums and counts equal the API's.
+``WarpBackend.score_placements`` runs on CUDA, one at a time: zeroed bitsets as a fresh array (``zeros``,
+``wp.zeros``: the backend's way until 2026-11-25) and as the backend now does it, a kept buffer zeroed
+in place (``zero_kept``), the score kernel, the bit count (with the backend's words per thread), the two
+downloads. Checks that the parts' sums and counts equal the API's.
 
     python3 bench/dense_api_parts.py [--device cuda:0] [--out FILE]
 """
@@ -108,6 +110,8 @@ def main(argv=None) -> int:
     res["ms"]["score_placements"] = timed(lambda: b.score_placements(handle, dense.elevations, dense.azimuths,
                                                                      dense.max_range, local))
     res["ms"]["zeros"] = timed(zeros)
+    kept = wp.empty(P * words, dtype=wp.uint32, device=dev)
+    res["ms"]["zero_kept"] = timed(lambda: kept.zero_())
     res["ms"]["kernel"] = timed(kernel, before=zeros)
     res["ms"]["count"] = timed(count, before=lambda: (zeros(), kernel()))
     res["ms"]["download"] = timed(download, before=lambda: (zeros(), kernel(), count()))
