@@ -6,8 +6,11 @@ default town's P-SOG at 0.05 m. Times, each synchronised, 5 rounds after a warm-
 ``msog_batch`` as a user calls it; ``score_placements`` on local poses; and the parts that
 ``WarpBackend.score_placements`` runs on CUDA, one at a time: zeroed bitsets as a fresh array (``zeros``,
 ``wp.zeros``: the backend's way until 2026-11-25) and as the backend now does it, a kept buffer zeroed
-in place (``zero_kept``), the score kernel, the bit count (with the backend's words per thread), the two
-downloads. Checks that the parts' sums and counts equal the API's.
+in place (``zero_kept``), the score kernel, the bit count (``count``: since 2026-11-25 the backend's
+``score_gpu.count_clear_kernel``, coalesced reads that also zero what they count, so a kept buffer needs no
+``zero_kept``; ``count_old``: ``kernels.count_bits_kernel`` with the words per thread the backend used
+before), the download (``download``: sums and counts in one array, as the backend now fetches them;
+``download_two``: two arrays, as before). Checks that the parts' sums and counts equal the API's.
 
     python3 bench/dense_api_parts.py [--device cuda:0] [--out FILE]
 """
@@ -73,8 +76,8 @@ def main(argv=None) -> int:
 
     def zeros():
         state["bits"] = wp.zeros(P * words, dtype=wp.uint32, device=dev)
-        state["sums"] = wp.zeros(P, dtype=wp.int64, device=dev)
-        state["counts"] = wp.zeros(P, dtype=wp.int64, device=dev)
+        state["both"] = wp.zeros(2 * P, dtype=wp.int64, device=dev)
+        state["sums"], state["counts"] = state["both"][:P], state["both"][P:]
 
     def kernel():
         wp.launch(g.score_kernel_gpu, dim=P * L * len(sd), device=dev,
@@ -83,12 +86,21 @@ def main(argv=None) -> int:
                           state["sums"]], block_dim=g.SCORE_BLOCK_DIM)
 
     def count():
-        per = b.k.count_words_per_thread(P * words)       # as the backend counts
+        t = g.count_threads_per_candidate(words, P)       # as the backend counts
+        wp.launch(g.count_clear_kernel, dim=P * t, device=dev, inputs=[state["bits"], int(words), int(t),
+                                                                        state["counts"]], block_dim=g.SCORE_BLOCK_DIM)
+
+    def count_old():
+        per = b.k.count_words_per_thread(P * words)       # as the backend counted until 2026-11-25
         chunks = -(-words // per)
         wp.launch(b.k.count_bits_kernel, dim=P * chunks, device=dev,
                   inputs=[state["bits"], int(words), int(chunks), int(per), state["counts"]])
 
     def download():
+        out = state["both"].numpy()
+        state["out"] = (out[:P], out[P:])
+
+    def download_two():
         state["out"] = (state["sums"].numpy(), state["counts"].numpy())
 
     def timed(fn, before=None):
@@ -114,6 +126,8 @@ def main(argv=None) -> int:
     res["ms"]["zero_kept"] = timed(lambda: kept.zero_())
     res["ms"]["kernel"] = timed(kernel, before=zeros)
     res["ms"]["count"] = timed(count, before=lambda: (zeros(), kernel()))
+    res["ms"]["count_old"] = timed(count_old, before=lambda: (zeros(), kernel()))
+    res["ms"]["download_two"] = timed(download_two, before=lambda: (zeros(), kernel(), count()))
     res["ms"]["download"] = timed(download, before=lambda: (zeros(), kernel(), count()))
     want = b.score_placements(handle, dense.elevations, dense.azimuths, dense.max_range, local)
     res["parts_equal_api"] = bool(np.array_equal(state["out"][0], want[0]) and np.array_equal(state["out"][1], want[1]))

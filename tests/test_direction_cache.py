@@ -64,7 +64,8 @@ def test_scores_with_a_reused_table_equal_the_reference(name):
 def test_a_kept_bitset_comes_back_zeroed_and_is_not_shared():
     """The CUDA score path keeps its bitset buffer between calls (WarpBackend._take_bits/_give_bits; the
     logic is device-independent, exercised here on Warp's CPU device): a buffer taken again is zeroed
-    over the words asked for, a larger request gets a larger buffer, and a buffer that is out (another
+    over the words asked for, except the leading words it was given back as clean (the CUDA bit count
+    zeroes what it counts), a larger request gets a larger buffer, and a buffer that is out (another
     thread scoring) is not handed out twice."""
     pytest.importorskip("warp")
     from place3d_kernels.backends.registry import get_backend
@@ -72,17 +73,47 @@ def test_a_kept_bitset_comes_back_zeroed_and_is_not_shared():
     if "warp:cpu" not in p3k.available_backends():
         pytest.skip("no Warp CPU backend")
     b = get_backend("warp:cpu")
-    first = b._take_bits(100)
+    first, clean = b._take_bits(100)
+    assert clean == 0 and not first.numpy()[:100].any()
     first.fill_(7)
-    other = b._take_bits(50)                      # the first is out: a buffer of its own
+    other, _ = b._take_bits(50)                   # the first is out: a buffer of its own
     assert other.ptr != first.ptr
-    b._give_bits(first)
-    b._give_bits(other)                           # smaller: the kept one stays the larger
-    again = b._take_bits(60)
-    assert again.ptr == first.ptr
+    b._give_bits(first, 0)
+    b._give_bits(other, 50)                       # smaller: the kept one stays the larger
+    again, clean = b._take_bits(60)
+    assert again.ptr == first.ptr and clean == 0
     assert not again.numpy()[:60].any() and (again.numpy()[60:] == 7).all()
-    b._give_bits(again)
-    bigger = b._take_bits(200)
-    assert bigger.shape[0] >= 200 and not bigger.numpy()[:200].any()
-    b._give_bits(bigger)
-    assert b._take_bits(10).ptr == bigger.ptr
+    again.numpy()[0] = 5                          # (a word it will be told is clean: not zeroed again)
+    b._give_bits(again, 60)
+    more, clean = b._take_bits(80)
+    assert more.ptr == first.ptr and clean == 60
+    got = more.numpy()
+    assert got[0] == 5 and not got[1:80].any() and (got[80:] == 7).all()
+    b._give_bits(more, 0)
+    bigger, clean = b._take_bits(200)
+    assert bigger.shape[0] >= 200 and clean == 0 and not bigger.numpy()[:200].any()
+    b._give_bits(bigger, 200)
+    assert b._take_bits(10) == (bigger, 200)
+
+
+@pytest.mark.parametrize("threads", [1, 7, 64, 5003, 9000])
+def test_the_cuda_bit_count_counts_and_leaves_the_bitsets_zero(threads):
+    """score_gpu.count_clear_kernel (run here on Warp's CPU device) gives each candidate's set bits, for any
+    threads per candidate (a last word not on a thread's stride, more threads than words), and leaves every
+    word zero; count_threads_per_candidate keeps 64 words a thread for small bitsets and about 2^18
+    threads for large ones."""
+    wp = pytest.importorskip("warp")
+    from place3d_kernels.backends.warp import score_gpu as g
+
+    rng = np.random.default_rng(threads)
+    P, words = 3, 5003
+    host = rng.integers(0, 2**32, P * words, dtype=np.uint64).astype(np.uint32)
+    host[words:2 * words] = 0                     # a candidate with nothing covered
+    host[2 * words:2 * words + 100] = 0           # and zero words among set ones
+    bits = wp.array(host, dtype=wp.uint32, device="cpu")
+    counts = wp.zeros(P, dtype=wp.int64, device="cpu")
+    wp.launch(g.count_clear_kernel, dim=P * threads, device="cpu", inputs=[bits, words, threads, counts])
+    np.testing.assert_array_equal(counts.numpy(), np.bitwise_count(host.reshape(P, words)).sum(axis=1))
+    assert not bits.numpy().any()
+    assert g.count_threads_per_candidate(6400, 22) == 100
+    assert g.count_threads_per_candidate(2**23, 16) == 2**14

@@ -452,39 +452,49 @@ class WarpCore(Backend):
         flat = poses.reshape(-1, 6)
         sd, sd_a = self._directions.get(elevations, azimuths)     # host and device tables
         words = int(np.prod(brick_shape(handle.spec.shape)))
-        kept = self._take_bits(P * words) if self.device.is_cuda else None
-        bits = wp.zeros(P * words, dtype=wp.uint32, device=self.device) if kept is None else kept[:P * words]
+        n = P * words
+        kept, clean = self._take_bits(n) if self.device.is_cuda else (None, 0)
+        bits = wp.zeros(n, dtype=wp.uint32, device=self.device) if kept is None else kept[:n]
+        done = False
         try:
-            return self._score_into(handle, bits, sd, sd_a, flat, P, L, t_max, words)
+            out = self._score_into(handle, bits, sd, sd_a, flat, P, L, t_max, words)
+            done = True
+            return out
         finally:
-            if kept is not None:
-                self._give_bits(kept)
+            if kept is not None:   # the CUDA count zeroes the words it counts: [:n] is clean after a call
+                self._give_bits(kept, max(clean, n) if done else 0)
 
     # CUDA: the bitsets of a score call are kept for the next one. Allocating them through Warp's memory pool
     # (hundreds of MB for a population of dense rigs) cost about 1 ms a call on the H100, whose pool hands
-    # freed memory back at once; zeroing a kept buffer costs a sixth of that (figures: bench/README.md, "A
-    # warm command's host time and figures"). One buffer per backend, the largest recently needed; a call
-    # that finds it taken (another thread scoring) allocates its own.
+    # freed memory back at once, and zeroing them a sixth of that; the bit count after the score kernel zeroes
+    # what it counts (score_gpu.count_clear_kernel), so a kept buffer comes back clean (figures:
+    # bench/README.md, "The dense rig's API cost"). One buffer per backend, the largest recently needed,
+    # with the number of leading words known to be zero; a call that finds it taken (another thread
+    # scoring) allocates its own.
     def _take_bits(self, n: int):
+        """A buffer of at least ``n`` words whose first ``n`` are zero (stream-ordered after the previous
+        call's kernels, as a fresh array), and how many leading words were zero already."""
         with self._pool_lock:
-            buf, self._bits = self._bits, None
+            kept, self._bits = self._bits, None
+        buf, clean = (None, 0) if kept is None else kept
         if buf is None or buf.shape[0] < n:
-            buf = wp.empty(n, dtype=wp.uint32, device=self.device)
-        buf[:n].zero_()                 # stream-ordered after the previous call's kernels, as a fresh array
-        return buf
+            buf, clean = wp.empty(n, dtype=wp.uint32, device=self.device), 0
+        if clean < n:
+            buf[clean:n].zero_()
+        return buf, clean
 
-    def _give_bits(self, buf) -> None:
+    def _give_bits(self, buf, clean: int) -> None:
         with self._pool_lock:
-            if self._bits is None or self._bits.shape[0] < buf.shape[0]:
-                self._bits = buf
+            if self._bits is None or self._bits[0].shape[0] < buf.shape[0]:
+                self._bits = (buf, clean)
 
     def _score_into(self, handle, bits, sd, sd_a, flat, P, L, t_max, words):
         """score_placements on zeroed bitsets ``bits`` (P * words words)."""
         spec = handle.spec
         nx, ny, nz = spec.shape
         _, by, bz = brick_shape(spec.shape)
-        sums = wp.zeros(P, dtype=wp.int64, device=self.device)
-        counts = wp.zeros(P, dtype=wp.int64, device=self.device)
+        both = wp.zeros(2 * P, dtype=wp.int64, device=self.device)    # sums, then counts: one download
+        sums, counts = both[:P], both[P:]
         rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=self.device)
         pos = self._vec3d(flat[:, :3])
         rays = L * len(sd)     # per candidate
@@ -514,10 +524,21 @@ class WarpCore(Backend):
 
             self._launch_groups(self.k.score_kernel, P, rays, cand_range)
         self._count_bits(bits, P, words, counts)
-        return sums.numpy(), counts.numpy()
+        out = both.numpy()
+        return out[:P], out[P:]
 
     def _count_bits(self, bits, P: int, words: int, counts) -> None:
-        """counts[c] = set bits of candidate c's bitset (P candidates of ``words`` words each)."""
+        """counts[c] = set bits of candidate c's bitset (P candidates of ``words`` words each); on CUDA the
+        bitsets are left zero."""
+        if self.device.is_cuda:
+            g = self.score_gpu
+            if words > g.MAX_WORDS:
+                raise ValueError(f"{words:,} bitset words per candidate; the CUDA bit count indexes at most "
+                                 f"{g.MAX_WORDS:,} (a coarser voxel size or a smaller grid)")
+            t = g.count_threads_per_candidate(words, P)
+            wp.launch(g.count_clear_kernel, dim=P * t, device=self.device, inputs=[bits, int(words), int(t), counts],
+                      block_dim=g.SCORE_BLOCK_DIM)
+            return
         per = self.k.count_words_per_thread(P * words)
         chunks = -(-words // per)
         wp.launch(self.k.count_bits_kernel, dim=P * chunks, device=self.device,

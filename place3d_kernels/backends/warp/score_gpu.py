@@ -44,6 +44,7 @@ from place3d_kernels.backends.warp.kernels import Walk32, next_t, walk32_begin
 SCORE_BLOCK_DIM = 128
 SCORE_MAX_REGISTERS = 64
 _MODULE_OPTIONS = {"enable_backward": False, "fuse_fp": False, "block_dim": SCORE_BLOCK_DIM}
+wp.set_module_options(_MODULE_OPTIONS)
 #: a candidate's bitset words must be int32 indices
 MAX_WORDS = 2**31 - 1
 
@@ -94,6 +95,18 @@ return wp::atomic_or(q, v);
 def atomic_or_word(p: wp.uint64, i: wp.int32, v: wp.uint32) -> wp.uint32:
     """``atomic_or`` on bitset word ``i`` after address ``p``; returns the old word (left unused, it compiles
     to a reduction the GPU does not wait for, as Warp's own ``atomic_or``)."""
+    ...
+
+
+@wp.func_native("""
+wp::uint32* q = reinterpret_cast<wp::uint32*>(p) + i;
+#if defined(__CUDA_ARCH__)
+__builtin_assume(__isGlobal(q));
+#endif
+*q = v;
+""")
+def store_word(p: wp.uint64, i: wp.int32, v: wp.uint32):
+    """Bitset word ``i`` after address ``p`` set to ``v``."""
     ...
 
 
@@ -278,7 +291,7 @@ def flush_brick32(p: wp.uint64, word: wp.int32, pending: wp.uint32, nz_w: wp.uin
     return add
 
 
-@wp.kernel(cuda_max_registers=SCORE_MAX_REGISTERS, module="unique", module_options=_MODULE_OPTIONS)
+@wp.kernel(cuda_max_registers=SCORE_MAX_REGISTERS)
 def score_kernel_gpu(
     sensor_dirs: wp.array(dtype=wp.vec3d),      # (C*A,)
     rot: wp.array(dtype=wp.mat33d),             # (P*L,)
@@ -334,3 +347,34 @@ def score_kernel_gpu(
         my_sum += flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
     if my_sum > wp.int64(0):
         wp.atomic_add(sums, cand, my_sum)
+
+
+# The bit count that follows every score launch, and the zeroing before the next, are passes over the whole
+# bitset (512 MB for 16 dense rigs). Here they are one pass: each thread of a candidate counts every T-th word
+# (so a warp's 32 loads are consecutive words) and zeroes the words it found set, which leaves the buffer as
+# the next call needs it (WarpCore keeps it; bench/README.md, "The dense rig's API cost", for the figures).
+def count_threads_per_candidate(words: int, candidates: int) -> int:
+    """Threads per candidate of ``count_clear_kernel``: 64 words per thread for small bitsets, and for large
+    ones about 2^18 threads in all (one atomic add each, so few enough that the counters do not queue)."""
+    return max(1, min(-(-words // 64), -(-(1 << 18) // max(candidates, 1))))
+
+
+@wp.kernel
+def count_clear_kernel(bits: wp.array(dtype=wp.uint32), words_per_candidate: wp.int32,
+                       threads_per_candidate: wp.int32, counts: wp.array(dtype=wp.int64)):
+    # counts[c] += set bits of candidate c's bitset; the words read are left zero
+    tid = wp.tid()
+    cand = tid / threads_per_candidate
+    p = word_address(bits, wp.int64(cand) * wp.int64(words_per_candidate))
+    n = wp.int32(0)
+    c = tid - cand * threads_per_candidate
+    if c < words_per_candidate:
+        # words c, c + T, ... below words_per_candidate (a count, so the index never passes 2^31 - 1)
+        for q in range((words_per_candidate - 1 - c) / threads_per_candidate + 1):
+            at = c + q * threads_per_candidate
+            v = load_word(p, at)
+            if v != wp.uint32(0):
+                n += wp.bit_count(v)
+                store_word(p, at, wp.uint32(0))
+    if n > 0:
+        wp.atomic_add(counts, cand, wp.int64(n))
