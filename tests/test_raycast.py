@@ -166,3 +166,34 @@ def test_shift_on_device_is_bit_identical(device_backend, rng):
     t2, f2 = b.raycast(h, o - mesh.shift, d, 50.0)
     assert np.isfinite(t1).sum() > 1000
     assert t1.tobytes() == t2.tobytes() and np.array_equal(f1, f2)
+
+
+@pytest.mark.parametrize("tree", ["cubql", "sah"])
+def test_warp_trees_leak_nothing_and_match_the_reference(tree, rng):
+    """The Warp backend's padded-box BVH (WarpCore.upload_mesh) built by each builder it uses (cuBQL on CUDA,
+    SAH on the CPU), run here on Warp's CPU device: rays aimed at shared vertices and edges all hit, and
+    the hits are the reference's: the same distance bits on the same face, and where the face differs (these
+    rays aim at shared edges and vertices, where two or more faces tie and the tree's order picks one, as
+    test_hits_match_reference allows) a tie: the same distance within 1e-12 relative."""
+    pytest.importorskip("warp")
+    if "warp:cpu" not in p3k.available_backends():
+        pytest.skip("no Warp CPU backend")
+    from place3d_kernels.backends.warp.host import WarpBackend
+
+    b = WarpBackend("cpu")
+    b.bvh_constructor = tree
+    for name, tm in closed_meshes().items():
+        mesh = p3k.Mesh(tm.vertices + [3.0, -2.0, 1.0], tm.faces)
+        v = mesh.vertices
+        e = tm.edges_unique
+        tgt = np.concatenate([v, 0.5 * (v[e[:, 0]] + v[e[:, 1]])])
+        out = tgt - v.mean(axis=0)
+        out /= np.linalg.norm(out, axis=1, keepdims=True)
+        o = tgt + 10.0 * (out + 0.1 * rng.normal(size=out.shape))
+        got = p3k.raycast(mesh, o, tgt - o, 100.0, backend=b)
+        assert b.bvh_built == tree
+        assert got.hit.all(), f"{name}: {int((~got.hit).sum())} rays slipped through a {tree} tree"
+        want = p3k.raycast(mesh, o, tgt - o, 100.0, backend="reference")
+        same = got.face == want.face
+        np.testing.assert_array_equal(got.t[same], want.t[same])
+        np.testing.assert_allclose(got.t[~same], want.t[~same], rtol=1e-12, atol=0)

@@ -307,12 +307,16 @@ class OpenCLBackend(Backend, OpenCLConditions):
         return local, self._in(local, keep=True)
 
     # ----------------------------------------------------------------- ray-mesh
+    #: keyword arguments of ``bvh.build_bvh`` (leaf_size, bins) for meshes uploaded from now on; empty: its
+    #: defaults (bench/raymesh_bvh.py --opencl times others)
+    bvh_options: dict = {}
+
     def upload_mesh(self, vertices, faces, face_ids=None, labels=None):
         # private copies: the handle must not change if the caller edits its arrays later
         v = np.array(vertices, dtype=np.float64, copy=True).reshape(-1, 3)
         f = np.array(faces, dtype=np.int32, copy=True).reshape(-1, 3)
         ids, lab = mesh_face_tables(len(f), face_ids, labels)
-        bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH)
+        bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH, **self.bvh_options)
         return CLMesh(self, v, f, bvh, ids, lab)
 
     def _ray_args(self, mesh, o, o_step, d, tm, t_step, shift, tb, fb, lb, map_faces, flags) -> list:

@@ -267,6 +267,16 @@ class WarpCore(Backend):
         return out_o.numpy(), out_d.numpy()
 
     # ------------------------------------------------------------------ ray-mesh
+    # The BVH builder: on CUDA cuBQL (Warp >= 1.19, "experimental" there), whose trees Warp's own query walked
+    # 1.4x faster than its SAH trees on the 1M-triangle city with the same hits, which put this backend's two
+    # passes ahead of a plain Warp kernel on a default (SAH) tree; SAH where cuBQL is missing, and on the CPU
+    # (figures: bench/README.md, "Figures behind backend code comments"). None: that choice; a name forces one
+    # (bench/raymesh_bvh.py times the others). bvh_leaf_size None is the builder's default.
+    bvh_constructor = None
+    bvh_leaf_size = None
+    #: the builder the last uploaded mesh got, and why when it is not the one asked for
+    bvh_built = None
+
     def upload_mesh(self, vertices, faces, face_ids=None, labels=None):
         # Warp's mesh_query_ray culls BVH nodes with an unpadded float32 slab test, and rays aimed at
         # vertices on node boundaries slipped through (seen on boxes and cylinders). So the BVH is built
@@ -282,12 +292,25 @@ class WarpCore(Backend):
         build = np.stack([lo - pad, hi + pad, 0.5 * (lo + hi)], axis=1).reshape(-1, 3)
         pts = self._vec3(build)
         idx = wp.array(np.arange(3 * len(f), dtype=np.int32), dtype=wp.int32, device=self.device)
-        mesh = wp.Mesh(points=pts, indices=idx, bvh_constructor="sah")
+        mesh = self._build_tree(pts, idx)
         corners = tri.reshape(-1, 3)
         pts.assign(self._vec3(corners))
         ids, lab = mesh_face_tables(len(f), face_ids, labels)
         return _WarpMesh(mesh, pts, idx, self._vec3d(corners), wp.array(ids, dtype=wp.int64, device=self.device),
                          wp.array(lab, dtype=wp.int32, device=self.device))
+
+    def _build_tree(self, pts, idx):
+        cons = self.bvh_constructor or ("cubql" if self.device.is_cuda else "sah")
+        leaf = {} if self.bvh_leaf_size is None else {"bvh_leaf_size": self.bvh_leaf_size}
+        try:
+            mesh = wp.Mesh(points=pts, indices=idx, bvh_constructor=cons, **leaf)
+            self.bvh_built = cons
+        except (ValueError, RuntimeError, TypeError, KeyError) as e:
+            if cons != "cubql" or self.bvh_constructor is not None:
+                raise
+            mesh = wp.Mesh(points=pts, indices=idx, bvh_constructor="sah", **leaf)   # a Warp without cuBQL
+            self.bvh_built = f"sah (cubql: {type(e).__name__}: {e})"
+        return mesh
 
     raycast_takes_shift = True
 
