@@ -1,17 +1,20 @@
 """The Warp ray-mesh query on BVHs of other builders and leaf sizes (issue 17, goal 2's kernel clause).
 
     python3 bench/raymesh_bvh.py [--device cuda:0] [--rounds 15] [--out FILE]
-    python3 bench/raymesh_bvh.py --opencl opencl:nvidia [--opencl-variants 4:16,2:16] ...
+    python3 bench/raymesh_bvh.py --opencl opencl:nvidia [--opencl-variants 4:16,2:16] [--skip-warp]
 
 Warp builds a mesh's BVH with SAH, LBVH or (experimental) cuBQL, with 4 triangles a leaf unless told
 otherwise (Warp 1.19, ``wp.Mesh(bvh_constructor=, bvh_leaf_size=)``); its docs advise small leaves for ray
 queries. Same city and rays as ``raymesh_gap.py`` (``box_city(1_000_000)``, 4 x 64 x 2048 rays, on the
-device). Each round launches, synchronised in turn: the plain kernel (``mesh_query_ray``, float32 in and
-out) on the plain mesh as built by default (SAH, leaf 4: the goal's yardstick) and on the same tree
-options as each variant, and the backend's two passes (``resident_raycast``) on the backend's padded mesh
-built with each variant's options. Reports M rays/s and time over the yardstick's in the same round
-(median [min-max]), and, per variant, how many rays got another distance or face than on an SAH tree with
-leaf 4 (the backend's tree until 2026-11-25; since then CUDA meshes get cuBQL's, ``WarpCore._build_tree``).
+device). Each round launches, synchronised in turn, each step once untimed and then timed (on one GPU
+the first launch after another API's context paid for the switch: a default OpenCL tree read 1.08-1.15x
+the yardstick, and the yardstick 1.2-1.4 G rays/s, in a run without it): the plain kernel
+(``mesh_query_ray``, float32 in and out) on the plain mesh as built by default (SAH, leaf 4: the goal's
+yardstick) and on the same tree options as each variant, and the backend's two passes
+(``resident_raycast``) on the backend's padded mesh built with each variant's options. Reports M rays/s
+and time over the yardstick's in the same round (median [min-max]), and, per variant, how many rays got
+another distance or face than on an SAH tree with leaf 4 (the backend's tree until 2026-11-25; since then
+CUDA meshes get cuBQL's, ``WarpCore._build_tree``).
 With ``--opencl BACKEND`` the OpenCL backend's host-built binned-SAH tree (``opencl/bvh.py``) is timed the
 same way for each ``leaf_size:bins`` (its default 4:16), its results compared with the default tree's.
 """
@@ -139,6 +142,7 @@ def main(argv=None) -> int:
     walls = {k: [] for k in steps}
     for _ in range(args.rounds):
         for k, fn in steps.items():
+            fn()                # untimed: a switch between CUDA and OpenCL contexts costs the first launch
             wp.synchronize_device(dev)
             t = time.perf_counter()
             fn()

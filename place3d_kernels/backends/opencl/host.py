@@ -207,6 +207,19 @@ class OpenCLBackend(Backend, OpenCLConditions):
         flag = _MF.USE_HOST_PTR if (self.is_cpu and not keep) else _MF.COPY_HOST_PTR
         return cl.Buffer(self.ctx, _MF.READ_ONLY | flag, hostbuf=a)
 
+    def _upload(self, a: np.ndarray) -> cl.Buffer:
+        """A read-only input buffer filled by an explicit copy on GPUs (``_in`` on CPU devices). NVIDIA's
+        OpenCL moved a ``COPY_HOST_PTR`` buffer to the device only when the first kernel using it was
+        enqueued, and that took longer than the copy itself (the ray-mesh kernel's enqueue 2.1 ms a call for
+        524,288 float32 rays, bench/README.md, "Figures behind backend code comments"). The copy waits
+        for the queue: for inputs of a call whose queue is idle (the ray caster's)."""
+        a = np.ascontiguousarray(a)
+        if self.is_cpu or a.nbytes == 0:
+            return self._in(a)
+        buf = cl.Buffer(self.ctx, _MF.READ_ONLY, size=a.nbytes)
+        cl.enqueue_copy(self.queue, buf, a)
+        return buf
+
     def _out(self, nbytes: int) -> cl.Buffer:
         return cl.Buffer(self.ctx, _MF.READ_WRITE, size=max(int(nbytes), 8))
 
@@ -324,7 +337,8 @@ class OpenCLBackend(Backend, OpenCLConditions):
         f32 = o.dtype == np.float32
         if not f32 and not self.fp64:
             raise TypeError(f"{self.name} has no doubles: rays must be float32 here, got {o.dtype}")
-        args = [mesh.nodes, mesh.tris, self._in(o), np.int32(o_step), self._in(d), np.int32(f32), self._in(tm),
+        args = [mesh.nodes, mesh.tris, self._upload(o), np.int32(o_step), self._upload(d), np.int32(f32),
+                self._upload(tm),
                 np.int32(t_step), *(self.real(x) for x in shift), tb, fb, lb, mesh.face_ids, mesh.face_labels,
                 np.int32(map_faces), flags, np.int32(len(d))]
         if self.fp64:
