@@ -167,26 +167,88 @@ def _rect(ra, rb):
                      label="search box")
 
 
-def draw_coverage(entropy2d, covered2d, n_covered: int, extent, name: str, path) -> Path:
+def draw_coverage(entropy2d, covered2d, n_covered: int, extent, name: str, path, reuse: bool = True) -> Path:
     """Top view of the voxels a rig covers (``covered2d``: columns with a covered voxel) over the P-SOG's
-    column entropy (``entropy2d``), as coverage.png of ``place3d optimize``."""
+    column entropy (``entropy2d``), as coverage.png of ``place3d optimize``.
+
+    The left panel (the entropy map and its colour bar) depends on the P-SOG only: with ``reuse`` its
+    pixels are drawn once per P-SOG and process (``PANELS_KEPT`` kept) and later figures build and draw
+    only the right panel over them (its place is the same whether the left one is built or not), which
+    writes the same bytes as drawing the whole figure (``reuse=False``).
+    """
+    key = _panel_key(entropy2d, extent) if reuse and _plain_savefig() else None
     fig = _figure(11, 5)
-    fig.set_dpi(110)
-    ax = fig.add_subplot(1, 2, 1)
-    # nearest: one grid column is about one pixel here, and the smoothing resampler ("antialiased")
-    # cost a fifth of the figure's time and tripled the file (bench/README.md, "A warm command's host
-    # time and figures")
-    im = ax.imshow(entropy2d, origin="lower", extent=extent, cmap="magma", interpolation="nearest")
-    ax.set_title("P-SOG entropy, summed over z (nats)")
-    ax.set_xlabel("y (m, left)")
-    ax.set_ylabel("x (m, forward)")
-    fig.colorbar(im, ax=ax, shrink=0.8)
-    ax = fig.add_subplot(1, 2, 2)
-    ax.imshow(np.where(covered2d, entropy2d, np.nan), origin="lower", extent=extent, cmap="magma",
-              interpolation="nearest")
-    ax.set_title(f"covered by {name}: {int(n_covered):,} voxels")
-    ax.set_xlabel("y (m, left)")
-    return _save(fig, path, COVERAGE_MARGINS)
+    if key not in _PANELS:               # (drawn from the kept pixels otherwise: only its layout matters)
+        ax = fig.add_subplot(1, 2, 1)
+        # nearest: one grid column is about one pixel here, and the smoothing resampler ("antialiased")
+        # cost a fifth of the figure's time and tripled the file (bench/README.md, "A warm command's host
+        # time and figures")
+        im = ax.imshow(entropy2d, origin="lower", extent=extent, cmap="magma", interpolation="nearest")
+        ax.set_title("P-SOG entropy, summed over z (nats)")
+        ax.set_xlabel("y (m, left)")
+        ax.set_ylabel("x (m, forward)")
+        fig.colorbar(im, ax=ax, shrink=0.8)
+    right = fig.add_subplot(1, 2, 2)
+    right.imshow(np.where(covered2d, entropy2d, np.nan), origin="lower", extent=extent, cmap="magma",
+                 interpolation="nearest")
+    right.set_title(f"covered by {name}: {int(n_covered):,} voxels")
+    right.set_xlabel("y (m, left)")
+    if key is None:
+        return _save(fig, path, COVERAGE_MARGINS)
+    return _save_over_panel(fig, right, key, path)
+
+
+#: left panels of coverage.png kept per process (``_PANELS``): a resident server's recent P-SOGs
+PANELS_KEPT = 4
+_PANELS: dict = {}
+
+
+def _panel_key(entropy2d, extent) -> tuple:
+    """What the left panel is drawn from: the entropy map's shape, type and bytes (a digest), the extent."""
+    import hashlib
+
+    a = np.ascontiguousarray(entropy2d)
+    return (a.shape, a.dtype.str, tuple(float(v) for v in extent),
+            hashlib.blake2b(a.view(np.uint8).reshape(-1), digest_size=16).hexdigest())
+
+
+def _plain_savefig() -> bool:
+    """Whether ``savefig`` would write the canvas as drawn (matplotlib's default savefig settings), the
+    condition for ``_save_over_panel`` to write the same file."""
+    import matplotlib as mpl
+
+    rc = mpl.rcParams
+    return (rc["savefig.dpi"] == "figure" and rc["savefig.facecolor"] == "auto" and rc["savefig.edgecolor"] == "auto"
+            and not rc["savefig.transparent"] and rc["savefig.bbox"] is None)
+
+
+def _save_over_panel(fig, top, key, path) -> Path:
+    """Write ``fig`` as ``_save`` does, drawing only the axes ``top`` over the kept pixels of the rest.
+
+    The figure draws its axes in the order they were added and ``top`` was added last, so the rest drawn
+    alone and then ``top`` drawn over it are the same operations on the same pixels as one full draw.
+    The file is written as matplotlib's Agg ``print_png`` writes a drawn canvas.
+    """
+    import matplotlib.image as mimage
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.subplots_adjust(**COVERAGE_MARGINS)
+    canvas = fig.canvas
+    panel = _PANELS.pop(key, None)
+    if panel is None:
+        top.set_visible(False)
+        canvas.draw()
+        top.set_visible(True)
+        panel = canvas.copy_from_bbox(fig.bbox)
+    else:
+        canvas.restore_region(panel)
+    _PANELS[key] = panel                       # the most recently used last
+    while len(_PANELS) > PANELS_KEPT:
+        _PANELS.pop(next(iter(_PANELS)))
+    top.draw(canvas.get_renderer())
+    mimage.imsave(path, canvas.buffer_rgba(), format="png", origin="upper", dpi=fig.dpi, pil_kwargs=PNG)
+    return path
 
 
 def draw_outputs(history, best: Placement, bounds, coverage: tuple, out) -> list[str]:
