@@ -49,3 +49,24 @@ def test_kept_panels_are_few_and_keyed_by_what_they_show(tmp_path, monkeypatch):
     assert plots._panel_key(entropy, extent) != plots._panel_key(entropy.astype(np.float64), extent)
     assert plots._panel_key(entropy, extent) != plots._panel_key(entropy, (-6.0, 5.95, -6.05, 5.95))
     assert plots._panel_key(entropy, extent) == plots._panel_key(entropy.copy(), tuple(np.float64(v) for v in extent))
+
+
+def test_coverage_has_a_process_of_its_own_that_keeps_the_panel(tmp_path):
+    """With plot processes, every coverage.png of a worker goes to the same process, so a later command
+    of a resident server finds the panel an earlier one drew: two P-SOGs' figures leave two panels there."""
+    from place3d_kernels.optimize import SearchSpace, plots
+    from place3d_kernels.placement import Placement
+
+    history = [{"evaluations": 10 * (i + 1), "best": -0.05 + 0.001 * i, "sigma": 0.3} for i in range(4)]
+    entropy, covered, n, extent = _view(4, n=30)
+    worker = plots.PlotWorker(processes=True)
+    try:
+        for k, run in enumerate("ab"):
+            worker.submit(history, Placement.load("pyramid"), SearchSpace(n_lidars=4),
+                          (entropy + k, covered, n, extent, run), tmp_path / run).result(timeout=120)
+        assert len(worker.pool._processes) == plots.PLOT_PROCESSES
+        kept = worker.pool.submit_coverage(eval, "len(__import__('place3d_kernels.optimize.plots', "
+                                                 "fromlist=['plots'])._PANELS)").result(timeout=60)
+        assert kept == 2
+    finally:
+        worker.close()

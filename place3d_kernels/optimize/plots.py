@@ -317,18 +317,55 @@ def _default_processes() -> bool:
     return (os.cpu_count() or 1) >= 4 and _spawn_can_start()
 
 
-def _new_pool(processes: bool):
-    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+class _Pools:
+    """The executors that draw the figures: on processes, ``PLOT_PROCESSES - 1`` for convergence.png and
+    rig.png and one of its own for coverage.png, so that every figure of a resident process's commands
+    finds the coverage panels that one process keeps (``draw_coverage``); else one thread for all.
 
-    if processes:
+    ``submit`` and ``shutdown`` act as an executor's (``submit`` on the first executor, ``submit_coverage``
+    on the second); ``_processes`` maps the pids of both, as ``ProcessPoolExecutor._processes`` does.
+    """
+
+    def __init__(self, processes: bool):
+        from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+        if not processes:
+            self.figures = self.coverage = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
+            return
         import multiprocessing
 
-        pool = ProcessPoolExecutor(PLOT_PROCESSES, mp_context=multiprocessing.get_context("spawn"))
-        for _ in range(PLOT_PROCESSES):        # each submit finds no idle worker: one process each
-            pool.submit(_warm_up)
-        return pool
-    pool = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
-    return pool
+        spawn = multiprocessing.get_context("spawn")
+        self.figures = ProcessPoolExecutor(PLOT_PROCESSES - 1, mp_context=spawn)
+        self.coverage = ProcessPoolExecutor(1, mp_context=spawn)
+        for _ in range(PLOT_PROCESSES - 1):    # each submit finds no idle worker: one process each
+            self.figures.submit(_warm_up)
+        self.coverage.submit(_warm_up)
+
+    def _executors(self):
+        return [self.figures] if self.coverage is self.figures else [self.figures, self.coverage]
+
+    def submit(self, fn, *args):
+        return self.figures.submit(fn, *args)
+
+    def submit_coverage(self, fn, *args):
+        return self.coverage.submit(fn, *args)
+
+    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        for e in self._executors():
+            e.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+    def check(self, timeout: float) -> None:
+        """A no-op round trip through each executor: raises if a process died."""
+        for e in self._executors():
+            e.submit(int).result(timeout=timeout)
+
+    @property
+    def _processes(self) -> dict:
+        return {pid: p for e in self._executors() for pid, p in (getattr(e, "_processes", None) or {}).items()}
+
+
+def _new_pool(processes: bool) -> _Pools:
+    return _Pools(processes)
 
 
 def keep_worker() -> bool:
@@ -347,7 +384,7 @@ def keep_worker() -> bool:
     global _kept
     if _kept is not None:
         try:
-            _kept.submit(int).result(timeout=60)          # a no-op round trip: raises if the process died
+            _kept.check(timeout=60)                       # a no-op round trip: raises if a process died
             return False
         except Exception:  # noqa: BLE001 - BrokenProcessPool or a hung worker: start a fresh one
             _kept.shutdown(wait=False, cancel_futures=True)
@@ -363,7 +400,8 @@ class PlotWorker:
 
     Where the machine has cores to spare (4 or more) these are ``PLOT_PROCESSES`` processes of their own,
     started with the command so that importing matplotlib and a first drawing (1-1.3 s on the H100 host)
-    overlap the search, and each figure is drawn in its own process, neither waiting for the main
+    overlap the search, and each figure is drawn in its own process (coverage.png always in the same
+    one, which keeps the P-SOG's panel: ``_Pools``), neither waiting for the main
     thread's Python (the GIL) nor slowing it; elsewhere (the 2-core dev VM, where PoCL's scoring uses
     both cores) one thread draws them in turn. In a process that called ``keep_worker`` it uses that
     pool, and ``close`` waits for this worker's drawings only. A pool whose process died (or could not
@@ -385,21 +423,29 @@ class PlotWorker:
         if not self.processes:
             f = self.pool.submit(draw_outputs, list(history), best, bounds, coverage, str(out))
         else:
-            from concurrent.futures import ThreadPoolExecutor
             from concurrent.futures.process import BrokenProcessPool
 
             out.mkdir(parents=True, exist_ok=True)
+            parts = []
             try:
-                f = _all_of([self.pool.submit(plot_convergence, list(history), out / "convergence.png"),
-                             self.pool.submit(plot_rig, best, out / "rig.png", None, bounds),
-                             self.pool.submit(draw_coverage, *coverage, out / "coverage.png")])
+                # coverage first: its process keeps the P-SOG's panel between commands
+                parts.append(self.pool.submit_coverage(draw_coverage, *coverage, out / "coverage.png"))
+                parts.append(self.pool.submit(plot_convergence, list(history), out / "convergence.png"))
+                parts.append(self.pool.submit(plot_rig, best, out / "rig.png", None, bounds))
             except BrokenProcessPool:
-                # a worker process died (killed, or it could not start): the figures are drawn on a thread
+                # a worker process died (killed, or it could not start): the figures are drawn on a thread,
+                # once what was submitted is cancelled or done (two writers of one file could tear it)
+                from concurrent.futures import wait
+
+                for part in parts:
+                    part.cancel()
+                wait(parts)
                 if not self.shared:
                     self.pool.shutdown(wait=False, cancel_futures=True)
-                self.pool = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
+                self.pool = _Pools(False)
                 self.processes = self.shared = False
                 return self.submit(history, best, bounds, coverage, out)
+            f = _all_of([parts[1], parts[2], parts[0]])     # the paths in the order draw_outputs gives them
         self._futures.append(f)
         return f
 
