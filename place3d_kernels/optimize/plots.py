@@ -355,9 +355,9 @@ class _Pools:
             e.shutdown(wait=wait, cancel_futures=cancel_futures)
 
     def check(self, timeout: float) -> None:
-        """A no-op round trip through each executor: raises if a process died."""
-        for e in self._executors():
-            e.submit(int).result(timeout=timeout)
+        """A no-op round trip through each executor (at the same time): raises if a process died."""
+        for f in [e.submit(int) for e in self._executors()]:
+            f.result(timeout=timeout)
 
     @property
     def _processes(self) -> dict:
