@@ -1,6 +1,8 @@
 """Warm-process drawing time of the three `place3d optimize` figures, with the shipped fixed margins and
-with the measured layout used before (``tight_layout``), 5 alternating rounds, then a profile of two; and
-a pure-Python loop as a yardstick of the host's single-thread speed:
+with the measured layout used before (``tight_layout``), each drawing coverage.png whole, and with the
+fixed margins and coverage.png over its kept P-SOG panel ("kept", as every command of a server after its
+first on that P-SOG); 5 alternating rounds, then a profile of two; and a pure-Python loop as a yardstick
+of the host's single-thread speed:
 
     python3 bench/plot_speed.py > bench/results/plot-speed-<machine>-<date>.txt
 """
@@ -29,13 +31,14 @@ def measured_save(fig, path, margins):
 
 
 # fixed margins (shipped) and a measured layout alternate, so drift on a shared machine hits both alike
-times = {"fixed": [], "measured": []}
+times = {"fixed": [], "measured": [], "kept": []}
 for rep in range(5):
-    for mode, save in (("fixed", fixed_save), ("measured", measured_save)):
+    for mode, save in (("fixed", fixed_save), ("measured", measured_save), ("kept", fixed_save)):
         plots._save = save
         a = time.perf_counter(); plots.plot_convergence(hist, out / "c.png"); b = time.perf_counter()
         plots.plot_rig(best, out / "r.png", None, None); c = time.perf_counter()
-        plots.draw_coverage(ent, cov, 123456, (-40, 40, -40, 40), "x", out / "v.png"); d = time.perf_counter()
+        plots.draw_coverage(ent, cov, 123456, (-40, 40, -40, 40), "x", out / "v.png", reuse=mode == "kept")
+        d = time.perf_counter()
         times[mode].append((b - a, c - b, d - c))
         print(f"{mode:8s} convergence {b - a:.3f} rig {c - b:.3f} coverage {d - c:.3f}")
 plots._save = fixed_save
@@ -44,5 +47,6 @@ for mode, rows in times.items():
     print(f"median of 5, {mode:8s}: convergence {med[0]:.3f} rig {med[1]:.3f} coverage {med[2]:.3f} "
           f"all three {sum(med):.3f} s")
 pr = cProfile.Profile(); pr.enable()
-plots.plot_rig(best, out / "r.png", None, None); plots.draw_coverage(ent, cov, 123456, (-40, 40, -40, 40), "x", out / "v.png")
+plots.plot_rig(best, out / "r.png", None, None)
+plots.draw_coverage(ent, cov, 123456, (-40, 40, -40, 40), "x", out / "v.png", reuse=False)
 pr.disable(); st = io.StringIO(); pstats.Stats(pr, stream=st).sort_stats("tottime").print_stats(8); print(st.getvalue()[-2500:])

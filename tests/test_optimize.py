@@ -432,6 +432,33 @@ def test_resume_after_crash_in_objective(tmp_path):
     assert not fresh.resumed and (tmp_path / "new.ckpt").exists()
 
 
+def test_a_crash_after_ask_resumes_with_the_asked_batch(tmp_path):
+    """A run whose objective raises writes the last completed generation with the batch its strategy had
+    just proposed (checkpoint.py, format 2); the resumed run scores that batch first and ends as a run
+    that never stopped. Checked for CMA-ES and random search, which both advance their random state on
+    ask (the grid strategy its position; its grid here is too large to enumerate)."""
+    for method in ("cma", "random"):
+        ckpt = tmp_path / f"{method}.ckpt"
+        calls = {"n": 0}
+
+        def crashing(X):
+            calls["n"] += 1
+            if calls["n"] == 4:
+                raise RuntimeError("device lost")
+            return sphere(TARGET2)(X)
+
+        kw = {**_run_kw(), "method": method, "max_evals": 120}
+        with pytest.raises(RuntimeError, match="device lost"):
+            optimize(crashing, checkpoint=ckpt, **kw)
+        state = load_checkpoint(ckpt)
+        assert state["generation"] == 3 and state["asked"] is not None and len(state["asked"]["K"]) == 8
+        obj = Recorder(sphere(TARGET2))
+        resumed = optimize(obj, checkpoint=ckpt, resume=True, **kw)
+        fresh = optimize(sphere(TARGET2), **kw)
+        _same(resumed, fresh)
+        assert len(obj.rows) == fresh.evaluations - state["evaluations"]
+
+
 # ------------------------------------------------------------------------------------------ certificate
 def test_certificate_by_hand():
     # G at (0,0), (1,0), (0,2): slopes 3/1, 1/2, 2/sqrt(5) -> k_G = 3; C_M = 3

@@ -50,13 +50,21 @@ def _max_slope(U: np.ndarray, G: np.ndarray) -> tuple[float, int]:
     if n < 2:
         return 0.0, 0
     d = pdist(U)                                   # condensed: pairs (i, j), i < j, row by row
-    pos = d > 0                                    # d = 0 exactly when the points are equal
-    pairs = int(pos.sum())
-    if pairs == 0:
-        return 0.0, 0
-    k = np.flatnonzero(pos)
-    screened = pdist(G[:, None], "cityblock")[k] / d[k]
-    cand = k[screened >= screened.max() * (1.0 - _SCREEN_SLACK)]
+    if d.min() > 0:
+        # every pair distinct (the usual case: the optimiser scores each grid point once): the slopes of
+        # all pairs, in place, without the index arrays of the general case (three more arrays of n^2 / 2)
+        pairs = len(d)
+        screened = pdist(G[:, None], "cityblock")
+        screened /= d
+        cand = np.flatnonzero(screened >= screened.max() * (1.0 - _SCREEN_SLACK))
+    else:
+        pos = d > 0                                # d = 0 exactly when the points are equal
+        pairs = int(pos.sum())
+        if pairs == 0:
+            return 0.0, 0
+        k = np.flatnonzero(pos)
+        screened = pdist(G[:, None], "cityblock")[k] / d[k]
+        cand = k[screened >= screened.max() * (1.0 - _SCREEN_SLACK)]
     row_start = np.arange(n) * n - np.arange(n) * (np.arange(n) + 1) // 2
     i = np.searchsorted(row_start, cand, side="right") - 1
     j = cand - row_start[i] + i + 1

@@ -8,9 +8,10 @@ CMA-ES runs pycma in index coordinates with ``integer_variables`` set for every 
 samples lattice points itself (its LB+IC integer handling keeps a minimum step size, so the search does
 not stall below the grid spacing), with bounds ``[kmin, kmax]`` and per-coordinate initial standard
 deviations ``sigma0 * (upper - lower) / delta`` (``CMA_stds``): ``sigma0`` is relative to the bound widths.
-pycma draws its random numbers from NumPy's global generator (its samples and its integer centering);
-the adapter swaps a private generator state in around every pycma call, so user code that touches
-``np.random`` neither disturbs nor is disturbed by the search.
+pycma draws its random numbers from NumPy's global generator (its samples and its integer centering)
+through ``np.random``'s functions, looked up at each call. Around every pycma call the adapter points
+those functions at a private ``RandomState`` of the strategy, so user code that touches ``np.random``
+neither disturbs nor is disturbed by the search.
 """
 
 from __future__ import annotations
@@ -34,10 +35,19 @@ def default_popsize(n: int) -> int:
     return 4 + int(3 * math.log(max(n, 1)))
 
 
+#: the names in ``np.random`` that draw from (or set) NumPy's legacy global generator: its bound methods
+#: (``rand``, ``randn``, ``get_state``, ``seed``, ...). Pointing them at another ``RandomState`` for a pycma
+#: call gives pycma that generator's numbers, as copying its state into the global generator and back did;
+#: that copy (``get_state`` / ``set_state``, four per call) cost 0.1 ms a call on the dev VM and 52 ms of
+#: a 2,000-evaluation run's 370 calls on the H100 host (results/cprofile-warm-H100-2026-11-25-threadplots.txt)
+_GLOBAL_NAMES = tuple(n for n in dir(np.random) if getattr(getattr(np.random, n), "__self__", None)
+                      is np.random.rand.__self__)
+
+
 def _global_randn(*shape):
-    # pycma calls opts['randn'](lam, N). A module-level function pickles by name, so a restored strategy
-    # keeps drawing from the (swapped-in) global generator; np.random.randn itself would pickle a copy
-    # of the global RandomState.
+    # pycma calls opts['randn'](lam, N). A module-level function pickles by name, and looks up
+    # np.random.randn at each call, so it draws from the generator the strategy points np.random at
+    # (``_rng``); np.random.randn itself would pickle a copy of the global RandomState.
     return np.random.randn(*shape)
 
 
@@ -53,7 +63,7 @@ class CMAStrategy:
         with section("import cma"):
             cma = import_cma()  # the only import of pycma: only this strategy needs it
 
-        self._np_state = np.random.RandomState(seed).get_state()
+        self._rs = np.random.RandomState(seed)
         n = len(kmin)
         opts = {
             "bounds": [np.asarray(kmin, float).tolist(), np.asarray(kmax, float).tolist()],
@@ -74,13 +84,21 @@ class CMAStrategy:
 
     @contextlib.contextmanager
     def _rng(self):
-        outer = np.random.get_state()
-        np.random.set_state(self._np_state)
+        module = vars(np.random)
+        outer = {n: module[n] for n in _GLOBAL_NAMES}
+        module.update({n: getattr(self._rs, n) for n in _GLOBAL_NAMES})
         try:
             yield
         finally:
-            self._np_state = np.random.get_state()
-            np.random.set_state(outer)
+            module.update(outer)
+
+    def __setstate__(self, state):
+        # a strategy pickled before 2026-11-25 (a checkpoint of format 1 or 2) kept the state, not the generator
+        if "_np_state" in state:
+            rs = np.random.RandomState()
+            rs.set_state(state.pop("_np_state"))
+            state["_rs"] = rs
+        self.__dict__.update(state)
 
     def ask(self) -> np.ndarray:
         with section("CMA-ES ask/tell"), self._rng():

@@ -167,26 +167,88 @@ def _rect(ra, rb):
                      label="search box")
 
 
-def draw_coverage(entropy2d, covered2d, n_covered: int, extent, name: str, path) -> Path:
+def draw_coverage(entropy2d, covered2d, n_covered: int, extent, name: str, path, reuse: bool = True) -> Path:
     """Top view of the voxels a rig covers (``covered2d``: columns with a covered voxel) over the P-SOG's
-    column entropy (``entropy2d``), as coverage.png of ``place3d optimize``."""
+    column entropy (``entropy2d``), as coverage.png of ``place3d optimize``.
+
+    The left panel (the entropy map and its colour bar) depends on the P-SOG only: with ``reuse`` its
+    pixels are drawn once per P-SOG and process (``PANELS_KEPT`` kept) and later figures build and draw
+    only the right panel over them (its place is the same whether the left one is built or not), which
+    writes the same bytes as drawing the whole figure (``reuse=False``).
+    """
+    key = _panel_key(entropy2d, extent) if reuse and _plain_savefig() else None
     fig = _figure(11, 5)
-    fig.set_dpi(110)
-    ax = fig.add_subplot(1, 2, 1)
-    # nearest: one grid column is about one pixel here, and the smoothing resampler ("antialiased")
-    # cost a fifth of the figure's time and tripled the file (bench/README.md, "A warm command's host
-    # time and figures")
-    im = ax.imshow(entropy2d, origin="lower", extent=extent, cmap="magma", interpolation="nearest")
-    ax.set_title("P-SOG entropy, summed over z (nats)")
-    ax.set_xlabel("y (m, left)")
-    ax.set_ylabel("x (m, forward)")
-    fig.colorbar(im, ax=ax, shrink=0.8)
-    ax = fig.add_subplot(1, 2, 2)
-    ax.imshow(np.where(covered2d, entropy2d, np.nan), origin="lower", extent=extent, cmap="magma",
-              interpolation="nearest")
-    ax.set_title(f"covered by {name}: {int(n_covered):,} voxels")
-    ax.set_xlabel("y (m, left)")
-    return _save(fig, path, COVERAGE_MARGINS)
+    if key not in _PANELS:               # (drawn from the kept pixels otherwise: only its layout matters)
+        ax = fig.add_subplot(1, 2, 1)
+        # nearest: one grid column is about one pixel here, and the smoothing resampler ("antialiased")
+        # cost a fifth of the figure's time and tripled the file (bench/README.md, "A warm command's host
+        # time and figures")
+        im = ax.imshow(entropy2d, origin="lower", extent=extent, cmap="magma", interpolation="nearest")
+        ax.set_title("P-SOG entropy, summed over z (nats)")
+        ax.set_xlabel("y (m, left)")
+        ax.set_ylabel("x (m, forward)")
+        fig.colorbar(im, ax=ax, shrink=0.8)
+    right = fig.add_subplot(1, 2, 2)
+    right.imshow(np.where(covered2d, entropy2d, np.nan), origin="lower", extent=extent, cmap="magma",
+                 interpolation="nearest")
+    right.set_title(f"covered by {name}: {int(n_covered):,} voxels")
+    right.set_xlabel("y (m, left)")
+    if key is None:
+        return _save(fig, path, COVERAGE_MARGINS)
+    return _save_over_panel(fig, right, key, path)
+
+
+#: left panels of coverage.png kept per process (``_PANELS``): a resident server's recent P-SOGs
+PANELS_KEPT = 4
+_PANELS: dict = {}
+
+
+def _panel_key(entropy2d, extent) -> tuple:
+    """What the left panel is drawn from: the entropy map's shape, type and bytes (a digest), the extent."""
+    import hashlib
+
+    a = np.ascontiguousarray(entropy2d)
+    return (a.shape, a.dtype.str, tuple(float(v) for v in extent),
+            hashlib.blake2b(a.view(np.uint8).reshape(-1), digest_size=16).hexdigest())
+
+
+def _plain_savefig() -> bool:
+    """Whether ``savefig`` would write the canvas as drawn (matplotlib's default savefig settings), the
+    condition for ``_save_over_panel`` to write the same file."""
+    import matplotlib as mpl
+
+    rc = mpl.rcParams
+    return (rc["savefig.dpi"] == "figure" and rc["savefig.facecolor"] == "auto" and rc["savefig.edgecolor"] == "auto"
+            and not rc["savefig.transparent"] and rc["savefig.bbox"] is None)
+
+
+def _save_over_panel(fig, top, key, path) -> Path:
+    """Write ``fig`` as ``_save`` does, drawing only the axes ``top`` over the kept pixels of the rest.
+
+    The figure draws its axes in the order they were added and ``top`` was added last, so the rest drawn
+    alone and then ``top`` drawn over it are the same operations on the same pixels as one full draw.
+    The file is written as matplotlib's Agg ``print_png`` writes a drawn canvas.
+    """
+    import matplotlib.image as mimage
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.subplots_adjust(**COVERAGE_MARGINS)
+    canvas = fig.canvas
+    panel = _PANELS.pop(key, None)
+    if panel is None:
+        top.set_visible(False)
+        canvas.draw()
+        top.set_visible(True)
+        panel = canvas.copy_from_bbox(fig.bbox)
+    else:
+        canvas.restore_region(panel)
+    _PANELS[key] = panel                       # the most recently used last
+    while len(_PANELS) > PANELS_KEPT:
+        _PANELS.pop(next(iter(_PANELS)))
+    top.draw(canvas.get_renderer())
+    mimage.imsave(path, canvas.buffer_rgba(), format="png", origin="upper", dpi=fig.dpi, pil_kwargs=PNG)
+    return path
 
 
 def draw_outputs(history, best: Placement, bounds, coverage: tuple, out) -> list[str]:
@@ -255,18 +317,55 @@ def _default_processes() -> bool:
     return (os.cpu_count() or 1) >= 4 and _spawn_can_start()
 
 
-def _new_pool(processes: bool):
-    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+class _Pools:
+    """The executors that draw the figures: on processes, ``PLOT_PROCESSES - 1`` for convergence.png and
+    rig.png and one of its own for coverage.png, so that every figure of a resident process's commands
+    finds the coverage panels that one process keeps (``draw_coverage``); else one thread for all.
 
-    if processes:
+    ``submit`` and ``shutdown`` act as an executor's (``submit`` on the first executor, ``submit_coverage``
+    on the second); ``_processes`` maps the pids of both, as ``ProcessPoolExecutor._processes`` does.
+    """
+
+    def __init__(self, processes: bool):
+        from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+        if not processes:
+            self.figures = self.coverage = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
+            return
         import multiprocessing
 
-        pool = ProcessPoolExecutor(PLOT_PROCESSES, mp_context=multiprocessing.get_context("spawn"))
-        for _ in range(PLOT_PROCESSES):        # each submit finds no idle worker: one process each
-            pool.submit(_warm_up)
-        return pool
-    pool = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
-    return pool
+        spawn = multiprocessing.get_context("spawn")
+        self.figures = ProcessPoolExecutor(PLOT_PROCESSES - 1, mp_context=spawn)
+        self.coverage = ProcessPoolExecutor(1, mp_context=spawn)
+        for _ in range(PLOT_PROCESSES - 1):    # each submit finds no idle worker: one process each
+            self.figures.submit(_warm_up)
+        self.coverage.submit(_warm_up)
+
+    def _executors(self):
+        return [self.figures] if self.coverage is self.figures else [self.figures, self.coverage]
+
+    def submit(self, fn, *args):
+        return self.figures.submit(fn, *args)
+
+    def submit_coverage(self, fn, *args):
+        return self.coverage.submit(fn, *args)
+
+    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        for e in self._executors():
+            e.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+    def check(self, timeout: float) -> None:
+        """A no-op round trip through each executor (at the same time): raises if a process died."""
+        for f in [e.submit(int) for e in self._executors()]:
+            f.result(timeout=timeout)
+
+    @property
+    def _processes(self) -> dict:
+        return {pid: p for e in self._executors() for pid, p in (getattr(e, "_processes", None) or {}).items()}
+
+
+def _new_pool(processes: bool) -> _Pools:
+    return _Pools(processes)
 
 
 def keep_worker() -> bool:
@@ -285,7 +384,7 @@ def keep_worker() -> bool:
     global _kept
     if _kept is not None:
         try:
-            _kept.submit(int).result(timeout=60)          # a no-op round trip: raises if the process died
+            _kept.check(timeout=60)                       # a no-op round trip: raises if a process died
             return False
         except Exception:  # noqa: BLE001 - BrokenProcessPool or a hung worker: start a fresh one
             _kept.shutdown(wait=False, cancel_futures=True)
@@ -301,7 +400,8 @@ class PlotWorker:
 
     Where the machine has cores to spare (4 or more) these are ``PLOT_PROCESSES`` processes of their own,
     started with the command so that importing matplotlib and a first drawing (1-1.3 s on the H100 host)
-    overlap the search, and each figure is drawn in its own process, neither waiting for the main
+    overlap the search, and each figure is drawn in its own process (coverage.png always in the same
+    one, which keeps the P-SOG's panel: ``_Pools``), neither waiting for the main
     thread's Python (the GIL) nor slowing it; elsewhere (the 2-core dev VM, where PoCL's scoring uses
     both cores) one thread draws them in turn. In a process that called ``keep_worker`` it uses that
     pool, and ``close`` waits for this worker's drawings only. A pool whose process died (or could not
@@ -323,21 +423,29 @@ class PlotWorker:
         if not self.processes:
             f = self.pool.submit(draw_outputs, list(history), best, bounds, coverage, str(out))
         else:
-            from concurrent.futures import ThreadPoolExecutor
             from concurrent.futures.process import BrokenProcessPool
 
             out.mkdir(parents=True, exist_ok=True)
+            parts = []
             try:
-                f = _all_of([self.pool.submit(plot_convergence, list(history), out / "convergence.png"),
-                             self.pool.submit(plot_rig, best, out / "rig.png", None, bounds),
-                             self.pool.submit(draw_coverage, *coverage, out / "coverage.png")])
+                # coverage first: its process keeps the P-SOG's panel between commands
+                parts.append(self.pool.submit_coverage(draw_coverage, *coverage, out / "coverage.png"))
+                parts.append(self.pool.submit(plot_convergence, list(history), out / "convergence.png"))
+                parts.append(self.pool.submit(plot_rig, best, out / "rig.png", None, bounds))
             except BrokenProcessPool:
-                # a worker process died (killed, or it could not start): the figures are drawn on a thread
+                # a worker process died (killed, or it could not start): the figures are drawn on a thread,
+                # once what was submitted is cancelled or done (two writers of one file could tear it)
+                from concurrent.futures import wait
+
+                for part in parts:
+                    part.cancel()
+                wait(parts)
                 if not self.shared:
                     self.pool.shutdown(wait=False, cancel_futures=True)
-                self.pool = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
+                self.pool = _Pools(False)
                 self.processes = self.shared = False
                 return self.submit(history, best, bounds, coverage, out)
+            f = _all_of([parts[1], parts[2], parts[0]])     # the paths in the order draw_outputs gives them
         self._futures.append(f)
         return f
 

@@ -1,0 +1,72 @@
+"""coverage.png drawn over a kept left panel (``optimize.plots.draw_coverage``) is the file a full draw writes."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("matplotlib")
+
+
+def _view(seed, n=60):
+    rng = np.random.default_rng(seed)
+    entropy = rng.random((n, n)).astype(np.float32) * 3
+    covered = rng.random((n, n)) < 0.4
+    return entropy, covered, int(covered.sum() * 7), (-6.05, 5.95, -6.05, 5.95)
+
+
+def test_a_figure_over_the_kept_panel_has_the_bytes_of_a_full_draw(tmp_path, monkeypatch):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from place3d_kernels.optimize import plots
+
+    monkeypatch.setattr(plots, "_PANELS", {})
+    draws = []
+    full_draw = FigureCanvasAgg.draw
+    monkeypatch.setattr(FigureCanvasAgg, "draw", lambda self: (draws.append(1), full_draw(self))[1])
+    a, b = _view(1), _view(2)
+    # one P-SOG, two rigs (the second over the kept panel); another P-SOG; the first one's panel again
+    cases = [(a, "rig one", 1), (a, "rig two", 0), (b, "rig one", 1), (a, "rig three", 0)]
+    for k, ((entropy, covered, n, extent), name, full_draws) in enumerate(cases):
+        covered = np.roll(covered, k, axis=0)                     # each rig covers other columns
+        draws.clear()
+        kept = plots.draw_coverage(entropy, covered, n + k, extent, name, tmp_path / f"kept{k}.png")
+        assert len(draws) == full_draws, k                        # the panel was drawn only when not kept
+        draws.clear()
+        full = plots.draw_coverage(entropy, covered, n + k, extent, name, tmp_path / f"full{k}.png", reuse=False)
+        assert len(draws) == 1
+        assert kept.read_bytes() == full.read_bytes(), k
+    assert len(plots._PANELS) == 2
+
+
+def test_kept_panels_are_few_and_keyed_by_what_they_show(tmp_path, monkeypatch):
+    from place3d_kernels.optimize import plots
+
+    monkeypatch.setattr(plots, "_PANELS", {})
+    entropy, covered, n, extent = _view(3, n=20)
+    for i in range(plots.PANELS_KEPT + 2):
+        plots.draw_coverage(entropy + i, covered, n, extent, "rig", tmp_path / "c.png")
+    assert len(plots._PANELS) == plots.PANELS_KEPT
+    # the same values as another type, or another extent, are another panel
+    assert plots._panel_key(entropy, extent) != plots._panel_key(entropy.astype(np.float64), extent)
+    assert plots._panel_key(entropy, extent) != plots._panel_key(entropy, (-6.0, 5.95, -6.05, 5.95))
+    assert plots._panel_key(entropy, extent) == plots._panel_key(entropy.copy(), tuple(np.float64(v) for v in extent))
+
+
+def test_coverage_has_a_process_of_its_own_that_keeps_the_panel(tmp_path):
+    """With plot processes, every coverage.png of a worker goes to the same process, so a later command
+    of a resident server finds the panel an earlier one drew: two P-SOGs' figures leave two panels there."""
+    from place3d_kernels.optimize import SearchSpace, plots
+    from place3d_kernels.placement import Placement
+
+    history = [{"evaluations": 10 * (i + 1), "best": -0.05 + 0.001 * i, "sigma": 0.3} for i in range(4)]
+    entropy, covered, n, extent = _view(4, n=30)
+    worker = plots.PlotWorker(processes=True)
+    try:
+        for k, run in enumerate("ab"):
+            worker.submit(history, Placement.load("pyramid"), SearchSpace(n_lidars=4),
+                          (entropy + k, covered, n, extent, run), tmp_path / run).result(timeout=120)
+        assert len(worker.pool._processes) == plots.PLOT_PROCESSES
+        kept = worker.pool.submit_coverage(eval, "len(__import__('place3d_kernels.optimize.plots', "
+                                                 "fromlist=['plots'])._PANELS)").result(timeout=60)
+        assert kept == 2
+    finally:
+        worker.close()
