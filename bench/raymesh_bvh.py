@@ -16,7 +16,8 @@ and time over the yardstick's in the same round (median [min-max]), and, per var
 another distance or face than on an SAH tree with leaf 4 (the backend's tree until 2026-11-25; since then
 CUDA meshes get cuBQL's, ``WarpCore._build_tree``).
 With ``--opencl BACKEND`` the OpenCL backend's host-built binned-SAH tree (``opencl/bvh.py``) is timed the
-same way for each ``leaf_size:bins`` (its default 4:16), its results compared with the default tree's.
+same way for each ``leaf_size:bins[:dfs]`` (its default 4:16; ``dfs``: nodes in depth-first order,
+``bvh.dfs_layout``), its results compared with the first variant's.
 """
 
 from __future__ import annotations
@@ -48,7 +49,8 @@ def main(argv=None) -> int:
     ap.add_argument("--triangles", type=int, default=1_000_000)
     ap.add_argument("--variants", default=None, help="e.g. sah:1,lbvh:2 (default: all)")
     ap.add_argument("--opencl", default=None, help="also an OpenCL backend's trees, e.g. opencl:nvidia")
-    ap.add_argument("--opencl-variants", default="4:16,2:16,1:16,4:32,8:16", help="leaf_size:bins list")
+    ap.add_argument("--opencl-variants", default="4:16,2:16,1:16,4:32,8:16",
+                    help="leaf_size:bins[:dfs] list (dfs: bvh.dfs_layout)")
     ap.add_argument("--skip-warp", action="store_true", help="only the yardstick and the OpenCL trees")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
@@ -118,8 +120,10 @@ def main(argv=None) -> int:
         cl = p3k.get_backend(args.opencl)
         base = None
         for v in args.opencl_variants.split(","):
-            leaf, bins = (int(x) for x in v.split(":"))
-            cl.bvh_options = {"leaf_size": leaf, "bins": bins}
+            parts = v.split(":")
+            leaf, bins = int(parts[0]), int(parts[1])
+            layout = parts[2] if len(parts) > 2 else "levels"
+            cl.bvh_options = {"leaf_size": leaf, "bins": bins, "layout": layout}
             try:
                 t0 = time.perf_counter()
                 h = cl.upload_mesh(city.vertices - city.shift, city.faces)
@@ -132,7 +136,7 @@ def main(argv=None) -> int:
             got = run.read()
             if base is None:
                 base = got
-            name = f"{args.opencl} {leaf}:{bins}"
+            name = f"{args.opencl} {leaf}:{bins}" + (":dfs" if layout == "dfs" else "")
             diff[name] = int(np.count_nonzero((got[0] != base[0]) | (got[1] != base[1])))
             steps[f"backend {name}"] = run
             print(f"{name}: built in {build:.1f} s, depth {h.bvh.depth if hasattr(h, 'bvh') else '?'}", flush=True)

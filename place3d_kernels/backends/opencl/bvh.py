@@ -37,8 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BVH", "BVH4", "build_bvh", "collapse_bvh4", "need_levels", "validate_bvh", "DEFAULT_MAX_DEPTH",
-           "brute_force_raycast"]
+__all__ = ["BVH", "BVH4", "build_bvh", "dfs_layout", "collapse_bvh4", "need_levels", "validate_bvh",
+           "DEFAULT_MAX_DEPTH", "brute_force_raycast"]
 
 #: Inner-node depth cap; the binary traversal stack of ``raycast.cl`` has this many entries (the 4-wide
 #: one three times as many).
@@ -85,7 +85,7 @@ def _half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 4, bins: int = 16,
-              max_depth: int | None = DEFAULT_MAX_DEPTH) -> BVH:
+              max_depth: int | None = DEFAULT_MAX_DEPTH, layout: str = "levels") -> BVH:
     """Build the flattened BVH of a triangle mesh.
 
     Args:
@@ -95,7 +95,15 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 4, bins:
         bins: SAH bins per axis.
         max_depth: inner-depth cap (see the module docstring); ``None`` disables it (tests only: shows
             how deep plain SAH goes on adversarial input).
+        layout: ``"levels"`` (inner nodes numbered level by level, as built) or ``"dfs"`` (``dfs_layout``).
     """
+    if layout not in ("levels", "dfs"):
+        raise ValueError(f"layout must be 'levels' or 'dfs', got {layout!r}")
+    bvh = _build(vertices, faces, leaf_size, bins, max_depth)
+    return dfs_layout(bvh) if layout == "dfs" else bvh
+
+
+def _build(vertices, faces, leaf_size, bins, max_depth) -> BVH:
     with np.errstate(over="ignore"):
         v = np.ascontiguousarray(vertices, dtype=np.float32)
     if not np.all(np.isfinite(v)):
@@ -356,6 +364,37 @@ def _finish(v, f, perm, c_lo, c_hi, c_ref, c_cnt, depth, n_leaves, max_depth, lo
     return BVH(nodes=nodes, tris=tris, order=perm.astype(np.int32), depth=int(depth),
                max_depth=-1 if max_depth is None else int(max_depth), n_leaves=int(n_leaves),
                lo=np.asarray(lo, np.float32), hi=np.asarray(hi, np.float32))
+
+
+def dfs_layout(bvh: BVH) -> BVH:
+    """The same tree with its inner nodes renumbered in depth-first preorder (left child first), so a
+    node's left child is the next row: the builder numbers them level by level, which puts a parent and
+    its children far apart in memory. Leaves, triangles, depth and results are unchanged; only where a
+    node's row lives moves (``bench/raymesh_bvh.py --opencl`` times it on GPUs)."""
+    ints = bvh.nodes[:, 12:16].view(np.int32)
+    n = len(ints)
+    inner = np.stack([ints[:, 1] == 0, ints[:, 3] == 0], axis=1)          # (n, 2): child is an inner node
+    child = np.stack([ints[:, 0], ints[:, 2]], axis=1).astype(np.int64)
+    levels, frontier = [], np.array([0], dtype=np.int64)
+    while len(frontier):                                                   # inner nodes, level by level
+        levels.append(frontier)
+        frontier = child[frontier][inner[frontier]]
+    size = np.ones(n, dtype=np.int64)                                      # inner nodes in each subtree
+    for lev in reversed(levels[:-1]):
+        size[lev] += np.where(inner[lev], size[np.where(inner[lev], child[lev], 0)], 0).sum(axis=1)
+    pre = np.zeros(n, dtype=np.int64)
+    for lev in levels:
+        left = np.where(inner[lev, 0], size[np.where(inner[lev, 0], child[lev, 0], 0)], 0)
+        pre[child[lev, 0][inner[lev, 0]]] = (pre[lev] + 1)[inner[lev, 0]]
+        pre[child[lev, 1][inner[lev, 1]]] = (pre[lev] + 1 + left)[inner[lev, 1]]
+    nodes = np.empty_like(bvh.nodes)
+    nodes[pre] = bvh.nodes
+    out = nodes[:, 12:16].view(np.int32)
+    for c in (0, 1):
+        is_inner = out[:, 2 * c + 1] == 0
+        out[is_inner, 2 * c] = pre[out[is_inner, 2 * c]]
+    return BVH(nodes=nodes, tris=bvh.tris, order=bvh.order, depth=bvh.depth, max_depth=bvh.max_depth,
+               n_leaves=bvh.n_leaves, lo=bvh.lo, hi=bvh.hi)
 
 
 def validate_bvh(bvh: BVH, vertices: np.ndarray, faces: np.ndarray) -> None:
