@@ -8,7 +8,8 @@ score kernel. Two alternatives, timed here against it, each launch's sums and co
 * ``fused``: the score kernel's flush always waits for the old bitset word (today only bricks holding
   entropy do) and adds the bits it set first to a per-ray count, so no count pass is needed, only the
   buffer's zeroing (``zero_``);
-* ``clear4``: the count pass with four independent loads per thread in flight per iteration.
+* ``clear4``: the count pass with four independent loads per thread in flight per iteration;
+* ``clear64``: the count pass on 64-bit words, two loads a thread per iteration (even word counts only).
 
 Workload as ``dense_api_parts.py`` (16 perturbed ``pyramid`` rigs of 4 x 64 x 2048 rays, 0.05 m grid).
 5 interleaved rounds after a warm-up; median [min-max] ms per launch of each complete sequence.
@@ -162,6 +163,36 @@ def count_clear4(bits: wp.array(dtype=wp.uint32), words_per_candidate: wp.int32,
         wp.atomic_add(counts, cand, wp.int64(n))
 
 
+@wp.kernel
+def count_clear64(bits64: wp.array(dtype=wp.uint64), halves_per_candidate: wp.int64, threads_per_candidate: wp.int64,
+                  counts: wp.array(dtype=wp.int64)):
+    # count_clear_kernel on the bitset read as 64-bit words (two 32-bit words a load; needs an even number
+    # of words per candidate), two loads a thread per iteration
+    tid = wp.int64(wp.tid())
+    T = threads_per_candidate
+    cand = tid / T
+    base = cand * halves_per_candidate
+    c = tid - cand * T
+    n = wp.int64(0)
+    at = c
+    while at + T < halves_per_candidate:
+        v0 = bits64[base + at]
+        v1 = bits64[base + at + T]
+        n += wp.int64(wp.bit_count(v0)) + wp.int64(wp.bit_count(v1))
+        if v0 != wp.uint64(0):
+            bits64[base + at] = wp.uint64(0)
+        if v1 != wp.uint64(0):
+            bits64[base + at + T] = wp.uint64(0)
+        at += wp.int64(2) * T
+    if at < halves_per_candidate:
+        v0 = bits64[base + at]
+        n += wp.int64(wp.bit_count(v0))
+        if v0 != wp.uint64(0):
+            bits64[base + at] = wp.uint64(0)
+    if n > wp.int64(0):
+        wp.atomic_add(counts, wp.int32(cand), n)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default="cuda:0")
@@ -221,6 +252,15 @@ def main(argv=None) -> int:
                   block_dim=g.SCORE_BLOCK_DIM)
         return both.numpy().copy()
 
+    def clear64():
+        both.zero_()
+        wp.launch(g.score_kernel_gpu, dim=P * L * len(sd), device=dev, inputs=common, block_dim=g.SCORE_BLOCK_DIM)
+        half = words // 2
+        t = max(1, min(half // 32, (1 << 18) // P))
+        wp.launch(count_clear64, dim=P * t, device=dev, inputs=[bits64, int(half), int(t), counts],
+                  block_dim=g.SCORE_BLOCK_DIM)
+        return both.numpy().copy()
+
     def fused():            # no count pass; the buffer zeroed before the kernel
         both.zero_()
         bits.zero_()
@@ -236,6 +276,9 @@ def main(argv=None) -> int:
         return run
 
     variants = {"shipped": shipped, "clear4": clear4, "fused": fused}
+    if words % 2 == 0:
+        bits64 = wp.array(ptr=bits.ptr, shape=(P * words // 2,), dtype=wp.uint64, device=dev)
+        variants["clear64"] = clear64
     want = b.score_placements(handle, dense.elevations, dense.azimuths, dense.max_range, local)
     want = np.concatenate([np.asarray(want[0]), np.asarray(want[1])])
     equal = {}
