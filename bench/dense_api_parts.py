@@ -23,11 +23,48 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+
+def dense_workload(device: str, voxel: float, pop: int) -> SimpleNamespace:
+    """The dense-rig workload on backend ``warp:<device>``: the default town's P-SOG at ``voxel``, the dense
+    LiDAR, ``pop`` perturbed ``pyramid`` rigs (also in grid-local poses), the seg handle and the score
+    kernel's device inputs (sensor directions, rotations, positions, each brick's masks as one uint64)."""
+    import warp as wp
+
+    import place3d_kernels as p3k
+    from place3d_kernels.backends.base import rotation_matrices, sensor_directions
+    from place3d_kernels.backends.bricks import brick_shape
+
+    b = p3k.get_backend(f"warp:{device}")
+    d = p3k.DEFAULT_GRID
+    psog = p3k.scene_psog(p3k.scene.town(seed=0), grid=p3k.Grid(d.lower, d.upper, voxel), backend=b)
+    dense = p3k.LidarModel.uniform(64, (-25, 15), 2048, max_range=100.0, name="dense64x2048")
+    rng = np.random.default_rng(0)
+    poses = np.repeat(p3k.Placement.load("pyramid").poses[None], pop, axis=0)
+    poses[..., :3] += rng.uniform(-0.3, 0.3, poses[..., :3].shape).round(1)
+    p = psog.for_task("seg")
+    handle = p.handle(b, "sog")
+    local = poses.copy()
+    local[..., :3] = p.grid.to_local(poses[..., :3])
+    spec = handle.spec
+    bx, by, bz = brick_shape(spec.shape)
+    dev = b.device
+    sd = sensor_directions(dense.elevations, dense.azimuths)
+    # the CUDA handle holds each brick's masks as one uint64; a CPU handle (smoke runs) as two uint32
+    masks64 = handle.masks if handle.masks.dtype == wp.uint64 else wp.array(
+        handle.masks.numpy().view(np.uint64), dtype=wp.uint64, device=dev)
+    return SimpleNamespace(
+        b=b, psog=psog, dense=dense, pop=poses, handle=handle, local=local, spec=spec,
+        nx=spec.shape[0], ny=spec.shape[1], nz=spec.shape[2], by=by, bz=bz, words=bx * by * bz,
+        P=local.shape[0], L=local.shape[1], dev=dev, sd=sd, sd_a=wp.array(sd, dtype=wp.vec3d, device=dev),
+        masks64=masks64, rot=wp.array(rotation_matrices(local.reshape(-1, 6)), dtype=wp.mat33d, device=dev),
+        pos=wp.array(np.ascontiguousarray(local.reshape(-1, 6)[:, :3]), dtype=wp.vec3d, device=dev))
 
 
 def main(argv=None) -> int:
@@ -41,37 +78,13 @@ def main(argv=None) -> int:
     import warp as wp
 
     import place3d_kernels as p3k
-    from place3d_kernels.backends.base import rotation_matrices, sensor_directions
-    from place3d_kernels.backends.bricks import brick_shape
     from place3d_kernels.kernel_bench import machine_info
 
-    b = p3k.get_backend(f"warp:{args.device}")
-    d = p3k.DEFAULT_GRID
-    grid = p3k.Grid(d.lower, d.upper, args.voxel)
-    psog = p3k.scene_psog(p3k.scene.town(seed=0), grid=grid, backend=b)
-    dense = p3k.LidarModel.uniform(64, (-25, 15), 2048, max_range=100.0, name="dense64x2048")
-    rig = p3k.Placement.load("pyramid")
-    rng = np.random.default_rng(0)
-    pop = np.repeat(rig.poses[None], args.pop, axis=0)
-    pop[..., :3] += rng.uniform(-0.3, 0.3, pop[..., :3].shape).round(1)
-    p = psog.for_task("seg")
-    handle = p.handle(b, "sog")
-    local = pop.copy()
-    local[..., :3] = p.grid.to_local(pop[..., :3])
-    spec = handle.spec
-    nx, ny, nz = spec.shape
-    bx, by, bz = brick_shape(spec.shape)
-    words = bx * by * bz
-    P, L = local.shape[:2]
-    dev = b.device
+    w = dense_workload(args.device, args.voxel, args.pop)
+    b, psog, dense, pop, handle, local, spec = w.b, w.psog, w.dense, w.pop, w.handle, w.local, w.spec
+    nx, ny, nz, by, bz, words, P, L, dev = w.nx, w.ny, w.nz, w.by, w.bz, w.words, w.P, w.L, w.dev
+    sd, sd_a, masks64, rot, pos = w.sd, w.sd_a, w.masks64, w.rot, w.pos
     g = b.score_gpu
-    sd = sensor_directions(dense.elevations, dense.azimuths)
-    sd_a = wp.array(sd, dtype=wp.vec3d, device=dev)
-    # the CUDA handle holds each brick's masks as one uint64; a CPU handle (smoke runs) as two uint32
-    masks64 = handle.masks if handle.masks.dtype == wp.uint64 else wp.array(
-        handle.masks.numpy().view(np.uint64), dtype=wp.uint64, device=dev)
-    rot = wp.array(rotation_matrices(local.reshape(-1, 6)), dtype=wp.mat33d, device=dev)
-    pos = wp.array(np.ascontiguousarray(local.reshape(-1, 6)[:, :3]), dtype=wp.vec3d, device=dev)
     state = {}
 
     def zeros():

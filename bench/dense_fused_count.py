@@ -33,6 +33,7 @@ import warp as wp
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
 from place3d_kernels.backends.warp import score_gpu as g  # noqa: E402
 from place3d_kernels.backends.warp.kernels import walk32_begin  # noqa: E402
@@ -201,36 +202,14 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    import place3d_kernels as p3k
-    from place3d_kernels.backends.base import rotation_matrices, sensor_directions
-    from place3d_kernels.backends.bricks import brick_shape
+    from dense_api_parts import dense_workload
+
     from place3d_kernels.kernel_bench import machine_info
 
-    b = p3k.get_backend(f"warp:{args.device}")
-    d = p3k.DEFAULT_GRID
-    grid = p3k.Grid(d.lower, d.upper, args.voxel)
-    psog = p3k.scene_psog(p3k.scene.town(seed=0), grid=grid, backend=b)
-    dense = p3k.LidarModel.uniform(64, (-25, 15), 2048, max_range=100.0, name="dense64x2048")
-    rig = p3k.Placement.load("pyramid")
-    rng = np.random.default_rng(0)
-    pop = np.repeat(rig.poses[None], args.pop, axis=0)
-    pop[..., :3] += rng.uniform(-0.3, 0.3, pop[..., :3].shape).round(1)
-    p = psog.for_task("seg")
-    handle = p.handle(b, "sog")
-    local = pop.copy()
-    local[..., :3] = p.grid.to_local(pop[..., :3])
-    spec = handle.spec
-    nx, ny, nz = spec.shape
-    _, by, bz = brick_shape(spec.shape)
-    words = int(np.prod(brick_shape(spec.shape)))
-    P, L = local.shape[:2]
-    dev = b.device
-    sd = sensor_directions(dense.elevations, dense.azimuths)
-    sd_a = wp.array(sd, dtype=wp.vec3d, device=dev)
-    masks64 = handle.masks if handle.masks.dtype == wp.uint64 else wp.array(
-        handle.masks.numpy().view(np.uint64), dtype=wp.uint64, device=dev)
-    rot = wp.array(rotation_matrices(local.reshape(-1, 6)), dtype=wp.mat33d, device=dev)
-    pos = wp.array(np.ascontiguousarray(local.reshape(-1, 6)[:, :3]), dtype=wp.vec3d, device=dev)
+    w = dense_workload(args.device, args.voxel, args.pop)
+    b, dense, handle, local, spec = w.b, w.dense, w.handle, w.local, w.spec
+    nx, ny, nz, by, bz, words, P, L, dev = w.nx, w.ny, w.nz, w.by, w.bz, w.words, w.P, w.L, w.dev
+    sd, sd_a, masks64, rot, pos = w.sd, w.sd_a, w.masks64, w.rot, w.pos
     bits = wp.zeros(P * words, dtype=wp.uint32, device=dev)
     both = wp.zeros(2 * P, dtype=wp.int64, device=dev)
     sums, counts = both[:P], both[P:]
