@@ -105,6 +105,7 @@ def cmd_evaluate(args) -> int:
     t0 = time.perf_counter()
     _check_output_file(args.output)
     spec = specs_from_args(args)
+    spec.prefetch_scene(cache=not args.no_cache)     # the scene is built on another core during the probe
     b = get_backend(args.backend)
     lidar = LidarModel.load(args.lidar)
     names = args.placements or list(PAPER_PLACEMENTS)
@@ -332,6 +333,7 @@ def cmd_optimize(args) -> int:
         # real-rig mode scores on a car by default; the P-SOG is collected from the same body
         args.vehicle = "car"
     spec = specs_from_args(args)
+    spec.prefetch_scene(cache=not args.no_cache)     # the scene is built on another core during the probe
     return run_optimize(args, spec, psog_for=lambda backend: _psog(spec, args, backend, with_scene=False))
 
 
