@@ -87,12 +87,14 @@ def start(key: Hashable, build: Callable[[], object]) -> bool:
 
 
 def _prepared(scene):
-    """(scene, {frame: actor Mesh}) with the key and the static normals computed and kept on the scene."""
+    """(scene, {frame: actor Mesh}) with the key and the meshes' normals computed and kept on them."""
     scene.key                       # noqa: B018 - cached on the scene (Scene.key)
     scene.static.normals            # noqa: B018 - cached on the mesh (Mesh.normals)
     dynamic = {}
     if scene.actors:
         dynamic = {f: scene.dynamic(f) for f in range(scene.n_frames)}
+        for mesh in dynamic.values():
+            mesh.normals            # noqa: B018 - the intensities of actor returns read them
     return scene, dynamic
 
 
