@@ -350,10 +350,12 @@ class PSOGSpec:
     def voxel_size(self) -> float | None:
         return self.grid.voxel_size
 
-    def build(self, backend=None, cache: bool | str = True, progress: bool = False, aggregate=None):
+    def build(self, backend=None, cache: bool | str = True, progress: bool = False, aggregate=None,
+              save_in_background: bool = False):
         """Run ``scene_psog`` (reading the on-disk cache when present) with an explicit backend / cache
-        (``aggregate``: as ``scene_psog``'s, e.g. ``subset_records.records_aggregator(spec)``, which keeps the
-        per-subset records of a cache miss for the intervals)."""
+        (``aggregate`` and ``save_in_background``: as ``scene_psog``'s; ``aggregate`` e.g.
+        ``subset_records.records_aggregator(spec)``, which keeps the per-subset records of a cache miss for
+        the intervals)."""
         from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET, scene_psog
         from place3d_kernels.simulate import DEFAULT_MOUNT
 
@@ -385,7 +387,8 @@ class PSOGSpec:
         return scene_psog(scene, grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
                           frames_per_subset=self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
                           mount=DEFAULT_MOUNT if self.mount is None else self.mount, backend=b, cache=cache,
-                          progress=progress, condition=cond, body=self.vehicle_body(), aggregate=aggregate)
+                          progress=progress, condition=cond, body=self.vehicle_body(), aggregate=aggregate,
+                          save_in_background=save_in_background)
 
     def prefetch_scene(self, cache: bool | str = True) -> bool:
         """Start building the scene in a forked process (``scene_prefetch``) when ``build`` will need it:
