@@ -1,5 +1,6 @@
-"""``simulate_frame``'s gathers by ``ndarray.take`` and its one intensity pass over static and actor returns
-give the points, labels and intensities the earlier masks-and-two-passes code gave, bit for bit.
+"""The cold build's host paths give what the earlier code gave, bit for bit: ``simulate_frame``'s gathers by
+``ndarray.take`` and its one intensity pass over static and actor returns (points, labels, intensities), and
+``pool_votes``'s counts by ``np.bincount`` (instead of ``np.add.at``).
 
 The earlier code is kept here, frozen, as the oracle."""
 
@@ -101,3 +102,31 @@ def test_intensity_of_normals():
     got = SIM._intensity(n, d, np.array([7, 99]))
     want = (REFLECTIVITY[[7, len(REFLECTIVITY) - 1]] * np.array([0.8, 0.0])).astype(np.float32)
     assert got.tobytes() == want.tobytes()
+
+
+def _old_pool_votes(votes, n_voxels, n_classes):
+    """``sog.pool_votes`` as it was before its counts were taken with ``np.bincount`` (np.unique + np.add.at)."""
+    vox = np.concatenate([v for v, _ in votes])
+    lab = np.concatenate([w for _, w in votes])
+    uniq, inv = np.unique(vox, return_inverse=True)
+    counts = np.zeros((len(uniq), n_classes), dtype=np.int32)
+    np.add.at(counts.reshape(-1), inv * n_classes + lab, 1)
+    counts[:, 0] = len(votes) - counts[:, 1:].sum(axis=1)
+    return uniq.astype(np.int64), counts
+
+
+@pytest.mark.parametrize("n_voxels", [5000, 2**40])          # dense ranks, and the np.unique path
+def test_pool_votes_equal_the_earlier_counts(n_voxels):
+    from place3d_kernels.classes import N_CLASSES
+    from place3d_kernels.sog import pool_votes
+
+    rng = np.random.default_rng(7)
+    votes = []
+    for _ in range(6):
+        v = np.unique(rng.integers(0, min(n_voxels, 5000), 1500)) * (n_voxels // 5000)
+        votes.append((v.astype(np.int64), rng.integers(1, N_CLASSES, len(v)).astype(np.int64)))
+    votes.append((np.zeros(0, np.int64), np.zeros(0, np.int64)))     # a subset with no votes
+    got, want = pool_votes(votes, n_voxels), _old_pool_votes(votes, n_voxels, N_CLASSES)
+    for x, y in zip(got, want):
+        assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y)
+    assert got[1].sum() == len(votes) * len(got[0])           # each voxel: T entries in all
