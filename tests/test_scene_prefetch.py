@@ -1,10 +1,17 @@
 """A scene built in a forked process (``scene_prefetch``) is the scene built here, bit for bit, and its
-P-SOG is the same; a failed or unwanted child leaves the in-process build as before."""
+P-SOG is the same; a failed or unwanted child leaves the in-process build as before.
+
+``scene_prefetch`` forks only in a process with one thread, and a test process has others once earlier
+tests ran (backend pools, servers), so each check that forks runs in a fresh interpreter of its own
+(``_isolated``): the ``_check_*`` functions below, whose failures fail the test."""
 
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,8 +24,20 @@ from place3d_kernels.spec import PSOGSpec, SceneSpec
 
 GRID = Grid((-20.0, -20.0, -2.0), (20.0, 20.0, 4.0), 0.4)
 
-needs_fork = pytest.mark.skipif(not scene_prefetch.enabled(),
-                                reason="forked scene builds need Linux, 2+ cores and a single thread")
+needs_fork = pytest.mark.skipif(not sys.platform.startswith("linux") or len(os.sched_getaffinity(0)) < 2,
+                                reason="forked scene builds need Linux and 2+ cores")
+
+
+def _isolated(check: str, *args) -> None:
+    """Run ``_check_<check>(*args)`` of this module in a fresh interpreter (one thread); fail on its error."""
+    here = Path(__file__).resolve().parent
+    code = (f"import sys; sys.path[:0] = [{str(here.parent)!r}, {str(here)!r}]; import test_scene_prefetch as t; "
+            f"assert t.scene_prefetch.enabled(), 'forking is off in a fresh interpreter'; t._check_{check}(*sys.argv[1:])")
+    env = {k: v for k, v in os.environ.items() if k != scene_prefetch.ENV}
+    env["PYTHONPATH"] = str(here.parent)
+    out = subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True, env=env,
+                         timeout=300)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
 
 
 def _same_mesh(a, b) -> None:
@@ -57,8 +76,7 @@ def _same_scene(a, b) -> None:
         _same_mesh(x.mesh, y.mesh)
 
 
-@needs_fork
-def test_forked_scene_and_actor_meshes_equal_the_local_build():
+def _check_forked_scene_and_actor_meshes_equal_the_local_build():
     spec = SceneSpec("town", 3, 12)
     from place3d_kernels import scene as scenes
 
@@ -75,8 +93,7 @@ def test_forked_scene_and_actor_meshes_equal_the_local_build():
     assert scene_prefetch.take(("t1", spec)) is None        # taken once
 
 
-@needs_fork
-def test_psog_of_a_forked_scene_equals_the_local_one():
+def _check_psog_of_a_forked_scene_equals_the_local_one():
     from place3d_kernels import scene as scenes
 
     assert scene_prefetch.start("t2", lambda: scenes.town(seed=1, n_frames=8))
@@ -88,8 +105,7 @@ def test_psog_of_a_forked_scene_equals_the_local_one():
     assert a.probs.tobytes() == b.probs.tobytes() and a.n_subsets == b.n_subsets
 
 
-@needs_fork
-def test_failed_child_gives_none_and_is_reaped():
+def _check_failed_child_gives_none_and_is_reaped():
     def broken():
         raise RuntimeError("no scene")
 
@@ -100,8 +116,7 @@ def test_failed_child_gives_none_and_is_reaped():
         os.waitpid(pid, os.WNOHANG)
 
 
-@needs_fork
-def test_untaken_child_is_stopped_at_exit():
+def _check_untaken_child_is_stopped_at_exit():
     import time
 
     assert scene_prefetch.start("t4", lambda: time.sleep(60))
@@ -127,10 +142,9 @@ def test_off_with_other_threads_or_the_variable(monkeypatch):
     assert scene_prefetch.take("t5") is None
 
 
-@needs_fork
-def test_prefetch_only_when_the_build_needs_the_scene(tmp_path):
+def _check_prefetch_only_when_the_build_needs_the_scene(tmp):
     spec = PSOGSpec(SceneSpec("town", 5, 8))
-    folder = tmp_path / "c"
+    folder = Path(tmp) / "c"
     ident = identity(spec.scene.to_dict(), spec.scene.kind, spec.scene.path)
     remember(folder, ident, "town", "some-key")
     assert not spec.prefetch_scene(cache=str(folder))         # key remembered: a cached P-SOG needs no scene
@@ -145,3 +159,28 @@ def test_prefetch_only_when_the_build_needs_the_scene(tmp_path):
         assert len(scene_prefetch.take_dynamic(got)) == 8
     finally:
         scene_prefetch._discard()
+
+
+@needs_fork
+def test_forked_scene_and_actor_meshes_equal_the_local_build():
+    _isolated('forked_scene_and_actor_meshes_equal_the_local_build')
+
+
+@needs_fork
+def test_psog_of_a_forked_scene_equals_the_local_one():
+    _isolated('psog_of_a_forked_scene_equals_the_local_one')
+
+
+@needs_fork
+def test_failed_child_gives_none_and_is_reaped():
+    _isolated('failed_child_gives_none_and_is_reaped')
+
+
+@needs_fork
+def test_untaken_child_is_stopped_at_exit():
+    _isolated('untaken_child_is_stopped_at_exit')
+
+
+@needs_fork
+def test_prefetch_only_when_the_build_needs_the_scene(tmp_path):
+    _isolated("prefetch_only_when_the_build_needs_the_scene", tmp_path)
