@@ -74,7 +74,11 @@ def _psog(spec, args, backend, with_scene: bool = True):
     # them instead of simulating the same frames again
     aggregate = None if args.no_cache else records_aggregator(spec)
     with section("P-SOG (cache or build)"):
-        psog = spec.build(backend=backend, cache=not args.no_cache, progress=not args.quiet, aggregate=aggregate)
+        # the new P-SOG's file is written on a thread while the command goes on (main waits for it at the end),
+        # unless Ray workers will read it from the cache meanwhile
+        local = getattr(args, "executor", "local") == "local" and not getattr(args, "ray_address", None)
+        psog = spec.build(backend=backend, cache=not args.no_cache, progress=not args.quiet, aggregate=aggregate,
+                          save_in_background=local)
     check_entropy(psog, spec.frames_per_subset)
     if not args.quiet:
         print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
@@ -105,6 +109,7 @@ def cmd_evaluate(args) -> int:
     t0 = time.perf_counter()
     _check_output_file(args.output)
     spec = specs_from_args(args)
+    spec.prefetch_scene(cache=not args.no_cache)     # the scene is built on another core during the probe
     b = get_backend(args.backend)
     lidar = LidarModel.load(args.lidar)
     names = args.placements or list(PAPER_PLACEMENTS)
@@ -332,6 +337,7 @@ def cmd_optimize(args) -> int:
         # real-rig mode scores on a car by default; the P-SOG is collected from the same body
         args.vehicle = "car"
     spec = specs_from_args(args)
+    spec.prefetch_scene(cache=not args.no_cache)     # the scene is built on another core during the probe
     return run_optimize(args, spec, psog_for=lambda backend: _psog(spec, args, backend, with_scene=False))
 
 
@@ -446,6 +452,15 @@ def asks_for_server(argv) -> bool:
     return False
 
 
+def _wait_for_saves() -> None:
+    # a P-SOG the command built is written on a thread (scene_psog(save_in_background=True)); the command
+    # ends when it is on disk, so a caller that runs commands in-process (tests, place3d serve) finds it
+    pipeline = sys.modules.get("place3d_kernels.pipeline")
+    if pipeline is not None:
+        with section("P-SOG save (wait)"):
+            pipeline.wait_for_saves()
+
+
 def main(argv=None) -> int:
     from place3d_kernels.manifest import set_command_line
 
@@ -466,7 +481,10 @@ def main(argv=None) -> int:
     set_command_line(None if argv is None else ["place3d", *argv])
     try:
         with (profile() if args.profile else contextlib.nullcontext()):
-            return int(args.func(args) or 0)
+            try:
+                return int(args.func(args) or 0)
+            finally:
+                _wait_for_saves()
     except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
         print(f"place3d: error: {e}", file=sys.stderr)
         return 2

@@ -13,10 +13,11 @@ from place3d_kernels.lidar import LidarModel
 from place3d_kernels.manifest import verify_manifest, write_manifest
 from place3d_kernels.profiling import section
 from place3d_kernels.scene.keymemo import SceneRef
+from place3d_kernels.scene_prefetch import take_dynamic
 from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
 from place3d_kernels.sog import PSOG, cache_dir, cache_key
 
-__all__ = ["scene_psog", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy"]
+__all__ = ["scene_psog", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy", "wait_for_saves"]
 
 log = logging.getLogger(__name__)
 
@@ -27,7 +28,7 @@ DEFAULT_FRAMES_PER_SUBSET = 4
 def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "collection_64ch",
                frames_per_subset: int = DEFAULT_FRAMES_PER_SUBSET, mount=DEFAULT_MOUNT, backend=None,
                cache: bool | str | Path = True, progress: bool = False, condition=None, body=None,
-               aggregate=None) -> PSOG:
+               aggregate=None, save_in_background: bool = False) -> PSOG:
     """The P-SOG of a scene: simulate its frames with the collection LiDAR, vote, aggregate.
 
     The result is cached on disk (``$PLACE3D_CACHE`` or ~/.cache/place3d) under a key made of every
@@ -47,6 +48,10 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
         aggregate: optional ``(frames, backend) -> PSOG`` used on a cache miss instead of
             ``PSOG.from_frames`` (it must give the same P-SOG; ``PSOGSpec.build`` passes one that keeps the
             per-subset records of the same frames for the intervals, so they are not simulated again).
+        save_in_background: write a newly built P-SOG to the cache on a thread of its own and return at
+            once (``wait_for_saves`` waits for it; the interpreter does at exit). Compressing it (zlib, which
+            lets other threads run) then overlaps what the caller does next, e.g. the search of
+            ``place3d optimize``. The file is the one a direct save writes.
     """
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
@@ -74,7 +79,8 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     if isinstance(scene, SceneRef):
         with section("P-SOG build: scene"):
             scene = scene.build()    # known by its key only (PSOGSpec.build): the geometry is needed now
-    dynamic = {}
+    # the actor meshes a forked scene build made (scene_prefetch), else none yet
+    dynamic = take_dynamic(scene)
     if isinstance(backend, Future):
         # a backend still being probed on another thread (optimize starts it early): needed only now.
         # Meanwhile, what the simulation needs and no backend computes: the actors' meshes of the first
@@ -83,7 +89,8 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
             for f in range(scene.n_frames):
                 if backend.done():
                     break
-                dynamic[f] = scene.dynamic(f)
+                if f not in dynamic:
+                    dynamic[f] = scene.dynamic(f)
             if not backend.done():
                 scene.static.normals        # noqa: B018 - computed and kept on the mesh
         with section("P-SOG build: backend wait"):
@@ -100,9 +107,43 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
             psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)
     if path is not None:
         with section("P-SOG build: save"):
-            psog.save(path)
-            write_manifest(manifest, inputs)
+            if save_in_background:
+                _saves.append(_saver().submit(_save, psog, path, manifest, inputs))
+            else:
+                psog.save(path)
+                write_manifest(manifest, inputs)
     return psog
+
+
+_saves: list[Future] = []
+_saver_pool = None
+
+
+def _saver():
+    global _saver_pool
+    if _saver_pool is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        # one thread: saves of one process land in the order they were asked for. Its threads are joined
+        # when the interpreter exits (concurrent.futures does so), so a command's cache is complete then
+        _saver_pool = ThreadPoolExecutor(1, thread_name_prefix="place3d-psog-save")
+    return _saver_pool
+
+
+def _save(psog: PSOG, path: Path, manifest: Path, inputs: dict) -> None:
+    with section("P-SOG save (thread)"):
+        try:
+            psog.save(path)
+            write_manifest(manifest, inputs)    # after the file: a manifest never names a missing P-SOG
+        except OSError as e:
+            # the cache only saves time: a full disk or a read-only folder costs the next command a rebuild
+            log.warning("P-SOG cache %s not written: %s", path, e)
+
+
+def wait_for_saves() -> None:
+    """Wait until every P-SOG that ``scene_psog(save_in_background=True)`` is writing is on disk."""
+    while _saves:
+        _saves.pop(0).result()
 
 
 def check_entropy(psog: PSOG, frames_per_subset: int | None = None) -> PSOG:

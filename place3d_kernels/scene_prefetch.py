@@ -1,0 +1,152 @@
+"""A scene built in a forked process while this one imports a backend runtime.
+
+A cold ``place3d optimize`` or ``evaluate`` builds the scene (pure Python and small NumPy calls) at the
+moment the backend probe imports Warp or PyOpenCL (also Python). Within one process the two share the
+interpreter lock: on the H100 host the scene row measured 1.6-2.15 s beside Warp's import while the
+scene alone takes a fraction of that (bench/results/profile-cold-H100-2026-11-25-last.txt). A forked
+child has its own interpreter, so the scene is built on another core, and this process meanwhile waits
+on a pipe (which releases the lock) instead of taking turns with the import.
+
+:func:`start` forks the child, which builds the scene, its cache key, the static mesh's normals and every
+frame's actor mesh (all that the simulation needs before it needs a backend), and sends them pickled
+through a pipe. :func:`take` returns that scene (the same arrays, bit for bit: the child runs the same
+code on a copy of this process's memory, and pickling keeps NumPy arrays exactly), and
+:func:`take_dynamic` the actor meshes. A child that fails, or a platform where forking is not safe, gives
+``None`` and the caller builds the scene itself, as before.
+
+Forking is safe only while this process runs one thread (a lock held by another thread at the fork stays
+held in the child), so :func:`start` does nothing when other threads run (``place3d serve``, tests), on
+platforms other than Linux, with a single usable core, or with ``PLACE3D_SCENE_PREFETCH=0``.
+"""
+
+from __future__ import annotations
+
+import atexit
+import os
+import pickle
+import signal
+import sys
+import threading
+from typing import Callable, Hashable
+
+from place3d_kernels.profiling import section
+
+__all__ = ["start", "take", "take_dynamic", "enabled", "ENV"]
+
+#: Environment variable: "0" turns the forked scene build off (the scene is built in this process).
+ENV = "PLACE3D_SCENE_PREFETCH"
+
+_pending: dict[Hashable, tuple[int, int]] = {}      # key -> (child pid, read end of its pipe)
+_dynamic: dict[int, tuple[object, dict]] = {}       # id(scene) -> (scene, {frame: Mesh}) not yet taken
+
+
+def enabled() -> bool:
+    """Whether :func:`start` would fork now (Linux, 2+ usable cores, one thread, not turned off)."""
+    if os.environ.get(ENV, "1").strip() == "0" or not sys.platform.startswith("linux"):
+        return False
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return cores >= 2 and threading.active_count() == 1
+
+
+def start(key: Hashable, build: Callable[[], object]) -> bool:
+    """Build ``build()`` (a ``Scene``) in a forked child; :func:`take` with the same ``key`` collects it.
+
+    Returns:
+        True when a child was started (False: not :func:`enabled`, already started, or the fork failed).
+    """
+    if key in _pending or not enabled():
+        return False
+    try:
+        r, w = os.pipe()
+    except OSError:
+        return False
+    try:
+        pid = os.fork()
+    except OSError:
+        os.close(r)
+        os.close(w)
+        return False
+    if pid == 0:                                      # the child: build, send, and leave without cleanup
+        code = 1
+        try:
+            os.close(r)
+            scene = build()
+            payload = _prepared(scene)
+            with os.fdopen(w, "wb") as f:
+                pickle.dump(payload, f, protocol=pickle.HIGHEST_PROTOCOL)
+            code = 0
+        finally:
+            # os._exit: no atexit handlers, no flush of stdio buffers copied from the parent
+            os._exit(code)
+    os.close(w)
+    _pending[key] = (pid, r)
+    return True
+
+
+def _prepared(scene):
+    """(scene, {frame: actor Mesh}) with the key and the meshes' normals computed and kept on them."""
+    scene.key                       # noqa: B018 - cached on the scene (Scene.key)
+    scene.static.normals            # noqa: B018 - cached on the mesh (Mesh.normals)
+    dynamic = {}
+    if scene.actors:
+        dynamic = {f: scene.dynamic(f) for f in range(scene.n_frames)}
+        for mesh in dynamic.values():
+            mesh.normals            # noqa: B018 - the intensities of actor returns read them
+    return scene, dynamic
+
+
+def take(key: Hashable):
+    """The scene the child started for ``key`` built (waiting for it), or None (none started, or it
+    failed: the caller builds the scene itself)."""
+    entry = _pending.pop(key, None)
+    if entry is None:
+        return None
+    pid, r = entry
+    with section("scene: forked build (wait)"):
+        try:
+            with os.fdopen(r, "rb") as f:
+                data = f.read()
+        except OSError:
+            data = b""
+        _reap(pid)
+    if not data:
+        return None
+    try:
+        scene, dynamic = pickle.loads(data)
+    except Exception:  # noqa: BLE001 - a truncated payload (the child died): build here instead
+        return None
+    if dynamic:
+        _dynamic[id(scene)] = (scene, dynamic)
+    return scene
+
+
+def take_dynamic(scene) -> dict:
+    """The actor meshes per frame the child built for ``scene`` (each handed out once), else {}."""
+    entry = _dynamic.pop(id(scene), None)
+    if entry is None or entry[0] is not scene:
+        return {}
+    return entry[1]
+
+
+def _reap(pid: int) -> None:
+    try:
+        os.waitpid(pid, 0)
+    except ChildProcessError:
+        pass
+
+
+@atexit.register
+def _discard() -> None:
+    # a scene started but never taken (a cached P-SOG was found after all, or the command failed): stop
+    # the child rather than leave it building
+    while _pending:
+        _, (pid, r) = _pending.popitem()
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+        os.close(r)
+        _reap(pid)
