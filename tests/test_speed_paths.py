@@ -227,7 +227,7 @@ def test_plot_worker_falls_back_to_a_thread(tmp_path, monkeypatch):
 @pytest.mark.parametrize("per", [64, 1024, 4096])
 def test_bit_count_equals_numpy_whatever_the_words_per_thread(per):
     """count_bits_kernel gives each candidate's set bits for any words per thread, including a last chunk
-    cut short and a chunk larger than the bitset (the CUDA path uses 1024 for large bitsets)."""
+    cut short and a chunk larger than the bitset (the CPU path uses 1024 for large bitsets)."""
     wp = pytest.importorskip("warp")
     from place3d_kernels.backends.warp import kernels as k
 

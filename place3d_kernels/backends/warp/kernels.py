@@ -664,10 +664,11 @@ COUNT_WORDS = 64   # bitset words per thread of count_bits_kernel for small bits
 
 
 def count_words_per_thread(total_words: int) -> int:
-    """Words per thread of ``count_bits_kernel`` for ``total_words`` bitset words in all: each thread ends
-    with one atomic add on its candidate's counter, and for the dense rig's 512 MB of bitsets those
-    atomics, not the reads, made the count slow (64 words per thread 1.88 ms, 1024 0.62 ms on the H100;
-    bench/README.md, "A warm command's host time and figures"). Small bitsets keep 64, for threads enough."""
+    """Words per thread of ``count_bits_kernel`` (the CPU's count; CUDA runs ``score_gpu.count_clear_kernel``
+    since 2026-11-25) for ``total_words`` bitset words in all: each thread ends with one atomic add on its
+    candidate's counter, and for the dense rig's 512 MB of bitsets on the H100 those atomics made the count
+    slow (64 words per thread 1.88 ms, 1024 0.62 ms; bench/README.md, "A warm command's host time and
+    figures"); the rule was kept as it was when the CPU became its only user. Small bitsets keep 64."""
     return 1024 if total_words >= 2**24 else COUNT_WORDS
 
 
