@@ -35,6 +35,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 REPEATS = 3
+API_REPEATS = 9   # calls per block of the API and of the plain kernel with NumPy in and out (part (b))
 PAIRED = 15      # back-to-back rounds of the ray-mesh API and the plain kernel (part (b))
 
 
@@ -88,6 +89,22 @@ def whole_command(backend: str, max_evals: int, timeout: int) -> dict:
 
 
 # ----------------------------------------------------------------------------- (b) ray-mesh
+def _plain_device(backend: str) -> str | None:
+    """Warp device of the plain kernel for ``backend``: its own for warp:*, the first CUDA GPU for an OpenCL
+    GPU backend when Warp has one (the same GPU on a one-GPU host), else None (no plain comparison)."""
+    if backend.startswith("warp:"):
+        return backend[5:]
+    if backend.startswith("opencl:") and backend != "opencl:pocl":
+        try:
+            import warp as wp
+
+            wp.init()
+            return "cuda:0" if wp.get_cuda_device_count() else None
+        except Exception:  # noqa: BLE001 - no Warp here: the OpenCL figures stand alone
+            return None
+    return None
+
+
 def _plain_warp(device: str):
     """A plain Warp ray caster: float32 rays, SAH BVH, ``mesh_query_ray``, hit distance or -1."""
     import warp as wp
@@ -127,7 +144,7 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
         p3k.raycast(mesh, oo, dd, t_max, backend=b)    # warm-up (compiles on a cold cache)
         walls = []
         with profile(print_table=False) as prof:       # per-step split of the API call (prepare, backend, ...)
-            for _ in range(REPEATS):
+            for _ in range(API_REPEATS):
                 t = time.perf_counter()
                 got = p3k.raycast(mesh, oo, dd, t_max, backend=b)
                 walls.append(time.perf_counter() - t)
@@ -138,9 +155,10 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
             hits = got
     out["api_rays"] = "float32 world-frame origins and directions (api_f64: the float64 rays)"
 
-    if backend.startswith("warp:"):
-        wp, kernel = _plain_warp(backend[5:])
-        dev = backend[5:]
+    dev = _plain_device(backend)
+    if dev is not None:
+        wp, kernel = _plain_warp(dev)
+        out["plain_device"] = f"warp:{dev}"
         v32 = np.ascontiguousarray(mesh.vertices - mesh.shift, dtype=np.float32)
         t = time.perf_counter()
         wmesh = wp.Mesh(points=wp.array(v32, dtype=wp.vec3, device=dev),
@@ -159,7 +177,7 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
 
         plain_t = numpy_io()
         walls = []
-        for _ in range(REPEATS):
+        for _ in range(API_REPEATS):
             t = time.perf_counter()
             numpy_io()
             walls.append(time.perf_counter() - t)
@@ -179,8 +197,9 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
         out["api_over_plain_numpy_io"] = out["api_s"]["median"] / out["plain_numpy_io_s"]["median"]
         out["api_f64_over_plain_numpy_io"] = out["api_f64_s"]["median"] / out["plain_numpy_io_s"]["median"]
         # The host's copies vary from call to call (2.5-5.5 ms for the same call on one H100 host), so the
-        # ratio is also taken in PAIRED rounds that time the API (float32 rays) and the plain kernel
-        # back to back: median and range of the per-round ratios.
+        # ratio is also taken in PAIRED rounds that time the API (float32 rays) and the plain kernel back to
+        # back: median and range of the per-round ratios. For an OpenCL backend these alternate OpenCL and
+        # CUDA calls, which may pay context switches; api_over_plain_numpy_io (blocks of one kind) has none.
         api_w, plain_w = [], []
         for _ in range(PAIRED):
             t = time.perf_counter()
@@ -199,7 +218,8 @@ def ray_mesh(backend: str, triangles: int, azimuths: int) -> dict:
         _kernel_only(out, b, mesh, o, d, t_max, backend)
     if "paired_api_over_plain" in out:
         r = out["paired_api_over_plain"]
-        print(f"(b) paired rounds: API / plain {r['median']:.2f} [{r['min']:.2f}-{r['max']:.2f}]", flush=True)
+        print(f"(b) paired rounds: API / plain {r['median']:.2f} [{r['min']:.2f}-{r['max']:.2f}]; in blocks "
+              f"{out['api_over_plain_numpy_io']:.2f}", flush=True)
     print(f"(b) ray-mesh {n} rays: API {out['api_mrays_s']:.1f} M rays/s "
           f"(float32; float64 {out['api_f64_mrays_s']:.1f})"
           + (f", plain Warp numpy-io {out['plain_numpy_io_mrays_s']:.1f}, kernel {out['plain_kernel_mrays_s']:.1f}"
@@ -216,7 +236,10 @@ def _kernel_only(out: dict, b, mesh, o, d, t_max: float, backend: str) -> None:
     range (issue 17 goal 2: the kernel at or above the plain one)."""
     import warp as wp
 
-    dev = backend[5:] if backend.startswith("warp:") else "cuda:0"
+    dev = _plain_device(backend)
+    if dev is None:
+        print(f"(b) kernel only: no plain Warp kernel to pair {backend} with (no CUDA GPU for Warp)", flush=True)
+        return
     wp_, plain = _plain_warp(dev)
     run = b.resident_raycast(mesh.handle(b), o - mesh.shift, d, t_max)
     v32 = np.ascontiguousarray(mesh.vertices - mesh.shift, dtype=np.float32)

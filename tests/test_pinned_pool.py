@@ -1,4 +1,4 @@
-"""The pinned host-block pool of the Warp backend (backends/warp/pinned.py): a block is reused only after
+"""The pinned host-block pool (backends/pinned.py), with Warp's allocator: a block is reused only after
 every NumPy view of it has died, the smallest free block that fits is taken, and the free list is bounded.
 On machines without CUDA the pool runs with ordinary memory (pinned=False); the CUDA path is covered by
 tests/test_raycast_checked.py on a GPU."""
@@ -12,11 +12,11 @@ import pytest
 
 wp = pytest.importorskip("warp")
 
-from place3d_kernels.backends.warp.pinned import PinnedPool  # noqa: E402
+from place3d_kernels.backends.pinned import HostBlockPool, warp_pinned_alloc  # noqa: E402
 
 
 def test_block_returns_only_when_every_view_is_gone():
-    pool = PinnedPool(wp, pinned=False)
+    pool = HostBlockPool(warp_pinned_alloc(wp, pinned=False))
     block, host = pool.take(4096)
     assert host.shape == (4096,) and host.dtype == np.uint8 and block.shape[0] >= 4096
     block.numpy()[:8] = np.arange(8, dtype=np.uint8)             # what a copy into the block writes
@@ -33,7 +33,7 @@ def test_block_returns_only_when_every_view_is_gone():
 
 
 def test_smallest_fitting_block_and_bounded_free_list():
-    pool = PinnedPool(wp, max_free=2, pinned=False)
+    pool = HostBlockPool(warp_pinned_alloc(wp, pinned=False), max_free=2)
     taken = [pool.take(n) for n in (1 << 20, 1 << 22, 1 << 21)]
     caps = sorted(b.shape[0] for b, _ in taken)
     assert caps == [1 << 20, 1 << 21, 1 << 22] and pool.allocated == 3

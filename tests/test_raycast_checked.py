@@ -167,7 +167,7 @@ def test_shape_errors_are_the_host_path_s(device_backend):
 
 
 def test_earlier_hits_survive_later_calls(device_backend, rng):
-    """Results come back in recycled host blocks on CUDA (backends/warp/pinned.py): a block is reused
+    """Results come back in recycled host blocks on CUDA (backends/pinned.py): a block is reused
     only after every array of an earlier result is gone, so holding one result across later calls
     keeps it intact."""
     import gc
@@ -192,3 +192,46 @@ def test_earlier_hits_survive_later_calls(device_backend, rng):
         o2, d2 = _rays(np.random.default_rng(100 + seed), 2000)
         p3k.raycast(mesh, o2, d2, 20.0, backend=device_backend)
     assert face.tobytes() == want.tobytes()
+
+
+def _pocl(**kw):
+    try:
+        from place3d_kernels.backends.opencl import OpenCLBackend
+        return OpenCLBackend("pocl", **kw)
+    except Exception as e:  # noqa: BLE001 - no PyOpenCL or no PoCL here
+        pytest.skip(f"no opencl:pocl ({e})")
+
+
+@pytest.mark.parametrize("width", [2, 4])
+def test_opencl_gpu_output_path_on_pocl(rng, width):
+    """The OpenCL GPU path of raycast_checked (one device buffer of t | int64 face | label | flags, copied
+    into a pooled mapped host block) run on PoCL by treating its device as a GPU: the reference's hits bit
+    for bit, results held across later calls intact, blocks reused once their arrays are gone, and the
+    stack-overflow flag still hands the call back."""
+    import gc
+
+    b = _pocl(bvh_width=width)
+    b.is_cpu = False                        # the GPU branches: explicit copies, pinned pool, no work-group size
+    mesh = _mesh()
+    held = []
+    for seed in range(4):
+        o, d = _rays(np.random.default_rng(seed), 1000 + 300 * seed)
+        got = p3k.raycast(mesh, o, d, 20.0, backend=b)
+        want = p3k.raycast(mesh, o, d, 20.0, backend="reference")
+        _same(got, want)
+        assert got.face.base is not None    # a view of a pooled block, not a fresh array
+        held.append((got, want))
+    gc.collect()
+    for got, want in held:                  # nothing written over while the arrays live
+        _same(got, want)
+    assert b._pinned.allocated == 4 and b._pinned.free_blocks == 0
+    del held, got, want
+    gc.collect()
+    assert b._pinned.free_blocks == 4       # (max_free) every block returned
+    o, d = _rays(rng, 900)
+    _same(p3k.raycast(mesh, o, d, 20.0, backend=b), p3k.raycast(mesh, o, d, 20.0, backend="reference"))
+    assert b._pinned.allocated == 4         # served from the pool
+
+    small = _pocl(stack_size=1, bvh_width=width)
+    small.is_cpu = False
+    assert small.raycast_checked(mesh.handle(small), o, d, 20.0, shift=mesh.shift) is None

@@ -24,8 +24,9 @@ _BITSET_BYTES = 256 * 2**20
 _DENSE_VOTE_BYTES = 256 * 2**20
 #: work-group size on CPU devices
 _CPU_GROUP = 8
-#: flag slots of the raycast kernels (load_ray in raycast.cl: origin, direction, t_max)
-N_RAY_FLAGS = 3
+#: flag slots of the raycast kernels (load_ray and RAY_STORE in raycast.cl: origin, direction, t_max, stack
+#: overflow)
+N_RAY_FLAGS = 4
 
 
 def opencl_devices() -> list[str]:
@@ -176,6 +177,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
         self.stats: dict[str, int] = {"retraced_rays": 0}
         self._dummy = cl.Buffer(self.ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=np.zeros(8, np.uint8))
         self._directions = DirectionCache(self._direction_table)
+        self._pinned = None      # HostBlockPool of mapped pinned buffers (GPUs; created on first use)
+        #: sub-buffer offsets must be multiples of this many bytes (CL_DEVICE_MEM_BASE_ADDR_ALIGN is in bits)
+        self._sub_align = max(8, int(self.device.mem_base_addr_align) // 8)
 
     # ----------------------------------------------------------------- plumbing
     def _options(self) -> tuple[str, ...]:
@@ -371,6 +375,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
         return t, face
 
     def raycast_checked(self, mesh, origins, directions, t_max, shift):
+        """The four outputs (t float64 | face int64 | label int32 | flags) are sub-buffers of one buffer, so
+        that they come back in one copy: on GPUs into a pooled pinned host block that the returned arrays
+        view (as the Warp backend does), on CPUs the kernel writes the host block itself."""
         if not isinstance(mesh, CLMesh):
             raise TypeError(f"raycast_checked needs the handle returned by {self.name}.upload_mesh, "
                             f"got {type(mesh).__name__}")
@@ -380,20 +387,49 @@ class OpenCLBackend(Backend, OpenCLConditions):
         n = len(directions)
         t_step = 1 if np.ndim(t_max) else 0
         tm = np.ascontiguousarray(t_max, dtype=np.float64) if t_step else np.full(1, float(t_max))
-        (t, tb), (face, fb), (label, lb) = (self._host_out(np.float64, n), self._host_out(np.int32, n),
-                                            self._host_out(np.int32, n))
-        flags = np.zeros(N_RAY_FLAGS, np.int32)
-        fl = cl.Buffer(self.ctx, _MF.READ_WRITE | _MF.COPY_HOST_PTR, hostbuf=flags)
+        at, host, dev = self._checked_block(n)
+        tb, fb, lb, fl = (dev.get_sub_region(a, m) for a, m in zip(at, (8 * n, 8 * n, 4 * n, 4 * N_RAY_FLAGS)))
         args = self._ray_args(mesh, origins, 1 if len(origins) == n else 0, directions, tm, t_step,
                               np.asarray(shift, dtype=np.float64).reshape(3), tb, fb, lb, 1, fl)
         self._launch("raycast4" if mesh.width == 4 else "raycast", n, *args)
-        cl.enqueue_copy(self.queue, flags, fl)
-        if flags.any():
+        self._fetch(host, dev)
+        # a failed check, or a BVH stack overflow (not for builder trees): the host path redoes the call
+        if host[at[3]:at[3] + 4 * N_RAY_FLAGS].view(np.int32).any():
             return None
-        face = self._fetch(face, fb)
-        if (face == -2).any():   # a BVH stack overflow (not for builder trees): raycast traces it on the host
-            return None
-        return self._fetch(t, tb), face.astype(np.int64), self._fetch(label, lb)
+        return (host[:8 * n].view(np.float64), host[at[1]:at[1] + 8 * n].view(np.int64),
+                host[at[2]:at[2] + 4 * n].view(np.int32))
+
+    def _checked_block(self, n: int) -> tuple[tuple[int, int, int, int], np.ndarray, cl.Buffer]:
+        """(offsets of t, face, label and flags; the host block; the device buffer) for ``raycast_checked``
+        of n rays, the flags zeroed. Offsets are multiples of the device's sub-buffer alignment."""
+        def up(x: int) -> int:
+            return -(-x // self._sub_align) * self._sub_align
+
+        at = (0, up(8 * n), up(up(8 * n) + 8 * n), up(up(up(8 * n) + 8 * n) + 4 * n))
+        total = at[3] + 4 * N_RAY_FLAGS
+        if self.is_cpu:
+            # the kernel writes host memory in place (USE_HOST_PTR), aligned for the sub-buffers
+            raw = np.empty(total + self._sub_align, np.uint8)
+            skip = -raw.ctypes.data % self._sub_align
+            host = raw[skip:skip + total]
+            host[at[3]:] = 0
+            return at, host, cl.Buffer(self.ctx, _MF.READ_WRITE | _MF.USE_HOST_PTR, hostbuf=host)
+        if self._pinned is None:
+            from place3d_kernels.backends.pinned import HostBlockPool
+
+            self._pinned = HostBlockPool(self._pinned_block)
+        host = self._pinned.take(total)[1]
+        dev = cl.Buffer(self.ctx, _MF.READ_WRITE, size=total)
+        cl.enqueue_fill_buffer(self.queue, dev, np.int32(0), at[3], 4 * N_RAY_FLAGS)
+        return at, host, dev
+
+    def _pinned_block(self, cap: int):
+        """``HostBlockPool`` allocator: a host-allocated (pinned on GPU drivers) buffer, mapped for good;
+        copies from the device into the mapped memory are one DMA (NVIDIA's OpenCL best-practice pattern)."""
+        buf = cl.Buffer(self.ctx, _MF.READ_WRITE | _MF.ALLOC_HOST_PTR, size=cap)
+        mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ | cl.map_flags.WRITE, 0, (cap,),
+                                          np.uint8)
+        return (buf, mapped), mapped.ctypes.data
 
     # ----------------------------------------------------------------- voxel traversal
     def count_visits(self, grid, origins, directions, t_end, stop=None) -> np.ndarray:

@@ -14,7 +14,9 @@
  *   (products of floats are exact in double), so the two triangles sharing an edge agree on its side.
  * - Equal distances go to the lower original face id, so results do not depend on traversal order.
  * - A ray that would overflow the stack (impossible for trees of the builder; checked anyway) reports
- *   face -2 and the host traces it again.
+ *   face -2 (and sets flag slot 3) and the host traces it again.
+ * - With a face map (map_faces, ``raycast_checked``) faces are written as 64-bit integers, the API's dtype,
+ *   so the host neither converts nor copies them again; without one, as 32-bit.
  */
 
 #ifndef STACK_SIZE
@@ -165,6 +167,10 @@ ALWAYS_INLINE void leaf_hits(__global const float* tris, int first, int count, c
     }
 }
 
+/* one face result: 64-bit with a face map (out_face then holds two ints per ray), else 32-bit */
+#define PUT_FACE(i, v) do { if (map_faces) ((__global long*)out_face)[i] = (long)(v); else out_face[i] = (v); } \
+    while (0)
+
 /* write the result: distance refined in double where available, t_max applied exactly; with a face map
  * (map_faces), the caller's face id and the face's label instead of the uploaded face id */
 ALWAYS_INLINE void store_hit(int i, bool overflow, float best, int best_face, real tmr, const real* o,
@@ -178,7 +184,7 @@ ALWAYS_INLINE void store_hit(int i, bool overflow, float best, int best_face, re
 {
     if (overflow) {
         out_t[i] = (real)INFINITY;
-        out_face[i] = -2;
+        PUT_FACE(i, -2);
         return;
     }
     real t_hit = (real)INFINITY;
@@ -193,10 +199,10 @@ ALWAYS_INLINE void store_hit(int i, bool overflow, float best, int best_face, re
     }
     out_t[i] = t_hit;
     if (map_faces) {
-        out_face[i] = best_face >= 0 ? face_ids[best_face] : -1;
+        PUT_FACE(i, best_face >= 0 ? face_ids[best_face] : -1);
         out_label[i] = best_face >= 0 ? face_labels[best_face] : -1;
     } else {
-        out_face[i] = best_face;
+        PUT_FACE(i, best_face);
     }
 }
 
@@ -204,8 +210,8 @@ ALWAYS_INLINE void store_hit(int i, bool overflow, float best, int best_face, re
  * one bound for all rays), check it as the host's ops._check_od / _check_t would, and hand back the
  * shifted origin, the direction normalised by the host's rule, and min(t_max, 1e30) (the float32 BVH
  * needs a finite bound). A failed check stores 1 in its flag slot (every writer stores the same value, so
- * no atomic is needed; 0 origin, 1 direction or its norm, 2 t_max) and returns false: the host then
- * redoes the call on its own path, which raises the error.
+ * no atomic is needed; 0 origin, 1 direction or its norm, 2 t_max; slot 3, a stack overflow, is set at
+ * RAY_STORE) and returns false: the host then redoes the call on its own path, which raises the error.
  *
  * The normalisation matches NumPy's bits with doubles: norm = sqrt((x*x + y*y) + z*z) as ops._row_norm
  * sums it, untouched when |norm - 1| <= 1e-12, else each component divided by the norm. FP_CONTRACT is
@@ -252,11 +258,12 @@ ALWAYS_INLINE bool load_ray(int i, __global const void* orig, int o_step, __glob
     if (i >= n) return; \
     real ray_o[3], ray_d[3], tmr; \
     if (!load_ray(i, orig, o_step, dir, in_f32, t_max, t_step, shx, shy, shz, flags, ray_o, ray_d, &tmr)) { \
-        out_t[i] = (real)INFINITY; out_face[i] = -1; if (map_faces) out_label[i] = -1; return; \
+        out_t[i] = (real)INFINITY; PUT_FACE(i, -1); if (map_faces) out_label[i] = -1; return; \
     } \
     ray_t r; \
     ray_init(&r, ray_o, ray_d);
-#define RAY_STORE store_hit(i, overflow, best, best_face, tmr, ray_o, ray_d, out_t, out_face, out_label, face_ids, \
+#define RAY_STORE if (overflow) flags[3] = 1; \
+    store_hit(i, overflow, best, best_face, tmr, ray_o, ray_d, out_t, out_face, out_label, face_ids, \
                             face_labels, map_faces MESH_PASS)
 
 #ifdef HAVE_FP64

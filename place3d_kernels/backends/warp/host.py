@@ -173,7 +173,7 @@ class WarpCore(Backend):
         self._pool_lock = threading.Lock()
         self._bits = None         # the kept bitset buffer (CUDA; _take_bits)
         self._loaded = set()      # kernels launched once already (module compiled and loaded)
-        self._pinned = None       # PinnedPool for large device-to-host copies (CUDA only; created on first use)
+        self._pinned = None       # HostBlockPool for large device-to-host copies (CUDA only; created on first use)
         #: what ``aot.load`` did: the shipped CUDA binaries loaded (e.g. "cubin sm90"), or why not (Warp then
         #: compiles on first launch); None on the CPU. PLACE3D_WARP_AOT=0 skips them (to time the JIT).
         self.aot = None
@@ -374,9 +374,9 @@ class WarpCore(Backend):
         if not self.device.is_cuda:
             return buf.numpy()
         if self._pinned is None:
-            from place3d_kernels.backends.warp.pinned import PinnedPool
+            from place3d_kernels.backends.pinned import HostBlockPool, warp_pinned_alloc
 
-            self._pinned = PinnedPool(wp)
+            self._pinned = HostBlockPool(warp_pinned_alloc(wp))
         block, host = self._pinned.take(nbytes)
         wp.copy(block, buf, count=nbytes)
         wp.synchronize_device(self.device)
