@@ -6,7 +6,9 @@
 On the 1M-triangle city with the dense rig's 524,288 rays: ``p3k.raycast`` on float32 and float64 rays,
 then the pieces a call is made of, each timed alone (7 repeats, median [min-max] ms, queue finished
 before and after): an input buffer made with ``COPY_HOST_PTR``, a 4 MB output allocation, pageable
-copies each way, and the same through a pinned (``ALLOC_HOST_PTR``) staging buffer. ``--cprofile``
+copies each way, and the same through a pinned (``ALLOC_HOST_PTR``) staging buffer; then the API with
+the backend's device buffers pooled between calls and made per call (alternating blocks), and the steps
+of one ``raycast_checked`` call. ``--cprofile``
 adds a cProfile of 10 API calls (where the Python side waits). A probe: one run of it is what
 ``bench/results/opencl-api-probe-H100-2026-11-25.txt`` and ``opencl-api-cprofile-H100-2026-11-25.txt`` hold.
 """
@@ -73,6 +75,31 @@ def main(argv=None) -> int:
     m.base.release(b.queue)
     b.queue.finish()
     timed("enqueue_copy pinned->device 6.3 MB", lambda: cl.enqueue_copy(b.queue, dev, pin))
+    # the API with device buffers pooled between calls (the default) and made per call, alternating blocks
+    api = {True: [], False: []}
+    for _ in range(5):
+        for reuse in (True, False):
+            b.reuse_device_buffers = reuse
+            p3k.raycast(city, o32, d32, 200.0, backend=b)
+            for _ in range(7):
+                t = time.perf_counter()
+                p3k.raycast(city, o32, d32, 200.0, backend=b)
+                api[reuse].append(1e3 * (time.perf_counter() - t))
+    b.reuse_device_buffers = True
+    for reuse, xs in api.items():
+        print(f"{'p3k.raycast f32, buffers ' + ('pooled' if reuse else 'per call'):40s} "
+              f"{statistics.median(xs):7.3f} ms [{min(xs):.3f}-{max(xs):.3f}] ({len(xs)} calls)", flush=True)
+    # the steps of one raycast_checked call, each waited for
+    h = city.handle(b)
+    timed("raycast_checked alone (f32)", lambda: b.raycast_checked(h, o32, d32, 200.0, shift=city.shift))
+    scratch: list = []
+    timed("two ray uploads into pooled buffers", lambda: (b._upload(o32, scratch), b._upload(d32, scratch),
+                                                          b._scratch_give(scratch), scratch.clear()))
+    out = cl.Buffer(b.ctx, mf.READ_WRITE, size=20 * n)
+    if b._pinned is not None:           # GPUs only (CPU devices write the host block in place)
+        blk, pinned_host = b._pinned.take(20 * n)
+        timed("one 10.5 MB download into a pinned block", lambda: cl.enqueue_copy(b.queue, pinned_host, out))
+    timed("one 10.5 MB download, pageable, fresh", lambda: cl.enqueue_copy(b.queue, np.empty(20 * n, np.uint8), out))
     if args.cprofile:
         pr = cProfile.Profile()
         pr.enable()

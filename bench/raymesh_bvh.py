@@ -16,8 +16,9 @@ and time over the yardstick's in the same round (median [min-max]), and, per var
 another distance or face than on an SAH tree with leaf 4 (the backend's tree until 2026-11-25; since then
 CUDA meshes get cuBQL's, ``WarpCore._build_tree``).
 With ``--opencl BACKEND`` the OpenCL backend's host-built binned-SAH tree (``opencl/bvh.py``) is timed the
-same way for each ``leaf_size:bins[:dfs]`` (its default 4:16; ``dfs``: nodes in depth-first order,
-``bvh.dfs_layout``), its results compared with the first variant's.
+same way for each ``leaf_size:bins[:dfs][:w4]`` (``dfs``: nodes in depth-first order, ``bvh.dfs_layout``;
+``w4``: the 4-wide collapse and ``raycast4`` instead of the binary tree; the backend's default has been
+4:16:w4 since 2026-11-25, 4:16 before), its results compared with the first variant's.
 """
 
 from __future__ import annotations
@@ -122,21 +123,23 @@ def main(argv=None) -> int:
         for v in args.opencl_variants.split(","):
             parts = v.split(":")
             leaf, bins = int(parts[0]), int(parts[1])
-            layout = parts[2] if len(parts) > 2 else "levels"
+            layout = "dfs" if "dfs" in parts[2:] else "levels"
+            width, cl_width = (4 if "w4" in parts[2:] else 2), cl.bvh_width
             cl.bvh_options = {"leaf_size": leaf, "bins": bins, "layout": layout}
+            cl.bvh_width = width
             try:
                 t0 = time.perf_counter()
                 h = cl.upload_mesh(city.vertices - city.shift, city.faces)
                 build = time.perf_counter() - t0
             finally:
-                cl.bvh_options = {}
+                cl.bvh_options, cl.bvh_width = {}, cl_width
             keep.append(h)
             run = cl.resident_raycast(h, ol, d, t_max)
             run()
             got = run.read()
             if base is None:
                 base = got
-            name = f"{args.opencl} {leaf}:{bins}" + (":dfs" if layout == "dfs" else "")
+            name = f"{args.opencl} {leaf}:{bins}" + (":dfs" if layout == "dfs" else "") + (":w4" if width == 4 else "")
             diff[name] = int(np.count_nonzero((got[0] != base[0]) | (got[1] != base[1])))
             steps[f"backend {name}"] = run
             print(f"{name}: built in {build:.1f} s, depth {h.bvh.depth if hasattr(h, 'bvh') else '?'}", flush=True)

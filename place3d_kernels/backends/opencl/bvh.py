@@ -15,7 +15,8 @@ while a level has few nodes and on the widest centroid axis after that. Triangle
 leaf leave the working set, so each pass costs O(active triangles) (build times: bench/README.md,
 "Figures behind backend code comments"). Child boxes are padded outward by ~2**-21 of their coordinates (see ``_pad``).
 
-CPUs traverse the 4-wide collapse of this tree (``collapse_bvh4``: one float4 slab test per node).
+Devices traverse the 4-wide collapse of this tree by default (``collapse_bvh4``: one float4 slab test per
+node; on an H100 about 10 % faster than the binary tree, bench/README.md).
 
 Depth bound (why a fixed traversal stack is safe). Let ``L = leaf_size`` and, for a node of ``n``
 triangles, ``need(n) = ceil(log2(ceil(n / L)))`` = the number of inner levels an object-median split

@@ -112,8 +112,10 @@ class OpenCLBackend(Backend, OpenCLConditions):
         stack_size: BVH traversal stack entries; defaults to the builder's depth cap. Smaller values exist
             to exercise the overflow fallback in tests.
         rays_per_item: rays walked by one work-item of the atomic ``score_placements`` strategy (default 1).
-        bvh_width: 4 (a 4-wide tree, SIMD box tests; default on CPUs) or 2 (binary; default on GPUs, whose
-            registers favour the smaller traversal stack).
+        bvh_width: 4 (a 4-wide tree: SIMD box tests on CPUs, fewer nodes visited on GPUs; the default) or 2
+            (binary, the smaller traversal stack). On an H100 the 4-wide kernel took 0.96-1.04 of a plain
+            Warp kernel's time against the binary one's 1.07-1.13, with identical hits (three runs of
+            bench/raymesh_bvh.py, bench/README.md).
         score_strategy: ``"private"`` (a bitset per work-item, OR-reduced; default on CPUs) or ``"atomic"``
             (one shared bitset per candidate, atomic_or; default on GPUs). Both give identical results.
 
@@ -170,7 +172,7 @@ class OpenCLBackend(Backend, OpenCLConditions):
         self.walk_lanes = self.is_cpu
         if bvh_width not in (None, 2, 4):
             raise ValueError(f"bvh_width must be 2 or 4, got {bvh_width!r}")
-        self.bvh_width = bvh_width or (4 if self.is_cpu else 2)
+        self.bvh_width = bvh_width or 4
         self._kernels: dict[str, cl.Kernel] = {}
         self._lock = threading.Lock()   # a Kernel's arguments are set and enqueued in two steps
         #: counters of the last calls (``retraced_rays``: rays the ray caster handed back to the host)
@@ -178,6 +180,8 @@ class OpenCLBackend(Backend, OpenCLConditions):
         self._dummy = cl.Buffer(self.ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=np.zeros(8, np.uint8))
         self._directions = DirectionCache(self._direction_table)
         self._pinned = None      # HostBlockPool of mapped pinned buffers (GPUs; created on first use)
+        self._scratch: dict[int, list] = {}     # capacity -> free pooled device buffers (_scratch_take)
+        self._scratch_lock = threading.Lock()
         #: sub-buffer offsets must be multiples of this many bytes (CL_DEVICE_MEM_BASE_ADDR_ALIGN is in bits)
         self._sub_align = max(8, int(self.device.mem_base_addr_align) // 8)
 
@@ -211,7 +215,35 @@ class OpenCLBackend(Backend, OpenCLConditions):
         flag = _MF.USE_HOST_PTR if (self.is_cpu and not keep) else _MF.COPY_HOST_PTR
         return cl.Buffer(self.ctx, _MF.READ_ONLY | flag, hostbuf=a)
 
-    def _upload(self, a: np.ndarray) -> cl.Buffer:
+    #: per-call device buffers of the ray caster come from a pool kept between calls (False: a new
+    #: cl.Buffer each time; bench/opencl_raycast_parts.py compares the two)
+    reuse_device_buffers = True
+    #: largest pooled device buffer (bytes); larger ones are made and freed per call
+    _SCRATCH_MAX = 256 * 2**20
+
+    def _scratch_take(self, nbytes: int) -> cl.Buffer:
+        """A device buffer of at least ``nbytes`` bytes for one call: from the pool (capacities are powers of
+        two from 64 KiB), or new. Hand it back with ``_scratch_give`` once the call has waited for its work."""
+        cap = 1 << max(16, (max(int(nbytes), 1) - 1).bit_length())
+        if self.reuse_device_buffers and cap <= self._SCRATCH_MAX:
+            with self._scratch_lock:
+                free = self._scratch.get(cap)
+                if free:
+                    return free.pop()
+        return cl.Buffer(self.ctx, _MF.READ_WRITE, size=cap)
+
+    def _scratch_give(self, bufs) -> None:
+        """Return ``_scratch_take`` buffers whose commands have finished (two kept per capacity)."""
+        if not self.reuse_device_buffers:
+            return
+        with self._scratch_lock:
+            for b in bufs:
+                if b.size <= self._SCRATCH_MAX:
+                    free = self._scratch.setdefault(b.size, [])
+                    if len(free) < 2:
+                        free.append(b)
+
+    def _upload(self, a: np.ndarray, scratch: list | None = None) -> cl.Buffer:
         """A read-only input buffer filled by an explicit copy on GPUs (``_in`` on CPU devices). NVIDIA's
         OpenCL moved a ``COPY_HOST_PTR`` buffer to the device only when the first kernel using it was
         enqueued, and that took longer than the copy itself (the ray-mesh kernel's enqueue 2.1 ms a call for
@@ -220,7 +252,11 @@ class OpenCLBackend(Backend, OpenCLConditions):
         a = np.ascontiguousarray(a)
         if self.is_cpu or a.nbytes == 0:
             return self._in(a)
-        buf = cl.Buffer(self.ctx, _MF.READ_ONLY, size=a.nbytes)
+        if scratch is None:
+            buf = cl.Buffer(self.ctx, _MF.READ_ONLY, size=a.nbytes)
+        else:                   # a pooled buffer, listed in ``scratch`` for the caller to give back
+            buf = self._scratch_take(a.nbytes)
+            scratch.append(buf)
         cl.enqueue_copy(self.queue, buf, a)
         return buf
 
@@ -336,13 +372,15 @@ class OpenCLBackend(Backend, OpenCLConditions):
         bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH, **self.bvh_options)
         return CLMesh(self, v, f, bvh, ids, lab)
 
-    def _ray_args(self, mesh, o, o_step, d, tm, t_step, shift, tb, fb, lb, map_faces, flags) -> list:
-        """Arguments of the raycast/raycast4 kernels (RAY_ARGS in raycast.cl) and the mesh's."""
+    def _ray_args(self, mesh, o, o_step, d, tm, t_step, shift, tb, fb, lb, map_faces, flags,
+                  scratch: list | None = None) -> list:
+        """Arguments of the raycast/raycast4 kernels (RAY_ARGS in raycast.cl) and the mesh's; with ``scratch``
+        the rays go to pooled buffers listed there (see ``_upload``)."""
         f32 = o.dtype == np.float32
         if not f32 and not self.fp64:
             raise TypeError(f"{self.name} has no doubles: rays must be float32 here, got {o.dtype}")
-        args = [mesh.nodes, mesh.tris, self._upload(o), np.int32(o_step), self._upload(d), np.int32(f32),
-                self._upload(tm),
+        args = [mesh.nodes, mesh.tris, self._upload(o, scratch), np.int32(o_step), self._upload(d, scratch),
+                np.int32(f32), self._upload(tm, scratch),
                 np.int32(t_step), *(self.real(x) for x in shift), tb, fb, lb, mesh.face_ids, mesh.face_labels,
                 np.int32(map_faces), flags, np.int32(len(d))]
         if self.fp64:
@@ -387,21 +425,25 @@ class OpenCLBackend(Backend, OpenCLConditions):
         n = len(directions)
         t_step = 1 if np.ndim(t_max) else 0
         tm = np.ascontiguousarray(t_max, dtype=np.float64) if t_step else np.full(1, float(t_max))
-        at, host, dev = self._checked_block(n)
+        scratch: list = []
+        at, host, dev = self._checked_block(n, scratch)
         tb, fb, lb, fl = (dev.get_sub_region(a, m) for a, m in zip(at, (8 * n, 8 * n, 4 * n, 4 * N_RAY_FLAGS)))
         args = self._ray_args(mesh, origins, 1 if len(origins) == n else 0, directions, tm, t_step,
-                              np.asarray(shift, dtype=np.float64).reshape(3), tb, fb, lb, 1, fl)
+                              np.asarray(shift, dtype=np.float64).reshape(3), tb, fb, lb, 1, fl, scratch)
         self._launch("raycast4" if mesh.width == 4 else "raycast", n, *args)
-        self._fetch(host, dev)
+        self._fetch(host, dev)          # a blocking copy: the kernel and the uploads are done
+        del tb, fb, lb, fl, args
+        self._scratch_give(scratch)
         # a failed check, or a BVH stack overflow (not for builder trees): the host path redoes the call
         if host[at[3]:at[3] + 4 * N_RAY_FLAGS].view(np.int32).any():
             return None
         return (host[:8 * n].view(np.float64), host[at[1]:at[1] + 8 * n].view(np.int64),
                 host[at[2]:at[2] + 4 * n].view(np.int32))
 
-    def _checked_block(self, n: int) -> tuple[tuple[int, int, int, int], np.ndarray, cl.Buffer]:
+    def _checked_block(self, n: int, scratch: list) -> tuple[tuple[int, int, int, int], np.ndarray, cl.Buffer]:
         """(offsets of t, face, label and flags; the host block; the device buffer) for ``raycast_checked``
-        of n rays, the flags zeroed. Offsets are multiples of the device's sub-buffer alignment."""
+        of n rays, the flags zeroed. Offsets are multiples of the device's sub-buffer alignment. A pooled
+        device buffer is listed in ``scratch``."""
         def up(x: int) -> int:
             return -(-x // self._sub_align) * self._sub_align
 
@@ -419,7 +461,8 @@ class OpenCLBackend(Backend, OpenCLConditions):
 
             self._pinned = HostBlockPool(self._pinned_block)
         host = self._pinned.take(total)[1]
-        dev = cl.Buffer(self.ctx, _MF.READ_WRITE, size=total)
+        dev = self._scratch_take(total)
+        scratch.append(dev)
         cl.enqueue_fill_buffer(self.queue, dev, np.int32(0), at[3], 4 * N_RAY_FLAGS)
         return at, host, dev
 

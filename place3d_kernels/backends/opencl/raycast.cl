@@ -274,7 +274,7 @@ ALWAYS_INLINE bool load_ray(int i, __global const void* orig, int o_step, __glob
 #define MESH_PASS
 #endif
 
-/* Binary BVH (GPUs: the smaller stack). */
+/* Binary BVH (bvh_width=2: the smaller stack). */
 __kernel void raycast(__global const float* nodes, __global const float* tris, RAY_ARGS MESH_ARGS)
 {
     RAY_LOAD
@@ -326,7 +326,7 @@ __kernel void raycast(__global const float* nodes, __global const float* tris, R
 #define CSWAP(ta, ra, ca, tb, rb, cb) do { if (tb < ta) { float t_ = ta; ta = tb; tb = t_; \
     int r_ = ra; ra = rb; rb = r_; r_ = ca; ca = cb; cb = r_; } } while (0)
 
-/* 4-wide BVH (CPUs): one node = four child boxes tested as float4 (SIMD), hit children visited nearest
+/* 4-wide BVH (the default on every device): one node = four child boxes tested as float4 (SIMD), hit children visited nearest
  * first; the others are pushed farthest first. Stack bound: 3 entries per level, STACK4 = 3 * depth cap. */
 __kernel void raycast4(__global const float4* nodes, __global const float* tris, RAY_ARGS MESH_ARGS)
 {
