@@ -235,3 +235,10 @@ def test_opencl_gpu_output_path_on_pocl(rng, width):
     small = _pocl(stack_size=1, bvh_width=width)
     small.is_cpu = False
     assert small.raycast_checked(mesh.handle(small), o, d, 20.0, shift=mesh.shift) is None
+    # a bad ray raises the host path's error, and the pooled buffers it used serve the next call intact
+    bad = o.copy()
+    bad[5, 2] = np.nan
+    with pytest.raises(ValueError, match="ray 5 has a non-finite origin"):
+        p3k.raycast(mesh, bad, d, 20.0, backend=b)
+    assert b._scratch                       # device buffers were handed back to the pool
+    _same(p3k.raycast(mesh, o, d, 20.0, backend=b), p3k.raycast(mesh, o, d, 20.0, backend="reference"))
