@@ -373,17 +373,14 @@ class WarpCore(Backend):
         keeps alive); on a GPU one DMA into a pooled pinned block that the returned view owns."""
         if not self.device.is_cuda:
             return buf.numpy()
-        block, host = self._pinned_pool().take(nbytes)
-        wp.copy(block, buf, count=nbytes)
-        wp.synchronize_device(self.device)
-        return host
-
-    def _pinned_pool(self):
         if self._pinned is None:
             from place3d_kernels.backends.pinned import HostBlockPool, warp_pinned_alloc
 
             self._pinned = HostBlockPool(warp_pinned_alloc(wp))
-        return self._pinned
+        block, host = self._pinned.take(nbytes)
+        wp.copy(block, buf, count=nbytes)
+        wp.synchronize_device(self.device)
+        return host
 
     def _rays_as_given(self, a, vec) -> "wp.array":
         """(N, 3) contiguous float32 or float64 rays as a vec3f/vec3d array: on the CPU the NumPy memory
@@ -519,16 +516,17 @@ class WarpCore(Backend):
         spec = handle.spec
         nx, ny, nz = spec.shape
         _, by, bz = brick_shape(spec.shape)
-        if self.device.is_cuda and words > self.score_gpu.MAX_WORDS:
-            raise ValueError(f"grid of shape {spec.shape} needs {words:,} bitset words per candidate; the CUDA "
-                             f"score kernel indexes at most {self.score_gpu.MAX_WORDS:,} (a coarser voxel size or "
-                             f"a smaller grid)")
         both = wp.zeros(2 * P, dtype=wp.int64, device=self.device)    # sums, then counts: one download
         sums, counts = both[:P], both[P:]
-        rot, pos, staged = self._rig_arrays(flat)
+        rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=self.device)
+        pos = self._vec3d(flat[:, :3])
         rays = L * len(sd)     # per candidate
         if self.device.is_cuda:
             g = self.score_gpu
+            if words > g.MAX_WORDS:
+                raise ValueError(f"grid of shape {spec.shape} needs {words:,} bitset words per candidate; the CUDA "
+                                 f"score kernel indexes at most {g.MAX_WORDS:,} (a coarser voxel size or a "
+                                 f"smaller grid)")
             wp.launch(g.score_kernel_gpu, dim=P * rays, device=self.device,
                       inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
                               int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
@@ -549,32 +547,8 @@ class WarpCore(Backend):
 
             self._launch_groups(self.k.score_kernel, P, rays, cand_range)
         self._count_bits(bits, P, words, counts)
-        if self.device.is_cuda:     # one DMA into a pooled pinned block (waits for the kernels)
-            out = self._to_host(wp.array(ptr=both.ptr, shape=(16 * P,), dtype=wp.uint8, device=self.device),
-                                16 * P).view(np.int64)
-        else:
-            out = both.numpy()
-        del staged          # the kernels have finished: the staging block may be reused
+        out = both.numpy()
         return out[:P], out[P:]
-
-    def _rig_arrays(self, flat: np.ndarray):
-        """(rotations mat33d, positions vec3d, keep-alive) of (N, 6) poses on the device. On a GPU both go up in
-        one copy from a pooled pinned block: two pageable copies cost about 0.2 ms each on the H100 host
-        before every score launch (bench/README.md), one pinned copy is queued without waiting. Hold the
-        third value until the launch that reads them has finished."""
-        rot = rotation_matrices(flat)
-        if not self.device.is_cuda:
-            return wp.array(rot, dtype=wp.mat33d, device=self.device), self._vec3d(flat[:, :3]), None
-        n = len(flat)
-        block, host = self._pinned_pool().take(96 * n)
-        h = host.view(np.float64)
-        h[:9 * n] = rot.reshape(-1)
-        h[9 * n:] = flat[:, :3].reshape(-1)
-        dev = wp.empty(96 * n, dtype=wp.uint8, device=self.device)
-        wp.copy(dev, block, count=96 * n)
-        rot_a = wp.array(ptr=dev.ptr, shape=(n,), dtype=wp.mat33d, device=self.device)
-        pos_a = wp.array(ptr=dev.ptr + 72 * n, shape=(n,), dtype=wp.vec3d, device=self.device)
-        return rot_a, pos_a, (dev, host)
 
     def _count_bits(self, bits, P: int, words: int, counts) -> None:
         """counts[c] = set bits of candidate c's bitset (P candidates of ``words`` words each); on CUDA the
