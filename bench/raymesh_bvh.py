@@ -18,7 +18,8 @@ CUDA meshes get cuBQL's, ``WarpCore._build_tree``).
 With ``--opencl BACKEND`` the OpenCL backend's host-built binned-SAH tree (``opencl/bvh.py``) is timed the
 same way for each ``leaf_size:bins[:dfs][:w4]`` (``dfs``: nodes in depth-first order, ``bvh.dfs_layout``;
 ``w4``: the 4-wide collapse and ``raycast4`` instead of the binary tree; the backend's default has been
-4:16:w4 since 2026-11-25, 4:16 before), its results compared with the first variant's.
+4:16:w4 since 2026-11-25, 4:16 before; ``l<N>``: work-groups of N rays instead of the driver's choice), its
+results compared with the first variant's.
 """
 
 from __future__ import annotations
@@ -41,6 +42,20 @@ VARIANTS = [("sah", None), ("sah", 1), ("sah", 2), ("sah", 8), ("lbvh", None), (
 
 def stats(xs):
     return {"median": statistics.median(xs), "min": min(xs), "max": max(xs), "runs": xs}
+
+
+def _with_group(cl, group: int, run):
+    """``run`` (a ``resident_raycast`` callable) launched with the backend's ray work-group size set to
+    ``group`` for its duration."""
+    def wrapped():
+        old, cl.ray_group_size = cl.ray_group_size, group
+        try:
+            run()
+        finally:
+            cl.ray_group_size = old
+
+    wrapped.read = run.read
+    return wrapped
 
 
 def main(argv=None) -> int:
@@ -125,6 +140,7 @@ def main(argv=None) -> int:
             leaf, bins = int(parts[0]), int(parts[1])
             layout = "dfs" if "dfs" in parts[2:] else "levels"
             width, cl_width = (4 if "w4" in parts[2:] else 2), cl.bvh_width
+            group = next((int(x[1:]) for x in parts[2:] if x.startswith("l")), None)
             cl.bvh_options = {"leaf_size": leaf, "bins": bins, "layout": layout}
             cl.bvh_width = width
             try:
@@ -135,11 +151,14 @@ def main(argv=None) -> int:
                 cl.bvh_options, cl.bvh_width = {}, cl_width
             keep.append(h)
             run = cl.resident_raycast(h, ol, d, t_max)
+            if group:       # this variant's launches with its own work-group size
+                run = _with_group(cl, group, run)
             run()
             got = run.read()
             if base is None:
                 base = got
-            name = f"{args.opencl} {leaf}:{bins}" + (":dfs" if layout == "dfs" else "") + (":w4" if width == 4 else "")
+            name = (f"{args.opencl} {leaf}:{bins}" + (":dfs" if layout == "dfs" else "") + (":w4" if width == 4 else "")
+                    + (f":l{group}" if group else ""))
             diff[name] = int(np.count_nonzero((got[0] != base[0]) | (got[1] != base[1])))
             steps[f"backend {name}"] = run
             print(f"{name}: built in {build:.1f} s, depth {h.bvh.depth if hasattr(h, 'bvh') else '?'}", flush=True)

@@ -242,3 +242,14 @@ def test_opencl_gpu_output_path_on_pocl(rng, width):
         p3k.raycast(mesh, bad, d, 20.0, backend=b)
     assert b._scratch                       # device buffers were handed back to the pool
     _same(p3k.raycast(mesh, o, d, 20.0, backend=b), p3k.raycast(mesh, o, d, 20.0, backend="reference"))
+
+
+def test_opencl_ray_group_size_on_pocl(rng):
+    """A set work-group size for the GPU ray casters rounds the launch up to whole groups; the kernels
+    return for the padding ids, so a ragged ray count gives the reference's hits."""
+    b = _pocl()
+    b.is_cpu = False
+    b.ray_group_size = 64
+    mesh = _mesh()
+    o, d = _rays(rng, 1001)
+    _same(p3k.raycast(mesh, o, d, 20.0, backend=b), p3k.raycast(mesh, o, d, 20.0, backend="reference"))

@@ -288,12 +288,19 @@ class OpenCLBackend(Backend, OpenCLConditions):
             cl.enqueue_copy(self.queue, out, buf)
         return out
 
+    #: work-group size of the ray casters on GPUs (None: the driver's choice); bench/raymesh_bvh.py's ``:l<N>``
+    #: variants time others
+    ray_group_size: int | None = None
+
     def _launch(self, name: str, n, *args):
         gsize = [int(n)] if np.isscalar(n) else [int(x) for x in n]
         if min(gsize) == 0:
             return
         lsize = None
-        if self.is_cpu:
+        if self.ray_group_size and not self.is_cpu and name in ("raycast", "raycast4"):
+            lsize = [int(self.ray_group_size)]
+            gsize[0] = -(-gsize[0] // lsize[0]) * lsize[0]     # the kernels return for ids >= n
+        elif self.is_cpu:
             # CPU drivers run one work-group per thread; small groups balance the uneven ray costs
             lsize = [_CPU_GROUP] + [1] * (len(gsize) - 1)
             gsize[0] = -(-gsize[0] // _CPU_GROUP) * _CPU_GROUP
