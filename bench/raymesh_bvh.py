@@ -18,8 +18,8 @@ CUDA meshes get cuBQL's, ``WarpCore._build_tree``).
 With ``--opencl BACKEND`` the OpenCL backend's host-built binned-SAH tree (``opencl/bvh.py``) is timed the
 same way for each ``leaf_size:bins[:dfs][:w4]`` (``dfs``: nodes in depth-first order, ``bvh.dfs_layout``;
 ``w4``: the 4-wide collapse and ``raycast4`` instead of the binary tree; the backend's default has been
-4:16:w4 since 2026-11-25, 4:16 before; ``l<N>``: work-groups of N rays instead of the driver's choice), its
-results compared with the first variant's.
+4:16:w4 since 2026-11-25, 4:16 before; ``l<N>``: work-groups of N rays, ``l0`` the driver's choice, none
+the backend's ``ray_group_size``, 128 since 2026-11-25), its results compared with the first variant's.
 """
 
 from __future__ import annotations
@@ -151,14 +151,14 @@ def main(argv=None) -> int:
                 cl.bvh_options, cl.bvh_width = {}, cl_width
             keep.append(h)
             run = cl.resident_raycast(h, ol, d, t_max)
-            if group:       # this variant's launches with its own work-group size
-                run = _with_group(cl, group, run)
+            if group is not None:   # this variant's launches with its own work-group size (0: the driver's)
+                run = _with_group(cl, group or None, run)
             run()
             got = run.read()
             if base is None:
                 base = got
             name = (f"{args.opencl} {leaf}:{bins}" + (":dfs" if layout == "dfs" else "") + (":w4" if width == 4 else "")
-                    + (f":l{group}" if group else ""))
+                    + (f":l{group}" if group is not None else ""))
             diff[name] = int(np.count_nonzero((got[0] != base[0]) | (got[1] != base[1])))
             steps[f"backend {name}"] = run
             print(f"{name}: built in {build:.1f} s, depth {h.bvh.depth if hasattr(h, 'bvh') else '?'}", flush=True)

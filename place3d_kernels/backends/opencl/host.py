@@ -288,9 +288,10 @@ class OpenCLBackend(Backend, OpenCLConditions):
             cl.enqueue_copy(self.queue, out, buf)
         return out
 
-    #: work-group size of the ray casters on GPUs (None: the driver's choice); bench/raymesh_bvh.py's ``:l<N>``
-    #: variants time others
-    ray_group_size: int | None = None
+    #: work-group size of the ray casters on GPUs (None: the driver's choice). 128 read 0.96-1.14 of the plain
+    #: Warp kernel's time on an H100 where the driver's choice read 1.01-1.16, lower in each of three runs
+    #: (bench/raymesh_bvh.py's ``:l<N>`` variants; bench/README.md)
+    ray_group_size: int | None = 128
 
     def _launch(self, name: str, n, *args):
         gsize = [int(n)] if np.isscalar(n) else [int(x) for x in n]
