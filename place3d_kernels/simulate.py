@@ -19,6 +19,7 @@ from place3d_kernels.mesh import Mesh
 from place3d_kernels.ops import raycast
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import pose_from_matrix, pose_matrix
+from place3d_kernels.profiling import section
 from place3d_kernels.rig_metrics import check_outside_body
 
 __all__ = ["simulate_frame", "simulate", "body_hits", "DEFAULT_MOUNT"]
@@ -45,11 +46,17 @@ def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor
         points (N, 3) world, labels (N,), intensity (N,), origin (3,) of the sweep.
     """
     b = get_backend(backend)
-    o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, np.asarray(sensor_pose_world)[None])
-    hits = raycast(static, o, d, lidar.max_range, backend=b)
+    with section("simulate: rays"):
+        o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, np.asarray(sensor_pose_world)[None])
+    with section("simulate: static mesh"):
+        static.handle(b)
+        hits = raycast(static, o, d, lidar.max_range, backend=b)
     t, face, lab, src = hits.t, hits.face, hits.label, np.zeros(len(o), dtype=bool)
     if dynamic is not None:
-        dh = raycast(dynamic, o, d, lidar.max_range, backend=b)
+        with section("simulate: actors' BVH"):
+            dynamic.handle(b)
+        with section("simulate: actors' mesh"):
+            dh = raycast(dynamic, o, d, lidar.max_range, backend=b)
         closer = dh.t < t
         t = np.where(closer, dh.t, t)
         face = np.where(closer, dh.face, face)
@@ -129,7 +136,8 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         ego_T = pose_matrix(scene.ego_poses[f])
         T = ego_T @ mount_T
         sensor_pose = pose_from_matrix(T)
-        dyn = dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f)
+        with section("simulate: actors (build)"):
+            dyn = dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f)
         pts, lab, inten, origin = simulate_frame(scene.static, dyn, lidar, sensor_pose, backend, body_t)
         out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
     return out

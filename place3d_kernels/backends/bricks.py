@@ -21,6 +21,21 @@ def brick_shape(shape) -> tuple[int, int, int]:
 
 def brick_bits(mask: np.ndarray, shape) -> np.ndarray:
     """Pack a flat per-voxel boolean mask (C order over ``shape``) into one uint32 word per brick."""
+    mask = np.asarray(mask)
+    if mask.size >= DENSE_MIN_VOXELS and np.count_nonzero(mask) * DENSE_SHARE >= mask.size:
+        return _brick_bits_dense(mask, shape)
+    return _brick_bits_sparse(mask, shape)
+
+
+#: ``brick_bits`` packs the whole grid at once (``_brick_bits_dense``) when at least one voxel in
+#: ``DENSE_SHARE`` is set, else it scatters the set voxels one by one. On the dev VM (4 M voxels, 2026-11-26)
+#: the scatter took 1.4 / 4.3 / 6.2 / 11 ms at 0.5 / 2 / 3 / 5 % set and the dense packing 4.5 ms whatever
+#: the share; the default town's P-SOG has 5.7 % of its voxels with a weight and 0.5 % that stop a ray.
+DENSE_SHARE = 50
+DENSE_MIN_VOXELS = 4096
+
+
+def _brick_bits_sparse(mask: np.ndarray, shape) -> np.ndarray:
     bx, by, bz = brick_shape(shape)
     words = np.zeros(bx * by * bz, dtype=np.uint32)
     i, j, k = np.unravel_index(np.flatnonzero(mask), tuple(int(v) for v in shape))
@@ -32,6 +47,22 @@ def brick_bits(mask: np.ndarray, shape) -> np.ndarray:
         first = np.flatnonzero(np.r_[True, word[1:] != word[:-1]])
         words[word[first]] = np.bitwise_or.reduceat(bit, first)
     return words
+
+
+def _brick_bits_dense(mask: np.ndarray, shape) -> np.ndarray:
+    # the grid padded to whole bricks, viewed as (bx, ii, by, jj, bz, kk) and reordered to
+    # (bx, by, bz, kk, jj, ii): the 32 voxels of a brick then lie in the order of their bit numbers
+    # (ii | jj << 2 | kk << 4), and packbits with little bit order makes each brick's 4 bytes its
+    # little-endian word
+    nx, ny, nz = (int(v) for v in shape)
+    bx, by, bz = brick_shape(shape)
+    m = mask.reshape(nx, ny, nz).astype(bool, copy=False)
+    if (nx, ny, nz) != (4 * bx, 4 * by, 2 * bz):
+        padded = np.zeros((4 * bx, 4 * by, 2 * bz), dtype=bool)
+        padded[:nx, :ny, :nz] = m
+        m = padded
+    bricks = m.reshape(bx, 4, by, 4, bz, 2).transpose(0, 2, 4, 5, 3, 1).reshape(bx * by * bz, 32)
+    return np.packbits(bricks, axis=1, bitorder="little").view("<u4").reshape(-1).astype(np.uint32, copy=False)
 
 
 def brick_masks(shape, nonzero: np.ndarray, stop: np.ndarray | None) -> np.ndarray:

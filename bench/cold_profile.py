@@ -1,0 +1,107 @@
+#!/usr/bin/env python3
+"""Goal 1's cold command, profiled: ``place3d --profile optimize --max-evals 2000 --task seg`` on a cold host.
+
+Each run gets fresh Warp kernel, CUDA driver and P-SOG caches (``WARP_CACHE_PATH``, ``CUDA_CACHE_PATH``,
+``PLACE3D_CACHE`` in new temporary folders), so the P-SOG is built and every kernel module loaded or compiled
+as on a machine that never ran the package. Trees named with ``--tree`` (folders holding a checkout of
+this project) are run alternately, so two versions share one machine's mood; the default is this tree.
+``--cprofile`` adds one run under cProfile per tree (the top functions by own and cumulative time).
+
+    python3 bench/cold_profile.py --runs 4 --out $OUT                         # this tree
+    python3 bench/cold_profile.py --runs 4 --tree /tmp/old --tree . --out $OUT # an A/B, alternating
+
+Writes ``cold-profile-<tree>.txt`` (every run's wall, last stdout line and profile table) and a JSON of
+the walls (median, min, max) to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pstats
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = None) -> tuple[float, str, str]:
+    """One cold run of the command from ``tree``: (wall seconds, last stdout line, stderr's profile table)."""
+    with tempfile.TemporaryDirectory() as cold, tempfile.TemporaryDirectory() as o:
+        env = dict(os.environ, WARP_CACHE_PATH=f"{cold}/warp", CUDA_CACHE_PATH=f"{cold}/cuda",
+                   PLACE3D_CACHE=f"{cold}/psog", PYTHONPATH=str(tree) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        pre = [sys.executable] + (["-m", "cProfile", "-o", str(cprofile)] if cprofile else [])
+        cmd = pre + ["-m", "place3d_kernels.cli", "--profile", "optimize", "--max-evals", str(max_evals),
+                     "--task", "seg", "--backend", backend, "--quiet", "--output", o]
+        t = time.perf_counter()
+        p = subprocess.run(cmd, env=env, cwd=tree, capture_output=True, text=True, timeout=600)
+        wall = time.perf_counter() - t
+    if p.returncode:
+        raise RuntimeError(f"{tree}: exited {p.returncode}\n{p.stdout[-2000:]}\n{p.stderr[-3000:]}")
+    last = (p.stdout.strip().splitlines() or [""])[-1]
+    table = p.stderr[p.stderr.find("place3d profile"):] if "place3d profile" in p.stderr else p.stderr[-3000:]
+    return wall, last, table
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tree", action="append", default=None, help="project checkout to run (repeat for an A/B)")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--backend", default="warp:cuda:0")
+    ap.add_argument("--max-evals", type=int, default=2000)
+    ap.add_argument("--cprofile", action="store_true", help="one more run per tree under cProfile")
+    ap.add_argument("--label", default="", help="suffix of the output files")
+    ap.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "bench" / "results")))
+    a = ap.parse_args()
+    trees = [Path(t).resolve() for t in (a.tree or [str(ROOT)])]
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    walls: dict[str, list[float]] = {str(t): [] for t in trees}
+    log = [f"# cold place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend}; fresh Warp, "
+           f"CUDA and P-SOG caches each run; trees alternating: {[str(t) for t in trees]}"]
+    for r in range(a.runs):
+        for t in trees:
+            w, last, table = cold_run(t, a.backend, a.max_evals)
+            walls[str(t)].append(w)
+            log += [f"## {t.name} run {r + 1}: wall {w:.3f} s | {last}", table.rstrip(), ""]
+            print(f"{t.name} run {r + 1}: wall {w:.3f} s | {last}", flush=True)
+    summary = {}
+    for t, ws in walls.items():
+        summary[t] = {"median": statistics.median(ws), "min": min(ws), "max": max(ws), "runs": ws}
+        log.append(f"{t}: wall median {summary[t]['median']:.3f} [{min(ws):.3f}-{max(ws):.3f}] s over {len(ws)} runs")
+    if a.cprofile:
+        for t in trees:
+            pf = out / f"cold-cprofile-{t.name}{a.label}.pstats"
+            w, last, _ = cold_run(t, a.backend, a.max_evals, cprofile=pf)
+            log.append(f"## cProfile {t.name}: wall {w:.3f} s (under cProfile) | {last}")
+            with tempfile.TemporaryFile("w+") as s:
+                st = pstats.Stats(str(pf), stream=s)
+                st.sort_stats("tottime").print_stats(40)
+                st.sort_stats("cumulative").print_stats(80)
+                s.seek(0)
+                log.append(s.read())
+    print("\n".join(log[-len(trees):]) if not a.cprofile else "", flush=True)
+    try:
+        import platform
+
+        machine = platform.node()
+        gpu = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                             text=True).stdout.strip()
+    except OSError:
+        machine, gpu = "", ""
+    (out / f"cold-profile{a.label}.txt").write_text("\n".join(log) + "\n")
+    (out / f"cold-profile{a.label}.json").write_text(json.dumps(
+        {"command": f"place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend}", "gpu": gpu,
+         "host": machine, "cpus": os.cpu_count(), "walls_s": summary,
+         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}, indent=1))
+    for t, s in summary.items():
+        print(f"{Path(t).name}: cold wall median {s['median']:.3f} [{s['min']:.3f}-{s['max']:.3f}] s")
+
+
+if __name__ == "__main__":
+    main()
