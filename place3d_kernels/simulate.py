@@ -16,16 +16,21 @@ from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.classes import REFLECTIVITY
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.mesh import Mesh
-from place3d_kernels.ops import raycast
+from place3d_kernels.ops import Hits, raycast
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import pose_from_matrix, pose_matrix
 from place3d_kernels.profiling import section
 from place3d_kernels.rig_metrics import check_outside_body
 
-__all__ = ["simulate_frame", "simulate", "body_hits", "DEFAULT_MOUNT"]
+__all__ = ["simulate_frame", "simulate", "body_hits", "DEFAULT_MOUNT", "SWEEP_BATCH_RAYS"]
 
 #: Pose of the collection LiDAR in the ego frame (roof centre, 2.5 m above ground).
 DEFAULT_MOUNT = np.array([0.0, 0.0, 2.5, 0.0, 0.0, 0.0])
+
+#: Rays ``simulate`` makes and casts into the static mesh per call: whole sweeps, up to this many (16 sweeps
+#: of the 65,536-ray collection LiDAR; about 80 MB of rays and hits on the host). One call per sweep cost a
+#: ray launch, a ray-mesh launch and their downloads per frame.
+SWEEP_BATCH_RAYS = 1 << 20
 
 
 def _intensity(normals: np.ndarray, d: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -51,6 +56,11 @@ def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor
     with section("simulate: static mesh"):
         static.handle(b)
         hits = raycast(static, o, d, lidar.max_range, backend=b)
+    return _returns(static, dynamic, lidar, o, d, hits, b, body_t)
+
+
+def _returns(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, o, d, hits, b, body_t):
+    """``simulate_frame`` after its sweep's rays ``o``, ``d`` were cast into the static mesh (``hits``)."""
     t, face, lab, src = hits.t, hits.face, hits.label, np.zeros(len(o), dtype=bool)
     if dynamic is not None:
         with section("simulate: actors' BVH"):
@@ -84,7 +94,7 @@ def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor
                            dynamic.normals.take(np.minimum(face_hit, len(dynamic.normals) - 1), axis=0),
                            static.normals.take(np.minimum(face_hit, len(static.normals) - 1), axis=0))
     inten = _intensity(normals, d_hit, lab_hit)
-    return pts, lab_hit.astype(np.int32), inten, o[0]
+    return pts, lab_hit.astype(np.int32), inten, o[0].copy()
 
 
 def body_hits(body, lidar: LidarModel, mount=DEFAULT_MOUNT, backend=None) -> np.ndarray | None:
@@ -126,18 +136,36 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
     idx = range(scene.n_frames) if frames is None else frames
     mount_T = pose_matrix(np.asarray(mount, dtype=np.float64))
     body_t = body_hits(body, lidar, mount, backend)
-    it = idx
+    frames = list(idx)
+    bar = None
     if progress:
         from tqdm import tqdm
 
-        it = tqdm(list(idx), desc="simulate", unit="frame", leave=False)
+        bar = tqdm(total=len(frames), desc="simulate", unit="frame", leave=False)
+    # the sweeps of up to SWEEP_BATCH_RAYS rays at a time: their rays made in one call and cast into the
+    # static mesh in one call (each ray's hit is its own, so these are the per-frame calls' arrays); the
+    # actors, a mesh per frame, are cast frame by frame
+    per_batch = max(1, SWEEP_BATCH_RAYS // max(len(lidar.elevations) * len(lidar.azimuths), 1))
+    b = get_backend(backend)
     out = []
-    for f in it:
-        ego_T = pose_matrix(scene.ego_poses[f])
-        T = ego_T @ mount_T
-        sensor_pose = pose_from_matrix(T)
-        with section("simulate: actors (build)"):
-            dyn = dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f)
-        pts, lab, inten, origin = simulate_frame(scene.static, dyn, lidar, sensor_pose, backend, body_t)
-        out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
+    for at in range(0, len(frames), per_batch):
+        batch = frames[at:at + per_batch]
+        sensor = np.stack([pose_from_matrix(pose_matrix(scene.ego_poses[f]) @ mount_T) for f in batch])
+        with section("simulate: rays"):
+            o_all, d_all = b.lidar_rays(lidar.elevations, lidar.azimuths, sensor)
+        with section("simulate: static mesh"):
+            scene.static.handle(b)
+            h_all = raycast(scene.static, o_all, d_all, lidar.max_range, backend=b)
+        rays_per_sweep = len(o_all) // len(batch)      # lidar_rays: sweep after sweep, each the same size
+        for j, f in enumerate(batch):
+            with section("simulate: actors (build)"):
+                dyn = dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f)
+            r = slice(j * rays_per_sweep, (j + 1) * rays_per_sweep)
+            hits = Hits(h_all.t[r], h_all.face[r], h_all.label[r])
+            pts, lab, inten, origin = _returns(scene.static, dyn, lidar, o_all[r], d_all[r], hits, b, body_t)
+            out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
     return out

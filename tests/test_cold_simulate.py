@@ -130,3 +130,47 @@ def test_pool_votes_equal_the_earlier_counts(n_voxels):
     for x, y in zip(got, want):
         assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y)
     assert got[1].sum() == len(votes) * len(got[0])           # each voxel: T entries in all
+
+
+def _per_frame(scene, lidar, frames, b, body_t=None):
+    """``simulate``'s frames one sweep per call (``simulate_frame``), as ``simulate`` made them before it
+    cast several sweeps per call."""
+    mount_T = pose_matrix(DEFAULT_MOUNT)
+    out = []
+    for f in frames:
+        pose = pose_from_matrix(pose_matrix(scene.ego_poses[f]) @ mount_T)
+        out.append(simulate_frame(scene.static, scene.dynamic(f), lidar, pose, b, body_t))
+    return out
+
+
+def _same_frames(got, want, scene, frames):
+    assert len(got) == len(want) == len(frames)
+    for pc, (pts, lab, inten, origin), f in zip(got, want, frames):
+        _same((pc.points, pc.labels, pc.intensity, pc.sweep_origin, pc.ego_pose),
+              (pts, lab, inten, origin, scene.ego_poses[f]))
+
+
+@pytest.mark.parametrize("sweeps_per_call", [1, 2, 4, 100])
+def test_sweeps_cast_together_equal_one_sweep_per_call(town, monkeypatch, sweeps_per_call):
+    # batches of 1, 2 (with a remainder of 1 from 5 frames), 4 and all sweeps; frames out of order
+    from place3d_kernels.simulate import simulate
+
+    lidar = LidarModel.load("collection_64ch")
+    b = get_backend(None)
+    monkeypatch.setattr(SIM, "SWEEP_BATCH_RAYS", sweeps_per_call * 64 * 1024)
+    frames = [4, 0, 1, 3, 2]
+    _same_frames(simulate(town, lidar, frames=frames, backend=b), _per_frame(town, lidar, frames, b), town, frames)
+
+
+def test_sweeps_cast_together_on_every_backend(monkeypatch):
+    # every available backend, the reference included, on a small sensor and scene (the reference is brute force)
+    from place3d_kernels import available_backends
+    from place3d_kernels import scene as scenes
+    from place3d_kernels.simulate import simulate
+
+    small = scenes.town(seed=1, n_frames=3)
+    lidar = LidarModel.uniform(4, (-20, 5), 48, max_range=60.0)
+    monkeypatch.setattr(SIM, "SWEEP_BATCH_RAYS", 2 * 4 * 48)
+    for name in available_backends():
+        b = get_backend(name)
+        _same_frames(simulate(small, lidar, backend=b), _per_frame(small, lidar, range(3), b), small, range(3))
