@@ -70,19 +70,23 @@ def main() -> None:
             hits[k] = got
     b.bvh_constructor = None
     first = builders[0]
-    same = {k: all(np.array_equal(x.t, y.t) and np.array_equal(x.face, y.face) and np.array_equal(x.label, y.label)
-                   for x, y in zip(hits[k], hits[first])) for k in builders}
+    # rays whose distance, face or label differ from the first builder's, and of those how many change label
+    differ = {k: int(sum(((x.t != y.t) | (x.face != y.face) | (x.label != y.label)).sum()
+                         for x, y in zip(hits[k], hits[first]))) for k in builders}
+    label_differ = {k: int(sum((x.label != y.label).sum() for x, y in zip(hits[k], hits[first]))) for k in builders}
+    same = {k: differ[k] == 0 for k in builders}
     n_hit = int(sum(np.isfinite(h.t).sum() for h in hits[first]))
     res = {"backend": b.name, "device": str(getattr(b, "device", "")), "frames": len(dyn),
            "triangles": int(dyn[0].n_faces), "rays_per_frame": int(len(rays[0][0])), "actor_hits": n_hit,
            "rounds": a.rounds, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-           "same_hits_as_" + first: same,
+           "same_hits_as_" + first: same, "rays_differing_from_" + first: differ,
+           "rays_with_another_label_than_" + first: label_differ,
            "seconds_for_all_frames": {k: {s: {"median": statistics.median(v), "min": min(v), "max": max(v)}
                                           for s, v in t.items()} for k, t in times.items()}}
     for k in builders:
         u, c = res["seconds_for_all_frames"][k]["upload"], res["seconds_for_all_frames"][k]["cast"]
         print(f"{k:6s} upload+build {1e3 * u['median']:7.1f} ms [{1e3 * u['min']:.1f}-{1e3 * u['max']:.1f}]  "
-              f"cast {1e3 * c['median']:7.1f} ms [{1e3 * c['min']:.1f}-{1e3 * c['max']:.1f}]  same hits: {same[k]}")
+              f"cast {1e3 * c['median']:7.1f} ms [{1e3 * c['min']:.1f}-{1e3 * c['max']:.1f}]  rays differing: {differ[k]} (label: {label_differ[k]})")
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / f"actor-bvh{a.label}.json").write_text(json.dumps(res, indent=1))

@@ -10,8 +10,8 @@ this project) are run alternately, so two versions share one machine's mood; the
     python3 bench/cold_profile.py --runs 4 --out $OUT                         # this tree
     python3 bench/cold_profile.py --runs 4 --tree /tmp/old --tree . --out $OUT # an A/B, alternating
 
-Writes ``cold-profile-<tree>.txt`` (every run's wall, last stdout line and profile table) and a JSON of
-the walls (median, min, max) to ``--out``.
+Writes ``cold-profile<label>.txt`` (every run's wall, last stdout line and profile table, and the
+cProfile listings) and ``cold-profile<label>.json`` (the walls per tree: median, min, max) to ``--out``.
 """
 
 from __future__ import annotations
@@ -85,7 +85,6 @@ def main() -> None:
                 st.sort_stats("cumulative").print_stats(80)
                 s.seek(0)
                 log.append(s.read())
-    print("\n".join(log[-len(trees):]) if not a.cprofile else "", flush=True)
     try:
         import platform
 

@@ -28,14 +28,20 @@ def test_dense_and_sparse_packings_match_the_layout(shape, share):
         np.testing.assert_array_equal(got, want)
 
 
-def test_brick_bits_takes_either_path_with_the_same_words():
+def test_brick_bits_takes_either_path_with_the_same_words(monkeypatch):
     # a grid above DENSE_MIN_VOXELS: 1 % set takes the scatter, 10 % the dense packing; both are checked
     # against the definition (and uint8 masks, as the backends pass stop masks, give the same words)
     shape = (40, 36, 6)
     rng = np.random.default_rng(7)
     n = int(np.prod(shape))
     assert n >= bricks.DENSE_MIN_VOXELS
-    for share in (0.01, 0.1):
+    taken = []
+    for kind in ("dense", "sparse"):
+        pack = getattr(bricks, f"_brick_bits_{kind}")
+        monkeypatch.setattr(bricks, f"_brick_bits_{kind}", lambda m, s, pack=pack, kind=kind: taken.append(kind) or pack(m, s))
+    for share, path in ((0.01, "sparse"), (0.1, "dense")):
         mask = rng.random(n) < share
-        np.testing.assert_array_equal(brick_bits(mask, shape), _by_definition(mask, shape))
-        np.testing.assert_array_equal(brick_bits(mask.astype(np.uint8), shape), _by_definition(mask, shape))
+        for m in (mask, mask.astype(np.uint8)):
+            taken.clear()
+            np.testing.assert_array_equal(brick_bits(m, shape), _by_definition(mask, shape))
+            assert taken == [path]

@@ -28,9 +28,10 @@ def brick_bits(mask: np.ndarray, shape) -> np.ndarray:
 
 
 #: ``brick_bits`` packs the whole grid at once (``_brick_bits_dense``) when at least one voxel in
-#: ``DENSE_SHARE`` is set, else it scatters the set voxels one by one. On the dev VM (4 M voxels, 2026-11-26)
-#: the scatter took 1.4 / 4.3 / 6.2 / 11 ms at 0.5 / 2 / 3 / 5 % set and the dense packing 4.5 ms whatever
-#: the share; the default town's P-SOG has 5.7 % of its voxels with a weight and 0.5 % that stop a ray.
+#: ``DENSE_SHARE`` is set, else it scatters the set voxels one by one. The default town's masks on the dev VM
+#: (``bench/brick_pack.py``, 3 runs of 7 rounds, 2026-11-26, medians): nonzero weights, 5.7 % set, scatter
+#: 7.5-7.9 ms, dense 4.6-4.7; stop voxels, 0.5 % set, scatter 1.0-1.3, dense 4.6-6.6. On random masks the
+#: two crossed near 2 % set (one run of the same comparison, best of 5).
 DENSE_SHARE = 50
 DENSE_MIN_VOXELS = 4096
 
