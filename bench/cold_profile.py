@@ -4,11 +4,15 @@
 Each run gets fresh Warp kernel, CUDA driver and P-SOG caches (``WARP_CACHE_PATH``, ``CUDA_CACHE_PATH``,
 ``PLACE3D_CACHE`` in new temporary folders), so the P-SOG is built and every kernel module loaded or compiled
 as on a machine that never ran the package. Trees named with ``--tree`` (folders holding a checkout of
-this project) are run alternately, so two versions share one machine's mood; the default is this tree.
+this project) are run alternately, so two versions share one machine's mood; the default is this tree. A
+tree may carry environment settings, ``--tree .:PLACE3D_FAST_EXIT=0,NAME=VALUE``, to set a switch of one
+tree against the same tree without it. The command runs as the ``place3d`` console script runs it
+(``python -m place3d_client``, with ``PLACE3D_SERVER`` unset), so its exit is the script's.
 ``--cprofile`` adds one run under cProfile per tree (the top functions by own and cumulative time).
 
     python3 bench/cold_profile.py --runs 4 --out $OUT                         # this tree
     python3 bench/cold_profile.py --runs 4 --tree /tmp/old --tree . --out $OUT # an A/B, alternating
+    python3 bench/cold_profile.py --runs 4 --tree .:PLACE3D_FAST_EXIT=0 --tree . --out $OUT
 
 Writes ``cold-profile<label>.txt`` (every run's wall, last stdout line and profile table, and the
 cProfile listings) and ``cold-profile<label>.json`` (the walls per tree: median, min, max) to ``--out``.
@@ -30,13 +34,25 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = None) -> tuple[float, str, str]:
+def parse_tree(arg: str) -> tuple[str, Path, dict]:
+    """``TREE`` or ``TREE:NAME=VALUE,...`` -> (label, resolved tree, environment settings)."""
+    path, _, sets = arg.partition(":")
+    tree = Path(path).resolve()
+    env = dict(kv.split("=", 1) for kv in sets.split(",") if kv)
+    return tree.name + ("" if not env else "[" + ",".join(f"{k}={v}" for k, v in env.items()) + "]"), tree, env
+
+
+def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = None,
+             extra_env: dict | None = None) -> tuple[float, str, str]:
     """One cold run of the command from ``tree``: (wall seconds, last stdout line, stderr's profile table)."""
     with tempfile.TemporaryDirectory() as cold, tempfile.TemporaryDirectory() as o:
         env = dict(os.environ, WARP_CACHE_PATH=f"{cold}/warp", CUDA_CACHE_PATH=f"{cold}/cuda",
-                   PLACE3D_CACHE=f"{cold}/psog", PYTHONPATH=str(tree) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+                   PLACE3D_CACHE=f"{cold}/psog", PYTHONPATH=str(tree) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+                   PLACE3D_SERVER="", **(extra_env or {}))
         pre = [sys.executable] + (["-m", "cProfile", "-o", str(cprofile)] if cprofile else [])
-        cmd = pre + ["-m", "place3d_kernels.cli", "--profile", "optimize", "--max-evals", str(max_evals),
+        # the console script's module (its exit included); cProfile runs the package's CLI module, as before
+        entry = "place3d_kernels.cli" if cprofile else "place3d_client"
+        cmd = pre + ["-m", entry, "--profile", "optimize", "--max-evals", str(max_evals),
                      "--task", "seg", "--backend", backend, "--quiet", "--output", o]
         t = time.perf_counter()
         p = subprocess.run(cmd, env=env, cwd=tree, capture_output=True, text=True, timeout=600)
@@ -58,27 +74,27 @@ def main() -> None:
     ap.add_argument("--label", default="", help="suffix of the output files")
     ap.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "bench" / "results")))
     a = ap.parse_args()
-    trees = [Path(t).resolve() for t in (a.tree or [str(ROOT)])]
+    trees = [parse_tree(t) for t in (a.tree or [str(ROOT)])]
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    walls: dict[str, list[float]] = {str(t): [] for t in trees}
+    walls: dict[str, list[float]] = {label: [] for label, _, _ in trees}
     log = [f"# cold place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend}; fresh Warp, "
-           f"CUDA and P-SOG caches each run; trees alternating: {[str(t) for t in trees]}"]
+           f"CUDA and P-SOG caches each run; trees alternating: {[f'{t} {e or {}}' for _, t, e in trees]}"]
     for r in range(a.runs):
-        for t in trees:
-            w, last, table = cold_run(t, a.backend, a.max_evals)
-            walls[str(t)].append(w)
-            log += [f"## {t.name} run {r + 1}: wall {w:.3f} s | {last}", table.rstrip(), ""]
-            print(f"{t.name} run {r + 1}: wall {w:.3f} s | {last}", flush=True)
+        for label, t, env in trees:
+            w, last, table = cold_run(t, a.backend, a.max_evals, extra_env=env)
+            walls[label].append(w)
+            log += [f"## {label} run {r + 1}: wall {w:.3f} s | {last}", table.rstrip(), ""]
+            print(f"{label} run {r + 1}: wall {w:.3f} s | {last}", flush=True)
     summary = {}
     for t, ws in walls.items():
         summary[t] = {"median": statistics.median(ws), "min": min(ws), "max": max(ws), "runs": ws}
         log.append(f"{t}: wall median {summary[t]['median']:.3f} [{min(ws):.3f}-{max(ws):.3f}] s over {len(ws)} runs")
     if a.cprofile:
-        for t in trees:
+        for label, t, env in trees:
             pf = out / f"cold-cprofile-{t.name}{a.label}.pstats"
-            w, last, _ = cold_run(t, a.backend, a.max_evals, cprofile=pf)
-            log.append(f"## cProfile {t.name}: wall {w:.3f} s (under cProfile) | {last}")
+            w, last, _ = cold_run(t, a.backend, a.max_evals, cprofile=pf, extra_env=env)
+            log.append(f"## cProfile {label}: wall {w:.3f} s (under cProfile) | {last}")
             with tempfile.TemporaryFile("w+") as s:
                 st = pstats.Stats(str(pf), stream=s)
                 st.sort_stats("tottime").print_stats(40)
@@ -99,7 +115,7 @@ def main() -> None:
          "host": machine, "cpus": os.cpu_count(), "walls_s": summary,
          "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}, indent=1))
     for t, s in summary.items():
-        print(f"{Path(t).name}: cold wall median {s['median']:.3f} [{s['min']:.3f}-{s['max']:.3f}] s")
+        print(f"{t}: cold wall median {s['median']:.3f} [{s['min']:.3f}-{s['max']:.3f}] s")
 
 
 if __name__ == "__main__":

@@ -497,4 +497,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    from place3d_client import leave     # the console script's exit (place3d_client.leave)
+
+    leave(main())
