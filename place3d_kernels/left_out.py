@@ -23,18 +23,22 @@ pool patches, uploads and compares nothing: it only launches the scoring.
 from __future__ import annotations
 
 import json
+import os
 import threading
 import weakref
 from collections import OrderedDict
+from concurrent.futures import Future
 from typing import Callable, Iterable
 
 import numpy as np
 
 from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.classes import VEHICLE
+from place3d_kernels.profiling import section
 from place3d_kernels.sog import entropy
 
-__all__ = ["LeftOutGrids", "left_out_fields", "PreparedLeftOut", "HANDLES", "KEEP_LEFT_OUT"]
+__all__ = ["LeftOutGrids", "left_out_fields", "PreparedLeftOut", "HANDLES", "KEEP_LEFT_OUT", "fused_path",
+           "prepared_grids", "prepare_in_background", "PREFETCH_ENV"]
 
 
 def left_out_fields(counts: np.ndarray, T: int, task: str) -> tuple[np.ndarray, np.ndarray]:
@@ -116,6 +120,84 @@ class LeftOutGrids:
         return wd, sd
 
 
+def fused_path(lidar, occlusion: str, normalisation: str = "paper", body=None) -> bool:
+    """Whether ``uncertainty.jackknife_records`` scores these settings on patched left-out grids (the path
+    of ``metrics.msog_on_handle``: paper normalisation, no ego body, a grid LiDAR from range 0, occlusion
+    by the SOG or none) rather than on whole left-out P-SOGs."""
+    return (normalisation == "paper" and body is None and lidar.is_grid and lidar.min_range == 0
+            and occlusion in ("sog", "none"))
+
+
+def prepared_grids(pooled, task: str, occlusion: str, backend):
+    """Each left-out grid of ``pooled`` (one record left out at a time, in record order) for ``task``,
+    prepared on ``backend`` (``Backend.prepare_grid``; the stop mask only with ``occlusion="sog"``), made
+    one at a time as the iterator is advanced."""
+    grids = LeftOutGrids(pooled, task)
+    for i in range(len(pooled)):
+        with section("jackknife: left-out grid"):
+            w, stop = grids.fields(i)
+        with section("jackknife: grid upload"):
+            h = backend.prepare_grid(pooled.grid.spec, w, stop if occlusion == "sog" else None)
+        yield h
+
+
+#: ``PLACE3D_JACKKNIFE_PREFETCH``: ``1`` = ``place3d optimize`` prepares the jackknife's left-out grids on a
+#: thread during the search; ``0`` = never (the jackknife prepares them after the search); unset or ``auto``
+#: = on hosts with 4 or more usable cores (on 2 the thread would take turns with the search's scoring).
+PREFETCH_ENV = "PLACE3D_JACKKNIFE_PREFETCH"
+
+
+def prefetch_wanted() -> bool:
+    """What ``PLACE3D_JACKKNIFE_PREFETCH`` asks for (see ``PREFETCH_ENV``)."""
+    v = os.environ.get(PREFETCH_ENV, "auto").strip().lower()
+    if v in ("0", "1"):
+        return v == "1"
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return cores >= 4
+
+
+def prepare_in_background(spec, reference, lidar, task: str, occlusion: str, backend,
+                          normalisation: str = "paper") -> Future | None:
+    """Prepare, on a daemon thread, the left-out grids that the jackknife of ``uncertainty``'s
+    ``rig_vs_baselines_intervals(spec, ..., reference=reference, method="jackknife")`` will ask ``HANDLES``
+    for, so that a command can run it while it searches.
+
+    The grids depend on the drive's subset records, the task, the occlusion and the backend, never on the
+    rigs scored; the thread takes the records (``keyed_subset_records``) and calls ``HANDLES.get`` with the
+    same key and the same preparation as the jackknife, which, arriving while the thread still works,
+    waits for its list instead of preparing its own (``PreparedLeftOut.get``). Nothing is started (None)
+    when the jackknife would not use such grids: another path (``fused_path``), or records without a file
+    identity (then nothing is kept between the two). An error on the thread is not raised there: the
+    jackknife then prepares the grids itself and meets the error, if it is one, in the command.
+    """
+    from place3d_kernels.pooled import PooledPSOG
+    from place3d_kernels.subset_records import keyed_subset_records
+
+    if not fused_path(lidar, occlusion, normalisation) or not HANDLES.keeps:
+        return None
+    done: Future = Future()
+
+    def work():
+        try:
+            with section("jackknife grids (thread)"):
+                records, pool_key = keyed_subset_records(spec, backend)
+                if pool_key is None:
+                    done.set_result(None)
+                    return
+                pooled = PooledPSOG(spec.grid.grid(), records)
+                HANDLES.plain_psog(pooled, reference, pool_key)     # the counts from the reference, checked once
+                done.set_result(HANDLES.get(pool_key, pooled.grid, task, occlusion, backend,
+                                            lambda: prepared_grids(pooled, task, occlusion, backend)))
+        except BaseException as e:  # noqa: BLE001 - handed to whoever asks the Future; the jackknife retries
+            done.set_exception(e)
+
+    threading.Thread(target=work, name="place3d-jackknife-grids", daemon=True).start()
+    return done
+
+
 #: Rows of the plain pool's counts per block when the base fields are computed (``LeftOutGrids``): 8192
 #: rows of 22 float64 channels are 1.4 MB, so a block's temporaries stay in the cache.
 BASE_BLOCK = 8192
@@ -150,6 +232,7 @@ class PreparedLeftOut:
 
     def __init__(self, keep: int = KEEP_LEFT_OUT):
         self._sets: OrderedDict = OrderedDict()
+        self._pending: dict = {}    # key -> Future of the list a caller is preparing now (another waits for it)
         # (pool_key, grid) -> weak reference to the P-SOG that passed PooledPSOG.plain_psog's check for that
         # pool; a P-SOG that dies is never matched again (its weak reference then returns None)
         self._verified: OrderedDict = OrderedDict()
@@ -179,23 +262,50 @@ class PreparedLeftOut:
     def __len__(self) -> int:
         return len(self._sets)
 
+    @property
+    def keeps(self) -> bool:
+        """Whether any set is kept (``keep`` > 0)."""
+        return self._keep > 0
+
     def get(self, pool_key, grid, task: str, occlusion: str, backend, prepare: Callable[[], Iterable]) -> Iterable:
         """The prepared left-out grids (one handle per record, in record order) of this pool, task,
         occlusion and backend: the kept list; or ``prepare()``'s handles, collected into a list and kept
         when ``pool_key`` is not None (and ``keep`` > 0), else ``prepare()`` itself, returned as it is (an
-        iterator that prepares each grid when asked keeps one grid in memory at a time)."""
+        iterator that prepares each grid when asked keeps one grid in memory at a time).
+
+        A call that finds another thread preparing the same set (``prepare_in_background``) waits for its
+        list; should that preparation fail, this call prepares the set itself."""
         if pool_key is None or not self._keep:
             return prepare()
         key = (pool_key, _grid_key(grid), task, occlusion, backend)
-        with self._lock:
-            handles = self._sets.get(key)
-            if handles is not None:
-                self._sets.move_to_end(key)
-                return handles
-        handles = list(prepare())
+        while True:
+            with self._lock:
+                handles = self._sets.get(key)
+                if handles is not None:
+                    self._sets.move_to_end(key)
+                    return handles
+                other = self._pending.get(key)
+                if other is None:
+                    mine = self._pending[key] = Future()
+                    break
+            try:
+                return other.result()
+            except BaseException:  # noqa: BLE001 - that caller's failure: prepare here (and meet it here)
+                with self._lock:
+                    if self._pending.get(key) is other:
+                        del self._pending[key]
+        try:
+            handles = list(prepare())
+        except BaseException as e:
+            with self._lock:
+                del self._pending[key]
+            mine.set_exception(e)
+            raise
         with self._lock:
             self._sets[key] = handles
             self._trim()
+            del self._pending[key]
+        mine.set_result(handles)
         return handles
 
     def remember_plain(self, pool_key, psog) -> None:

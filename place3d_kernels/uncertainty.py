@@ -462,23 +462,17 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
         from tqdm import tqdm
 
         it = tqdm(it, desc="jackknife", unit="left-out", leave=False)
-    if normalisation == "paper" and body is None and L.is_grid and L.min_range == 0 and occlusion in ("sog", "none"):
+    from place3d_kernels.left_out import fused_path, prepared_grids
+
+    if fused_path(L, occlusion, normalisation, body):
         # msog_batch's fused path: each left-out grid patched from the full pool (left_out.py, 5x faster) and
         # prepared once; with a pool_key the prepared grids are kept for the next jackknife on these records
-        from place3d_kernels.left_out import LeftOutGrids
+        # (or were prepared during the search: left_out.prepare_in_background)
         from place3d_kernels.metrics import msog_on_handle
 
-        def prepare(t):
-            grids = LeftOutGrids(pooled, t)
-            for i in range(n):
-                with section("jackknife: left-out grid"):
-                    w, stop = grids.fields(i)
-                with section("jackknife: grid upload"):
-                    h = b.prepare_grid(pooled.grid.spec, w, stop if occlusion == "sog" else None)
-                yield h
-
         # an iterator per task: kept handles, or (not kept) each grid prepared just before its scoring
-        handles = {t: iter(HANDLES.get(pool_key, pooled.grid, t, occlusion, b, lambda t=t: prepare(t)))
+        handles = {t: iter(HANDLES.get(pool_key, pooled.grid, t, occlusion, b,
+                                       lambda t=t: prepared_grids(pooled, t, occlusion, b)))
                    for t in tasks}
         for i in it:
             for t in tasks:

@@ -213,3 +213,101 @@ def test_a_prepared_grid_is_a_copy_of_its_inputs(built, name):
     stop[:] = 1 - stop
     got = b.score_placements(h, lidar.elevations, lidar.azimuths, lidar.max_range, local)
     assert got[0].tobytes() == want[0].tobytes() and got[1].tobytes() == want[1].tobytes()
+
+
+@pytest.mark.parametrize("spec", ["warp:cpu", "opencl:pocl"], indirect=True)
+def test_grids_prepared_in_background_give_the_same_intervals(spec, prepared):
+    """``left_out.prepare_in_background`` (``place3d optimize`` runs it during the search): the jackknife
+    that follows prepares no grid of its own and gives the intervals of a jackknife without it, bit for bit."""
+    from place3d_kernels.left_out import prepare_in_background
+
+    b = get_backend(spec.backend)
+    scene = spec.build(cache=spec.cache)
+    best = Placement.load("line-roll").poses
+    base = {n: Placement.load(n).poses for n in ("center", "line", "pyramid")}
+
+    def run():
+        return rig_vs_baselines_intervals(spec, LIDAR, best, base, "seg", "sog", b, method="jackknife",
+                                          reference=scene)
+
+    HANDLES.keep(0)
+    want = run()                                          # nothing kept, nothing ahead: the plain jackknife
+    HANDLES.keep(KEEP_LEFT_OUT)
+    n = len(keyed_subset_records(spec, b)[0])
+    del prepared[:]
+    ahead = prepare_in_background(spec, scene, LidarModel.load(LIDAR), "seg", "sog", b)
+    handles = ahead.result(timeout=300)
+    assert len(handles) == n and len(prepared) == n       # every left-out grid, once, on the thread
+    del prepared[:]
+    assert run() == want
+    assert len(prepared) == 0                             # the jackknife took the thread's grids
+
+
+def test_prepare_in_background_skips_what_the_jackknife_would_not_use(tmp_path):
+    from place3d_kernels.left_out import prepare_in_background
+
+    spec = _spec(tmp_path)
+    L = LidarModel.load(LIDAR)
+    assert prepare_in_background(spec, None, L, "seg", "sog", "warp:cpu", normalisation="minmax") is None
+    assert prepare_in_background(spec, None, L, "seg", "ray", "warp:cpu") is None
+    HANDLES.keep(0)
+    try:
+        assert prepare_in_background(spec, None, L, "seg", "sog", "warp:cpu") is None
+    finally:
+        HANDLES.keep(KEEP_LEFT_OUT)
+
+
+def test_a_set_being_prepared_is_waited_for_not_prepared_twice():
+    """``PreparedLeftOut.get``: a caller that finds another preparing the same set waits for its list; when
+    that preparation fails, the waiting caller prepares the set itself (and meets any error itself)."""
+    import threading
+    import time
+
+    from place3d_kernels.left_out import PreparedLeftOut
+
+    memo = PreparedLeftOut(keep=2)
+    grid = spec_grid = _spec("/tmp").grid.grid()
+    started, release, calls = threading.Event(), threading.Event(), []
+
+    def slow(fail=False):
+        calls.append(1)
+        started.set()
+        release.wait(10)
+        if fail:
+            raise RuntimeError("preparation failed")
+        yield from ("h0", "h1")
+
+    got = {}
+    t = threading.Thread(target=lambda: got.setdefault("first", memo.get("k", grid, "seg", "sog", None, slow)))
+    t.start()
+    started.wait(10)
+    second = threading.Thread(target=lambda: got.setdefault("second", memo.get("k", spec_grid, "seg", "sog", None,
+                                                                               slow)))
+    second.start()
+    time.sleep(0.2)
+    release.set()
+    t.join(10), second.join(10)
+    assert got["first"] == ["h0", "h1"] and got["second"] is got["first"] and len(calls) == 1
+
+    # the first preparation fails: the waiting caller prepares on its own and gets its list
+    started.clear(), release.clear()
+    del calls[:]
+    errors = []
+
+    def failing():
+        try:
+            memo.get("k2", grid, "seg", "sog", None, lambda: slow(fail=True))
+        except RuntimeError as e:
+            errors.append(e)
+
+    t = threading.Thread(target=failing)
+    t.start()
+    started.wait(10)
+    waiter = threading.Thread(target=lambda: got.setdefault("after", memo.get("k2", grid, "seg", "sog", None,
+                                                                              lambda: iter(["ok"]))))
+    waiter.start()
+    time.sleep(0.2)
+    release.set()
+    t.join(10), waiter.join(10)
+    assert len(errors) == 1 and got["after"] == ["ok"]
+    assert memo.get("k2", grid, "seg", "sog", None, lambda: iter(["never"])) == ["ok"]   # kept
