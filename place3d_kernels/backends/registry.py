@@ -202,6 +202,11 @@ def get_backend(name: str | object | None = None):
         name = _current.get() or os.environ.get("PLACE3D_BACKEND") or "auto"
     if not isinstance(name, str):
         return name  # already a Backend
+    if name not in _instances and "warp" not in sys.modules:
+        # a cold start of a Warp CUDA backend: the driver starts on a thread while Warp is imported (cuda_early.py)
+        from place3d_kernels.backends import cuda_early
+
+        cuda_early.start(name)
     full = _canonical(name)
     inst = _instances.get(full)
     if inst is None:

@@ -1,0 +1,63 @@
+"""``backends.cuda_early``: which names start the CUDA driver early, and that starting it never changes
+what ``get_backend`` gives (on a machine without the driver the thread finds no ``libcuda`` and ends)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from place3d_kernels.backends import cuda_early
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("name,ordinal", [("auto", 0), ("warp", 0), ("warp:cuda", 0), ("warp:cuda:0", 0),
+                                          ("WARP:CUDA:3", 3), (" warp:cuda:1 ", 1), ("warp:cpu", None),
+                                          ("opencl:nvidia", None), ("reference", None), ("opencl", None),
+                                          ("warp:cuda:x", None)])
+def test_which_names_take_a_cuda_device(name, ordinal):
+    assert cuda_early.ordinal_of(name) == ordinal
+
+
+def test_nothing_starts_once_warp_is_imported_or_when_turned_off(monkeypatch):
+    monkeypatch.setitem(sys.modules, "warp", sys.modules.get("warp", object()))
+    assert cuda_early.start("warp:cuda:0") is None
+    monkeypatch.delitem(sys.modules, "warp")
+    monkeypatch.setenv(cuda_early.ENV, "0")
+    assert cuda_early.start("warp:cuda:0") is None
+    assert cuda_early.start("opencl:pocl") is None
+
+
+PROGRAM = """
+import json, sys, threading
+from place3d_kernels.backends import cuda_early
+from place3d_kernels.backends.registry import available_backends, get_backend
+t = cuda_early.start("auto")
+started = t is not None
+if t is not None:
+    t.join(60)
+again = cuda_early.start("auto")                      # once per device and process
+b = get_backend("auto")
+print(json.dumps({"started": started, "again": again is None, "name": b.name, "available": available_backends()}))
+"""
+
+
+@pytest.mark.parametrize("early", ["1", "0"])
+def test_a_fresh_process_gets_the_same_backend_either_way(early):
+    pytest.importorskip("warp")
+    env = {**os.environ, "PYTHONPATH": str(ROOT), cuda_early.ENV: early}
+    p = subprocess.run([sys.executable, "-c", PROGRAM], capture_output=True, text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr
+    got = json.loads(p.stdout.strip().splitlines()[-1])
+    assert got["started"] == (early == "1" and sys.platform.startswith("linux"))
+    assert got["again"]
+    assert got["name"] in got["available"]
+    if early == "1":
+        plain = subprocess.run([sys.executable, "-c", PROGRAM], capture_output=True, text=True, timeout=300,
+                               env={**env, cuda_early.ENV: "0"})
+        assert json.loads(plain.stdout.strip().splitlines()[-1])["name"] == got["name"]
