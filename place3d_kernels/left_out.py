@@ -23,7 +23,6 @@ pool patches, uploads and compares nothing: it only launches the scoring.
 from __future__ import annotations
 
 import json
-import os
 import threading
 import weakref
 from collections import OrderedDict
@@ -38,7 +37,7 @@ from place3d_kernels.profiling import section
 from place3d_kernels.sog import entropy
 
 __all__ = ["LeftOutGrids", "left_out_fields", "PreparedLeftOut", "HANDLES", "KEEP_LEFT_OUT", "fused_path",
-           "prepared_grids", "prepare_in_background", "PREFETCH_ENV"]
+           "prepared_grids"]
 
 
 def left_out_fields(counts: np.ndarray, T: int, task: str) -> tuple[np.ndarray, np.ndarray]:
@@ -141,63 +140,6 @@ def prepared_grids(pooled, task: str, occlusion: str, backend):
         yield h
 
 
-#: ``PLACE3D_JACKKNIFE_PREFETCH``: ``1`` = ``place3d optimize`` prepares the jackknife's left-out grids on a
-#: thread during the search; ``0`` = never (the jackknife prepares them after the search); unset or ``auto``
-#: = on hosts with 4 or more usable cores (on 2 the thread would take turns with the search's scoring).
-PREFETCH_ENV = "PLACE3D_JACKKNIFE_PREFETCH"
-
-
-def prefetch_wanted() -> bool:
-    """What ``PLACE3D_JACKKNIFE_PREFETCH`` asks for (see ``PREFETCH_ENV``)."""
-    v = os.environ.get(PREFETCH_ENV, "auto").strip().lower()
-    if v in ("0", "1"):
-        return v == "1"
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    return cores >= 4
-
-
-def prepare_in_background(spec, reference, lidar, task: str, occlusion: str, backend,
-                          normalisation: str = "paper") -> Future | None:
-    """Prepare, on a daemon thread, the left-out grids that the jackknife of ``uncertainty``'s
-    ``rig_vs_baselines_intervals(spec, ..., reference=reference, method="jackknife")`` will ask ``HANDLES``
-    for, so that a command can run it while it searches.
-
-    The grids depend on the drive's subset records, the task, the occlusion and the backend, never on the
-    rigs scored; the thread takes the records (``keyed_subset_records``) and calls ``HANDLES.get`` with the
-    same key and the same preparation as the jackknife, which, arriving while the thread still works,
-    waits for its list instead of preparing its own (``PreparedLeftOut.get``). Nothing is started (None)
-    when the jackknife would not use such grids: another path (``fused_path``), or records without a file
-    identity (then nothing is kept between the two). An error on the thread is not raised there: the
-    jackknife then prepares the grids itself and meets the error, if it is one, in the command.
-    """
-    from place3d_kernels.pooled import PooledPSOG
-    from place3d_kernels.subset_records import keyed_subset_records
-
-    if not fused_path(lidar, occlusion, normalisation) or not HANDLES.keeps:
-        return None
-    done: Future = Future()
-
-    def work():
-        try:
-            with section("jackknife grids (thread)"):
-                records, pool_key = keyed_subset_records(spec, backend)
-                if pool_key is None:
-                    done.set_result(None)
-                    return
-                pooled = PooledPSOG(spec.grid.grid(), records)
-                HANDLES.plain_psog(pooled, reference, pool_key)     # the counts from the reference, checked once
-                done.set_result(HANDLES.get(pool_key, pooled.grid, task, occlusion, backend,
-                                            lambda: prepared_grids(pooled, task, occlusion, backend)))
-        except BaseException as e:  # noqa: BLE001 - handed to whoever asks the Future; the jackknife retries
-            done.set_exception(e)
-
-    threading.Thread(target=work, name="place3d-jackknife-grids", daemon=True).start()
-    return done
-
-
 #: Rows of the plain pool's counts per block when the base fields are computed (``LeftOutGrids``): 8192
 #: rows of 22 float64 channels are 1.4 MB, so a block's temporaries stay in the cache.
 BASE_BLOCK = 8192
@@ -273,8 +215,8 @@ class PreparedLeftOut:
         when ``pool_key`` is not None (and ``keep`` > 0), else ``prepare()`` itself, returned as it is (an
         iterator that prepares each grid when asked keeps one grid in memory at a time).
 
-        A call that finds another thread preparing the same set (``prepare_in_background``) waits for its
-        list; should that preparation fail, this call prepares the set itself."""
+        A call that finds another thread preparing the same set (``uncertainty.prepare_in_background``)
+        waits for its list; should that preparation fail, this call prepares the set itself."""
         if pool_key is None or not self._keep:
             return prepare()
         key = (pool_key, _grid_key(grid), task, occlusion, backend)

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import threading
+from concurrent.futures import Future
 from dataclasses import dataclass
 from statistics import NormalDist
 from typing import Callable, Sequence
@@ -267,7 +269,7 @@ def kendall_tau(a: Sequence[float], b: Sequence[float]) -> float:
     return float(kendalltau(a, b).statistic)
 
 
-__all__ += ["kendall_tau"]
+__all__ += ["kendall_tau", "prepare_in_background", "prefetch_wanted", "PREFETCH_ENV"]
 
 
 def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
@@ -499,6 +501,63 @@ def pairwise(boot: Bootstrap) -> dict:
     f = boot.order_freq
     return {a: {b: round(float(f[i, j]), 4) for j, b in enumerate(boot.names) if j != i}
             for i, a in enumerate(boot.names)}
+
+
+#: ``PLACE3D_JACKKNIFE_PREFETCH``: ``1`` = ``place3d optimize`` prepares the jackknife's left-out grids on a
+#: thread during the search; ``0`` = never (the jackknife prepares them after the search); unset or ``auto``
+#: = on hosts with 4 or more usable cores (on 2 the thread would take turns with the search's scoring).
+PREFETCH_ENV = "PLACE3D_JACKKNIFE_PREFETCH"
+
+
+def prefetch_wanted() -> bool:
+    """What ``PLACE3D_JACKKNIFE_PREFETCH`` asks for (see ``PREFETCH_ENV``)."""
+    v = os.environ.get(PREFETCH_ENV, "auto").strip().lower()
+    if v in ("0", "1"):
+        return v == "1"
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return cores >= 4
+
+
+def prepare_in_background(spec, reference, lidar, task: str, occlusion: str, backend,
+                          normalisation: str = "paper") -> Future | None:
+    """Prepare, on a daemon thread, the left-out grids that the jackknife of
+    ``rig_vs_baselines_intervals(spec, ..., reference=reference, method="jackknife")`` will ask ``HANDLES``
+    for, so that a command can run it while it searches.
+
+    The grids depend on the drive's subset records, the task, the occlusion and the backend, never on the
+    rigs scored; the thread takes the records (``keyed_subset_records``) and calls ``HANDLES.get`` with the
+    same key and the same preparation as the jackknife, which, arriving while the thread still works,
+    waits for its list instead of preparing its own (``PreparedLeftOut.get``). Nothing is started (None)
+    when the jackknife would not use such grids: another path (``fused_path``), or records without a file
+    identity (then nothing is kept between the two). An error on the thread is not raised there: the
+    jackknife then prepares the grids itself and meets the error, if it is one, in the command.
+    """
+    from place3d_kernels.left_out import HANDLES, fused_path, prepared_grids
+    from place3d_kernels.subset_records import keyed_subset_records
+
+    if not fused_path(lidar, occlusion, normalisation) or not HANDLES.keeps:
+        return None
+    done: Future = Future()
+
+    def work():
+        try:
+            with section("jackknife grids (thread)"):
+                records, pool_key = keyed_subset_records(spec, backend)
+                if pool_key is None:
+                    done.set_result(None)
+                    return
+                pooled = PooledPSOG(spec.grid.grid(), records)
+                HANDLES.plain_psog(pooled, reference, pool_key)     # the counts from the reference, checked once
+                done.set_result(HANDLES.get(pool_key, pooled.grid, task, occlusion, backend,
+                                            lambda: prepared_grids(pooled, task, occlusion, backend)))
+        except BaseException as e:  # noqa: BLE001 - handed to whoever asks the Future; the jackknife retries
+            done.set_exception(e)
+
+    threading.Thread(target=work, name="place3d-jackknife-grids", daemon=True).start()
+    return done
 
 
 def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, task: str = "seg",

@@ -193,7 +193,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     # The jackknife after the search scores the rigs on the drive's left-out grids, which depend on the
     # records and the task, not on the search: they are prepared on a thread while it runs (left_out.py)
     if args.interval == "jackknife" and args.lidars == 4:      # the baselines' intervals: 4-LiDAR rigs
-        from place3d_kernels.left_out import prefetch_wanted, prepare_in_background
+        from place3d_kernels.uncertainty import prefetch_wanted, prepare_in_background
 
         if prefetch_wanted():
             prepare_in_background(spec, psog, lidar, args.task, args.occlusion, b,
