@@ -16,7 +16,7 @@ import sys
 import threading
 import time
 
-__all__ = ["section", "profile", "enabled", "report", "Profile", "count_start_up_of"]
+__all__ = ["section", "record", "profile", "enabled", "report", "Profile", "count_start_up_of"]
 
 _ACTIVE: "Profile | None" = None
 _START_PID: "int | None" = None     # whose start the table's start-up line counts from (None: this process)
@@ -85,6 +85,16 @@ def section(name: str):
     """Context manager timing one step under ``name`` while a profile runs; a no-op otherwise."""
     p = _ACTIVE
     return _NULL if p is None else p.section(name)
+
+
+def record(name: str, seconds: float) -> None:
+    """Add a span measured elsewhere (another process's step) as one call of ``name``, nested in the
+    section open on this thread; a no-op outside a profile."""
+    p = _ACTIVE
+    if p is not None:
+        acc = p.totals.setdefault(tuple(p._stack()) + (name,), [0.0, 0])
+        acc[0] += float(seconds)
+        acc[1] += 1
 
 
 @contextlib.contextmanager

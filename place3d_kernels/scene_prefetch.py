@@ -27,16 +27,17 @@ import pickle
 import signal
 import sys
 import threading
+import time
 from typing import Callable, Hashable
 
-from place3d_kernels.profiling import section
+from place3d_kernels.profiling import record, section
 
 __all__ = ["start", "take", "take_dynamic", "enabled", "ENV"]
 
 #: Environment variable: "0" turns the forked scene build off (the scene is built in this process).
 ENV = "PLACE3D_SCENE_PREFETCH"
 
-_pending: dict[Hashable, tuple[int, int]] = {}      # key -> (child pid, read end of its pipe)
+_pending: dict[Hashable, tuple[int, int, float]] = {}   # key -> (child pid, read end of its pipe, fork time)
 _dynamic: dict[int, tuple[object, dict]] = {}       # id(scene) -> (scene, {frame: Mesh}) not yet taken
 
 
@@ -64,6 +65,15 @@ def start(key: Hashable, build: Callable[[], object]) -> bool:
     except OSError:
         return False
     try:
+        import fcntl                                  # Unix only (start forks on Linux alone)
+
+        # the payload is some 14 MB (the default town): a 1 MiB pipe (Linux's default ceiling for an
+        # unprivileged process) passes it in 14 turns between writer and reader instead of 220 of 64 KiB
+        fcntl.fcntl(w, getattr(fcntl, "F_SETPIPE_SZ", 1031), 1 << 20)
+    except OSError:
+        pass
+    forked = time.perf_counter()
+    try:
         pid = os.fork()
     except OSError:
         os.close(r)
@@ -72,17 +82,20 @@ def start(key: Hashable, build: Callable[[], object]) -> bool:
     if pid == 0:                                      # the child: build, send, and leave without cleanup
         code = 1
         try:
+            t0 = time.perf_counter()                  # CLOCK_MONOTONIC: the parent's clock too (Linux)
             os.close(r)
             scene = build()
+            t1 = time.perf_counter()
             payload = _prepared(scene)
+            times = (t0, t1, time.perf_counter())
             with os.fdopen(w, "wb") as f:
-                pickle.dump(payload, f, protocol=pickle.HIGHEST_PROTOCOL)
+                pickle.dump((payload, times), f, protocol=pickle.HIGHEST_PROTOCOL)
             code = 0
         finally:
             # os._exit: no atexit handlers, no flush of stdio buffers copied from the parent
             os._exit(code)
     os.close(w)
-    _pending[key] = (pid, r)
+    _pending[key] = (pid, r, forked)
     return True
 
 
@@ -104,20 +117,26 @@ def take(key: Hashable):
     entry = _pending.pop(key, None)
     if entry is None:
         return None
-    pid, r = entry
+    pid, r, forked = entry
     with section("scene: forked build (wait)"):
         try:
             with os.fdopen(r, "rb") as f:
                 data = f.read()
         except OSError:
             data = b""
+        arrived = time.perf_counter()
         _reap(pid)
     if not data:
         return None
     try:
-        scene, dynamic = pickle.loads(data)
+        (scene, dynamic), (t0, t1, t2) = pickle.loads(data)
     except Exception:  # noqa: BLE001 - a truncated payload (the child died): build here instead
         return None
+    # the child's steps, from the fork (the rows say where a long wait went; they overlap this process's work)
+    record("scene: child: fork to start", t0 - forked)
+    record("scene: child: scene", t1 - t0)
+    record("scene: child: actor meshes, normals", t2 - t1)
+    record("scene: child: pickle and pipe", arrived - t2)
     if dynamic:
         _dynamic[id(scene)] = (scene, dynamic)
     return scene
@@ -143,7 +162,7 @@ def _discard() -> None:
     # a scene started but never taken (a cached P-SOG was found after all, or the command failed): stop
     # the child rather than leave it building
     while _pending:
-        _, (pid, r) = _pending.popitem()
+        _, (pid, r, _forked) = _pending.popitem()
         try:
             os.kill(pid, signal.SIGKILL)
         except OSError:

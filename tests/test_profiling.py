@@ -37,3 +37,18 @@ def test_cli_profile_flag_prints_the_table(capsys):
     assert main(["--profile", "backends"]) == 0
     err = capsys.readouterr().err
     assert "place3d profile" in err and "total (profile span)" in err
+
+
+def test_record_adds_a_span_measured_elsewhere_under_the_open_section():
+    from place3d_kernels.profiling import profile, record, section
+
+    record("outside", 1.0)                              # no profile running: nothing to add to
+    with profile(print_table=False) as p:
+        with section("parent"):
+            record("child step", 0.25)
+            record("child step", 0.5)
+        record("top", 2.0)
+    assert p.totals[("parent", "child step")] == [0.75, 2]
+    assert p.totals[("top",)] == [2.0, 1]
+    assert not any("outside" in k for k in p.totals)
+    assert "    child step" not in p.table() and "  child step" in p.table()
