@@ -21,6 +21,7 @@ cProfile listings) and ``cold-profile<label>.json`` (the walls per tree: median,
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import pstats
@@ -57,9 +58,13 @@ def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = N
         t = time.perf_counter()
         p = subprocess.run(cmd, env=env, cwd=tree, capture_output=True, text=True, timeout=600)
         wall = time.perf_counter() - t
-    if p.returncode:
-        raise RuntimeError(f"{tree}: exited {p.returncode}\n{p.stdout[-2000:]}\n{p.stderr[-3000:]}")
-    last = (p.stdout.strip().splitlines() or [""])[-1]
+        if p.returncode:
+            raise RuntimeError(f"{tree}: exited {p.returncode}\n{p.stdout[-2000:]}\n{p.stderr[-3000:]}")
+        res = json.loads((Path(o) / "result.json").read_text())
+    # what must not change between trees: the best rig and score, the baselines' scores, the intervals
+    digest = hashlib.sha256(json.dumps([res["best_score"], res["best_placement"], res["baseline_scores"],
+                                        res["intervals"]], sort_keys=True).encode()).hexdigest()[:12]
+    last = f"results {digest} | " + (p.stdout.strip().splitlines() or [""])[-1]
     table = p.stderr[p.stderr.find("place3d profile"):] if "place3d profile" in p.stderr else p.stderr[-3000:]
     return wall, last, table
 
