@@ -26,6 +26,7 @@ import os
 import pickle
 import signal
 import sys
+import tempfile
 import threading
 import time
 from typing import Callable, Hashable
@@ -37,7 +38,7 @@ __all__ = ["start", "take", "take_dynamic", "enabled", "ENV"]
 #: Environment variable: "0" turns the forked scene build off (the scene is built in this process).
 ENV = "PLACE3D_SCENE_PREFETCH"
 
-_pending: dict[Hashable, tuple[int, int, float]] = {}   # key -> (child pid, read end of its pipe, fork time)
+_pending: dict[Hashable, tuple] = {}   # key -> (child pid, read end of its pipe, fork time, payload file or None)
 _dynamic: dict[int, tuple[object, dict]] = {}       # id(scene) -> (scene, {frame: Mesh}) not yet taken
 
 
@@ -64,20 +65,23 @@ def start(key: Hashable, build: Callable[[], object]) -> bool:
         r, w = os.pipe()
     except OSError:
         return False
+    # The payload (some 14 MB on the default town) goes through an unnamed file in memory (/dev/shm), made
+    # here and inherited by the child: the pipe then carries only its length, and this process reads it in
+    # one call. Through the pipe itself it came in 64 KiB (or, enlarged, 1 MiB) pieces, each read waiting
+    # for the interpreter lock that the backend probe's import holds: 0.33-0.46 s on the H100 host with 1 MiB
+    # pieces (README, ninth session). Without such a file the payload goes through the pipe.
     try:
-        import fcntl                                  # Unix only (start forks on Linux alone)
-
-        # the payload is some 14 MB (the default town): a 1 MiB pipe (Linux's default ceiling for an
-        # unprivileged process) passes it in 14 turns between writer and reader instead of 220 of 64 KiB
-        fcntl.fcntl(w, getattr(fcntl, "F_SETPIPE_SZ", 1031), 1 << 20)
+        shm = tempfile.TemporaryFile(dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
     except OSError:
-        pass
+        shm = None
     forked = time.perf_counter()
     try:
         pid = os.fork()
     except OSError:
         os.close(r)
         os.close(w)
+        if shm is not None:
+            shm.close()
         return False
     if pid == 0:                                      # the child: build, send, and leave without cleanup
         code = 1
@@ -88,14 +92,22 @@ def start(key: Hashable, build: Callable[[], object]) -> bool:
             t1 = time.perf_counter()
             payload = _prepared(scene)
             times = (t0, t1, time.perf_counter())
+            data = pickle.dumps((payload, times), protocol=pickle.HIGHEST_PROTOCOL)
             with os.fdopen(w, "wb") as f:
-                pickle.dump((payload, times), f, protocol=pickle.HIGHEST_PROTOCOL)
+                if shm is not None:                   # the payload in the file, its length in the pipe
+                    view, at = memoryview(data), 0
+                    while at < len(data):
+                        at += os.pwrite(shm.fileno(), view[at:], at)
+                    f.write(b"F" + len(data).to_bytes(8, "little"))
+                else:
+                    f.write(b"P")
+                    f.write(data)
             code = 0
         finally:
             # os._exit: no atexit handlers, no flush of stdio buffers copied from the parent
             os._exit(code)
     os.close(w)
-    _pending[key] = (pid, r, forked)
+    _pending[key] = (pid, r, forked, shm)
     return True
 
 
@@ -117,13 +129,23 @@ def take(key: Hashable):
     entry = _pending.pop(key, None)
     if entry is None:
         return None
-    pid, r, forked = entry
+    pid, r, forked, shm = entry
     with section("scene: forked build (wait)"):
         try:
             with os.fdopen(r, "rb") as f:
                 data = f.read()
+            if data[:1] == b"F" and len(data) == 9 and shm is not None:
+                n = int.from_bytes(data[1:], "little")
+                data = os.pread(shm.fileno(), n, 0)
+                while len(data) < n:                  # a short read (not seen on tmpfs): the rest
+                    data += os.pread(shm.fileno(), n - len(data), len(data))
+            else:
+                data = data[1:] if data[:1] == b"P" else b""
         except OSError:
             data = b""
+        finally:
+            if shm is not None:
+                shm.close()
         arrived = time.perf_counter()
         _reap(pid)
     if not data:
@@ -136,7 +158,7 @@ def take(key: Hashable):
     record("scene: child: fork to start", t0 - forked)
     record("scene: child: scene", t1 - t0)
     record("scene: child: actor meshes, normals", t2 - t1)
-    record("scene: child: pickle and pipe", arrived - t2)
+    record("scene: child: pickle and hand-over", arrived - t2)
     if dynamic:
         _dynamic[id(scene)] = (scene, dynamic)
     return scene
@@ -162,7 +184,9 @@ def _discard() -> None:
     # a scene started but never taken (a cached P-SOG was found after all, or the command failed): stop
     # the child rather than leave it building
     while _pending:
-        _, (pid, r, _forked) = _pending.popitem()
+        _, (pid, r, _forked, shm) = _pending.popitem()
+        if shm is not None:
+            shm.close()
         try:
             os.kill(pid, signal.SIGKILL)
         except OSError:

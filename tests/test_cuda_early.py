@@ -50,7 +50,9 @@ print(json.dumps({"started": started, "again": again is None, "name": b.name, "a
 @pytest.mark.parametrize("early", ["1", "0"])
 def test_a_fresh_process_gets_the_same_backend_either_way(early):
     pytest.importorskip("warp")
-    env = {**os.environ, "PYTHONPATH": str(ROOT), cuda_early.ENV: early}
+    # the project first, then what the environment had (a host whose Warp lives on PYTHONPATH keeps it)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+           cuda_early.ENV: early}
     p = subprocess.run([sys.executable, "-c", PROGRAM], capture_output=True, text=True, env=env, timeout=300)
     assert p.returncode == 0, p.stderr
     got = json.loads(p.stdout.strip().splitlines()[-1])

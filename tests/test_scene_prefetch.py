@@ -34,7 +34,9 @@ def _isolated(check: str, *args) -> None:
     code = (f"import sys; sys.path[:0] = [{str(here.parent)!r}, {str(here)!r}]; import test_scene_prefetch as t; "
             f"assert t.scene_prefetch.enabled(), 'forking is off in a fresh interpreter'; t._check_{check}(*sys.argv[1:])")
     env = {k: v for k, v in os.environ.items() if k != scene_prefetch.ENV}
-    env["PYTHONPATH"] = str(here.parent)
+    # the project first, then what the environment had (a host whose Warp lives on PYTHONPATH keeps it, so
+    # "auto" there is the backend it would be in the test process, not the slow reference)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(here.parent), os.environ.get("PYTHONPATH")]))
     out = subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True, env=env,
                          timeout=300)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
@@ -105,6 +107,19 @@ def _check_psog_of_a_forked_scene_equals_the_local_one():
     assert a.probs.tobytes() == b.probs.tobytes() and a.n_subsets == b.n_subsets
 
 
+def _check_payload_through_the_pipe_without_a_memory_file():
+    # no /dev/shm file to be had: the payload goes through the pipe itself, the same scene
+    from place3d_kernels import scene as scenes
+
+    def no_file(*a, **k):
+        raise OSError("no memory file here")
+
+    scene_prefetch.tempfile.TemporaryFile = no_file
+    assert scene_prefetch.start("t6", lambda: scenes.town(seed=2, n_frames=4))
+    assert scene_prefetch._pending["t6"][3] is None
+    _same_scene(scene_prefetch.take("t6"), scenes.town(seed=2, n_frames=4))
+
+
 def _check_failed_child_gives_none_and_is_reaped():
     def broken():
         raise RuntimeError("no scene")
@@ -169,6 +184,11 @@ def test_forked_scene_and_actor_meshes_equal_the_local_build():
 @needs_fork
 def test_psog_of_a_forked_scene_equals_the_local_one():
     _isolated('psog_of_a_forked_scene_equals_the_local_one')
+
+
+@needs_fork
+def test_payload_through_the_pipe_without_a_memory_file():
+    _isolated('payload_through_the_pipe_without_a_memory_file')
 
 
 @needs_fork
