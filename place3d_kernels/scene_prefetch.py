@@ -8,8 +8,9 @@ child has its own interpreter, so the scene is built on another core, and this p
 on a pipe (which releases the lock) instead of taking turns with the import.
 
 :func:`start` forks the child, which builds the scene, its cache key, the static mesh's normals and every
-frame's actor mesh (all that the simulation needs before it needs a backend), and sends them pickled
-through a pipe. :func:`take` returns that scene (the same arrays, bit for bit: the child runs the same
+frame's actor mesh (all that the simulation needs before it needs a backend), and sends them pickled:
+through an unnamed file in /dev/shm whose length goes through a pipe (the pipe itself where no such file
+can be made). :func:`take` returns that scene (the same arrays, bit for bit: the child runs the same
 code on a copy of this process's memory, and pickling keeps NumPy arrays exactly), and
 :func:`take_dynamic` the actor meshes. A child that fails, or a platform where forking is not safe, gives
 ``None`` and the caller builds the scene itself, as before.
@@ -42,15 +43,19 @@ _pending: dict[Hashable, tuple] = {}   # key -> (child pid, read end of its pipe
 _dynamic: dict[int, tuple[object, dict]] = {}       # id(scene) -> (scene, {frame: Mesh}) not yet taken
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity where the platform tells it, else all)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def enabled() -> bool:
     """Whether :func:`start` would fork now (Linux, 2+ usable cores, one thread, not turned off)."""
     if os.environ.get(ENV, "1").strip() == "0" or not sys.platform.startswith("linux"):
         return False
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    return cores >= 2 and threading.active_count() == 1
+    return usable_cores() >= 2 and threading.active_count() == 1
 
 
 def start(key: Hashable, build: Callable[[], object]) -> bool:
@@ -138,7 +143,10 @@ def take(key: Hashable):
                 n = int.from_bytes(data[1:], "little")
                 data = os.pread(shm.fileno(), n, 0)
                 while len(data) < n:                  # a short read (not seen on tmpfs): the rest
-                    data += os.pread(shm.fileno(), n - len(data), len(data))
+                    more = os.pread(shm.fileno(), n - len(data), len(data))
+                    if not more:                      # the file ends early: unpickling fails, built here
+                        break
+                    data += more
             else:
                 data = data[1:] if data[:1] == b"P" else b""
         except OSError:

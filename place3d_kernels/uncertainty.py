@@ -469,7 +469,7 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     if fused_path(L, occlusion, normalisation, body):
         # msog_batch's fused path: each left-out grid patched from the full pool (left_out.py, 5x faster) and
         # prepared once; with a pool_key the prepared grids are kept for the next jackknife on these records
-        # (or were prepared during the search: left_out.prepare_in_background)
+        # (or were prepared during the search: prepare_in_background)
         from place3d_kernels.metrics import msog_on_handle
 
         # an iterator per task: kept handles, or (not kept) each grid prepared just before its scoring
@@ -511,14 +511,12 @@ PREFETCH_ENV = "PLACE3D_JACKKNIFE_PREFETCH"
 
 def prefetch_wanted() -> bool:
     """What ``PLACE3D_JACKKNIFE_PREFETCH`` asks for (see ``PREFETCH_ENV``)."""
+    from place3d_kernels.scene_prefetch import usable_cores
+
     v = os.environ.get(PREFETCH_ENV, "auto").strip().lower()
     if v in ("0", "1"):
         return v == "1"
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    return cores >= 4
+    return usable_cores() >= 4
 
 
 def prepare_in_background(spec, reference, lidar, task: str, occlusion: str, backend,
@@ -530,10 +528,11 @@ def prepare_in_background(spec, reference, lidar, task: str, occlusion: str, bac
     The grids depend on the drive's subset records, the task, the occlusion and the backend, never on the
     rigs scored; the thread takes the records (``keyed_subset_records``) and calls ``HANDLES.get`` with the
     same key and the same preparation as the jackknife, which, arriving while the thread still works,
-    waits for its list instead of preparing its own (``PreparedLeftOut.get``). Nothing is started (None)
-    when the jackknife would not use such grids: another path (``fused_path``), or records without a file
-    identity (then nothing is kept between the two). An error on the thread is not raised there: the
-    jackknife then prepares the grids itself and meets the error, if it is one, in the command.
+    waits for its list instead of preparing its own (``PreparedLeftOut.get``). No thread is started (None)
+    when the jackknife would not use such grids (another path: ``fused_path``) or would not find them
+    (``HANDLES`` keeps none); the thread's Future gives None when the records have no file identity (then
+    nothing is kept between the two). An error on the thread is not raised there: the jackknife then
+    prepares the grids itself and meets the error, if it is one, in the command.
     """
     from place3d_kernels.left_out import HANDLES, fused_path, prepared_grids
     from place3d_kernels.subset_records import keyed_subset_records

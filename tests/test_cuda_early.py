@@ -63,3 +63,13 @@ def test_a_fresh_process_gets_the_same_backend_either_way(early):
         plain = subprocess.run([sys.executable, "-c", PROGRAM], capture_output=True, text=True, timeout=300,
                                env={**env, cuda_early.ENV: "0"})
         assert json.loads(plain.stdout.strip().splitlines()[-1])["name"] == got["name"]
+
+
+def test_a_name_is_tried_once_per_process(monkeypatch):
+    # get_backend("auto") calls start on every call while Warp is not imported (a machine without CUDA):
+    # after the first try, start returns before looking for Warp
+    monkeypatch.delitem(sys.modules, "warp", raising=False)
+    monkeypatch.setattr(cuda_early, "_started", {0})
+    looked = []
+    monkeypatch.setattr(cuda_early.importlib.util, "find_spec", lambda n: looked.append(n))
+    assert cuda_early.start("auto") is None and looked == []

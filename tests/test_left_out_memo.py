@@ -70,6 +70,21 @@ def _rigs():
     return {n: Placement.load(n).poses for n in ("center", "pyramid")}
 
 
+def _intervals_of(spec):
+    """(backend, scene, run): ``run()`` is the jackknife of ``line-roll`` against three baselines through
+    ``rig_vs_baselines_intervals``, as ``place3d optimize`` calls it."""
+    b = get_backend(spec.backend)
+    scene = spec.build(cache=spec.cache)
+    best = Placement.load("line-roll").poses
+    base = {n: Placement.load(n).poses for n in ("center", "line", "pyramid")}
+
+    def run():
+        return rig_vs_baselines_intervals(spec, LIDAR, best, base, "seg", "sog", b, method="jackknife",
+                                          reference=scene)
+
+    return b, scene, run
+
+
 def _same(a, b):
     for t in a:
         assert a[t].point.tobytes() == b[t].point.tobytes(), t
@@ -112,14 +127,7 @@ def test_a_second_jackknife_prepares_no_grid(spec, prepared):
 def test_warm_intervals_are_the_cold_ones(spec, prepared):
     """Through rig_vs_baselines_intervals (what ``place3d optimize`` calls): the second call, with the
     baselines remembered on disk and the left-out grids in memory, prepares nothing."""
-    b = get_backend(spec.backend)
-    scene = spec.build(cache=spec.cache)
-    best = Placement.load("line-roll").poses
-    base = {n: Placement.load(n).poses for n in ("center", "line", "pyramid")}
-
-    def run():
-        return rig_vs_baselines_intervals(spec, LIDAR, best, base, "seg", "sog", b, method="jackknife",
-                                          reference=scene)
+    b, scene, run = _intervals_of(spec)
 
     cold = run()
     del prepared[:]
@@ -221,14 +229,7 @@ def test_grids_prepared_in_background_give_the_same_intervals(spec, prepared):
     that follows prepares no grid of its own and gives the intervals of a jackknife without it, bit for bit."""
     from place3d_kernels.uncertainty import prepare_in_background
 
-    b = get_backend(spec.backend)
-    scene = spec.build(cache=spec.cache)
-    best = Placement.load("line-roll").poses
-    base = {n: Placement.load(n).poses for n in ("center", "line", "pyramid")}
-
-    def run():
-        return rig_vs_baselines_intervals(spec, LIDAR, best, base, "seg", "sog", b, method="jackknife",
-                                          reference=scene)
+    b, scene, run = _intervals_of(spec)
 
     HANDLES.keep(0)
     want = run()                                          # nothing kept, nothing ahead: the plain jackknife

@@ -46,18 +46,18 @@ def start(name: str) -> threading.Thread | None:
     """Start the CUDA driver and retain the primary context of the device ``name`` takes, on a daemon
     thread; the thread, or None when nothing was started (see the module's conditions)."""
     ordinal = ordinal_of(name)
-    if (ordinal is None or os.environ.get(ENV, "1").strip() == "0" or "warp" in sys.modules
+    if (ordinal is None or ordinal in _started or os.environ.get(ENV, "1").strip() == "0" or "warp" in sys.modules
             or not sys.platform.startswith("linux")):
         return None
+    with _lock:
+        if ordinal in _started:
+            return None
+        _started.add(ordinal)         # tried once per process, started or not: get_backend("auto") repeats
     try:
         if importlib.util.find_spec("warp") is None:
             return None
     except (ImportError, ValueError):
         return None
-    with _lock:
-        if ordinal in _started:
-            return None
-        _started.add(ordinal)
     t = threading.Thread(target=_retain, args=(ordinal,), name="place3d-cuda-start", daemon=True)
     t.start()
     return t

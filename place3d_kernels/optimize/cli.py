@@ -191,13 +191,13 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     finally:
         bg.shutdown(wait=False)
     # The jackknife after the search scores the rigs on the drive's left-out grids, which depend on the
-    # records and the task, not on the search: they are prepared on a thread while it runs (left_out.py)
+    # records and the task, not on the search: they are prepared on a thread while it runs
+    # (uncertainty.prepare_in_background)
     if args.interval == "jackknife" and args.lidars == 4:      # the baselines' intervals: 4-LiDAR rigs
         from place3d_kernels.uncertainty import prefetch_wanted, prepare_in_background
 
         if prefetch_wanted():
-            prepare_in_background(spec, psog, lidar, args.task, args.occlusion, b,
-                                                normalisation=args.normalisation)
+            prepare_in_background(spec, psog, lidar, args.task, args.occlusion, b, normalisation=args.normalisation)
     space = SearchSpace(n_lidars=args.lidars)
     cons = [MinDistance(args.min_distance)] if args.lidars > 1 else []
     if args.fixed_height is not None:
