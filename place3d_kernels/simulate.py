@@ -10,8 +10,6 @@ paper's setting (no ego body).
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from place3d_kernels.backends.registry import get_backend
@@ -24,7 +22,7 @@ from place3d_kernels.pose import pose_from_matrix, pose_matrix
 from place3d_kernels.profiling import section
 from place3d_kernels.rig_metrics import check_outside_body
 
-__all__ = ["simulate_frame", "simulate", "body_hits", "DEFAULT_MOUNT", "SWEEP_BATCH_RAYS", "ActorsAhead"]
+__all__ = ["simulate_frame", "simulate", "body_hits", "DEFAULT_MOUNT", "SWEEP_BATCH_RAYS"]
 
 #: Pose of the collection LiDAR in the ego frame (roof centre, 2.5 m above ground).
 DEFAULT_MOUNT = np.array([0.0, 0.0, 2.5, 0.0, 0.0, 0.0])
@@ -33,71 +31,6 @@ DEFAULT_MOUNT = np.array([0.0, 0.0, 2.5, 0.0, 0.0, 0.0])
 #: of the 65,536-ray collection LiDAR; about 80 MB of rays and hits on the host). One call per sweep cost a
 #: ray launch, a ray-mesh launch and their downloads per frame.
 SWEEP_BATCH_RAYS = 1 << 20
-
-#: Frames whose actors' BVHs ``simulate`` builds ahead on a thread of its own (``ActorsAhead``);
-#: ``PLACE3D_SIMULATE_AHEAD=0`` builds each where its frame is cast, as before.
-AHEAD_FRAMES = 8
-AHEAD_ENV = "PLACE3D_SIMULATE_AHEAD"
-
-
-class ActorsAhead:
-    """The static mesh's and each frame's actors' acceleration structures, built in frame order on one
-    thread up to ``AHEAD_FRAMES`` frames ahead of the frame loop that casts into them.
-
-    A build is mostly native work that lets other threads run (Warp's cuBQL build on CUDA waits for the
-    GPU and allocates; the CPU builders are native code), so the builds of later frames overlap the casts
-    and the host work of earlier ones. The structures are the ones an inline build makes: each is built
-    once, by the same call, from the same arrays, and read by the loop only after its build has ended.
-    """
-
-    def __init__(self, scene, frames: list[int], dynamic: dict | None, backend, ahead: int = AHEAD_FRAMES):
-        from concurrent.futures import ThreadPoolExecutor
-
-        self.scene, self.frames, self.dynamic, self.b = scene, frames, dynamic, backend
-        self.ahead = max(1, int(ahead))
-        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="place3d-actors")
-        self.static = self.pool.submit(self._static)
-        self.futures: dict[int, object] = {}
-        self.next = 0
-        self._fill(self.ahead - 1)
-
-    @staticmethod
-    def wanted() -> bool:
-        return os.environ.get(AHEAD_ENV, "1").strip() != "0"
-
-    def _static(self) -> None:
-        with section("simulate: BVHs ahead (thread)"):
-            self.scene.static.handle(self.b)
-
-    def _build(self, f: int, dyn):
-        with section("simulate: BVHs ahead (thread)"):
-            if dyn is None:
-                dyn = self.scene.dynamic(f)
-            if dyn is not None:
-                dyn.handle(self.b)
-            return dyn
-
-    def _fill(self, upto: int) -> None:
-        # submit the frames up to position ``upto``; a prebuilt mesh leaves the caller's dict here, on the
-        # loop's thread
-        while self.next < len(self.frames) and self.next <= upto:
-            f = self.frames[self.next]
-            dyn = self.dynamic.pop(f) if self.dynamic and f in self.dynamic else None
-            self.futures[self.next] = self.pool.submit(self._build, f, dyn)
-            self.next += 1
-
-    def wait_static(self) -> None:
-        self.static.result()
-
-    def take(self, i: int):
-        """Frame ``frames[i]``'s actors' mesh with its BVH built (None without actors); frames up to
-        ``i + ahead`` are queued."""
-        self._fill(i + self.ahead)
-        return self.futures.pop(i).result()
-
-    def close(self) -> None:
-        # the running build ends before this returns, so no thread uses the backend after simulate
-        self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _intensity(normals: np.ndarray, d: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -195,8 +128,7 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         body: optional ``VehicleBody`` (ego frame) blocking the sensor's rays (None: the paper's setting).
         dynamic: optional dict {frame: ``scene.dynamic(frame)``} of meshes already built (``scene_psog``
             builds some while the backend is still being probed); each is taken out of the dict when its
-            frame's BVH is built (``ActorsAhead``, or where the frame is cast), and frames not in it are
-            built here.
+            frame is cast, and frames not in it are built here.
     """
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
@@ -214,34 +146,24 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
     # actors, a mesh per frame, are cast frame by frame
     per_batch = max(1, SWEEP_BATCH_RAYS // max(len(lidar.elevations) * len(lidar.azimuths), 1))
     b = get_backend(backend)
-    ahead = ActorsAhead(scene, frames, dynamic, b) if frames and ActorsAhead.wanted() else None
     out = []
-    try:
-        for at in range(0, len(frames), per_batch):
-            batch = frames[at:at + per_batch]
-            sensor = np.stack([pose_from_matrix(pose_matrix(scene.ego_poses[f]) @ mount_T) for f in batch])
-            with section("simulate: rays"):
-                o_all, d_all = b.lidar_rays(lidar.elevations, lidar.azimuths, sensor)
-            with section("simulate: static mesh"):
-                if ahead is not None:
-                    ahead.wait_static()
-                h_all = raycast(scene.static, o_all, d_all, lidar.max_range, backend=b)
-            rays_per_sweep = len(o_all) // len(batch)      # lidar_rays: sweep after sweep, each the same size
-            for j, f in enumerate(batch):
-                with section("simulate: actors (build)"):
-                    if ahead is not None:
-                        dyn = ahead.take(at + j)
-                    else:
-                        dyn = dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f)
-                r = slice(j * rays_per_sweep, (j + 1) * rays_per_sweep)
-                hits = Hits(h_all.t[r], h_all.face[r], h_all.label[r])
-                pts, lab, inten, origin = _returns(scene.static, dyn, lidar, o_all[r], d_all[r], hits, b, body_t)
-                out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
-                if bar is not None:
-                    bar.update(1)
-    finally:
-        if ahead is not None:
-            ahead.close()
-        if bar is not None:
-            bar.close()
+    for at in range(0, len(frames), per_batch):
+        batch = frames[at:at + per_batch]
+        sensor = np.stack([pose_from_matrix(pose_matrix(scene.ego_poses[f]) @ mount_T) for f in batch])
+        with section("simulate: rays"):
+            o_all, d_all = b.lidar_rays(lidar.elevations, lidar.azimuths, sensor)
+        with section("simulate: static mesh"):
+            h_all = raycast(scene.static, o_all, d_all, lidar.max_range, backend=b)
+        rays_per_sweep = len(o_all) // len(batch)      # lidar_rays: sweep after sweep, each the same size
+        for j, f in enumerate(batch):
+            with section("simulate: actors (build)"):
+                dyn = dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f)
+            r = slice(j * rays_per_sweep, (j + 1) * rays_per_sweep)
+            hits = Hits(h_all.t[r], h_all.face[r], h_all.label[r])
+            pts, lab, inten, origin = _returns(scene.static, dyn, lidar, o_all[r], d_all[r], hits, b, body_t)
+            out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
     return out
