@@ -83,18 +83,23 @@ class Mesh:
         # fp64 OpenCL backend) own buffers in different device contexts
         h = self._handles.get(backend)
         if h is None:
-            if len(self.valid_faces) == len(self.faces):
-                faces, ids, labels = self.faces, None, self.labels
-            else:
-                faces, ids, labels = self.faces[self.valid_faces], self.valid_faces, self.labels[self.valid_faces]
+            v, faces, ids, labels = self.upload_parts()
             if getattr(backend, "raycast_checks_rays", False):
                 # the face map and labels travel with the BVH, so raycast_checked reports this mesh's
                 # face ids and labels without a host pass
-                h = backend.upload_mesh(self.vertices - self.shift, faces, face_ids=ids, labels=labels)
+                h = backend.upload_mesh(v, faces, face_ids=ids, labels=labels)
             else:   # backends written before upload_mesh took the tables need not know them
-                h = backend.upload_mesh(self.vertices - self.shift, faces)
+                h = backend.upload_mesh(v, faces)
             self._handles[backend] = h
         return h
+
+    def upload_parts(self):
+        """What a backend uploads: (shifted vertices, the faces with non-zero area, their face ids (None when
+        all are), their labels)."""
+        if len(self.valid_faces) == len(self.faces):
+            return self.vertices - self.shift, self.faces, None, self.labels
+        return (self.vertices - self.shift, self.faces[self.valid_faces], self.valid_faces,
+                self.labels[self.valid_faces])
 
     def original_face(self, uploaded: np.ndarray) -> np.ndarray:
         """Map face ids of the uploaded (non-degenerate) faces back to this mesh's face ids (-1 stays)."""

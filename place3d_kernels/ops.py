@@ -17,7 +17,7 @@ from place3d_kernels.grid import Grid
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.profiling import section
 
-__all__ = ["Hits", "Traversal", "raycast", "traverse", "coverage", "check_rays"]
+__all__ = ["Hits", "Traversal", "raycast", "MeshGroups", "traverse", "coverage", "check_rays"]
 
 
 @dataclass
@@ -170,6 +170,48 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
         label = mesh.labels[face]
         label[face < 0] = -1
     return Hits(np.asarray(t, dtype=np.float64), face, label)
+
+
+class MeshGroups:
+    """Meshes cast through one acceleration structure with a subtree per mesh (``cast``): one build for them
+    all, and one launch pair for the rays of several, instead of one of each per mesh. A ray meets only its
+    own mesh's triangles, with that mesh's shift, so its hit is that mesh's ``raycast`` hit, except that
+    among faces tied at the hit (shared edges and vertices) the tree may pick another, as two backends'
+    trees may (tests/test_raycast_groups.py).
+
+    ``available`` is False on backends without grouped casts (``upload_mesh_groups``); cast with
+    ``raycast`` per mesh there.
+    """
+
+    def __init__(self, meshes: list[Mesh], backend=None):
+        self.meshes = list(meshes)
+        self.b = get_backend(backend)
+        self.available = bool(self.meshes) and self.supported(self.b)
+        self._handle = None
+        self._shifts = np.stack([m.shift for m in self.meshes]) if self.meshes else np.zeros((0, 3))
+
+    @staticmethod
+    def supported(backend) -> bool:
+        """Whether ``backend`` (a name or instance) casts through grouped trees."""
+        return hasattr(get_backend(backend), "upload_mesh_groups")
+
+    def cast(self, origins, directions, t_max: float, rays_per_mesh: int, first: int = 0) -> Hits | None:
+        """Hits of blocks of ``rays_per_mesh`` rays, block k into mesh ``first + k``: float64 (N, 3) world
+        origins and directions, one scalar ``t_max``. None where the backend has no grouped casts, the rays
+        are not such blocks of these meshes, or a ray fails ``raycast``'s checks: cast each block with
+        ``raycast`` then (which raises that error)."""
+        o, d = np.asarray(origins), np.asarray(directions)
+        r = int(rays_per_mesh)
+        if (not self.available or o.dtype != np.float64 or d.dtype != np.float64 or o.shape != d.shape
+                or o.ndim != 2 or o.shape[1] != 3 or np.ndim(t_max) != 0 or r <= 0 or len(o) == 0
+                or len(o) % r or not 0 <= first <= len(self.meshes) - len(o) // r):
+            return None
+        if self._handle is None:
+            with section("raycast: grouped build"):
+                self._handle = self.b.upload_mesh_groups([m.upload_parts() for m in self.meshes])
+        with section("raycast: backend"):
+            out = self.b.raycast_groups(self._handle, o, d, float(t_max), self._shifts, r, first)
+        return None if out is None else Hits(*out)
 
 
 def _device_rays(origins, directions, t_max):

@@ -10,13 +10,15 @@ paper's setting (no ego body).
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.classes import REFLECTIVITY
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.mesh import Mesh
-from place3d_kernels.ops import Hits, raycast
+from place3d_kernels.ops import Hits, MeshGroups, raycast
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import pose_from_matrix, pose_matrix
 from place3d_kernels.profiling import section
@@ -31,6 +33,10 @@ DEFAULT_MOUNT = np.array([0.0, 0.0, 2.5, 0.0, 0.0, 0.0])
 #: of the 65,536-ray collection LiDAR; about 80 MB of rays and hits on the host). One call per sweep cost a
 #: ray launch, a ray-mesh launch and their downloads per frame.
 SWEEP_BATCH_RAYS = 1 << 20
+
+#: ``PLACE3D_ACTOR_GROUPS=0``: cast each frame's actors through a tree of their own (one build and one cast
+#: per frame) also where the backend can cast all frames' actors through one grouped tree (``MeshGroups``)
+ACTOR_GROUPS_ENV = "PLACE3D_ACTOR_GROUPS"
 
 
 def _intensity(normals: np.ndarray, d: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -58,14 +64,16 @@ def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor
     return _returns(static, dynamic, lidar, o, d, hits, b, body_t)
 
 
-def _returns(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, o, d, hits, b, body_t):
-    """``simulate_frame`` after its sweep's rays ``o``, ``d`` were cast into the static mesh (``hits``)."""
+def _returns(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, o, d, hits, b, body_t, dh=None):
+    """``simulate_frame`` after its sweep's rays ``o``, ``d`` were cast into the static mesh (``hits``) and,
+    when ``dh`` is given, into the actors' mesh ``dynamic``."""
     t, face, lab, src = hits.t, hits.face, hits.label, np.zeros(len(o), dtype=bool)
     if dynamic is not None:
-        with section("simulate: actors' BVH"):
-            dynamic.handle(b)           # built here, so that the profile tells it from the cast below
-        with section("simulate: actors' mesh"):
-            dh = raycast(dynamic, o, d, lidar.max_range, backend=b)
+        if dh is None:
+            with section("simulate: actors' BVH"):
+                dynamic.handle(b)           # built here, so that the profile tells it from the cast below
+            with section("simulate: actors' mesh"):
+                dh = raycast(dynamic, o, d, lidar.max_range, backend=b)
         closer = dh.t < t
         t = np.where(closer, dh.t, t)
         face = np.where(closer, dh.face, face)
@@ -146,6 +154,12 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
     # actors, a mesh per frame, are cast frame by frame
     per_batch = max(1, SWEEP_BATCH_RAYS // max(len(lidar.elevations) * len(lidar.azimuths), 1))
     b = get_backend(backend)
+    groups = None
+    if (scene.actors and frames and os.environ.get(ACTOR_GROUPS_ENV, "1").strip() != "0"
+            and MeshGroups.supported(b)):
+        # every frame's actor mesh in one tree with a subtree per frame
+        with section("simulate: actors (build)"):
+            groups = MeshGroups([dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f) for f in frames], b)
     out = []
     for at in range(0, len(frames), per_batch):
         batch = frames[at:at + per_batch]
@@ -155,12 +169,20 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         with section("simulate: static mesh"):
             h_all = raycast(scene.static, o_all, d_all, lidar.max_range, backend=b)
         rays_per_sweep = len(o_all) // len(batch)      # lidar_rays: sweep after sweep, each the same size
+        dh_all = None
+        if groups is not None:
+            with section("simulate: actors, grouped"):
+                dh_all = groups.cast(o_all, d_all, lidar.max_range, rays_per_sweep, first=at)
         for j, f in enumerate(batch):
             with section("simulate: actors (build)"):
-                dyn = dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f)
+                if groups is not None:
+                    dyn = groups.meshes[at + j]
+                else:
+                    dyn = dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f)
             r = slice(j * rays_per_sweep, (j + 1) * rays_per_sweep)
             hits = Hits(h_all.t[r], h_all.face[r], h_all.label[r])
-            pts, lab, inten, origin = _returns(scene.static, dyn, lidar, o_all[r], d_all[r], hits, b, body_t)
+            dh = None if dh_all is None else Hits(dh_all.t[r], dh_all.face[r], dh_all.label[r])
+            pts, lab, inten, origin = _returns(scene.static, dyn, lidar, o_all[r], d_all[r], hits, b, body_t, dh)
             out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
             if bar is not None:
                 bar.update(1)

@@ -286,22 +286,110 @@ class WarpCore(Backend):
         # (watertight) inside padded boxes. Face ids are unchanged (triangle f uses points 3f..3f+2).
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces, dtype=np.int64)
-        tri = v[f]                                                     # (F, 3, 3)
-        lo, hi = tri.min(axis=1), tri.max(axis=1)
-        pad = (np.maximum(np.abs(lo), np.abs(hi)).max(axis=1, keepdims=True) + 1.0) * 1e-6
-        build = np.stack([lo - pad, hi + pad, 0.5 * (lo + hi)], axis=1).reshape(-1, 3)
-        pts = self._vec3(build)
-        idx = wp.array(np.arange(3 * len(f), dtype=np.int32), dtype=wp.int32, device=self.device)
-        mesh = self._build_tree(pts, idx)
+        ids, lab = mesh_face_tables(len(f), face_ids, labels)
+        return self._upload_triangles(v[f], ids, lab)
+
+    def _upload_triangles(self, tri, ids, lab, groups=None, cons=None):
+        """``upload_mesh`` of (F, 3, 3) float64 triangles with their face tables (``groups``: (F,) int32
+        group of each triangle, for ``upload_mesh_groups``)."""
+        # per triangle: its box (lo, hi), padded by pad, and its centre, as three points; elementwise
+        # minima and maxima over the corners instead of reductions along the middle axis (a third of the
+        # time; the same values, since each is one of its operands)
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
+        m = np.maximum(np.abs(lo), np.abs(hi))
+        pad = (np.maximum(np.maximum(m[:, 0], m[:, 1]), m[:, 2])[:, None] + 1.0) * 1e-6
+        build = np.empty_like(tri)
+        np.subtract(lo, pad, out=build[:, 0])
+        np.add(hi, pad, out=build[:, 1])
+        np.multiply(np.add(lo, hi, out=build[:, 2]), 0.5, out=build[:, 2])
+        pts = self._vec3(build.reshape(-1, 3))
+        idx = wp.array(np.arange(3 * len(tri), dtype=np.int32), dtype=wp.int32, device=self.device)
+        gr = None if groups is None else wp.array(groups, dtype=wp.int32, device=self.device)
+        mesh = self._build_tree(pts, idx, gr, cons)
         corners = tri.reshape(-1, 3)
         pts.assign(self._vec3(corners))
-        ids, lab = mesh_face_tables(len(f), face_ids, labels)
-        return _WarpMesh(mesh, pts, idx, self._vec3d(corners), wp.array(ids, dtype=wp.int64, device=self.device),
-                         wp.array(lab, dtype=wp.int32, device=self.device))
+        out = _WarpMesh(mesh, pts, idx, self._vec3d(corners), wp.array(ids, dtype=wp.int64, device=self.device),
+                        wp.array(lab, dtype=wp.int32, device=self.device))
+        out.groups = gr
+        return out
 
-    def _build_tree(self, pts, idx):
-        cons = self.bvh_constructor or ("cubql" if self.device.is_cuda else "sah")
+    # Grouped builds: cuBQL builds no grouped trees (Warp 1.19), so a grouped mesh gets Warp's LBVH on CUDA
+    # and SAH on the CPU; a ray confined to its group's subtree meets the triangles it would meet in that
+    # mesh's own tree, and only the order among tied faces (shared edges and vertices) can differ.
+    GROUP_BVH = {"cuda": "lbvh", "cpu": "sah"}
+    #: the builder the last grouped mesh got
+    group_bvh_built = None
+
+    def upload_mesh_groups(self, parts):
+        """One acceleration structure over several meshes, each in a group of its own, for
+        ``raycast_groups``.
+
+        Args:
+            parts: one (vertices (V, 3) float64 already shifted, faces (F, 3), face_ids (F,) or None, labels
+                (F,) or None) per group, as ``upload_mesh`` takes them; every part needs a face.
+        """
+        if not parts or any(len(f) == 0 for _, f, _, _ in parts):
+            raise ValueError("upload_mesh_groups needs one or more meshes, each with a face")
+        tri, ids, lab, grp = [], [], [], []
+        for g, (v, f, face_ids, labels) in enumerate(parts):
+            f = np.asarray(f, dtype=np.int64)
+            tri.append(np.asarray(v, dtype=np.float64)[f])
+            i, lb = mesh_face_tables(len(f), face_ids, labels)
+            ids.append(i)
+            lab.append(lb)
+            grp.append(np.full(len(f), g, dtype=np.int32))
+        cons = self.GROUP_BVH["cuda" if self.device.is_cuda else "cpu"]
+        out = self._upload_triangles(np.concatenate(tri), np.concatenate(ids), np.concatenate(lab),
+                                     np.concatenate(grp), cons)
+        self.group_bvh_built = cons
+        return out
+
+    def raycast_groups(self, mesh, origins, directions, t_max, shifts, rays_per_group: int, first: int = 0):
+        """``raycast_checked`` into meshes uploaded together by ``upload_mesh_groups``: ray block k
+        (``rays_per_group`` rays of float64 (N, 3) world origins and directions) into mesh ``first + k``,
+        whose shift is ``shifts[first + k]``; one scalar ``t_max``. (t float64, caller's face id int64, label
+        int32), or None where a ray fails ops.raycast's checks."""
+        r = int(rays_per_group)
+        n = len(origins)
+        groups = n // r if r > 0 else 0
+        if r <= 0 or groups * r != n or len(directions) != n or not 0 <= first <= len(shifts) - groups:
+            raise ValueError(f"raycast_groups needs whole blocks of {r} rays for meshes {first}.. of {len(shifts)}, "
+                             f"got {n} origins and {len(directions)} directions")
+        o, d = self._rays_in(origins), self._rays_in(directions)
+        tm = self._t_in(mesh, t_max, 1)
+        sh = self._vec3d(shifts)
+        buf = wp.empty(20 * n + 4 * self.k.N_FLAGS, dtype=wp.uint8, device=self.device)
+        out_t, out_f, out_l, flags = (wp.array(ptr=buf.ptr + at, dtype=dt, shape=(m,), device=self.device)
+                                      for at, dt, m in ((0, wp.float64, n), (8 * n, wp.int64, n),
+                                                        (16 * n, wp.int32, n), (20 * n, wp.int32, self.k.N_FLAGS)))
+        flags.zero_()
+
+        def rays(g0, g1):
+            a, b = g0 * r, g1 * r
+            return [o[a:b], sh, d[a:b], tm, r, first + g0, out_t[a:b], out_f[a:b], out_l[a:b]]
+
+        self._launch_by_group(self.k.raycast_groups_kernel, groups, r,
+                              lambda g0, g1: [mesh.mesh.id, *rays(g0, g1), flags])
+        self._launch_by_group(self.k.raycast_groups_exact_kernel, groups, r,
+                              lambda g0, g1: [mesh.corners64, mesh.face_ids, mesh.face_labels, *rays(g0, g1)])
+        host = self._to_host(buf, 20 * n + 4 * self.k.N_FLAGS)
+        if host[20 * n:].view(np.int32).any():
+            return None
+        return host[:8 * n].view(np.float64), host[8 * n:16 * n].view(np.int64), host[16 * n:20 * n].view(np.int32)
+
+    def _launch_by_group(self, kernel, groups: int, per_group: int, inputs) -> None:
+        # whole groups per launch: the kernels find a ray's group from its index and the first group
+        if self.device.is_cuda or self.threads <= 1 or groups == 1:
+            wp.launch(kernel, dim=groups * per_group, device=self.device, inputs=inputs(0, groups))
+        else:
+            self._launch_groups(kernel, groups, per_group, inputs)
+
+    def _build_tree(self, pts, idx, groups=None, cons=None):
+        cons = cons or self.bvh_constructor or ("cubql" if self.device.is_cuda else "sah")
         leaf = {} if self.bvh_leaf_size is None else {"bvh_leaf_size": self.bvh_leaf_size}
+        if groups is not None:
+            return wp.Mesh(points=pts, indices=idx, bvh_constructor=cons, groups=groups, **leaf)
         try:
             mesh = wp.Mesh(points=pts, indices=idx, bvh_constructor=cons, **leaf)
             self.bvh_built = cons

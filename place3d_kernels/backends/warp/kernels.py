@@ -103,19 +103,26 @@ def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fa
 # code built in a module of its own did not, and why was not found (figures: bench/README.md, "Figures
 # behind backend code comments").
 @wp.func
-def query_hit(mesh: wp.uint64, o64: wp.vec3d, d64: wp.vec3d, tm: wp.float64):
+def query_hit_in(mesh: wp.uint64, o64: wp.vec3d, d64: wp.vec3d, tm: wp.float64, root: wp.int32):
     # Warp's ordered BVH query and watertight triangle test, on a mesh whose BVH boxes were built padded
-    # (see WarpCore.upload_mesh), so no box culls a triangle the ray touches. Returns the query's
+    # (see WarpCore.upload_mesh), so no box culls a triangle the ray touches; confined to the subtree at
+    # ``root`` (a group's, mesh_get_group_root), or the whole tree for -1. Returns the query's
     # (t, uploaded face), or (MISS_T, -1).
     o = wp.vec3(wp.float32(o64[0]), wp.float32(o64[1]), wp.float32(o64[2]))
     d = wp.vec3(wp.float32(d64[0]), wp.float32(d64[1]), wp.float32(d64[2]))
-    q = wp.mesh_query_ray(mesh, o, d, wp.float32(tm * wp.float64(1.000001) + wp.float64(1.0e-6)))
+    q = wp.mesh_query_ray(mesh, o, d, wp.float32(tm * wp.float64(1.000001) + wp.float64(1.0e-6)), root)
     t = MISS_T
     f = wp.int32(-1)
     if q.result:
         t = wp.float64(q.t)
         f = q.face
     return t, f
+
+
+@wp.func
+def query_hit(mesh: wp.uint64, o64: wp.vec3d, d64: wp.vec3d, tm: wp.float64):
+    # query_hit_in over the whole tree
+    return query_hit_in(mesh, o64, d64, tm, wp.int32(-1))
 
 
 @wp.func
@@ -203,6 +210,24 @@ def checked_ray(origins: wp.array(dtype=Any), o_step: wp.int32, dirs: wp.array(d
     return ow, dw, d64, n, t_max[tid * t_step]
 
 
+@wp.func
+def ray_ok(ow: wp.vec3d, dw: wp.vec3d, n: wp.float64, tm: wp.float64, flags: wp.array(dtype=wp.int32)) -> wp.bool:
+    # ops.raycast's checks of one ray: a ray that fails one sets its flag (a plain store of 1; every
+    # writer stores the same value, so no atomic is needed) and is not traced
+    ok = True
+    if not (wp.isfinite(ow[0]) and wp.isfinite(ow[1]) and wp.isfinite(ow[2])):
+        flags[FLAG_ORIGIN] = 1
+        ok = False
+    finite_d = wp.isfinite(dw[0]) and wp.isfinite(dw[1]) and wp.isfinite(dw[2]) and wp.isfinite(n)
+    if not finite_d or n == wp.float64(0.0):
+        flags[FLAG_DIRECTION] = 1
+        ok = False
+    if not (tm >= wp.float64(0.0)):      # NaN fails this too
+        flags[FLAG_T_MAX] = 1
+        ok = False
+    return ok
+
+
 @wp.kernel
 def raycast_checked_kernel(
     mesh: wp.uint64,
@@ -217,26 +242,14 @@ def raycast_checked_kernel(
     out_label: wp.array(dtype=wp.int32),
     flags: wp.array(dtype=wp.int32),        # (N_FLAGS,) zeroed by the host
 ):
-    # ops.raycast's checks on the device: a ray that fails one sets its flag (a plain store of 1; every
-    # writer stores the same value, so no atomic is needed) and is not traced; the host then redoes the
-    # call on its own path, which raises today's error. Then the first pass of the query (query_hit).
+    # ops.raycast's checks on the device (ray_ok); where a ray fails one, the host redoes the call on its
+    # own path, which raises today's error. Then the first pass of the query (query_hit).
     tid = wp.tid()
     ow, dw, d64, n, tm = checked_ray(origins, o_step, dirs, t_max, t_step, tid)
     out_t[tid] = MISS_T
     out_face[tid] = wp.int64(-1)
     out_label[tid] = -1
-    ok = True
-    if not (wp.isfinite(ow[0]) and wp.isfinite(ow[1]) and wp.isfinite(ow[2])):
-        flags[FLAG_ORIGIN] = 1
-        ok = False
-    finite_d = wp.isfinite(dw[0]) and wp.isfinite(dw[1]) and wp.isfinite(dw[2]) and wp.isfinite(n)
-    if not finite_d or n == wp.float64(0.0):
-        flags[FLAG_DIRECTION] = 1
-        ok = False
-    if not (tm >= wp.float64(0.0)):      # NaN fails this too
-        flags[FLAG_T_MAX] = 1
-        ok = False
-    if ok:
+    if ray_ok(ow, dw, n, tm, flags):
         # as ops.raycast's host path: float32 kernels need a finite bound
         t, f = query_hit(mesh, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)))
         out_t[tid] = t
@@ -262,6 +275,58 @@ def raycast_checked_exact_kernel(
         if g >= 0:
             out_face[tid] = face_ids[g]
             out_label[tid] = face_labels[g]
+        else:
+            out_face[tid] = wp.int64(-1)
+
+
+@wp.kernel
+def raycast_groups_kernel(
+    mesh: wp.uint64,                        # a grouped mesh: group g holds the triangles of mesh g
+    origins: wp.array(dtype=wp.vec3d),      # world frame; rays [(g - g0) R, (g - g0 + 1) R) are mesh g's
+    shifts: wp.array(dtype=wp.vec3d),       # (G,) mesh g's shift, subtracted in float64
+    dirs: wp.array(dtype=wp.vec3d),
+    t_max: wp.array(dtype=wp.float64),      # (1,) one bound for every ray
+    rays_per_group: wp.int32,               # R
+    first_group: wp.int32,                  # g0: the group of these arrays' first ray
+    out_t: wp.array(dtype=wp.float64),
+    out_face: wp.array(dtype=wp.int64),
+    out_label: wp.array(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+):
+    # raycast_checked_kernel for one origin per ray and one t_max, each ray traced in its own mesh's
+    # subtree and frame: the steps and bits of that mesh's own checked cast (only the tree's order among
+    # tied faces can differ)
+    tid = wp.tid()
+    g = first_group + tid / rays_per_group
+    ow, dw, d64, n, tm = checked_ray(origins, 1, dirs, t_max, 0, tid)
+    out_t[tid] = MISS_T
+    out_face[tid] = wp.int64(-1)
+    out_label[tid] = -1
+    if ray_ok(ow, dw, n, tm, flags):
+        root = wp.mesh_get_group_root(mesh, g)
+        t, f = query_hit_in(mesh, ow - shifts[g], d64, wp.min(tm, wp.float64(1.0e30)), root)
+        out_t[tid] = t
+        out_face[tid] = wp.int64(f)
+
+
+@wp.kernel
+def raycast_groups_exact_kernel(
+    corners64: wp.array(dtype=wp.vec3d), face_ids: wp.array(dtype=wp.int64), face_labels: wp.array(dtype=wp.int32),
+    origins: wp.array(dtype=wp.vec3d), shifts: wp.array(dtype=wp.vec3d), dirs: wp.array(dtype=wp.vec3d),
+    t_max: wp.array(dtype=wp.float64), rays_per_group: wp.int32, first_group: wp.int32,
+    out_t: wp.array(dtype=wp.float64), out_face: wp.array(dtype=wp.int64), out_label: wp.array(dtype=wp.int32),
+):
+    # raycast_checked_exact_kernel with mesh g's shift (face_ids: each face's id within its own mesh)
+    tid = wp.tid()
+    f = wp.int32(out_face[tid])
+    if f >= 0:
+        g = first_group + tid / rays_per_group
+        ow, dw, d64, n, tm = checked_ray(origins, 1, dirs, t_max, 0, tid)
+        t, h = exact_hit(corners64, ow - shifts[g], d64, wp.min(tm, wp.float64(1.0e30)), out_t[tid], f)
+        out_t[tid] = t
+        if h >= 0:
+            out_face[tid] = face_ids[h]
+            out_label[tid] = face_labels[h]
         else:
             out_face[tid] = wp.int64(-1)
 
