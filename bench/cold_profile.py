@@ -10,6 +10,13 @@ tree against the same tree without it. The command runs as the ``place3d`` conso
 (``python -m place3d_client``, with ``PLACE3D_SERVER`` unset), so its exit is the script's.
 ``--cprofile`` adds one run under cProfile per tree (the top functions by own and cumulative time).
 
+Python bytecode. ``pip install`` compiles the installed packages' bytecode and a package's first import
+writes its own, so a user's cold command reads ``.pyc`` files. A host that sets ``PYTHONDONTWRITEBYTECODE=1``
+and got its packages with ``pip install --no-compile`` (the lent GPU host, through ``../shared/gpu/prepare.sh``)
+compiles Warp's and this package's sources in every process instead (``import warp`` alone 0.88-0.96 s there).
+``--bytecode`` compiles them once before the runs (``compileall``: the trees and the packages the command
+imports, where writable) and says so in the output; without it the runs measure whatever the host has.
+
     python3 bench/cold_profile.py --runs 4 --out $OUT                         # this tree
     python3 bench/cold_profile.py --runs 4 --tree /tmp/old --tree . --out $OUT # an A/B, alternating
     python3 bench/cold_profile.py --runs 4 --tree .:PLACE3D_FAST_EXIT=0 --tree . --out $OUT
@@ -69,6 +76,35 @@ def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = N
     return wall, last, table
 
 
+#: packages ``place3d optimize`` imports (besides the standard library), whose bytecode ``--bytecode`` compiles
+BYTECODE_PACKAGES = ("warp", "numpy", "cma", "scipy", "matplotlib", "pyopencl", "trimesh", "PIL", "tqdm", "platformdirs")
+
+
+def compile_bytecode(trees: list[Path]) -> list[str]:
+    """Compile the trees' and the command's packages' sources to bytecode (as ``pip install`` does for installed
+    packages); returns one line per folder: compiled, or why not."""
+    import compileall
+    import importlib.util
+
+    folders = [(str(t), [t / "place3d_kernels", t / "place3d_client"]) for t in trees]
+    for name in BYTECODE_PACKAGES:
+        spec = importlib.util.find_spec(name)
+        if spec is not None and spec.submodule_search_locations:
+            folders.append((name, [Path(p) for p in spec.submodule_search_locations]))
+    lines = []
+    for name, dirs in folders:
+        for d in dirs:
+            if not d.is_dir():
+                continue
+            if not os.access(d, os.W_OK):
+                lines.append(f"{name}: {d} not writable, left as it is")
+                continue
+            t = time.perf_counter()
+            ok = compileall.compile_dir(str(d), quiet=2, workers=0)
+            lines.append(f"{name}: {d} compiled in {time.perf_counter() - t:.1f} s{'' if ok else ' (some files failed)'}")
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tree", action="append", default=None, help="project checkout to run (repeat for an A/B)")
@@ -76,6 +112,7 @@ def main() -> None:
     ap.add_argument("--backend", default="warp:cuda:0")
     ap.add_argument("--max-evals", type=int, default=2000)
     ap.add_argument("--cprofile", action="store_true", help="one more run per tree under cProfile")
+    ap.add_argument("--bytecode", action="store_true", help="compile the trees' and packages' bytecode first")
     ap.add_argument("--label", default="", help="suffix of the output files")
     ap.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "bench" / "results")))
     a = ap.parse_args()
@@ -85,6 +122,12 @@ def main() -> None:
     walls: dict[str, list[float]] = {label: [] for label, _, _ in trees}
     log = [f"# cold place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend}; fresh Warp, "
            f"CUDA and P-SOG caches each run; trees alternating: {[f'{t} {e or {}}' for _, t, e in trees]}"]
+    if a.bytecode:
+        lines = compile_bytecode([t for _, t, _ in trees])
+        log += ["# bytecode compiled ahead of the runs (as pip install does):"] + [f"#   {x}" for x in lines]
+        print("\n".join(lines), flush=True)
+    else:
+        log.append(f"# bytecode as the host has it (PYTHONDONTWRITEBYTECODE={os.environ.get('PYTHONDONTWRITEBYTECODE', 'unset')})")
     for r in range(a.runs):
         for label, t, env in trees:
             w, last, table = cold_run(t, a.backend, a.max_evals, extra_env=env)
@@ -117,7 +160,7 @@ def main() -> None:
     (out / f"cold-profile{a.label}.txt").write_text("\n".join(log) + "\n")
     (out / f"cold-profile{a.label}.json").write_text(json.dumps(
         {"command": f"place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend}", "gpu": gpu,
-         "host": machine, "cpus": os.cpu_count(), "walls_s": summary,
+         "host": machine, "cpus": os.cpu_count(), "walls_s": summary, "bytecode_compiled_ahead": a.bytecode,
          "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}, indent=1))
     for t, s in summary.items():
         print(f"{t}: cold wall median {s['median']:.3f} [{s['min']:.3f}-{s['max']:.3f}] s")
