@@ -151,7 +151,8 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         bar = tqdm(total=len(frames), desc="simulate", unit="frame", leave=False)
     # the sweeps of up to SWEEP_BATCH_RAYS rays at a time: their rays made in one call and cast into the
     # static mesh in one call (each ray's hit is its own, so these are the per-frame calls' arrays); the
-    # actors, a mesh per frame, are cast frame by frame
+    # actors, a mesh per frame, through one grouped tree where the backend has one (MeshGroups: a subtree
+    # per frame, one cast per call), else frame by frame
     per_batch = max(1, SWEEP_BATCH_RAYS // max(len(lidar.elevations) * len(lidar.azimuths), 1))
     b = get_backend(backend)
     groups = None
