@@ -75,7 +75,7 @@ def main() -> None:
                  and a.counts.tobytes() == g.counts.tobytes())
     out = dict(backend=args.backend, device=str(getattr(b, "device", "")), date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                frames=len(frames["grouped"]), rounds=args.rounds,
-               grouped_builder=getattr(b, "group_bvh_built", None),
+               grouped_builder=b.group_builder() if hasattr(b, "group_builder") else None,
                simulate_s={m: dict(median=statistics.median(v), min=min(v), max=max(v), runs=v) for m, v in times.items()},
                **compare(frames["per-frame"], frames["grouped"]), psog_identical=bool(same_psog),
                psog_voxels=[len(a.voxels), len(g.voxels)])

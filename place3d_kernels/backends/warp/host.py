@@ -293,7 +293,7 @@ class WarpCore(Backend):
         """``upload_mesh`` of (F, 3, 3) float64 triangles with their face tables (``groups``: (F,) int32
         group of each triangle, for ``upload_mesh_groups``)."""
         # per triangle: its box (lo, hi), padded by pad, and its centre, as three points; elementwise
-        # minima and maxima over the corners instead of reductions along the middle axis (a third of the
+        # minima and maxima over the corners instead of reductions along the middle axis (under half the
         # time; the same values, since each is one of its operands)
         a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
         lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
@@ -309,17 +309,13 @@ class WarpCore(Backend):
         mesh = self._build_tree(pts, idx, gr, cons)
         corners = tri.reshape(-1, 3)
         pts.assign(self._vec3(corners))
-        out = _WarpMesh(mesh, pts, idx, self._vec3d(corners), wp.array(ids, dtype=wp.int64, device=self.device),
-                        wp.array(lab, dtype=wp.int32, device=self.device))
-        out.groups = gr
-        return out
+        return _WarpMesh(mesh, pts, idx, self._vec3d(corners), wp.array(ids, dtype=wp.int64, device=self.device),
+                         wp.array(lab, dtype=wp.int32, device=self.device))
 
     # Grouped builds: cuBQL builds no grouped trees (Warp 1.19), so a grouped mesh gets Warp's LBVH on CUDA
     # and SAH on the CPU; a ray confined to its group's subtree meets the triangles it would meet in that
     # mesh's own tree, and only the order among tied faces (shared edges and vertices) can differ.
     GROUP_BVH = {"cuda": "lbvh", "cpu": "sah"}
-    #: the builder the last grouped mesh got
-    group_bvh_built = None
 
     def upload_mesh_groups(self, parts):
         """One acceleration structure over several meshes, each in a group of its own, for
@@ -339,11 +335,12 @@ class WarpCore(Backend):
             ids.append(i)
             lab.append(lb)
             grp.append(np.full(len(f), g, dtype=np.int32))
-        cons = self.GROUP_BVH["cuda" if self.device.is_cuda else "cpu"]
-        out = self._upload_triangles(np.concatenate(tri), np.concatenate(ids), np.concatenate(lab),
-                                     np.concatenate(grp), cons)
-        self.group_bvh_built = cons
-        return out
+        return self._upload_triangles(np.concatenate(tri), np.concatenate(ids), np.concatenate(lab),
+                                      np.concatenate(grp), self.group_builder())
+
+    def group_builder(self) -> str:
+        """The builder of this device's grouped trees (``GROUP_BVH``)."""
+        return self.GROUP_BVH["cuda" if self.device.is_cuda else "cpu"]
 
     def raycast_groups(self, mesh, origins, directions, t_max, shifts, rays_per_group: int, first: int = 0):
         """``raycast_checked`` into meshes uploaded together by ``upload_mesh_groups``: ray block k
@@ -359,11 +356,7 @@ class WarpCore(Backend):
         o, d = self._rays_in(origins), self._rays_in(directions)
         tm = self._t_in(mesh, t_max, 1)
         sh = self._vec3d(shifts)
-        buf = wp.empty(20 * n + 4 * self.k.N_FLAGS, dtype=wp.uint8, device=self.device)
-        out_t, out_f, out_l, flags = (wp.array(ptr=buf.ptr + at, dtype=dt, shape=(m,), device=self.device)
-                                      for at, dt, m in ((0, wp.float64, n), (8 * n, wp.int64, n),
-                                                        (16 * n, wp.int32, n), (20 * n, wp.int32, self.k.N_FLAGS)))
-        flags.zero_()
+        buf, (out_t, out_f, out_l, flags) = self._checked_outputs(n)
 
         def rays(g0, g1):
             a, b = g0 * r, g1 * r
@@ -373,10 +366,7 @@ class WarpCore(Backend):
                               lambda g0, g1: [mesh.mesh.id, *rays(g0, g1), flags])
         self._launch_by_group(self.k.raycast_groups_exact_kernel, groups, r,
                               lambda g0, g1: [mesh.corners64, mesh.face_ids, mesh.face_labels, *rays(g0, g1)])
-        host = self._to_host(buf, 20 * n + 4 * self.k.N_FLAGS)
-        if host[20 * n:].view(np.int32).any():
-            return None
-        return host[:8 * n].view(np.float64), host[8 * n:16 * n].view(np.int64), host[16 * n:20 * n].view(np.int32)
+        return self._checked_results(buf, n)
 
     def _launch_by_group(self, kernel, groups: int, per_group: int, inputs) -> None:
         # whole groups per launch: the kernels find a ray's group from its index and the first group
@@ -435,13 +425,7 @@ class WarpCore(Backend):
         o_step = 1 if len(origins) == n else 0
         t_step = 1 if np.ndim(t_max) else 0
         tm = self._f64(t_max, n) if t_step else self._t_in(mesh, t_max, 1)
-        # The four outputs share one allocation (t float64 | face int64 | label int32 | flags int32), so
-        # that they come back in one copy: one allocation and one synchronising copy instead of four.
-        buf = wp.empty(20 * n + 4 * self.k.N_FLAGS, dtype=wp.uint8, device=self.device)
-        out_t, out_f, out_l, flags = (wp.array(ptr=buf.ptr + at, dtype=dt, shape=(m,), device=self.device)
-                                      for at, dt, m in ((0, wp.float64, n), (8 * n, wp.int64, n),
-                                                        (16 * n, wp.int32, n), (20 * n, wp.int32, self.k.N_FLAGS)))
-        flags.zero_()
+        buf, (out_t, out_f, out_l, flags) = self._checked_outputs(n)
         s = wp.vec3d(*np.asarray(shift, dtype=np.float64).reshape(3).tolist())
         walk, exact = self.k.RAYCAST_CHECKED[vec]
 
@@ -451,6 +435,21 @@ class WarpCore(Backend):
         self._launch(walk, n, lambda a, b: [mesh.mesh.id, *rays(a, b), out_t[a:b], out_f[a:b], out_l[a:b], flags])
         self._launch(exact, n, lambda a, b: [mesh.corners64, mesh.face_ids, mesh.face_labels, *rays(a, b),
                                              out_t[a:b], out_f[a:b], out_l[a:b]])
+        return self._checked_results(buf, n)
+
+    def _checked_outputs(self, n: int):
+        """The outputs of a checked cast of n rays in one allocation (t float64 | face int64 | label int32 |
+        flags int32, the flags zeroed), so that they come back in one copy: one allocation and one
+        synchronising copy instead of four. Returns (buffer, (t, face, label, flags))."""
+        buf = wp.empty(20 * n + 4 * self.k.N_FLAGS, dtype=wp.uint8, device=self.device)
+        views = tuple(wp.array(ptr=buf.ptr + at, dtype=dt, shape=(m,), device=self.device)
+                      for at, dt, m in ((0, wp.float64, n), (8 * n, wp.int64, n), (16 * n, wp.int32, n),
+                                        (20 * n, wp.int32, self.k.N_FLAGS)))
+        views[3].zero_()
+        return buf, views
+
+    def _checked_results(self, buf, n: int):
+        """(t, face, label) on the host from ``_checked_outputs``' buffer, or None where a flag is set."""
         host = self._to_host(buf, 20 * n + 4 * self.k.N_FLAGS)
         if host[20 * n:].view(np.int32).any():
             return None

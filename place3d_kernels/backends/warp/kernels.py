@@ -256,6 +256,22 @@ def raycast_checked_kernel(
         out_face[tid] = wp.int64(f)
 
 
+@wp.func
+def exact_out(corners64: wp.array(dtype=wp.vec3d), face_ids: wp.array(dtype=wp.int64),
+              face_labels: wp.array(dtype=wp.int32), o_local: wp.vec3d, d64: wp.vec3d, tm: wp.float64, f: wp.int32,
+              tid: wp.int32, out_t: wp.array(dtype=wp.float64), out_face: wp.array(dtype=wp.int64),
+              out_label: wp.array(dtype=wp.int32)):
+    # ray tid's second pass (exact_hit from its first pass's t and face f, the origin already shifted), its
+    # outputs written as the caller's face id and label
+    t, g = exact_hit(corners64, o_local, d64, wp.min(tm, wp.float64(1.0e30)), out_t[tid], f)
+    out_t[tid] = t
+    if g >= 0:
+        out_face[tid] = face_ids[g]
+        out_label[tid] = face_labels[g]
+    else:
+        out_face[tid] = wp.int64(-1)
+
+
 @wp.kernel
 def raycast_checked_exact_kernel(
     corners64: wp.array(dtype=wp.vec3d),    # (3F,) true triangle corners, float64
@@ -270,13 +286,7 @@ def raycast_checked_exact_kernel(
     f = wp.int32(out_face[tid])
     if f >= 0:
         ow, dw, d64, n, tm = checked_ray(origins, o_step, dirs, t_max, t_step, tid)
-        t, g = exact_hit(corners64, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)), out_t[tid], f)
-        out_t[tid] = t
-        if g >= 0:
-            out_face[tid] = face_ids[g]
-            out_label[tid] = face_labels[g]
-        else:
-            out_face[tid] = wp.int64(-1)
+        exact_out(corners64, face_ids, face_labels, ow - shift, d64, tm, f, tid, out_t, out_face, out_label)
 
 
 @wp.kernel
@@ -322,13 +332,7 @@ def raycast_groups_exact_kernel(
     if f >= 0:
         g = first_group + tid / rays_per_group
         ow, dw, d64, n, tm = checked_ray(origins, 1, dirs, t_max, 0, tid)
-        t, h = exact_hit(corners64, ow - shifts[g], d64, wp.min(tm, wp.float64(1.0e30)), out_t[tid], f)
-        out_t[tid] = t
-        if h >= 0:
-            out_face[tid] = face_ids[h]
-            out_label[tid] = face_labels[h]
-        else:
-            out_face[tid] = wp.int64(-1)
+        exact_out(corners64, face_ids, face_labels, ow - shifts[g], d64, tm, f, tid, out_t, out_face, out_label)
 
 
 #: the concrete kernels for float32 (vec3f) and float64 (vec3d) rays: launching these skips Warp's
