@@ -70,3 +70,35 @@ def test_coverage_has_a_process_of_its_own_that_keeps_the_panel(tmp_path):
         assert kept == 2
     finally:
         worker.close()
+
+
+def test_a_plot_worker_leaves_without_the_teardown():
+    """The plot processes' initializer (_worker_started) makes their exit skip the interpreter's teardown:
+    an exit handler registered before it never runs, what was printed still comes out, the status is 0."""
+    import subprocess
+    import sys
+
+    code = ("import atexit; atexit.register(print, 'teardown ran'); "
+            "from place3d_kernels.optimize import plots; plots._worker_started(); print('drawn', end='')")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout == "drawn"
+
+
+def test_plot_processes_exit_once_closed(tmp_path):
+    """A pool of plot processes started with that initializer draws its figures and, once closed, has no
+    process left running, each ended with status 0."""
+    from place3d_kernels.optimize import SearchSpace, plots
+    from place3d_kernels.placement import Placement
+
+    history = [{"evaluations": 10 * (i + 1), "best": -0.05 + 0.001 * i, "sigma": 0.3} for i in range(4)]
+    entropy, covered, n, extent = _view(5, n=30)
+    worker = plots.PlotWorker(processes=True)
+    paths = worker.submit(history, Placement.load("pyramid"), SearchSpace(n_lidars=4),
+                          (entropy, covered, n, extent, "rig"), tmp_path).result(timeout=120)
+    procs = list(worker.pool._processes.values())
+    worker.close()
+    assert sorted(p.rsplit("/", 1)[1] for p in paths) == ["convergence.png", "coverage.png", "rig.png"]
+    assert all((tmp_path / name).stat().st_size > 0 for name in ("convergence.png", "coverage.png", "rig.png"))
+    assert len(procs) == plots.PLOT_PROCESSES
+    assert [p.exitcode for p in procs] == [0] * len(procs)
