@@ -37,7 +37,7 @@ from place3d_kernels.profiling import section
 from place3d_kernels.sog import entropy
 
 __all__ = ["LeftOutGrids", "left_out_fields", "PreparedLeftOut", "HANDLES", "KEEP_LEFT_OUT", "fused_path",
-           "prepared_grids"]
+           "prepared_grids", "patched_on_host", "patched_on_backend"]
 
 
 def left_out_fields(counts: np.ndarray, T: int, task: str) -> tuple[np.ndarray, np.ndarray]:
@@ -87,11 +87,10 @@ class LeftOutGrids:
             self._base[T] = (w, s)
         return self._base[T]
 
-    def fields(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """(weights (n_voxels,) int64, stop (n_voxels,) uint8) of the pool without record ``i``.
-
-        The arrays are reused: they hold record ``i``'s grid until the next call (copy them to keep one).
-        """
+    def rows(self, i: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What leaving record ``i`` out changes: (T, rows of the plain pool it touched (sorted), their flat
+        voxel indices, weights int64 and stop bool over T subsets). Every other voxel keeps the base's
+        fields for that T (``dense_base``); a voxel no longer occupied gets weight 0 and no stop."""
         r = self.pooled.records[i]
         T = self.T - int(r.n_subsets)
         if T <= 0:
@@ -102,19 +101,32 @@ class LeftOutGrids:
         sub[pos, r.classes.astype(np.intp)] -= r.counts       # one entry per (voxel, class): no repeats
         sub[:, 0] = T - sub[:, 1:].sum(axis=1)
         w, s = left_out_fields(sub, T, self.task)
+        return T, rows, self.voxels[rows], w, s
+
+    def dense_base(self, T: int) -> tuple[np.ndarray, np.ndarray]:
+        """(weights (n_voxels,) int64, stop (n_voxels,) uint8): the plain pool's fields over T subsets on the
+        whole grid (zero where no record saw anything), a new pair each call."""
         wb, sb = self._base_fields(T)
+        wd = np.zeros(self.n_voxels, dtype=np.int64)
+        sd = np.zeros(self.n_voxels, dtype=np.uint8)
+        wd[self.voxels], sd[self.voxels] = wb, sb
+        return wd, sd
+
+    def fields(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """(weights (n_voxels,) int64, stop (n_voxels,) uint8) of the pool without record ``i``.
+
+        The arrays are reused: they hold record ``i``'s grid until the next call (copy them to keep one).
+        """
+        T, rows, at, w, s = self.rows(i)
         if T not in self._work:
             # one dense copy of the base per T, patched and restored from the base's rows
-            wd = np.zeros(self.n_voxels, dtype=np.int64)
-            sd = np.zeros(self.n_voxels, dtype=np.uint8)
-            wd[self.voxels], sd[self.voxels] = wb, sb
-            self._work[T] = (wd, sd, None)
+            self._work[T] = (*self.dense_base(T), None)
         wd, sd, last = self._work[T]
         if last is not None:                                  # undo the previous record's rows
-            at = self.voxels[last]
-            wd[at], sd[at] = wb[last], sb[last]
-        at = self.voxels[rows]
-        wd[at], sd[at] = w, s                                 # a voxel no longer occupied: weight 0, no stop
+            wb, sb = self._base_fields(T)
+            back = self.voxels[last]
+            wd[back], sd[back] = wb[last], sb[last]
+        wd[at], sd[at] = w, s
         self._work[T] = (wd, sd, rows)
         return wd, sd
 
@@ -129,14 +141,42 @@ def fused_path(lidar, occlusion: str, normalisation: str = "paper", body=None) -
 
 def prepared_grids(pooled, task: str, occlusion: str, backend):
     """Each left-out grid of ``pooled`` (one record left out at a time, in record order) for ``task``,
-    prepared on ``backend`` (``Backend.prepare_grid``; the stop mask only with ``occlusion="sog"``), made
-    one at a time as the iterator is advanced."""
+    prepared on ``backend`` (the stop mask only with ``occlusion="sog"``), made one at a time as the
+    iterator is advanced: by ``patched_on_backend`` where the backend patches grids itself
+    (``Backend.patches_grids``: Warp on CUDA), else by ``patched_on_host``. Both give the handle
+    ``prepare_grid`` gives for the dense arrays (tests/test_left_out.py)."""
+    make = patched_on_backend if backend.patches_grids else patched_on_host
+    yield from make(pooled, task, occlusion, backend)
+
+
+def patched_on_host(pooled, task: str, occlusion: str, backend):
+    """``prepared_grids`` by one dense host copy per T, patched with each record's rows
+    (``LeftOutGrids.fields``) and uploaded whole with ``prepare_grid``."""
     grids = LeftOutGrids(pooled, task)
     for i in range(len(pooled)):
         with section("jackknife: left-out grid"):
             w, stop = grids.fields(i)
         with section("jackknife: grid upload"):
             h = backend.prepare_grid(pooled.grid.spec, w, stop if occlusion == "sog" else None)
+        yield h
+
+
+def patched_on_backend(pooled, task: str, occlusion: str, backend):
+    """``prepared_grids`` by the backend: the base of each T sent once (``grid_base``), each left-out grid
+    the base with the record's rows written over a copy of it there (``patched_grid``). On the H100 host
+    this replaced, per grid, a dense host copy, its brick masks and a 32 MB upload (bench/README.md, "The
+    jackknife's grids on the device")."""
+    grids = LeftOutGrids(pooled, task)
+    sog = occlusion == "sog"
+    bases = {}
+    for i in range(len(pooled)):
+        with section("jackknife: left-out grid"):
+            T, _, at, w, stop = grids.rows(i)
+        with section("jackknife: grid upload"):
+            if T not in bases:
+                wd, sd = grids.dense_base(T)
+                bases[T] = backend.grid_base(pooled.grid.spec, wd, sd if sog else None)
+            h = backend.patched_grid(bases[T], at, w, stop if sog else None)
         yield h
 
 

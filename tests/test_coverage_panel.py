@@ -102,3 +102,47 @@ def test_plot_processes_exit_once_closed(tmp_path):
     assert all((tmp_path / name).stat().st_size > 0 for name in ("convergence.png", "coverage.png", "rig.png"))
     assert len(procs) == plots.PLOT_PROCESSES
     assert [p.exitcode for p in procs] == [0] * len(procs)
+
+
+def test_a_panel_kept_ahead_gives_the_bytes_of_a_full_draw(tmp_path, monkeypatch):
+    """keep_coverage_panel (what optimize sends to the coverage process once the P-SOG is built) keeps the
+    left panel; the figure drawn later over it draws nothing whole and writes the full draw's bytes. A
+    second call for the same P-SOG draws nothing."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from place3d_kernels.optimize import plots
+
+    monkeypatch.setattr(plots, "_PANELS", {})
+    entropy, covered, n, extent = _view(6)
+    assert plots.keep_coverage_panel(entropy, extent) is True
+    assert plots.keep_coverage_panel(entropy.copy(), extent) is False
+    draws = []
+    full_draw = FigureCanvasAgg.draw
+    monkeypatch.setattr(FigureCanvasAgg, "draw", lambda self: (draws.append(1), full_draw(self))[1])
+    kept = plots.draw_coverage(entropy, covered, n, extent, "rig", tmp_path / "kept.png")
+    assert draws == []
+    full = plots.draw_coverage(entropy, covered, n, extent, "rig", tmp_path / "full.png", reuse=False)
+    assert kept.read_bytes() == full.read_bytes()
+
+
+def test_the_worker_keeps_the_panel_in_its_coverage_process(tmp_path):
+    """PlotWorker.keep_panel sends the panel to the coverage process; the figures drawn afterwards (the
+    coverage view given as a function, called once the other two figures are submitted) are complete."""
+    from place3d_kernels.optimize import SearchSpace, plots
+    from place3d_kernels.placement import Placement
+
+    history = [{"evaluations": 10 * (i + 1), "best": -0.05 + 0.001 * i, "sigma": 0.3} for i in range(4)]
+    entropy, covered, n, extent = _view(7, n=30)
+    worker = plots.PlotWorker(processes=True)
+    try:
+        worker.keep_panel(entropy, extent)
+        kept = worker.pool.submit_coverage(eval, "len(__import__('place3d_kernels.optimize.plots', "
+                                                 "fromlist=['plots'])._PANELS)").result(timeout=120)
+        assert kept == 1
+        paths = worker.submit(history, Placement.load("pyramid"), SearchSpace(n_lidars=4),
+                              lambda: (entropy, covered, n, extent, "rig"), tmp_path).result(timeout=120)
+        assert [p.rsplit("/", 1)[1] for p in paths] == ["convergence.png", "rig.png", "coverage.png"]
+    finally:
+        worker.close()
+    full = plots.draw_coverage(entropy, covered, n, extent, "rig", tmp_path / "full.png", reuse=False)
+    assert (tmp_path / "coverage.png").read_bytes() == full.read_bytes()

@@ -95,3 +95,74 @@ def test_the_scene_psog_serves_as_the_point_when_it_is_the_pool(subsets):
         got = jackknife_records(subsets.records, subsets.grid, lidar, rigs, ("seg",), "sog", "warp:cpu",
                                 reference=ref)["seg"]
         assert got.point.tobytes() == plain.point.tobytes() and got.samples.tobytes() == plain.samples.tobytes()
+
+
+def _patching_backends():
+    # every Warp device, CPU included, where patching is not the default (Backend.patches_grids)
+    import place3d_kernels as p3k
+
+    return [b for b in p3k.available_backends() if b.startswith("warp:")]
+
+
+def _arrays(h):
+    return h.weights.numpy(), h.masks.numpy()
+
+
+@pytest.mark.parametrize("name", _patching_backends())
+@pytest.mark.parametrize("task", ["seg", "det"])
+@pytest.mark.parametrize("pool", ["subsets", "drives"])
+@pytest.mark.parametrize("occlusion", ["sog", "none"])
+def test_grids_patched_on_the_device_are_the_uploaded_ones(request, pool, task, name, occlusion):
+    """left_out.patched_on_backend (Warp: a base per T on the device, each record's rows written over a
+    copy, brick masks made by a kernel) gives, for every record, the weights and masks that prepare_grid
+    gives for the host-patched dense grid; prepared_grids takes that way exactly on CUDA."""
+    from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.left_out import patched_on_backend
+
+    pooled = request.getfixturevalue(pool)
+    b = get_backend(name)
+    assert b.patches_grids == b.device.is_cuda
+    host = LeftOutGrids(pooled, task)
+    stop_of = (lambda s: s) if occlusion == "sog" else (lambda s: None)
+    for i, h in enumerate(patched_on_backend(pooled, task, occlusion, b)):
+        w, stop = host.fields(i)
+        want = b.prepare_grid(pooled.grid.spec, w, stop_of(stop))
+        gw, gm = _arrays(h)
+        ww, wm = _arrays(want)
+        assert gw.tobytes() == ww.tobytes(), f"weights, record {i}"
+        assert gm.dtype == wm.dtype and gm.tobytes() == wm.tobytes(), f"masks, record {i}"
+
+
+@pytest.mark.parametrize("name", _patching_backends())
+def test_patched_grid_on_partial_bricks_and_its_checks(name):
+    """Random grids whose shape leaves partial bricks on every axis: patched_grid equals prepare_grid of the
+    patched arrays, with no changed voxel too, and leaves its base alone; rows of mismatched length are
+    refused with a message."""
+    from place3d_kernels.backends.base import GridSpec
+    from place3d_kernels.backends.registry import get_backend
+
+    b = get_backend(name)
+    rng = np.random.default_rng(3)
+    spec = GridSpec(voxel_size=0.5, shape=(9, 6, 5))
+    n = 9 * 6 * 5
+    w = np.where(rng.random(n) < 0.3, rng.integers(1, 10**6, n), 0).astype(np.int64)
+    stop = rng.random(n) < 0.2
+    base = b.grid_base(spec, w, stop)
+    for k in (0, 1, 17, n):
+        ids = np.sort(rng.choice(n, k, replace=False)).astype(np.int64)
+        wr = np.where(rng.random(k) < 0.5, rng.integers(1, 10**6, k), 0).astype(np.int64)
+        sr = rng.random(k) < 0.5
+        w2, s2 = w.copy(), stop.copy()
+        w2[ids], s2[ids] = wr, sr
+        got = _arrays(b.patched_grid(base, ids, wr, sr))
+        want = _arrays(b.prepare_grid(spec, w2, s2))
+        assert got[0].tobytes() == want[0].tobytes() and got[1].tobytes() == want[1].tobytes(), k
+    assert base.weights.numpy().tobytes() == w.tobytes()
+    no_stop = b.grid_base(spec, w, None)
+    got = _arrays(b.patched_grid(no_stop, np.array([4], dtype=np.int64), np.array([7]), None))
+    w2 = w.copy()
+    w2[4] = 7
+    want = _arrays(b.prepare_grid(spec, w2, None))
+    assert got[1].tobytes() == want[1].tobytes()
+    with pytest.raises(ValueError, match="one weight and one stop value per voxel"):
+        b.patched_grid(base, np.array([1, 2], dtype=np.int64), np.array([5]), np.array([True, False]))

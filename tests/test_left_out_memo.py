@@ -48,18 +48,20 @@ def spec(built, tmp_path, request):
 
 @pytest.fixture
 def prepared(monkeypatch):
-    """Counts the grids every backend instance prepares (the wrapped method of the instance itself: the
-    memo keys on the instance, so the wrapper must not change which one the code gets)."""
+    """Counts the grids every backend instance prepares, whole or patched from a base (the wrapped methods
+    of the instance itself: the memo keys on the instance, so the wrapper must not change which one the
+    code gets)."""
     calls = []
     for name in BACKENDS:
         b = get_backend(name)
-        real = b.prepare_grid
+        for method in ("prepare_grid", "patched_grid"):
+            real = getattr(b, method)
 
-        def counting(*a, _real=real, **kw):
-            calls.append(1)
-            return _real(*a, **kw)
+            def counting(*a, _real=real, **kw):
+                calls.append(1)
+                return _real(*a, **kw)
 
-        monkeypatch.setattr(b, "prepare_grid", counting)
+            monkeypatch.setattr(b, method, counting)
     HANDLES.clear()
     yield calls
     HANDLES.keep(KEEP_LEFT_OUT)

@@ -171,6 +171,32 @@ class Backend(abc.ABC):
         in one working array).
         """
 
+    #: True where the jackknife's left-out grids are best made by ``grid_base`` and ``patched_grid``, a base
+    #: and a few changed voxels per grid (``left_out.prepared_grids``); elsewhere the caller patches a dense
+    #: copy on the host and calls ``prepare_grid``. A backend may implement the two where this is False
+    #: (Warp's CPU device: slower there than the host's copy).
+    patches_grids: bool = False
+
+    def grid_base(self, grid: GridSpec, weights: np.ndarray, stop: np.ndarray | None) -> object:
+        """Keep dense per-voxel weights and an optional stop mask for ``patched_grid`` (the backend's own copy).
+
+        Raises:
+            NotImplementedError: this backend does not patch grids.
+        """
+        raise NotImplementedError(f"backend {self.name} does not patch grids; patch the dense arrays on the host "
+                                  f"and call prepare_grid")
+
+    def patched_grid(self, base: object, voxels: np.ndarray, weights: np.ndarray, stop: np.ndarray | None) -> object:
+        """The handle ``prepare_grid`` gives for the base's arrays with voxels ``voxels`` (distinct flat
+        indices) set to ``weights`` and ``stop`` (``stop`` unused where the base has no stop mask). The base
+        is left as it was.
+
+        Raises:
+            NotImplementedError: this backend does not patch grids.
+        """
+        raise NotImplementedError(f"backend {self.name} does not patch grids; patch the dense arrays on the host "
+                                  f"and call prepare_grid")
+
     @abc.abstractmethod
     def score_placements(self, handle: object, elevations: np.ndarray, azimuths: np.ndarray,
                          t_max: float, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

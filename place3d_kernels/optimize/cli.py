@@ -190,6 +190,8 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
             b = probe.result()
     finally:
         bg.shutdown(wait=False)
+    if plotter is not None and args.output:
+        plotter.keep_panel(*entropy_view(psog))     # coverage.png's left panel, drawn during the search
     # The jackknife after the search scores the rigs on the drive's left-out grids, which depend on the
     # records and the task, not on the search: they are prepared on a thread while it runs
     # (uncertainty.prepare_in_background)
@@ -402,10 +404,19 @@ def start_plots(plotter, history, best, space, psog, lidar, backend, occlusion, 
     """
     from place3d_kernels.metrics import covered_voxels
 
-    with section("plotting: covered voxels"):
-        covered = covered_voxels(psog, lidar, best.poses, occlusion=occlusion, backend=backend)
-        view = coverage_view(psog, covered) + (best.name or "the rig",)
+    def view():
+        # called by the worker once the other two figures are on their way
+        with section("plotting: covered voxels"):
+            covered = covered_voxels(psog, lidar, best.poses, occlusion=occlusion, backend=backend)
+            return coverage_view(psog, covered) + (best.name or "the rig",)
+
     return plotter.submit(history, best, space, view, out)
+
+
+def entropy_view(psog) -> tuple:
+    """(column entropy, extent): coverage.png's left panel's data for ``psog``."""
+    g = psog.grid
+    return psog.entropy.sum(axis=2), (g.lower[1], g.upper[1], g.lower[0], g.upper[0])
 
 
 def coverage_view(psog, covered) -> tuple:
@@ -414,5 +425,5 @@ def coverage_view(psog, covered) -> tuple:
     g = psog.grid
     mask = np.zeros(g.n_voxels, bool)
     mask[covered] = True
-    return (psog.entropy.sum(axis=2), mask.reshape(g.shape).any(axis=2), int(len(covered)),
-            (g.lower[1], g.upper[1], g.lower[0], g.upper[0]))
+    column, extent = entropy_view(psog)
+    return column, mask.reshape(g.shape).any(axis=2), int(len(covered)), extent

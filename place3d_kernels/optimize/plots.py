@@ -179,15 +179,7 @@ def draw_coverage(entropy2d, covered2d, n_covered: int, extent, name: str, path,
     key = _panel_key(entropy2d, extent) if reuse and _plain_savefig() else None
     fig = _figure(11, 5)
     if key not in _PANELS:               # (drawn from the kept pixels otherwise: only its layout matters)
-        ax = fig.add_subplot(1, 2, 1)
-        # nearest: one grid column is about one pixel here, and the smoothing resampler ("antialiased")
-        # cost a fifth of the figure's time and tripled the file (bench/README.md, "A warm command's host
-        # time and figures")
-        im = ax.imshow(entropy2d, origin="lower", extent=extent, cmap="magma", interpolation="nearest")
-        ax.set_title("P-SOG entropy, summed over z (nats)")
-        ax.set_xlabel("y (m, left)")
-        ax.set_ylabel("x (m, forward)")
-        fig.colorbar(im, ax=ax, shrink=0.8)
+        _coverage_left(fig, entropy2d, extent)
     right = fig.add_subplot(1, 2, 2)
     right.imshow(np.where(covered2d, entropy2d, np.nan), origin="lower", extent=extent, cmap="magma",
                  interpolation="nearest")
@@ -196,6 +188,40 @@ def draw_coverage(entropy2d, covered2d, n_covered: int, extent, name: str, path,
     if key is None:
         return _save(fig, path, COVERAGE_MARGINS)
     return _save_over_panel(fig, right, key, path)
+
+
+def _coverage_left(fig, entropy2d, extent) -> None:
+    ax = fig.add_subplot(1, 2, 1)
+    # nearest: one grid column is about one pixel here, and the smoothing resampler ("antialiased")
+    # cost a fifth of the figure's time and tripled the file (bench/README.md, "A warm command's host
+    # time and figures")
+    im = ax.imshow(entropy2d, origin="lower", extent=extent, cmap="magma", interpolation="nearest")
+    ax.set_title("P-SOG entropy, summed over z (nats)")
+    ax.set_xlabel("y (m, left)")
+    ax.set_ylabel("x (m, forward)")
+    fig.colorbar(im, ax=ax, shrink=0.8)
+
+
+def keep_coverage_panel(entropy2d, extent) -> bool:
+    """Draw coverage.png's left panel for this P-SOG now and keep its pixels, as ``draw_coverage`` does on
+    its first figure of a P-SOG, so that the figure drawn at the search's end builds only its right panel.
+    ``place3d optimize`` sends it to the coverage process once the P-SOG is built. Returns whether it drew
+    (not when the panel is kept already, nor when savefig settings forbid reuse)."""
+    if not _plain_savefig():
+        return False
+    key = _panel_key(entropy2d, extent)
+    if key in _PANELS:
+        return False
+    fig = _figure(11, 5)
+    _coverage_left(fig, entropy2d, extent)
+    right = fig.add_subplot(1, 2, 2)         # in place, so the layout is the figure's; never drawn here
+    right.set_visible(False)
+    fig.subplots_adjust(**COVERAGE_MARGINS)
+    fig.canvas.draw()
+    _PANELS[key] = fig.canvas.copy_from_bbox(fig.bbox)
+    while len(_PANELS) > PANELS_KEPT:
+        _PANELS.pop(next(iter(_PANELS)))
+    return True
 
 
 #: left panels of coverage.png kept per process (``_PANELS``): a resident server's recent P-SOGs
@@ -447,10 +473,25 @@ class PlotWorker:
         self.processes = bool(processes)
         self._futures = []
 
+    def keep_panel(self, entropy2d, extent) -> None:
+        """Have the coverage process draw and keep coverage.png's left panel now (``keep_coverage_panel``),
+        while the search runs; with a thread instead of processes, nothing (it would take the search's
+        interpreter lock). A failure there is left to the figure, which then draws the panel itself."""
+        if self.processes:
+            from concurrent.futures.process import BrokenProcessPool
+
+            try:
+                self.pool.submit_coverage(keep_coverage_panel, entropy2d, extent)
+            except BrokenProcessPool:
+                pass                         # submit finds the broken pool and falls back to a thread
+
     def submit(self, history, best, bounds, coverage, out):
+        """Draw the three figures; ``coverage`` is ``draw_coverage``'s arguments before the path, or a
+        function returning them, called after the other two figures are handed to their processes."""
         # absolute: a kept pool's process (keep_worker) has the working directory of the server, not the command's
         out = Path(os.path.abspath(out))
         if not self.processes:
+            coverage = coverage() if callable(coverage) else coverage
             f = self.pool.submit(draw_outputs, list(history), best, bounds, coverage, str(out))
         else:
             from concurrent.futures.process import BrokenProcessPool
@@ -458,10 +499,12 @@ class PlotWorker:
             out.mkdir(parents=True, exist_ok=True)
             parts = []
             try:
-                # coverage first: its process keeps the P-SOG's panel between commands
-                parts.append(self.pool.submit_coverage(draw_coverage, *coverage, out / "coverage.png"))
+                # convergence.png and rig.png first, while the coverage view is computed
                 parts.append(self.pool.submit(plot_convergence, list(history), out / "convergence.png"))
                 parts.append(self.pool.submit(plot_rig, best, out / "rig.png", None, bounds))
+                coverage = coverage() if callable(coverage) else coverage
+                # coverage.png in its own process, which keeps the P-SOG's panel between commands
+                parts.append(self.pool.submit_coverage(draw_coverage, *coverage, out / "coverage.png"))
             except BrokenProcessPool:
                 # a worker process died (killed, or it could not start): the figures are drawn on a thread,
                 # once what was submitted is cancelled or done (two writers of one file could tear it)
@@ -475,7 +518,7 @@ class PlotWorker:
                 self.pool = _Pools(False)
                 self.processes = self.shared = False
                 return self.submit(history, best, bounds, coverage, out)
-            f = _all_of([parts[1], parts[2], parts[0]])     # the paths in the order draw_outputs gives them
+            f = _all_of(parts)                  # the paths in the order draw_outputs gives them
         self._futures.append(f)
         return f
 

@@ -758,6 +758,68 @@ def count_bits_kernel(bits: wp.array(dtype=wp.uint32), words_per_candidate: wp.i
         wp.atomic_add(counts, wp.int32(cand), c)
 
 
+# ----------------------------------------------------------------------------- patched grids
+# A grid prepared on the device from a dense base and a few changed voxels (WarpCore.patched_grid: the
+# jackknife's left-out grids), with the per-brick masks bricks.brick_masks makes on the host.
+@wp.kernel
+def scatter_rows_kernel(voxels: wp.array(dtype=wp.int64), w_rows: wp.array(dtype=wp.int64),
+                        s_rows: wp.array(dtype=wp.uint8), has_stop: wp.int32, weights: wp.array(dtype=wp.int64),
+                        stop: wp.array(dtype=wp.uint8)):
+    # each changed voxel once (the caller's voxels are distinct), so the writes never collide
+    t = wp.tid()
+    v = voxels[t]
+    weights[v] = w_rows[t]
+    if has_stop != 0:
+        stop[v] = s_rows[t]
+
+
+@wp.func
+def brick_mask_bits(b: wp.int32, weights: wp.array(dtype=wp.int64), stop: wp.array(dtype=wp.uint8),
+                    has_stop: wp.int32, nx: wp.int32, ny: wp.int32, nz: wp.int32, by: wp.int32, bz: wp.int32):
+    # (occlusion bits, nonzero-weight bits) of brick b, in bricks.py's numbering; voxels past the grid's end
+    # (a partial brick) are 0, as the host's padding leaves them
+    bk = b % bz
+    r = b / bz
+    bj = r % by
+    bi = r / by
+    sb = wp.uint32(0)
+    nb = wp.uint32(0)
+    for q in range(32):
+        i = bi * 4 + (q & 3)
+        j = bj * 4 + ((q >> 2) & 3)
+        k = bk * 2 + (q >> 4)
+        if i < nx and j < ny and k < nz:
+            v = (wp.int64(i) * wp.int64(ny) + wp.int64(j)) * wp.int64(nz) + wp.int64(k)
+            bit = wp.uint32(1) << wp.uint32(q)
+            if weights[v] != wp.int64(0):
+                nb = nb | bit
+            if has_stop != 0:
+                if stop[v] != wp.uint8(0):
+                    sb = sb | bit
+    return sb, nb
+
+
+@wp.kernel
+def brick_masks_pairs_kernel(weights: wp.array(dtype=wp.int64), stop: wp.array(dtype=wp.uint8), has_stop: wp.int32,
+                             nx: wp.int32, ny: wp.int32, nz: wp.int32, by: wp.int32, bz: wp.int32,
+                             masks: wp.array(dtype=wp.uint32)):
+    # bricks.brick_masks' layout: word 2b the occlusion bits, 2b + 1 the nonzero-weight bits (the CPU's grids)
+    b = wp.tid()
+    sb, nb = brick_mask_bits(b, weights, stop, has_stop, nx, ny, nz, by, bz)
+    masks[2 * b] = sb
+    masks[2 * b + 1] = nb
+
+
+@wp.kernel
+def brick_masks64_kernel(weights: wp.array(dtype=wp.int64), stop: wp.array(dtype=wp.uint8), has_stop: wp.int32,
+                         nx: wp.int32, ny: wp.int32, nz: wp.int32, by: wp.int32, bz: wp.int32,
+                         masks: wp.array(dtype=wp.uint64)):
+    # the same pair as one little-endian uint64 per brick (CUDA's grids: score_kernel_gpu loads it at once)
+    b = wp.tid()
+    sb, nb = brick_mask_bits(b, weights, stop, has_stop, nx, ny, nz, by, bz)
+    masks[b] = wp.uint64(sb) | (wp.uint64(nb) << wp.uint64(32))
+
+
 # ----------------------------------------------------------------------------- occupancy
 @wp.kernel
 def voxel_keys_kernel(points: wp.array(dtype=wp.vec3d), s: wp.float64, nx: wp.int32, ny: wp.int32,
