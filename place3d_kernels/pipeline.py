@@ -84,20 +84,21 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     if isinstance(backend, Future):
         # a backend still being probed on another thread (optimize starts it early): needed only now.
         # Meanwhile, what the simulation needs and no backend computes: the actors' meshes of the first
-        # frames and the static mesh's normals (the same arrays simulate would make)
+        # frames and, for a condition, the static mesh's normals (the same arrays simulate would make)
         with section("P-SOG build: actors (probe)"):
             for f in range(scene.n_frames):
                 if backend.done():
                     break
                 if f not in dynamic:
                     dynamic[f] = scene.dynamic(f)
-            if not backend.done():
-                scene.static.normals        # noqa: B018 - computed and kept on the mesh
+            if condition is not None and not backend.done():
+                scene.static.normals        # noqa: B018 - computed and kept on the mesh (intensities read it)
         with section("P-SOG build: backend wait"):
             backend = backend.result()
     with section("P-SOG build: simulate"):
+        # intensities only for a condition (fog, wet ground, snow read them); the vote needs labels alone
         frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress, body=body,
-                          dynamic=dynamic)
+                          dynamic=dynamic, intensity=condition is not None)
     if condition is not None:
         frames = [condition(f, i) for i, f in enumerate(frames)]
     with section("P-SOG build: aggregate"):

@@ -58,8 +58,10 @@ def enabled() -> bool:
     return usable_cores() >= 2 and threading.active_count() == 1
 
 
-def start(key: Hashable, build: Callable[[], object]) -> bool:
+def start(key: Hashable, build: Callable[[], object], normals: bool = True) -> bool:
     """Build ``build()`` (a ``Scene``) in a forked child; :func:`take` with the same ``key`` collects it.
+    ``normals``: compute the meshes' face normals there too (the returns' intensities read them; a P-SOG
+    without a condition needs none).
 
     Returns:
         True when a child was started (False: not :func:`enabled`, already started, or the fork failed).
@@ -95,7 +97,7 @@ def start(key: Hashable, build: Callable[[], object]) -> bool:
             os.close(r)
             scene = build()
             t1 = time.perf_counter()
-            payload = _prepared(scene)
+            payload = _prepared(scene, normals)
             times = (t0, t1, time.perf_counter())
             data = pickle.dumps((payload, times), protocol=pickle.HIGHEST_PROTOCOL)
             with os.fdopen(w, "wb") as f:
@@ -116,14 +118,15 @@ def start(key: Hashable, build: Callable[[], object]) -> bool:
     return True
 
 
-def _prepared(scene):
-    """(scene, {frame: actor Mesh}) with the key and the meshes' normals computed and kept on them."""
+def _prepared(scene, normals: bool = True):
+    """(scene, {frame: actor Mesh}) with the key and (``normals``) the meshes' normals computed and kept on them."""
     scene.key                       # noqa: B018 - cached on the scene (Scene.key)
-    scene.static.normals            # noqa: B018 - cached on the mesh (Mesh.normals)
+    if normals:
+        scene.static.normals        # noqa: B018 - cached on the mesh (Mesh.normals)
     dynamic = {}
     if scene.actors:
         dynamic = {f: scene.dynamic(f) for f in range(scene.n_frames)}
-        for mesh in dynamic.values():
+        for mesh in dynamic.values() if normals else ():
             mesh.normals            # noqa: B018 - the intensities of actor returns read them
     return scene, dynamic
 

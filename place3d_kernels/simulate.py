@@ -64,9 +64,11 @@ def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor
     return _returns(static, dynamic, lidar, o, d, hits, b, body_t)
 
 
-def _returns(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, o, d, hits, b, body_t, dh=None):
+def _returns(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, o, d, hits, b, body_t, dh=None,
+             intensity: bool = True):
     """``simulate_frame`` after its sweep's rays ``o``, ``d`` were cast into the static mesh (``hits``) and,
-    when ``dh`` is given, into the actors' mesh ``dynamic``."""
+    when ``dh`` is given, into the actors' mesh ``dynamic``; without ``intensity`` the returns' intensities
+    are None (no normals read)."""
     t, face, lab, src = hits.t, hits.face, hits.label, np.zeros(len(o), dtype=bool)
     if dynamic is not None:
         if dh is None:
@@ -91,6 +93,8 @@ def _returns(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, o, d, hits, 
     at = np.flatnonzero(hit)
     d_hit, face_hit, lab_hit = d.take(at, axis=0), face.take(at), lab.take(at)
     pts = o.take(at, axis=0) + t.take(at)[:, None] * d_hit
+    if not intensity:
+        return pts, lab_hit.astype(np.int32), None, o[0]
     if dynamic is None:                         # every return is the static mesh's
         normals = static.normals.take(face_hit, axis=0)
     else:
@@ -123,7 +127,8 @@ def body_hits(body, lidar: LidarModel, mount=DEFAULT_MOUNT, backend=None) -> np.
 
 
 def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_MOUNT, frames=None,
-             backend=None, progress: bool = False, body=None, dynamic=None) -> list[PointCloud]:
+             backend=None, progress: bool = False, body=None, dynamic=None,
+             intensity: bool = True) -> list[PointCloud]:
     """Semantic LiDAR frames along the scene's ego route (world points, ego pose, sensor origin per return).
 
     Args:
@@ -137,6 +142,9 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         dynamic: optional dict {frame: ``scene.dynamic(frame)``} of meshes already built (``scene_psog``
             builds some while the backend is still being probed); each is taken out of the dict when its
             frame is cast, and frames not in it are built here.
+        intensity: compute each return's intensity (False: the frames' intensities are zeros and no face
+            normal is read; a P-SOG without a condition votes on labels alone, so ``scene_psog`` skips
+            them there).
     """
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
@@ -183,7 +191,8 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
             r = slice(j * rays_per_sweep, (j + 1) * rays_per_sweep)
             hits = Hits(h_all.t[r], h_all.face[r], h_all.label[r])
             dh = None if dh_all is None else Hits(dh_all.t[r], dh_all.face[r], dh_all.label[r])
-            pts, lab, inten, origin = _returns(scene.static, dyn, lidar, o_all[r], d_all[r], hits, b, body_t, dh)
+            pts, lab, inten, origin = _returns(scene.static, dyn, lidar, o_all[r], d_all[r], hits, b, body_t, dh,
+                                               intensity)
             out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
             if bar is not None:
                 bar.update(1)

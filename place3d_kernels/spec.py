@@ -409,7 +409,8 @@ class PSOGSpec:
             folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
             if recall(folder, identity(self.scene.to_dict(), self.scene.kind, self.scene.path)) is not None:
                 return False
-        return scene_prefetch.start(self.scene, functools.partial(_make_scene, self.scene))
+        return scene_prefetch.start(self.scene, functools.partial(_make_scene, self.scene),
+                                    normals=self.condition is not None)
 
     def load(self):
         """The P-SOG with this spec's backend and cache folder (memoised per process; tasks call this)."""

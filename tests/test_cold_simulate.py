@@ -178,3 +178,24 @@ def test_sweeps_cast_together_on_every_backend(monkeypatch):
     for name in available_backends():
         b = get_backend(name)
         _same_frames(simulate(small, lidar, backend=b), _per_frame(small, lidar, range(3), b), small, range(3))
+
+
+def test_frames_without_intensities_are_the_same_returns(town):
+    """simulate(intensity=False), what a P-SOG without a condition asks for: the same points, labels and
+    origins bit for bit, intensities zero; a P-SOG built from either is the same."""
+    from place3d_kernels.grid import DEFAULT_GRID
+    from place3d_kernels.simulate import simulate
+    from place3d_kernels.sog import PSOG
+
+    lidar = LidarModel.load("collection_64ch")
+    b = get_backend(None)
+    full = simulate(town, lidar, backend=b)
+    bare = simulate(town, lidar, backend=b, intensity=False)
+    assert len(full) == len(bare) == town.n_frames
+    for x, y in zip(full, bare):
+        assert x.points.tobytes() == y.points.tobytes() and x.labels.tobytes() == y.labels.tobytes()
+        assert x.origins.tobytes() == y.origins.tobytes() and x.sweep_origin.tobytes() == y.sweep_origin.tobytes()
+        assert y.intensity.dtype == np.float32 and not y.intensity.any() and x.intensity.any()
+    grid = DEFAULT_GRID
+    a, c = PSOG.from_frames(full, grid, 3, backend=b), PSOG.from_frames(bare, grid, 3, backend=b)
+    assert a.voxels.tobytes() == c.voxels.tobytes() and a.probs.tobytes() == c.probs.tobytes()
