@@ -165,7 +165,7 @@ def patched_on_backend(pooled, task: str, occlusion: str, backend):
     """``prepared_grids`` by the backend: the base of each T sent once (``grid_base``), each left-out grid
     the base with the record's rows written over a copy of it there (``patched_grid``). On the H100 host
     this replaced, per grid, a dense host copy, its brick masks and a 32 MB upload (bench/README.md, "The
-    jackknife's grids on the device")."""
+    cold command's tail")."""
     grids = LeftOutGrids(pooled, task)
     sog = occlusion == "sog"
     bases = {}

@@ -296,7 +296,7 @@ def _worker_started() -> None:
     A worker leaves when its pool shuts down, by returning from multiprocessing's bootstrap into
     ``sys.exit``; the teardown that follows (every module of NumPy, matplotlib and Pillow, the loaded C
     libraries) took 0.29-0.38 s per command on the H100 host, and ``PlotWorker.close`` waits for it
-    (bench/README.md, "The plot workers' exit"). Each figure is written and closed before its result goes
+    (bench/README.md, "The cold command's tail"). Each figure is written and closed before its result goes
     back, and the bootstrap has already run multiprocessing's own exit steps and flushed the streams when
     the ``atexit`` handler registered here runs (before any registered earlier, as ``atexit`` goes last
     first), so it flushes the streams again and leaves with ``os._exit``.
