@@ -190,7 +190,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
             b = probe.result()
     finally:
         bg.shutdown(wait=False)
-    if plotter is not None and args.output:
+    if plotter is not None and plotter.processes:
         plotter.keep_panel(*entropy_view(psog))     # coverage.png's left panel, drawn during the search
     # The jackknife after the search scores the rigs on the drive's left-out grids, which depend on the
     # records and the task, not on the search: they are prepared on a thread while it runs
