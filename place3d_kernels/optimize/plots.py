@@ -215,12 +215,8 @@ def keep_coverage_panel(entropy2d, extent) -> bool:
     fig = _figure(11, 5)
     _coverage_left(fig, entropy2d, extent)
     right = fig.add_subplot(1, 2, 2)         # in place, so the layout is the figure's; never drawn here
-    right.set_visible(False)
     fig.subplots_adjust(**COVERAGE_MARGINS)
-    fig.canvas.draw()
-    _PANELS[key] = fig.canvas.copy_from_bbox(fig.bbox)
-    while len(_PANELS) > PANELS_KEPT:
-        _PANELS.pop(next(iter(_PANELS)))
+    _kept_panel(fig, right, key)
     return True
 
 
@@ -261,6 +257,16 @@ def _save_over_panel(fig, top, key, path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.subplots_adjust(**COVERAGE_MARGINS)
     canvas = fig.canvas
+    _kept_panel(fig, top, key)
+    top.draw(canvas.get_renderer())
+    mimage.imsave(path, canvas.buffer_rgba(), format="png", origin="upper", dpi=fig.dpi, pil_kwargs=PNG)
+    return path
+
+
+def _kept_panel(fig, top, key) -> None:
+    """Put on ``fig``'s canvas its pixels without the axes ``top``: the ones kept for ``key``, else drawn
+    now and kept (the most recently used last, ``PANELS_KEPT`` at most)."""
+    canvas = fig.canvas
     panel = _PANELS.pop(key, None)
     if panel is None:
         top.set_visible(False)
@@ -269,12 +275,9 @@ def _save_over_panel(fig, top, key, path) -> Path:
         panel = canvas.copy_from_bbox(fig.bbox)
     else:
         canvas.restore_region(panel)
-    _PANELS[key] = panel                       # the most recently used last
+    _PANELS[key] = panel
     while len(_PANELS) > PANELS_KEPT:
         _PANELS.pop(next(iter(_PANELS)))
-    top.draw(canvas.get_renderer())
-    mimage.imsave(path, canvas.buffer_rgba(), format="png", origin="upper", dpi=fig.dpi, pil_kwargs=PNG)
-    return path
 
 
 def draw_outputs(history, best: Placement, bounds, coverage: tuple, out) -> list[str]:

@@ -599,8 +599,8 @@ class WarpCore(Backend):
                       inputs=[wp.array(ids, dtype=wp.int64, device=self.device),
                               wp.array(w_rows, dtype=wp.int64, device=self.device),
                               wp.array(s_rows, dtype=wp.uint8, device=self.device), has_stop, w, s_arg])
-        _, by, bz = brick_shape(spec.shape)
-        n_bricks = int(np.prod(brick_shape(spec.shape)))
+        bx, by, bz = brick_shape(spec.shape)
+        n_bricks = bx * by * bz
         args = [w, s_arg, has_stop, int(nx), int(ny), int(nz), int(by), int(bz)]
         if self.device.is_cuda:   # score_kernel_gpu reads each brick's pair as one little-endian uint64
             masks = wp.empty(n_bricks, dtype=wp.uint64, device=self.device)
