@@ -565,8 +565,8 @@ class WarpCore(Backend):
 
     @property
     def patches_grids(self) -> bool:
-        # on CUDA; on the CPU the host's patched copy and prepare_grid were faster than these kernels (the
-        # default town's ten left-out grids, dev VM: 0.38-0.41 s against 0.42-0.57), which run there too
+        # on CUDA; on the CPU the host's patched copy and prepare_grid were faster than these kernels, which
+        # run there too (the default town's ten left-out grids, dev VM, 3 processes: 0.302 s against 0.378-0.396)
         return self.device.is_cuda
 
     def grid_base(self, grid, weights, stop):
