@@ -37,6 +37,11 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
   minimum and median of the three crossings: fewer instructions, the same decisions) and ``lean32xr``
   (lean32x whose float64 step reloads the ray instead of keeping o and d live).
 
+* seventh round (``gpu_dense_round7_kernels.py``, each at ``-r56`` and ``-r64``): the shipped kernel without the
+  grid test at its loop's head (``head1``: one compare of i against DEAD; ``headless``: none, a dead walk caught
+  after the float64 step; ``headless-guard``: that with the iteration bound kept) and ``early`` (the next
+  voxel's step taken while the current voxel's loads are in flight).
+
 Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU; with
 ``cuobjdump`` on PATH also the common step's instruction count, and with ``--listing`` its SASS).
 
@@ -78,6 +83,7 @@ if str(Path(__file__).resolve().parent) not in sys.path:
     sys.path.append(str(Path(__file__).resolve().parent))
 import sass_hot_path  # noqa: E402
 from gpu_dense_lean_kernels import make_eager_skip, make_lean, make_walk_only  # noqa: E402
+from gpu_dense_round7_kernels import make_headless  # noqa: E402
 from gpu_dense_round4_kernels import make_lean32x  # noqa: E402
 from gpu_dense_variants_kernels import make_persistent, make_tiled  # noqa: E402
 
@@ -225,6 +231,10 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
         for maxreg in (56, 64, 72):
             out[f"{body}-r{maxreg}"] = {"kind": "lean", "body": body, "skip": False, "ahead": False,
                                         "maxreg": maxreg}
+    # seventh round (gpu_dense_round7_kernels.py): the shipped kernel without the grid test at its loop's head
+    for mode in ("head1", "headless", "headless-guard", "early"):
+        for maxreg in (56, 64):
+            out[f"{mode}-r{maxreg}"] = {"kind": "lean", "body": mode, "skip": False, "ahead": False, "maxreg": maxreg}
     out["walk-only"] = {"kind": "lean", "body": "walk", "skip": False, "ahead": False, "maxreg": 72,
                         "diagnostic": "floor: today's step (walk32_next_sel) and stop read only, no bitset, no "
                                       "weights; sums are step counts (wrong on purpose, not compared)"}
@@ -261,6 +271,8 @@ def make_lean_kind(v: dict, count: bool = False):
         return make_walk_only(v["maxreg"], count, lean=v["body"] == "walk-lean32")
     if v["body"] in ("lean32x", "lean32xr", "lean32xm"):
         return make_lean32x(v["maxreg"], reload=v["body"] == "lean32xr", med=v["body"] == "lean32xm")
+    if v["body"] in ("head1", "headless", "headless-guard", "early"):
+        return make_headless(v["maxreg"], v["body"])
     if v["body"] == "eager":
         return make_eager_skip(v["maxreg"], count)
     return make_lean(v["maxreg"], v["skip"], v["ahead"], count, inc=v["body"] == "lean",
