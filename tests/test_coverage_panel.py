@@ -64,7 +64,7 @@ def test_coverage_has_a_process_of_its_own_that_keeps_the_panel(tmp_path):
         for k, run in enumerate("ab"):
             worker.submit(history, Placement.load("pyramid"), SearchSpace(n_lidars=4),
                           (entropy + k, covered, n, extent, run), tmp_path / run).result(timeout=120)
-        assert len(worker.pool._processes) == plots.PLOT_PROCESSES
+        assert len(worker.pool._processes) == plots.PLOT_PROCESSES + plots.HELPER_PROCESSES
         kept = worker.pool.submit_coverage(eval, "len(__import__('place3d_kernels.optimize.plots', "
                                                  "fromlist=['plots'])._PANELS)").result(timeout=60)
         assert kept == 2
@@ -100,7 +100,7 @@ def test_plot_processes_exit_once_closed(tmp_path):
     worker.close()
     assert sorted(p.rsplit("/", 1)[1] for p in paths) == ["convergence.png", "coverage.png", "rig.png"]
     assert all((tmp_path / name).stat().st_size > 0 for name in ("convergence.png", "coverage.png", "rig.png"))
-    assert len(procs) == plots.PLOT_PROCESSES
+    assert len(procs) == plots.PLOT_PROCESSES + plots.HELPER_PROCESSES
     assert [p.exitcode for p in procs] == [0] * len(procs)
 
 

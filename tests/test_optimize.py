@@ -572,3 +572,57 @@ def test_msog_objective_cache_is_bit_identical_to_msog_batch(backend):
     misses = obj.pose_misses
     np.testing.assert_array_equal(obj(X[:2]), want[:2])
     assert obj.pose_misses == misses               # nothing traversed again
+
+
+def _certificate_executor_runs(executor, **kw):
+    """(result with ``executor``, result without) of one constrained run (some infeasible samples)."""
+    space = SearchSpace(2, variables=("x", "y"), fixed={"z": 2.4})
+    f = sphere(np.array([0.2, -0.3, 0.1, 0.3]))
+    runs = [optimize(f, space, [MinDistance(0.5)], max_evals=300, progress=False, certificate_executor=ex, **kw)
+            for ex in (executor, None)]
+    return runs
+
+
+def test_certificate_computed_by_an_executor_is_the_same():
+    """optimize(certificate_executor=...) hands the certificate to that executor (a spawned process, as
+    place3d optimize's helper) before on_search_end: the same dict as computed here, feasible part included."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    calls = []
+
+    class Counting(ProcessPoolExecutor):
+        def submit(self, fn, *args, **kw):
+            calls.append(fn.__name__)
+            return super().submit(fn, *args, **kw)
+
+    with Counting(1, mp_context=multiprocessing.get_context("spawn")) as ex:
+        there, here = _certificate_executor_runs(ex)
+        assert calls == ["certify"]
+        assert there.certificate == here.certificate
+        assert there.certificate["feasible"]["n_samples"] < there.certificate["n_samples"]   # infeasible ones left out
+        assert there.best_score == here.best_score and there.history == here.history
+        calls.clear()
+        there, here = _certificate_executor_runs(ex, restarts=1)    # each run's certificate there
+        assert calls == ["certify"] * 2 and there.certificate == here.certificate
+
+
+def test_certificate_falls_back_here_when_the_executor_is_gone():
+    """A process pool found broken (its process killed) or already shut down: the certificate is computed
+    here, the same as without an executor."""
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
+    ex = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+    try:
+        ex.submit(int).result(timeout=120)                    # the process is up
+        for pid in list(ex._processes):
+            os.kill(pid, signal.SIGKILL)
+        time.sleep(1.0)
+        broken, here = _certificate_executor_runs(ex)
+        assert broken.certificate == here.certificate
+    finally:
+        ex.shutdown(wait=True)
+    closed, here = _certificate_executor_runs(ex)           # shut down: submit raises RuntimeError
+    assert closed.certificate == here.certificate

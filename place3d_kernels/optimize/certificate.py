@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["certificate"]
+__all__ = ["certificate", "certify"]
 
 
 def _pair_slopes(U: np.ndarray, G: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -117,3 +117,16 @@ def certificate(points, values, delta, side_lengths, delta_l2: float | None = No
     out.update(k_G=k, C_M=C_M, bound=C_M + k * delta, bound_corollary=k * float(sides.sum()) + k * delta,
                bound_l2=C_M + k * delta_l2, n_pairs=pairs)
     return out
+
+
+def certify(points, values, feasible, **kw) -> dict:
+    """``certificate(points, values, **kw)`` with a ``"feasible"`` entry: the certificate over the rows where
+    ``feasible`` (bool (n,)) holds, the same dict when every row does. What ``optimize`` reports; a module-level
+    function so that it can run in another process (``optimize(certificate_executor=...)``)."""
+    U = np.asarray(points, dtype=np.float64)
+    G = np.asarray(values, dtype=np.float64)
+    feas = np.asarray(feasible, dtype=bool)
+    cert = certificate(U, G, **kw)
+    # over the feasible samples: when every sample is feasible, the same inputs and so the same dict
+    cert["feasible"] = dict(cert) if feas.all() else certificate(U[feas], G[feas], **kw)
+    return cert

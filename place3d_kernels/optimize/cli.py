@@ -125,14 +125,16 @@ def _probe(name):
         return get_backend(name)
 
 
-def _search_imports() -> None:
-    """Import what the search and its certificate use (pycma, SciPy's ``pdist``), ahead of them."""
+def _search_imports(certificate_here: bool) -> None:
+    """Import what the search uses (pycma) and, where the certificate is computed in this process
+    (``certificate_here``), SciPy's ``pdist``, ahead of them."""
     import importlib
 
     from place3d_kernels.lazy_imports import import_cma
 
     import_cma()
-    importlib.import_module("scipy.spatial.distance")       # optimize.certificate's pdist
+    if certificate_here:
+        importlib.import_module("scipy.spatial.distance")       # optimize.certificate's pdist
 
 
 def run(args, spec, psog_for) -> int:
@@ -174,12 +176,16 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
 
     # The backend probe (importing Warp and starting CUDA: 1.1-1.5 s on the H100 host) runs on a thread
     # while this one builds the scene and reads the cached P-SOG, which need no backend; a cache miss
-    # waits for it (scene_psog takes the Future). The same thread then imports pycma and the certificate's
-    # SciPy module, which a cold command otherwise imported one after the other once the P-SOG was built
-    # (0.33 s and 0.34 s on the H100 host); on a cache miss they overlap the simulation.
+    # waits for it (scene_psog takes the Future). The same thread then imports pycma, which a cold command
+    # otherwise imported once the P-SOG was built; on a cache miss it overlaps the simulation. Where the
+    # figures have processes, the certificate is computed in their helper process (optimize's
+    # certificate_executor) and this process never imports SciPy: its import held the interpreter lock
+    # beside the simulation (0.46-0.71 s alone on the H100 host; bench/README.md, "twelfth session").
+    # Elsewhere this thread imports the certificate's SciPy module too.
     bg = ThreadPoolExecutor(max_workers=1, thread_name_prefix="place3d-optimize")
     probe = bg.submit(_probe, args.backend)
-    imports = bg.submit(_search_imports)
+    helper = plotter.helper if plotter is not None else None
+    imports = bg.submit(_search_imports, helper is None)
     try:
         lidar = LidarModel.load(args.lidar)
         with section("scene + P-SOG"):
@@ -254,7 +260,8 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     try:
         res = optimize(objective, space, cons, sigma0=sigma0, popsize=args.popsize, max_evals=args.max_evals,
                        delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
-                       progress=not args.quiet, restarts=args.restarts, x0=x0, on_search_end=search_ended)
+                       progress=not args.quiet, restarts=args.restarts, x0=x0, on_search_end=search_ended,
+                       certificate_executor=helper)
     finally:
         if executor is not None:
             executor.shutdown()

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from place3d_kernels.optimize.certificate import certificate
+from place3d_kernels.optimize.certificate import certify
 from place3d_kernels.optimize.checkpoint import load_checkpoint, save_checkpoint, snapshot, write_snapshot
 from place3d_kernels.optimize.cmaes import METHODS, make_strategy
 from place3d_kernels.optimize.constraints import Constraint, prepare, total_penalty
@@ -157,7 +157,7 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
              delta=DEFAULT_DELTA, seed: int = 0, penalty_weight: float = DEFAULT_PENALTY_WEIGHT,
              checkpoint=None, resume: bool = False, progress: bool = True, callback: _Fn | None = None,
              x0=None, max_stall_generations: int = 30, cma_options: dict | None = None,
-             restarts: int = 0, on_search_end: _Fn | None = None) -> OptimizeResult:
+             restarts: int = 0, on_search_end: _Fn | None = None, certificate_executor=None) -> OptimizeResult:
     """Maximise ``objective`` over placements on the delta grid of ``space`` (paper, Algorithm 1).
 
     Minimises ``G = -F + penalty_weight * P`` with CMA-ES (pycma ask/tell), F the objective and P the
@@ -210,6 +210,13 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
             the certificate is estimated, with what the result will hold (``history``, and
             ``best_placement`` named ``"optimized"``), so that work on them (the command's figures) can
             start meanwhile. With ``restarts``, once at the end.
+        certificate_executor: where the certificate (every pair of evaluated points) is computed: an
+            executor (``submit(fn, *args, **kw)`` returning a ``concurrent.futures.Future``), to which it is
+            handed before ``on_search_end`` and waited for after it. ``place3d optimize`` passes a helper
+            process started with the command, so that its own process never imports SciPy (the pair scan's
+            ``pdist``, some 0.5-0.7 s of import on the H100 host, which had held the interpreter lock during
+            the simulation). Default (None), or a process pool found broken: computed here, after
+            ``on_search_end``. The result is the same either way (the same function on the same arrays).
 
     Returns:
         OptimizeResult.
@@ -228,7 +235,8 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
         res = _multistart(objective, space, constraints, restarts, callback,
                           dict(method=method, sigma0=sigma0, popsize=popsize, max_evals=max_evals, delta=delta,
                                seed=seed, penalty_weight=penalty_weight, progress=progress, x0=x0,
-                               max_stall_generations=max_stall_generations, cma_options=cma_options))
+                               max_stall_generations=max_stall_generations, cma_options=cma_options,
+                               certificate_executor=certificate_executor))
         if on_search_end is not None:   # copies, as for a single run: the hook may rename or keep them
             on_search_end([dict(h) for h in res.history], space.to_placement(res.best_vector, name="optimized"))
         return res
@@ -243,11 +251,14 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
     _run_generations(grid, state, objective, max_evals, max_stall_generations, checkpoint, progress, callback)
     if checkpoint is not None:
         save_checkpoint(checkpoint, state)
+    pending = None
+    if certificate_executor is not None and state["best"] is not None:
+        pending = _submit_certificate(certificate_executor, state, grid.search, grid.steps, penalty_weight, delta)
     if on_search_end is not None and state["best"] is not None:
         # what _result will hold, before its certificate (all pairs of evaluated points) is estimated
         on_search_end([dict(h) for h in state["history"]], space.to_placement(state["best"]["X"], name="optimized"))
     res = _result(state, space, grid.search, grid.cons, state["strategy"], delta, grid.steps, penalty_weight, seed,
-                  resumed, checkpoint)
+                  resumed, checkpoint, pending)
     res.left_start = _left_start(grid, res.best_vector, k0)
     if not res.left_start:
         warnings.warn(f"the search never left its start: after {res.evaluations} evaluations the best placement "
@@ -547,7 +558,37 @@ def _rank_failed(state, G, F, P, X, bad, new, lam, warned) -> None:
 
 
 # ------------------------------------------------------------------------------ result
-def _result(state, space, search, cons, strategy, delta, steps, lam, seed, resumed, checkpoint) -> OptimizeResult:
+def _certificate_inputs(state, search, steps, lam, delta) -> tuple:
+    """(U, G, feasible, keywords) of ``certify`` for the evaluated points, G = -F + lambda P."""
+    P = np.asarray(state["P"])
+    G = -np.asarray(state["F"]) + lam * P
+    kw = dict(delta=float(np.max(steps)), side_lengths=search.widths, delta_l2=search.covering_radius(delta))
+    return state["U"], G, P == 0, kw
+
+
+def _submit_certificate(executor, state, search, steps, lam, delta):
+    """The certificate handed to ``executor`` (a Future), or None where it cannot take it (a broken pool)."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    U, G, feas, kw = _certificate_inputs(state, search, steps, lam, delta)
+    try:
+        return executor.submit(certify, np.asarray(U), G, feas, **kw)
+    except (BrokenProcessPool, RuntimeError):       # broken, or shut down: computed here instead
+        return None
+
+
+def _collect_certificate(pending) -> dict | None:
+    """The certificate a Future computed, or None where its process died (computed here instead)."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    try:
+        return pending.result()
+    except BrokenProcessPool:
+        return None
+
+
+def _result(state, space, search, cons, strategy, delta, steps, lam, seed, resumed, checkpoint,
+            pending=None) -> OptimizeResult:
     b = state["best"]
     if b is None:
         raise ValueError(f"objective returned no finite score in {state['evaluations']} evaluations")
@@ -555,16 +596,11 @@ def _result(state, space, search, cons, strategy, delta, steps, lam, seed, resum
         warnings.warn(f"no feasible placement was found in {state['evaluations']} evaluations; the best "
                       f"infeasible one (penalty {b['P']:.3g}) is returned. Raise penalty_weight or max_evals, "
                       f"or relax the constraints", RuntimeWarning, stacklevel=3)
-    U = state["U"]
-    F = np.asarray(state["F"])
-    P = np.asarray(state["P"])
-    G = -F + lam * P
-    kw = dict(delta=float(np.max(steps)), side_lengths=search.widths, delta_l2=search.covering_radius(delta))
     with section("certificate"):
-        cert = certificate(U, G, **kw)
-        feas = P == 0
-        # over the feasible samples: when every sample is feasible, the same inputs and so the same dict
-        cert["feasible"] = dict(cert) if feas.all() else certificate(U[feas], G[feas], **kw)
+        cert = None if pending is None else _collect_certificate(pending)
+        if cert is None:
+            U, G, feas, kw = _certificate_inputs(state, search, steps, lam, delta)
+            cert = certify(U, G, feas, **kw)
     cert["penalty_weight"] = lam
     n = state["evaluations"]
     hits = state["hits"]

@@ -336,6 +336,13 @@ def _warm_up() -> None:
     fig.savefig(io.BytesIO(), format="png")
 
 
+def _warm_up_helper() -> None:
+    """Import what the helper process runs (the certificate's pair scan: SciPy's ``pdist``), ahead of it."""
+    import scipy.spatial.distance  # noqa: F401 - imported to have it loaded
+
+    import place3d_kernels.optimize.certificate  # noqa: F401
+
+
 def _all_of(parts):
     """A Future of the results of ``parts`` in order; it raises the first part's error, if any."""
     import threading
@@ -360,6 +367,9 @@ def _all_of(parts):
 
 #: worker processes where there are cores to spare: one per figure, drawn at the same time
 PLOT_PROCESSES = 3
+#: besides them, one helper process for the command's other work that needs a library its own process
+#: would otherwise import (the optimiser's certificate: SciPy), started and warmed up with them
+HELPER_PROCESSES = 1
 
 
 def _spawn_can_start() -> bool:
@@ -379,10 +389,13 @@ def _default_processes() -> bool:
 class _Pools:
     """The executors that draw the figures: on processes, ``PLOT_PROCESSES - 1`` for convergence.png and
     rig.png and one of its own for coverage.png, so that every figure of a resident process's commands
-    finds the coverage panels that one process keeps (``draw_coverage``); else one thread for all.
+    finds the coverage panels that one process keeps (``draw_coverage``); else one thread for all. With
+    processes there is also ``helper`` (``HELPER_PROCESSES``; None with a thread), which runs the
+    optimiser's certificate (``optimize(certificate_executor=...)``) so that the command's own process never
+    imports SciPy.
 
     ``submit`` and ``shutdown`` act as an executor's (``submit`` on the first executor, ``submit_coverage``
-    on the second); ``_processes`` maps the pids of both, as ``ProcessPoolExecutor._processes`` does.
+    on the second); ``_processes`` maps the pids of all, as ``ProcessPoolExecutor._processes`` does.
     """
 
     def __init__(self, processes: bool):
@@ -390,18 +403,23 @@ class _Pools:
 
         if not processes:
             self.figures = self.coverage = ThreadPoolExecutor(1, thread_name_prefix="place3d-plots")
+            self.helper = None
             return
         import multiprocessing
 
         spawn = multiprocessing.get_context("spawn")
         self.figures = ProcessPoolExecutor(PLOT_PROCESSES - 1, mp_context=spawn, initializer=_worker_started)
         self.coverage = ProcessPoolExecutor(1, mp_context=spawn, initializer=_worker_started)
+        self.helper = ProcessPoolExecutor(HELPER_PROCESSES, mp_context=spawn, initializer=_worker_started)
         for _ in range(PLOT_PROCESSES - 1):    # each submit finds no idle worker: one process each
             self.figures.submit(_warm_up)
         self.coverage.submit(_warm_up)
+        self.helper.submit(_warm_up_helper)
 
     def _executors(self):
-        return [self.figures] if self.coverage is self.figures else [self.figures, self.coverage]
+        if self.coverage is self.figures:
+            return [self.figures]
+        return [self.figures, self.coverage] + ([self.helper] if self.helper is not None else [])
 
     def submit(self, fn, *args):
         return self.figures.submit(fn, *args)
@@ -475,6 +493,11 @@ class PlotWorker:
         self.pool = _kept if self.shared else _new_pool(processes)
         self.processes = bool(processes)
         self._futures = []
+
+    @property
+    def helper(self):
+        """The helper process's executor (``_Pools``), or None where the figures are drawn on a thread."""
+        return self.pool.helper if self.processes else None
 
     def keep_panel(self, entropy2d, extent) -> None:
         """Have the coverage process draw and keep coverage.png's left panel now (``keep_coverage_panel``),
