@@ -83,8 +83,10 @@ def main(argv=None) -> int:
                "--quiet"]
     load_before = os.getloadavg()
     t = time.perf_counter()
+    # cwd: ``python -m`` puts the working directory first on the path, so a server started from another
+    # checkout would run that checkout's code, not ROOT's (and refuse the clients, whose identity differs)
     server = subprocess.Popen(base + ["serve", "--socket", str(sock), "--backend", args.backend,
-                                      "--idle-timeout", "0"], env=_env(), stdout=subprocess.PIPE,
+                                      "--idle-timeout", "0"], cwd=work, env=_env(), stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True)
     try:
         while not is_listening(sock):
