@@ -27,6 +27,9 @@ The variants, each at the shipped 64-register cap unless named otherwise:
   issued, before their values are used (the stop test, the bitset bookkeeping): the step is register work
   that needs neither load, so it fills the loads' latency instead of following it. nvcc does not move it
   above the stop test's branch itself. A walk that stops discards the step.
+* ``prefetch`` / ``prefetch-l2``: ``head1`` with, on entering a brick, a prefetch hint (PTX ``prefetch.global.L1``
+  or ``.L2``: no register, no fault) for the masks and the bitset word of the brick one ahead along the ray's
+  dominant axis, so that the loads on entering it, which the step then waits for, may hit in L1.
 * ``headless-guard``: ``headless`` with the shipped loop's iteration bound kept (``nx + ny + nz + 3``), a
   safety net that the argument above says never fires.
 
@@ -44,7 +47,35 @@ from place3d_kernels.backends.warp.kernels import walk32_begin
 from place3d_kernels.backends.warp.score_gpu import (certain_step, exact_step, flush_brick32, load_mask,
                                                      load_word, next_step, walk_from, word32, word_address)
 
-MODES = ("head1", "headless", "headless-guard", "early")
+MODES = ("head1", "headless", "headless-guard", "early", "prefetch", "prefetch-l2", "nosum", "nosum-head1")
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+asm volatile("prefetch.global.L1 [%0];" :: "l"(p + (unsigned long long)i * b));
+#endif
+""")
+def prefetch_l1(p: wp.uint64, i: wp.int32, b: wp.int32):
+    """A hint that bytes [p + i b, ...) will be read soon (PTX ``prefetch.global.L1``; no register, no fault)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+asm volatile("prefetch.global.L2 [%0];" :: "l"(p + (unsigned long long)i * b));
+#endif
+""")
+def prefetch_l2(p: wp.uint64, i: wp.int32, b: wp.int32):
+    """``prefetch_l1`` into L2 only."""
+    ...
+
+
+@wp.func_native("""
+return (wp::uint64)(arr.data);
+""")
+def mask_address(arr: wp.array(dtype=wp.uint64)) -> wp.uint64:
+    """The masks' first byte."""
+    ...
 
 
 def make_headless(maxreg=64, mode="headless"):
@@ -54,7 +85,10 @@ def make_headless(maxreg=64, mode="headless"):
         raise ValueError(f"mode {mode!r}: one of {MODES}")
     guard = mode == "headless-guard"
     early = mode == "early"
-    head1 = mode in ("head1", "early")
+    nosum = mode.startswith("nosum")
+    pf = mode.startswith("prefetch")
+    pf2 = mode == "prefetch-l2"
+    head1 = mode in ("head1", "early", "nosum-head1") or pf
 
     @wp.kernel(module="unique", module_options=OPTS, cuda_max_registers=maxreg)
     def headless_kernel(sensor_dirs: wp.array(dtype=wp.vec3d), rot: wp.array(dtype=wp.mat33d),
@@ -80,6 +114,13 @@ def make_headless(maxreg=64, mode="headless"):
         pending = wp.uint32(0)
         nz_w = wp.uint32(0)
         # steps left: the guard's bound (headless-guard), else 1 for the whole walk (a loop-invariant test)
+        # prefetch: the brick one ahead along the ray's dominant axis, hinted on entering each brick
+        adx = wp.abs(d[0])
+        ady = wp.abs(d[1])
+        adz = wp.abs(d[2])
+        ahead = wp.where(adx >= ady and adx >= adz, w.si * bny * bnz, wp.where(ady >= adz, w.sj * bnz, w.sk))
+        last = wp.int32(words_per_candidate) - 1
+        mbase = mask_address(masks64)
         left = wp.int32(0)
         if w.i >= 0:
             left = wp.where(wp.static(guard), nx + ny + nz + 3, 1)
@@ -92,9 +133,23 @@ def make_headless(maxreg=64, mode="headless"):
             word = word32(w, bny, bnz)
             change = word != cur
             if change and pending != wp.uint32(0):
-                my_sum += flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
+                if wp.static(nosum):
+                    add = flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
+                    if add > wp.int64(0):
+                        wp.atomic_add(sums, (wp.tid() / n) / n_lidars, add)
+                else:
+                    my_sum += flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
             m = load_mask(masks64, word)
             fresh = load_word(cbits, word)
+            if wp.static(pf):
+                if change:
+                    nxt = wp.clamp(word + ahead, 0, last)
+                    if wp.static(pf2):
+                        prefetch_l2(mbase, nxt, 8)
+                        prefetch_l2(cbits, nxt, 4)
+                    else:
+                        prefetch_l1(mbase, nxt, 8)
+                        prefetch_l1(cbits, nxt, 4)
             cur = word
             bit = wp.uint32(1) << wp.uint32((w.i & 3) | ((w.j & 3) << 2) | ((w.k & 1) << 4))
             if wp.static(early):

@@ -232,7 +232,7 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
             out[f"{body}-r{maxreg}"] = {"kind": "lean", "body": body, "skip": False, "ahead": False,
                                         "maxreg": maxreg}
     # seventh round (gpu_dense_round7_kernels.py): the shipped kernel without the grid test at its loop's head
-    for mode in ("head1", "headless", "headless-guard", "early"):
+    for mode in ("head1", "headless", "headless-guard", "early", "prefetch", "prefetch-l2", "nosum", "nosum-head1"):
         for maxreg in (56, 64):
             out[f"{mode}-r{maxreg}"] = {"kind": "lean", "body": mode, "skip": False, "ahead": False, "maxreg": maxreg}
     out["walk-only"] = {"kind": "lean", "body": "walk", "skip": False, "ahead": False, "maxreg": 72,
@@ -271,7 +271,7 @@ def make_lean_kind(v: dict, count: bool = False):
         return make_walk_only(v["maxreg"], count, lean=v["body"] == "walk-lean32")
     if v["body"] in ("lean32x", "lean32xr", "lean32xm"):
         return make_lean32x(v["maxreg"], reload=v["body"] == "lean32xr", med=v["body"] == "lean32xm")
-    if v["body"] in ("head1", "headless", "headless-guard", "early"):
+    if v["body"] in ("head1", "headless", "headless-guard", "early", "prefetch", "prefetch-l2", "nosum", "nosum-head1"):
         return make_headless(v["maxreg"], v["body"])
     if v["body"] == "eager":
         return make_eager_skip(v["maxreg"], count)
