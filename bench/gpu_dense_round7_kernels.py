@@ -30,6 +30,9 @@ The variants, each at the shipped 64-register cap unless named otherwise:
 * ``prefetch`` / ``prefetch-l2``: ``head1`` with, on entering a brick, a prefetch hint (PTX ``prefetch.global.L1``
   or ``.L2``: no register, no fault) for the masks and the bitset word of the brick one ahead along the ray's
   dominant axis, so that the loads on entering it, which the step then waits for, may hit in L1.
+* ``nosum`` / ``nosum-head1``: ``headless`` / ``head1`` without the ray's running sum in the loop: a flush that
+  finds bits with entropy adds their weights to the candidate's sum at once (an ``atomic_add``), which frees
+  the two registers of the int64 sum (offline: 74 instructions and 1 spill load per common step).
 * ``headless-guard``: ``headless`` with the shipped loop's iteration bound kept (``nx + ny + nz + 3``), a
   safety net that the argument above says never fires.
 

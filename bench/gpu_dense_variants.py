@@ -39,8 +39,10 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
 
 * seventh round (``gpu_dense_round7_kernels.py``, each at ``-r56`` and ``-r64``): the shipped kernel without the
   grid test at its loop's head (``head1``: one compare of i against DEAD; ``headless``: none, a dead walk caught
-  after the float64 step; ``headless-guard``: that with the iteration bound kept) and ``early`` (the next
-  voxel's step taken while the current voxel's loads are in flight).
+  after the float64 step; ``headless-guard``: that with the iteration bound kept), ``early`` (the next
+  voxel's step taken while the current voxel's loads are in flight), ``prefetch`` / ``prefetch-l2`` (a
+  prefetch hint for the brick ahead on entering a brick) and ``nosum`` / ``nosum-head1`` (no running sum in
+  the loop).
 
 Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU; with
 ``cuobjdump`` on PATH also the common step's instruction count, and with ``--listing`` its SASS).

@@ -626,3 +626,24 @@ def test_certificate_falls_back_here_when_the_executor_is_gone():
         ex.shutdown(wait=True)
     closed, here = _certificate_executor_runs(ex)           # shut down: submit raises RuntimeError
     assert closed.certificate == here.certificate
+
+
+def test_certificate_falls_back_here_when_its_process_dies_while_computing():
+    """A Future whose pool broke after taking the certificate (BrokenProcessPool from result()): computed
+    here, the same dict; any other error of the certificate itself is raised, not hidden."""
+    from concurrent.futures import Future
+    from concurrent.futures.process import BrokenProcessPool
+
+    class Failing:
+        def __init__(self, error):
+            self.error = error
+
+        def submit(self, fn, *args, **kw):
+            f = Future()
+            f.set_exception(self.error)
+            return f
+
+    died, here = _certificate_executor_runs(Failing(BrokenProcessPool("killed")))
+    assert died.certificate == here.certificate
+    with pytest.raises(ValueError, match="bad input"):
+        _certificate_executor_runs(Failing(ValueError("bad input")))

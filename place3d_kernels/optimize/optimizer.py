@@ -568,12 +568,10 @@ def _certificate_inputs(state, search, steps, lam, delta) -> tuple:
 
 def _submit_certificate(executor, state, search, steps, lam, delta):
     """The certificate handed to ``executor`` (a Future), or None where it cannot take it (a broken pool)."""
-    from concurrent.futures.process import BrokenProcessPool
-
     U, G, feas, kw = _certificate_inputs(state, search, steps, lam, delta)
     try:
-        return executor.submit(certify, np.asarray(U), G, feas, **kw)
-    except (BrokenProcessPool, RuntimeError):       # broken, or shut down: computed here instead
+        return executor.submit(certify, U, G, feas, **kw)
+    except RuntimeError:        # a broken pool (BrokenProcessPool) or one shut down: computed here instead
         return None
 
 
