@@ -83,6 +83,7 @@ from place3d_kernels.kernel_bench import machine_info
 # the kernels module beside this file (a script's own folder is on the path; an importing test's is not)
 if str(Path(__file__).resolve().parent) not in sys.path:
     sys.path.append(str(Path(__file__).resolve().parent))
+import gpu_dense_near_kernels  # noqa: E402
 import sass_hot_path  # noqa: E402
 from gpu_dense_lean_kernels import make_eager_skip, make_lean, make_walk_only  # noqa: E402
 from gpu_dense_round7_kernels import make_headless  # noqa: E402
@@ -131,6 +132,10 @@ class Workload:
             wp.array(masks.view(np.uint64), dtype=wp.uint64, device=device),
             wp.array(np.asarray(psog.weights).reshape(-1).astype(np.int64), dtype=wp.int64, device=device),
             int(self.words)]
+        self.shape, self.bricks = spec.shape, (bx, by, bz)
+        table = gpu_dense_near_kernels.lattice(lidar.elevations, lidar.azimuths)
+        self.near_table = None if table is None else (wp.array(table[0], dtype=wp.float32, device=device),
+                                                      wp.array(table[1], dtype=wp.int32, device=device), table[2])
         self.bits = wp.zeros(self.P * self.words, dtype=wp.uint32, device=device)
         self.sums = wp.zeros(self.P, dtype=wp.int64, device=device)
         self.counts = wp.zeros(self.P, dtype=wp.int64, device=device)
@@ -159,6 +164,15 @@ class Workload:
         if v["kind"] == "shipped":
             wp.launch(self.backend.score_gpu.score_kernel_gpu, dim=self.n_rays, device=self.device, inputs=io,
                       block_dim=BLOCK_DIM)
+        elif v["kind"] == "near":
+            # the near field (gpu_dense_near_kernels.py) with boxes of half-width near_h / near_hz, then the
+            # walks from them
+            nf = gpu_dense_near_kernels
+            near = nf.launch(self.device, self.near_table, self.inputs[0], self.inputs[1], self.inputs[2], self.L,
+                             self.inputs[4], self.inputs[5], self.shape, self.bricks, self.inputs[11],
+                             self.inputs[12], self.words, self.bits, self.sums, v["near_h"], v["near_hz"])
+            wp.launch(nf.score_kernel_near, dim=self.n_rays, device=self.device,
+                      inputs=io + [near, v["near_h"], v["near_hz"]], block_dim=BLOCK_DIM)
         elif v["kind"] == "lean":
             if self.words >= 2 ** 31:
                 raise ValueError(f"{self.words} bitset words per candidate: the lean kernels keep a brick's word "
@@ -237,6 +251,10 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     for mode in ("head1", "headless", "headless-guard", "early", "prefetch", "prefetch-l2", "nosum", "nosum-head1"):
         for maxreg in (56, 64):
             out[f"{mode}-r{maxreg}"] = {"kind": "lean", "body": mode, "skip": False, "ahead": False, "maxreg": maxreg}
+    # eighth round (gpu_dense_near_kernels.py): voxels near each LiDAR marked per voxel, the walks starting
+    # after each LiDAR's near box (half-widths in voxels, x and y / z)
+    for h in (16, 32, 48, 64):
+        out[f"near-h{h}"] = {"kind": "near", "near_h": h, "near_hz": 64}
     out["walk-only"] = {"kind": "lean", "body": "walk", "skip": False, "ahead": False, "maxreg": 72,
                         "diagnostic": "floor: today's step (walk32_next_sel) and stop read only, no bitset, no "
                                       "weights; sums are step counts (wrong on purpose, not compared)"}
@@ -253,7 +271,7 @@ def build(vs: dict) -> None:
     """Attach each variant's kernel (one module per kernel and parameter set)."""
     made = {}
     for v in vs.values():
-        if v["kind"] == "shipped":
+        if v["kind"] in ("shipped", "near"):
             continue
         key = (v["kind"],) + tuple(v.get(k) for k in PARAMS)
         if key not in made:

@@ -1,6 +1,7 @@
-"""The dense-rig study's kernel variants (bench/gpu_dense_variants*.py, bench/gpu_dense_lean_kernels.py) are
-exact: tiled ray order, persistent threads, lean address arithmetic, full-brick skips and loads one step
-ahead return the shipped score kernel's int64 sums and covered-voxel counts, bit for bit.
+"""The dense-rig study's kernel variants (bench/gpu_dense_variants*.py, bench/gpu_dense_lean_kernels.py,
+bench/gpu_dense_near_kernels.py) are exact: tiled ray order, persistent threads, lean address arithmetic,
+full-brick skips, loads one step ahead and the near field return the shipped score kernel's int64 sums and
+covered-voxel counts, bit for bit.
 
 Runs on Warp's CPU device (small and fast) and, where there is one, on CUDA, so the GPU run checks the
 same variants before timing them.
@@ -18,6 +19,7 @@ import place3d_kernels as p3k
 
 wp = pytest.importorskip("warp")
 sys.path.append(str(Path(__file__).resolve().parents[1] / "bench"))     # appended: shadows nothing
+import gpu_dense_near_kernels  # noqa: E402
 from gpu_dense_lean_kernels import walk32_next_lean, walk32_skip_brick, walk32_step_or_jump  # noqa: E402
 from gpu_dense_round4_kernels import inside, walk32x_from, walk32x_next, walk32x_next_med  # noqa: E402
 from gpu_dense_variants import Workload, build, make_lean_kind, variants  # noqa: E402
@@ -394,3 +396,109 @@ def test_a_tile_that_does_not_fit_is_refused(small):
     wl = Workload(psog, p3k.LidarModel.uniform(6, (-25, 15), 64, max_range=100.0), pop[:1], "cpu")
     with pytest.raises(ValueError, match="does not tile the 6 x 64 LiDAR"):
         wl.check_tile(4)
+
+
+def test_near_field_marks_the_walks_bits():
+    """The near field (bench/gpu_dense_near_kernels.py: voxels near each LiDAR marked per voxel, the walks
+    starting after the box) sets exactly the shipped kernel's bits, sums and counts: on a 0.1 m grid, with
+    LiDAR origins on voxel planes (a start that depends on the ray's sign), axis-aligned rays (yaw and roll
+    0: direction components exactly 0, and ties between axes) and a rolled rig."""
+    d0 = p3k.DEFAULT_GRID
+    grid = p3k.Grid(d0.lower, d0.upper, 0.1)
+    psog = p3k.scene_psog(p3k.scene.town(seed=0), grid=grid, backend="warp:cpu")
+    lidar = p3k.LidarModel.uniform(41, (-25, 15), 128, max_range=100.0)       # a channel at exactly 0 degrees
+    rig = p3k.Placement.load("pyramid").poses
+    pop = np.stack([rig, rig])
+    pop[1, :, :3] += 0.05          # onto voxel planes
+    pop[1, :, 3:] = 0.0
+    wl = Workload(psog, lidar, pop, "cpu")
+    v = {"kind": "near", "near_h": 16, "near_hz": 16}
+    wl.reset()
+    wl.launch({"kind": "shipped"})
+    want_bits, want = wl.bits.numpy().copy(), wl.result()
+    wl.reset()
+    near = gpu_dense_near_kernels.launch("cpu", wl.near_table, wl.inputs[0], wl.inputs[1], wl.inputs[2], wl.L,
+                                         wl.inputs[4], wl.inputs[5], wl.shape, wl.bricks, wl.inputs[11],
+                                         wl.inputs[12], wl.words, wl.bits, wl.sums, 16, 16)
+    n = near.numpy()
+    rigs = wl.P * wl.L
+    assert (n[rigs:] < 16 - 1).all() and (n[:rigs] < wl.shape[2]).all(), "every LiDAR must get a box"
+    assert wl.bits.numpy().any(), "the cover kernel must mark voxels"
+    wl.reset()
+    wl.launch(v)
+    np.testing.assert_array_equal(wl.bits.numpy(), want_bits)
+    got = wl.result()
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+@wp.kernel
+def _near_box_kernel(o: wp.array(dtype=wp.vec3d), d: wp.array(dtype=wp.vec3d), s: wp.float64, n: wp.int32,
+                     r: wp.int32, bad: wp.array(dtype=wp.int32)):
+    # walk ray tid through the box of +-r voxels around its origin's voxel: every voxel of the box is
+    # visited exactly when visits() says so, and leave_box lands on the walk's state after the box
+    tid = wp.tid()
+    sf = wp.float32(s)
+    t_max = wp.float64(1.0e3)
+    w0 = shipped_k.walk32_begin(o[tid], d[tid], t_max, s, sf, n, n, n)
+    c = gpu_dense_near_kernels.near_origin(o[tid], s, n, n, n)
+    b = gpu_dense_near_kernels.NearBox()
+    b.x0 = c[0] - r
+    b.x1 = c[0] + r
+    b.y0 = c[1] - r
+    b.y1 = c[1] + r
+    b.z0 = c[2] - r
+    b.z1 = c[2] + r
+    w = score_gpu.walk_from(w0)
+    jumped = gpu_dense_near_kernels.leave_box(w, b, o[tid], d[tid], w0.t1d, s, sf)
+    seen = wp.int32(0)
+    for _ in range(3 * n + 3):
+        if not score_gpu.inside(w, n, n, n):
+            break
+        if w.i < b.x0 or w.i > b.x1 or w.j < b.y0 or w.j > b.y1 or w.k < b.z0 or w.k > b.z1:
+            break
+        seen += 1
+        if not gpu_dense_near_kernels.visits(w.i, w.j, w.k, o[tid], d[tid], s, n, n, n):
+            bad[tid] = 1
+        w = score_gpu.next_step(w, o[tid], d[tid], w0.t1d, s, sf)
+    # the walk's first voxel after the box (or its end) is where leave_box put it
+    if jumped.i != w.i or (w.i != score_gpu.DEAD and (jumped.j != w.j or jumped.k != w.k or jumped.ki != w.ki
+                                                      or jumped.kj != w.kj or jumped.kk != w.kk or jumped.tx != w.tx
+                                                      or jumped.ty != w.ty or jumped.tz != w.tz)):
+        bad[tid] = 2
+    # and visits() claims no other voxel of the box
+    count = wp.int32(0)
+    for q in range((2 * r + 1) * (2 * r + 1) * (2 * r + 1)):
+        i = b.x0 + q / ((2 * r + 1) * (2 * r + 1))
+        j = b.y0 + (q / (2 * r + 1)) % (2 * r + 1)
+        k = b.z0 + q % (2 * r + 1)
+        if gpu_dense_near_kernels.visits(i, j, k, o[tid], d[tid], s, n, n, n):
+            count += 1
+    if count != seen:
+        bad[tid] = 3
+
+
+def test_near_box_voxels_and_exit_are_the_walks():
+    """visits() and leave_box() against the walk itself, on rays made of ties: origins on voxel corners,
+    edges and faces, directions with equal components (a ray through voxel edges and corners, whose axes
+    step together), components exactly 0, both signs; and random rays."""
+    rng = np.random.default_rng(5)
+    s, n = 0.1, 64
+    a = 1.0 / np.sqrt(2.0)
+    b3 = 1.0 / np.sqrt(3.0)
+    dirs = [(1, 0, 0), (0, -1, 0), (0, 0, 1), (a, a, 0), (-a, a, 0), (a, 0, -a), (0, -a, -a), (b3, b3, b3),
+            (-b3, b3, -b3), (b3, -b3, b3), (0.6, 0.8, 0.0), (0.48, 0.6, 0.64)]
+    dirs = np.array([d for d in dirs] + [tuple(-np.array(d)) for d in dirs], dtype=np.float64)
+    starts = np.array([(3.2, 3.2, 3.2), (3.2, 3.25, 3.2), (3.25, 3.25, 3.2), (3.21, 3.2, 3.27), (3.25, 3.25, 3.25)])
+    o = np.repeat(starts, len(dirs), axis=0)
+    d = np.tile(dirs, (len(starts), 1))
+    rd = rng.normal(size=(400, 3))
+    o = np.vstack([o, 3.2 + rng.uniform(-0.1, 0.1, (400, 3)) * rng.integers(0, 2, (400, 3))])
+    d = np.vstack([d, rd / np.linalg.norm(rd, axis=1)[:, None]])
+    assert (d[:, 0] == d[:, 1]).sum() >= 4, "the rays must hold exact ties"
+    for r in (1, 3):
+        bad = wp.zeros(len(o), dtype=wp.int32)
+        wp.launch(_near_box_kernel, dim=len(o), inputs=[wp.array(o, dtype=wp.vec3d), wp.array(d, dtype=wp.vec3d),
+                                                         s, n, r, bad])
+        got = bad.numpy()
+        assert not got.any(), f"r={r}: rays {np.nonzero(got)[0][:8]} codes {got[np.nonzero(got)[0][:8]]}"
