@@ -44,6 +44,10 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
   prefetch hint for the brick ahead on entering a brick) and ``nosum`` / ``nosum-head1`` (no running sum in
   the loop).
 
+* eighth round (``gpu_dense_near_kernels.py``): ``near-hN``, the near field: the voxels of a box of half-width N
+  voxels around each LiDAR (free of stop bits) marked one thread per voxel, and every ray's walk started on its
+  first voxel after the box (``dense_near_parts.py`` times its launches one by one).
+
 Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU; with
 ``cuobjdump`` on PATH also the common step's instruction count, and with ``--listing`` its SASS).
 
@@ -335,7 +339,8 @@ def register_report(vs: dict, arch: int = 90, listing: bool = False) -> dict:
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name, v in vs.items():
-            kern = Workload.shipped_kernel() if v["kind"] == "shipped" else v["kernel"]
+            kern = (Workload.shipped_kernel() if v["kind"] == "shipped"
+                    else gpu_dense_near_kernels.score_kernel_near if v["kind"] == "near" else v["kernel"])
             [ptx] = wp.compile_aot_module(kern.module, device=None, arch=arch, module_dir=f"{tmp}/{name}",
                                           use_ptx=True)
             text = Path(ptx).read_bytes().replace(b"\0", b"").decode()
