@@ -50,8 +50,6 @@ def main() -> None:
     wl = Workload(psog, lidar, dense_population(args.pop), dev)
     g = wl.backend.score_gpu
     io = wl.inputs
-    nx, ny, nz = wl.shape
-    bnx, bny, bnz = wl.bricks
     rigs = wl.P * wl.L
 
     def timed(fn):
@@ -72,36 +70,30 @@ def main() -> None:
     rows = {}
     for h in [0] + [int(x) for x in args.h.split(",") if x]:
         parts = {"carve": [], "cover": [], "walk": []}
-        lx, ly, lz = nf.launch_shape(max(h, 1), args.hz, bnz)
         for _ in range(args.repeat + 1):
             wl.reset()
             if h == 0:
                 t, _ = timed(lambda: walk(None, 0, 0))
                 parts["walk"].append(t)
                 continue
-            near = wp.empty(2 * rigs, dtype=wp.int32, device=dev)
-            levels = wp.zeros(rigs * (2 * args.hz + 1), dtype=wp.int32, device=dev)
+            got = {}
 
             def carve():
-                wp.launch(nf.near_levels_kernel, dim=rigs * lx * ly * lz, device=dev,
-                          inputs=[io[2], io[5], nx, ny, nz, bnx, bny, bnz, io[11], h, args.hz, lx, ly, lz, levels])
-                wp.launch(nf.near_choose_kernel, dim=rigs, device=dev,
-                          inputs=[io[2], io[5], nx, ny, nz, h, args.hz, levels, near])
+                got["near"] = nf.carve(dev, io[2], io[5], wl.shape, wl.bricks, io[11], h, args.hz)
 
             def cover():
-                wp.launch(nf.near_cover_kernel, dim=rigs * lx * ly * lz * 32, device=dev,
-                          inputs=[io[0], io[1], io[2], wl.L, io[4], io[5], nx, ny, nz, bnx, bny, bnz, io[11], io[12],
-                                  wl.words, wl.bits, wl.sums, near, h, args.hz, lx, ly, lz] + list(wl.near_table))
+                nf.cover(dev, got["near"], wl.near_table, io[0], io[1], io[2], wl.L, io[4], io[5], wl.shape, wl.bricks,
+                         io[11], io[12], wl.words, wl.bits, wl.sums, h, args.hz)
 
             parts["carve"].append(timed(carve)[0])
             parts["cover"].append(timed(cover)[0])
-            parts["walk"].append(timed(lambda: walk(near, h, args.hz))[0])
+            parts["walk"].append(timed(lambda: walk(got["near"], h, args.hz))[0])
         for k in parts:
             parts[k] = parts[k][1:]
         med = {k: 1e3 * statistics.median(v) / wl.P if v else 0.0 for k, v in parts.items()}
         extra = {}
         if h:
-            n = near.numpy()
+            n = got["near"].numpy()
             extra = {"floors": n[:rigs].tolist(), "cuts": n[rigs:].tolist()}
         rows[h] = {"ms_per_rig": med, "runs_s": parts, **extra}
         print(f"h={h:3d}  " + "  ".join(f"{k} {v:.3f}" for k, v in med.items())

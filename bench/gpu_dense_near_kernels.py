@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import warp as wp
 
 from place3d_kernels.backends.warp.kernels import INF64, _sign, _start_index, next_t, walk32_begin
@@ -238,48 +239,35 @@ def near_choose_kernel(pos: wp.array(dtype=wp.vec3d), s: wp.float64, nx: wp.int3
 
 
 @wp.func
+def axis_span(i: wp.int32, o: wp.float64, d: wp.float64, s: wp.float64, n: wp.int32):
+    # along one axis: (reachable, entry, exit) of voxel index i for the walk of ray (o, d) from t0 = 0 (entry
+    # 0 where i is the first voxel; exit INF64 on an axis the ray never steps along)
+    si = _sign(d)
+    i0 = _start_index(o, d, s, n)
+    if si == 0:
+        return i == i0, wp.float64(0.0), INF64
+    a = (i - i0) * si
+    if a < 0:                       # behind the ray's first voxel: no division
+        return False, wp.float64(0.0), wp.float64(0.0)
+    e = wp.float64(0.0)
+    if a > 0:
+        e = next_t(i - si, si, o, d, s)
+    return True, e, next_t(i, si, o, d, s)
+
+
+@wp.func
 def visits(i: wp.int32, j: wp.int32, k: wp.int32, o: wp.vec3d, d: wp.vec3d, s: wp.float64, nx: wp.int32,
            ny: wp.int32, nz: wp.int32) -> wp.bool:
     # the walk of ray (o, d) from t0 = 0 (its origin inside the grid) takes voxel (i, j, k): E < X (module doc)
-    e = wp.float64(0.0)
-    x = INF64
-    si = _sign(d[0])
-    i0 = _start_index(o[0], d[0], s, nx)
-    if si == 0:
-        if i != i0:
-            return False
-    else:
-        a = (i - i0) * si
-        if a < 0:
-            return False
-        x = wp.min(x, next_t(i, si, o[0], d[0], s))
-        if a > 0:
-            e = wp.max(e, next_t(i - si, si, o[0], d[0], s))
-    sj = _sign(d[1])
-    j0 = _start_index(o[1], d[1], s, ny)
-    if sj == 0:
-        if j != j0:
-            return False
-    else:
-        a = (j - j0) * sj
-        if a < 0:
-            return False
-        x = wp.min(x, next_t(j, sj, o[1], d[1], s))
-        if a > 0:
-            e = wp.max(e, next_t(j - sj, sj, o[1], d[1], s))
-    sk = _sign(d[2])
-    k0 = _start_index(o[2], d[2], s, nz)
-    if sk == 0:
-        if k != k0:
-            return False
-    else:
-        a = (k - k0) * sk
-        if a < 0:
-            return False
-        x = wp.min(x, next_t(k, sk, o[2], d[2], s))
-        if a > 0:
-            e = wp.max(e, next_t(k - sk, sk, o[2], d[2], s))
-    return e < x
+    # an axis that rules the voxel out ends the test before the next axis's divisions
+    ok, ex, xx = axis_span(i, o[0], d[0], s, nx)
+    if not ok:
+        return False
+    ok, ey, xy = axis_span(j, o[1], d[1], s, ny)
+    if not ok:
+        return False
+    ok, ez, xz = axis_span(k, o[2], d[2], s, nz)
+    return ok and wp.max(ex, wp.max(ey, ez)) < wp.min(xx, wp.min(xy, xz))
 
 
 @wp.func
@@ -492,8 +480,6 @@ def score_kernel_near(
 def lattice(elevations, azimuths):
     """``(el_sorted, el_order, n_az)`` for the cover kernel, or None where the near field does not apply:
     azimuths other than ``a * 2 pi / A`` (a full turn from 0, as ``LidarModel.uniform``), or no rays."""
-    import numpy as np
-
     el = np.asarray(elevations, dtype=np.float64).reshape(-1)
     az = np.asarray(azimuths, dtype=np.float64).reshape(-1)
     if not len(el) or not len(az) or not np.all(np.isfinite(el)):
@@ -504,14 +490,13 @@ def lattice(elevations, azimuths):
     return el[order].astype(np.float32), order, len(az)
 
 
-def launch(device, table, sd_a, rot, pos, n_lidars: int, t_max: float, s: float, shape, bricks, masks64, weights,
-           words: int, bits, sums, near_h: int = NEAR_H, near_hz: int = NEAR_HZ):
-    """Carve every LiDAR's near box and mark its voxels (sums get their entropy); returns the ``near`` array
-    that ``score_kernel_near`` takes with ``near_h`` and ``near_hz``. ``table``: uploaded ``lattice`` arrays
-    ``(el_sorted, el_order, n_az)``; ``bricks``: the grid's bricks per axis."""
+def carve(device, pos, s: float, shape, bricks, masks64, near_h: int = NEAR_H, near_hz: int = NEAR_HZ):
+    """Every LiDAR's near box (``near_levels_kernel``, ``near_choose_kernel``): the ``near`` array that
+    ``near_cover_kernel`` and ``score_kernel_near`` take with ``near_h`` and ``near_hz``. ``bricks``: the grid's
+    bricks per axis."""
     nx, ny, nz = (int(v) for v in shape)
     bnx, bny, bnz = (int(v) for v in bricks)
-    rigs = rot.shape[0]
+    rigs = pos.shape[0]
     lx, ly, lz = launch_shape(near_h, near_hz, bnz)
     near = wp.empty(2 * rigs, dtype=wp.int32, device=device)
     levels = wp.zeros(rigs * (2 * near_hz + 1), dtype=wp.int32, device=device)
@@ -519,9 +504,27 @@ def launch(device, table, sd_a, rot, pos, n_lidars: int, t_max: float, s: float,
               inputs=[pos, float(s), nx, ny, nz, bnx, bny, bnz, masks64, int(near_h), int(near_hz), lx, ly, lz, levels])
     wp.launch(near_choose_kernel, dim=rigs, device=device,
               inputs=[pos, float(s), nx, ny, nz, int(near_h), int(near_hz), levels, near])
+    return near
+
+
+def cover(device, near, table, sd_a, rot, pos, n_lidars: int, t_max: float, s: float, shape, bricks, masks64,
+          weights, words: int, bits, sums, near_h: int = NEAR_H, near_hz: int = NEAR_HZ) -> None:
+    """Mark the voxels of the boxes ``near`` (from ``carve``) that some ray visits; sums get their entropy.
+    ``table``: uploaded ``lattice`` arrays ``(el_sorted, el_order, n_az)``."""
+    nx, ny, nz = (int(v) for v in shape)
+    bnx, bny, bnz = (int(v) for v in bricks)
+    lx, ly, lz = launch_shape(near_h, near_hz, bnz)
     el_sorted, el_order, n_az = table
-    wp.launch(near_cover_kernel, dim=rigs * lx * ly * lz * 32, device=device,
+    wp.launch(near_cover_kernel, dim=rot.shape[0] * lx * ly * lz * 32, device=device,
               inputs=[sd_a, rot, pos, int(n_lidars), float(t_max), float(s), nx, ny, nz, bnx, bny, bnz, masks64,
                       weights, int(words), bits, sums, near, int(near_h), int(near_hz), lx, ly, lz, el_sorted,
                       el_order, int(n_az)])
+
+
+def launch(device, table, sd_a, rot, pos, n_lidars: int, t_max: float, s: float, shape, bricks, masks64, weights,
+           words: int, bits, sums, near_h: int = NEAR_H, near_hz: int = NEAR_HZ):
+    """``carve`` then ``cover``; returns the ``near`` array that ``score_kernel_near`` takes."""
+    near = carve(device, pos, s, shape, bricks, masks64, near_h, near_hz)
+    cover(device, near, table, sd_a, rot, pos, n_lidars, t_max, s, shape, bricks, masks64, weights, words, bits,
+          sums, near_h, near_hz)
     return near
