@@ -2,7 +2,8 @@
 """Where the dense rig's near field spends its time (issue 17, goal 3): each launch of the near field timed
 alone on the goal workload (``gpu_dense_variants.py``'s: 16 dense rigs, 0.05 m grid), per near box size.
 
-For each ``--h`` (half-width in voxels; 0 is the shipped kernel, walking from the origins): the carve
+For each ``--h`` (half-width in voxels; 0 is the thirteenth session's shipped kernel, 4 x 4 x 2 bricks, rebuilt
+as ``gpu_dense_round9_kernels.make_b32``'s control, walking from the origins): the carve
 kernels, the cover kernel and the walks after the boxes (``gpu_dense_near_kernels.py``), each launch
 timed alone (synchronised, median of ``--repeat`` after one warm-up), and the boxes' floors and cuts.
 Prints a table; writes
@@ -26,6 +27,7 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import place3d_kernels as p3k  # noqa: E402
 import gpu_dense_near_kernels as nf  # noqa: E402
+import gpu_dense_round9_kernels as r9  # noqa: E402
 from gpu_dense_variants import Workload, dense_population  # noqa: E402
 from place3d_kernels.kernel_bench import machine_info  # noqa: E402
 
@@ -51,6 +53,7 @@ def main() -> None:
     g = wl.backend.score_gpu
     io = wl.inputs
     rigs = wl.P * wl.L
+    round8 = r9.make_b32((2, 2, 1), "xyz", 64)
 
     def timed(fn):
         wp.synchronize_device(dev)
@@ -60,8 +63,8 @@ def main() -> None:
         return time.perf_counter() - t, out
 
     def walk(near, h, hz):
-        if h == 0:      # the shipped kernel
-            wp.launch(g.score_kernel_gpu, dim=wl.n_rays, device=dev, inputs=io + [wl.bits, wl.sums],
+        if h == 0:      # the kernel the near field was built on (4 x 4 x 2 bricks, as its inputs)
+            wp.launch(round8, dim=wl.n_rays, device=dev, inputs=io + [wl.bits, wl.sums, wl.stats],
                       block_dim=g.SCORE_BLOCK_DIM)
         else:
             wp.launch(nf.score_kernel_near, dim=wl.n_rays, device=dev, inputs=io + [wl.bits, wl.sums, near, h, hz],

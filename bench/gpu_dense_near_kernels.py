@@ -47,10 +47,10 @@ import math
 import numpy as np
 import warp as wp
 
+from gpu_dense_round7_kernels import flush_brick32, word32
 from place3d_kernels.backends.warp.kernels import INF64, _sign, _start_index, next_t, walk32_begin
-from place3d_kernels.backends.warp.score_gpu import (DEAD, SCORE_MAX_REGISTERS, WalkGPU, atomic_or_word,
-                                                     flush_brick32, inside, load_mask, load_word, next_step,
-                                                     walk_from, word32, word_address)
+from place3d_kernels.backends.warp.score_gpu import (DEAD, WalkGPU, atomic_or_word, inside, load_mask, load_word,
+                                                     next_step, walk_from, word_address)
 
 # the score kernel's module options (no FMA contraction: the ray directions must round as the walk's)
 wp.set_module_options({"enable_backward": False, "fuse_fp": False, "block_dim": 128})
@@ -411,7 +411,7 @@ def near_cover_kernel(
             atomic_or_word(p, word, word_bits)
 
 
-@wp.kernel(cuda_max_registers=SCORE_MAX_REGISTERS)
+@wp.kernel(cuda_max_registers=64)     # the register cap of the kernel it was built on (4 x 4 x 2 bricks)
 def score_kernel_near(
     sensor_dirs: wp.array(dtype=wp.vec3d),      # (C*A,)
     rot: wp.array(dtype=wp.mat33d),             # (P*L,)

@@ -45,10 +45,18 @@ from __future__ import annotations
 
 import warp as wp
 
+from gpu_dense_lean_kernels import flush_brick32
 from gpu_dense_variants_kernels import OPTS
 from place3d_kernels.backends.warp.kernels import walk32_begin
-from place3d_kernels.backends.warp.score_gpu import (certain_step, exact_step, flush_brick32, load_mask,
-                                                     load_word, next_step, walk_from, word32, word_address)
+from place3d_kernels.backends.warp.score_gpu import (WalkGPU, certain_step, exact_step, load_mask, load_word,
+                                                     next_step, walk_from, word_address)
+
+@wp.func
+def word32(w: WalkGPU, bny: wp.int32, bnz: wp.int32) -> wp.int32:
+    # the 4 x 4 x 2 brick's word within the candidate's bitset (kernels.brick_word in int32): the shipped
+    # kernel's until the ninth round's flat bricks
+    return ((w.i >> 2) * bny + (w.j >> 2)) * bnz + (w.k >> 1)
+
 
 MODES = ("head1", "headless", "headless-guard", "early", "prefetch", "prefetch-l2", "nosum", "nosum-head1")
 

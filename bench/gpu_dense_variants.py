@@ -81,7 +81,7 @@ import warp as wp
 
 import place3d_kernels as p3k
 from place3d_kernels.backends.base import rotation_matrices, sensor_directions
-from place3d_kernels.backends.bricks import brick_masks, brick_shape
+from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_brick_masks, flat_shape
 from place3d_kernels.kernel_bench import machine_info
 
 # the kernels module beside this file (a script's own folder is on the path; an importing test's is not)
@@ -91,6 +91,7 @@ import gpu_dense_near_kernels  # noqa: E402
 import sass_hot_path  # noqa: E402
 from gpu_dense_lean_kernels import make_eager_skip, make_lean, make_walk_only  # noqa: E402
 from gpu_dense_round7_kernels import make_headless  # noqa: E402
+import gpu_dense_round9_kernels as r9  # noqa: E402
 from gpu_dense_round4_kernels import make_lean32x  # noqa: E402
 from gpu_dense_variants_kernels import make_persistent, make_tiled  # noqa: E402
 
@@ -137,6 +138,16 @@ class Workload:
             wp.array(np.asarray(psog.weights).reshape(-1).astype(np.int64), dtype=wp.int64, device=device),
             int(self.words)]
         self.shape, self.bricks = spec.shape, (bx, by, bz)
+        self.psog = psog
+        # the shipped kernel's own inputs: flat 8 x 4 x 1 bricks (bricks.flat_brick_masks) and their bitset
+        fx, fy, fz = flat_shape(spec.shape)
+        self.flat_words = fx * fy * fz
+        self.flat = (fx, fy, wp.array(flat_brick_masks(spec.shape, np.asarray(psog.weights).reshape(-1) != 0,
+                                                       np.asarray(psog.stop_mask).reshape(-1) != 0),
+                                      dtype=wp.uint64, device=device),
+                     wp.zeros(self.P * self.flat_words, dtype=wp.uint32, device=device))
+        self.b64 = {}            # ninth round: per brick layout (masks, bits, bny, bnz, words)
+        self.b32 = {}            # ninth round: per (layout, order, swz) (masks, (n1, n2), words, bits)
         table = gpu_dense_near_kernels.lattice(lidar.elevations, lidar.azimuths)
         self.near_table = None if table is None else (wp.array(table[0], dtype=wp.float32, device=device),
                                                       wp.array(table[1], dtype=wp.int32, device=device), table[2])
@@ -160,13 +171,61 @@ class Workload:
     def reset(self) -> None:
         """Zero the bitsets, sums, counts and the ray counter (outside the timed region)."""
         self.bits.zero_(), self.sums.zero_(), self.counts.zero_(), self.counter.zero_(), self.stats.zero_()
+        self.flat[3].zero_()
+        for b in self.b64.values():
+            b[1].zero_()
+        for b in self.b32.values():
+            b[3].zero_()
+
+    def bricks32(self, layout, order, swz) -> tuple:
+        """The ninth round's inputs for 32-voxel bricks of 2^``layout`` voxels numbered in ``order`` in
+        super-blocks of 2^``swz`` bricks: masks, (n1, n2), words per candidate, a zeroed bitset."""
+        key = (tuple(layout), order, tuple(swz))
+        if key not in self.b32:
+            spec = self.psog.grid.spec
+            masks = r9.brick_masks32(spec.shape, layout, order, np.asarray(self.psog.weights).reshape(-1) != 0,
+                                     np.asarray(self.psog.stop_mask).reshape(-1) != 0, swz)
+            self.b32[key] = (wp.array(masks, dtype=wp.uint64, device=self.device),
+                             r9.order_counts(spec.shape, layout, order, swz), len(masks),
+                             wp.zeros(self.P * len(masks), dtype=wp.uint32, device=self.device))
+        return self.b32[key]
+
+    def bricks64(self, layout) -> tuple:
+        """The ninth round's inputs for 64-voxel bricks of 2^``layout`` voxels: masks (pairs per brick), a
+        zeroed uint64 bitset per candidate, bricks along y and z, words per candidate."""
+        layout = tuple(layout)
+        if layout not in self.b64:
+            spec = self.psog.grid.spec
+            bx, by, bz = r9.brick_shape64(spec.shape, layout)
+            masks = r9.brick_masks64(spec.shape, layout, np.asarray(self.psog.weights).reshape(-1) != 0,
+                                     np.asarray(self.psog.stop_mask).reshape(-1) != 0)
+            words = bx * by * bz
+            self.b64[layout] = (wp.array(masks, dtype=wp.uint64, device=self.device),
+                                wp.zeros(self.P * words, dtype=wp.uint64, device=self.device), by, bz, words)
+        return self.b64[layout]
 
     def launch(self, v: dict) -> None:
         """Launch variant ``v`` (a dict from ``variants``) on zeroed outputs and count the covered voxels
         (the shipped ``count_bits_kernel``, part of every variant's time, as in gpu_score_variants.py)."""
         io = self.inputs + [self.bits, self.sums]
-        if v["kind"] == "shipped":
-            wp.launch(self.backend.score_gpu.score_kernel_gpu, dim=self.n_rays, device=self.device, inputs=io,
+        bits, words = self.bits, self.words
+        if v["kind"] == "b32":
+            masks, (n1, n2), words, bits = self.bricks32(v["layout"], v["order"], v.get("swz", (0, 0, 0)))
+            io = self.inputs[:9] + [n1, n2, masks, self.inputs[12], words, bits, self.sums, self.stats]
+            wp.launch(v["kernel"], dim=self.n_rays, device=self.device, inputs=io,
+                      block_dim=v.get("block_dim", BLOCK_DIM))
+        elif v["kind"] == "b64":
+            masks, bits64, by, bz, words64 = self.bricks64(v["layout"])
+            io = self.inputs[:9] + [by, bz, masks, self.inputs[12], words64, bits64, self.sums, self.stats]
+            wp.launch(v["kernel"], dim=self.n_rays, device=self.device, inputs=io, block_dim=BLOCK_DIM)
+            # the same count kernel on the same bytes, as 32-bit words
+            bits, words = wp.array(ptr=bits64.ptr, dtype=wp.uint32, shape=(2 * bits64.shape[0],),
+                                   device=self.device), 2 * words64
+        elif v["kind"] == "shipped":
+            fx, fy, masks, bits = self.flat
+            words = self.flat_words
+            wp.launch(self.backend.score_gpu.score_kernel_gpu, dim=self.n_rays, device=self.device,
+                      inputs=self.inputs[:9] + [fx, fy, masks, self.inputs[12], words, bits, self.sums],
                       block_dim=BLOCK_DIM)
         elif v["kind"] == "near":
             # the near field (gpu_dense_near_kernels.py) with boxes of half-width near_h / near_hz, then the
@@ -189,9 +248,9 @@ class Workload:
         else:
             wp.launch(v["kernel"], dim=v["threads"], device=self.device,
                       inputs=io + [self.n_az, self.n_rays, v["threads"], self.counter], block_dim=BLOCK_DIM)
-        chunks = -(-self.words // self.backend.k.COUNT_WORDS)
+        chunks = -(-words // self.backend.k.COUNT_WORDS)
         wp.launch(self.backend.k.count_bits_kernel, dim=self.P * chunks, device=self.device,
-                  inputs=[self.bits, int(self.words), int(chunks), int(self.backend.k.COUNT_WORDS), self.counts])
+                  inputs=[bits, int(words), int(chunks), int(self.backend.k.COUNT_WORDS), self.counts])
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
         return self.sums.numpy().copy(), self.counts.numpy().copy()
@@ -259,6 +318,31 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     # after each LiDAR's near box (half-widths in voxels, x and y / z)
     for h in (16, 32, 48, 64):
         out[f"near-h{h}"] = {"kind": "near", "near_h": h, "near_hz": 64}
+    # ninth round (gpu_dense_round9_kernels.py): 64-voxel bricks in 64-bit words; -late: the nonzero-weight
+    # word read at the flush only
+    for layout in r9.LAYOUTS:
+        for late in (False, True):
+            for maxreg in (64, 72, 80):
+                out[f"b64-{r9.layout_name(*layout)}{'-late' if late else ''}-r{maxreg}"] = {
+                    "kind": "b64", "layout": layout, "late": late, "maxreg": maxreg}
+    for layout, order in r9.LAYOUTS32:
+        for maxreg in (56, 64):
+            out[f"b32-{r9.layout_name(*layout)}-{order}-r{maxreg}"] = {"kind": "b32", "layout": layout,
+                                                                       "order": order, "maxreg": maxreg}
+    for layout, order in (((3, 2, 0), "zxy"), ((2, 3, 0), "zyx"), ((4, 1, 0), "zxy"), ((1, 4, 0), "zyx"),
+                          ((3, 2, 0), "xzy"), ((5, 0, 0), "zxy"), ((2, 2, 1), "xyz")):
+        for extra, opts in (("-head1", {"head1": True}), ("-free", {"head1": "free"}), ("-b64", {"block_dim": 64}),
+                            ("-b256", {"block_dim": 256})):
+            for maxreg in (56, 64):
+                out[f"b32-{r9.layout_name(*layout)}-{order}{extra}-r{maxreg}"] = {
+                    "kind": "b32", "layout": layout, "order": order, "maxreg": maxreg, **opts}
+        for maxreg in (48, 52, 60):
+            out[f"b32-{r9.layout_name(*layout)}-{order}-r{maxreg}"] = {"kind": "b32", "layout": layout, "order": order,
+                                                                       "maxreg": maxreg}
+    for swz, order in r9.SWIZZLES:
+        for maxreg in (56, 64):
+            out[f"swz-{''.join(map(str, swz))}-{order}-r{maxreg}"] = {"kind": "b32", "layout": (2, 2, 1),
+                                                                      "order": order, "swz": swz, "maxreg": maxreg}
     out["walk-only"] = {"kind": "lean", "body": "walk", "skip": False, "ahead": False, "maxreg": 72,
                         "diagnostic": "floor: today's step (walk32_next_sel) and stop read only, no bitset, no "
                                       "weights; sums are step counts (wrong on purpose, not compared)"}
@@ -268,7 +352,8 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
     return out
 
 
-PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "select", "eager", "maxreg", "body", "skip", "ahead")
+PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "select", "eager", "maxreg", "body", "skip", "ahead",
+          "layout", "late", "order", "swz", "head1", "block_dim")
 
 
 def build(vs: dict) -> None:
@@ -281,6 +366,11 @@ def build(vs: dict) -> None:
         if key not in made:
             if v["kind"] == "lean":
                 made[key] = make_lean_kind(v)
+            elif v["kind"] == "b32":
+                made[key] = r9.make_b32(v["layout"], v["order"], v["maxreg"], v.get("swz", (0, 0, 0)),
+                                        v.get("head1", False), v.get("block_dim", BLOCK_DIM))
+            elif v["kind"] == "b64":
+                made[key] = r9.make_b64(v["layout"], v["maxreg"], v["late"])
             elif v["kind"] == "tiled":
                 made[key] = make_tiled(v["maxreg"], v["tile_c"], v["select"], v["eager"])
             else:

@@ -62,7 +62,7 @@ import warp as wp
 
 import place3d_kernels as p3k
 from place3d_kernels.backends.base import rotation_matrices, sensor_directions
-from place3d_kernels.backends.bricks import brick_bits, brick_shape
+from place3d_kernels.backends.bricks import brick_bits, brick_shape, flat_brick_masks, flat_shape
 from place3d_kernels.kernel_bench import machine_info
 
 # frozen copies of the walks and score bodies the variants are built on (see that module's docstring)
@@ -773,6 +773,12 @@ def main() -> None:
     shipped_tail = lambda words: [int(by), int(bz), masks, weights, int(words)]  # noqa: E731
     masks64 = wp.array(masks.numpy().view(np.uint64), dtype=wp.uint64, device=dev)   # little-endian: stop low
     tail64 = lambda words: [int(by), int(bz), masks64, weights, int(words)]  # noqa: E731
+    # the shipped kernel's flat 8 x 4 x 1 bricks (bricks.py)
+    fx, fy, fz = flat_shape(spec.shape)
+    flat64_words = fx * fy * fz
+    flat64 = wp.array(flat_brick_masks(spec.shape, psog.weights.reshape(-1) != 0, stop_np != 0), dtype=wp.uint64,
+                      device=dev)
+    flat64_tail = lambda words: [int(fx), int(fy), flat64, weights, int(words)]  # noqa: E731
     variants = {
         "flat": (flat_kernel, flat_tail, flat_words, None),
         "bricked": (_bricked(), brick_tail, brick_words, None),
@@ -783,7 +789,7 @@ def main() -> None:
         "perbrick-b128": (_perbrick(), shipped_tail, brick_words, 128),
         "f64-resultfree-r72-b128": (_sumonly(f64_ray, 72), shipped_tail, brick_words, 128),
         "w32-r72-b128-cpu-kernel": (b.k.score_kernel, shipped_tail, brick_words, b.score_gpu.SCORE_BLOCK_DIM),
-        "shipped": (b.score_gpu.score_kernel_gpu, tail64, brick_words, b.score_gpu.SCORE_BLOCK_DIM),
+        "shipped": (b.score_gpu.score_kernel_gpu, flat64_tail, flat64_words, b.score_gpu.SCORE_BLOCK_DIM),
         "w32-rnone-b128": (_sumonly(score_ray), shipped_tail, brick_words, 128),
         "w32-r56-b128": (_sumonly(score_ray, 56), shipped_tail, brick_words, 128),
         "w32-r64-b128": (_sumonly(score_ray, 64), shipped_tail, brick_words, 128),

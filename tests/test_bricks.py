@@ -45,3 +45,38 @@ def test_brick_bits_takes_either_path_with_the_same_words(monkeypatch):
             taken.clear()
             np.testing.assert_array_equal(brick_bits(m, shape), _by_definition(mask, shape))
             assert taken == [path]
+
+
+def _flat_by_definition(nonzero, stop, shape):
+    # one voxel at a time: flat brick (k * nbx + (i >> 3)) * nby + (j >> 2), bit (i & 7) | (j & 3) << 3, the
+    # occlusion bits in the low word and the nonzero-weight bits in the high one
+    nbx, nby, nz = bricks.flat_shape(shape)
+    words = np.zeros(nbx * nby * nz, dtype=np.uint64)
+    for mask, at in ((stop, 0), (nonzero, 32)):
+        for i, j, k in zip(*np.unravel_index(np.flatnonzero(mask), shape)):
+            words[(k * nbx + (i >> 3)) * nby + (j >> 2)] |= np.uint64(1 << int(at + ((i & 7) | (j & 3) << 3)))
+    return words
+
+
+@pytest.mark.parametrize("shape", [(8, 8, 4), (9, 7, 5), (1, 1, 1), (13, 4, 2), (4, 13, 3), (20, 6, 1)])
+def test_flat_bricks_match_their_layout_on_the_host_and_from_the_device_kernel(shape):
+    """The CUDA score kernel's masks: ``flat_brick_masks`` (host) by definition, and ``flat_masks_kernel``
+    (run here on Warp's CPU device) from the 4 x 4 x 2 pairs gives the same words, partial bricks included."""
+    wp = pytest.importorskip("warp")
+    from place3d_kernels.backends.warp import score_gpu
+    from place3d_kernels.backends.warp.host import WarpCore
+
+    WarpCore("cpu")                          # Warp initialised as the package does
+    rng = np.random.default_rng(sum(shape))
+    n = int(np.prod(shape))
+    nonzero, stop = rng.random(n) < 0.4, rng.random(n) < 0.2
+    want = _flat_by_definition(nonzero, stop, shape)
+    np.testing.assert_array_equal(bricks.flat_brick_masks(shape, nonzero, stop), want)
+    no_stop = _flat_by_definition(nonzero, np.zeros(n, bool), shape)
+    np.testing.assert_array_equal(bricks.flat_brick_masks(shape, nonzero, None), no_stop)
+    pairs = wp.array(bricks.brick_masks(shape, nonzero, stop).view(np.uint64), dtype=wp.uint64, device="cpu")
+    bx, by, bz = brick_shape(shape)
+    fx, fy, fz = bricks.flat_shape(shape)
+    flat = wp.zeros(fx * fy * fz, dtype=wp.uint64, device="cpu")
+    wp.launch(score_gpu.flat_masks_kernel, dim=fx * fy * fz, device="cpu", inputs=[pairs, bx, by, bz, fx, fy, flat])
+    np.testing.assert_array_equal(flat.numpy(), want)

@@ -28,6 +28,7 @@ from gpu_score_variants_kernels import walk32_begin, walk32_next  # noqa: E402
 
 from place3d_kernels.backends.warp import kernels as shipped_k  # noqa: E402   (Walk32x converts its Walk32)
 from place3d_kernels.backends.warp import score_gpu  # noqa: E402
+from place3d_kernels.backends.bricks import brick_bits, brick_shape, flat_brick_masks  # noqa: E402
 
 wp.init()
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
@@ -346,8 +347,10 @@ def _launch(wl, v, pre=None, count=False):
 @pytest.mark.parametrize("device", DEVICES)
 def test_skip_on_full_bricks_matches_the_shipped_kernel(small, device):
     """Bitsets with full bricks before the launch (a random third of the words all ones, a fifth random
-    bits), and a second launch on the bitset the shipped kernel left: the skip and lean variants (and their
-    counting builds) return the shipped kernel's sums and counts, and the skip variants do jump."""
+    bits), and a second launch on the bitset the reference left: the skip and lean variants (and their
+    counting builds) return the sums and counts of ``lean32xm-r64`` (the form that shipped until the flat
+    bricks, on the same 4 x 4 x 2 bitset), the shipped kernel those of the same bits in its flat bricks, and
+    the skip variants do jump."""
     psog, lidar, pop = small
     wl = Workload(psog, lidar, pop, device)
     sm = wp.get_device(device).sm_count if device.startswith("cuda") else 0
@@ -356,21 +359,30 @@ def test_skip_on_full_bricks_matches_the_shipped_kernel(small, device):
              "lean32-keep-r72", "lean-r72", "lean32-r72", "lean-ahead-r72",
              "lean32-ahead-r72", "lean32x-r56", "lean32xr-r56", "lean32xm-r56", "lean32-lazy-r64",
              "lean32-lazy-keep-r64", "lean32-pred-r64"]
-    vs = {k: vs[k] for k in ["shipped"] + names}
+    vs = {k: vs[k] for k in ["shipped", "lean32xm-r64"] + names}
     build(vs)
+    old = vs["lean32xm-r64"]
     rng = np.random.default_rng(3)
     pre = np.zeros(wl.P * wl.words, dtype=np.uint32)
     r = rng.random(pre.size)
     pre[r < 0.33] = 0xFFFFFFFF
     part = (r >= 0.33) & (r < 0.53)
     pre[part] = rng.integers(0, 2 ** 32, int(part.sum()), dtype=np.uint64).astype(np.uint32)
-    want = _launch(wl, vs["shipped"], pre)
+    pre &= np.tile(brick_bits(np.ones(psog.grid.n_voxels, bool), psog.grid.shape), wl.P)   # no bits past the grid
+    want = _launch(wl, old, pre)
     assert (want[0] > 0).all(), "the rays must still find new voxels with entropy"
-    first = _launch(wl, vs["shipped"])
+    first = _launch(wl, old)
     filled = wl.bits.numpy().copy()
-    again = _launch(wl, vs["shipped"], filled)
+    again = _launch(wl, old, filled)
     # nothing new the second time: no weights, the same covered voxels
     assert (again[0] == 0).all() and (again[1] == first[1]).all()
+    for bits, ref in ((pre, want), (filled, again)):       # the shipped kernel on the same bits, flat bricks
+        wl.reset()
+        wl.flat[3].assign(_to_flat(bits, wl.P, psog.grid.shape))
+        wl.launch(vs["shipped"])
+        got = wl.result()
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_array_equal(got[1], ref[1])
     visits = None
     for name in names:
         for count in (False, True):
@@ -389,6 +401,18 @@ def test_skip_on_full_bricks_matches_the_shipped_kernel(small, device):
         diag = dict(variants(sm, None if sm else CPU_THREADS)[name])
         sums, counts, st = _launch(wl, dict(diag, kernel=make_lean_kind(diag)))
         assert sums.sum() == visits and (counts == 0).all(), name
+
+
+def _to_flat(words, P, shape):
+    """P candidates' 4 x 4 x 2 bitsets (bricks.py) as the same voxels' bits in flat 8 x 4 x 1 bricks."""
+    nx, ny, nz = shape
+    bx, by, bz = brick_shape(shape)
+    out = []
+    for c in np.asarray(words, dtype=np.uint32).reshape(P, -1):
+        b = np.unpackbits(c.view(np.uint8), bitorder="little").reshape(bx, by, bz, 2, 4, 4)   # (.., kk, jj, ii)
+        vox = b.transpose(0, 5, 1, 4, 2, 3).reshape(4 * bx, 4 * by, 2 * bz)[:nx, :ny, :nz]
+        out.append(flat_brick_masks(shape, vox.reshape(-1), None) >> np.uint64(32))
+    return np.concatenate(out).astype(np.uint32)
 
 
 def test_a_tile_that_does_not_fit_is_refused(small):
@@ -413,9 +437,16 @@ def test_near_field_marks_the_walks_bits():
     pop[1, :, 3:] = 0.0
     wl = Workload(psog, lidar, pop, "cpu")
     v = {"kind": "near", "near_h": 16, "near_hz": 16}
+    old = {"x": dict(variants(0, CPU_THREADS)["lean32xm-r64"])}    # the 4 x 4 x 2 form the near field extends
+    build(old)
+    wl.reset()
+    wl.launch(old["x"])
+    want_bits, want = wl.bits.numpy().copy(), wl.result()
     wl.reset()
     wl.launch({"kind": "shipped"})
-    want_bits, want = wl.bits.numpy().copy(), wl.result()
+    shipped = wl.result()
+    np.testing.assert_array_equal(shipped[0], want[0])
+    np.testing.assert_array_equal(shipped[1], want[1])
     wl.reset()
     near = gpu_dense_near_kernels.launch("cpu", wl.near_table, wl.inputs[0], wl.inputs[1], wl.inputs[2], wl.L,
                                          wl.inputs[4], wl.inputs[5], wl.shape, wl.bricks, wl.inputs[11],

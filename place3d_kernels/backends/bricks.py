@@ -4,13 +4,20 @@
 One 32-bit word holds a brick of 4 x 4 x 2 voxels (x, y, z), so the next voxel of a ray's walk is
 usually in the word just read. Bricks are numbered ``((i >> 2) * by + (j >> 2)) * bz + (k >> 1)``
 and a voxel's bit is ``(i & 3) | (j & 3) << 2 | (k & 1) << 4``, with (bx, by, bz) = ``brick_shape``.
+
+The CUDA score kernel (``warp/score_gpu.py``) keeps its bitsets in flat bricks of 8 x 4 x 1 voxels
+numbered ``(k * nbx + (i >> 3)) * nby + (j >> 2)`` (z slowest, y fastest), bit ``(i & 7) | (j & 3) << 3``,
+with (nbx, nby, nz) = ``flat_shape``: its voxel bit needs no z term, and the 8 words of a 32-byte memory
+sector cover 8 x 32 voxels of one layer, along which the LiDAR's near-horizontal rays run, where a sector
+of 4 x 4 x 2 bricks covers a column 4 x 4 x 16 (figures: bench/README.md, "The dense rig's bricks").
+``flat_brick_masks`` is the host's copy of what ``score_gpu.flat_masks_kernel`` makes on the device.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["brick_shape", "brick_bits", "brick_masks"]
+__all__ = ["brick_shape", "brick_bits", "brick_masks", "flat_shape", "flat_brick_masks"]
 
 
 def brick_shape(shape) -> tuple[int, int, int]:
@@ -74,4 +81,28 @@ def brick_masks(shape, nonzero: np.ndarray, stop: np.ndarray | None) -> np.ndarr
     out[1::2] = nz_bits
     if stop is not None:
         out[0::2] = brick_bits(stop, shape)
+    return out
+
+
+def flat_shape(shape) -> tuple[int, int, int]:
+    """Flat bricks (8 x 4 x 1 voxels) along x, y, z of a grid of ``shape`` voxels."""
+    nx, ny, nz = (int(v) for v in shape)
+    return (nx + 7) // 8, (ny + 3) // 4, nz
+
+
+def flat_brick_masks(shape, nonzero: np.ndarray, stop: np.ndarray | None) -> np.ndarray:
+    """One uint64 per flat brick, in the CUDA score kernel's numbering: the occlusion bits low (zero without
+    a stop mask), the bits of voxels with a nonzero weight high."""
+    nx, ny, nz = (int(v) for v in shape)
+    bx, by, _ = flat_shape(shape)
+    out = np.zeros(bx * by * nz, dtype=np.uint64)
+    for half, mask in ((1, nonzero), (0, stop)):
+        if mask is None:
+            continue
+        m = np.zeros((8 * bx, 4 * by, nz), dtype=bool)
+        m[:nx, :ny] = np.asarray(mask).reshape(nx, ny, nz)
+        # (bx, ii, by, jj, k) -> (k, bx, by, jj, ii): a brick's 32 voxels in the order of their bit numbers
+        b = m.reshape(bx, 8, by, 4, nz).transpose(4, 0, 2, 3, 1).reshape(-1, 32)
+        words = np.packbits(b, axis=1, bitorder="little").view("<u4").reshape(-1).astype(np.uint64)
+        out |= words << np.uint64(32 * half)
     return out

@@ -21,7 +21,7 @@ import numpy as np
 
 from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, mesh_face_tables,
                                            rotation_matrices, sensor_directions)
-from place3d_kernels.backends.bricks import brick_masks, brick_shape
+from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 
 try:
     import warp as wp
@@ -141,11 +141,12 @@ class _WarpMesh:
 
 
 class _WarpGrid:
-    def __init__(self, spec, weights, masks):
+    def __init__(self, spec, weights, masks, flat=None):
         self.spec = spec
         self.weights = weights          # int64 fixed-point entropy, flat voxel order
         self.masks = masks              # per brick word w: [2w] occlusion bits, [2w + 1] nonzero-weight bits
                                         # (uint32 pairs; on CUDA the same bytes as one uint64 per brick)
+        self.flat = flat                # CUDA: the score kernel's masks per 8 x 4 x 1 brick (bricks.flat_brick_masks)
 
 
 class _WarpGridBase:
@@ -559,9 +560,19 @@ class WarpCore(Backend):
         w = wp.array(np.ascontiguousarray(weights, dtype=np.int64), dtype=wp.int64, device=self.device)
         masks = brick_masks(grid.shape, np.asarray(weights).reshape(-1) != 0,
                             None if stop is None else np.asarray(stop).reshape(-1) != 0)
-        if self.device.is_cuda:   # score_kernel_gpu reads each brick's pair as one little-endian uint64
-            return _WarpGrid(grid, w, wp.array(masks.view(np.uint64), dtype=wp.uint64, device=self.device))
+        if self.device.is_cuda:   # each brick's pair as one little-endian uint64, and the score kernel's bricks
+            pairs = wp.array(masks.view(np.uint64), dtype=wp.uint64, device=self.device)
+            return _WarpGrid(grid, w, pairs, self._flat_masks(grid.shape, pairs))
         return _WarpGrid(grid, w, wp.array(masks, dtype=wp.uint32, device=self.device))
+
+    def _flat_masks(self, shape, pairs):
+        """The CUDA score kernel's masks (``bricks.flat_brick_masks``) from a grid's brick pairs, on the device."""
+        bx, by, bz = brick_shape(shape)
+        fx, fy, fz = flat_shape(shape)
+        flat = wp.empty(fx * fy * fz, dtype=wp.uint64, device=self.device)
+        wp.launch(self.score_gpu.flat_masks_kernel, dim=fx * fy * fz, device=self.device,
+                  inputs=[pairs, int(bx), int(by), int(bz), int(fx), int(fy), flat])
+        return flat
 
     @property
     def patches_grids(self) -> bool:
@@ -602,20 +613,25 @@ class WarpCore(Backend):
         bx, by, bz = brick_shape(spec.shape)
         n_bricks = bx * by * bz
         args = [w, s_arg, has_stop, int(nx), int(ny), int(nz), int(by), int(bz)]
-        if self.device.is_cuda:   # score_kernel_gpu reads each brick's pair as one little-endian uint64
+        if self.device.is_cuda:   # each brick's pair as one little-endian uint64, and the score kernel's bricks
             masks = wp.empty(n_bricks, dtype=wp.uint64, device=self.device)
             wp.launch(self.k.brick_masks64_kernel, dim=n_bricks, device=self.device, inputs=args + [masks])
-        else:
-            masks = wp.empty(2 * n_bricks, dtype=wp.uint32, device=self.device)
-            wp.launch(self.k.brick_masks_pairs_kernel, dim=n_bricks, device=self.device, inputs=args + [masks])
+            return _WarpGrid(spec, w, masks, self._flat_masks(spec.shape, masks))
+        masks = wp.empty(2 * n_bricks, dtype=wp.uint32, device=self.device)
+        wp.launch(self.k.brick_masks_pairs_kernel, dim=n_bricks, device=self.device, inputs=args + [masks])
         return _WarpGrid(spec, w, masks)
 
     def score_placements(self, handle, elevations, azimuths, t_max, poses):
         poses = np.asarray(poses, dtype=np.float64)
+        if not np.all(np.isfinite(poses)):
+            # metrics.msog_batch refuses them first; here because the CUDA kernel's loop has no step bound,
+            # which a ray of NaN direction could need
+            bad = np.argwhere(~np.isfinite(poses))[0].tolist()
+            raise ValueError(f"poses must be finite; poses{bad} is {poses[tuple(bad)]}")
         P, L = poses.shape[:2]
         flat = poses.reshape(-1, 6)
         sd, sd_a = self._directions.get(elevations, azimuths)     # host and device tables
-        words = int(np.prod(brick_shape(handle.spec.shape)))
+        words = int(np.prod(flat_shape(handle.spec.shape) if self.device.is_cuda else brick_shape(handle.spec.shape)))
         n = P * words
         kept, clean = self._take_bits(n) if self.device.is_cuda else (None, 0)
         bits = wp.zeros(n, dtype=wp.uint32, device=self.device) if kept is None else kept[:n]
@@ -668,9 +684,10 @@ class WarpCore(Backend):
                 raise ValueError(f"grid of shape {spec.shape} needs {words:,} bitset words per candidate; the CUDA "
                                  f"score kernel indexes at most {g.MAX_WORDS:,} (a coarser voxel size or a "
                                  f"smaller grid)")
+            fx, fy, _ = flat_shape(spec.shape)
             wp.launch(g.score_kernel_gpu, dim=P * rays, device=self.device,
                       inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
-                              int(nz), int(by), int(bz), handle.masks, handle.weights, int(words), bits, sums],
+                              int(nz), int(fx), int(fy), handle.flat, handle.weights, int(words), bits, sums],
                       block_dim=g.SCORE_BLOCK_DIM)
         elif P == 1 and self.threads > 1 and rays >= 2 * MIN_CHUNK and _split_pays(rays, self.threads):
             return self._score_one_rig_split(handle, sd, rot, pos, L, t_max)

@@ -2,28 +2,40 @@
 
 The CPU runs ``kernels.score_kernel`` (one ray per thread, an atomic per voxel, which the CPU pays
 little for). On CUDA this kernel walks the same voxels with the same float32/float64 decisions
-(``kernels.walk32_*``) and does the bookkeeping per brick of 4 x 4 x 2 voxels (one 32-bit bitset word):
+(``kernels.walk32_*``) and does the bookkeeping per flat brick of 8 x 4 x 1 voxels (one 32-bit bitset
+word; layout in ``bricks.py``; the masks come from the grid's 4 x 4 x 2 pairs by ``flat_masks_kernel``):
 
 * the brick's masks (occlusion bits low, nonzero-weight bits high; one 64-bit load) and the
   candidate's bitset word are loaded on every step (cache hits while the ray stays in the brick) and
   kept only when the ray enters a new brick, so no branch decides whether to load;
-* the bits a ray marks in a brick are sent with one ``atomic_or`` when it leaves (``flush_brick32``);
+* the bits a ray marks in a brick are sent with one ``atomic_or`` when it leaves (``flush_flat``);
   only bricks holding entropy wait for the old word, to add the weights of the bits this ray set first.
 
 What makes it cheap is the address arithmetic of a step, which a dense rig takes hundreds of millions
-of times: the brick word is an int32 from (i, j, k) (three shifts, two multiply-adds by kernel
-constants), loads and atomics use raw addresses (no index wrap, no 64-bit stride multiplies), and the
-grid test is three unsigned compares. That took about a third of the instructions out of a step's common
-path against the previous form with int64 indices, which this replaced (figures: bench/README.md, "The
-dense rig's score kernel, third round"). The walk's decisions are untouched, so the voxels, sums and
-counts are the same bits (tests/test_dense_variants.py runs the previous form against this one; the
-cross-backend suites compare scores with the reference).
+of times: the brick word is an int32 from (i, j, k) (two shifts, two multiply-adds by kernel
+constants), the voxel's bit needs no z term (a flat brick is one voxel high), loads and atomics use raw
+addresses (no index wrap, no 64-bit stride multiplies), and the loop has no grid test (below). The
+third round took about a third of the instructions out of a step's common path against a form with int64
+indices; the ninth (flat bricks, numbered so that a 32-byte sector of words lies along the rays, and no
+grid test) 8 % of the time on the dense rig (figures: bench/README.md, "The dense rig's score kernel, third
+round" and "The dense rig's bricks"). The walk's decisions are untouched, so the voxels, sums and counts are
+the same bits (tests/test_dense_variants.py runs earlier forms against this one; the cross-backend suites
+compare scores with the reference).
 
 The walk's state is a ``WalkGPU``, ``kernels.Walk32`` without the fields a step seldom needs (a walk that
-has ended has i = -1 and fails the loop's grid test; a float64-only walk has t1 = -1; the float64 segment
-end is a local of the kernel), and the float32 step's certainty test is written with the minimum and the
-median of the three crossings: the same decision and axis as ``walk32_next``'s chain of compares (proof
-at ``certain_step``), fewer instructions and registers (bench/README.md, the dense rig's rounds).
+has ended has i = DEAD = -1; a float64-only walk has t1 = -1; the float64 segment end is a local of the
+kernel), and the float32 step's certainty test is written with the minimum and the median of the three
+crossings: the same decision and axis as ``walk32_next``'s chain of compares (proof at ``certain_step``),
+fewer instructions and registers (bench/README.md, the dense rig's rounds).
+
+Why the loop needs no grid test (``inside``, which the walk's tests still use): a walk starts in the grid
+(``walk32_begin`` clamps its first voxel, or starts none: i = DEAD) and ends only where ``exact_step`` finds
+the next crossing at or after the segment end ``t1d`` and sets i = DEAD. The float32 step is taken only where
+the float64 step would take the same axis before ``t1d`` (``certain_step``), so neither leaves the grid first:
+the float64 crossing of a far plane, ``(b * s - o) / d`` in ``next_t``, has the operands and order of the
+clip's exit in ``_clip_grid``, so the same bits, and ``t1d`` is at most that exit (the argument in full:
+bench/gpu_dense_round7_kernels.py). Nor is a bound on the steps needed: each step moves one voxel along a
+ray of finite length.
 
 Limits: a candidate's bitset must have fewer than 2^31 words (32 x that many voxels) and each grid axis
 fewer than 2^31 voxels; ``WarpBackend.score_placements`` checks the first.
@@ -40,9 +52,10 @@ from place3d_kernels.backends.warp.kernels import Walk32, next_t, walk32_begin
 # 256, compiled that whole file a second time on a cold CUDA host (3.4 s). So this kernel lives in a module
 # of its own, with kernels.py's options restated (forward only; no FMA contraction, which would move
 # voxel-boundary ties). 128-thread blocks and a register cap: uncapped, the kernel takes so many registers
-# that few warps fit on an SM (figures: bench/README.md, "Figures behind backend code comments").
+# that few warps fit on an SM (figures: bench/README.md, "Figures behind backend code comments"); 56
+# since the flat bricks (64 registers: 1.58 against 1.57 ms per dense rig; 48 spills, 1.99 ms).
 SCORE_BLOCK_DIM = 128
-SCORE_MAX_REGISTERS = 64
+SCORE_MAX_REGISTERS = 56
 _MODULE_OPTIONS = {"enable_backward": False, "fuse_fp": False, "block_dim": SCORE_BLOCK_DIM}
 wp.set_module_options(_MODULE_OPTIONS)
 #: a candidate's bitset words must be int32 indices
@@ -257,15 +270,27 @@ def next_step(w: WalkGPU, o: wp.vec3d, d: wp.vec3d, t1d: wp.float64, s: wp.float
     return w
 
 
-@wp.func
-def word32(w: WalkGPU, bny: wp.int32, bnz: wp.int32) -> wp.int32:
-    # the brick's word within the candidate's bitset (kernels.brick_word in int32)
-    return ((w.i >> 2) * bny + (w.j >> 2)) * bnz + (w.k >> 1)
+# ----------------------------------------------------------------------------- flat bricks
+#: log2 of the CUDA bitset's brick sides along x and y (8 x 4 x 1 voxels, bricks.py's FLAT_BRICK)
+FLAT_LX = 3
+FLAT_LY = 2
 
 
 @wp.func
-def flush_brick32(p: wp.uint64, word: wp.int32, pending: wp.uint32, nz_w: wp.uint32, bny: wp.int32,
-                  bnz: wp.int32, ny: wp.int32, nz: wp.int32, weights: wp.array(dtype=wp.int64)) -> wp.int64:
+def word_flat(w: WalkGPU, nbx: wp.int32, nby: wp.int32) -> wp.int32:
+    # the brick's word within the candidate's bitset (bricks.flat_brick_masks' numbering: z slowest, y fastest)
+    return (w.k * nbx + (w.i >> FLAT_LX)) * nby + (w.j >> FLAT_LY)
+
+
+@wp.func
+def bit_flat(w: WalkGPU) -> wp.uint32:
+    # the voxel's bit within its brick: (i & 7) | (j & 3) << 3
+    return wp.uint32(1) << wp.uint32((w.i & 7) | ((w.j & 3) << FLAT_LX))
+
+
+@wp.func
+def flush_flat(p: wp.uint64, word: wp.int32, pending: wp.uint32, nz_w: wp.uint32, nbx: wp.int32,
+               nby: wp.int32, ny: wp.int32, nz: wp.int32, weights: wp.array(dtype=wp.int64)) -> wp.int64:
     # one atomic_or for the bits a ray marked in one brick; only where some have entropy is the old word
     # waited for: the bits this ray set first are its own, and it adds their weights
     add = wp.int64(0)
@@ -275,15 +300,14 @@ def flush_brick32(p: wp.uint64, word: wp.int32, pending: wp.uint32, nz_w: wp.uin
             m = pending & ~old & nz_w
             # the brick's coordinates from its word, by 32-bit divisions (int64 ones call a subroutine)
             uw = wp.uint32(word)
-            bk = wp.int32(uw % wp.uint32(bnz))
-            r = uw / wp.uint32(bnz)
-            bj = wp.int32(r % wp.uint32(bny))
-            bi = wp.int32(r / wp.uint32(bny))
+            bj = wp.int32(uw % wp.uint32(nby))
+            r = uw / wp.uint32(nby)
+            bi = wp.int32(r % wp.uint32(nbx))
+            k = wp.int32(r / wp.uint32(nbx))
             while m != wp.uint32(0):
                 b = wp.bit_count((m & (~m + wp.uint32(1))) - wp.uint32(1))     # index of the lowest set bit
-                i = bi * 4 + (b & 3)
-                j = bj * 4 + ((b >> 2) & 3)
-                k = bk * 2 + (b >> 4)
+                i = (bi << FLAT_LX) + (b & 7)
+                j = (bj << FLAT_LY) + (b >> FLAT_LX)
                 add += weights[(wp.int64(i) * wp.int64(ny) + wp.int64(j)) * wp.int64(nz) + wp.int64(k)]
                 m = m & (m - wp.uint32(1))
         else:
@@ -298,11 +322,11 @@ def score_kernel_gpu(
     pos: wp.array(dtype=wp.vec3d),              # (P*L,) grid-local
     n_lidars: wp.int32, t_max: wp.float64,
     s: wp.float64, nx: wp.int32, ny: wp.int32, nz: wp.int32,
-    bny: wp.int32, bnz: wp.int32,               # bricks along y and z
-    masks64: wp.array(dtype=wp.uint64),         # per brick: occlusion bits | nonzero-weight bits << 32
+    nbx: wp.int32, nby: wp.int32,               # flat bricks along x and y (flat_shape)
+    masks64: wp.array(dtype=wp.uint64),         # per flat brick: occlusion bits | nonzero-weight bits << 32
     weights: wp.array(dtype=wp.int64),          # flat voxel order
     words_per_candidate: wp.int64,
-    bits: wp.array(dtype=wp.uint32),            # (P * words_per_candidate,) zeroed, bricked
+    bits: wp.array(dtype=wp.uint32),            # (P * words_per_candidate,) zeroed, in flat bricks
     sums: wp.array(dtype=wp.int64),             # (P,) zeroed
 ):
     tid = wp.tid()
@@ -321,13 +345,13 @@ def score_kernel_gpu(
     seen = wp.uint32(0)
     pending = wp.uint32(0)
     nz_w = wp.uint32(0)
-    for _ in range(nx + ny + nz + 3):
-        if not inside(w, nx, ny, nz):
-            break
-        word = word32(w, bny, bnz)
+    # no grid test and no step bound: a walk ends only at its segment's end, where the float64 step sets
+    # i = DEAD, before it could leave the grid (module docstring)
+    while w.i >= 0:
+        word = word_flat(w, nbx, nby)
         change = word != cur
         if change and pending != wp.uint32(0):
-            my_sum += flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
+            my_sum += flush_flat(cbits, cur, pending, nz_w, nbx, nby, ny, nz, weights)
         m = load_mask(masks64, word)
         fresh = load_word(cbits, word)
         stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))
@@ -337,16 +361,48 @@ def score_kernel_gpu(
         seen = wp.where(change, fresh, seen)
         pending = wp.where(change, wp.uint32(0), pending)
         cur = word
-        bit = wp.uint32(1) << wp.uint32((w.i & 3) | ((w.j & 3) << 2) | ((w.k & 1) << 4))
+        bit = bit_flat(w)
         pending = pending | (bit & ~seen)
         seen = seen | bit
         if (stop_w & bit) != wp.uint32(0):      # occlusion: the ray ends after this voxel
             break
         w = next_step(w, o, d, t1d, s, sf)
     if pending != wp.uint32(0):
-        my_sum += flush_brick32(cbits, cur, pending, nz_w, bny, bnz, ny, nz, weights)
+        my_sum += flush_flat(cbits, cur, pending, nz_w, nbx, nby, ny, nz, weights)
     if my_sum > wp.int64(0):
         wp.atomic_add(sums, cand, my_sum)
+
+
+@wp.func
+def spread_rows(pair: wp.uint64, layer: wp.int32, at: wp.int32) -> wp.uint64:
+    # the four 4-bit rows (4 voxels along x) of one z layer of a 4 x 4 x 2 brick, in both words of its pair,
+    # moved to bits at + 8 r of the same words
+    out = wp.uint64(0)
+    for r in range(4):
+        src = layer + 4 * r
+        out = out | (((pair >> wp.uint64(src)) & wp.uint64(0xF)) << wp.uint64(at + 8 * r))
+        out = out | (((pair >> wp.uint64(32 + src)) & wp.uint64(0xF)) << wp.uint64(32 + at + 8 * r))
+    return out
+
+
+@wp.kernel
+def flat_masks_kernel(pairs: wp.array(dtype=wp.uint64), bx: wp.int32, by: wp.int32, bz: wp.int32,
+                      nbx: wp.int32, nby: wp.int32, flat: wp.array(dtype=wp.uint64)):
+    # flat[f] = the masks of flat brick f (bricks.flat_brick_masks) from the grid's 4 x 4 x 2 brick pairs
+    # (bricks.brick_masks as one uint64 each): the x bricks 2 bi and 2 bi + 1 of row bj, layer k & 1 of brick
+    # k >> 1 (a brick past the grid's end holds no bits, as the host's padding)
+    f = wp.tid()
+    bj = f % nby
+    r = f / nby
+    bi = r % nbx
+    k = r / nbx
+    out = wp.uint64(0)
+    for h in range(2):
+        x = 2 * bi + h
+        if x < bx:
+            b = (wp.int64(x) * wp.int64(by) + wp.int64(bj)) * wp.int64(bz) + wp.int64(k >> 1)
+            out = out | spread_rows(pairs[b], (k & 1) * 16, h * 4)
+    flat[f] = out
 
 
 # The bit count that follows every score launch, and the zeroing before the next, are passes over the whole
