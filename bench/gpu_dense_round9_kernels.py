@@ -282,14 +282,15 @@ def make_b64(layout=(2, 2, 2), maxreg=64, late=False):
     return b64_kernel
 
 
-def make_b32(layout=(2, 2, 1), order="xyz", maxreg=64, swz=(0, 0, 0), head1=False, block_dim=128):
+def make_b32(layout=(2, 2, 1), order="xyz", maxreg=64, swz=(0, 0, 0), head1=False, block_dim=128, nosum=False):
     """The shipped ``score_kernel_gpu`` on 32-voxel bricks of 2^``layout`` voxels numbered in ``order``
     (slowest axis first), in super-blocks of 2^``swz`` bricks (``brick_words``). Inputs: the shipped kernel's
     with ``bny``, ``bnz`` replaced by ``order_counts``'s (n1, n2) and the masks from ``brick_masks32``, then
     ``stats`` (unused). (2, 2, 1) "xyz" without super-blocks is the shipped kernel, rebuilt: the control.
     ``head1``: the loop runs while ``i >= 0`` (round seven's head: the walk never leaves the grid before its
     segment ends, gpu_dense_round7_kernels.py) and the step bound; "free": without the bound; ``block_dim``:
-    the launch's threads per block."""
+    the launch's threads per block; ``nosum``: no running sum, a flush's weights added to the candidate's sum at
+    once (round seven's ``nosum``)."""
     if sum(layout) != 5 or min(layout) < 0:
         raise ValueError(f"layout {layout}: log2 brick sides must sum to 5 (32 voxels a brick)")
     if sorted(order) != ["x", "y", "z"]:
@@ -383,7 +384,12 @@ def make_b32(layout=(2, 2, 1), order="xyz", maxreg=64, swz=(0, 0, 0), head1=Fals
             word = word_o(w, n1, n2)
             change = word != cur
             if change and pending != wp.uint32(0):
-                my_sum += flush_o(cbits, cur, pending, nz_w, n1, n2, ny, nz, weights)
+                add = flush_o(cbits, cur, pending, nz_w, n1, n2, ny, nz, weights)
+                if wp.static(nosum):
+                    if add > wp.int64(0):
+                        wp.atomic_add(sums, (wp.tid() / n) / n_lidars, add)
+                else:
+                    my_sum += add
             m = load_mask(masks64, word)
             fresh = load_word(cbits, word)
             stop_w = wp.uint32(m & wp.uint64(0xFFFFFFFF))

@@ -339,6 +339,13 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
         for maxreg in (48, 52, 60):
             out[f"b32-{r9.layout_name(*layout)}-{order}-r{maxreg}"] = {"kind": "b32", "layout": layout, "order": order,
                                                                        "maxreg": maxreg}
+    # the shipped form (flat 8 x 4 x 1 bricks, no loop bound) at other caps, without its running sum, other shapes
+    for layout, order in (((3, 2, 0), "zxy"), ((4, 1, 0), "zxy"), ((2, 3, 0), "zyx")):
+        for nosum in (False, True):
+            for maxreg in (48, 52, 56):
+                name = f"b32-{r9.layout_name(*layout)}-{order}-free{'-nosum' if nosum else ''}-r{maxreg}"
+                out.setdefault(name, {"kind": "b32", "layout": layout, "order": order, "maxreg": maxreg,
+                                      "head1": "free", "nosum": nosum})
     for swz, order in r9.SWIZZLES:
         for maxreg in (56, 64):
             out[f"swz-{''.join(map(str, swz))}-{order}-r{maxreg}"] = {"kind": "b32", "layout": (2, 2, 1),
@@ -353,7 +360,7 @@ def variants(sm_count: int, cpu_threads: int | None = None) -> dict:
 
 
 PARAMS = ("tile_c", "mode", "chunk", "reload", "batch", "select", "eager", "maxreg", "body", "skip", "ahead",
-          "layout", "late", "order", "swz", "head1", "block_dim")
+          "layout", "late", "order", "swz", "head1", "block_dim", "nosum")
 
 
 def build(vs: dict) -> None:
@@ -368,7 +375,7 @@ def build(vs: dict) -> None:
                 made[key] = make_lean_kind(v)
             elif v["kind"] == "b32":
                 made[key] = r9.make_b32(v["layout"], v["order"], v["maxreg"], v.get("swz", (0, 0, 0)),
-                                        v.get("head1", False), v.get("block_dim", BLOCK_DIM))
+                                        v.get("head1", False), v.get("block_dim", BLOCK_DIM), v.get("nosum", False))
             elif v["kind"] == "b64":
                 made[key] = r9.make_b64(v["layout"], v["maxreg"], v["late"])
             elif v["kind"] == "tiled":

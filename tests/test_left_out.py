@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from place3d_kernels.backends.bricks import flat_brick_masks
 from place3d_kernels.left_out import LeftOutGrids
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.metrics import msog_batch, msog_on_grid
@@ -105,7 +106,8 @@ def _patching_backends():
 
 
 def _arrays(h):
-    return h.weights.numpy(), h.masks.numpy()
+    # weights, brick pairs, and on CUDA the score kernel's flat masks (bricks.flat_brick_masks)
+    return h.weights.numpy(), h.masks.numpy(), None if h.flat is None else h.flat.numpy()
 
 
 @pytest.mark.parametrize("name", _patching_backends())
@@ -127,10 +129,12 @@ def test_grids_patched_on_the_device_are_the_uploaded_ones(request, pool, task, 
     for i, h in enumerate(patched_on_backend(pooled, task, occlusion, b)):
         w, stop = host.fields(i)
         want = b.prepare_grid(pooled.grid.spec, w, stop_of(stop))
-        gw, gm = _arrays(h)
-        ww, wm = _arrays(want)
+        gw, gm, gf = _arrays(h)
+        ww, wm, wf = _arrays(want)
         assert gw.tobytes() == ww.tobytes(), f"weights, record {i}"
         assert gm.dtype == wm.dtype and gm.tobytes() == wm.tobytes(), f"masks, record {i}"
+        assert (gf is None) == (wf is None) == (not b.device.is_cuda)
+        assert gf is None or gf.tobytes() == wf.tobytes(), f"flat masks, record {i}"
 
 
 @pytest.mark.parametrize("name", _patching_backends())
@@ -157,6 +161,9 @@ def test_patched_grid_on_partial_bricks_and_its_checks(name):
         got = _arrays(b.patched_grid(base, ids, wr, sr))
         want = _arrays(b.prepare_grid(spec, w2, s2))
         assert got[0].tobytes() == want[0].tobytes() and got[1].tobytes() == want[1].tobytes(), k
+        if b.device.is_cuda:      # the score kernel's masks, by the host's definition of their layout
+            flat = flat_brick_masks(spec.shape, w2 != 0, s2)
+            assert got[2].tobytes() == want[2].tobytes() == flat.tobytes(), k
     assert base.weights.numpy().tobytes() == w.tobytes()
     no_stop = b.grid_base(spec, w, None)
     got = _arrays(b.patched_grid(no_stop, np.array([4], dtype=np.int64), np.array([7]), None))
@@ -164,5 +171,7 @@ def test_patched_grid_on_partial_bricks_and_its_checks(name):
     w2[4] = 7
     want = _arrays(b.prepare_grid(spec, w2, None))
     assert got[1].tobytes() == want[1].tobytes()
+    if b.device.is_cuda:
+        assert got[2].tobytes() == flat_brick_masks(spec.shape, w2 != 0, None).tobytes()
     with pytest.raises(ValueError, match="one weight and one stop value per voxel"):
         b.patched_grid(base, np.array([1, 2], dtype=np.int64), np.array([5]), np.array([True, False]))

@@ -54,3 +54,31 @@ def test_a_cuda_backend_loads_the_shipped_binaries():
         pytest.skip(f"no binaries shipped for Warp {wp.config.version}")
     assert b.aot.startswith(("cubin", "ptx")), b.aot
     assert WarpCore("cpu").aot is None
+
+
+def test_the_score_module_is_loaded_once_per_cuda_device():
+    """Every launch of a kernel in score_gpu.py uses the module's block size: Warp keys a loaded module by
+    (device, block size), and another size compiles the whole module again (a second's wait on a cold
+    host, which a launch at Warp's default did cost once). Prepared and patched grids, a score and a count."""
+    try:
+        b = WarpCore("cuda:0")
+    except Exception as e:  # noqa: BLE001 - BackendUnavailable on hosts without a GPU
+        pytest.skip(f"no CUDA device: {e}")
+    import numpy as np
+
+    from place3d_kernels.backends.base import GridSpec
+    from place3d_kernels.backends.warp import score_gpu
+
+    rng = np.random.default_rng(0)
+    spec = GridSpec(voxel_size=0.5, shape=(20, 18, 6))
+    n = 20 * 18 * 6
+    w = np.where(rng.random(n) < 0.3, rng.integers(1, 10**6, n), 0).astype(np.int64)
+    stop = rng.random(n) < 0.05
+    h = b.prepare_grid(spec, w, stop)
+    b.patched_grid(b.grid_base(spec, w, stop), np.array([3], dtype=np.int64), np.array([5]), np.array([False]))
+    poses = np.zeros((2, 1, 6))
+    poses[:, 0, :3] = (5.0, 4.5, 1.5)
+    b.score_placements(h, np.radians([-10.0, 0.0, 5.0]), np.linspace(0, 2 * np.pi, 64, endpoint=False), 50.0, poses)
+    ctx = b.device.context
+    sizes = {bd for (c, bd) in score_gpu.score_kernel_gpu.module.execs if c == ctx}
+    assert sizes == {score_gpu.SCORE_BLOCK_DIM}, f"score_gpu.py loaded for block sizes {sorted(sizes)}"

@@ -570,8 +570,10 @@ class WarpCore(Backend):
         bx, by, bz = brick_shape(shape)
         fx, fy, fz = flat_shape(shape)
         flat = wp.empty(fx * fy * fz, dtype=wp.uint64, device=self.device)
+        # the score module's block size: another would compile the module again (score_gpu's note on block_dim)
         wp.launch(self.score_gpu.flat_masks_kernel, dim=fx * fy * fz, device=self.device,
-                  inputs=[pairs, int(bx), int(by), int(bz), int(fx), int(fy), flat])
+                  inputs=[pairs, int(bx), int(by), int(bz), int(fx), int(fy), flat],
+                  block_dim=self.score_gpu.SCORE_BLOCK_DIM)
         return flat
 
     @property
