@@ -48,6 +48,14 @@ stop mask. Times the shipped CUDA score kernel (``score_kernel_gpu``) and the va
   voxels around each LiDAR (free of stop bits) marked one thread per voxel, and every ray's walk started on its
   first voxel after the box (``dense_near_parts.py`` times its launches one by one).
 
+* ninth and tenth rounds (``gpu_dense_round9_kernels.py``): the bitset's layout. ``b64-<B>-rN`` 64-voxel bricks in
+  64-bit words (``-late``: the nonzero-weight word read at the flush); ``b32-<B>-<order>[-head1|-free][-nosum]
+  [-b64|-b256]-rN`` 32-voxel bricks of shape B numbered in ``order`` (slowest axis first; ``4x4x2-xyz`` is the
+  round-eight kernel), with the loop headed by ``i >= 0`` and the step bound (``head1``) or without the bound
+  (``free``), without the running sum, at other block sizes; ``swz-<abc>-<order>-rN`` 4 x 4 x 2 bricks in
+  super-blocks of 2^a x 2^b x 2^c bricks. The shipped kernel is ``b32-8x4x1-zxy-free-r56``, the harness's
+  ``shipped`` launch runs it on its own inputs (``bricks.flat_brick_masks``).
+
 Each kernel's register use and spills for sm_90 come from ``--registers`` (offline, ptxas; no GPU; with
 ``cuobjdump`` on PATH also the common step's instruction count, and with ``--listing`` its SASS).
 
