@@ -82,6 +82,26 @@ def test_lidar_outside_grid():
         p3k.msog(psog, lidar, p3k.Placement([[0.5, 0.5, 0.5, 0, 0, 0]]), task="cls")
 
 
+def test_non_finite_poses_are_refused_by_the_api_and_the_warp_backend():
+    """msog_batch refuses NaN poses; the Warp backend's score_placements, whose CUDA loop has no step bound,
+    refuses them too when called directly (nothing launched, the poses left as they were)."""
+    probs = np.zeros(G.shape + (22,))
+    probs[..., 0] = 1
+    psog = p3k.PSOG.from_probabilities(G, probs)
+    lidar = p3k.LidarModel.uniform(2, (-5, 5), 8)
+    poses = np.array([[[0.5, 0.5, 0.5, 0.0, np.nan, 0.0]]])
+    kept = poses.copy()
+    with pytest.raises(ValueError, match="finite"):
+        p3k.msog_batch(psog, lidar, poses)
+    if "warp:cpu" not in p3k.available_backends():
+        pytest.skip("Warp is not installed")
+    b = p3k.get_backend("warp:cpu")
+    handle = psog.handle(b, "sog")
+    with pytest.raises(ValueError, match=r"poses must be finite; poses\[0, 0, 4\] is nan"):
+        b.score_placements(handle, lidar.elevations, lidar.azimuths, lidar.max_range, poses)
+    np.testing.assert_array_equal(poses, kept)
+
+
 def test_unknown_backend_names_what_is_available():
     with pytest.raises(ValueError) as e:
         p3k.get_backend("vulkan")
