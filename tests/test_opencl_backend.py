@@ -513,12 +513,34 @@ def test_prepared_grid_rejects_a_bad_stop_mask_on_both_strategies():
         assert (h.stop is None) == (strategy == "atomic") and (h.masks is None) == (strategy == "private")
 
 
+@pytest.mark.parametrize("shape", [(41, 38, 11), (8, 4, 1), (3, 9, 2)])
+def test_flat_masks_on_the_device_match_their_layout(shape, rng):
+    """The atomic strategy's score kernel reads flat 8 x 4 x 1 brick masks, made on the device from the grid's
+    4 x 4 x 2 pairs (grid.cl flat_masks): the words of bricks.flat_brick_masks, partial bricks included."""
+    if not _DEVICES:
+        pytest.skip(_WHY)
+    import pyopencl as cl
+
+    from place3d_kernels.backends.bricks import flat_brick_masks
+
+    spec = GridSpec(0.25, shape)
+    w = np.where(rng.uniform(size=spec.n_voxels) < 0.4, rng.integers(1, 2**40, spec.n_voxels), 0)
+    stop = (rng.uniform(size=spec.n_voxels) < 0.2).astype(np.uint8)
+    b = OpenCLBackend(_DEVICES[0], score_strategy="atomic")
+    h = b.prepare_grid(spec, w, stop)
+    want = flat_brick_masks(shape, w != 0, stop != 0)
+    got = np.empty_like(want)
+    cl.enqueue_copy(b.queue, got, b._flat_masks(h))
+    np.testing.assert_array_equal(got, want)
+    assert b._flat_masks(h) is h.flat, "made once per grid"
+
+
 def test_score_strategies_agree(rng):
     """Private bitsets + OR-reduction (CPU default) and the shared atomic bitset (GPU default), with any
     number of rays per work-item and any population size, give the same exact sums."""
     if not _DEVICES:
         pytest.skip(_WHY)
-    spec = GridSpec(0.25, (41, 38, 11))      # partial 4 x 4 x 2 bricks at the far faces (atomic path)
+    spec = GridSpec(0.25, (41, 38, 11))      # partial 4 x 4 x 2 and 8 x 4 x 1 bricks at the far faces
     el = np.deg2rad(np.linspace(-20, 2, 5))
     az = np.linspace(0, 2 * np.pi, 50, endpoint=False)
     poses = rng.uniform([1, 1, 0.5, 0, 0, -3], [9, 9, 2, 0, 0, 3], (9, 2, 6))

@@ -1,16 +1,17 @@
-"""Bricked voxel bitsets shared by the GPU score kernels (Warp ``score_kernel``, OpenCL
-``score_rays_bricked``).
+"""Bricked voxel bitsets of the score kernels (Warp ``score_kernel`` on the CPU, OpenCL ``score_rays_csr``;
+the masks from which the GPU kernels' flat bricks are made).
 
 One 32-bit word holds a brick of 4 x 4 x 2 voxels (x, y, z), so the next voxel of a ray's walk is
 usually in the word just read. Bricks are numbered ``((i >> 2) * by + (j >> 2)) * bz + (k >> 1)``
 and a voxel's bit is ``(i & 3) | (j & 3) << 2 | (k & 1) << 4``, with (bx, by, bz) = ``brick_shape``.
 
-The CUDA score kernel (``warp/score_gpu.py``) keeps its bitsets in flat bricks of 8 x 4 x 1 voxels
-numbered ``(k * nbx + (i >> 3)) * nby + (j >> 2)`` (z slowest, y fastest), bit ``(i & 7) | (j & 3) << 3``,
-with (nbx, nby, nz) = ``flat_shape``: its voxel bit needs no z term, and the 8 words of a 32-byte memory
-sector cover 8 x 32 voxels of one layer, along which the LiDAR's near-horizontal rays run, where a sector
-of 4 x 4 x 2 bricks covers a column 4 x 4 x 16 (figures: bench/README.md, "The dense rig's bricks").
-``flat_brick_masks`` is the host's copy of what ``score_gpu.flat_masks_kernel`` makes on the device.
+The GPU score kernels (Warp's ``warp/score_gpu.py`` on CUDA, OpenCL's ``score_rays_flat``) keep their
+bitsets in flat bricks of 8 x 4 x 1 voxels numbered ``(k * nbx + (i >> 3)) * nby + (j >> 2)`` (z slowest,
+y fastest), bit ``(i & 7) | (j & 3) << 3``, with (nbx, nby, nz) = ``flat_shape``: the voxel bit needs no z
+term, and the 8 words of a 32-byte memory sector cover 8 x 32 voxels of one layer, along which the LiDAR's
+near-horizontal rays run, where a sector of 4 x 4 x 2 bricks covers a column 4 x 4 x 16 (figures:
+bench/README.md, "The dense rig's bricks"). ``flat_brick_masks`` is the host's copy of what
+``score_gpu.flat_masks_kernel`` and OpenCL's ``flat_masks`` make on the device.
 """
 
 from __future__ import annotations

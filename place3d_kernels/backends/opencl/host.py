@@ -10,7 +10,7 @@ import pyopencl as cl
 
 from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, GridSpec, mesh_face_tables,
                                            rotation_matrices, sensor_directions)
-from place3d_kernels.backends.bricks import brick_masks, brick_shape
+from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 from place3d_kernels.backends.opencl import _runtime as rt
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, brute_force_raycast, build_bvh, collapse_bvh4
 from place3d_kernels.backends.opencl.conditions import OpenCLConditions
@@ -85,7 +85,8 @@ class CLGrid:
         self.weights = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=w)
         self.use_stop = stop is not None
         # each score strategy reads one form of the occlusion mask: bytes (private) or bricked bit pairs
-        # of (occlusion, nonzero weight) for score_rays_bricked (atomic); only that one is uploaded
+        # of (occlusion, nonzero weight) for the atomic strategy (score_rays_csr reads them, and flat_masks makes
+        # score_rays_flat's from them); only that form is uploaded
         self.stop = self.masks = None
         if backend.score_strategy == "private":
             self.stop = backend._stop_buffer(stop, spec, keep=True)
@@ -99,6 +100,7 @@ class CLGrid:
                 raise ValueError(f"stop mask must have one uint8 per voxel ({spec.n_voxels}), got shape {sm.shape}")
             m = brick_masks(spec.shape, w != 0, sm)
             self.masks = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=m)
+        self.flat = None      # score_rays_flat's masks (bricks.flat_brick_masks), made from masks on first use
 
 
 class OpenCLBackend(Backend, OpenCLConditions):
@@ -625,8 +627,12 @@ class OpenCLBackend(Backend, OpenCLConditions):
             return sums, counts
         per = self.rays_per_item
         items = (n_rays + per - 1) // per
-        bx, by, bz = brick_shape(spec.shape)
-        words = bx * by * bz
+        fx, fy, fz = flat_shape(spec.shape)
+        words = fx * fy * fz
+        if words >= 2**31:
+            raise ValueError(f"grid of shape {spec.shape} needs {words:,} bitset words per candidate; the OpenCL "
+                             f"score kernel indexes fewer than 2**31 (a coarser voxel size or a smaller grid)")
+        flat = self._flat_masks(handle)
         chunk = int(max(1, min(P, _BITSET_BYTES // max(words * 4, 1))))
         bits = self._out(chunk * words * 4)
         per_count = 256
@@ -636,15 +642,27 @@ class OpenCLBackend(Backend, OpenCLConditions):
             pn = min(chunk, P - p0)
             cl.enqueue_fill_buffer(self.queue, bits, np.uint32(0), 0, pn * words * 4)
             rig_b = self._in(rig[p0 * L:(p0 + pn) * L])
-            self._launch("score_rays_bricked", (items, pn), rig_b, sdir_b, np.int32(L), np.int32(CA),
+            self._launch("score_rays_flat", (items, pn), rig_b, sdir_b, np.int32(L), np.int32(CA),
                          self.real(t_max), self.real(spec.voxel_size), *(np.int32(v) for v in spec.shape),
-                         np.int32(by), np.int32(bz), handle.masks, handle.weights, bits, np.int64(words),
+                         np.int32(fx), np.int32(fy), flat, handle.weights, bits, np.int64(words),
                          np.int32(per), np.int32(items), ps)
             self._launch("count_bits", (n_chunks, pn), bits, np.int64(words), np.int32(per_count),
                          np.int32(n_chunks), pc)
             sums[p0:p0 + pn] = self._read(ps, np.int64, pn * items).reshape(pn, items).sum(axis=1, dtype=np.int64)
             counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(axis=1, dtype=np.int64)
         return sums, counts
+
+    def _flat_masks(self, handle):
+        """score_rays_flat's masks for a grid (atomic strategy), made once on the device from its brick pairs."""
+        if handle.flat is None:
+            spec = handle.spec
+            bx, by, bz = brick_shape(spec.shape)
+            fx, fy, fz = flat_shape(spec.shape)
+            n = fx * fy * fz
+            handle.flat = cl.Buffer(self.ctx, _MF.READ_WRITE, size=max(n, 1) * 8)
+            self._launch("flat_masks", n, handle.masks, np.int32(bx), np.int32(by), np.int32(bz), np.int32(fx),
+                         np.int32(fy), np.int64(n), handle.flat)
+        return handle.flat
 
     # ----------------------------------------------------------------- occupancy grids
     def voxel_keys(self, grid, points):

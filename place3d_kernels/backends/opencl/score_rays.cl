@@ -2,7 +2,7 @@
  * (mark_walk_bricked over dda_init / dda_step, the walk every grid kernel shares, so covered sets equal
  * traverse's).
  *
- * One work-item per ray, as score_rays_bricked: the ray marks its voxels in its candidate's bricked bitset
+ * One work-item per ray, as score_rays_flat: the ray marks its voxels in its candidate's bricked bitset
  * with atomic_or; the first marker of a voxel with entropy adds its weight to the ray's partial sum, so each
  * weight is added exactly once per candidate (the host adds the partial sums per candidate in int64, and
  * count_bits counts the covered voxels). Rays may have different segment ends (t_end per ray). */
