@@ -535,6 +535,29 @@ def test_flat_masks_on_the_device_match_their_layout(shape, rng):
     assert b._flat_masks(h) is h.flat, "made once per grid"
 
 
+def test_gpu_score_on_ties_matches_the_reference(rng):
+    """The atomic strategy's kernel (score_rays_flat: grid.cl's walk, flat bricks, a flush per brick) on rays built
+    of ties: LiDARs on voxel corners and edges, azimuths on the axes and diagonals (equal direction components,
+    components exactly 0), elevations 0 and 45 degrees; sums and counts equal the reference's."""
+    if not _DEVICES:
+        pytest.skip(_WHY)
+    spec = GridSpec(0.25, (19, 14, 7))
+    w = np.where(rng.uniform(size=spec.n_voxels) < 0.5, rng.integers(1, 2**40, spec.n_voxels), 0)
+    stop = (rng.uniform(size=spec.n_voxels) < 0.02).astype(np.uint8)
+    el = np.deg2rad([-45.0, -10.0, 0.0, 45.0])
+    az = np.deg2rad(np.arange(0.0, 360.0, 45.0))
+    poses = np.array([[[1.0, 1.0, 0.75, 0, 0, 0], [2.5, 1.25, 1.0, 0, 0, 0]],
+                      [[2.125, 2.0, 0.5, 0, 0, 0], [0.0, 3.5, 1.25, 0, 0, 0]],
+                      [[4.75, 3.25, 1.5, 0, 0, 0], [3.0, 0.25, 0.25, 0, 0, 0]]])
+    ref = ReferenceBackend()
+    want = ref.score_placements(ref.prepare_grid(spec, w, stop), el, az, 20.0, poses)
+    b = OpenCLBackend(_DEVICES[0], score_strategy="atomic")
+    got = b.score_placements(b.prepare_grid(spec, w, stop), el, az, 20.0, poses)
+    assert (want[1] > 0).all()
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+
+
 def test_score_strategies_agree(rng):
     """Private bitsets + OR-reduction (CPU default) and the shared atomic bitset (GPU default), with any
     number of rays per work-item and any population size, give the same exact sums."""
