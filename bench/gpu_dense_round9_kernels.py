@@ -57,20 +57,17 @@ def brick_shape64(shape, layout) -> tuple[int, int, int]:
     return tuple(-(-int(n) // (1 << b)) for n, b in zip(shape, layout))
 
 
-def pack_bricks(mask: np.ndarray, shape, layout, order: str = "xyz") -> np.ndarray:
+def pack_bricks(mask: np.ndarray, shape, layout) -> np.ndarray:
     """A flat per-voxel boolean mask (C order over ``shape``) packed into one word per brick of 2^``layout``
-    voxels (uint32 for 32 voxels, uint64 for 64): bricks numbered ``(B0 * n1 + B1) * n2 + B2`` with (B0, B1,
-    B2) the brick's coordinates in ``order`` (slowest first; "xyz" is the shipped numbering), bit
-    ``(i & (BX-1)) | (j & (BY-1)) << LX | (k & (BZ-1)) << (LX+LY)``."""
+    voxels (uint32 for 32 voxels, uint64 for 64), bricks in x-major order ``(bi * by + bj) * bz + bk``
+    (``brick_words`` renumbers them), bit ``(i & (BX-1)) | (j & (BY-1)) << LX | (k & (BZ-1)) << (LX+LY)``."""
     nx, ny, nz = (int(v) for v in shape)
     ex, ey, ez = (1 << b for b in layout)
-    nb = brick_shape64(shape, layout)
-    bx, by, bz = nb
+    bx, by, bz = brick_shape64(shape, layout)
     m = np.zeros((bx * ex, by * ey, bz * ez), dtype=bool)
     m[:nx, :ny, :nz] = np.asarray(mask).reshape(nx, ny, nz)
-    # (bx, ii, by, jj, bz, kk) -> (B0, B1, B2, kk, jj, ii): a brick's voxels in the order of their bit numbers
-    axis = {"x": 0, "y": 2, "z": 4}
-    b = m.reshape(bx, ex, by, ey, bz, ez).transpose(axis[order[0]], axis[order[1]], axis[order[2]], 5, 3, 1)
+    # (bx, ii, by, jj, bz, kk) -> (bx, by, bz, kk, jj, ii): a brick's voxels in the order of their bit numbers
+    b = m.reshape(bx, ex, by, ey, bz, ez).transpose(0, 2, 4, 5, 3, 1)
     width = ex * ey * ez
     b = np.packbits(b.reshape(-1, width), axis=1, bitorder="little")
     return b.view("<u4" if width == 32 else "<u8").reshape(-1).astype(np.uint32 if width == 32 else np.uint64)

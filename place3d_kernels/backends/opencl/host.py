@@ -627,12 +627,11 @@ class OpenCLBackend(Backend, OpenCLConditions):
             return sums, counts
         per = self.rays_per_item
         items = (n_rays + per - 1) // per
-        fx, fy, fz = flat_shape(spec.shape)
+        flat, (fx, fy, fz) = self._flat_masks(handle), flat_shape(spec.shape)
         words = fx * fy * fz
         if words >= 2**31:
             raise ValueError(f"grid of shape {spec.shape} needs {words:,} bitset words per candidate; the OpenCL "
                              f"score kernel indexes fewer than 2**31 (a coarser voxel size or a smaller grid)")
-        flat = self._flat_masks(handle)
         chunk = int(max(1, min(P, _BITSET_BYTES // max(words * 4, 1))))
         bits = self._out(chunk * words * 4)
         per_count = 256

@@ -633,7 +633,8 @@ class WarpCore(Backend):
         P, L = poses.shape[:2]
         flat = poses.reshape(-1, 6)
         sd, sd_a = self._directions.get(elevations, azimuths)     # host and device tables
-        words = int(np.prod(flat_shape(handle.spec.shape) if self.device.is_cuda else brick_shape(handle.spec.shape)))
+        # CUDA's score kernel keeps its bitsets in flat bricks, the CPU's in 4 x 4 x 2 ones (bricks.py)
+        words = int(np.prod((flat_shape if self.device.is_cuda else brick_shape)(handle.spec.shape)))
         n = P * words
         kept, clean = self._take_bits(n) if self.device.is_cuda else (None, 0)
         bits = wp.zeros(n, dtype=wp.uint32, device=self.device) if kept is None else kept[:n]

@@ -53,7 +53,8 @@ from place3d_kernels.backends.warp.kernels import Walk32, next_t, walk32_begin
 # of its own, with kernels.py's options restated (forward only; no FMA contraction, which would move
 # voxel-boundary ties). 128-thread blocks and a register cap: uncapped, the kernel takes so many registers
 # that few warps fit on an SM (figures: bench/README.md, "Figures behind backend code comments"); 56
-# since the flat bricks (64 registers: 1.58 against 1.57 ms per dense rig; 48 spills, 1.99 ms).
+# since the flat bricks (one run each, kernel + count per dense rig, H100: 64 registers 1.581 against 1.568 ms;
+# 52 1.591 and 48 1.735 against 1.557; bench/README.md, "The dense rig's bricks").
 SCORE_BLOCK_DIM = 128
 SCORE_MAX_REGISTERS = 56
 _MODULE_OPTIONS = {"enable_backward": False, "fuse_fp": False, "block_dim": SCORE_BLOCK_DIM}
@@ -271,7 +272,7 @@ def next_step(w: WalkGPU, o: wp.vec3d, d: wp.vec3d, t1d: wp.float64, s: wp.float
 
 
 # ----------------------------------------------------------------------------- flat bricks
-#: log2 of the CUDA bitset's brick sides along x and y (8 x 4 x 1 voxels, bricks.py's FLAT_BRICK)
+#: log2 of the CUDA bitset's brick sides along x and y (8 x 4 x 1 voxels, bricks.flat_shape)
 FLAT_LX = 3
 FLAT_LY = 2
 
