@@ -55,3 +55,11 @@ def test_a_family_whose_runtime_is_missing_is_reported_with_its_install_command(
             registry.get_backend("ghost:x")
     finally:
         registry.forget()
+
+
+def test_a_second_pocl_platform_is_a_cpu_not_a_gpu():
+    # PyPI's PoCL beside Debian's is named opencl:pocl2; "auto" once took it for an OpenCL GPU and chose it
+    from place3d_kernels.backends.registry import _cpu_name
+
+    assert _cpu_name("opencl:pocl") and _cpu_name("opencl:pocl2") and _cpu_name("warp:cpu")
+    assert not _cpu_name("opencl:nvidia") and not _cpu_name("warp:cuda:0") and not _cpu_name("opencl:poclx")

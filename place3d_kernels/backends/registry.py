@@ -16,6 +16,7 @@ import contextlib
 import contextvars
 import importlib
 import os
+import re
 import sys
 from dataclasses import dataclass
 from functools import lru_cache
@@ -140,6 +141,12 @@ def _cuda_driver_loadable() -> bool:
     return False
 
 
+def _cpu_name(name: str) -> bool:
+    """Whether a backend name is a CPU device: ``warp:cpu`` and every PoCL platform (a second PoCL install,
+    e.g. PyPI's beside Debian's, is ``opencl:pocl2``: still the CPU, never taken for a GPU)."""
+    return name.endswith(":cpu") or re.fullmatch(r"opencl:pocl\d*", name) is not None
+
+
 def _auto() -> str:
     """The backend "auto" names: a CUDA GPU through Warp, then an OpenCL GPU, then PoCL (all cores) before
     Warp's CPU device (why: bench/README.md, "Figures behind backend code comments"), then the reference.
@@ -149,11 +156,12 @@ def _auto() -> str:
         if cuda:
             return cuda[0]
     cl_names = _probe(("opencl",))[0]
-    gpu = [x for x in cl_names if x.startswith("opencl:") and x != "opencl:pocl"]
+    gpu = [x for x in cl_names if x.startswith("opencl:") and not _cpu_name(x)]
     if gpu:
         return gpu[0]
-    if "opencl:pocl" in cl_names:
-        return "opencl:pocl"
+    pocl = [x for x in cl_names if _cpu_name(x)]
+    if pocl:
+        return pocl[0]
     if "warp:cpu" in _probe(("warp",))[0]:
         return "warp:cpu"
     return "reference"
@@ -169,7 +177,7 @@ def _canonical(name: str) -> str:
     names = list(_probe(None if family not in FAMILIES else (family,))[0])
     if n in FAMILIES and FAMILIES[n].devices is not None:
         fam = [x for x in names if x.startswith(n + ":")]
-        gpu = [x for x in fam if not x.endswith(":cpu") and x != "opencl:pocl"]
+        gpu = [x for x in fam if not _cpu_name(x)]
         if fam:
             return (gpu or fam)[0]
     if n == "warp:cuda":

@@ -129,5 +129,11 @@ def build_program(ctx: "cl.Context", files: tuple[str, ...], options: tuple[str,
             src = kernel_source(*files)
             with ignoring(cl.CompilerWarning):
                 prg = cl.Program(ctx, src).build(options=list(options))
+            if not prg.all_kernels():
+                # seen with PyPI's PoCL 3.0 (LLVM 14) on AVX-512 CPUs it does not know: the build "succeeds"
+                # with no kernels, and the first launch would fail with a bare KeyError
+                dev = ctx.devices[0]
+                raise RuntimeError(f"OpenCL platform {dev.platform.name} ({dev.platform.version.strip()}) built "
+                                   f"{'+'.join(files)} without any kernel; {POCL_CPU_HINT}")
             _programs[key] = prg
         return prg
