@@ -127,9 +127,9 @@ def main(argv=None) -> int:
         import ray
     except ImportError:
         ray = None
-    from place3d_kernels.actors import CPU_BACKENDS, ScoringPool, is_gpu_backend
+    from place3d_app.actors import CPU_BACKENDS, ScoringPool, is_gpu_backend
     from place3d_kernels.backends.registry import available_backends, get_backend
-    from place3d_kernels.distributed import DistributedObjective, PSOGSpec, SceneSpec, get_executor
+    from place3d_app.executors import DistributedObjective, PSOGSpec, SceneSpec, get_executor
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.optimize import SearchSpace

@@ -30,7 +30,7 @@ RAYS_PER_FRAME = 64 * 1024
 
 
 def _fps(executor, scene, lidar, backend, chunk, frames):
-    from place3d_kernels.distributed import simulate_to_folder
+    from place3d_app.executors import simulate_to_folder
 
     tmp = tempfile.mkdtemp(prefix="p3k-bench-")
     try:
@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     ap.add_argument("--output", default=None)
     args = ap.parse_args(argv)
 
-    from place3d_kernels.distributed import LocalExecutor, SceneSpec, get_executor
+    from place3d_app.executors import LocalExecutor, SceneSpec, get_executor
 
     scene = SceneSpec("town", seed=0, frames=max(args.frames, 10))
     res = {"date": time.strftime("%Y-%m-%d"), "host": platform.node(), "cpus": os.cpu_count(),

@@ -38,7 +38,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 import place3d_kernels as p3k  # noqa: E402
-from place3d_kernels.kernel_bench import machine_info  # noqa: E402
+from place3d_app.kernel_bench import machine_info  # noqa: E402
 from place3d_kernels.spec import PSOGSpec, SceneSpec  # noqa: E402
 
 
@@ -49,7 +49,7 @@ def stats(xs: list[float]) -> dict:
 def record_generations(b, n: int) -> list:
     """The grid-local poses of the first ``n`` CMA-ES generations of ``place3d optimize --task seg`` on
     backend ``b`` (the registry's instance, which the command uses), captured from its score calls."""
-    from place3d_kernels.cli import main as cli_main
+    from place3d_app.cli import main as cli_main
 
     seen, score = [], b.score_placements
 

@@ -3,7 +3,7 @@
     python3 bench/bench_serve.py --backend warp:cuda:0 --machine H100
     python3 bench/bench_serve.py --backend opencl:pocl --machine dev-2core
 
-Both are the ``place3d`` entry point (``python -m place3d_client``) in a subprocess, timed from start to
+Both are the ``place3d`` entry point (``python -m place3d_app``) in a subprocess, timed from start to
 exit; the server variant adds ``--server=SOCKET``. One untimed run of each first fills the Warp kernel
 cache, the P-SOG cache and the server's memory; then the two alternate, ``--runs`` times each, so drift
 on a shared machine hits both alike. Also timed: the client alone (``--server=SOCKET --version``, a
@@ -32,8 +32,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from place3d_kernels.kernel_bench import machine_info  # noqa: E402
-from place3d_kernels.serve import is_listening  # noqa: E402
+from place3d_app.kernel_bench import machine_info  # noqa: E402
+from place3d_app.serve import is_listening  # noqa: E402
 
 TIMING = re.compile(r"\d+(\.\d+)? s\b")
 
@@ -78,7 +78,7 @@ def main(argv=None) -> int:
 
     work = Path(tempfile.mkdtemp(prefix="p3b-", dir="/tmp"))     # short: a socket path holds 107 bytes
     sock = work / "s.sock"
-    base = [sys.executable, "-m", "place3d_client"]
+    base = [sys.executable, "-m", "place3d_app"]
     command = ["optimize", "--max-evals", str(args.max_evals), "--task", args.task, "--backend", args.backend,
                "--quiet"]
     load_before = os.getloadavg()

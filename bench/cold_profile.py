@@ -7,7 +7,7 @@ as on a machine that never ran the package. Trees named with ``--tree`` (folders
 this project) are run alternately, so two versions share one machine's mood; the default is this tree. A
 tree may carry environment settings, ``--tree .:PLACE3D_FAST_EXIT=0,NAME=VALUE``, to set a switch of one
 tree against the same tree without it. The command runs as the ``place3d`` console script runs it
-(``python -m place3d_client``, with ``PLACE3D_SERVER`` unset), so its exit is the script's.
+(``python -m place3d_app``, with ``PLACE3D_SERVER`` unset), so its exit is the script's.
 ``--cprofile`` adds one run under cProfile per tree (the top functions by own and cumulative time).
 
 Python bytecode. ``pip install`` compiles the installed packages' bytecode and a package's first import
@@ -59,7 +59,7 @@ def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = N
                    PLACE3D_SERVER="", **(extra_env or {}))
         pre = [sys.executable] + (["-m", "cProfile", "-o", str(cprofile)] if cprofile else [])
         # the console script's module (its exit included); cProfile runs the package's CLI module, as before
-        entry = "place3d_kernels.cli" if cprofile else "place3d_client"
+        entry = "place3d_app.cli" if cprofile else "place3d_app"
         cmd = pre + ["-m", entry, "--profile", "optimize", "--max-evals", str(max_evals),
                      "--task", "seg", "--backend", backend, "--quiet", "--output", o]
         t = time.perf_counter()
@@ -86,7 +86,7 @@ def compile_bytecode(trees: list[Path]) -> list[str]:
     import compileall
     import importlib.util
 
-    folders = [(str(t), [t / "place3d_kernels", t / "place3d_client"]) for t in trees]
+    folders = [(str(t), [t / "place3d_kernels", t / "place3d_app"]) for t in trees]
     for name in BYTECODE_PACKAGES:
         spec = importlib.util.find_spec(name)
         if spec is not None and spec.submodule_search_locations:

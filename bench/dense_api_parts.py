@@ -78,7 +78,7 @@ def main(argv=None) -> int:
     import warp as wp
 
     import place3d_kernels as p3k
-    from place3d_kernels.kernel_bench import machine_info
+    from place3d_app.kernel_bench import machine_info
 
     w = dense_workload(args.device, args.voxel, args.pop)
     b, psog, dense, pop, handle, local, spec = w.b, w.psog, w.dense, w.pop, w.handle, w.local, w.spec

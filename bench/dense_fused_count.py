@@ -204,7 +204,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     from dense_api_parts import dense_workload
 
-    from place3d_kernels.kernel_bench import machine_info
+    from place3d_app.kernel_bench import machine_info
 
     w = dense_workload(args.device, args.voxel, args.pop)
     b, dense, handle, local, spec = w.b, w.dense, w.handle, w.local, w.spec

@@ -29,7 +29,7 @@ import place3d_kernels as p3k  # noqa: E402
 import gpu_dense_near_kernels as nf  # noqa: E402
 import gpu_dense_round9_kernels as r9  # noqa: E402
 from gpu_dense_variants import Workload, dense_population  # noqa: E402
-from place3d_kernels.kernel_bench import machine_info  # noqa: E402
+from place3d_app.kernel_bench import machine_info  # noqa: E402
 
 
 def main() -> None:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 import place3d_kernels as p3k
-from place3d_kernels.kernel_bench import _time, machine_info
+from place3d_app.kernel_bench import _time, machine_info
 
 
 def main() -> None:

@@ -38,7 +38,7 @@ import warp as wp
 
 import place3d_kernels as p3k
 from place3d_kernels.backends.base import rotation_matrices, sensor_directions
-from place3d_kernels.kernel_bench import machine_info
+from place3d_app.kernel_bench import machine_info
 
 H100_THREADS_80_REGS = 132 * 768     # 132 SMs x 6 blocks of 128 threads (80 registers each)
 

@@ -90,7 +90,7 @@ import warp as wp
 import place3d_kernels as p3k
 from place3d_kernels.backends.base import rotation_matrices, sensor_directions
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_brick_masks, flat_shape
-from place3d_kernels.kernel_bench import machine_info
+from place3d_app.kernel_bench import machine_info
 
 # the kernels module beside this file (a script's own folder is on the path; an importing test's is not)
 if str(Path(__file__).resolve().parent) not in sys.path:

@@ -63,7 +63,7 @@ import warp as wp
 import place3d_kernels as p3k
 from place3d_kernels.backends.base import rotation_matrices, sensor_directions
 from place3d_kernels.backends.bricks import brick_bits, brick_shape, flat_brick_masks, flat_shape
-from place3d_kernels.kernel_bench import machine_info
+from place3d_app.kernel_bench import machine_info
 
 # frozen copies of the walks and score bodies the variants are built on (see that module's docstring)
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -63,7 +63,7 @@ def _run(cmd, env, timeout) -> tuple[float, str]:
 
 # ----------------------------------------------------------------------------- (a) whole command
 def whole_command(backend: str, max_evals: int, timeout: int) -> dict:
-    cmd = [sys.executable, "-m", "place3d_kernels.cli", "optimize", "--max-evals", str(max_evals), "--task", "seg",
+    cmd = [sys.executable, "-m", "place3d_app.cli", "optimize", "--max-evals", str(max_evals), "--task", "seg",
            "--backend", backend, "--quiet"]
     out = {"command": " ".join(["place3d"] + cmd[3:])}
     with tempfile.TemporaryDirectory() as warm_dir:
@@ -304,7 +304,7 @@ def main(argv=None) -> int:
     ap.add_argument("--skip", default="", help="comma list of parts to skip: a,b,c")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT))
-    from place3d_kernels.kernel_bench import machine_info
+    from place3d_app.kernel_bench import machine_info
 
     skip = set(filter(None, args.skip.split(",")))
     q = args.quick

@@ -27,7 +27,7 @@ from place3d_kernels import paper_results as paper
 from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.metrics import NORMALISATIONS, coverage_counts, score_from_counts
-from place3d_kernels.reproduce import paper_poses, resolve_town
+from place3d_app.commands.reproduce import paper_poses, resolve_town
 from place3d_kernels.spec import PSOGSpec, SceneSpec
 
 TOWNS = ("Town01", "Town03", "Town04", "Town06")

@@ -361,7 +361,7 @@ def main(argv=None):
         merge_into_summary(json.loads(src.read_text()), outdir / "summary.json", src.name, args.device)
         print(f"merged {src} into {outdir / 'summary.json'}")
         return
-    from place3d_kernels.kernel_bench import machine_info
+    from place3d_app.kernel_bench import machine_info
 
     load_start = os.getloadavg()
 

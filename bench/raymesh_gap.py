@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     import warp as wp
 
     import place3d_kernels as p3k
-    from place3d_kernels.kernel_bench import machine_info
+    from place3d_app.kernel_bench import machine_info
     from place3d_kernels.scene.city import box_city
 
     dev = args.device

@@ -20,7 +20,7 @@ import argparse
 import json
 from pathlib import Path
 
-from place3d_kernels.kernel_bench import run_kernel_bench
+from place3d_app.kernel_bench import run_kernel_bench
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

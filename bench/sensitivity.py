@@ -27,7 +27,7 @@ from place3d_kernels import paper_results as paper
 from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.pooled import Drive, PoolSettings, build_pooled
-from place3d_kernels.reproduce import DEFAULT_TOWNS, machine_info, placement_scorer, resolve_town
+from place3d_app.commands.reproduce import DEFAULT_TOWNS, machine_info, placement_scorer, resolve_town
 from place3d_kernels.uncertainty import bootstrap_pooled, kendall_tau
 
 BASE = {"voxel_size": 0.2, "occlusion": "sog", "k": 4, "roll_units": "rad", "collection": "collection_64ch",

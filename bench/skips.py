@@ -315,7 +315,7 @@ def main() -> None:
     ap.add_argument("--out", default=str(RESULTS))
     args = ap.parse_args()
     import place3d_kernels as p3k
-    from place3d_kernels.kernel_bench import machine_info
+    from place3d_app.kernel_bench import machine_info
 
     info = machine_info()
     backends = [b for b in args.backends if b in p3k.available_backends()]

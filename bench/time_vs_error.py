@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 import place3d_kernels as p3k
-from place3d_kernels.kernel_bench import machine_info
+from place3d_app.kernel_bench import machine_info
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TAU_MIN = 0.9

@@ -13,7 +13,6 @@ from place3d_kernels.lidar import LidarModel
 from place3d_kernels.manifest import verify_manifest, write_manifest
 from place3d_kernels.profiling import section
 from place3d_kernels.scene.keymemo import SceneRef
-from place3d_kernels.scene_prefetch import take_dynamic
 from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
 from place3d_kernels.sog import PSOG, cache_dir, cache_key
 
@@ -79,8 +78,8 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     if isinstance(scene, SceneRef):
         with section("P-SOG build: scene"):
             scene = scene.build()    # known by its key only (PSOGSpec.build): the geometry is needed now
-    # the actor meshes a forked scene build made (scene_prefetch), else none yet
-    dynamic = take_dynamic(scene)
+    # actor meshes made ahead by whoever built the scene (the application's forked build), else none yet
+    dynamic = scene.take_prebuilt()
     if isinstance(backend, Future):
         # a backend still being probed on another thread (optimize starts it early): needed only now.
         # Meanwhile, what the simulation needs and no backend computes: the actors' meshes of the first

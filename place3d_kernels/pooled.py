@@ -320,12 +320,11 @@ def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(
     Args:
         drives: the drives (routes x scenes).
         settings: grid, collection LiDAR, k, backend, cache (``PoolSettings``).
-        executor: ``distributed.get_executor(...)``; None runs the drives here one after the other, so at
-            most one drive's frames are in memory at a time.
+        executor: an object with ``map(fn, tasks)`` (the application's executors: local processes, Ray);
+            None, or one whose ``kind`` is ``"local"``, runs the drives here one after the other, so at most
+            one drive's frames are in memory at a time.
         progress: print one line per drive to stderr (local executor only).
     """
-    from place3d_kernels.distributed import LocalExecutor
-
     drives = list(drives)
     if not drives:
         raise ValueError("build_pooled needs at least one Drive")
@@ -335,7 +334,7 @@ def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(
     settings = PoolSettings(settings.voxel_size, settings.lidar, settings.k, backend_name(settings.backend),
                             str(cache_dir()) if settings.cache is None else settings.cache)
     pooled = PooledPSOG(settings.grid)
-    if executor is None or isinstance(executor, LocalExecutor):
+    if executor is None or getattr(executor, "kind", None) == "local":
         import sys
         import time
 

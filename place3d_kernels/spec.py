@@ -1,7 +1,7 @@
 """What a run is made of, as plain data: the scene, the ROI grid, the adverse condition and the P-SOG inputs.
 
 Every spec is a frozen, picklable dataclass with ``to_dict()`` / ``from_dict()``. The CLI builds them once
-from its arguments (``specs_from_args``); the local path and the Ray tasks (``place3d_kernels.distributed``)
+from its arguments (``specs_from_args``); the local path and the Ray tasks (``place3d_app.executors``)
 consume the same objects, so a task rebuilds exactly what the driver would have built in-process.
 
 The grid spec is called ``RoiSpec``: ``backends.base.GridSpec`` is the kernel-facing grid (voxel size and
@@ -211,16 +211,26 @@ def read_route(path) -> "np.ndarray":
     return np.asarray(rows, dtype=np.float64)
 
 
+#: Where scenes built ahead of need come from: a callable ``(SceneSpec) -> Scene | None`` set by the
+#: application (its forked build, ``place3d_app.prefetch``); None: every scene is built here.
+_supplier = None
+
+
+def supply_scenes(supplier) -> None:
+    """Let ``supplier(scene_spec)`` hand over scenes built elsewhere (None where it has none); the library
+    asks it before building a scene itself. ``None`` removes it."""
+    global _supplier
+    _supplier = supplier
+
+
 @functools.lru_cache(maxsize=4)
 def _build_scene(spec: SceneSpec):
-    from place3d_kernels import scene_prefetch
-
-    # built in a forked process while this one imported the backend (PSOGSpec.prefetch_scene), if started
-    scene = scene_prefetch.take(spec)
-    return _make_scene(spec) if scene is None else scene
+    scene = None if _supplier is None else _supplier(spec)
+    return make_scene(spec) if scene is None else scene
 
 
-def _make_scene(spec: SceneSpec):
+def make_scene(spec: SceneSpec):
+    """Build the scene ``spec`` names, here and now."""
     from place3d_kernels import scene as scenes
 
     if spec.name == "town":
@@ -389,28 +399,6 @@ class PSOGSpec:
                           mount=DEFAULT_MOUNT if self.mount is None else self.mount, backend=b, cache=cache,
                           progress=progress, condition=cond, body=self.vehicle_body(), aggregate=aggregate,
                           save_in_background=save_in_background)
-
-    def prefetch_scene(self, cache: bool | str = True) -> bool:
-        """Start building the scene in a forked process (``scene_prefetch``) when ``build`` will need it:
-        not for recorded frames, nor when the scene's key is remembered in the cache folder (a cached P-SOG
-        is then found without it). Call it before the backend is probed; ``build`` then takes the scene.
-
-        Returns:
-            True when the build was started (False: not needed, or forking is off or unsafe here).
-        """
-        from place3d_kernels import scene_prefetch
-
-        if self.scene.kind == "semantickitti" or not scene_prefetch.enabled():
-            return False
-        if cache:
-            from place3d_kernels.scene.keymemo import identity, recall
-            from place3d_kernels.sog import cache_dir
-
-            folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
-            if recall(folder, identity(self.scene.to_dict(), self.scene.kind, self.scene.path)) is not None:
-                return False
-        return scene_prefetch.start(self.scene, functools.partial(_make_scene, self.scene),
-                                    normals=self.condition is not None)
 
     def load(self):
         """The P-SOG with this spec's backend and cache folder (memoised per process; tasks call this)."""

@@ -269,7 +269,7 @@ def kendall_tau(a: Sequence[float], b: Sequence[float]) -> float:
     return float(kendalltau(a, b).statistic)
 
 
-__all__ += ["kendall_tau", "prepare_in_background", "prefetch_wanted", "PREFETCH_ENV"]
+__all__ += ["kendall_tau", "prepare_in_background"]
 
 
 def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
@@ -503,20 +503,6 @@ def pairwise(boot: Bootstrap) -> dict:
             for i, a in enumerate(boot.names)}
 
 
-#: ``PLACE3D_JACKKNIFE_PREFETCH``: ``1`` = ``place3d optimize`` prepares the jackknife's left-out grids on a
-#: thread during the search; ``0`` = never (the jackknife prepares them after the search); unset or ``auto``
-#: = on hosts with 4 or more usable cores (on 2 the thread would take turns with the search's scoring).
-PREFETCH_ENV = "PLACE3D_JACKKNIFE_PREFETCH"
-
-
-def prefetch_wanted() -> bool:
-    """What ``PLACE3D_JACKKNIFE_PREFETCH`` asks for (see ``PREFETCH_ENV``)."""
-    from place3d_kernels.scene_prefetch import usable_cores
-
-    v = os.environ.get(PREFETCH_ENV, "auto").strip().lower()
-    if v in ("0", "1"):
-        return v == "1"
-    return usable_cores() >= 4
 
 
 def prepare_in_background(spec, reference, lidar, task: str, occlusion: str, backend,

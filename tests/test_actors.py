@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from checks import assert_same_run
 
-from place3d_kernels.distributed import (DistributedObjective, PSOGSpec, SceneSpec, add_executor_arguments,
+from place3d_app.executors import (DistributedObjective, PSOGSpec, SceneSpec, add_executor_arguments,
                                          executor_from_args, get_executor)
 from place3d_kernels.lidar import LidarModel
 
@@ -31,7 +31,7 @@ def test_actor_counts_need_the_ray_executor():
 
 
 def test_dispatch_rule_and_backend_kinds():
-    from place3d_kernels.actors import is_gpu_backend, worth_dispatching
+    from place3d_app.actors import is_gpu_backend, worth_dispatching
 
     # a GPU at 1000 rigs/s clears 64 queued rigs in 64 ms; a CPU actor at 20 rigs/s needs 800 ms for 16
     assert not worth_dispatching(16, 20.0, [1000.0], 64)
@@ -77,7 +77,7 @@ def _population(n_lidars: int, n: int, seed: int = 0) -> np.ndarray:
 
 
 def test_mixed_pool_scores_equal_in_process_in_candidate_order(spec):
-    from place3d_kernels.actors import ScoringPool
+    from place3d_app.actors import ScoringPool
     from place3d_kernels.metrics import msog_batch
 
     poses = _population(2, 10)
@@ -100,7 +100,7 @@ def test_mixed_pool_scores_equal_in_process_in_candidate_order(spec):
 
 
 def test_failing_actor_names_itself_and_the_chunk(spec):
-    from place3d_kernels.actors import ActorScoringError, ScoringPool
+    from place3d_app.actors import ActorScoringError, ScoringPool
 
     pool = ScoringPool(ray, cpu_actors=1, cpu_backends="warp:cpu")
     try:
@@ -124,7 +124,7 @@ def test_failing_actor_names_itself_and_the_chunk(spec):
 
 
 def test_killed_actor_restarts_with_its_state_rebuilt(spec):
-    from place3d_kernels.actors import ScoringPool
+    from place3d_app.actors import ScoringPool
     from place3d_kernels.metrics import msog_batch
 
     poses = _population(1, 6, seed=3)
@@ -170,7 +170,7 @@ def test_cli_optimize_on_actors_writes_the_local_result(spec, tmp_path, capsys):
     import csv
     import json
 
-    from place3d_kernels.cli import main
+    from place3d_app.cli import main
 
     base = ["optimize", "--frames", "8", "--voxel-size", "0.8", "--lidars", "2", "--popsize", "8", "--max-evals", "24",
             "--quiet", "--backend", "warp:cpu"]
@@ -191,7 +191,7 @@ def test_cli_optimize_on_actors_writes_the_local_result(spec, tmp_path, capsys):
 def test_equal_actors_share_a_batch_whatever_their_measured_rates(spec):
     """Two actors of about the same speed each take one of two chunks, also when one was measured a
     little slower: the busy actor's rigs count as work the others cannot take (issue 17, 2 x H200)."""
-    from place3d_kernels.actors import ScoringPool
+    from place3d_app.actors import ScoringPool
 
     pool = ScoringPool(ray, cpu_actors=2, cpu_backends="warp:cpu")
     try:

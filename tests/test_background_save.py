@@ -59,7 +59,7 @@ def test_failed_background_save_is_a_warning(town, tmp_path, monkeypatch, caplog
 
 
 def test_cli_command_ends_with_the_psog_on_disk(tmp_path, monkeypatch):
-    from place3d_kernels.cli import main
+    from place3d_app.cli import main
 
     started = []
     real = PIPE._save

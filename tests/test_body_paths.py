@@ -145,7 +145,7 @@ def test_smig_lidar_inside_body_raises(bgrid):
 # ------------------------------------------------------------------------------------------- CLI
 def _cli(*args, cache):
     env = dict(os.environ, PLACE3D_CACHE=str(cache))
-    return subprocess.run([sys.executable, "-m", "place3d_kernels.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "place3d_app.cli", *args], capture_output=True, text=True,
                           env=env, timeout=600)
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from checks import assert_same_run
 
-from place3d_kernels.distributed import (ConditionSpec, DistributedObjective, LocalExecutor, PSOGSpec, SceneSpec,
+from place3d_app.executors import (ConditionSpec, DistributedObjective, LocalExecutor, PSOGSpec, SceneSpec,
                                          get_executor, simulate_to_folder, task_seed)
 from place3d_kernels.lidar import LidarModel
 
@@ -124,7 +124,7 @@ def test_ray_optimize_same_as_local(tmp_path, ray_executor):
 
 @needs_ray
 def test_ray_study_rerun_does_no_work(tmp_path, ray_executor):
-    from place3d_kernels.study import run_study
+    from place3d_app.commands.study import run_study
 
     cfg = tmp_path / "s.toml"
     cfg.write_text('[study]\nname = "t"\nplacements = ["center", "line"]\nframes_per_subset = 2\n'

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from place3d_client import server_request
-from place3d_kernels.cli import build_parser
+from place3d_app import server_request
+from place3d_app.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -30,7 +30,7 @@ def fenced_blocks(text: str) -> list[tuple[str, str]]:
 
 def _argv(line: str) -> list[str]:
     """The arguments the CLI's parser gets for a ``place3d ...`` line: the ``place3d`` entry point
-    (``place3d_client``) takes ``--server`` before the parser sees the command."""
+    (``place3d_app``) takes ``--server`` before the parser sees the command."""
     return server_request(shlex.split(line)[1:], {})[2]
 
 
@@ -87,7 +87,7 @@ def test_readme_place3d_line_parses(line):
 
 @pytest.mark.parametrize("argv", sorted(CHEAP))
 def test_cheap_commands_run(argv, tmp_path):
-    r = subprocess.run([sys.executable, "-m", "place3d_kernels.cli", *argv], cwd=tmp_path, env=_env(tmp_path),
+    r = subprocess.run([sys.executable, "-m", "place3d_app.cli", *argv], cwd=tmp_path, env=_env(tmp_path),
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip(), f"place3d {' '.join(argv)} printed nothing"
@@ -161,8 +161,8 @@ def test_package_docstring_example_runs():
 
 def test_bench_table_is_readable(capsys, tmp_path, monkeypatch):
     """`place3d bench` ends in a table (workloads x backends, units in the labels), not raw dicts."""
-    from place3d_kernels.cli import main
-    from place3d_kernels.kernel_bench import format_table
+    from place3d_app.cli import main
+    from place3d_app.kernel_bench import format_table
 
     res = {"info": {"cpu": "CPU", "cores": 2, "date": "2026-11-24"},
            "backends": {"reference": {"placement_eval_ms": 3080.0, "traverse_steps": 5},

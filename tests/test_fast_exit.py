@@ -1,4 +1,4 @@
-"""``place3d_client.leave``: the console script's exit keeps what Python's exit does for a program (thread
+"""``place3d_app.leave``: the console script's exit keeps what Python's exit does for a program (thread
 pools stopped, non-daemon threads joined, atexit handlers, flushed streams, the exit code) and skips the
 interpreter's teardown."""
 
@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 PROGRAM = """
 import atexit, concurrent.futures, os, sys, threading, time
-import place3d_client
+import place3d_app
 atexit.register(lambda: print("atexit ran", flush=True))
 def late():
     time.sleep(0.3)
@@ -29,7 +29,7 @@ class Noisy:
     def __del__(self):
         print("teardown ran", flush=True)
 keep = Noisy()                                         # alive until the interpreter's teardown
-place3d_client.leave(int(sys.argv[2]))
+place3d_app.leave(int(sys.argv[2]))
 """
 
 
@@ -61,10 +61,10 @@ def test_leave_can_be_turned_off(tmp_path):
 
 
 def test_console_script_module_exits_with_the_command_code():
-    # python -m place3d_client is the place3d command: a bad subcommand is argparse's exit code 2
-    p = subprocess.run([sys.executable, "-m", "place3d_client", "no-such-command"], capture_output=True, text=True,
+    # python -m place3d_app is the place3d command: a bad subcommand is argparse's exit code 2
+    p = subprocess.run([sys.executable, "-m", "place3d_app", "no-such-command"], capture_output=True, text=True,
                        env={**os.environ, "PYTHONPATH": str(ROOT), "PLACE3D_SERVER": ""}, timeout=120)
     assert p.returncode == 2 and "invalid choice" in p.stderr
-    p = subprocess.run([sys.executable, "-m", "place3d_client", "--version"], capture_output=True, text=True,
+    p = subprocess.run([sys.executable, "-m", "place3d_app", "--version"], capture_output=True, text=True,
                        env={**os.environ, "PYTHONPATH": str(ROOT), "PLACE3D_SERVER": ""}, timeout=120)
     assert p.returncode == 0 and p.stdout.strip()

@@ -122,7 +122,7 @@ def test_holdout_rows(psog):
 
 def test_cli_writes_diagnostics_and_holdout(tmp_path, capsys):
     from place3d_kernels.backends.registry import backend_report
-    from place3d_kernels.cli import main
+    from place3d_app.cli import main
 
     # the fastest CPU backend present builds the two tiny P-SOGs (the backends agree bit for bit)
     have = {name for name, ok, _ in backend_report() if ok}

@@ -14,6 +14,10 @@ Rules checked:
    underscore is its module's own business. Private *modules* (``_toml``, ``conditions/_common``) are
    package-internal by design and may be imported inside the package, but only their public names.
 4. Backends (``place3d_kernels.backends``) import nothing from the domain above them.
+5. Two wings: the library (``place3d_kernels``) never imports the application (``place3d_app``: the
+   commands, the server and its client, the executors, the scene prefetch), at any level; the
+   application imports the library. Every package of the repository is walked, so a cycle between the
+   two (the client and the command line once had one) is found too.
 
 Edges go from the importing module to the module named (``from pkg import mod`` counts as an edge to
 ``pkg.mod`` when ``mod`` is a module). The implicit import of a module's parent packages is left out:
@@ -27,7 +31,10 @@ import ast
 from pathlib import Path
 
 PKG = "place3d_kernels"
-ROOT = Path(__file__).resolve().parents[1] / PKG
+APP = "place3d_app"
+PACKAGES = (PKG, APP)
+REPO = Path(__file__).resolve().parents[1]
+ROOT = REPO / PKG
 
 #: (importer, imported) lazy edges whose cycles are accepted, each with its reason. Empty on purpose.
 ALLOWED_LAZY_CYCLES: set[tuple[str, str]] = set()
@@ -35,12 +42,17 @@ ALLOWED_LAZY_CYCLES: set[tuple[str, str]] = set()
 
 def _modules() -> dict[str, Path]:
     mods = {}
-    for p in sorted(ROOT.rglob("*.py")):
-        parts = list(p.relative_to(ROOT.parent).with_suffix("").parts)
-        if parts[-1] == "__init__":
-            parts = parts[:-1]
-        mods[".".join(parts)] = p
+    for pkg in PACKAGES:
+        for p in sorted((REPO / pkg).rglob("*.py")):
+            parts = list(p.relative_to(REPO).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            mods[".".join(parts)] = p
     return mods
+
+
+def _ours(name: str) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in PACKAGES)
 
 
 MODULES = _modules()
@@ -67,11 +79,11 @@ def _imports():
                 lazy = in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
                 if isinstance(child, ast.Import):
                     for a in child.names:
-                        if a.name == PKG or a.name.startswith(PKG + "."):
+                        if _ours(a.name):
                             out.append((mod, a.name, None, in_function, child.lineno))
                 elif isinstance(child, ast.ImportFrom):
                     target = _resolve(mod, child)
-                    if target and (target == PKG or target.startswith(PKG + ".")):
+                    if target and _ours(target):
                         for a in child.names:
                             sub = f"{target}.{a.name}"
                             if sub in MODULES:
@@ -140,13 +152,13 @@ def _explain(comps, g) -> str:
         for src, dst, _, lazy, line in sorted(IMPORTS, key=lambda r: (r[0], r[4], r[1])):
             if src in members and dst in members and dst in g.get(src, ()) and (src, dst, line) not in seen:
                 seen.add((src, dst, line))
-                lines.append(f"    {MODULES[src].relative_to(ROOT.parent)}:{line} imports {dst}"
+                lines.append(f"    {MODULES[src].relative_to(REPO)}:{line} imports {dst}"
                              + (" (inside a function)" if lazy else ""))
     return "\n".join(lines)
 
 
 def test_the_walk_sees_the_package():
-    assert f"{PKG}.spec" in MODULES and f"{PKG}.backends.base" in MODULES
+    assert f"{PKG}.spec" in MODULES and f"{PKG}.backends.base" in MODULES and f"{APP}.cli" in MODULES
     assert any(dst == f"{PKG}.grid" for _, dst, _, _, _ in IMPORTS)
     # a cycle planted in a synthetic graph is found, so an empty result means something
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
@@ -165,7 +177,7 @@ def test_no_import_cycles_through_function_level_imports():
 
 
 def test_no_private_names_imported_across_modules():
-    bad = [f"{MODULES[src].relative_to(ROOT.parent)}:{line} imports {name} from {dst}"
+    bad = [f"{MODULES[src].relative_to(REPO)}:{line} imports {name} from {dst}"
            + (" (inside a function)" if lazy else "")
            for src, dst, name, lazy, line in IMPORTS
            if name is not None and name.startswith("_") and not name.startswith("__") and dst != src]
@@ -174,8 +186,25 @@ def test_no_private_names_imported_across_modules():
 
 def test_backends_do_not_import_the_domain():
     backends = f"{PKG}.backends"
-    bad = [f"{MODULES[src].relative_to(ROOT.parent)}:{line} imports {dst}"
+    bad = [f"{MODULES[src].relative_to(REPO)}:{line} imports {dst}"
            for src, dst, _, _, line in IMPORTS
            if (src == backends or src.startswith(backends + "."))
            and not (dst == backends or dst.startswith(backends + "."))]
     assert not bad, "backends importing the domain:\n" + "\n".join(bad)
+
+
+def _wing_violations(imports) -> list[str]:
+    return [f"{src}:{line} imports {dst}" + (" (inside a function)" if lazy else "")
+            for src, dst, _, lazy, line in imports
+            if (src == PKG or src.startswith(PKG + ".")) and (dst == APP or dst.startswith(APP + "."))]
+
+
+def test_the_library_does_not_import_the_application():
+    bad = _wing_violations(IMPORTS)
+    assert not bad, "library modules importing the application:\n" + "\n".join(bad)
+
+
+def test_the_wing_rule_sees_a_planted_import():
+    planted = [("place3d_kernels.metrics", "place3d_app.cli", None, True, 7),
+               ("place3d_app.cli", "place3d_kernels.metrics", None, False, 3)]
+    assert _wing_violations(planted) == ["place3d_kernels.metrics:7 imports place3d_app.cli (inside a function)"]

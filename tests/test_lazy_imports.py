@@ -50,7 +50,7 @@ def test_optimize_search_imports_leave_scipy_to_the_helper():
     in this process (no helper process)."""
     out = _run("""
         import sys
-        from place3d_kernels.optimize.cli import _search_imports
+        from place3d_app.commands.optimize import _search_imports
         _search_imports(False)
         print("cma" in sys.modules, any(n.startswith("scipy.spatial") for n in sys.modules))
         _search_imports(True)

@@ -77,7 +77,7 @@ def _cli(*args, env_cache):
     import os
 
     env = dict(os.environ, PLACE3D_CACHE=str(env_cache))
-    return subprocess.run([sys.executable, "-m", "place3d_kernels.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "place3d_app.cli", *args], capture_output=True, text=True,
                           env=env, timeout=600)
 
 

@@ -32,7 +32,7 @@ def test_profile_accumulates_nested_sections_and_prints_a_table():
 
 
 def test_cli_profile_flag_prints_the_table(capsys):
-    from place3d_kernels.cli import main
+    from place3d_app.cli import main
 
     assert main(["--profile", "backends"]) == 0
     err = capsys.readouterr().err

@@ -63,3 +63,15 @@ def test_a_second_pocl_platform_is_a_cpu_not_a_gpu():
 
     assert _cpu_name("opencl:pocl") and _cpu_name("opencl:pocl2") and _cpu_name("warp:cpu")
     assert not _cpu_name("opencl:nvidia") and not _cpu_name("warp:cuda:0") and not _cpu_name("opencl:poclx")
+
+
+def test_a_second_pocl_install_is_left_out_for_the_newest():
+    from place3d_kernels.backends.opencl._runtime import _pocl_version
+
+    class P:
+        def __init__(self, version):
+            self.version = version
+
+    assert _pocl_version(P("OpenCL 3.0 PoCL 3.1+debian  Linux")) > _pocl_version(P("OpenCL 3.0 PoCL 3.0-rc2  Linux"))
+    assert _pocl_version(P("OpenCL 3.0 PoCL 5.0 Linux")) > _pocl_version(P("OpenCL 3.0 PoCL 3.1+debian"))
+    assert _pocl_version(P("OpenCL 1.2 something else")) == (0, 0)

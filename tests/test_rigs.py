@@ -206,7 +206,7 @@ RIG = ["--n-lidars", "3", "--sensors", "vlp16,os1-64", "--surfaces", "roof,front
 
 @pytest.fixture(scope="module")
 def cli_runs(tmp_path_factory):
-    from place3d_kernels.cli import main
+    from place3d_app.cli import main
 
     root = tmp_path_factory.mktemp("rigs")
     with pytest.MonkeyPatch.context() as mp:
@@ -246,7 +246,7 @@ def test_cli_writes_rig_outputs(cli_runs):
     (["--restarts", "1"], "--restarts not supported"),
 ])
 def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, bad, message):
-    from place3d_kernels.cli import main
+    from place3d_app.cli import main
 
     prices = tmp_path / "prices.toml"
     prices.write_text('[sensors.vlp16]\nprice_usd = 3999\n')

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from place3d_kernels import scene_prefetch
+from place3d_app import prefetch as scene_prefetch
 from place3d_kernels.grid import Grid
 from place3d_kernels.pipeline import scene_psog
 from place3d_kernels.scene.keymemo import identity, remember
@@ -87,11 +87,11 @@ def _check_forked_scene_and_actor_meshes_equal_the_local_build():
     want = scenes.town(seed=3, n_frames=12)
     assert got is not None
     _same_scene(got, want)
-    dyn = scene_prefetch.take_dynamic(got)
+    dyn = got.take_prebuilt()
     assert sorted(dyn) == list(range(want.n_frames))
     for f, mesh in dyn.items():
         _same_mesh(mesh, want.dynamic(f))
-    assert scene_prefetch.take_dynamic(got) == {}          # handed out once
+    assert got.take_prebuilt() == {}          # handed out once
     assert scene_prefetch.take(("t1", spec)) is None        # taken once
 
 
@@ -162,16 +162,16 @@ def _check_prefetch_only_when_the_build_needs_the_scene(tmp):
     folder = Path(tmp) / "c"
     ident = identity(spec.scene.to_dict(), spec.scene.kind, spec.scene.path)
     remember(folder, ident, "town", "some-key")
-    assert not spec.prefetch_scene(cache=str(folder))         # key remembered: a cached P-SOG needs no scene
-    assert not PSOGSpec(SceneSpec("semantickitti:/nowhere")).prefetch_scene(cache=False)
-    assert spec.prefetch_scene(cache=False)                    # --no-cache always builds the scene
+    assert not scene_prefetch.start_for_spec(spec, cache=str(folder))         # key remembered: a cached P-SOG needs no scene
+    assert not scene_prefetch.start_for_spec(PSOGSpec(SceneSpec("semantickitti:/nowhere")), cache=False)
+    assert scene_prefetch.start_for_spec(spec, cache=False)                    # --no-cache always builds the scene
     try:
         got = spec.scene.build()                               # spec._build_scene takes the forked scene
         assert scene_prefetch.take(spec.scene) is None
         from place3d_kernels import scene as scenes
 
         _same_scene(got, scenes.town(seed=5, n_frames=8))
-        assert len(scene_prefetch.take_dynamic(got)) == 8
+        assert len(got.take_prebuilt()) == 8
     finally:
         scene_prefetch._discard()
 

@@ -1,6 +1,6 @@
 """``place3d serve`` and ``place3d --server``: the same command through a warm server as in-process.
 
-Every command here runs as a real ``python -m place3d_client`` process (the ``place3d`` entry point),
+Every command here runs as a real ``python -m place3d_app`` process (the ``place3d`` entry point),
 against a real server process, on the dev VM's CPU backend. Timing figures ("2.1 s") are the only part
 of the output allowed to differ.
 """
@@ -23,9 +23,9 @@ from pathlib import Path
 import pytest
 
 import place3d_kernels as p3k
-from place3d_client import server_request, wire
-from place3d_kernels.cli import asks_for_server
-from place3d_kernels.serve import is_listening
+from place3d_app import server_request, wire
+from place3d_app.cli import asks_for_server
+from place3d_app.serve import is_listening
 from place3d_kernels.sog import PSOG, keep_loaded
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,12 +45,12 @@ def _env(**extra) -> dict:
 
 
 def _place3d(*args, cwd=None, env=None, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "place3d_client", *args], cwd=cwd, env=env or _env(),
+    return subprocess.run([sys.executable, "-m", "place3d_app", *args], cwd=cwd, env=env or _env(),
                           capture_output=True, text=True, timeout=300, **kw)
 
 
 def _start_server(path, *extra) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "place3d_client", "serve", "--socket", str(path),
+    proc = subprocess.Popen([sys.executable, "-m", "place3d_app", "serve", "--socket", str(path),
                              "--backend", BACKEND, *extra], env=_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 120
@@ -103,7 +103,7 @@ def test_flag_is_read_before_the_subcommand_only():
 @pytest.mark.parametrize("argv", [["--server", "backends"], ["--server=/s", "--profile", "x"], ["optimize", "--server"],
                                   ["--profile", "optimize"], [], ["--server"]])
 def test_cli_reads_the_flag_as_the_client_does(argv):
-    """``place3d_kernels.cli`` hands ``--server`` to the client (python -m place3d_kernels.cli, old scripts)
+    """``place3d_app.cli`` hands ``--server`` to the client (python -m place3d_app.cli, old scripts)
     by its own reading of the flag, which must be the client's."""
     assert asks_for_server(argv) == server_request(argv, {})[1]
 
@@ -174,13 +174,13 @@ def test_bad_input_gives_the_same_error_and_the_server_survives(server, tmp_path
 
 def test_ctrl_c_on_the_client_interrupts_the_command_not_the_server_and_the_next_client_waits(server, tmp_path):
     path, proc = server
-    client = subprocess.Popen([sys.executable, "-m", "place3d_client", f"--server={path}", "optimize", *SMALL,
+    client = subprocess.Popen([sys.executable, "-m", "place3d_app", f"--server={path}", "optimize", *SMALL,
                                "--max-evals", "1000000"], cwd=tmp_path, env=_env(), stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True)
     time.sleep(4)                      # connected, P-SOG built, searching
     assert client.poll() is None, client.communicate()
     # a second client waits for its turn, and says so
-    second = subprocess.Popen([sys.executable, "-m", "place3d_client", f"--server={path}", "backends"],
+    second = subprocess.Popen([sys.executable, "-m", "place3d_app", f"--server={path}", "backends"],
                               cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(2.5)
     assert second.poll() is None
@@ -203,7 +203,7 @@ def test_plot_process_inside_the_server_is_kept_and_holds_no_clients_pipe(tmp_pa
     in-process, and a plot process that died is replaced."""
     folder = Path(tempfile.mkdtemp(prefix="p3s-", dir="/tmp"))
     path = folder / "s.sock"
-    code = ("import os, sys; os.cpu_count = lambda: 8; from place3d_client import main; "
+    code = ("import os, sys; os.cpu_count = lambda: 8; from place3d_app import main; "
             f"sys.exit(main(['serve', '--socket', '{path}', '--backend', '{BACKEND}']))")
     proc = subprocess.Popen([sys.executable, "-c", code], env=_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
@@ -300,7 +300,7 @@ def test_idle_timeout_exits():
 
 def test_forwarding_client_imports_neither_numpy_nor_the_package(server):
     path, _ = server
-    code = ("import sys, place3d_client; rc = place3d_client.main(['--server=%s', 'backends']); "
+    code = ("import sys, place3d_app; rc = place3d_app.main(['--server=%s', 'backends']); "
             "assert rc == 0, rc; bad = [m for m in ('numpy', 'place3d_kernels') if m in sys.modules]; "
             "assert not bad, bad" % path)
     r = subprocess.run([sys.executable, "-c", code], env=_env(), capture_output=True, text=True, timeout=60)
@@ -329,7 +329,7 @@ def test_a_late_watcher_does_not_interrupt_the_next_command(tmp_path, monkeypatc
     """A command's watcher that sees its client leave only after the next command started (a loaded
     machine: a CI run once saw the next client's command end with exit 1) stays quiet; the watcher of the
     running command still passes its client's leaving on."""
-    from place3d_kernels import serve
+    from place3d_app import serve
 
     srv = serve.Server(tmp_path / "s.sock", command=lambda argv: 0)
     sent = []
@@ -354,7 +354,7 @@ def test_settle_memory_freezes_survivors_and_frees_what_a_command_left():
     import gc
     import weakref
 
-    from place3d_kernels.serve import settle_memory
+    from place3d_app.serve import settle_memory
 
     class Node:
         pass

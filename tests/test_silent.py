@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from place3d_kernels.cli import main
+from place3d_app.cli import main
 
 TINY = ["--frames", "8", "--voxel-size", "0.8", "--quiet"]
 
@@ -270,12 +270,12 @@ def test_study_with_unknown_placement_writes_nothing(tmp_path, capsys):
 
 
 def test_ctrl_c_is_one_line_and_exit_130(capsys, monkeypatch):
-    import place3d_kernels.cli as cli
+    import place3d_app.cli as cli
 
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "_psog", boom)
+    monkeypatch.setattr(cli, "psog_for_spec", boom)
     try:
         rc = main(["optimize", *TINY, "--output", "o"])
     except KeyboardInterrupt:

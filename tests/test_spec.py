@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from place3d_kernels.cli import build_parser, main
+from place3d_app.cli import build_parser, main
 from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.spec import ConditionSpec, PSOGSpec, RoiSpec, SceneSpec, parse_params, specs_from_args
@@ -75,7 +75,7 @@ def test_specs_from_args_once_for_every_command():
 
 
 def test_cli_local_simulate_equals_executor_path_from_the_same_specs(tmp_path):
-    from place3d_kernels.distributed import LocalExecutor, simulate_to_folder
+    from place3d_app.executors import LocalExecutor, simulate_to_folder
 
     lidar = "place3d_16ch"
     argv = ["simulate", "--frames", "3", "--seed", "1", "--lidar", lidar, "--backend", BACKEND, "--quiet",

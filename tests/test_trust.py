@@ -162,7 +162,7 @@ def test_bootstrap_over_subsets_of_one_drive(two_drives):
 
 # ------------------------------------------------------------------ (c) reproduce end to end
 def test_reproduce_tiny_end_to_end(tmp_path):
-    from place3d_kernels.cli import main
+    from place3d_app.cli import main
 
     out = tmp_path / "repro"
     rc = main(["reproduce", "--towns", "town", "--routes", "2", "--frames", "4", "--voxel-size", "0.4",

@@ -94,6 +94,15 @@ class Scene:
             offset += len(a.mesh.vertices)
         return Mesh(np.concatenate(verts), np.concatenate(faces), np.concatenate(labels))
 
+    def keep_prebuilt(self, dynamic: dict) -> None:
+        """Keep actor meshes per frame (``{frame: dynamic(frame)}``) made ahead, e.g. in another process,
+        for the next ``take_prebuilt``."""
+        self.__dict__["_prebuilt"] = dict(dynamic)
+
+    def take_prebuilt(self) -> dict:
+        """The actor meshes kept by ``keep_prebuilt`` (handed out once), else {}."""
+        return self.__dict__.pop("_prebuilt", {})
+
     def mesh(self, frame: int) -> Mesh:
         """Static world plus the actors at ``frame``."""
         dyn = self.dynamic(frame)

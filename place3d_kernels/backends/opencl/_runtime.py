@@ -82,6 +82,14 @@ def platform_table() -> dict[str, tuple["cl.Platform", list["cl.Device"]]]:
     except cl.Error:  # PLATFORM_NOT_FOUND_KHR: the ICD loader found no driver
         return {}
     table: dict[str, tuple[cl.Platform, list[cl.Device]]] = {}
+    # Two PoCL installs (Debian's and PyPI's wheel, as .ci/run has them) are the same CPU twice: keep the
+    # newest PoCL only. PyPI's 3.0 passes the one-line probe on CPUs its LLVM 14 does not know, then
+    # builds the real programs without kernels.
+    pocls = sorted((p for p in plats if short_name(p.name) == "pocl"), key=_pocl_version, reverse=True)
+    for p in pocls[1:]:
+        _unusable.append((f"{p.name} ({p.version.strip()})",
+                          f"a second PoCL on the same CPU; using {pocls[0].version.strip()}"))
+    plats = [p for p in plats if p not in pocls[1:]]
     for p in plats:
         try:
             devs = p.get_devices()
@@ -101,6 +109,11 @@ def platform_table() -> dict[str, tuple["cl.Platform", list["cl.Device"]]]:
             name, k = f"{base}{k}", k + 1
         table[name] = (p, devs)
     return table
+
+
+def _pocl_version(p: "cl.Platform") -> tuple[int, ...]:
+    m = re.search(r"PoCL (\d+)\.(\d+)", p.version)
+    return (int(m.group(1)), int(m.group(2))) if m else (0, 0)
 
 
 def unusable_platforms() -> list[tuple[str, str]]:

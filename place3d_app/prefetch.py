@@ -12,7 +12,7 @@ frame's actor mesh (all that the simulation needs before it needs a backend), an
 through an unnamed file in /dev/shm whose length goes through a pipe (the pipe itself where no such file
 can be made). :func:`take` returns that scene (the same arrays, bit for bit: the child runs the same
 code on a copy of this process's memory, and pickling keeps NumPy arrays exactly), and
-:func:`take_dynamic` the actor meshes. A child that fails, or a platform where forking is not safe, gives
+the actor meshes kept on it (``Scene.take_prebuilt``). A child that fails, or a platform where forking is not safe, gives
 ``None`` and the caller builds the scene itself, as before.
 
 Forking is safe only while this process runs one thread (a lock held by another thread at the fork stays
@@ -34,13 +34,12 @@ from typing import Callable, Hashable
 
 from place3d_kernels.profiling import record, section
 
-__all__ = ["start", "take", "take_dynamic", "enabled", "ENV"]
+__all__ = ["start", "take", "enabled", "ENV", "usable_cores", "start_for_spec", "PREFETCH_ENV", "prefetch_wanted"]
 
 #: Environment variable: "0" turns the forked scene build off (the scene is built in this process).
 ENV = "PLACE3D_SCENE_PREFETCH"
 
 _pending: dict[Hashable, tuple] = {}   # key -> (child pid, read end of its pipe, fork time, payload file or None)
-_dynamic: dict[int, tuple[object, dict]] = {}       # id(scene) -> (scene, {frame: Mesh}) not yet taken
 
 
 def usable_cores() -> int:
@@ -171,16 +170,49 @@ def take(key: Hashable):
     record("scene: child: actor meshes, normals", t2 - t1)
     record("scene: child: pickle and hand-over", arrived - t2)
     if dynamic:
-        _dynamic[id(scene)] = (scene, dynamic)
+        scene.keep_prebuilt(dynamic)
     return scene
 
 
-def take_dynamic(scene) -> dict:
-    """The actor meshes per frame the child built for ``scene`` (each handed out once), else {}."""
-    entry = _dynamic.pop(id(scene), None)
-    if entry is None or entry[0] is not scene:
-        return {}
-    return entry[1]
+def start_for_spec(spec, cache: bool | str = True) -> bool:
+    """Start building ``spec``'s scene (a ``PSOGSpec``) in a forked child when its P-SOG build will need it:
+    not for recorded frames, nor when the scene's key is remembered in the cache folder (a cached P-SOG is
+    then found without it). Call it before the backend is probed; ``PSOGSpec.build`` then takes the scene
+    through the supplier this registers (``place3d_kernels.spec.supply_scenes``).
+
+    Returns:
+        True when the build was started (False: not needed, or forking is off or unsafe here).
+    """
+    import functools
+    from pathlib import Path
+
+    from place3d_kernels import spec as specs
+
+    if spec.scene.kind == "semantickitti" or not enabled():
+        return False
+    if cache:
+        from place3d_kernels.scene.keymemo import identity, recall
+        from place3d_kernels.sog import cache_dir
+
+        folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
+        if recall(folder, identity(spec.scene.to_dict(), spec.scene.kind, spec.scene.path)) is not None:
+            return False
+    specs.supply_scenes(take)
+    return start(spec.scene, functools.partial(specs.make_scene, spec.scene), normals=spec.condition is not None)
+
+
+#: ``PLACE3D_JACKKNIFE_PREFETCH``: ``1`` = ``place3d optimize`` prepares the jackknife's left-out grids on a
+#: thread during the search; ``0`` = never (the jackknife prepares them after the search); unset or ``auto``
+#: = on hosts with 4 or more usable cores (on 2 the thread would take turns with the search's scoring).
+PREFETCH_ENV = "PLACE3D_JACKKNIFE_PREFETCH"
+
+
+def prefetch_wanted() -> bool:
+    """What ``PLACE3D_JACKKNIFE_PREFETCH`` asks for (see ``PREFETCH_ENV``)."""
+    v = os.environ.get(PREFETCH_ENV, "auto").strip().lower()
+    if v in ("0", "1"):
+        return v == "1"
+    return usable_cores() >= 4
 
 
 def _reap(pid: int) -> None:

@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
         code = forward(path, rest, explicit)
         if code is not None:
             return code
-    from place3d_kernels.cli import main as run_here
+    from place3d_app.cli import main as run_here
 
     return run_here(None if from_sys else rest)
 
@@ -147,7 +147,7 @@ def forward(path: str, argv: list[str], explicit: bool) -> int | None:
     import signal
     import socket
 
-    from place3d_client import wire
+    from place3d_app import wire
 
     where = path or str(wire.default_socket())
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -199,7 +199,7 @@ def forward(path: str, argv: list[str], explicit: bool) -> int | None:
 
 def _wait(sock, where: str, signal) -> int:
     """Wait for the command's exit code; the first Ctrl-C is passed on to the server, a second one leaves."""
-    from place3d_client import wire
+    from place3d_app import wire
 
     interrupts = []
 

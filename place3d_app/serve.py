@@ -3,7 +3,7 @@
 A warm ``place3d optimize --max-evals 2000`` spent about 2.4 s of its 6.5 s on the H100 host in start-up:
 the interpreter and package imports, Warp, CUDA, pycma, the cached P-SOG. The kernels take milliseconds.
 Like ``dmypy`` or the Gradle daemon, ``place3d serve`` pays that once and then runs each command sent by
-``place3d --server ...`` (``place3d_client``) in its own process, where the imports are done, the backend
+``place3d --server ...`` (``place3d_app``) in its own process, where the imports are done, the backend
 instances with their compiled kernels are kept by the registry, and the last P-SOGs read stay in memory
 (``sog.keep_loaded``).
 
@@ -15,7 +15,7 @@ after a second). Ctrl-C on the client (or the client going away) interrupts the 
 ``KeyboardInterrupt``, as Ctrl-C does in-process; the server carries on.
 
 The server refuses a client whose package, interpreter or dependencies differ from what it loaded
-(``place3d_client.wire.identity``) and then stops, since its code is out of date; it also refuses a client
+(``place3d_app.wire.identity``) and then stops, since its code is out of date; it also refuses a client
 whose start-up variables (``CUDA_VISIBLE_DEVICES``, ``POCL_*``, ...) differ. Refused clients run the
 command themselves, so old code never answers silently.
 """
@@ -77,17 +77,17 @@ def serve(args, command, warm) -> int:
 
 
 def client_wire():
-    """``place3d_client.wire`` (the socket, messages and identity the client shares), imported on use: the
-    CLI imports this module for its parser, and a checkout installed before ``place3d_client`` existed
+    """``place3d_app.wire`` (the socket, messages and identity the client shares), imported on use: the
+    CLI imports this module for its parser, and a checkout installed before ``place3d_app`` existed
     must still run every other command.
 
     Raises:
-        ValueError: ``place3d_client`` is not importable (reinstall the package: ``pip install -e .``).
+        ValueError: ``place3d_app`` is not importable (reinstall the package: ``pip install -e .``).
     """
     try:
-        from place3d_client import wire
+        from place3d_app import wire
     except ImportError as e:
-        raise ValueError(f"place3d serve needs the place3d_client package beside place3d_kernels ({e}); "
+        raise ValueError(f"place3d serve needs the place3d_app package beside place3d_kernels ({e}); "
                          f"reinstall the package (pip install -e . in the checkout)") from None
     return wire
 
@@ -434,7 +434,7 @@ def _detach(args, path: Path) -> int:
                          f"its pid), or start this one with another --socket")
     path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
     log = path.with_suffix(".log")
-    cmd = [sys.executable, "-m", "place3d_client", "serve", "--socket", str(path),
+    cmd = [sys.executable, "-m", "place3d_app", "serve", "--socket", str(path),
            "--idle-timeout", str(args.idle_timeout)] + (["--backend", args.backend] if args.backend else [])
     with open(log, "ab") as f:
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=f, stderr=subprocess.STDOUT,

@@ -33,7 +33,7 @@ def add_rig_arguments(p) -> None:
     g.add_argument("--dofs", default=None,
                    help="optimised DOFs per LiDAR: x,y,z (= surface u,v,w), roll, pitch, yaw (default "
                         "x,y,z,pitch,yaw)")
-    # --vehicle is a common option (place3d_kernels.cli): giving it selects this mode; its default here is car
+    # --vehicle is a common option (place3d_app.cli): giving it selects this mode; its default here is car
     g.add_argument("--objective", default="msog", choices=["msog", "pareto"],
                    help="msog: best rig; pareto: the front of M-SOG against cost and sensor count")
     g.add_argument("--prices", default=None, help="price TOML (default: the shipped illustrative list prices)")

@@ -51,7 +51,7 @@ __all__ = ["add_arguments", "run", "run_study", "load_config"]
 
 
 def add_arguments(p) -> None:
-    from place3d_kernels.distributed import add_executor_arguments
+    from place3d_app.executors import add_executor_arguments
 
     p.add_argument("config", help="study TOML (see place3d_kernels/configs/study/example.toml)")
     p.add_argument("--output", default=None, help="output folder (default: study-<name>/)")
@@ -175,7 +175,7 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
     import shutil
 
     from place3d_kernels.manifest import provenance, spec_hash, verify_manifest, write_manifest
-    from place3d_kernels.distributed import LocalExecutor
+    from place3d_app.executors import LocalExecutor
     from place3d_kernels.spec import ConditionSpec, PSOGSpec, RoiSpec, SceneSpec, backend_name
 
     t0 = time.perf_counter()
@@ -277,7 +277,7 @@ def _within_noise(rows: list, resamples: int) -> dict:
 
 
 def run(args) -> int:
-    from place3d_kernels.distributed import executor_from_args
+    from place3d_app.executors import executor_from_args
 
     cfg = load_config(args.config)
     if args.resamples is not None:

@@ -25,7 +25,7 @@ __all__ = ["default_socket", "identity", "startup_env", "send", "recv", "send_wi
            "STARTUP_ENV_PREFIXES", "PACKAGES"]
 
 #: The packages whose source makes up the command: an edit to any of their ``SOURCE_SUFFIXES`` files is new code.
-PACKAGES = ("place3d_kernels", "place3d_client")
+PACKAGES = ("place3d_kernels", "place3d_app")
 #: Files a warm process holds in memory in some form: Python modules, OpenCL kernel sources (built once
 #: per backend instance), TOML presets and configs.
 SOURCE_SUFFIXES = (".py", ".cl", ".toml")

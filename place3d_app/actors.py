@@ -6,7 +6,7 @@ keeps that state in actors instead, so that from the second CMA-ES generation on
 only its ``msog_batch`` launch:
 
     >>> import ray
-    >>> from place3d_kernels.actors import ScoringPool
+    >>> from place3d_app.actors import ScoringPool
     >>> pool = ScoringPool(ray, gpu_actors=2, cpu_actors=1)            # on a 2-GPU host
     >>> scores = pool.score(psog_spec, "place3d_16ch", poses, chunk=8)   # (P,), candidate order
 

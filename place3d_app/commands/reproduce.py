@@ -314,7 +314,7 @@ def write_outputs(res: dict, out) -> dict:
 
 
 def add_arguments(p) -> None:
-    from place3d_kernels.distributed import add_executor_arguments
+    from place3d_app.executors import add_executor_arguments
 
     p.add_argument("--towns", nargs="+", default=list(DEFAULT_TOWNS),
                    help="maps: CARLA map names (Town01 ...), .xodr paths, or 'town' (default: Town01 Town03 Town04 Town06)")
@@ -340,7 +340,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from place3d_kernels.distributed import executor_from_args
+    from place3d_app.executors import executor_from_args
 
     ex = executor_from_args(args)
     try:

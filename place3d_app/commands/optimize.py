@@ -60,7 +60,7 @@ def add_arguments(p) -> None:
                    help="95 %% intervals of the best rig and the baselines over the drive's subsets, and P(best > "
                         "baseline): 'jackknife' (default), 'bootstrap' (--resamples draws) or 'none'")
     p.add_argument("--resamples", type=int, default=200, help="bootstrap resamples (with --interval bootstrap)")
-    from place3d_kernels.rig_cli import add_rig_arguments
+    from place3d_app.commands.rig import add_rig_arguments
 
     add_rig_arguments(p)
 
@@ -103,7 +103,7 @@ def check_args(args, spec) -> None:
         if not np.all(space.contains(x, tol=1e-9)):
             raise ValueError(f"--x0 {args.x0} lies outside the search box {space}; choose a placement inside it")
     holdout_specs(args, spec)            # parses --holdout-seeds / --holdout-scenes, raising on bad values
-    from place3d_kernels.distributed import check_actor_arguments
+    from place3d_app.executors import check_actor_arguments
 
     check_actor_arguments(args)          # --gpu-actors / --cpu-actors need --executor ray
     if args.normalisation != "paper" and (getattr(args, "executor", "local") == "ray"
@@ -147,9 +147,9 @@ def run(args, spec, psog_for) -> int:
             and cache options (``backend`` may be a ``Future`` of one, waited for only on a cache miss).
     """
     from place3d_kernels.optimize.plots import PlotWorker
-    from place3d_kernels.rig_cli import run_rig, wants_rig_mode
+    from place3d_app.commands.rig import run_rig, wants_rig_mode
 
-    if wants_rig_mode(args):              # sensors, surfaces, a body, cost: place3d_kernels/rig_cli.py
+    if wants_rig_mode(args):              # sensors, surfaces, a body, cost: place3d_app/commands/rig.py
         return run_rig(args, spec, psog_for)
     t0 = time.perf_counter()
     if args.opt_seed is None:
@@ -202,7 +202,8 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     # records and the task, not on the search: they are prepared on a thread while it runs
     # (uncertainty.prepare_in_background)
     if args.interval == "jackknife" and args.lidars == 4:      # the baselines' intervals: 4-LiDAR rigs
-        from place3d_kernels.uncertainty import prefetch_wanted, prepare_in_background
+        from place3d_app.prefetch import prefetch_wanted
+        from place3d_kernels.uncertainty import prepare_in_background
 
         if prefetch_wanted():
             prepare_in_background(spec, psog, lidar, args.task, args.occlusion, b, normalisation=args.normalisation)
@@ -213,7 +214,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
 
     executor = None
     if getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None):
-        from place3d_kernels.distributed import DistributedObjective, executor_from_args
+        from place3d_app.executors import DistributedObjective, executor_from_args
 
         executor = executor_from_args(args)
         objective = DistributedObjective(dataclasses.replace(spec, backend=b.name), lidar, space, executor, task=args.task, occlusion=args.occlusion,
@@ -332,7 +333,7 @@ def holdout_specs(args, spec) -> list:
     except ValueError:
         raise ValueError(f"--holdout-seeds takes comma-separated integers, e.g. 1,2; got {seeds_arg!r}") from None
     scenes = [v.strip() for v in scenes_arg.split(",") if v.strip()] if scenes_arg else [spec.scene.name]
-    from place3d_kernels.reproduce import resolve_town
+    from place3d_app.commands.reproduce import resolve_town
 
     # a bare map name (Town03) is looked up like `place3d reproduce` does (shipped CARLA maps included)
     scenes = [n if ":" in n or n == "town" else resolve_town(n) for n in scenes]

@@ -4,7 +4,7 @@ Everything a task needs travels in the task itself (scene spec, LiDAR, backend n
 frame indices or candidate rows), so tasks are pure functions of explicit inputs and give the same bytes
 on any worker as the local executor does in-process:
 
-    >>> from place3d_kernels.distributed import SceneSpec, get_executor, simulate_to_folder
+    >>> from place3d_app.executors import SceneSpec, get_executor, simulate_to_folder
     >>> ex = get_executor("ray")                           # or "local"; address="ray://head:10001"
     >>> simulate_to_folder(SceneSpec("town", seed=0, frames=40), "collection_64ch", "seq/", ex, chunk=8)
 
@@ -20,7 +20,7 @@ on any worker as the local executor does in-process:
   When the Ray executor has scoring actors (``get_executor("ray", gpu_actors=N, cpu_actors=M)``,
   ``--gpu-actors N --cpu-actors M``), the chunks go to long-lived actors instead, one per GPU plus M on
   CPU cores, which keep the backend, its compiled kernels and the P-SOG between generations and take
-  chunks dynamically (``place3d_kernels.actors``). Same scores, bit for bit, as the tasks and as
+  chunks dynamically (``place3d_app.actors``). Same scores, bit for bit, as the tasks and as
   ``msog_batch`` in-process.
 - The specs (``SceneSpec``, ``ConditionSpec``, ``PSOGSpec``) live in ``place3d_kernels.spec`` and are
   re-exported here.
@@ -116,7 +116,7 @@ class RayExecutor(Executor):
         cpus_per_task: CPUs each task requests (default 1).
         max_retries: retries of a task whose worker dies (Ray's ``max_retries``).
         gpu_actors: scoring actors reserving one GPU each (``DistributedObjective`` then scores on
-            actors instead of tasks; ``place3d_kernels.actors``). Started on the first scored batch.
+            actors instead of tasks; ``place3d_app.actors``). Started on the first scored batch.
         cpu_actors: scoring actors on CPU cores (alone, or beside the GPU actors).
         cpu_backends: the CPU actors' backend: one name or one per actor (default: the run's backend when
             it is a CPU one, else the first of opencl:pocl, warp:cpu, reference on the actor's host).
@@ -155,7 +155,7 @@ class RayExecutor(Executor):
         """The ``actors.ScoringPool`` (started on first use; ``backend`` is the run's backend name, which
         decides the actors' backends then and is ignored afterwards)."""
         if self.pool is None:
-            from place3d_kernels.actors import ScoringPool
+            from place3d_app.actors import ScoringPool
 
             self.pool = ScoringPool(self._ray, self.gpu_actors, self.cpu_actors, backend=backend,
                                     cpu_backends=self.cpu_backends)

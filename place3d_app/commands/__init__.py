@@ -1,0 +1,1 @@
+"""The commands of ``place3d``, one module each."""

@@ -1,0 +1,88 @@
+"""What the commands share: the scene and condition options, output checks, the P-SOG with progress."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from place3d_kernels.profiling import section
+
+__all__ = ["add_common", "check_output_file", "check_output_dir", "psog_for_spec"]
+
+
+def add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--backend", default=None,
+                   help="reference | warp[:cpu|:cuda:N] | opencl[:platform] | auto (default: $PLACE3D_BACKEND or auto)")
+    p.add_argument("--scene", default="town",
+                   help="scene: 'town' (the embedded procedural town), 'opendrive:PATH' (e.g. a CARLA .xodr map), "
+                        "'mesh:PATH' (a mesh file trimesh reads or a Mitsuba XML; see --labels, --route) or "
+                        "'semantickitti:DIR' (labelled frames + poses.txt: the P-SOG is built from them)")
+    p.add_argument("--labels", default=None,
+                   help="mesh scenes: TOML label map (part name -> class) or one class for the whole file")
+    p.add_argument("--route", default=None,
+                   help="mesh scenes: ego poses, one per line: 'x y z roll pitch yaw' or 'x y yaw' (m, rad)")
+    p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
+    p.add_argument("--frames", type=int, default=40, help="frames along the ego route (default 40, as the paper)")
+    p.add_argument("--voxel-size", type=float, default=None, help="ROI voxel size in metres (default 0.2)")
+    p.add_argument("--no-cache", action="store_true", help="rebuild the P-SOG even if a cached one exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--condition", default=None,
+                   help="adverse condition on the simulated frames: fog, wet_ground, snow, motion_blur, crosstalk, "
+                        "incomplete_echo (paper settings unless --severity/--param)")
+    p.add_argument("--severity", default=None, choices=["light", "moderate", "heavy"], help="condition severity")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="condition parameter, e.g. --param alpha=0.03 (repeatable)")
+    p.add_argument("--vehicle", default=None, metavar="car|suv|van|truck|none|PATH",
+                   help="ego vehicle body blocking the rays of the collection LiDAR (P-SOG) and of the scored "
+                        "rigs: a preset or a mesh file in the ego frame. Default none, the paper's setting (no "
+                        "body), so the paper's numbers reproduce; optimize: giving it selects real-rig mode, "
+                        "whose default is car")
+
+
+def check_output_file(path, suffixes=(".json",), what="--output") -> None:
+    """An output file path the writer can produce: the right extension, not an existing folder."""
+    if path is None:
+        return
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"{what} {p} is a folder; give a file path ending in {' or '.join(suffixes)}")
+    if p.suffix.lower() not in suffixes:
+        raise ValueError(f"{what} {p}: only {' or '.join(suffixes)} is written; use e.g. {p.with_suffix(suffixes[0])}")
+
+
+def check_output_dir(path, what="--output") -> None:
+    if path is not None and Path(path).exists() and not Path(path).is_dir():
+        raise ValueError(f"{what} {path} is an existing file; give a folder")
+
+
+def psog_for_spec(spec, args, backend, with_scene: bool = True):
+    """(scene, P-SOG) of ``spec`` built with ``backend`` (the local path), honouring --no-cache / --quiet.
+
+    Raises ``ValueError`` for a P-SOG without entropy (every voxel a single class: fewer than two subsets),
+    on which every rig would score 0.
+    """
+    from place3d_kernels.pipeline import check_entropy
+    from place3d_kernels.subset_records import records_aggregator
+
+    t = time.perf_counter()
+    # on a cache miss the P-SOG is pooled from per-subset records kept on disk, so the intervals find
+    # them instead of simulating the same frames again
+    aggregate = None if args.no_cache else records_aggregator(spec)
+    with section("P-SOG (cache or build)"):
+        # the new P-SOG's file is written on a thread while the command goes on (main waits for it at the end),
+        # unless Ray workers will read it from the cache meanwhile
+        local = getattr(args, "executor", "local") == "local" and not getattr(args, "ray_address", None)
+        psog = spec.build(backend=backend, cache=not args.no_cache, progress=not args.quiet, aggregate=aggregate,
+                          save_in_background=local)
+    check_entropy(psog, spec.frames_per_subset)
+    if not args.quiet:
+        print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
+    if not with_scene or spec.scene.kind == "semantickitti":
+        return None, psog       # a cached P-SOG was found without building the scene (scene.keymemo)
+    with section("scene build"):
+        return spec.scene.build(), psog
+
+
+# ---------------------------------------------------------------------------------------- commands
