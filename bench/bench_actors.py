@@ -26,7 +26,6 @@ visible) are listed under "not_run" with the reason.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import shutil
@@ -127,6 +126,8 @@ def main(argv=None) -> int:
         import ray
     except ImportError:
         ray = None
+    from results_io import write_result
+
     from place3d_app.actors import CPU_BACKENDS, ScoringPool, is_gpu_backend
     from place3d_kernels.backends.registry import available_backends, get_backend
     from place3d_app.executors import DistributedObjective, PSOGSpec, SceneSpec, get_executor
@@ -229,8 +230,7 @@ def main(argv=None) -> int:
 
     ok = all(r["identical_to_in_process"] for c in res["configs"].values() for r in c["populations"].values())
     res["all_identical_to_in_process"] = ok
-    out = Path(args.output or ROOT / "bench" / "results" / f"actors-{label}-{date}.json")
-    out.write_text(json.dumps(res, indent=2) + "\n")
+    out = write_result("actors", res, label, path=args.output)
     print(f"wrote {out}; every configuration's scores identical to in-process: {ok}", file=sys.stderr)
     return 0 if ok else 1
 

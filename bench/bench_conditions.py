@@ -13,16 +13,11 @@ Prints a table and writes ``bench/results/conditions-<machine>-<date>.json``.
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
-import json
-import platform
-import re
-import socket
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
+from results_io import write_result
 
 import place3d_kernels as p3k
 from place3d_kernels import conditions as C
@@ -51,22 +46,13 @@ def frame(n_points: int) -> p3k.PointCloud:
     return p3k.PointCloud(np.asarray(f.points)[idx], np.asarray(f.labels)[idx], np.asarray(f.intensity)[idx], origins)
 
 
-def cpu_name() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=120_000)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--backends", default=None, help="comma-separated (default: all with condition kernels)")
     ap.add_argument("--out", default=None, help="JSON path (default: bench/results/conditions-<machine>-<date>.json)")
+    ap.add_argument("--machine", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
     args = ap.parse_args(argv)
 
     names = args.backends.split(",") if args.backends else [
@@ -92,17 +78,8 @@ def main(argv=None) -> dict:
             rows.append(row)
             print(f"{b:12s} {cond:16s} {1e3 * row['median_s']:9.1f} ms/frame   (first call {1e3 * first:8.1f} ms, "
                   f"{row['points_out']} points out, {row['scattered']} scattered)")
-    machine = re.sub(r"[^A-Za-z0-9_.-]+", "-", socket.gethostname())[:40] or "machine"
-    date = _dt.date.today().isoformat()
-    import warp
-
-    result = dict(benchmark="conditions", date=date, machine=machine, cpu=cpu_name(), python=platform.python_version(),
-                  numpy=np.__version__, warp=warp.__version__, points=len(cloud), rows=rows)
-    out_path = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / \
-        f"conditions-{machine}-{date}.json"
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(json.dumps(result, indent=2))
-    print(f"wrote {out_path}")
+    result = dict(points=len(cloud), rows=rows)
+    print("wrote", write_result("conditions", result, args.machine, path=args.out))
     return result
 
 

@@ -6,19 +6,17 @@ and a PROJECTION of the paper-scale dataset time (280,000 frames) on N GPUs from
 
 Per-frame GPU basis, in order of preference:
   1. measured here with --gpu-backend (simulate() per frame on that backend, warm, in-process);
-  2. bench/results/gpu-*.json: lidar_rays_ms + 2 x (65,536 rays / raycast_town_mrays_s), i.e. one static and
+  2. the latest run_bench.py run with warp:cuda:0 in bench/results/summary.json: lidar_rays_ms + 2 x (65,536 rays / raycast_town_mrays_s), i.e. one static and
      one dynamic-actor ray cast per frame at the API rate (copies included), no host work.
 The projection assumes one task stream per GPU, perfect scaling and host work (actor meshes, conditions,
-file writes) overlapped on the CPU cores; it is a projection, not a measurement.
+file writes) overlapped on the CPU cores; it is a projection, not a measurement. Writes
+``bench/results/distributed-<machine>-<date>.json``.
 """
 
 from __future__ import annotations
 
 import argparse
-import glob
 import json
-import os
-import platform
 import shutil
 import sys
 import tempfile
@@ -59,14 +57,16 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, nargs="*", default=[1, 2])
     ap.add_argument("--gpu-backend", default=None, help="measure the per-frame GPU time here on this backend")
     ap.add_argument("--gpus", type=int, nargs="*", default=[1, 8, 64])
-    ap.add_argument("--output", default=None)
+    ap.add_argument("--output", default=None, help="JSON path (default bench/results/distributed-<machine>-<date>.json)")
+    ap.add_argument("--machine", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
     args = ap.parse_args(argv)
+
+    from results_io import write_result
 
     from place3d_app.executors import LocalExecutor, SceneSpec, get_executor
 
     scene = SceneSpec("town", seed=0, frames=max(args.frames, 10))
-    res = {"date": time.strftime("%Y-%m-%d"), "host": platform.node(), "cpus": os.cpu_count(),
-           "backend": args.backend, "lidar": args.lidar, "frames": args.frames, "chunk": args.chunk,
+    res = {"backend": args.backend, "lidar": args.lidar, "frames": args.frames, "chunk": args.chunk,
            "scene": "town seed 0", "runs": {}}
     # local executor (in-process), after a warm-up frame
     _fps(LocalExecutor(), scene, args.lidar, args.backend, args.chunk, 1)
@@ -94,12 +94,13 @@ def main(argv=None) -> int:
         t_frame = _per_frame(args.gpu_backend, scene, args.lidar)
         basis = {"source": f"measured here: simulate() per frame on {args.gpu_backend}", "seconds_per_frame": t_frame}
     else:
-        files = sorted(glob.glob(str(ROOT / "bench" / "results" / "gpu-*.json")))
-        g = json.loads(Path(files[-1]).read_text())
+        # the latest run_bench.py run with warp:cuda:0 (summary.json keeps one per machine label)
+        runs = json.loads((ROOT / "bench" / "results" / "summary.json").read_text())["runs"]
+        g = max((r for r in runs if "warp:cuda:0" in r["backends"]), key=lambda r: r["date"])
         b = g["backends"]["warp:cuda:0"]
         t_frame = b["lidar_rays_ms"] / 1e3 + 2 * RAYS_PER_FRAME / (b["raycast_town_mrays_s"] * 1e6)
-        basis = {"source": f"{Path(files[-1]).name}: lidar_rays_ms + 2 x 65,536 rays at raycast_town_mrays_s (API)",
-                 "device": g["info"]["device"], "lidar_rays_ms": b["lidar_rays_ms"],
+        basis = {"source": f"summary.json, {g['machine']} {g['date']}: lidar_rays_ms + 2 x 65,536 rays at "
+                           "raycast_town_mrays_s (API)", "device": g["device"], "lidar_rays_ms": b["lidar_rays_ms"],
                  "raycast_town_mrays_s": b["raycast_town_mrays_s"], "seconds_per_frame": t_frame}
     proj = {str(n): 280_000 * t_frame / n / 3600 for n in args.gpus}
     res["projection"] = {"label": "PROJECTION (not measured): 280,000 frames x per-frame GPU time / N GPUs, "
@@ -107,9 +108,8 @@ def main(argv=None) -> int:
                          "hours_by_gpus": proj}
     print(f"PROJECTION, 280,000 frames at {t_frame * 1e3:.1f} ms/frame ({basis['source']}): "
           + ", ".join(f"{n} GPU(s) {h:.2f} h" for n, h in proj.items()), file=sys.stderr)
-    out = args.output or ROOT / "bench" / "results" / f"distributed-{res['date']}.json"
-    Path(out).write_text(json.dumps(res, indent=2))
     print(json.dumps(res, indent=2))
+    print("wrote", write_result("distributed", res, args.machine, path=args.output), file=sys.stderr)
     return 0
 
 

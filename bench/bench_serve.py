@@ -1,7 +1,7 @@
 """Wall time of ``place3d optimize`` in-process against the same command through a warm ``place3d serve``.
 
     python3 bench/bench_serve.py --backend warp:cuda:0 --machine H100
-    python3 bench/bench_serve.py --backend opencl:pocl --machine dev-2core
+    python3 bench/bench_serve.py --backend opencl:pocl --machine cpu-2core-dev
 
 Both are the ``place3d`` entry point (``python -m place3d_app``) in a subprocess, timed from start to
 exit; the server variant adds ``--server=SOCKET``. One untimed run of each first fills the Warp kernel
@@ -16,10 +16,8 @@ whether the outputs matched (timing figures masked), and the machine.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import re
 import shutil
 import signal
@@ -32,7 +30,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from place3d_app.kernel_bench import machine_info  # noqa: E402
+from results_io import write_result  # noqa: E402
+
 from place3d_app.serve import is_listening  # noqa: E402
 
 TIMING = re.compile(r"\d+(\.\d+)? s\b")
@@ -61,20 +60,16 @@ def _timed(cmd: list[str], cwd: Path, timeout: float) -> tuple[float, subprocess
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--backend", default="auto", help="backend of the command and the server (default auto)")
-    ap.add_argument("--machine", default=None, help="machine name for the file and the record (default: "
-                                                     "'<cores>core' and the CPU model in the record)")
+    ap.add_argument("--machine", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
     ap.add_argument("--runs", type=int, default=3, help="timed runs of each variant (default 3, at least 3)")
     ap.add_argument("--max-evals", type=int, default=2000)
     ap.add_argument("--task", default="seg")
     ap.add_argument("--timeout", type=float, default=600)
-    ap.add_argument("--output", default=None, help="JSON path (default bench/results/serve-<machine>-<date>.json)")
+    ap.add_argument("--output", default=None, help="JSON path (default bench/results/serve-<machine>-<date>.json, "
+                                                    "or $OUT/...)")
     args = ap.parse_args(argv)
     if args.runs < 3:
         ap.error(f"--runs must be at least 3 (median of three or more), got {args.runs}")
-    machine = args.machine or f"{os.cpu_count()}core"
-    today = datetime.date.today().isoformat()
-    suffix = "" if args.max_evals == 2000 else f"-evals{args.max_evals}"
-    out = Path(args.output or ROOT / "bench" / "results" / f"serve-{machine}-{today}{suffix}.json")
 
     work = Path(tempfile.mkdtemp(prefix="p3b-", dir="/tmp"))     # short: a socket path holds 107 bytes
     sock = work / "s.sock"
@@ -116,8 +111,7 @@ def main(argv=None) -> int:
         log = server.communicate(timeout=60)[0]
         shutil.rmtree(work, ignore_errors=True)
     res = {
-        "machine": machine, "cpu": machine_info()["cpu"], "cores": os.cpu_count(), "python": platform.python_version(),
-        "date": today, "backend": args.backend,
+        "backend": args.backend, "max_evals": args.max_evals,
         "command": "place3d " + " ".join(command) + " --output DIR",
         "in_process_s": stats(walls["in_process"]), "server_s": stats(walls["server"]),
         "speedup_median": statistics.median(walls["in_process"]) / statistics.median(walls["server"]),
@@ -130,8 +124,8 @@ def main(argv=None) -> int:
         "loadavg_1_5_15_before": load_before, "loadavg_1_5_15_after": os.getloadavg(),
         "note": "alternating runs after one untimed warm-up run of each; wall time of the whole subprocess",
     }
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2) + "\n")
+    bench = "serve" if args.max_evals == 2000 else f"serve-evals{args.max_evals}"
+    out = write_result(bench, res, args.machine, path=args.output)
     print(json.dumps({k: res[k] for k in ("in_process_s", "server_s", "speedup_median", "client_round_trip_s",
                                           "same_stdout_timing_masked")}, indent=1))
     print(f"wrote {out}", file=sys.stderr)

@@ -7,7 +7,8 @@ as on a machine that never ran the package. Trees named with ``--tree`` (folders
 this project) are run alternately, so two versions share one machine's mood; the default is this tree. A
 tree may carry environment settings, ``--tree .:PLACE3D_FAST_EXIT=0,NAME=VALUE``, to set a switch of one
 tree against the same tree without it. The command runs as the ``place3d`` console script runs it
-(``python -m place3d_app``, with ``PLACE3D_SERVER`` unset), so its exit is the script's.
+(``python -m place3d_app``, with ``PLACE3D_SERVER`` unset), so its exit is the script's; a tree from before the
+application wing (such as tag lab-2026-11-27) runs it under its old name, ``place3d_client``.
 ``--cprofile`` adds one run under cProfile per tree (the top functions by own and cumulative time).
 
 Python bytecode. ``pip install`` compiles the installed packages' bytecode and a package's first import
@@ -21,8 +22,9 @@ imports, where writable) and says so in the output; without it the runs measure 
     python3 bench/cold_profile.py --runs 4 --tree /tmp/old --tree . --out $OUT # an A/B, alternating
     python3 bench/cold_profile.py --runs 4 --tree .:PLACE3D_FAST_EXIT=0 --tree . --out $OUT
 
-Writes ``cold-profile<label>.txt`` (every run's wall, last stdout line and profile table, and the
-cProfile listings) and ``cold-profile<label>.json`` (the walls per tree: median, min, max) to ``--out``.
+Writes one file per run of this script, ``cold-profile-<machine>-<date>.json`` in ``--out`` (default $OUT, else
+bench/results/): the walls per tree (median, min, max, every run) and ``log``, every run's wall, last stdout line
+(with a digest of the results, which must match between trees) and profile table, and the cProfile listings.
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from results_io import write_result
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -50,6 +54,13 @@ def parse_tree(arg: str) -> tuple[str, Path, dict]:
     return tree.name + ("" if not env else "[" + ",".join(f"{k}={v}" for k, v in env.items()) + "]"), tree, env
 
 
+def entry_module(tree: Path, cprofile: bool) -> str:
+    """The console script's module in ``tree``, or under cProfile the CLI's module (old names in old trees)."""
+    if (tree / "place3d_app").is_dir():
+        return "place3d_app.cli" if cprofile else "place3d_app"
+    return "place3d_kernels.cli" if cprofile else "place3d_client"
+
+
 def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = None,
              extra_env: dict | None = None) -> tuple[float, str, str]:
     """One cold run of the command from ``tree``: (wall seconds, last stdout line, stderr's profile table)."""
@@ -57,9 +68,11 @@ def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = N
         env = dict(os.environ, WARP_CACHE_PATH=f"{cold}/warp", CUDA_CACHE_PATH=f"{cold}/cuda",
                    PLACE3D_CACHE=f"{cold}/psog", PYTHONPATH=str(tree) + os.pathsep + os.environ.get("PYTHONPATH", ""),
                    PLACE3D_SERVER="", **(extra_env or {}))
+        if cprofile:        # the console script's fast exit (os._exit) would leave before cProfile writes its file
+            env["PLACE3D_FAST_EXIT"] = "0"
         pre = [sys.executable] + (["-m", "cProfile", "-o", str(cprofile)] if cprofile else [])
         # the console script's module (its exit included); cProfile runs the package's CLI module, as before
-        entry = "place3d_app.cli" if cprofile else "place3d_app"
+        entry = entry_module(tree, cprofile)
         cmd = pre + ["-m", entry, "--profile", "optimize", "--max-evals", str(max_evals),
                      "--task", "seg", "--backend", backend, "--quiet", "--output", o]
         t = time.perf_counter()
@@ -86,7 +99,7 @@ def compile_bytecode(trees: list[Path]) -> list[str]:
     import compileall
     import importlib.util
 
-    folders = [(str(t), [t / "place3d_kernels", t / "place3d_app"]) for t in trees]
+    folders = [(str(t), [t / "place3d_kernels", t / "place3d_app", t / "place3d_client"]) for t in trees]
     for name in BYTECODE_PACKAGES:
         spec = importlib.util.find_spec(name)
         if spec is not None and spec.submodule_search_locations:
@@ -113,12 +126,10 @@ def main() -> None:
     ap.add_argument("--max-evals", type=int, default=2000)
     ap.add_argument("--cprofile", action="store_true", help="one more run per tree under cProfile")
     ap.add_argument("--bytecode", action="store_true", help="compile the trees' and packages' bytecode first")
-    ap.add_argument("--label", default="", help="suffix of the output files")
+    ap.add_argument("--machine", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
     ap.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "bench" / "results")))
     a = ap.parse_args()
     trees = [parse_tree(t) for t in (a.tree or [str(ROOT)])]
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
     walls: dict[str, list[float]] = {label: [] for label, _, _ in trees}
     log = [f"# cold place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend}; fresh Warp, "
            f"CUDA and P-SOG caches each run; trees alternating: {[f'{t} {e or {}}' for _, t, e in trees]}"]
@@ -140,7 +151,7 @@ def main() -> None:
         log.append(f"{t}: wall median {summary[t]['median']:.3f} [{min(ws):.3f}-{max(ws):.3f}] s over {len(ws)} runs")
     if a.cprofile:
         for label, t, env in trees:
-            pf = out / f"cold-cprofile-{t.name}{a.label}.pstats"
+            pf = Path(tempfile.mkdtemp()) / "cold.pstats"
             w, last, _ = cold_run(t, a.backend, a.max_evals, cprofile=pf, extra_env=env)
             log.append(f"## cProfile {label}: wall {w:.3f} s (under cProfile) | {last}")
             with tempfile.TemporaryFile("w+") as s:
@@ -149,19 +160,11 @@ def main() -> None:
                 st.sort_stats("cumulative").print_stats(80)
                 s.seek(0)
                 log.append(s.read())
-    try:
-        import platform
-
-        machine = platform.node()
-        gpu = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
-                             text=True).stdout.strip()
-    except OSError:
-        machine, gpu = "", ""
-    (out / f"cold-profile{a.label}.txt").write_text("\n".join(log) + "\n")
-    (out / f"cold-profile{a.label}.json").write_text(json.dumps(
-        {"command": f"place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend}", "gpu": gpu,
-         "host": machine, "cpus": os.cpu_count(), "walls_s": summary, "bytecode_compiled_ahead": a.bytecode,
-         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}, indent=1))
+    path = write_result("cold-profile", {
+        "command": f"place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend}",
+        "trees": {label: str(t) for label, t, _ in trees}, "walls_s": summary, "bytecode_compiled_ahead": a.bytecode,
+        "log": "\n".join(log) + "\n"}, a.machine, a.out)
+    print(f"wrote {path}")
     for t, s in summary.items():
         print(f"{t}: cold wall median {s['median']:.3f} [{s['min']:.3f}-{s['max']:.3f}] s")
 

@@ -1,22 +1,23 @@
 #!/usr/bin/env python3
-"""GPU study for issue 6: one placement evaluation of the dense rig (4 x 64 x 2048 rays) on a 0.05 m grid,
-batched and amortised, per GPU backend. Writes JSON to $OUT (or bench/results/).
+"""The dense rig through the API: one M-SOG evaluation of a 4 x 64 x 2048-ray rig on the default town's P-SOG
+at 0.05 m (256 M voxels), alone and amortised over a population of 16 (``msog_batch``), per GPU backend.
 
-    python3 bench/gpu_dense.py [--backends warp:cuda:0 opencl:nvidia] [--pop 16]
+    python3 bench/gpu_dense.py [--backends warp:cuda:0 opencl:nvidia] [--pop 16] [--machine H100]
+
+Times: median of 5 calls after a warm-up (``_time``), synchronised. Writes
+``bench/results/gpu-dense-<machine>-<date>.json`` (or ``$OUT``/``--out``; ``--output`` names the file).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import time
-from pathlib import Path
 
 import numpy as np
+from results_io import write_result
 
 import place3d_kernels as p3k
-from place3d_app.kernel_bench import _time, machine_info
+from place3d_app.kernel_bench import _time
 
 
 def main() -> None:
@@ -24,6 +25,9 @@ def main() -> None:
     ap.add_argument("--backends", nargs="*", default=None)
     ap.add_argument("--pop", type=int, default=16)
     ap.add_argument("--voxel", type=float, default=0.05)
+    ap.add_argument("--machine", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
+    ap.add_argument("--out", default=None, help="folder (default $OUT, else bench/results/)")
+    ap.add_argument("--output", default=None, help="file path (overrides --out and the file name)")
     args = ap.parse_args()
     names = args.backends or [b for b in p3k.available_backends() if b.startswith("warp:cuda")
                               or (b.startswith("opencl:") and b != "opencl:pocl")]
@@ -38,7 +42,7 @@ def main() -> None:
     rng = np.random.default_rng(0)
     pop = np.repeat(rig.poses[None], args.pop, axis=0)
     pop[..., :3] += rng.uniform(-0.3, 0.3, pop[..., :3].shape).round(1)
-    out = {"info": machine_info(), "grid": grid.to_dict(), "n_voxels": grid.n_voxels, "psog_build_s": build,
+    out = {"grid": grid.to_dict(), "n_voxels": grid.n_voxels, "psog_build_s": build,
            "rig": "4 x 64 x 2048 rays", "population": args.pop, "backends": {}}
     for name in names:
         b = p3k.get_backend(name)
@@ -48,9 +52,7 @@ def main() -> None:
         out["backends"][name] = {"single_eval_ms": 1e3 * t1, "population_eval_ms": 1e3 * tp,
                                  "amortised_eval_ms": 1e3 * tp / args.pop, "scores_head": scores[:3].tolist()}
         print(name, out["backends"][name], flush=True)
-    res = Path(os.environ.get("OUT", Path(__file__).resolve().parent / "results"))
-    res.mkdir(parents=True, exist_ok=True)
-    (res / f"gpu-dense-{args.voxel}m.json").write_text(json.dumps(out, indent=2))
+    print("wrote", write_result("gpu-dense", out, args.machine, args.out, args.output))
 
 
 if __name__ == "__main__":

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Issue 17 ("Speed, the next order") in one command for a GPU host: what a user waits for.
+"""What a user waits for, in one command (issue 17's goals): optimise end to end, ray-mesh, the dense rig.
 
 (a) ``place3d optimize --max-evals 2000 --task seg --backend B`` as a whole command, wall time in a
     subprocess: warm (kernel and P-SOG caches filled by one untimed run, then 3 timed runs) and cold
@@ -12,10 +12,11 @@
     NumPy in and out (upload, launch, download) and kernel only.
 (c) The dense rig (bench/gpu_dense.py, 0.05 m grid, population 16), run 3 times in subprocesses.
 
-Every figure is 3 repeats: median, min and max. JSON (with machine_info) goes to ``--out`` (default $OUT,
-else bench/results/) as ``gpu-speed-<backend>.json``.
+Every figure is 3 repeats: median, min and max. Writes ``gpu-speed-<machine>-<date>.json`` (the backend and
+``quick`` inside) to ``--out`` (default $OUT, else bench/results/).
 
     python3 bench/gpu_speed.py --out $OUT                    # the GPU host (warp:cuda:0)
+    python3 bench/gpu_speed.py --backend opencl:pocl --skip b,c --machine cpu-2core-dev   # the CPU's (a)
     python3 bench/gpu_speed.py --backend warp:cpu --quick    # smoke test on a CPU
 """
 
@@ -263,7 +264,7 @@ def _kernel_only(out: dict, b, mesh, o, d, t_max: float, backend: str) -> None:
     for _ in range(PAIRED):
         for fn, acc in ((ours, mine), (theirs, plain_w)):
             # once untimed: an OpenCL backend's first launch after a CUDA one (and back) paid for the switch
-            # between the two APIs' contexts on the GPU (bench/raymesh_bvh.py), which is not the kernel's time
+            # between the two APIs' contexts on the GPU (raymesh_bvh.py, tag lab-2026-11-27), not the kernel's time
             fn()
             t = time.perf_counter()
             fn()
@@ -285,8 +286,8 @@ def dense_rig(backend: str, voxel: float, pop: int, timeout: int) -> dict:
     for _ in range(REPEATS):
         with tempfile.TemporaryDirectory() as o:
             _run([sys.executable, str(ROOT / "bench" / "gpu_dense.py"), "--backends", backend, "--voxel", str(voxel),
-                  "--pop", str(pop)], _env(OUT=o), timeout)
-            runs.append(json.loads(Path(o, f"gpu-dense-{voxel}m.json").read_text())["backends"][backend])
+                  "--pop", str(pop), "--output", str(Path(o, "dense.json"))], _env(), timeout)
+            runs.append(json.loads(Path(o, "dense.json").read_text())["backends"][backend])
     out = {"voxel": voxel, "population": pop, "rig": "4 x 64 x 2048 rays"}
     for key in ("single_eval_ms", "population_eval_ms", "amortised_eval_ms"):
         out[key] = stats([r[key] for r in runs])
@@ -302,14 +303,14 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=os.environ.get("OUT") or str(ROOT / "bench" / "results"))
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke test on a CPU)")
     ap.add_argument("--skip", default="", help="comma list of parts to skip: a,b,c")
+    ap.add_argument("--machine", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT))
-    from place3d_app.kernel_bench import machine_info
+    from results_io import write_result
 
     skip = set(filter(None, args.skip.split(",")))
     q = args.quick
-    res = {"info": machine_info(), "backend": args.backend, "quick": q, "repeats": REPEATS,
-           "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+    res = {"backend": args.backend, "quick": q, "repeats": REPEATS}
     parts = {"a": ("whole_command", lambda: whole_command(args.backend, 60 if q else 2000, 900)),
              "b": ("ray_mesh", lambda: ray_mesh(args.backend, 20_000 if q else 1_000_000, 128 if q else 2048)),
              "c": ("dense_rig", lambda: dense_rig(args.backend, 0.4 if q else 0.05, 2 if q else 16, 900))}
@@ -321,11 +322,7 @@ def main(argv=None) -> int:
         except Exception as e:  # noqa: BLE001 - one failing part must not lose the others' figures
             res[name] = {"error": f"{type(e).__name__}: {e}"[-3000:]}
             print(f"({key}) {name} failed: {res[name]['error']}", flush=True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"gpu-speed-{args.backend.replace(':', '-')}{'-quick' if q else ''}.json"
-    path.write_text(json.dumps(res, indent=2))
-    print(f"wrote {path}")
+    print("wrote", write_result("gpu-speed", res, args.machine, args.out))
     return 0
 
 

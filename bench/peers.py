@@ -338,8 +338,8 @@ def merge_into_summary(out: dict, summary_path: Path, source: str = "", device: 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--label", default=platform.node() or "host",
-                    help="machine label, the same as run_bench.py's (default: hostname, as there)")
+    ap.add_argument("--label", default=None,
+                    help="machine label, the same as run_bench.py's (default, as there: the GPU model, or cpu-<cores>core)")
     ap.add_argument("--device", default="", help="device text for a new summary run (default: the CPU model)")
     ap.add_argument("--triangles", type=int, default=1_000_000)
     ap.add_argument("--rays", type=int, default=0, help="use every k-th ray so that about N remain (0: all)")
@@ -361,8 +361,11 @@ def main(argv=None):
         merge_into_summary(json.loads(src.read_text()), outdir / "summary.json", src.name, args.device)
         print(f"merged {src} into {outdir / 'summary.json'}")
         return
+    from results_io import default_machine, run_info
+
     from place3d_app.kernel_bench import machine_info
 
+    args.label = args.label or default_machine()
     load_start = os.getloadavg()
 
     lidar = p3k.LidarModel.uniform(64, (-25, 15), 2048, max_range=200)
@@ -486,7 +489,7 @@ def main(argv=None):
 
     info = machine_info()
     out = {
-        "label": args.label, "date": dt.date.today().isoformat(),
+        "benchmark": "peers", "run": run_info(args.label), "label": args.label, "date": dt.date.today().isoformat(),
         "machine": {"node": platform.node(), "platform": platform.platform(), "processor": platform.processor(),
                     "cpu": info["cpu"], "cpus": os.cpu_count(), "python": sys.version.split()[0],
                     "loadavg_start": list(load_start), "loadavg_end": list(os.getloadavg())},

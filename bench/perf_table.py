@@ -1,13 +1,13 @@
 #!/usr/bin/env python3
 """The README's performance table from repeated ``bench/run_bench.py`` runs: median [min-max] per cell.
 
-Each argument is one run's JSON (``run_bench.py --out DIR`` writes ``<label>-<date>.json``); give at least
+Each argument is one run's JSON (``run_bench.py`` writes ``kernels-<label>-<date>.json``); give at least
 three runs of each machine. Runs are grouped by the label given with ``--runs LABEL=FILE,FILE,...``; a
 backend column is ``backend (LABEL)``. Writes the aggregate (every value, median, min, max, the files) as
-JSON and prints the Markdown table.
+JSON, ``bench/results/perf-table-<labels>-<date>.json`` unless ``--out`` names the file, and prints the
+Markdown table.
 
-    python3 bench/perf_table.py --runs dev=a.json,b.json,c.json --runs H100=d.json,e.json,f.json \\
-        --out bench/results/perf-table-2026-11-24.json
+    python3 bench/perf_table.py --runs dev=a.json,b.json,c.json --runs H100=d.json,e.json,f.json
 """
 
 from __future__ import annotations
@@ -16,6 +16,8 @@ import argparse
 import json
 import statistics
 from pathlib import Path
+
+from results_io import write_result
 
 #: (row title, metric keys) in table order; ray-mesh rows show API / kernel
 ROWS = [
@@ -87,7 +89,7 @@ def table(agg: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", action="append", required=True, metavar="LABEL=FILE,FILE,...")
-    ap.add_argument("--out", default=None, help="aggregate JSON to write")
+    ap.add_argument("--out", default=None, help="aggregate JSON to write (default bench/results/perf-table-...)")
     args = ap.parse_args(argv)
     groups = {}
     for spec in args.runs:
@@ -98,9 +100,7 @@ def main(argv=None) -> int:
     agg = aggregate(groups)
     md = table(agg)
     print(md)
-    if args.out:
-        Path(args.out).write_text(json.dumps({"columns": agg, "markdown": md}, indent=2))
-        print(f"wrote {args.out}")
+    print("wrote", write_result("perf-table", {"columns": agg, "markdown": md}, "+".join(groups), path=args.out))
     return 0
 
 

@@ -1,17 +1,21 @@
 #!/usr/bin/env python3
-"""Kernel microbenchmarks for every available backend; writes bench/results/<machine>-<date>.json and
-merges the run into bench/results/summary.json (one entry per machine label).
+"""The library's operations, one workload each, on every available backend: M-SOG of one rig and of a
+population of 16 (``msog`` / ``msog_batch``), voxel traversal, ray-mesh on the town and on a 1M-triangle city,
+BVH builds and the P-SOG build (``place3d_app.kernel_bench``, which ``place3d bench`` runs too). Writes
+``bench/results/kernels-<label>-<date>.json`` and merges the run into ``bench/results/summary.json`` (one entry
+per machine label).
 
-    python3 bench/run_bench.py [--label cpu-2core] [--backends warp:cpu reference] [--quick]
+    python3 bench/run_bench.py [--label cpu-2core-dev] [--backends warp:cpu reference] [--quick]
 
 A summary.json run is ``{"machine": label, "device", "date", "backends": {...}, "peers": {...}}``. This
 script writes ``machine``, ``device``, ``date`` and ``backends`` and keeps the run's ``peers``, which
 ``bench/peers.py`` measures and merges (open3d / embree / mitsuba ``raycast_mrays_s``, ``numpy_baseline``
-``traverse_gsteps_s`` and rays/s). Run both with the same ``--label`` (default of both: the host name; the
-dev VM's run is ``cpu-2core-dev``), in either order.
+``traverse_gsteps_s`` and rays/s). Run both with the same ``--label`` (default: the GPU model or
+``cpu-<cores>core``; the dev VM's runs are ``cpu-2core-dev``), in either order. ``perf_table.py`` turns three
+or more runs per machine into the README's table.
 
 ``--quick`` (no 1M-triangle city, so no ``raycast_mrays_s`` / ``city_*``) is a smoke run: it writes
-``<label>-quick-<date>.json`` and leaves summary.json alone, whose runs carry the full set of keys.
+``kernels-quick-<label>-<date>.json`` and leaves summary.json alone, whose runs carry the full set of keys.
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ import argparse
 import json
 from pathlib import Path
 
+from results_io import default_machine, results_path, write_result
+
 from place3d_app.kernel_bench import run_kernel_bench
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -27,7 +33,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--label", default=None, help="machine label for file names (default: hostname)")
+    ap.add_argument("--label", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
     ap.add_argument("--device", default="", help="free text naming the accelerator, e.g. 'NVIDIA H100'")
     ap.add_argument("--backends", nargs="*", default=None)
     ap.add_argument("--quick", action="store_true")
@@ -35,14 +41,13 @@ def main() -> None:
     args = ap.parse_args()
     res = run_kernel_bench(args.backends, quick=args.quick)
     info = res["info"]
-    label = args.label or info["machine"]
+    label = args.label or default_machine()
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{label}{'-quick' if args.quick else ''}-{info['date']}.json"
     res["info"]["label"] = label
     res["info"]["device"] = args.device or info["cpu"]
     res["info"]["quick"] = bool(args.quick)
-    path.write_text(json.dumps(res, indent=2))
+    bench = "kernels-quick" if args.quick else "kernels"
+    path = write_result(bench, res, label, path=results_path(bench, label, info["date"], out))
     if args.quick:
         print(f"wrote {path} (quick: summary.json not updated)")
         return

@@ -18,18 +18,18 @@ For every setting: wall time of scoring the eleven placements (median of ``--run
 |M-SOG error| against the finest setting (mean and max over placements) and Kendall's tau of the
 ranking against the finest (scipy.stats.kendalltau, tau-b). The sweet spot of a study is the setting
 with the largest speedup over the finest whose tau >= 0.9 and whose mean |error| is at most 1 % of the
-mean |M-SOG| of the finest. Writes bench/results/studies-<study>.json and .png (Pareto plot: time on a
-log x axis, mean |error| on y, tau beside each point) and studies-summary.json.
+mean |M-SOG| of the finest. Writes one file per run, bench/results/time-vs-error-<machine>-<date>.json (every
+study run, with its rows), and a Pareto plot per study, studies-<study>.png (time on a log x axis, mean |error|
+on y, tau beside each point; the README shows the azimuth one).
 
     python3 bench/time_vs_error.py [--studies azimuth channels voxel occlusion precision] [--runs 3]
-                             [--backend opencl:pocl] [--no-reference] [--out bench/results]
+                             [--backend opencl:pocl] [--no-reference] [--out bench/results] [--machine LABEL]
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
-import json
 import resource
 import statistics
 import tempfile
@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 import place3d_kernels as p3k
-from place3d_app.kernel_bench import machine_info
+from results_io import run_info, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TAU_MIN = 0.9
@@ -274,17 +274,16 @@ def main() -> None:
     ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "place3d-bench-cache"),
                     help="P-SOG cache folder for the non-default grids of the voxel study")
     ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--machine", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    info = machine_info()
+    info = run_info(args.machine)
     scene = p3k.scene.town(seed=0)
     psog = p3k.scene_psog(scene)
     poses = np.stack([p3k.Placement.load(n).poses for n in p3k.PAPER_PLACEMENTS])
     ctx = {"scene": scene, "psog": psog, "poses": poses}
-    summary_path = out / "studies-summary.json"
-    summary = json.loads(summary_path.read_text()) if summary_path.exists() else {"studies": {}}
-    summary["info"] = info
+    summary = {"studies": {}, "results": {}}
     for study in args.studies:
         print(f"study {study} ({args.backend})", flush=True)
         t0 = time.perf_counter()
@@ -301,12 +300,12 @@ def main() -> None:
         compare(rows, finest)
         spot = sweet_spot(rows, finest)
         spot_paper = sweet_spot_vs_paper(rows)
-        res = {"study": study, "title": title, "info": info, "backend": args.backend if study != "precision" else
+        res = {"study": study, "title": title, "backend": args.backend if study != "precision" else
                "per row", "task": "seg", "scene": "town(seed=0)", "placements": list(p3k.PAPER_PLACEMENTS),
                "runs": args.runs, "finest": finest, "sweet_spot": spot,
                "sweet_spot_vs_paper_setting": spot_paper, "study_wall_s": time.perf_counter() - t0,
                "rows": rows}
-        (out / f"studies-{study}.json").write_text(json.dumps(res, indent=2))
+        summary["results"][study] = res
         plot(study, rows, spot, out / f"studies-{study}.png",
              f"{title}\n{args.backend if study != 'precision' else ''} {info['cores']}-core {info['cpu'][:28]}, "
              f"{info['date']}")
@@ -323,8 +322,8 @@ def main() -> None:
             tau = "  -  " if r["kendall_tau"] is None else f"{r['kendall_tau']:+.2f}"
             print(f"     {r['setting']:<26} {r['time_s']:8.3f} s  x{r['speedup_vs_finest']:6.2f}  "
                   f"|err| mean {r['abs_err_mean']:.2e} max {r['abs_err_max']:.2e}  tau {tau}", flush=True)
-    summary_path.write_text(json.dumps(summary, indent=2))
-    print(f"wrote {out}/studies-*.json, studies-*.png")
+    path = write_result("time-vs-error", summary, args.machine, out)
+    print(f"wrote {path} and {out}/studies-*.png")
 
 
 if __name__ == "__main__":
