@@ -2,8 +2,8 @@
 
 A cold ``place3d optimize`` or ``evaluate`` builds the scene (pure Python and small NumPy calls) at the
 moment the backend probe imports Warp or PyOpenCL (also Python). Within one process the two share the
-interpreter lock: on the H100 host the scene row measured 1.6-2.15 s beside Warp's import while the
-scene alone takes a fraction of that (bench/results/profile-cold-H100-2026-11-25-last.txt). A forked
+interpreter lock, and the scene took several times longer beside Warp's import than alone (bench/README.md,
+"What the studies found", cold command: the P-SOG build). A forked
 child has its own interpreter, so the scene is built on another core, and this process meanwhile waits
 on a pipe (which releases the lock) instead of taking turns with the import.
 
@@ -34,7 +34,8 @@ from typing import Callable, Hashable
 
 from place3d_kernels.profiling import record, section
 
-__all__ = ["start", "take", "enabled", "ENV", "usable_cores", "start_for_spec", "PREFETCH_ENV", "prefetch_wanted"]
+__all__ = ["start", "take", "enabled", "ENV", "usable_cores", "start_for_spec", "backend_after_actors",
+           "PREFETCH_ENV", "prefetch_wanted", "prepare_in_background"]
 
 #: Environment variable: "0" turns the forked scene build off (the scene is built in this process).
 ENV = "PLACE3D_SCENE_PREFETCH"
@@ -71,11 +72,11 @@ def start(key: Hashable, build: Callable[[], object], normals: bool = True) -> b
         r, w = os.pipe()
     except OSError:
         return False
-    # The payload (some 14 MB on the default town) goes through an unnamed file in memory (/dev/shm), made
+    # The payload (megabytes on the default town) goes through an unnamed file in memory (/dev/shm), made
     # here and inherited by the child: the pipe then carries only its length, and this process reads it in
     # one call. Through the pipe itself it came in 64 KiB (or, enlarged, 1 MiB) pieces, each read waiting
-    # for the interpreter lock that the backend probe's import holds: 0.33-0.46 s on the H100 host with 1 MiB
-    # pieces (README, ninth session). Without such a file the payload goes through the pipe.
+    # for the interpreter lock that the backend probe's import holds, which made the hand-over a visible
+    # part of a cold command. Without such a file the payload goes through the pipe.
     try:
         shm = tempfile.TemporaryFile(dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
     except OSError:
@@ -199,6 +200,69 @@ def start_for_spec(spec, cache: bool | str = True) -> bool:
             return False
     specs.supply_scenes(take)
     return start(spec.scene, functools.partial(specs.make_scene, spec.scene), normals=spec.condition is not None)
+
+
+def backend_after_actors(spec, probe):
+    """The backend a probe (a ``concurrent.futures.Future``) gives, building meanwhile what the simulation
+    of ``spec``'s P-SOG needs and no backend computes: the actors' meshes of as many frames as the probe
+    leaves time for, kept on the scene for ``scene_psog`` (``Scene.keep_prebuilt``). Recorded frames and
+    conditions need the backend at once (they are not simulated, or their condition is made with it)."""
+    if spec.scene.kind == "semantickitti" or spec.condition is not None:
+        return probe.result()
+    with section("P-SOG build: actors (probe)"):
+        scene = spec.scene.build()
+        dynamic = scene.take_prebuilt()
+        for f in range(scene.n_frames):
+            if probe.done():
+                break
+            if f not in dynamic:
+                dynamic[f] = scene.dynamic(f)
+        scene.keep_prebuilt(dynamic)
+    with section("P-SOG build: backend wait"):
+        return probe.result()
+
+
+def prepare_in_background(spec, reference, lidar, task: str, occlusion: str, backend,
+                          normalisation: str = "paper"):
+    """Prepare, on a daemon thread, the left-out grids that the jackknife of
+    ``uncertainty.rig_vs_baselines_intervals(spec, ..., reference=reference, method="jackknife")`` will ask ``HANDLES``
+    for, so that a command can run it while it searches.
+
+    The grids depend on the drive's subset records, the task, the occlusion and the backend, never on the
+    rigs scored; the thread takes the records (``keyed_subset_records``) and calls ``HANDLES.get`` with the
+    same key and the same preparation as the jackknife, which, arriving while the thread still works,
+    waits for its list instead of preparing its own (``PreparedLeftOut.get``). No thread is started (None)
+    when the jackknife would not use such grids (another path: ``fused_path``) or would not find them
+    (``HANDLES`` keeps none); the thread's Future gives None when the records have no file identity (then
+    nothing is kept between the two). An error on the thread is not raised there: the jackknife then
+    prepares the grids itself and meets the error, if it is one, in the command.
+    """
+    from concurrent.futures import Future
+
+    from place3d_kernels.left_out import HANDLES, fused_path, prepared_grids
+    from place3d_kernels.pooled import PooledPSOG
+    from place3d_kernels.subset_records import keyed_subset_records
+
+    if not fused_path(lidar, occlusion, normalisation) or not HANDLES.keeps:
+        return None
+    done: Future = Future()
+
+    def work():
+        try:
+            with section("jackknife grids (thread)"):
+                records, pool_key = keyed_subset_records(spec, backend)
+                if pool_key is None:
+                    done.set_result(None)
+                    return
+                pooled = PooledPSOG(spec.grid.grid(), records)
+                HANDLES.plain_psog(pooled, reference, pool_key)     # the counts from the reference, checked once
+                done.set_result(HANDLES.get(pool_key, pooled.grid, task, occlusion, backend,
+                                            lambda: prepared_grids(pooled, task, occlusion, backend)))
+        except BaseException as e:  # noqa: BLE001 - handed to whoever asks the Future; the jackknife retries
+            done.set_exception(e)
+
+    threading.Thread(target=work, name="place3d-jackknife-grids", daemon=True).start()
+    return done
 
 
 #: ``PLACE3D_JACKKNIFE_PREFETCH``: ``1`` = ``place3d optimize`` prepares the jackknife's left-out grids on a

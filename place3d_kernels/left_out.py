@@ -2,7 +2,7 @@
 
 A jackknife scores rigs on n P-SOGs, each the pool with one record (a subset or a drive) left out. Built
 from scratch, each is a dense (M, K) table of counts and probabilities (some 100 MB on the default grid),
-its entropies and its stop mask: 50 ms on the dev VM and most of a warm optimise's jackknife. Yet a
+its entropies and its stop mask, which made most of a warm optimise's jackknife. Yet a
 voxel the left-out record never saw keeps its counts; only the number of subsets T changes. So the
 weights and stop mask of every voxel are computed once per T (the "base"), and for each left-out record
 only the rows of the voxels it touched are recomputed and written over the base (in one working copy,
@@ -163,9 +163,8 @@ def patched_on_host(pooled, task: str, occlusion: str, backend):
 
 def patched_on_backend(pooled, task: str, occlusion: str, backend):
     """``prepared_grids`` by the backend: the base of each T sent once (``grid_base``), each left-out grid
-    the base with the record's rows written over a copy of it there (``patched_grid``). On the H100 host
-    this replaced, per grid, a dense host copy, its brick masks and a 32 MB upload (bench/README.md, "The
-    cold command's tail")."""
+    the base with the record's rows written over a copy of it there (``patched_grid``): per grid, no dense
+    host copy, no host brick masks and no upload of the whole grid."""
     grids = LeftOutGrids(pooled, task)
     sog = occlusion == "sog"
     bases = {}
@@ -255,7 +254,7 @@ class PreparedLeftOut:
         when ``pool_key`` is not None (and ``keep`` > 0), else ``prepare()`` itself, returned as it is (an
         iterator that prepares each grid when asked keeps one grid in memory at a time).
 
-        A call that finds another thread preparing the same set (``uncertainty.prepare_in_background``)
+        A call that finds another thread preparing the same set (``place3d_app.prefetch.prepare_in_background``)
         waits for its list; should that preparation fail, this call prepares the set itself."""
         if pool_key is None or not self._keep:
             return prepare()

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from concurrent.futures import Future
+from concurrent.futures import Future    # the background saves only
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +16,7 @@ from place3d_kernels.scene.keymemo import SceneRef
 from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
 from place3d_kernels.sog import PSOG, cache_dir, cache_key
 
-__all__ = ["scene_psog", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy", "wait_for_saves"]
+__all__ = ["scene_psog", "cached_psog", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy", "wait_for_saves"]
 
 log = logging.getLogger(__name__)
 
@@ -39,8 +39,8 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
         scene: the ``Scene``, or a ``SceneRef`` (its name and key; built here only on a cache miss).
         condition: optional ``FrameCondition`` (or any callable ``(frame, index) -> frame`` with a ``key``
             attribute for the cache) applied to each simulated frame before voting.
-        backend: backend name or instance, or a ``concurrent.futures.Future`` of one, waited for only when
-            the P-SOG is not in the cache.
+        backend: backend name or instance (used only when the P-SOG is not in the cache; an application
+            that probes its backend meanwhile asks ``cached_psog`` first).
         body: optional ``VehicleBody`` (ego frame) that blocks the collection LiDAR's rays (see
             ``simulate``); its name and content hash enter the cache key and the manifest. None (default) is
             the paper's setting, and its cache key is the one used before bodies existed.
@@ -54,46 +54,16 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     """
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
-    path = None
-    if cache:
-        folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
-        inputs = dict(scene=scene.key, grid=grid.to_dict(), lidar=[lidar.name, lidar.elevations.tolist(),
-                      lidar.azimuths.size, lidar.max_range], mount=np.asarray(mount).tolist(),
-                      k=frames_per_subset, condition=getattr(condition, "key", None))
-        if body is not None:
-            # only with a body, so the no-body (paper) key and the caches already on disk stay valid
-            inputs["body"] = {"name": body.name, "key": body.key}
-        key = cache_key(**inputs)
-        path = folder / f"psog-{scene.name}-{key}.npz"
-        manifest = path.with_suffix(".json")
-        if path.exists():
-            try:
-                # the file name is a hash of the inputs; the manifest beside it holds the inputs themselves,
-                # so a stale or colliding file is caught here instead of silently reused
-                verify_manifest(manifest, inputs, "P-SOG cache", "it is rebuilt")
-                with section("P-SOG cache load"):
-                    return PSOG.load(path)
-            except Exception as e:  # noqa: BLE001 - a broken or mismatching cache file is rebuilt, not fatal
-                log.warning("ignoring P-SOG cache %s: %s", path, e)
+    entry = _cache_entry(scene, grid, lidar, frames_per_subset, mount, cache, condition, body)
+    if entry is not None:
+        found = _load_cached(*entry)
+        if found is not None:
+            return found
     if isinstance(scene, SceneRef):
         with section("P-SOG build: scene"):
             scene = scene.build()    # known by its key only (PSOGSpec.build): the geometry is needed now
     # actor meshes made ahead by whoever built the scene (the application's forked build), else none yet
     dynamic = scene.take_prebuilt()
-    if isinstance(backend, Future):
-        # a backend still being probed on another thread (optimize starts it early): needed only now.
-        # Meanwhile, what the simulation needs and no backend computes: the actors' meshes of the first
-        # frames and, for a condition, the static mesh's normals (the same arrays simulate would make)
-        with section("P-SOG build: actors (probe)"):
-            for f in range(scene.n_frames):
-                if backend.done():
-                    break
-                if f not in dynamic:
-                    dynamic[f] = scene.dynamic(f)
-            if condition is not None and not backend.done():
-                scene.static.normals        # noqa: B018 - computed and kept on the mesh (intensities read it)
-        with section("P-SOG build: backend wait"):
-            backend = backend.result()
     with section("P-SOG build: simulate"):
         # intensities only for a condition (fog, wet ground, snow read them); the vote needs labels alone
         frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress, body=body,
@@ -105,7 +75,8 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
             psog = aggregate(frames, backend)
         else:
             psog = PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)
-    if path is not None:
+    if entry is not None:
+        path, manifest, inputs = entry
         with section("P-SOG build: save"):
             if save_in_background:
                 _saves.append(_saver().submit(_save, psog, path, manifest, inputs))
@@ -113,6 +84,45 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
                 psog.save(path)
                 write_manifest(manifest, inputs)
     return psog
+
+
+def cached_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "collection_64ch",
+                frames_per_subset: int = DEFAULT_FRAMES_PER_SUBSET, mount=DEFAULT_MOUNT,
+                cache: bool | str | Path = True, condition=None, body=None) -> PSOG | None:
+    """The P-SOG ``scene_psog`` would read from the cache for these inputs, or None (no backend needed)."""
+    if isinstance(lidar, str):
+        lidar = LidarModel.load(lidar)
+    entry = _cache_entry(scene, grid, lidar, frames_per_subset, mount, cache, condition, body)
+    return None if entry is None else _load_cached(*entry)
+
+
+def _cache_entry(scene, grid, lidar, frames_per_subset, mount, cache, condition, body):
+    """(file, manifest, inputs) of the P-SOG cache entry for these inputs, or None without a cache."""
+    if not cache:
+        return None
+    folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
+    inputs = dict(scene=scene.key, grid=grid.to_dict(), lidar=[lidar.name, lidar.elevations.tolist(),
+                  lidar.azimuths.size, lidar.max_range], mount=np.asarray(mount).tolist(),
+                  k=frames_per_subset, condition=getattr(condition, "key", None))
+    if body is not None:
+        # only with a body, so the no-body (paper) key and the caches already on disk stay valid
+        inputs["body"] = {"name": body.name, "key": body.key}
+    path = folder / f"psog-{scene.name}-{cache_key(**inputs)}.npz"
+    return path, path.with_suffix(".json"), inputs
+
+
+def _load_cached(path: Path, manifest: Path, inputs: dict) -> PSOG | None:
+    if not path.exists():
+        return None
+    try:
+        # the file name is a hash of the inputs; the manifest beside it holds the inputs themselves,
+        # so a stale or colliding file is caught here instead of silently reused
+        verify_manifest(manifest, inputs, "P-SOG cache", "it is rebuilt")
+        with section("P-SOG cache load"):
+            return PSOG.load(path)
+    except Exception as e:  # noqa: BLE001 - a broken or mismatching cache file is rebuilt, not fatal
+        log.warning("ignoring P-SOG cache %s: %s", path, e)
+        return None
 
 
 _saves: list[Future] = []

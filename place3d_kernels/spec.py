@@ -12,7 +12,6 @@ makes (the voxel size of the default ROI) and builds a ``Grid`` with ``.grid()``
 from __future__ import annotations
 
 import functools
-from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -367,11 +366,8 @@ class PSOGSpec:
         ``subset_records.records_aggregator(spec)``, which keeps the per-subset records of a cache miss for
         the intervals)."""
         from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET, scene_psog
-        from place3d_kernels.simulate import DEFAULT_MOUNT
 
         b = self.backend if backend is None else backend
-        if isinstance(b, Future) and (self.scene.kind == "semantickitti" or self.condition is not None):
-            b = b.result()         # scene_psog waits for a probed backend only on a cache miss; these need it now
         if self.scene.kind == "semantickitti":
             # recorded, labelled frames: the P-SOG comes straight from them (label scheme and mount from
             # the folder's sequence.json when it has one); nothing to simulate, so nothing to cache
@@ -385,20 +381,36 @@ class PSOGSpec:
             return psog_from_semantickitti(self.scene.path, self.grid.grid(),
                                            self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET, backend=b)
         cond = None if self.condition is None else self.condition.condition(b)
-        if cache:
-            from place3d_kernels.sog import cache_dir
-
-            # the scene is built here unless its key is remembered (then scene_psog builds it on a cache miss)
-            with section("P-SOG build: scene"):
-                scene = self.scene.for_cache(Path(cache) if isinstance(cache, (str, Path)) else cache_dir())
-        else:
-            with section("P-SOG build: scene"):
-                scene = self.scene.build()
-        return scene_psog(scene, grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
-                          frames_per_subset=self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
-                          mount=DEFAULT_MOUNT if self.mount is None else self.mount, backend=b, cache=cache,
-                          progress=progress, condition=cond, body=self.vehicle_body(), aggregate=aggregate,
+        return scene_psog(**self._psog_inputs(cache, cond), backend=b, progress=progress, aggregate=aggregate,
                           save_in_background=save_in_background)
+
+    def cached(self, cache: bool | str = True):
+        """The P-SOG ``build`` would read from the cache, or None; needs no backend (an application that
+        probes its backend meanwhile asks this first and waits for the probe only on a miss)."""
+        from place3d_kernels.pipeline import cached_psog
+
+        if not cache or self.scene.kind == "semantickitti":
+            return None
+        cond = None if self.condition is None else self.condition.condition(None)
+        return cached_psog(**self._psog_inputs(cache, cond))
+
+    def _psog_inputs(self, cache, cond) -> dict:
+        """``scene_psog``'s inputs but the backend: the scene (built here unless its key is remembered in
+        the cache folder; then ``scene_psog`` builds it on a cache miss), grid, sensor, k, mount, body."""
+        from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
+        from place3d_kernels.simulate import DEFAULT_MOUNT
+
+        with section("P-SOG build: scene"):
+            if cache:
+                from place3d_kernels.sog import cache_dir
+
+                scene = self.scene.for_cache(Path(cache) if isinstance(cache, (str, Path)) else cache_dir())
+            else:
+                scene = self.scene.build()
+        return dict(scene=scene, grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),
+                    frames_per_subset=self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET,
+                    mount=DEFAULT_MOUNT if self.mount is None else self.mount, cache=cache, condition=cond,
+                    body=self.vehicle_body())
 
     def load(self):
         """The P-SOG with this spec's backend and cache folder (memoised per process; tasks call this)."""

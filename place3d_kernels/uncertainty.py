@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import threading
-from concurrent.futures import Future
 from dataclasses import dataclass
 from statistics import NormalDist
 from typing import Callable, Sequence
@@ -269,7 +267,7 @@ def kendall_tau(a: Sequence[float], b: Sequence[float]) -> float:
     return float(kendalltau(a, b).statistic)
 
 
-__all__ += ["kendall_tau", "prepare_in_background"]
+__all__ += ["kendall_tau"]
 
 
 def bootstrap_records(records, grid, lidar, placements, tasks=("seg", "det"), occlusion: str = "sog",
@@ -503,46 +501,6 @@ def pairwise(boot: Bootstrap) -> dict:
             for i, a in enumerate(boot.names)}
 
 
-
-
-def prepare_in_background(spec, reference, lidar, task: str, occlusion: str, backend,
-                          normalisation: str = "paper") -> Future | None:
-    """Prepare, on a daemon thread, the left-out grids that the jackknife of
-    ``rig_vs_baselines_intervals(spec, ..., reference=reference, method="jackknife")`` will ask ``HANDLES``
-    for, so that a command can run it while it searches.
-
-    The grids depend on the drive's subset records, the task, the occlusion and the backend, never on the
-    rigs scored; the thread takes the records (``keyed_subset_records``) and calls ``HANDLES.get`` with the
-    same key and the same preparation as the jackknife, which, arriving while the thread still works,
-    waits for its list instead of preparing its own (``PreparedLeftOut.get``). No thread is started (None)
-    when the jackknife would not use such grids (another path: ``fused_path``) or would not find them
-    (``HANDLES`` keeps none); the thread's Future gives None when the records have no file identity (then
-    nothing is kept between the two). An error on the thread is not raised there: the jackknife then
-    prepares the grids itself and meets the error, if it is one, in the command.
-    """
-    from place3d_kernels.left_out import HANDLES, fused_path, prepared_grids
-    from place3d_kernels.subset_records import keyed_subset_records
-
-    if not fused_path(lidar, occlusion, normalisation) or not HANDLES.keeps:
-        return None
-    done: Future = Future()
-
-    def work():
-        try:
-            with section("jackknife grids (thread)"):
-                records, pool_key = keyed_subset_records(spec, backend)
-                if pool_key is None:
-                    done.set_result(None)
-                    return
-                pooled = PooledPSOG(spec.grid.grid(), records)
-                HANDLES.plain_psog(pooled, reference, pool_key)     # the counts from the reference, checked once
-                done.set_result(HANDLES.get(pool_key, pooled.grid, task, occlusion, backend,
-                                            lambda: prepared_grids(pooled, task, occlusion, backend)))
-        except BaseException as e:  # noqa: BLE001 - handed to whoever asks the Future; the jackknife retries
-            done.set_exception(e)
-
-    threading.Thread(target=work, name="place3d-jackknife-grids", daemon=True).start()
-    return done
 
 
 def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, task: str = "seg",

@@ -223,7 +223,7 @@ def test_evaluate_default_jackknife_matches_the_records(tmp_path):
 
 @pytest.mark.parametrize("ahead", ["0", "1"])
 def test_optimize_reports_intervals_of_the_best_rig_and_the_baselines(tmp_path, monkeypatch, ahead):
-    # ahead "1": the left-out grids are prepared on a thread during the search (uncertainty.prepare_in_background)
+    # ahead "1": the left-out grids are prepared on a thread during the search (place3d_app.prefetch.prepare_in_background)
     from place3d_app.prefetch import PREFETCH_ENV
     from place3d_kernels.uncertainty import rig_vs_baselines_intervals
 

@@ -227,9 +227,9 @@ def test_a_prepared_grid_is_a_copy_of_its_inputs(built, name):
 
 @pytest.mark.parametrize("spec", ["warp:cpu", "opencl:pocl"], indirect=True)
 def test_grids_prepared_in_background_give_the_same_intervals(spec, prepared):
-    """``uncertainty.prepare_in_background`` (``place3d optimize`` runs it during the search): the jackknife
+    """``place3d_app.prefetch.prepare_in_background`` (``place3d optimize`` runs it during the search): the jackknife
     that follows prepares no grid of its own and gives the intervals of a jackknife without it, bit for bit."""
-    from place3d_kernels.uncertainty import prepare_in_background
+    from place3d_app.prefetch import prepare_in_background
 
     b, scene, run = _intervals_of(spec)
 
@@ -247,7 +247,7 @@ def test_grids_prepared_in_background_give_the_same_intervals(spec, prepared):
 
 
 def test_prepare_in_background_skips_what_the_jackknife_would_not_use(tmp_path):
-    from place3d_kernels.uncertainty import prepare_in_background
+    from place3d_app.prefetch import prepare_in_background
 
     spec = _spec(tmp_path)
     L = LidarModel.load(LIDAR)

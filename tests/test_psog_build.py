@@ -276,14 +276,18 @@ def test_entropy_in_blocks_is_the_whole_array_entropy(town_frames, monkeypatch):
         assert sog.entropy(head).tobytes() == whole[:100].reshape(50, 2).tobytes()
 
 
-def test_scene_psog_builds_actors_while_the_backend_is_probed(monkeypatch):
+def test_actors_are_built_while_the_backend_is_probed(monkeypatch):
+    # place3d_app.prefetch.backend_after_actors: while a backend probe runs on a thread, the actors' meshes
+    # of the first frames are built and handed to scene_psog on the scene, which builds only the rest
     import threading
     from concurrent.futures import Future
 
+    from place3d_app.prefetch import backend_after_actors
     from place3d_kernels.pipeline import scene_psog
 
     sim = sys.modules["place3d_kernels.simulate"]
-    scene = SceneSpec("town", 3, 8).build()
+    spec = PSOGSpec(SceneSpec("town", 3, 8))
+    scene = spec.scene.build()                 # memoised: the scene backend_after_actors builds on
     direct = scene_psog(scene, GRID, frames_per_subset=2, backend=None, cache=False)
     seen = {}
     real = sim.simulate
@@ -305,9 +309,20 @@ def test_scene_psog_builds_actors_while_the_backend_is_probed(monkeypatch):
         return real_dynamic(self, f)
 
     monkeypatch.setattr(type(scene), "dynamic", dynamic)
-    late = scene_psog(scene, GRID, frames_per_subset=2, backend=probe, cache=False)
+    b = backend_after_actors(spec, probe)
+    assert b is p3k.get_backend(None)
+    late = scene_psog(scene, GRID, frames_per_subset=2, backend=b, cache=False)
     assert seen["prebuilt"] == [0, 1, 2] and sorted(calls) == list(range(8))   # each frame's actors once
     _same_psog(late, direct)
+
+
+def test_a_cached_psog_is_found_without_a_backend(tmp_path):
+    spec = PSOGSpec(SceneSpec("town", 3, 8), grid=0.8, frames_per_subset=2, cache=str(tmp_path))
+    assert spec.cached(cache=str(tmp_path)) is None               # nothing there yet
+    built = spec.build(cache=str(tmp_path))
+    found = spec.cached(cache=str(tmp_path))
+    assert found is not None
+    _same_psog(found, built)
 
 
 def test_cold_records_find_their_psog_without_pooling_again(town_frames, tmp_path, monkeypatch):

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+from concurrent.futures import Future
 import time
 from pathlib import Path
 
 from place3d_kernels.profiling import section
+
+from place3d_app.prefetch import backend_after_actors
 
 __all__ = ["add_common", "check_output_file", "check_output_dir", "psog_for_spec"]
 
@@ -59,6 +62,7 @@ def check_output_dir(path, what="--output") -> None:
 
 def psog_for_spec(spec, args, backend, with_scene: bool = True):
     """(scene, P-SOG) of ``spec`` built with ``backend`` (the local path), honouring --no-cache / --quiet.
+    ``backend`` may be a ``concurrent.futures.Future`` of one, waited for only on a cache miss.
 
     Raises ``ValueError`` for a P-SOG without entropy (every voxel a single class: fewer than two subsets),
     on which every rig would score 0.
@@ -71,11 +75,19 @@ def psog_for_spec(spec, args, backend, with_scene: bool = True):
     # them instead of simulating the same frames again
     aggregate = None if args.no_cache else records_aggregator(spec)
     with section("P-SOG (cache or build)"):
-        # the new P-SOG's file is written on a thread while the command goes on (main waits for it at the end),
-        # unless Ray workers will read it from the cache meanwhile
-        local = getattr(args, "executor", "local") == "local" and not getattr(args, "ray_address", None)
-        psog = spec.build(backend=backend, cache=not args.no_cache, progress=not args.quiet, aggregate=aggregate,
-                          save_in_background=local)
+        psog = None
+        if isinstance(backend, Future):
+            # the backend is still being probed on a thread (optimize starts it early): a cached P-SOG
+            # needs none, and a miss waits for it while the actors' meshes are built
+            psog = spec.cached(cache=not args.no_cache)
+            if psog is None:
+                backend = backend_after_actors(spec, backend)
+        if psog is None:
+            # the new P-SOG's file is written on a thread while the command goes on (main waits for it at the
+            # end), unless Ray workers will read it from the cache meanwhile
+            local = getattr(args, "executor", "local") == "local" and not getattr(args, "ray_address", None)
+            psog = spec.build(backend=backend, cache=not args.no_cache, progress=not args.quiet,
+                              aggregate=aggregate, save_in_background=local)
     check_entropy(psog, spec.frames_per_subset)
     if not args.quiet:
         print(f"P-SOG ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)

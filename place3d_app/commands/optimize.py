@@ -200,10 +200,9 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
         plotter.keep_panel(*entropy_view(psog))     # coverage.png's left panel, drawn during the search
     # The jackknife after the search scores the rigs on the drive's left-out grids, which depend on the
     # records and the task, not on the search: they are prepared on a thread while it runs
-    # (uncertainty.prepare_in_background)
+    # (place3d_app.prefetch.prepare_in_background)
     if args.interval == "jackknife" and args.lidars == 4:      # the baselines' intervals: 4-LiDAR rigs
-        from place3d_app.prefetch import prefetch_wanted
-        from place3d_kernels.uncertainty import prepare_in_background
+        from place3d_app.prefetch import prefetch_wanted, prepare_in_background
 
         if prefetch_wanted():
             prepare_in_background(spec, psog, lidar, args.task, args.occlusion, b, normalisation=args.normalisation)
