@@ -88,8 +88,8 @@ def _returns(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, o, d, hits, 
             raise ValueError(f"body_t must hold one distance per ray ({t.shape}), got {body_t.shape}")
         # the body is hit first (ties included): the return is the ego vehicle's own, dropped
         hit &= t < body_t
-    # one gather per array, by index; ndarray.take along axis 0 gives the rows that d[at] gives, in a
-    # quarter of the time for (N, 3) arrays (0.11 against 0.44 ms for 63k hits on the dev VM)
+    # one gather per array, by index; ndarray.take along axis 0 gives the rows that d[at] gives, several
+    # times faster for (N, 3) arrays
     at = np.flatnonzero(hit)
     d_hit, face_hit, lab_hit = d.take(at, axis=0), face.take(at), lab.take(at)
     pts = o.take(at, axis=0) + t.take(at)[:, None] * d_hit

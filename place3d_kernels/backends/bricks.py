@@ -10,7 +10,7 @@ bitsets in flat bricks of 8 x 4 x 1 voxels numbered ``(k * nbx + (i >> 3)) * nby
 y fastest), bit ``(i & 7) | (j & 3) << 3``, with (nbx, nby, nz) = ``flat_shape``: the voxel bit needs no z
 term, and the 8 words of a 32-byte memory sector cover 8 x 32 voxels of one layer, along which the LiDAR's
 near-horizontal rays run, where a sector of 4 x 4 x 2 bricks covers a column 4 x 4 x 16 (figures:
-bench/README.md, "The dense rig's bricks"). ``flat_brick_masks`` is the host's copy of what
+bench/README.md, "What the studies found", dense-rig score kernel). ``flat_brick_masks`` is the host's copy of what
 ``score_gpu.flat_masks_kernel`` and OpenCL's ``flat_masks`` make on the device.
 """
 
@@ -36,10 +36,9 @@ def brick_bits(mask: np.ndarray, shape) -> np.ndarray:
 
 
 #: ``brick_bits`` packs the whole grid at once (``_brick_bits_dense``) when at least one voxel in
-#: ``DENSE_SHARE`` is set, else it scatters the set voxels one by one. The default town's masks on the dev VM
-#: (``bench/brick_pack.py``, 3 runs of 7 rounds, 2026-11-26, medians): nonzero weights, 5.7 % set, scatter
-#: 7.5-7.9 ms, dense 4.6-4.7; stop voxels, 0.5 % set, scatter 1.0-1.3, dense 4.6-6.6. On random masks the
-#: two crossed near 2 % set (one run of the same comparison, best of 5).
+#: ``DENSE_SHARE`` is set, else it scatters the set voxels one by one: packing the whole grid costs the
+#: same whatever the share set, scattering grows with it, and the two crossed near 2 % set on random masks
+#: (the study, ``brick_pack.py``, is at tag lab-2026-11-27).
 DENSE_SHARE = 50
 DENSE_MIN_VOXELS = 4096
 

@@ -1,14 +1,13 @@
 """The CUDA driver started on its own thread while Warp is imported (the cold start of a CUDA backend).
 
-A cold ``get_backend("warp:cuda:0")`` imports Warp (Python: about 0.86 s on the H100 host), then Warp
-initialises the CUDA driver and retains the device's primary context (``cuInit`` and
-``cuDevicePrimaryCtxRetain``: about 0.4 s more there), one after the other. The driver's part needs no
+A cold ``get_backend("warp:cuda:0")`` imports Warp (Python, most of a second), then Warp initialises the
+CUDA driver and retains the device's primary context (``cuInit`` and ``cuDevicePrimaryCtxRetain``, a
+fraction of a second more), one after the other. The driver's part needs no
 Warp: :func:`start` makes those calls through ``libcuda`` on a daemon thread (a foreign call through
 ctypes releases the interpreter lock, so the import goes on meanwhile), and Warp, when it gets there,
 finds the driver started and the context made (a retained primary context is the one context of that
-device in this process; Warp retains it once more). ``bench/probe_start.py`` measured Warp's CUDA
-backend ready 1.50 [1.45-1.65] s after a process started without this and 1.11 [1.05-1.46] s with it
-(H100, 5 fresh processes each, 2026-11-26).
+device in this process; Warp retains it once more). The two
+overlap (figures: bench/README.md, "What the studies found", cold command: kernels and start).
 
 Only for names that pick a Warp CUDA device (``warp:cuda:N``, ``warp:cuda``, ``warp``, ``auto``), only
 while Warp is not imported yet, only where Warp is installed and ``libcuda`` loads; every failure is

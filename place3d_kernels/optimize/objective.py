@@ -5,7 +5,7 @@ not depend on the other LiDARs (occlusion comes from the P-SOG or the scene, not
 each distinct pose is traversed once; a rig's M-SOG is then the fixed-point sum over the union of its
 LiDARs' cached voxel sets, bit-identical to ``msog_batch``.
 
-Trade-off (timings in bench/README.md): a new pose costs a traversal to a visit list, which is not
+Trade-off: a new pose costs a traversal to a visit list, which is not
 much cheaper than scoring the whole rig in the fused ``score_placements`` kernel, and every rig then
 pays a union of its LiDARs' voxel sets; so the cache wins when most poses of a batch were seen before
 (late CMA-ES generations, local search) and loses when few were, as over most of a 2,000-evaluation

@@ -367,8 +367,8 @@ ALWAYS_INLINE long flush_flat(__global volatile uint* mine, const int w, const u
  * with the Warp CUDA score kernel's bookkeeping (backends/warp/score_gpu.py): flat bricks of 8 x 4 x 1 voxels
  * (flat: the brick's occlusion bits low, nonzero-weight bits high), the brick's masks and the candidate's
  * word read on every step and kept on entering a brick, the bits a ray sets in a brick sent at once when it
- * leaves. The same sums and counts as mark_walk_bricked's per-voxel atomics (which it replaced on this path:
- * 5.93 [4.93-6.26] against 6.97 [5.94-7.28] ms per dense rig on an H100, bench/README.md). */
+ * leaves. The same sums and counts as mark_walk_bricked's per-voxel atomics, which it replaced on this path
+ * because it was faster (bench/README.md, "What the studies found", dense rig, OpenCL on the GPU). */
 __kernel void score_rays_flat(__global const real* rig, __global const real* sdir, const int L, const int CA,
                               const real t_max, const real s, const int nx, const int ny, const int nz,
                               const int nbx, const int nby, __global const ulong* flat,

@@ -10,8 +10,8 @@
  * two and the segment end by more than tol, so it is the unique minimum), and the voxels are marked in
  * score_walk's bitset, so score_reduce sums the same integers.
  *
- * Measured faster than score_walk on the dev VM's PoCL, the stop mask as bits (below) included (figures:
- * bench/README.md, "Figures behind backend code comments").
+ * Measured faster than score_walk on PoCL, the stop mask as bits (below) included (figures:
+ * bench/README.md, "What the studies found", M-SOG walk on the CPU).
  * Slower and not kept: 8 lanes, one ray per work-item written branch-free (each step then waits for the
  * last), spilling the lanes to private arrays for the marking, 64-bit voxel indices. The host builds this
  * file with FLAT32 (32-bit indices) and uses it for grids of fewer than 2^31 voxels, score_walk beyond.

@@ -3,9 +3,10 @@
 On a CUDA device Warp compiles a module the first time one of its kernels runs, and keeps the result in
 its kernel cache. On a host whose cache is empty (a fresh machine, container or CI runner) compiling
 ``kernels.py`` and the score kernel's module of its own was the largest part of a cold ``place3d
-optimize``; loading the shipped CUBINs instead takes about a tenth of a second, and the PTX, which the driver
-compiles for the device, well under half the compile time, with the same result bits (figures:
-bench/README.md, "Figures behind backend code comments").
+optimize``; loading the shipped CUBINs instead takes a small fraction of that, and the PTX, which the
+driver compiles for the device, well under half the compile time, with the same result bits (figures:
+bench/README.md, "What the studies found", cold command: kernels and start; docs/architecture.md says
+why the binaries are committed).
 
 What is shipped: for each of the two modules, CUBINs for the architectures in ``CUBIN_ARCHS`` and PTX
 for ``PTX_ARCH`` (which every later GPU can run through the driver's compiler), under

@@ -99,9 +99,9 @@ def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fa
 
 # The ray-mesh query runs in two passes. The first walks Warp's BVH in float32 and keeps the query's t
 # and face; the second computes the winning face's distance in float64. As one kernel of this module the
-# query ran markedly slower on the H100 than these two passes, with the same bits; the same one-kernel
-# code built in a module of its own did not, and why was not found (figures: bench/README.md, "Figures
-# behind backend code comments").
+# query ran markedly slower on CUDA than these two passes, with the same bits; the same one-kernel code
+# built in a module of its own did not, and why was not found (bench/README.md, "What the studies found",
+# ray-mesh, Warp).
 @wp.func
 def query_hit_in(mesh: wp.uint64, o64: wp.vec3d, d64: wp.vec3d, tm: wp.float64, root: wp.int32):
     # Warp's ordered BVH query and watertight triangle test, on a mesh whose BVH boxes were built padded
@@ -707,8 +707,8 @@ def score_ray(
         wp.atomic_add(sums, cand, my_sum)
 
 
-# a register cap of 72, kept from the GPU study of this kernel's form (bench/gpu_score_variants.py); the
-# CPU, which runs it, ignores it. CUDA runs score_gpu.score_kernel_gpu.
+# a register cap of 72, kept from the GPU study of this kernel's form (at tag lab-2026-11-27); the CPU,
+# which runs it, ignores it. CUDA runs score_gpu.score_kernel_gpu.
 @wp.kernel(cuda_max_registers=72)
 def score_kernel(
     sensor_dirs: wp.array(dtype=wp.vec3d),      # (C*A,)
@@ -735,9 +735,9 @@ COUNT_WORDS = 64   # bitset words per thread of count_bits_kernel for small bits
 def count_words_per_thread(total_words: int) -> int:
     """Words per thread of ``count_bits_kernel`` (the CPU's count; CUDA runs ``score_gpu.count_clear_kernel``
     since 2026-11-25) for ``total_words`` bitset words in all: each thread ends with one atomic add on its
-    candidate's counter, and for the dense rig's 512 MB of bitsets on the H100 those atomics made the count
-    slow (64 words per thread 1.88 ms, 1024 0.62 ms; bench/README.md, "A warm command's host time and
-    figures"); the rule was kept as it was when the CPU became its only user. Small bitsets keep 64."""
+    candidate's counter, and for the dense rig's bitsets (hundreds of MB) on a GPU those atomics made the
+    count slow at 64 words per thread (bench/README.md, "What the studies found", dense rig, API); the rule
+    was kept as it was when the CPU became its only user. Small bitsets keep 64."""
     return 1024 if total_words >= 2**24 else COUNT_WORDS
 
 

@@ -17,16 +17,16 @@ constants), the voxel's bit needs no z term (a flat brick is one voxel high), lo
 addresses (no index wrap, no 64-bit stride multiplies), and the loop has no grid test (below). The
 third round took about a third of the instructions out of a step's common path against a form with int64
 indices; the ninth (flat bricks, numbered so that a 32-byte sector of words lies along the rays, and no
-grid test) 8 % of the time on the dense rig (figures: bench/README.md, "The dense rig's score kernel, third
-round" and "The dense rig's bricks"). The walk's decisions are untouched, so the voxels, sums and counts are
-the same bits (tests/test_dense_variants.py runs earlier forms against this one; the cross-backend suites
-compare scores with the reference).
+grid test) a further part of the time on the dense rig (figures: bench/README.md, "What the studies
+found", dense-rig score kernel). The walk's decisions are untouched, so the voxels, sums and counts are
+the same bits (the cross-backend suites compare scores with the reference; the earlier forms and their
+tests are at tag lab-2026-11-27).
 
 The walk's state is a ``WalkGPU``, ``kernels.Walk32`` without the fields a step seldom needs (a walk that
 has ended has i = DEAD = -1; a float64-only walk has t1 = -1; the float64 segment end is a local of the
 kernel), and the float32 step's certainty test is written with the minimum and the median of the three
 crossings: the same decision and axis as ``walk32_next``'s chain of compares (proof at ``certain_step``),
-fewer instructions and registers (bench/README.md, the dense rig's rounds).
+fewer instructions and registers (bench/README.md, "What the studies found").
 
 Why the loop needs no grid test (``inside``, which the walk's tests still use): a walk starts in the grid
 (``walk32_begin`` clamps its first voxel, or starts none: i = DEAD) and ends only where ``exact_step`` finds
@@ -49,12 +49,11 @@ from place3d_kernels.backends.warp.kernels import Walk32, next_t, walk32_begin
 
 # Warp builds a module once per (device, launch block_dim) and hashes block_dim into it (Warp 1.19,
 # Module.load): a 128-thread launch of a kernel in kernels.py, whose other launches use CUDA's default
-# 256, compiled that whole file a second time on a cold CUDA host (3.4 s). So this kernel lives in a module
+# 256, compiled that whole file a second time on a cold CUDA host. So this kernel lives in a module
 # of its own, with kernels.py's options restated (forward only; no FMA contraction, which would move
 # voxel-boundary ties). 128-thread blocks and a register cap: uncapped, the kernel takes so many registers
-# that few warps fit on an SM (figures: bench/README.md, "Figures behind backend code comments"); 56
-# since the flat bricks (one run each, kernel + count per dense rig, H100: 64 registers 1.581 against 1.568 ms;
-# 52 1.591 and 48 1.735 against 1.557; bench/README.md, "The dense rig's bricks").
+# that few warps fit on an SM; 56 since the flat bricks, where 64, 52 and 48 were each slower on the dense
+# rig (bench/README.md, "What the studies found", dense-rig score kernel, brick shape and loop).
 SCORE_BLOCK_DIM = 128
 SCORE_MAX_REGISTERS = 56
 _MODULE_OPTIONS = {"enable_backward": False, "fuse_fp": False, "block_dim": SCORE_BLOCK_DIM}
@@ -409,7 +408,7 @@ def flat_masks_kernel(pairs: wp.array(dtype=wp.uint64), bx: wp.int32, by: wp.int
 # The bit count that follows every score launch, and the zeroing before the next, are passes over the whole
 # bitset (512 MB for 16 dense rigs). Here they are one pass: each thread of a candidate counts every T-th word
 # (so a warp's 32 loads are consecutive words) and zeroes the words it found set, which leaves the buffer as
-# the next call needs it (WarpCore keeps it; bench/README.md, "The dense rig's API cost", for the figures).
+# the next call needs it (WarpCore keeps it; bench/README.md, "What the studies found", dense rig, API).
 def count_threads_per_candidate(words: int, candidates: int) -> int:
     """Threads per candidate of ``count_clear_kernel``: 64 words per thread for small bitsets, and for large
     ones about 2^18 threads in all (one atomic add each, so few enough that the counters do not queue)."""
