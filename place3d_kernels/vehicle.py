@@ -77,8 +77,8 @@ _PARITY_DIRS = np.array([[0.5773, 0.6211, 0.5301], [-0.3411, 0.8127, -0.4723], [
 
 def _parity_inside(mesh: Mesh, points: np.ndarray) -> np.ndarray:
     """Inside test for a closed mesh: a point is inside when rays from it cross the surface an odd number
-    of times (watertight ray/triangle test of the reference backend, float64, every face)."""
-    from place3d_kernels.backends.reference.host import watertight_intersect
+    of times (the watertight ray/triangle test, float64, every face)."""
+    from place3d_kernels.backends.geometry import watertight_intersect
 
     v, f = mesh.vertices, mesh.faces
     v0, v1, v2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
