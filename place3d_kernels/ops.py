@@ -75,7 +75,8 @@ def _check_od(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     if not np.isfinite(o[:1] if o.strides[0] == 0 else o).all():   # whole array first; the row on failure
         i = _bad_row(o)
         raise ValueError(f"ray {i} has a non-finite origin {o[i].tolist()}; drop or fix such rays first")
-    norm = _row_norm(d)
+    with np.errstate(over="ignore", under="ignore"):     # handled below: such rows are rescaled
+        norm = _row_norm(d)
     # Fast path, one pass over the norms: every row unit to rounding (the common case) needs no further
     # check. Exactly the slow path's test: x - 1.0 is monotone in x, so max(norm) - 1.0 is the largest
     # norm - 1.0 (likewise for the min); a zero norm fails it, and a non-finite direction makes its norm
@@ -86,6 +87,11 @@ def _check_od(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     if not np.isfinite(d).all():
         i = _bad_row(d)
         raise ValueError(f"ray {i} has a non-finite direction {d[i].tolist()}; drop or fix such rays first")
+    d = d.copy()
+    rescale = (norm == 0.0) | (norm == np.inf)
+    if rescale.any():
+        norm = norm.copy()
+        d[rescale], norm[rescale] = _rescaled(d[rescale])
     if not norm.all():
         i = int(np.argmax(norm == 0))
         raise ValueError(f"ray {i} has a zero-length direction; every ray needs a non-zero direction")
@@ -94,9 +100,20 @@ def _check_od(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     # whichever entry point (traverse, coverage, msog_batch) they come through
     off = np.abs(norm - 1.0) > 1e-12
     if off.any():
-        d = d.copy()
         d[off] /= norm[off, None]
     return o, np.ascontiguousarray(d)
+
+
+def _rescaled(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of finite directions whose squared norm overflows to inf (a component beyond about 1.3e154) or
+    underflows to 0 (every component below about 1e-162), scaled by a power of two (exact) that brings the
+    largest component into [0.5, 1), and the norms of the scaled rows. An all-zero row stays zero (norm 0).
+    Rows the device checks pass (finite, non-zero norm) never come here, so device and host normalise
+    every ray alike."""
+    m = np.max(np.abs(d), axis=1)
+    _, e = np.frexp(m)                     # m = f * 2**e with f in [0.5, 1); e = 0 for m = 0
+    ds = np.ldexp(d, -e[:, None])
+    return ds, _row_norm(ds)
 
 
 def _check_near(o: np.ndarray, centre, what: str) -> None:
@@ -143,7 +160,8 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
     Args:
         mesh: the triangle mesh; its BVH is built once per backend and cached on the mesh.
         origins, directions: (N, 3) rays (directions need not be normalised; t is in metres along the
-            normalised direction). float32 rays give the hits of the same rays widened to float64.
+            normalised direction, which is computed without overflow or underflow for any finite non-zero
+            direction). float32 rays give the hits of the same rays widened to float64.
         t_max: scalar or (N,) maximum distance.
         backend: backend name or instance (default: the current one).
 

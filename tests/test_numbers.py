@@ -25,6 +25,36 @@ GRID = p3k.Grid(lower=(0, 0, 0), upper=(5, 5, 1), voxel_size=1.0)
 LIDAR = p3k.LidarModel(elevations=[0.0], azimuths=np.radians([0, 90, 180, 270]), max_range=100.0)
 
 
+@pytest.mark.parametrize("scale", [1.4e154, 1e300, 1.7e308, 1e-170, 1e-300])
+def test_huge_and_tiny_directions_hit_as_their_unit_direction(backend, scale):
+    # squares of 1.4e154 overflow to inf and those of 1e-170 underflow to 0: the old code reported a miss
+    # (with a RuntimeWarning) for the first and a "zero-length direction" error for the second
+    o = np.zeros((3, 3))
+    unit = np.array([[1.0, 0, 0], [0.6, 0.0, 0.8], [0.96, 0.28, 0.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")          # no overflow, underflow or division warnings either
+        want = p3k.raycast(TRI, o, unit, backend=backend)
+        got = p3k.raycast(TRI, o, unit * scale, backend=backend)
+    np.testing.assert_array_equal(got.face, want.face)
+    assert got.face[0] == 0 and got.t[0] == 5.0
+    np.testing.assert_allclose(got.t, want.t, rtol=1e-12)
+    # the smallest double: its direction is (1, 0, 0) exactly
+    np.testing.assert_array_equal(p3k.raycast(TRI, o[:1], [[5e-324, 0.0, 0.0]], backend=backend).t, [5.0])
+
+
+@pytest.mark.parametrize("scale", [1.4e154, 1e-170])
+def test_huge_and_tiny_directions_traverse_as_their_unit_direction(backend, scale):
+    o = np.array([[0.5, 0.5, 0.5], [0.25, 0.5, 0.5]])
+    unit = np.array([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        want = p3k.traverse(GRID, o, unit, 4.0, backend=backend)
+        got = p3k.traverse(GRID, o, unit * scale, 4.0, backend=backend)
+    np.testing.assert_array_equal(got.offsets, want.offsets)
+    np.testing.assert_array_equal(got.voxels, want.voxels)
+    assert len(want.ray(0)) == 5
+
+
 def test_coordinate_limit_is_documented_and_float32_can_resolve_it():
     # float32's spacing at the limit stays below the smallest voxel the package tests (1 cm)
     assert np.spacing(np.float32(COORDINATE_LIMIT)) < 0.01
