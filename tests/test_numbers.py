@@ -18,7 +18,9 @@ import pytest
 
 import place3d_kernels as p3k
 from place3d_kernels.backends.base import COORDINATE_LIMIT
+from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.ops import MeshGroups
+from place3d_kernels.vehicle import VehicleBody
 
 TRI = p3k.Mesh([[5.0, -1.0, -1.0], [5.0, 1.0, -1.0], [5.0, 0.0, 1.0]], [[0, 1, 2]])
 GRID = p3k.Grid(lower=(0, 0, 0), upper=(5, 5, 1), voxel_size=1.0)
@@ -103,6 +105,34 @@ def test_mesh_groups_leave_far_rays_to_raycast(backend):
     d = np.array([[1.0, 0, 0], [1.0, 0, 0]])
     assert groups.cast(o, d, 1e9, 1) is None
     assert groups.cast(o[:1].repeat(2, 0), d, 1e9, 1).face.tolist() == [0, 0]
+
+
+@pytest.mark.parametrize("case", ["sog", "none", "mesh", "evidence", "min_range", "body"])
+def test_msog_batch_of_zero_rigs_is_empty_everywhere(backend, case):
+    probs = np.zeros(GRID.shape + (22,))
+    probs[..., 0] = 1.0
+    psog = p3k.PSOG.from_probabilities(GRID, probs)
+    lidar = LIDAR
+    kw = {}
+    if case in ("sog", "none", "mesh"):
+        kw["occlusion"] = case
+        kw["mesh"] = p3k.Mesh([[4.5, 0, 0], [4.5, 5, 0], [4.5, 2.5, 1]], [[0, 1, 2]])
+    elif case == "evidence":
+        kw["normalisation"] = "evidence"
+    elif case == "min_range":
+        lidar = p3k.LidarModel(elevations=[0.0], azimuths=np.radians([0, 90]), max_range=100.0, min_range=0.5)
+    else:
+        kw["body"] = VehicleBody.from_boxes(np.array([[[0.1, 0.1, 0.0], [0.4, 0.4, 0.3]]]))
+    got = p3k.msog_batch(psog, lidar, np.zeros((0, 1, 6)), backend=backend, **kw)
+    assert isinstance(got, np.ndarray) and got.dtype == np.float64 and got.shape == (0,)
+
+
+def test_backends_score_zero_candidates(backend):
+    b = get_backend(backend)
+    h = b.prepare_grid(GRID.spec, np.ones(GRID.n_voxels, dtype=np.int64), None)
+    for sums, counts in (b.score_placements(h, LIDAR.elevations, LIDAR.azimuths, 10.0, np.zeros((0, 1, 6))),
+                         b.score_rays(h, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(1, np.int64))):
+        assert np.asarray(sums).shape == (0,) and np.asarray(counts).shape == (0,)
 
 
 @pytest.mark.parametrize("lower, upper, vs, match", [
