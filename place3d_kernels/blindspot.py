@@ -341,7 +341,8 @@ def add_blindspot_parser(sub) -> None:
     p.add_argument("placement", nargs="?", default="center", help="placement name or TOML path (default center)")
     p.add_argument("--lidar", default="place3d_16ch", help="LiDAR model name or TOML (default place3d_16ch)")
     p.add_argument("--vehicle", default="car",
-                   help="body: car, suv, van, truck, none, or a mesh file (OBJ, GLB, ...) in the ego frame")
+                   help="body: car, suv, van, truck, none, or a mesh file (OBJ, GLB, ...) in the ego frame "
+                        "(glTF is Y-up by its specification and is turned Z-up)")
     p.add_argument("--ground-z", type=float, default=0.0, help="plane height in metres (0 road; 0.5 bumper)")
     p.add_argument("--radius", type=float, default=10.0, help="metres around the body (default 10)")
     p.add_argument("--cell", type=float, default=0.1, help="raster cell in metres (default 0.1)")
