@@ -153,3 +153,14 @@ def test_grid_shapes_are_unchanged():
     assert p3k.DEFAULT_GRID.shape == (400, 400, 25)
     assert p3k.Grid((0, 0, 0), (1, 1, 1), 0.1).shape == (10, 10, 10)
     assert p3k.Grid((1e6, -1e6, 0), (1e6 + 2, -1e6 + 2, 1), 0.5).shape == (4, 4, 2)
+
+
+@pytest.mark.parametrize("scale, length", [(1e200, r"1e\+200"), (1e-200, "1e-200")])
+def test_direction_tables_name_the_true_length_of_a_huge_or_tiny_row(scale, length):
+    from place3d_kernels.rig_metrics import direction_table
+
+    table = np.array([[1.0, 0.0, 0.0], [0.0, 0.6 * scale, 0.8 * scale]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=f"row 1 has length {length} "):
+            direction_table(table)
