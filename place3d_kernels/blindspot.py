@@ -2,17 +2,21 @@
 
 The rig's rays are clipped by the body (``rig_metrics.body_t_end``) and intersected with the plane
 z = ``ground_z`` (0: the road; e.g. 0.5 m: bumper height). A ray *sees* the plane where it reaches it
-before the body stops it. Around the car, azimuth sectors (1 degree by default, angles about the ego
-origin) take the nearest point seen in them: every point of the plane nearer than that, in the sector,
+before the body stops it. Around the car, azimuth sectors (angles about the ego origin; by default the
+smallest whole number of degrees dividing 360 that is at least the LiDAR's azimuth step, ``azimuth_step_deg``,
+so that every sector can get a ray: 1 degree for steps up to 1 degree, 2 for the 1.44 degrees of
+place3d_16ch) take the nearest point seen in them: every point of the plane nearer than that, in the sector,
 outside the body's footprint and within ``radius`` of the footprint, is blind (the near-field shadow of
 the body and of the lowest beams). Gaps between channels farther out are sampling, not blind spots, and
 are not counted. A sector with no hit at all is blind out to ``radius``.
 
-The map is rasterised on square cells (0.1 m by default) for the area in m^2 and the plot.
+The map is rasterised on square cells (0.1 m by default) for the area in m^2 and the plot; a raster that
+would need more than ``MAX_RASTER_BYTES`` of memory is refused before anything is allocated.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,7 +26,54 @@ from place3d_kernels.rig_metrics import body_t_end, check_outside_body, directio
 from place3d_kernels.vehicle import VehicleBody
 
 __all__ = ["BlindSpotMap", "blind_spot_map", "ground_hits", "max_blind_extent", "footprint_distance",
-           "vehicle_from_arg", "cmd_blindspot", "add_blindspot_parser"]
+           "azimuth_step_deg", "default_sector_deg", "MAX_RASTER_BYTES", "vehicle_from_arg", "cmd_blindspot",
+           "add_blindspot_parser"]
+
+#: Rasters needing more memory than this (bytes, estimated by ``_raster_bytes``) are refused with the
+#: memory they would need and the cell size that fits; a 0.0001 m cell around a car needs terabytes.
+MAX_RASTER_BYTES = 4 * 2**30
+
+
+def _circular_step(azimuths_deg: np.ndarray) -> float | None:
+    """The widest gap between neighbouring azimuths around the circle, leaving out the single widest one
+    (outside a limited field of view it is no sampling gap; on a full circle of even steps it equals the
+    others). None for fewer than two distinct azimuths."""
+    a = np.unique(np.round(np.asarray(azimuths_deg, dtype=np.float64) % 360.0, 9))
+    if len(a) < 2:
+        return None
+    gaps = np.sort(np.diff(np.r_[a, a[0] + 360.0]))
+    return float(gaps[-2])
+
+
+def azimuth_step_deg(lidar) -> float | None:
+    """Azimuth spacing of a LiDAR in degrees: of its azimuth steps for a spinning unit (before per-channel
+    offsets), of its rays' azimuths for a rosette unit or an (R, 3) direction table (rays within 1e-9 of
+    vertical have no azimuth and are left out); the largest over a list of them. None when there is no
+    second azimuth."""
+    if isinstance(lidar, (list, tuple)):
+        steps = [s for s in (azimuth_step_deg(m) for m in lidar) if s is not None]
+        return max(steps) if steps else None
+    if getattr(lidar, "pattern", 1) is None:
+        return _circular_step(np.degrees(lidar.base_azimuths))
+    table, _ = direction_table(lidar)
+    flat = np.hypot(table[:, 0], table[:, 1]) > 1e-9
+    return _circular_step(np.degrees(np.arctan2(table[flat, 1], table[flat, 0])))
+
+
+def default_sector_deg(lidar) -> float:
+    """The smallest whole number of degrees that divides 360 and is at least ``azimuth_step_deg(lidar)``
+    (1 when the step is 1 degree or less, or unknown)."""
+    step = azimuth_step_deg(lidar)
+    if step is None:
+        return 1.0
+    return float(next(d for d in range(1, 361) if 360 % d == 0 and d >= step - 1e-9))
+
+
+def _raster_bytes(n_cells: int, n_rects: int) -> int:
+    # peak memory of blind_spot_map per cell: about 6 float64 values (centres, distances, angles) plus 6
+    # per footprint rectangle (footprint_distance's (cells, rectangles, 2) temporaries); tracemalloc
+    # peaks of 82, 128 and 224 bytes per cell for 1, 2 and 4 rectangles (dev VM) lie just below
+    return int(n_cells) * 8 * (6 + 6 * max(int(n_rects), 1))
 
 
 def footprint_distance(points_xy, footprint) -> np.ndarray:
@@ -48,6 +99,8 @@ def ground_hits(body: VehicleBody | None, lidar, poses, ground_z: float = 0.0, b
     Raises:
         ValueError: a LiDAR lies inside the body, or no range is known.
     """
+    if not np.isfinite(ground_z):
+        raise ValueError(f"ground_z (--ground-z) must be a finite height in metres, got {ground_z!r}")
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
     if isinstance(lidar, (list, tuple)):
         # one model per LiDAR (a heterogeneous rig): the union of each LiDAR's ground hits
@@ -168,29 +221,57 @@ class BlindSpotMap:
 
 
 def blind_spot_map(body: VehicleBody | None, lidar, poses, ground_z: float = 0.0, radius: float = 10.0,
-                   cell: float = 0.1, sector_deg: float = 1.0, backend=None,
+                   cell: float = 0.1, sector_deg: float | None = None, backend=None,
                    max_range: float | None = None) -> BlindSpotMap:
     """Blind ground region of a rig on a body (see the module docstring).
 
     Args:
         body: the ego vehicle (None: a point vehicle, no footprint, nothing blocks).
-        lidar: ``LidarModel`` or (R, 3) direction table (with ``max_range``).
+        lidar: ``LidarModel`` or (R, 3) direction table (with ``max_range``), or a list of them, one per pose.
         poses: (L, 6) ego-frame poses.
-        ground_z: plane height (0 road, 0.5 bumper height).
+        ground_z: plane height (0 road, 0.5 bumper height); finite.
         radius: distance from the footprint out to which blind cells count, metres.
-        cell: raster cell size, metres; sector_deg: sector width, degrees.
+        cell: raster cell size, metres.
+        sector_deg: sector width in degrees, dividing 360 and at least the LiDAR's azimuth step (a
+            narrower sector can fall between two rays and see nothing); None: ``default_sector_deg``.
 
     Raises:
-        ValueError: bad sizes, or a LiDAR inside the body.
+        ValueError: bad sizes, a non-finite ``ground_z``, a sector narrower than the azimuth step, a raster
+            needing more than ``MAX_RASTER_BYTES``, or a LiDAR inside the body.
     """
-    for what, v in (("radius", radius), ("cell", cell), ("sector_deg", sector_deg)):
+    sizes = [("radius", radius), ("cell", cell)] + ([("sector_deg", sector_deg)] if sector_deg is not None else [])
+    for what, v in sizes:
         if not (np.isfinite(v) and v > 0):
             raise ValueError(f"blind_spot_map {what} must be positive, got {v!r}")
+    if not np.isfinite(ground_z):
+        raise ValueError(f"ground_z (--ground-z) must be a finite height in metres, got {ground_z!r}")
+    step = azimuth_step_deg(lidar)
+    if sector_deg is None:
+        sector_deg = default_sector_deg(lidar)
+    elif step is not None and sector_deg < step - 1e-9:
+        raise ValueError(f"sector_deg (--sector-deg) {sector_deg:g} is narrower than the LiDAR's azimuth step of {step:.4g} degrees: "
+                         f"such sectors can fall between two rays and report no ground hit; use at least "
+                         f"{default_sector_deg(lidar):g} (the default)")
     if not 360.0 / sector_deg == int(round(360.0 / sector_deg)):
         raise ValueError(f"sector_deg must divide 360, got {sector_deg!r}")
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
-    hits = ground_hits(body, lidar, poses, ground_z, backend, max_range)
     fp = body.footprint() if body is not None else np.zeros((1, 2, 2))
+    span = fp[:, 1].max(axis=0) - fp[:, 0].min(axis=0) + 2 * radius
+    with np.errstate(over="ignore"):          # a 5e-324 m cell: inf cells, refused below
+        cells = float(np.ceil(span[0] / cell)) * float(np.ceil(span[1] / cell))
+    per_cell = _raster_bytes(1, len(fp))
+    if cells * per_cell > MAX_RASTER_BYTES:
+        area = float(span[0]) * float(span[1])
+        fits = math.sqrt(area * per_cell / MAX_RASTER_BYTES)      # cells scale as 1 / cell^2
+        if math.isfinite(fits):
+            unit = 10.0 ** (math.floor(math.log10(fits)) - 1)
+            fix = f"use a cell of at least {math.ceil(fits / unit) * unit:.2g} m or a smaller radius"
+        else:
+            fix = "use a smaller radius"
+        raise ValueError(f"a {cell:g} m raster (--cell) of the {span[0]:.4g} m x {span[1]:.4g} m region ({cells:.3g} "
+                         f"cells) would need about {cells * per_cell / 2**30:,.1f} GiB of memory, above the "
+                         f"{MAX_RASTER_BYTES / 2**30:g} GiB limit; {fix}")
+    hits = ground_hits(body, lidar, poses, ground_z, backend, max_range)
     n_sec = int(round(360.0 / sector_deg))
 
     def sector(xy):
@@ -260,11 +341,14 @@ def add_blindspot_parser(sub) -> None:
     p.add_argument("placement", nargs="?", default="center", help="placement name or TOML path (default center)")
     p.add_argument("--lidar", default="place3d_16ch", help="LiDAR model name or TOML (default place3d_16ch)")
     p.add_argument("--vehicle", default="car",
-                   help="body: car, suv, van, truck, none, or a mesh file (OBJ, GLB, ...) in the ego frame")
+                   help="body: car, suv, van, truck, none, or a mesh file (OBJ, GLB, ...) in the ego frame "
+                        "(glTF is Y-up by its specification and is turned Z-up)")
     p.add_argument("--ground-z", type=float, default=0.0, help="plane height in metres (0 road; 0.5 bumper)")
     p.add_argument("--radius", type=float, default=10.0, help="metres around the body (default 10)")
     p.add_argument("--cell", type=float, default=0.1, help="raster cell in metres (default 0.1)")
-    p.add_argument("--sector-deg", type=float, default=1.0, help="azimuth sector in degrees (default 1)")
+    p.add_argument("--sector-deg", type=float, default=None,
+                   help="azimuth sector in degrees, at least the LiDAR's azimuth step (default: the smallest whole "
+                        "degree dividing 360 at or above that step)")
     p.add_argument("--backend", default=None, help="backend name (default: the current one)")
     p.add_argument("--output", required=True, help="output folder (blindspot.json, blindspot.png)")
     p.set_defaults(func=cmd_blindspot)

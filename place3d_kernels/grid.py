@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from place3d_kernels.backends.base import GridSpec
+from place3d_kernels.backends.base import COORDINATE_LIMIT, GridSpec
 
 __all__ = ["Grid", "DEFAULT_GRID", "MAX_VOXELS"]
 
@@ -23,8 +23,15 @@ class Grid:
     Args:
         lower: (x, y, z) lower corner in metres.
         upper: (x, y, z) upper corner in metres; rounded up to whole voxels.
-        voxel_size: edge length in metres (> 0).
+        voxel_size: edge length in metres (finite, > 0).
         max_voxels: refuse grids larger than this (memory guard).
+
+    Raises:
+        ValueError: a corner or the voxel size is not finite, the voxel size is not > 0, upper does not
+            exceed lower, an extent exceeds ``COORDINATE_LIMIT`` (1e5 m: float32 backends cannot resolve
+            grid-local coordinates farther out; ``backends/base.py``), or the grid would have more than
+            ``max_voxels`` voxels (checked before any count becomes an integer, so even 5e-324 m voxels
+            give this error).
 
     The flat index of voxel (i, j, k) is ``(i * ny + j) * nz + k``.
     """
@@ -39,14 +46,29 @@ class Grid:
         upper = tuple(float(v) for v in np.asarray(self.upper, dtype=np.float64).reshape(-1))
         if len(lower) != 3 or len(upper) != 3:
             raise ValueError(f"Grid lower/upper must have 3 components, got {self.lower!r} / {self.upper!r}")
-        vs = float(self.voxel_size)
+        try:
+            vs = float(self.voxel_size)
+        except (TypeError, ValueError):
+            vs = math.nan
         if not math.isfinite(vs) or vs <= 0:
             raise ValueError(f"Grid voxel_size must be a positive finite number of metres, got {self.voxel_size!r}")
         if not all(math.isfinite(v) for v in lower + upper):
             raise ValueError(f"Grid corners must be finite, got lower={lower} upper={upper}")
         if any(u <= lo for lo, u in zip(lower, upper)):
             raise ValueError(f"Grid upper corner must exceed lower on every axis, got lower={lower} upper={upper}")
-        shape = tuple(int(math.ceil((u - lo) / vs - 1e-9)) for lo, u in zip(lower, upper))
+        extent = [u - lo for lo, u in zip(lower, upper)]
+        if not all(e <= COORDINATE_LIMIT for e in extent):     # inf (corners at +-1e308) fails this too
+            raise ValueError(f"Grid extent {extent} m exceeds {COORDINATE_LIMIT:g} m on an axis: grid-local "
+                             f"coordinates that far cannot be placed to a voxel by float32 backends "
+                             f"(backends/base.py COORDINATE_LIMIT); use a smaller ROI")
+        # voxels per axis as a float first: a tiny voxel_size (5e-324) makes it inf or too large for an int
+        per_axis = [e / vs for e in extent]
+        if not all(q <= self.max_voxels for q in per_axis):
+            raise ValueError(
+                f"Grid voxel_size {vs!r} m gives {max(per_axis):.3g} voxels along one axis of the {extent} m "
+                f"box, above the limit of {self.max_voxels:,} voxels: use a larger voxel_size or a smaller ROI, "
+                f"or pass max_voxels=")
+        shape = tuple(int(math.ceil(q - 1e-9)) for q in per_axis)
         n = shape[0] * shape[1] * shape[2]
         if n > self.max_voxels:
             gib = n * 4 / 2**30

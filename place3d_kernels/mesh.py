@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from place3d_kernels.backends.base import COORDINATE_LIMIT
+
 __all__ = ["Mesh"]
 
 
@@ -56,6 +58,7 @@ class Mesh:
         lo, hi = v.min(axis=0), v.max(axis=0)
         #: float64 offset subtracted from vertices and ray origins before kernels run
         self.shift = np.round((lo + hi) / 2.0)
+        self._box = (lo, hi)
         self._handles: dict[object, object] = {}
         self._normals: np.ndarray | None = None
 
@@ -95,7 +98,19 @@ class Mesh:
 
     def upload_parts(self):
         """What a backend uploads: (shifted vertices, the faces with non-zero area, their face ids (None when
-        all are), their labels)."""
+        all are), their labels).
+
+        Raises:
+            ValueError: a vertex lies more than ``COORDINATE_LIMIT`` (1e5 m) from the mesh's centre on some
+                axis: beyond what float32 backends represent (``backends/base.py``); refused on every backend.
+        """
+        lo, hi = self._box
+        reach = float(np.max(np.maximum(hi - self.shift, self.shift - lo)))
+        if not reach <= COORDINATE_LIMIT:
+            raise ValueError(f"Mesh spans {(hi - lo).tolist()} m: its vertices reach {reach:.6g} m from its centre "
+                             f"{self.shift.tolist()}, beyond the {COORDINATE_LIMIT:g} m that every backend accepts "
+                             f"(float32 backends cannot place them to a voxel; backends/base.py COORDINATE_LIMIT). "
+                             f"Split or crop the scene")
         if len(self.valid_faces) == len(self.faces):
             return self.vertices - self.shift, self.faces, None, self.labels
         return (self.vertices - self.shift, self.faces[self.valid_faces], self.valid_faces,

@@ -177,7 +177,7 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
         body: optional ``VehicleBody`` (ego frame) whose surface blocks rays.
 
     Returns:
-        (P,) float64 scores (NaN for a rig whose denominator is 0).
+        (P,) float64 scores (NaN for a rig whose denominator is 0); an empty array for P = 0 rigs.
 
     Raises:
         ValueError: bad inputs, or a LiDAR origin inside ``body`` (the message names it).
@@ -192,6 +192,8 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
     if poses.ndim == 2:
         poses = poses[None]
     check_inputs(psog, poses, occlusion, mesh)
+    if len(poses) == 0:      # no rigs: no scores, on every path and backend
+        return np.zeros(0, dtype=np.float64)
     p = psog.for_task(task)
     b = get_backend(backend)
     if body is not None or not lidar.is_grid or lidar.min_range > 0:

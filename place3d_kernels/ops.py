@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from place3d_kernels.backends.base import COORDINATE_LIMIT, first_far_row
 from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.grid import Grid
 from place3d_kernels.mesh import Mesh
@@ -74,7 +75,8 @@ def _check_od(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     if not np.isfinite(o[:1] if o.strides[0] == 0 else o).all():   # whole array first; the row on failure
         i = _bad_row(o)
         raise ValueError(f"ray {i} has a non-finite origin {o[i].tolist()}; drop or fix such rays first")
-    norm = _row_norm(d)
+    with np.errstate(over="ignore", under="ignore"):     # handled below: such rows are rescaled
+        norm = _row_norm(d)
     # Fast path, one pass over the norms: every row unit to rounding (the common case) needs no further
     # check. Exactly the slow path's test: x - 1.0 is monotone in x, so max(norm) - 1.0 is the largest
     # norm - 1.0 (likewise for the min); a zero norm fails it, and a non-finite direction makes its norm
@@ -85,6 +87,11 @@ def _check_od(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     if not np.isfinite(d).all():
         i = _bad_row(d)
         raise ValueError(f"ray {i} has a non-finite direction {d[i].tolist()}; drop or fix such rays first")
+    d = d.copy()
+    rescale = (norm == 0.0) | (norm == np.inf)
+    if rescale.any():
+        norm = norm.copy()
+        d[rescale], norm[rescale] = _rescaled(d[rescale])
     if not norm.all():
         i = int(np.argmax(norm == 0))
         raise ValueError(f"ray {i} has a zero-length direction; every ray needs a non-zero direction")
@@ -93,9 +100,33 @@ def _check_od(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     # whichever entry point (traverse, coverage, msog_batch) they come through
     off = np.abs(norm - 1.0) > 1e-12
     if off.any():
-        d = d.copy()
         d[off] /= norm[off, None]
     return o, np.ascontiguousarray(d)
+
+
+def _rescaled(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of finite directions whose squared norm overflows to inf (a component beyond about 1.3e154) or
+    underflows to 0 (every component below about 1e-162), scaled by a power of two (exact) that brings the
+    largest component into [0.5, 1), and the norms of the scaled rows. An all-zero row stays zero (norm 0).
+    Rows the device checks pass (finite, non-zero norm) never come here, so device and host normalise
+    every ray alike."""
+    m = np.max(np.abs(d), axis=1)
+    _, e = np.frexp(m)                     # m = f * 2**e with f in [0.5, 1); e = 0 for m = 0
+    ds = np.ldexp(d, -e[:, None])
+    return ds, _row_norm(ds)
+
+
+def _check_near(o: np.ndarray, centre, what: str) -> None:
+    """Refuse finite origins more than ``COORDINATE_LIMIT`` from ``centre`` on some axis: float32 backends
+    cannot represent them (``backends/base.py``), so no backend takes them."""
+    i = first_far_row(o, centre)
+    if i >= 0:
+        row = np.asarray(o[i], dtype=np.float64)
+        far = float(np.max(np.abs(row - np.asarray(centre, dtype=np.float64))))
+        raise ValueError(f"ray {i} starts at {row.tolist()}, {far:.6g} m from {what} on an axis, beyond the "
+                         f"{COORDINATE_LIMIT:g} m every backend accepts (float32 backends cannot place it to a "
+                         f"voxel; backends/base.py COORDINATE_LIMIT); express the rays and the scene in a frame "
+                         f"near the rays")
 
 
 def _check_t(t, n: int, what: str, scalar: bool = False):
@@ -129,13 +160,16 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
     Args:
         mesh: the triangle mesh; its BVH is built once per backend and cached on the mesh.
         origins, directions: (N, 3) rays (directions need not be normalised; t is in metres along the
-            normalised direction). float32 rays give the hits of the same rays widened to float64.
+            normalised direction, which is computed without overflow or underflow for any finite non-zero
+            direction). float32 rays give the hits of the same rays widened to float64.
         t_max: scalar or (N,) maximum distance.
         backend: backend name or instance (default: the current one).
 
     Raises:
         ValueError: a shape is wrong, or a ray has a non-finite origin, a non-finite or zero direction, or
-            a negative or NaN ``t_max`` (the message names the first such ray).
+            a negative or NaN ``t_max`` (the message names the first such ray); or a ray origin or a vertex
+            lies more than ``COORDINATE_LIMIT`` (1e5 m) from the mesh's centre on some axis, beyond what
+            float32 backends represent (``backends/base.py``; refused on every backend alike).
     """
     b = get_backend(backend)
     if b.raycast_checks_rays:
@@ -143,6 +177,8 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
         # flag (a ray those would reject) does the host path below run, for today's error or result
         with section("raycast: prepare"):
             rays = _device_rays(origins, directions, t_max)
+            if rays is not None and first_far_row(rays[0], mesh.shift) >= 0:
+                rays = None           # the host path raises the error, after the checks that come first
         if rays is not None:
             handle = mesh.handle(b)
             with section("raycast: backend"):
@@ -152,6 +188,7 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
     with section("raycast: validate"):
         o, d = _check_od(origins, directions)
         tm = _check_t(t_max, len(o), "t_max", scalar=True)
+        _check_near(o, mesh.shift, "the mesh's centre (Mesh.shift)")
     # float32 kernels need a finite bound; a scalar stays a scalar (backends broadcast it)
     tm32 = min(tm, 1e30) if isinstance(tm, float) else np.minimum(tm, 1e30)
     handle = mesh.handle(b)
@@ -206,6 +243,10 @@ class MeshGroups:
                 or o.ndim != 2 or o.shape[1] != 3 or np.ndim(t_max) != 0 or r <= 0 or len(o) == 0
                 or len(o) % r or not 0 <= first <= len(self.meshes) - len(o) // r):
             return None
+        # every origin within COORDINATE_LIMIT of every mesh's shift (else raycast checks each block)
+        lim, shifts = COORDINATE_LIMIT, self._shifts
+        if not (float(np.min(o)) >= float(shifts.max()) - lim and float(np.max(o)) <= float(shifts.min()) + lim):
+            return None
         if self._handle is None:
             with section("raycast: grouped build"):
                 self._handle = self.b.upload_mesh_groups([m.upload_parts() for m in self.meshes])
@@ -247,6 +288,7 @@ def _device_rays(origins, directions, t_max):
 def _grid_inputs(grid: Grid, origins, directions, t_end, stop):
     o, d, te = check_rays(origins, directions, t_end)
     local = grid.to_local(o)
+    _check_near(local, (0.0, 0.0, 0.0), "the grid's lower corner")
     # a ray cannot pass more than the grid's diagonal; this keeps inf finite for float32 kernels
     extent = np.asarray(grid.upper) - np.asarray(grid.lower)
     diag = float(np.linalg.norm(extent))

@@ -44,10 +44,14 @@ def direction_table(lidar) -> tuple[np.ndarray, float | None]:
     d = np.asarray(lidar, dtype=np.float64)
     if d.ndim != 2 or d.shape[1] != 3 or len(d) == 0 or not np.all(np.isfinite(d)):
         raise ValueError(f"a direction table must be a non-empty finite (R, 3) array, got shape {d.shape}")
-    n = np.linalg.norm(d, axis=1)
+    with np.errstate(over="ignore", under="ignore"):     # a row off unit either way is refused below
+        n = np.linalg.norm(d, axis=1)
     if np.any(np.abs(n - 1.0) > 1e-9):
-        raise ValueError(f"direction table rows must be unit vectors; row {int(np.argmax(np.abs(n - 1)))} has "
-                         f"length {n[np.argmax(np.abs(n - 1))]:.6g} (normalise it first)")
+        i = int(np.argmax(np.abs(n - 1)))
+        m = float(np.max(np.abs(d[i])))
+        length = m * float(np.linalg.norm(d[i] / m)) if m > 0 else 0.0     # scaled first: 1e200 is no inf
+        raise ValueError(f"direction table rows must be unit vectors; row {i} has length {length:.6g} (normalise "
+                         f"it first)")
     return d, None
 
 

@@ -77,8 +77,8 @@ _PARITY_DIRS = np.array([[0.5773, 0.6211, 0.5301], [-0.3411, 0.8127, -0.4723], [
 
 def _parity_inside(mesh: Mesh, points: np.ndarray) -> np.ndarray:
     """Inside test for a closed mesh: a point is inside when rays from it cross the surface an odd number
-    of times (watertight ray/triangle test of the reference backend, float64, every face)."""
-    from place3d_kernels.backends.reference.host import watertight_intersect
+    of times (the watertight ray/triangle test, float64, every face)."""
+    from place3d_kernels.backends.geometry import watertight_intersect
 
     v, f = mesh.vertices, mesh.faces
     v0, v1, v2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
@@ -156,23 +156,29 @@ class VehicleBody:
         return cls.from_boxes([lower, cabin], key)
 
     @classmethod
-    def load(cls, path, name: str | None = None) -> "VehicleBody":
-        """A body from a mesh file trimesh reads (OBJ, GLB, PLY, STL, ...), already in the ego frame.
+    def load(cls, path, name: str | None = None, up: str | None = None) -> "VehicleBody":
+        """A body from a mesh file trimesh reads (OBJ, GLB, PLY, STL, ...), in the ego frame once turned
+        Z-up: glTF (.glb, .gltf) is Y-up by its specification and is turned to Z-up by default
+        (``scene.loaders.to_z_up``; ``up`` "z" or "y" overrides the format's axis, see
+        ``scene.loaders.up_axis_for``). glTF's forward axis is not turned to +x: check the body's bounds.
 
         Raises:
             FileNotFoundError: no such file.
-            ValueError: the file holds no triangles.
+            ValueError: the file holds no triangles, or ``up`` is not "z", "y" or None.
         """
         import trimesh
 
+        from place3d_kernels.scene.loaders import to_z_up, up_axis_for
+
         path = Path(path)
+        axis = up_axis_for(path, up)
         if not path.is_file():
             raise FileNotFoundError(f"vehicle mesh {str(path)!r} not found")
         loaded = trimesh.load(str(path), force="mesh")
         if len(getattr(loaded, "faces", [])) == 0:
             raise ValueError(f"vehicle mesh {str(path)!r} holds no triangles")
         faces = np.asarray(loaded.faces)
-        mesh = Mesh(np.asarray(loaded.vertices), faces, np.full(len(faces), CLASS_ID["vehicle"]))
+        mesh = Mesh(to_z_up(np.asarray(loaded.vertices), axis), faces, np.full(len(faces), CLASS_ID["vehicle"]))
         return cls(mesh, name or path.stem)
 
     # ------------------------------------------------------------------ queries

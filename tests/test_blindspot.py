@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import place3d_kernels as p3k
-from place3d_kernels.blindspot import blind_spot_map, footprint_distance, max_blind_extent
+from place3d_kernels.blindspot import (MAX_RASTER_BYTES, azimuth_step_deg, blind_spot_map, default_sector_deg,
+                                       footprint_distance, ground_hits, max_blind_extent)
 from place3d_kernels.vehicle import VehicleBody
 
 HALF = np.array([2.3, 0.9])              # box car 4.6 m x 1.8 m, roof at 1.6 m
@@ -99,7 +100,9 @@ def test_cli_writes_json_and_png_or_nothing(tmp_path):
                               "reference", "--output", str(tmp_path / "ok")])
     assert args.func(args) == 0
     data = json.loads((tmp_path / "ok" / "blindspot.json").read_text())
-    assert data["vehicle"]["name"] == "suv" and data["area_m2"] > 0 and len(data["nearest_from_body_m"]) == 360
+    assert data["vehicle"]["name"] == "suv" and data["area_m2"] > 0
+    # place3d_16ch steps 1.44 degrees in azimuth: 2-degree sectors by default
+    assert data["sector_deg"] == 2.0 and len(data["nearest_from_body_m"]) == 180
     assert (tmp_path / "ok" / "blindspot.png").stat().st_size > 10_000
     bad = parser.parse_args(["blindspot", "pyramid", "--vehicle", "van", "--output", str(tmp_path / "bad")])
     with pytest.raises(ValueError, match="inside"):                  # the van's roof (2.47 m) swallows the rig
@@ -108,3 +111,47 @@ def test_cli_writes_json_and_png_or_nothing(tmp_path):
         bad.vehicle = "bus"
         bad.func(bad)
     assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.parametrize("z", [np.nan, np.inf, -np.inf])
+def test_non_finite_ground_height_is_refused(z):
+    # --ground-z nan reported 450 m^2 (every comparison with NaN false: nothing seen, all blind)
+    pose = np.r_[SENSOR, 0, 0, 0][None]
+    for fn in (blind_spot_map, ground_hits):
+        with pytest.raises(ValueError, match="ground_z .*finite"):
+            fn(car(), LIDAR, pose, z, backend="reference")
+
+
+def test_sectors_follow_the_azimuth_step():
+    lidar16 = p3k.LidarModel.load("place3d_16ch")
+    assert azimuth_step_deg(lidar16) == pytest.approx(1.44)
+    assert default_sector_deg(lidar16) == 2.0
+    assert default_sector_deg(LIDAR) == 1.0                                   # 0.5 degree steps
+    # a 120-degree field of view: the gap outside it is not the step
+    assert azimuth_step_deg(p3k.LidarModel.load("at128")) == pytest.approx(0.1)
+    # a direction table; a list takes the coarsest
+    table = np.stack([np.cos(np.radians(np.arange(0, 360, 7.5))), np.sin(np.radians(np.arange(0, 360, 7.5))),
+                      -0.2 * np.ones(48)], 1)
+    table /= np.linalg.norm(table, axis=1, keepdims=True)
+    assert azimuth_step_deg(table) == pytest.approx(7.5) and default_sector_deg(table) == 8.0
+    assert default_sector_deg([LIDAR, lidar16]) == 2.0
+    pose = np.array([[0.0, 0.0, 2.0, 0, 0, 0]])
+    body = VehicleBody.preset("car")
+    m = blind_spot_map(body, lidar16, pose, backend="reference")
+    assert m.sector_deg == 2.0 and len(m.nearest_radius) == 180
+    # 1-degree sectors fell between the 1.44-degree rays: "max extent inf"; 2-degree ones all see ground
+    assert np.isfinite(m.max_extent())
+    with pytest.raises(ValueError, match=r"sector_deg .*\b1\b.*azimuth step of 1\.44 degrees"):
+        blind_spot_map(body, lidar16, pose, sector_deg=1.0, backend="reference")
+    assert blind_spot_map(body, lidar16, pose, sector_deg=3.0, backend="reference").sector_deg == 3.0
+
+
+def test_a_raster_too_large_for_memory_is_refused_with_what_it_needs():
+    # --cell 0.0001 raised a MemoryError traceback (406 GiB for one array)
+    with pytest.raises(ValueError, match=r"would need about [\d,.]+ GiB .* use a cell of at least") as e:
+        blind_spot_map(car(), LIDAR, np.r_[SENSOR, 0, 0, 0][None], cell=1e-4, backend="reference")
+    assert "--cell" in str(e.value)
+    # the suggested cell fits the limit: memory scales as 1 / cell^2
+    need = float(str(e.value).split("about ")[1].split(" GiB")[0].replace(",", ""))
+    fits = float(str(e.value).split("at least ")[1].split(" m")[0])
+    assert need * (1e-4 / fits) ** 2 <= MAX_RASTER_BYTES / 2**30 < need * (1e-4 / (0.9 * fits)) ** 2

@@ -235,3 +235,46 @@ def test_carla_ply_malformed(tmp_path):
     p.write_bytes(b"not a ply")
     with pytest.raises(ValueError, match="x.ply: not a PLY file"):
         iof.read_carla_ply(p)
+
+
+def _y_up_truck_glb(path, ext="glb"):
+    """A glTF truck as glTF 2.0 lays it out: +Y up (2.5 m tall), 6 m long along X, 2 m wide along Z,
+    wheels on y = 0; made and written by trimesh (which writes coordinates as they are)."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=(6.0, 2.5, 2.0),
+                               transform=trimesh.transformations.translation_matrix([0.0, 1.25, 0.0]))
+    s = trimesh.Scene()
+    s.add_geometry(box, node_name="vehicle", geom_name="vehicle")
+    p = path / f"truck.{ext}"
+    s.export(p)
+    return p
+
+
+@pytest.mark.parametrize("ext", ["glb", "gltf"])
+def test_gltf_is_read_y_up_and_turned_z_up(tmp_path, ext):
+    # a Y-up glTF used as-is lay on its side: 2 m tall and 2.5 m wide, half under the ground
+    p = _y_up_truck_glb(tmp_path, ext)
+    m = load_mesh(p)
+    lo, hi = m.bounds
+    np.testing.assert_allclose(lo, [-3.0, -1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(hi, [3.0, 1.0, 2.5], atol=1e-12)
+    assert set(m.labels.tolist()) == {10}
+    # the axis can be given for a file that breaks the specification
+    np.testing.assert_allclose(load_mesh(p, up="z").bounds, [[-3.0, 0.0, -1.0], [3.0, 2.5, 1.0]], atol=1e-12)
+    with pytest.raises(ValueError, match="up must be"):
+        load_mesh(p, up="x")
+
+
+def test_formats_without_an_up_axis_stay_z_up(tmp_path):
+    m = labelled_mesh()
+    for ext in ("obj", "ply", "stl"):
+        r = load_mesh(save_mesh(m, tmp_path / f"m.{ext}"), labels=0 if ext == "stl" else None)
+        np.testing.assert_allclose(r.bounds, m.bounds, atol=1e-5)
+    # and glTF written by save_mesh is Y-up in the file, Z-up again when read
+    import trimesh
+
+    p = save_mesh(m, tmp_path / "m.glb")
+    raw = trimesh.load(p, force="mesh")
+    np.testing.assert_allclose(raw.bounds[:, 1], m.bounds[:, 2], atol=1e-6)       # file's y is our z
+    assert np.array_equal(canon(load_mesh(p)), canon(m))

@@ -317,3 +317,27 @@ def test_cross_check_against_mitsuba(tmp_path):
         if sid == "o":
             mine, mv = mine[np.lexsort(mine.T)], mv[np.lexsort(mv.T)]
         assert np.allclose(mine, mv, atol=1e-5), sid
+
+
+def test_unlabelled_shapes_warn_with_their_count_and_the_fix(tmp_path):
+    # a Mitsuba scene without --labels turned 2,365 buildings into class 0 without a word (an OBJ warns)
+    import warnings
+
+    write_ply(tmp_path / "tet.ply")
+    body = (ply_shape("tet.ply", '<translate x="10"/>', sid="house_1") + ply_shape("tet.ply", "", sid="house_2")
+            + '<shape type="cube" id="road"/>' + '<shape type="rectangle"/>')
+    p = write_xml(tmp_path, body)
+    with pytest.warns(UserWarning, match=r"3 of 4 shapes match no label rule and become class 0 \(unlabeled\): "
+                                         r"\(rectangle, no id\), house_1, house_2; .*--labels"):
+        m = load_mitsuba_xml(p)
+    assert sorted(set(m.labels.tolist())) == [0, 7]                    # the class-named cube is a road
+    # labelled, fully or by '*', or with an explicit default: no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_mitsuba_xml(p, labels={"*": "building"})
+        load_mitsuba_xml(p, labels="building")
+        load_mitsuba_xml(p, default="static")
+        load_mitsuba_scene(p, labels={"house_1": 1, "house_2": 1, "*": 0})
+    # a partial map warns for the rest only
+    with pytest.warns(UserWarning, match=r"1 of 4 shapes .*\(rectangle, no id\)"):
+        load_mitsuba_xml(p, labels={"house_1": 1, "house_2": "building"})

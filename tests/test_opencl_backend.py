@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from place3d_kernels.backends.base import BackendUnavailable, GridSpec
-from place3d_kernels.backends.opencl.bvh import (DEFAULT_MAX_DEPTH, brute_force_raycast, build_bvh, need_levels,
-                                                 validate_bvh)
+from place3d_kernels.backends.geometry import brute_force_raycast
+from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, build_bvh, need_levels, validate_bvh
 from place3d_kernels.backends.reference import ReferenceBackend
 
 try:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import trimesh
@@ -110,14 +112,23 @@ def test_far_from_origin_mesh(backend):
 
 def _slow_check_directions(d):
     # the per-row rule check_rays implements (kept here as the test's oracle): errors for non-finite or
-    # zero rows, else rows off unit by more than 1e-12 renormalised and the others left as they are
+    # all-zero rows; a row whose squared norm overflows or underflows is first scaled by the power of two
+    # that brings its largest component into [0.5, 1); then rows off unit by more than 1e-12 renormalised
+    # and the others left as they are
     if not np.isfinite(d).all():
         return "non-finite"
-    norm = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
-    if not norm.all():
-        return "zero-length"
-    off = np.abs(norm - 1.0) > 1e-12
     out = d.copy()
+    norm = np.zeros(len(d))
+    for i, row in enumerate(d):
+        with np.errstate(over="ignore", under="ignore"):
+            n = math.sqrt(min(row[0] * row[0] + row[1] * row[1] + row[2] * row[2], math.inf))
+        if n == 0.0 or n == math.inf:
+            if not np.any(row):
+                return "zero-length"
+            out[i] = row / 2.0 ** math.frexp(float(np.abs(row).max()))[1]
+            n = math.sqrt(out[i, 0] * out[i, 0] + out[i, 1] * out[i, 1] + out[i, 2] * out[i, 2])
+        norm[i] = n
+    off = np.abs(norm - 1.0) > 1e-12
     out[off] /= norm[off, None]
     return out
 
@@ -145,9 +156,9 @@ def test_check_rays_fast_path_still_rejects(bad):
     if isinstance(want, str):
         with pytest.raises(ValueError, match=f"ray 3 has a {want}"):
             p3k.ops.check_rays(np.zeros((8, 3)), d, 1.0)
-    else:    # 1e200 squares to inf: its norm is inf, and the rule divides (0 for that row)
+    else:    # 1e200 squares to inf and 1e-200 to 0: scaled first, they become (1, 0, 0)
         _, got, _ = p3k.ops.check_rays(np.zeros((8, 3)), d, 1.0)
-        assert got.tobytes() == want.tobytes()
+        assert got.tobytes() == want.tobytes() and got[3].tolist() == [1.0, 0.0, 0.0]
 
 
 def test_shift_on_device_is_bit_identical(device_backend, rng):

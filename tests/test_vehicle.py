@@ -114,3 +114,19 @@ def test_lidar_inside_body_is_infeasible(psog):
     assert "LiDAR 1" in r.reasons[0] and r.reasons[1] == "" and r.counts[0] == 0
     with pytest.raises(ValueError, match="max_range"):
         rm.msog_with_body(psog, rm.direction_table(LIDAR)[0], rigs[1], body)
+
+
+@pytest.mark.parametrize("ext", ["glb", "gltf"])
+def test_load_gltf_body_turns_y_up_to_z_up(tmp_path, ext):
+    # CesiumMilkTruck.glb (Y-up) lay on its side half under the ground; here a Y-up box truck made by trimesh
+    import trimesh
+
+    box = trimesh.creation.box(extents=(6.0, 2.5, 2.0),
+                               transform=trimesh.transformations.translation_matrix([0.0, 1.25, 0.0]))
+    path = tmp_path / f"truck.{ext}"
+    box.export(path)
+    body = VehicleBody.load(path)
+    np.testing.assert_allclose(body.bounds, [[-3.0, -1.0, 0.0], [3.0, 1.0, 2.5]], atol=1e-12)
+    assert body.contains([[0.0, 0.0, 2.0]]).all() and not body.contains([[0.0, 0.0, -0.5]]).any()
+    np.testing.assert_allclose(VehicleBody.load(path, up="z").bounds, [[-3.0, 0.0, -1.0], [3.0, 2.5, 1.0]],
+                               atol=1e-12)

@@ -6,6 +6,10 @@ value types defined here. The domain prepares inputs so that kernels stay simple
 * Coordinates handed to grid kernels are **grid-local**: the grid's lower corner has already been
   subtracted on the host in float64, so voxel ``(i, j, k)`` spans ``[i*s, (i+1)*s) x ...``.
 * Directions are unit length, finite, non-zero (validated by the domain).
+* Coordinates as kernels see them (mesh vertices and ray origins relative to the mesh shift, grid-local
+  origins, grid extents) lie within ``COORDINATE_LIMIT`` of zero on every axis; the domain refuses
+  anything farther before any backend runs, so every backend refuses the same inputs
+  (``first_far_row``).
 * Voxel flat index is ``(i * ny + j) * nz + k``.
 
 Semantics (``reference`` is the executable specification):
@@ -30,12 +34,43 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE", "rotation_matrices", "sensor_directions",
-           "check_ray_batch", "mesh_face_tables"]
+__all__ = ["Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE", "COORDINATE_LIMIT", "rotation_matrices",
+           "sensor_directions", "check_ray_batch", "mesh_face_tables", "first_far_row"]
 
 #: Fixed-point scale for entropy weights: weight = round(H * ENTROPY_SCALE) as int64. ln(22) * 2**32 is
 #: about 1.3e10, so 7e8 fully uncertain voxels still fit in int64 without overflow.
 ENTROPY_SCALE = float(2**32)
+
+
+#: Largest distance in metres, on any axis, of a coordinate from the frame kernels work in: a mesh
+#: vertex or ray origin from the mesh's shift (its rounded centre), a ray origin from a grid's lower
+#: corner, a grid's extent. Warp and OpenCL keep these in float32 (24-bit significands), whose spacing
+#: is 2**-7 m (7.8 mm) between 65,536 m and 131,072 m, so 1e5 m keeps every float32 rounding below 4 mm,
+#: under the smallest voxel the package tests (1 cm). The 0.1 mm contract of docs/architecture.md holds
+#: within 1,024 m (spacing 2**-13 m, rounding 0.06 mm); between that and this limit float32 backends
+#: agree with the reference to float32 rounding of the coordinates (about 6e-8 of their size). Beyond
+#: it, their products overflow or cancel (a triangle at 1e30 m was hit by the reference and missed by
+#: Warp and OpenCL), so the domain refuses such inputs on every backend alike. World coordinates may be
+#: anything finite: the shifts are subtracted in float64 before a kernel runs.
+COORDINATE_LIMIT = 1e5
+
+
+def first_far_row(points: np.ndarray, centre) -> int:
+    """Index of the first finite (N, 3) row of ``points`` more than ``COORDINATE_LIMIT`` from ``centre``
+    ((3,)) on some axis, in float64; -1 when there is none. Non-finite rows are left to the callers' own
+    checks. One pass over the values when all lie within the limit of every centre component."""
+    p = np.asarray(points)
+    if p.size == 0:
+        return -1
+    c = np.asarray(centre, dtype=np.float64).reshape(3)
+    lim = COORDINATE_LIMIT
+    # whole-array min and max are fast (per-axis reductions of an (N, 3) array are not); NaN fails both
+    if float(np.min(p)) >= float(c.max()) - lim and float(np.max(p)) <= float(c.min()) + lim:
+        return -1
+    p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+    with np.errstate(invalid="ignore"):
+        far = np.any(np.abs(p - c) > lim, axis=1) & np.all(np.isfinite(p), axis=1)
+    return int(np.argmax(far)) if far.any() else -1
 
 
 class BackendUnavailable(RuntimeError):

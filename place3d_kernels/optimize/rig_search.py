@@ -169,8 +169,9 @@ class RigProblem:
             for i, (sn, p) in enumerate(rigs):
                 if f[i] >= PENALTY:
                     continue
-                m = blind_spot_map(self.body, [self.sensors[s] for s in sn], p, self.blind_z, cell=0.25,  # same sectors as reports
-                                   sector_deg=1.0, backend=self.backend)
+                # the reports' sectors (the default: whole degrees at or above the sensors' azimuth steps)
+                m = blind_spot_map(self.body, [self.sensors[s] for s in sn], p, self.blind_z, cell=0.25,
+                                   backend=self.backend)
                 if not m.max_extent() <= self.max_blind_extent:
                     f[i] = PENALTY + m.area_m2 / 1000.0
                     ext = "a sector with no ground hit" if not np.isfinite(m.max_extent()) else \

@@ -13,7 +13,16 @@ Labels: every face gets a Place3D class (``place3d_kernels.classes``), resolved 
 
 ``labels`` may also be a single int or class name for the whole file (the only option for STL).
 Node transforms of GLB/GLTF scene graphs are applied. Vertices come back as float64 in the file's units
-(metres, z up expected; pass ``up="y"`` for Y-up glTF assets to rotate them to z up).
+(metres) in this package's Z-up frame.
+
+Up axes (``up_axis_for``): glTF (.glb, .gltf) is Y-up by the glTF 2.0 specification ("Coordinate System
+and Units": +Y up, +Z forward, -X right), and trimesh reads and writes its coordinates as they are, so
+``load_mesh`` rotates glTF meshes to Z-up by default: (x, y, z) -> (x, -z, y), a +90 degree turn about x,
+the inverse of what Blender's glTF exporter applies, so a model built Z-up in Blender comes back as it
+was built; ``save_mesh`` writes glTF Y-up by the opposite turn, so a round trip is exact. The other
+formats carry no up axis and are read as Z-up. Pass ``up="z"`` or ``up="y"`` to override for one file.
+The glTF forward axis (+Z, which becomes -y) is not turned to this package's forward (+x): check a
+vehicle's orientation after loading.
 
 :func:`combine` joins Scenes and Meshes into one Scene (static meshes concatenated, actors kept).
 """
@@ -29,9 +38,34 @@ from place3d_kernels.mesh import Mesh
 from place3d_kernels.scene.base import Scene
 from place3d_kernels.scene.labels import class_from_name, load_label_map, resolve_class
 
-__all__ = ["load_mesh", "save_mesh", "combine", "resolve_class", "load_label_map"]
+__all__ = ["load_mesh", "save_mesh", "combine", "resolve_class", "load_label_map", "up_axis_for", "to_z_up"]
 
 _FORMATS = ("obj", "ply", "glb", "gltf", "stl", "off")
+#: formats whose specification fixes the up axis (glTF 2.0: +Y)
+_Y_UP_FORMATS = ("glb", "gltf")
+
+
+def up_axis_for(path, up: str | None = None) -> str:
+    """``up`` ("z" or "y") when given, else the up axis of the file's format: "y" for glTF (.glb, .gltf),
+    "z" for the rest.
+
+    Raises:
+        ValueError: ``up`` is neither None, "z" nor "y".
+    """
+    if up is None:
+        return "y" if Path(path).suffix.lower().lstrip(".") in _Y_UP_FORMATS else "z"
+    if str(up).lower() not in ("z", "y"):
+        raise ValueError(f"up must be 'z' or 'y' (or None: from the file format), got {up!r}")
+    return str(up).lower()
+
+
+def to_z_up(vertices: np.ndarray, up: str) -> np.ndarray:
+    """(N, 3) vertices of a file whose up axis is ``up`` in this package's Z-up frame: unchanged for "z";
+    for "y", (x, y, z) -> (x, -z, y), a +90 degree turn about x (exact: a sign change and a swap)."""
+    v = np.asarray(vertices, np.float64)
+    if up == "y":
+        return np.stack([v[:, 0], -v[:, 2], v[:, 1]], 1)
+    return v
 
 
 def _load_trimesh(path: Path, kind: str):
@@ -57,12 +91,14 @@ def _ply_face_labels(geom):
     return None
 
 
-def load_mesh(path, labels=None, default=None, up: str = "z", strict: bool = False) -> Mesh:
+def load_mesh(path, labels=None, default=None, up: str | None = None, strict: bool = False) -> Mesh:
     """Read a mesh file into one labelled :class:`Mesh` (see the module docstring for label rules).
 
     Args:
         default: class of parts no rule labels. None (the default) means 0 (unlabeled) with a warning
             listing those parts (or ``ValueError`` when ``strict``); an explicit class is used silently.
+        up: the file's up axis, "z" or "y"; None (the default) takes the format's (``up_axis_for``: Y for
+            glTF, Z otherwise). Y-up vertices are turned to Z-up (``to_z_up``).
         strict: unlabelled parts are an error instead of a warning.
 
     Raises:
@@ -79,6 +115,7 @@ def load_mesh(path, labels=None, default=None, up: str = "z", strict: bool = Fal
     kind = path.suffix.lower().lstrip(".")
     if kind not in _FORMATS:
         raise ValueError(f"{path}: unsupported mesh format {path.suffix!r}; use one of {', '.join(_FORMATS)}")
+    up = up_axis_for(path, up)
     explicit_default = default is not None
     default = resolve_class(0 if default is None else default, f"{path}: default ")
     whole = None
@@ -135,11 +172,7 @@ def load_mesh(path, labels=None, default=None, up: str = "z", strict: bool = Fal
         if strict:
             raise ValueError(msg)
         warnings.warn(msg, UserWarning, stacklevel=2)
-    v = np.concatenate(verts)
-    if up.lower() == "y":
-        v = np.stack([v[:, 0], -v[:, 2], v[:, 1]], 1)
-    elif up.lower() != "z":
-        raise ValueError(f"up must be 'z' or 'y', got {up!r}")
+    v = to_z_up(np.concatenate(verts), up)
     try:
         return Mesh(v, np.concatenate(faces), np.concatenate(labs))
     except ValueError as e:
@@ -150,7 +183,8 @@ def save_mesh(mesh: Mesh, path) -> Path:
     """Write a labelled Mesh so that :func:`load_mesh` reads the same labels back.
 
     PLY: one mesh with a per-face ``label`` property (face order kept). OBJ / GLB / GLTF: one object or
-    node per class, named by the class (``road``, ``traffic_sign``). STL: geometry only (no labels).
+    node per class, named by the class (``road``, ``traffic_sign``); glTF Y-up as its specification says
+    ((x, y, z) -> (x, z, -y), the inverse of ``to_z_up``). STL: geometry only (no labels).
     """
     import trimesh
 
@@ -171,13 +205,16 @@ def save_mesh(mesh: Mesh, path) -> Path:
     if kind in ("stl", "off"):
         trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(path)
         return path
+    verts = mesh.vertices
+    if kind in _Y_UP_FORMATS:
+        verts = np.stack([verts[:, 0], verts[:, 2], -verts[:, 1]], 1)
     scene = trimesh.Scene()
     for c in np.unique(mesh.labels):
         sel = mesh.labels == c
         f = mesh.faces[sel]
         used, inv = np.unique(f, return_inverse=True)
         name = CLASSES[int(c)].replace(" ", "_")
-        scene.add_geometry(trimesh.Trimesh(mesh.vertices[used], inv.reshape(-1, 3), process=False),
+        scene.add_geometry(trimesh.Trimesh(verts[used], inv.reshape(-1, 3), process=False),
                            node_name=name, geom_name=name)
     scene.export(path)
     return path

@@ -207,7 +207,8 @@ def _tube(n: int):
 class _Parser:
     def __init__(self, path: Path, labels, default, variables, sphere_subdivisions, segments):
         self.path = path
-        self.default = resolve_class(default, f"{path}: default ")
+        self.explicit_default = default is not None
+        self.default = resolve_class(0 if default is None else default, f"{path}: default ")
         self.whole = None
         self.mapping: dict[str, int] = {}
         if isinstance(labels, (int, np.integer, str)) and not (isinstance(labels, str) and labels.endswith(".toml")):
@@ -223,6 +224,8 @@ class _Parser:
         self.search: list[Path] = []
         self.pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.skipped: list[str] = []
+        self.n_shapes = 0
+        self.unlabelled: list[str] = []     # shapes no rule labelled, left to an implicit default
 
     # -- reading files ----------------------------------------------------------------------------------
     def read(self, path: Path, depth: int = 0, inherited: dict | None = None) -> list[ET.Element]:
@@ -313,6 +316,11 @@ class _Parser:
                     walk(self.ids[rid])
         return out
 
+    def _from_default(self, names: list[str]) -> bool:
+        """Whether the fallback of ``label_of(names)`` is the default class (no class name, no "*")."""
+        return (self.whole is None and "*" not in self.mapping
+                and all(class_from_name(n) is None for n in names))
+
     def label_of(self, names: list[str]):
         """(class from the mapping or None, fallback class)."""
         if self.whole is not None:
@@ -355,6 +363,8 @@ class _Parser:
                 sub = {k: v for k, v in self.mapping.items() if k != "*"}
                 m = load_mesh(f, labels=sub or None, default=fb)
             v, fc, lab = m.vertices, m.faces.astype(np.int64), m.labels
+            # the file's own labels (node names, PLY labels, class-named objects) labelled none of it
+            unlabelled = hit is None and self._from_default(names) and bool(np.all(lab == fb))
         elif kind in _PRIMITIVES:
             hit, fb = self.label_of(names)
             if kind == "rectangle":
@@ -382,9 +392,13 @@ class _Parser:
                 v, fc = _tube(self.segments)
                 v = _apply(F @ _scale((r, r, length)), v)
             lab = np.full(len(fc), fb if hit is None else hit)
+            unlabelled = hit is None and self._from_default(names)
         else:
             self.skipped.append(f"{sid or '(no id)'} (type {kind!r})")
             return
+        self.n_shapes += 1
+        if unlabelled and not self.explicit_default:
+            self.unlabelled.append(names[0] if names else f"({kind}, no id)")
         v = _apply(M, v)
         if flip:
             fc = fc[:, ::-1]
@@ -401,6 +415,13 @@ class _Parser:
                 self.shape(el, np.eye(4), self.path.parent)
         if self.skipped:
             warnings.warn(f"{self.path}: skipped unsupported shapes: {', '.join(self.skipped)}", stacklevel=3)
+        if self.unlabelled:
+            names = sorted(set(self.unlabelled))
+            listed = ", ".join(names[:8]) + (f" and {len(names) - 8} more names" if len(names) > 8 else "")
+            warnings.warn(f"{self.path}: {len(self.unlabelled)} of {self.n_shapes} shapes match no label rule and "
+                          f"become class 0 (unlabeled): {listed}; map their ids, BSDF ids or file names to classes "
+                          f"in a TOML label map (place3d --labels FILE.toml, or labels= here; '*' for the rest), "
+                          f"or pass default=", UserWarning, stacklevel=3)
         if not self.pieces:
             raise ValueError(f"{self.path}: holds no supported shapes (ply, obj, {', '.join(_PRIMITIVES)})")
         verts, faces, labs, n = [], [], [], 0
@@ -415,14 +436,16 @@ class _Parser:
             raise ValueError(f"{self.path}: {e}") from None
 
 
-def load_mitsuba_xml(path, labels=None, default=0, variables: dict | None = None, sphere_subdivisions: int = 3,
+def load_mitsuba_xml(path, labels=None, default=None, variables: dict | None = None, sphere_subdivisions: int = 3,
                      segments: int = 64) -> Mesh:
     """Read a Mitsuba XML scene into one labelled :class:`Mesh` (see the module docstring).
 
     Args:
         path: the XML file; shape filenames are resolved relative to it.
         labels: a name -> class mapping (dict or TOML path), or one class id / name for everything.
-        default: the class of shapes that nothing labels.
+        default: the class of shapes that nothing labels. None (the default) means 0 (unlabeled) with a
+            warning naming how many shapes that was and how to label them (as ``load_mesh`` warns for mesh
+            files); an explicit class is used silently.
         variables: values for ``$name`` references, overriding the file's ``<default>`` elements.
         sphere_subdivisions: icosphere level for spheres (20 * 4**n triangles).
         segments: triangles around disks and cylinders.

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["BVH", "BVH4", "build_bvh", "dfs_layout", "collapse_bvh4", "need_levels", "validate_bvh",
-           "DEFAULT_MAX_DEPTH", "brute_force_raycast"]
+           "DEFAULT_MAX_DEPTH"]
 
 #: Inner-node depth cap; the binary traversal stack of ``raycast.cl`` has this many entries (the 4-wide
 #: one three times as many).
@@ -502,18 +502,3 @@ def collapse_bvh4(bvh: BVH) -> BVH4:
     nodes = np.concatenate(out)
     assert len(nodes) == next_id
     return BVH4(nodes=nodes, depth=depth)
-
-
-# ------------------------------------------------------------------------------ host fallback
-def brute_force_raycast(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray, directions: np.ndarray,
-                        t_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Closest hit by testing every triangle: the reference backend's float64 watertight test. Used to
-    re-trace the rare rays the kernel flags (stack overflow) and as an oracle in tests. Ties in t go to
-    the lowest face id."""
-    from place3d_kernels.backends.reference.host import ReferenceCore
-
-    ref = ReferenceCore()
-    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
-    t, face = ref.raycast(ref.upload_mesh(vertices, faces), o, np.asarray(directions, dtype=np.float64).reshape(-1, 3),
-                          np.broadcast_to(np.asarray(t_max, dtype=np.float64), (len(o),)))
-    return t, face.astype(np.int32)

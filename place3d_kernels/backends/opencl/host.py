@@ -11,8 +11,9 @@ import pyopencl as cl
 from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, GridSpec, mesh_face_tables,
                                            rotation_matrices, sensor_directions)
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
+from place3d_kernels.backends.geometry import brute_force_raycast
 from place3d_kernels.backends.opencl import _runtime as rt
-from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, brute_force_raycast, build_bvh, collapse_bvh4
+from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, build_bvh, collapse_bvh4
 from place3d_kernels.backends.opencl.conditions import OpenCLConditions
 
 __all__ = ["OpenCLBackend", "CLMesh", "CLGrid", "opencl_devices"]

@@ -10,9 +10,10 @@ from __future__ import annotations
 import numpy as np
 
 from place3d_kernels.backends.base import Backend, GridSpec, check_ray_batch, rotation_matrices, sensor_directions
+from place3d_kernels.backends.geometry import closest_hits
 from place3d_kernels.backends.reference.conditions import ReferenceConditions
 
-__all__ = ["ReferenceBackend", "ReferenceCore", "traverse_ray", "watertight_intersect"]
+__all__ = ["ReferenceBackend", "ReferenceCore", "traverse_ray"]
 
 
 def _start_index(p: float, d: float, s: float, n: int) -> int:
@@ -93,49 +94,6 @@ def _traverse_ray(origin: np.ndarray, direction: np.ndarray, t_end: float, spec:
     return flat
 
 
-def watertight_intersect(o: np.ndarray, d: np.ndarray, v0: np.ndarray, v1: np.ndarray, v2: np.ndarray,
-                         t_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Woop, Benthin & Wald (JCGT 2013) watertight ray/triangle test, float64, all pairs.
-
-    Args:
-        o, d: (R, 3) ray origins and directions.
-        v0, v1, v2: (F, 3) triangle corners.
-        t_max: (R,) upper bound of t.
-
-    Returns:
-        (R, F) hit distances (inf where no hit) and nothing else; both faces count.
-    """
-    kz = np.argmax(np.abs(d), axis=1)
-    kx = (kz + 1) % 3
-    ky = (kx + 1) % 3
-    neg = d[np.arange(len(d)), kz] < 0
-    kx, ky = np.where(neg, ky, kx), np.where(neg, kx, ky)
-    r = np.arange(len(d))
-    dz = d[r, kz]
-    sx, sy, sz = d[r, kx] / dz, d[r, ky] / dz, 1.0 / dz
-
-    def project(v):
-        rel = v[None, :, :] - o[:, None, :]                       # (R, F, 3)
-        px = np.take_along_axis(rel, kx[:, None, None], 2)[..., 0]
-        py = np.take_along_axis(rel, ky[:, None, None], 2)[..., 0]
-        pz = np.take_along_axis(rel, kz[:, None, None], 2)[..., 0]
-        return px - sx[:, None] * pz, py - sy[:, None] * pz, sz[:, None] * pz
-
-    ax, ay, az = project(v0)
-    bx, by, bz = project(v1)
-    cx, cy, cz = project(v2)
-    u = cx * by - cy * bx
-    v = ax * cy - ay * cx
-    w = bx * ay - by * ax
-    inside = ~(((u < 0) | (v < 0) | (w < 0)) & ((u > 0) | (v > 0) | (w > 0)))
-    det = u + v + w
-    tt = u * az + v * bz + w * cz
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = tt / det
-    ok = inside & (det != 0) & (t >= 0) & (t <= t_max[:, None])
-    return np.where(ok, t, np.inf)
-
-
 class _RefMesh:
     def __init__(self, vertices, faces):
         self.v0 = vertices[faces[:, 0]]
@@ -176,19 +134,7 @@ class ReferenceCore(Backend):
         o = np.asarray(origins, dtype=np.float64)
         d = np.asarray(directions, dtype=np.float64)
         tm = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (len(o),))
-        t_out = np.full(len(o), np.inf)
-        f_out = np.full(len(o), -1, dtype=np.int32)
-        n_faces = len(mesh.v0)
-        chunk = max(1, 400_000 // max(n_faces, 1))
-        for s in range(0, len(o), chunk):
-            e = min(s + chunk, len(o))
-            t = watertight_intersect(o[s:e], d[s:e], mesh.v0, mesh.v1, mesh.v2, tm[s:e])
-            best = np.argmin(t, axis=1)
-            tb = t[np.arange(e - s), best]
-            hit = np.isfinite(tb)
-            t_out[s:e] = tb
-            f_out[s:e] = np.where(hit, best, -1)
-        return t_out, f_out
+        return closest_hits(mesh.v0, mesh.v1, mesh.v2, o, d, tm)
 
     def traverse(self, grid, origins, directions, t_end, stop=None):
         o = np.asarray(origins, dtype=np.float64)

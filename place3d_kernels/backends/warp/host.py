@@ -631,6 +631,8 @@ class WarpCore(Backend):
             bad = np.argwhere(~np.isfinite(poses))[0].tolist()
             raise ValueError(f"poses must be finite; poses{bad} is {poses[tuple(bad)]}")
         P, L = poses.shape[:2]
+        if P == 0:     # no candidates: empty scores, as on every backend (a Warp array has no empty slice)
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
         flat = poses.reshape(-1, 6)
         sd, sd_a = self._directions.get(elevations, azimuths)     # host and device tables
         # CUDA's score kernel keeps its bitsets in flat bricks, the CPU's in 4 x 4 x 2 ones (bricks.py)
