@@ -6,7 +6,9 @@ its downstream results (``place3d_kernels.paper_results``), each with a bootstra
 (resampled within towns). One alternative at a time against the package's defaults:
 
     voxel 0.1 / 0.4 m, occlusion none, k = 2 / 8 frames per subset, roll read as degrees,
-    collection LiDAR = the paper's 16-channel sensor, detection classes vehicle + pedestrian.
+    collection LiDAR = the paper's 16-channel sensor, detection classes vehicle + pedestrian, the rigs'
+    LiDAR = the authors' public CARLA 16-channel settings (two units), the five heuristic baselines at the
+    authors' public CARLA positions.
 
 Run: ``PYTHONPATH=. python3 bench/sensitivity.py [--routes 2] [--resamples 30] [--only base voxel-0.1]``
 Writes ``bench/results/sensitivity-<date>.json``. P-SOGs are cached in ``$PLACE3D_CACHE``.
@@ -27,11 +29,11 @@ from place3d_kernels import paper_results as paper
 from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.pooled import Drive, PoolSettings, build_pooled
-from place3d_kernels.reproduce import DEFAULT_TOWNS, machine_info, placement_scorer, resolve_town
+from place3d_kernels.reproduce import DEFAULT_TOWNS, machine_info, resolve_town
 from place3d_kernels.uncertainty import bootstrap_pooled, kendall_tau
 
 BASE = {"voxel_size": 0.2, "occlusion": "sog", "k": 4, "roll_units": "rad", "collection": "collection_64ch",
-        "det_variant": "vehicle"}
+        "det_variant": "vehicle", "rig_lidar": "place3d_16ch", "baselines": "paper"}
 #: (name, the one setting that differs from BASE, what it tests)
 ALTERNATIVES = [
     ("base", {}, "the package's defaults"),
@@ -43,7 +45,39 @@ ALTERNATIVES = [
     ("roll-deg", {"roll_units": "deg"}, "the placements' roll values read as degrees (CARLA's unit)"),
     ("collection-16ch", {"collection": "place3d_16ch"}, "P-SOG recorded with the paper's 16-channel LiDAR"),
     ("det-vehicle+pedestrian", {"det_variant": "vehicle+pedestrian"}, "detection P-SOG keeps pedestrians too"),
+    ("rig-16ch-carla", {"rig_lidar": "place3d_16ch_carla"},
+     "rigs scored with the authors' public CARLA 16-channel settings (-25..+5 deg, 720 steps, 200 m)"),
+    ("rig-16ch-carla-narrow", {"rig_lidar": "place3d_16ch_carla_narrow"},
+     "rigs scored with the authors' narrower public unit (-14..+2 deg, 720 steps, 200 m)"),
+    ("baselines-carla-public", {"baselines": "carla_public"},
+     "the five heuristic baselines at the authors' public CARLA positions (carla_public/*)"),
 ]
+
+
+def scorer(s: dict, backend):
+    """score(psog) -> (16,) seg then det scores of the eight placements, as reproduce.placement_scorer, with
+    the rig LiDAR of ``s`` and, for ``baselines = carla_public``, the five heuristic baselines replaced by
+    the authors' public rigs (the roll rigs and "ours" have no public counterpart)."""
+    from place3d_kernels.metrics import msog_batch
+    from place3d_kernels.placement import Placement
+    from place3d_kernels.reproduce import det_view, paper_poses
+
+    lidar = LidarModel.load(s["rig_lidar"])
+    poses = {t: paper_poses(t, s["roll_units"]) for t in ("seg", "det")}
+    if s["baselines"] == "carla_public":
+        for t in poses:
+            for j, name in enumerate(paper.PLACEMENTS[:5]):
+                poses[t][j] = Placement.load(f"carla_public/{name}").poses
+    elif s["baselines"] != "paper":
+        raise ValueError(f"baselines must be 'paper' or 'carla_public', got {s['baselines']!r}")
+
+    def score(psog):
+        seg = msog_batch(psog, lidar, poses["seg"], occlusion=s["occlusion"], task="seg", backend=backend)
+        det = msog_batch(det_view(psog, s["det_variant"]), lidar, poses["det"], occlusion=s["occlusion"],
+                         task="seg", backend=backend)
+        return np.concatenate([seg, det])
+
+    return score
 
 
 def run_one(name, change, towns, routes, frames, resamples, backend, progress) -> dict:
@@ -57,8 +91,7 @@ def run_one(name, change, towns, routes, frames, resamples, backend, progress) -
     t0 = time.perf_counter()
     pooled = build_pooled(drives, PoolSettings(s["voxel_size"], s["collection"], s["k"], backend), progress=progress)
     t_pool = time.perf_counter() - t0
-    score = placement_scorer(LidarModel.load("place3d_16ch"), s["occlusion"], backend, s["roll_units"],
-                             s["det_variant"])
+    score = scorer(s, backend)
     t0 = time.perf_counter()
     point, samples, _ = bootstrap_pooled(pooled, score, resamples, seed=0, strata=town_of)
     t_boot = time.perf_counter() - t0
