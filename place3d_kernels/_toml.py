@@ -19,10 +19,13 @@ def resolve_config(path_or_name, kind: str) -> Path:
     p = Path(path_or_name)
     if p.exists():
         return p
-    shipped = config_dir(kind) / (p.name if p.suffix == ".toml" else p.name + ".toml")
-    if shipped.exists():
+    # a shipped name may name a subfolder ("carla_public/center"); never fall back to its bare stem
+    rel = p if p.suffix == ".toml" else p.with_name(p.name + ".toml")
+    shipped = config_dir(kind) / rel
+    if not p.is_absolute() and ".." not in p.parts and shipped.exists():
         return shipped
-    names = sorted(q.stem for q in config_dir(kind).glob("*.toml"))
+    root = config_dir(kind)
+    names = sorted(q.relative_to(root).with_suffix("").as_posix() for q in root.rglob("*.toml"))
     raise FileNotFoundError(f"No {kind[:-1]} config {str(path_or_name)!r}: not a file, and not one of the "
                             f"shipped names {names}")
 

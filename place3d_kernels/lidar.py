@@ -265,13 +265,18 @@ class LidarModel:
     # ------------------------------------------------------------------ CARLA
     @classmethod
     def from_carla(cls, attributes: dict, name: str = "carla") -> "LidarModel":
-        """A spinning unit from CARLA ``sensor.lidar.ray_cast`` blueprint attributes.
+        """A spinning unit from CARLA ``sensor.lidar.ray_cast`` blueprint attributes: the rays CARLA casts,
+        mirrored into this package's y-left frame (``place3d_kernels.carla_frame``).
 
         Missing attributes take CARLA's defaults (``CARLA_LIDAR_DEFAULTS``); values may be strings, as
-        CARLA's blueprint attributes are. Channels spread uniformly from lower_fov to upper_fov, and each
-        channel fires ``round(points_per_second / (channels * rotation_frequency))`` times per revolution
-        over horizontal_fov, as CARLA's ray-cast LiDAR does.
+        CARLA's blueprint attributes are. Channels in CARLA's order, from upper_fov down to lower_fov (a
+        single channel fires at upper_fov, as CARLA's does); each channel fires
+        ``round(points_per_second / (channels * rotation_frequency))`` times over horizontal_fov, at the
+        horizontal angles of one CARLA tick of 1 / rotation_frequency from its initial angle.
         """
+        from place3d_kernels.carla_frame import (azimuths_from_carla, carla_channel_elevations_deg,
+                                                 carla_horizontal_angles_deg)
+
         unknown = set(attributes) - set(CARLA_LIDAR_DEFAULTS) - _CARLA_IGNORED
         if unknown:
             raise ValueError(f"unknown CARLA lidar attributes {sorted(unknown)}; known: "
@@ -286,12 +291,21 @@ class LidarModel:
         if steps < 1:
             raise ValueError(f"CARLA lidar: points_per_second {pps} gives no point per channel per revolution "
                              f"({channels} channels at {freq} Hz); raise points_per_second")
-        return cls.uniform(channels, (float(a["lower_fov"]), float(a["upper_fov"])), steps,
-                           float(a["horizontal_fov"]), float(a["range"]), name, frame_rate_hz=freq,
-                           source="CARLA sensor.lidar.ray_cast attributes")
+        lower, upper, hfov = float(a["lower_fov"]), float(a["upper_fov"]), float(a["horizontal_fov"])
+        if not lower <= upper:
+            raise ValueError(f"CARLA lidar: lower_fov {lower} is above upper_fov {upper}")
+        if not (np.isfinite(hfov) and 0 < hfov <= 360.0):
+            raise ValueError(f"horizontal_fov must be in (0, 360], got {hfov!r}")
+        e = np.radians(carla_channel_elevations_deg(channels, lower, upper))
+        az = azimuths_from_carla(carla_horizontal_angles_deg(steps, hfov))
+        return cls(e, az, float(a["range"]), name, horizontal_fov_deg=hfov, frame_rate_hz=freq,
+                   source="CARLA sensor.lidar.ray_cast attributes")
 
     def to_carla(self) -> dict:
-        """CARLA ``sensor.lidar.ray_cast`` attributes giving the same ray count and FOV.
+        """CARLA ``sensor.lidar.ray_cast`` attributes giving the same elevations (one channel: upper_fov =
+        lower_fov = its elevation, where CARLA fires a single channel), ray count, horizontal FOV and
+        rotation frequency (``frame_rate_hz``). CARLA picks the azimuth phase itself; ``from_carla`` gives
+        the angles of its first tick. Place the sensor with ``carla_frame.pose_to_carla``.
 
         Raises:
             ValueError: for a rosette unit, per-channel azimuth offsets, or non-uniform elevations,

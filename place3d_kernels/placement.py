@@ -9,13 +9,16 @@ import numpy as np
 
 from place3d_kernels._toml import config_dir, read_toml, require, resolve_config
 
-__all__ = ["Placement", "PAPER_PLACEMENTS", "BASELINES"]
+__all__ = ["Placement", "PAPER_PLACEMENTS", "BASELINES", "CARLA_PUBLIC_PLACEMENTS"]
 
 #: The eleven placements of the Place3D paper, in the order of its table.
 PAPER_PLACEMENTS = ("center", "line", "pyramid", "square", "trapezoid", "line-roll", "pyramid-roll",
                     "ours-det", "ours-seg", "corruption", "2d-plane")
 #: The seven heuristic baselines among them.
 BASELINES = PAPER_PLACEMENTS[:7]
+#: The authors' public CARLA rigs (ywyeli/Place3D carla_nus/hyperparams/4x16.toml), a second set of the
+#: five heuristic baselines; see place3d_kernels/placement_sources.py.
+CARLA_PUBLIC_PLACEMENTS = tuple(f"carla_public/{n}" for n in ("center", "line", "pyramid", "square", "trapezoid"))
 
 _KEYS = ("x", "y", "z", "roll_rad", "pitch_rad", "yaw_rad")
 
@@ -55,7 +58,8 @@ class Placement:
 
     @classmethod
     def load(cls, path_or_name) -> "Placement":
-        """Read a placement TOML (a path, or a shipped name such as ``"pyramid"``)."""
+        """Read a placement TOML (a path, or a shipped name such as ``"pyramid"`` or
+        ``"carla_public/pyramid"``; ``shipped_names()`` lists them)."""
         path = resolve_config(path_or_name, "placements")
         d = read_toml(path)
         rows = d.get("lidar")
@@ -93,7 +97,10 @@ class Placement:
 
     @staticmethod
     def shipped_names() -> list[str]:
-        return sorted(p.stem for p in config_dir("placements").glob("*.toml"))
+        """Names ``load`` takes: the paper's (``"pyramid"``) and the authors' public CARLA rigs
+        (``"carla_public/center"``, ``CARLA_PUBLIC_PLACEMENTS``)."""
+        root = config_dir("placements")
+        return sorted(p.relative_to(root).with_suffix("").as_posix() for p in root.rglob("*.toml"))
 
     def min_distance(self) -> float:
         if len(self) < 2:

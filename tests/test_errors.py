@@ -146,7 +146,7 @@ def test_paper_placements_load_with_flipped_frame():
     assert len(pl) == 11
     # CARLA y-right -> project y-left: the paper's "line" LiDAR 1 at y = -0.6 sits at y = +0.6 here
     np.testing.assert_allclose(pl["line"].poses[0], [0, 0.6, 2.2, 0, 0, 0])
-    np.testing.assert_allclose(pl["line-roll"].poses[0, 3], 0.3)
+    np.testing.assert_allclose(pl["line-roll"].poses[0, 3], -0.3)    # roll kept (carla_frame)
     assert all(len(p) == 4 for p in pl.values())
     assert np.all(pl["2d-plane"].poses[:, 2] == 2.2)
     lidar = p3k.LidarModel.load("place3d_16ch")

@@ -22,9 +22,10 @@ DATA_SHEETS = {
     "hdl32e": (32, -30.67, 10.67, 32 * 2172, 360.0, "Velodyne HDL-32E data sheet"),
     # Velodyne HDL-64E S2 data sheet (KITTI): 64 ch, -24.8..+2.0 deg, ~1.333 M pts/s -> 64 x 2083 per frame.
     "hdl64e": (64, -24.8, 2.0, 64 * 2083, 360.0, "Velodyne HDL-64E S2 data sheet"),
-    # Ouster OS1 data sheet (Rev 6): 45 deg vertical, 1024 columns x 10 Hz.
-    "os1-64": (64, -22.5, 22.5, 64 * 1024, 360.0, "Ouster OS1 data sheet Rev 6"),
-    "os1-128": (128, -22.5, 22.5, 128 * 1024, 360.0, "Ouster OS1 data sheet Rev 6"),
+    # Ouster: real units' metadata (ouster-sdk tests/metadata/), 1024 columns x 10 Hz. OS-1-64 sn
+    # 991913000010 is a gen-1 unit (33.2 deg data sheet); OS-1-128 sn 992119000444 a 45 deg one.
+    "os1-64": (64, -16.679, 16.729, 64 * 1024, 360.0, "2_1_2_os1-991913000010-64.json"),
+    "os1-128": (128, -21.44, 21.51, 128 * 1024, 360.0, "2_2_os-992119000444-128.json"),
     # Hesai Pandar64 user manual: 64 ch, -25..+15 deg, 1,152,000 pts/s -> 115,200 per 10 Hz frame.
     "pandar64": (64, -25.0, 15.0, 115_200, 360.0, "Hesai Pandar64 user manual"),
     # Hesai AT128P user manual: 128 ch, 25.4 deg vertical, 120 deg horizontal, 1,536,000 pts/s at 10 Hz.
@@ -59,6 +60,60 @@ def test_preset_azimuth_offsets_from_tables():
     assert off.min() == pytest.approx(-10.0, abs=1e-3) and off.max() == pytest.approx(8.0, abs=1e-3) or \
         off.min() == pytest.approx(-8.0, abs=1e-3) and off.max() == pytest.approx(10.0, abs=1e-3)
     assert not LidarModel.load("vlp32c").is_grid and LidarModel.load("vlp16").is_grid
+
+
+def test_ouster_presets_carry_the_metadata_tables():
+    """beam_altitude_angles and minus beam_azimuth_angles of the cited files (first and last four beams
+    here; the TOMLs hold all): ouster-sdk's make_xyz_lut points a beam at encoder angle - azimuth angle."""
+    m = LidarModel.load("os1-128")
+    e, off = np.degrees(m.channel_elevations), np.degrees(m.azimuth_offsets)
+    np.testing.assert_allclose(e[:4], [21.51, 21.18, 20.87, 20.57], atol=1e-12)
+    np.testing.assert_allclose(e[-1], -21.44, atol=1e-12)
+    np.testing.assert_allclose(off[:4], [-4.26, -1.44, 1.39, 4.22], atol=1e-12)
+    m = LidarModel.load("os1-64")
+    np.testing.assert_allclose(np.degrees(m.channel_elevations[:2]), [16.729, 16.118], atol=1e-12)
+    np.testing.assert_allclose(np.degrees(m.azimuth_offsets[:4]), [-3.073, -0.904, 1.261, 3.384], atol=1e-12)
+    for name in ("os1-64", "os1-128"):
+        m = LidarModel.load(name)
+        assert not m.is_grid and "ouster-sdk tests/metadata/" in m.source and m.n_rays == m.n_channels * 1024
+
+
+def test_ouster_rays_and_scores_identical_on_every_backend(backend):
+    """Per-beam azimuth offsets: the rays are built once on the host (lidar_rays, rig_metrics) and every
+    backend walks them to the same M-SOG as the reference."""
+    grid = p3k.Grid(lower=(-8, -8, -1), upper=(8, 8, 4), voxel_size=0.25)
+    rng = np.random.default_rng(5)
+    vox = np.sort(rng.choice(grid.n_voxels, grid.n_voxels // 6, replace=False))
+    psog = p3k.PSOG(grid, vox, rng.dirichlet(np.r_[5.0, np.full(21, 0.3)], len(vox)))
+    rig = p3k.Placement.load("line-roll").poses
+    for name in ("os1-128", "os1-64"):
+        m = LidarModel.load(name).subsample(2, 16)
+        o, d = lidar_rays(m, rig, backend=backend)
+        o_ref, d_ref = lidar_rays(m, rig, backend="reference")
+        assert np.array_equal(o, o_ref) and np.array_equal(d, d_ref)
+        assert p3k.msog(psog, m, rig, backend=backend) == p3k.msog(psog, m, rig, backend="reference")
+
+
+def test_authors_carla_16ch_presets():
+    """ywyeli/Place3D carla_nus/hyperparams/4x16.toml: 16 channels, -25..+5 and -14..+2 deg, 14,400 points
+    per channel per second at 20 Hz = 720 steps, 200 m; every shipped preset states its rate."""
+    for name, lo, hi in (("place3d_16ch_carla", -25.0, 5.0), ("place3d_16ch_carla_narrow", -14.0, 2.0)):
+        m = LidarModel.load(name)
+        assert m.n_channels == 16 and len(m.azimuths) == 14_400 // 20 and m.max_range == 200.0
+        np.testing.assert_allclose(np.degrees(m.elevations[[0, -1]]), [lo, hi])
+        a = m.to_carla()
+        assert a["rotation_frequency"] == 20.0 and a["points_per_second"] == 14_400 * 16
+    from place3d_kernels._toml import config_dir, read_toml
+
+    for path in sorted(config_dir("lidars").glob("*.toml")):
+        d = read_toml(path)
+        assert d.get("scan") == "rosette" or "rotation_frequency_hz" in d, f"{path.name}: no rotation_frequency_hz"
+
+
+def test_at128_range_is_the_decoders():
+    # tier4/nebula pandar_at128.hpp: PandarAT128::min_range = 1.0, max_range = 180.0 (decoder drops the rest)
+    m = LidarModel.load("at128")
+    assert (m.min_range, m.max_range) == (1.0, 180.0)
 
 
 def test_rosette_preset():
@@ -102,7 +157,7 @@ def test_existing_presets_rays_unchanged():
         assert m.is_grid and m.min_range == 0.0
 
 
-@pytest.mark.parametrize("name", ["place3d_16ch", "collection_64ch", "vlp16", "hdl32e", "os1-64"])
+@pytest.mark.parametrize("name", ["place3d_16ch", "collection_64ch", "vlp16", "hdl32e", "place3d_16ch_carla"])
 def test_directions_equal_sensor_directions_bit_for_bit(name):
     m = LidarModel.load(name)
     assert m.is_grid
@@ -195,6 +250,7 @@ def test_bad_input(tmp_path):
 
 def test_list_presets_lists_every_shipped_preset():
     rows = {r["name"]: r for r in list_presets()}
-    assert set(DATA_SHEETS) | {"mid40", "place3d_16ch", "collection_64ch"} <= set(rows)
+    assert set(DATA_SHEETS) | {"mid40", "place3d_16ch", "collection_64ch", "place3d_16ch_carla",
+                               "place3d_16ch_carla_narrow"} <= set(rows)
     assert rows["at128"]["hfov_deg"] == 120.0 and rows["mid40"]["scan"] == "rosette"
     assert all(r["source"] for r in rows.values())

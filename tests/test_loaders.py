@@ -213,7 +213,7 @@ def test_carla_ply(tmp_path, fmt):
             (2.0, 2.0, 0.0, 0.3, 3, 22)]
     carla_ply(tmp_path / "f.ply", rows, fmt)
     c = iof.read_carla_ply(tmp_path / "f.ply")
-    assert np.allclose(c.points, [r[:3] for r in rows])
+    assert np.allclose(c.points, [(r[0], -r[1], r[2]) for r in rows])   # CARLA's y right -> y left
     assert c.labels.tolist() == [7, 10, 0, 21] and c.object_id.tolist() == [17, 42, 0, 3]
     assert np.allclose(c.cos_angle, [0.9, 0.5, 0.1, 0.3])
     c2 = iof.read_carla_ply(tmp_path / "f.ply", tags="cityscapes")

@@ -2,6 +2,9 @@
 CosAngle and uint ObjIdx, ObjTag per point). ``tags="legacy"`` (CARLA <= 0.9.13, the version family
 Place3D used): tags 0..12 are the Place3D ids, 13 (sky) -> 0, 14..22 -> 13..21. ``tags="cityscapes"``
 (CARLA >= 0.9.14, Cityscapes order): remapped by ``CARLA_CITYSCAPES_TO_PLACE3D``.
+
+CARLA writes points in the sensor's left-handed frame (x forward, y right, z up); ``read_carla_ply``
+returns them in this package's sensor frame (y left): y negated (``place3d_kernels.carla_frame``).
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from place3d_kernels.carla_frame import points_from_carla
 from place3d_kernels.classes import CLASS_ID
 
 __all__ = ["CARLA_LEGACY_TO_PLACE3D", "CARLA_CITYSCAPES_TO_PLACE3D", "read_carla_ply", "CarlaCloud"]
@@ -29,7 +33,7 @@ CARLA_CITYSCAPES_TO_PLACE3D = np.array([
 
 
 class CarlaCloud(NamedTuple):
-    points: np.ndarray      # (N, 3) float64, sensor frame
+    points: np.ndarray      # (N, 3) float64, this package's sensor frame (y left; CARLA's y negated)
     labels: np.ndarray      # (N,) int32 Place3D classes
     cos_angle: np.ndarray   # (N,) float32
     object_id: np.ndarray   # (N,) uint32 (ObjIdx)
@@ -42,7 +46,11 @@ _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short":
 
 
 def read_carla_ply(path, tags: str = "legacy") -> CarlaCloud:
-    """Read a CARLA semantic-LiDAR PLY (ascii or binary) into points, Place3D labels and raw fields."""
+    """Read a CARLA semantic-LiDAR PLY (ascii or binary) into points, Place3D labels and raw fields.
+
+    Points come back in this package's sensor frame (x forward, y LEFT, z up): CARLA's y is negated
+    (``carla_frame.points_from_carla``; ``carla_frame.points_to_carla`` gives CARLA's coordinates back).
+    """
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: no such PLY file")
@@ -101,7 +109,7 @@ def read_carla_ply(path, tags: str = "legacy") -> CarlaCloud:
         col = {k: arr[k] for k in names}
     else:
         raise ValueError(f"{path}: unsupported PLY format {fmt!r}")
-    pts = np.stack([col["x"], col["y"], col["z"]], 1).astype(np.float64)
+    pts = points_from_carla(np.stack([col["x"], col["y"], col["z"]], 1))
     tag = np.asarray(col["ObjTag"]).astype(np.int64)
     lut = CARLA_LEGACY_TO_PLACE3D if tags == "legacy" else CARLA_CITYSCAPES_TO_PLACE3D
     if tag.size and (tag.min() < 0 or tag.max() >= len(lut)):
