@@ -64,8 +64,8 @@ def test_dataset_writer_semantickitti_layout_ego_frame_and_resume(tmp_path, tiny
 
     rig = _rig(tiny_lidar)
     splits = Splits(("town",), (0,), (7,), 2)
-    tot = build_datasets(tmp_path, [rig], splits, backend=BACKEND)
-    assert tot["written"] == 2 and tot["skipped"] == 0
+    tot, records = build_datasets(tmp_path, [rig], splits, backend=BACKEND)
+    assert records == [] and tot["written"] == 2 and tot["skipped"] == 0
     for d in splits.all_drives():
         folder = sequence_folder(tmp_path, rig, d)
         for sub, ext in (("velodyne", "bin"), ("labels", "label")):
@@ -90,12 +90,29 @@ def test_dataset_writer_semantickitti_layout_ego_frame_and_resume(tmp_path, tiny
     np.testing.assert_allclose(world.points, transform_points(pose_matrix(scene.ego_poses[1]), pts), atol=1e-3)
     np.testing.assert_array_equal(world.labels, lab)
     # resume: a second run writes nothing; a folder made with another rig under the same name is refused
-    again = build_datasets(tmp_path, [rig], splits, backend=BACKEND)
+    again, _ = build_datasets(tmp_path, [rig], splits, backend=BACKEND)
     assert again["written"] == 0 and again["skipped"] == 2
     moved = Rig(rig.name, ((0.0, 0.0, 2.2, 0.0, 0.0, 0.0),), tiny_lidar)
     with pytest.raises(ValueError, match="rig"):
         write_drive(tmp_path, [moved], d, backend=BACKEND)
     assert write_drive(tmp_path, [moved], d, backend=BACKEND, overwrite=True)["written"] == [rig.name]
+
+
+@needs_backend
+def test_worker_processes_write_the_same_sequences_and_records(tmp_path, tiny_lidar):
+    from place3d_kernels.pooled import PoolSettings
+
+    rig = _rig(tiny_lidar)
+    splits = Splits(("town",), (0,), (4,), 1)
+    settings = PoolSettings(frames_per_subset=1, backend=BACKEND, cache=str(tmp_path / "cache"))
+    _, here = build_datasets(tmp_path / "a", [rig], splits, BACKEND, psog=settings)
+    _, there = build_datasets(tmp_path / "b", [rig], splits, BACKEND, psog=settings, workers=2)
+    assert [r.label for r in here] == [r.label for r in there] == [splits.drives("train")[0].label]
+    np.testing.assert_array_equal(here[0].counts, there[0].counts)
+    for d in splits.all_drives():
+        a, b = sequence_folder(tmp_path / "a", rig, d), sequence_folder(tmp_path / "b", rig, d)
+        for sub in ("velodyne/000000.bin", "labels/000000.label", "poses.txt"):
+            assert (a / sub).read_bytes() == (b / sub).read_bytes()
 
 
 @needs_backend

@@ -62,6 +62,8 @@ def add_arguments(p) -> None:
     p.add_argument("--threads", type=int, default=None, help="PyTorch CPU threads (default: PyTorch's)")
     p.add_argument("--backend", default=None, help="ray-cast backend for the simulation and M-SOG "
                    "(default: $PLACE3D_BACKEND or auto; the reference backend is far too slow for this)")
+    p.add_argument("--workers", type=int, default=0,
+                   help="processes that build scenes and simulate drives at once (0: in this process)")
     p.add_argument("--output", required=True, help="study folder (datasets/, cells/, results.json, plot)")
     p.add_argument("--data", default=None, help="dataset folder to share between studies (default: OUTPUT/datasets)")
     p.add_argument("--overwrite", action="store_true", help="rebuild datasets and cells instead of resuming")
@@ -109,11 +111,11 @@ def run(args) -> int:
     if args.threads:
         torch.set_num_threads(int(args.threads))
     res = run_study(cfg, args.output, args.backend, args.device, progress=not args.quiet, overwrite=args.overwrite,
-                    data=args.data)
+                    data=args.data, workers=args.workers)
     print(format_table(res))
     t = res["timing"]
     print(f"{res['cells_run']} cells trained, {res['cells_skipped']} resumed; datasets {t['dataset_seconds']:.1f} s, "
-          f"P-SOG {t['psog_seconds']:.1f} s, cells {t['cells_seconds']:.1f} s, total {t['total_seconds']:.1f} s on "
+          f"(wall {t['datasets_wall_seconds']:.1f} s), P-SOG {t['psog_seconds']:.1f} s, cells {t['cells_seconds']:.1f} s, total {t['total_seconds']:.1f} s on "
           f"{res['machine'].get('gpu', res['machine']['device'])}; wrote {args.output}/results.json and {res['plot']}")
     return 0
 

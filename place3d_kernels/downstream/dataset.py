@@ -201,30 +201,66 @@ def write_drive(root, rigs, drive: Drive, backend=None, overwrite: bool = False)
     return {"written": [r.name for r, _, _ in todo], "skipped": skipped, "seconds": time.perf_counter() - t0}
 
 
+def _drive_task(t):
+    """One drive in a worker: its sequences for every rig, then (``settings`` given) its P-SOG record from
+    the scene still in memory."""
+    root, rigs, drive, backend, overwrite, settings = t
+    res = write_drive(root, rigs, drive, backend, overwrite)
+    record = None
+    if settings is not None:
+        from place3d_kernels.pooled import drive_record
+
+        t0 = time.perf_counter()
+        record = drive_record(drive, settings)
+        res["psog_seconds"] = time.perf_counter() - t0
+    return res, record
+
+
 def build_datasets(root, rigs, splits: Splits, backend=None, overwrite: bool = False, progress: bool = False,
-                   on_drive=None) -> dict:
+                   psog=None, workers: int = 0) -> tuple[dict, list]:
     """Every (rig, drive) sequence of ``splits``, drive by drive (a scene is built once for all rigs).
 
     Args:
-        on_drive: optional ``(drive) -> None`` called after each drive's sequences are written, while its
-            scene is still memoised (``study`` builds the drive's P-SOG there without rebuilding it).
-    Returns: {"written", "skipped", "seconds"} totals.
+        psog: optional ``pooled.PoolSettings``: the training drives' P-SOG records are built too, each right
+            after its drive's sequences, from the scene still in memory (``pooled.drive_record``; cached on
+            disk by its inputs).
+        workers: drives run in this many spawned processes at once (0: here, one after the other). Scene
+            building and the simulation's per-frame host work are single-threaded Python, so on a GPU host
+            processes overlap them; each process opens its own device context.
+    Returns: ({"written", "skipped", "seconds", "psog_seconds"} totals, the training drives' records in drive
+        order, empty without ``psog``).
     """
     drives = splits.all_drives()
-    bar = None
+    train = {d.label for d in splits.drives("train")}
+    tasks = [(str(root), list(rigs), d, backend, overwrite, psog if psog is not None and d.label in train else None)
+             for d in drives]
+    if workers and workers > 0:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(min(workers, len(tasks)), mp_context=mp.get_context("spawn"))
+        results = pool.map(_drive_task, tasks)
+    else:
+        pool = None
+        results = map(_drive_task, tasks)
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(drives, desc="datasets", unit="drive", leave=False)
-    tot = {"written": 0, "skipped": 0, "seconds": 0.0}
-    for d in (bar if bar is not None else drives):
-        r = write_drive(root, rigs, d, backend, overwrite)
-        tot["written"] += len(r["written"])
-        tot["skipped"] += len(r["skipped"])
-        tot["seconds"] += r["seconds"]
-        if on_drive is not None:
-            on_drive(d)
-    return tot
+        results = tqdm(results, total=len(tasks), desc="datasets", unit="drive", leave=False)
+    tot = {"written": 0, "skipped": 0, "seconds": 0.0, "psog_seconds": 0.0}
+    records = []
+    try:
+        for r, rec in results:
+            tot["written"] += len(r["written"])
+            tot["skipped"] += len(r["skipped"])
+            tot["seconds"] += r["seconds"]
+            tot["psog_seconds"] += r.get("psog_seconds", 0.0)
+            if rec is not None:
+                records.append(rec)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    return tot, records
 
 
 def read_frames(root, rig: Rig, drives) -> list[list[tuple[np.ndarray, np.ndarray]]]:

@@ -4,9 +4,9 @@ two with an interval, a plot, ``results.json``.
 
 Steps (``run_study``):
 
-1. Datasets (``dataset.build_datasets``): every (rig, drive) sequence, drive by drive; after a training
-   drive's sequences, its P-SOG record (``pooled.drive_record``: collection LiDAR, cached on disk by its
-   inputs) is built from the scene still in memory.
+1. Datasets (``dataset.build_datasets``): every (rig, drive) sequence, drive by drive (in worker processes
+   with ``workers``); after a training drive's sequences, its P-SOG record (``pooled.drive_record``:
+   collection LiDAR, cached on disk by its inputs) is built from the scene still in memory.
 2. M-SOG of every rig on the pooled P-SOG of the training drives (the paper pools its training scenes,
    Sec. 4), for each normalisation (``metrics.NORMALISATIONS``).
 3. Cells, one per (rig, model, seed): train for ``steps`` steps on the training drives, evaluate on the
@@ -130,11 +130,13 @@ def _msog(cfg: StudyConfig, rigs, pooled, backend) -> dict:
 
 
 def run_study(cfg: StudyConfig, output, backend=None, device=None, progress: bool = False,
-              overwrite: bool = False, data=None) -> dict:
-    """Run (or resume) the study; returns the results dict also written to ``results.json``."""
+              overwrite: bool = False, data=None, workers: int = 0) -> dict:
+    """Run (or resume) the study; returns the results dict also written to ``results.json``
+    (``workers``: processes for the datasets, see ``dataset.build_datasets``)."""
     from place3d_kernels.downstream.train import resolve_device
     from place3d_kernels.manifest import provenance, verify_manifest, write_manifest
-    from place3d_kernels.pooled import PooledPSOG, PoolSettings, backend_name, drive_record
+    from place3d_kernels.pooled import PooledPSOG, PoolSettings, backend_name
+    from place3d_kernels.sog import cache_dir
 
     t_start = time.perf_counter()
     out = Path(output)
@@ -142,20 +144,13 @@ def run_study(cfg: StudyConfig, output, backend=None, device=None, progress: boo
     rigs = cfg.load_rigs()
     dev = resolve_device(device)
     backend = backend_name(backend)
-    settings = PoolSettings(cfg.voxel_size, frames_per_subset=cfg.frames_per_subset, backend=backend)
-    pooled = PooledPSOG(settings.grid)
-    train_labels = {d.label for d in cfg.splits.drives("train")}
-    timing = {"psog_seconds": 0.0}
-
-    def on_drive(d):
-        if d.label in train_labels:
-            t = time.perf_counter()
-            pooled.add(drive_record(d, settings))
-            timing["psog_seconds"] += time.perf_counter() - t
-
+    settings = PoolSettings(cfg.voxel_size, frames_per_subset=cfg.frames_per_subset, backend=backend,
+                            cache=str(cache_dir()))
     t0 = time.perf_counter()
-    ds = build_datasets(root, rigs, cfg.splits, backend, overwrite, progress, on_drive)
-    timing["dataset_seconds"] = time.perf_counter() - t0 - timing["psog_seconds"]
+    ds, records = build_datasets(root, rigs, cfg.splits, backend, overwrite, progress, settings, workers)
+    timing = {"datasets_wall_seconds": time.perf_counter() - t0, "dataset_seconds": ds["seconds"],
+              "psog_seconds": ds["psog_seconds"]}
+    pooled = PooledPSOG(settings.grid, records)
     t0 = time.perf_counter()
     msog = _msog(cfg, rigs, pooled, backend)
     timing["msog_seconds"] = time.perf_counter() - t0
