@@ -44,7 +44,7 @@ t0=$(date +%s)
   echo "settings: rigs=$RIGS towns=$TOWNS heldout=$HELDOUT train_routes=$TRAIN_ROUTES test_routes=$TEST_ROUTES frames=$FRAMES steps=$STEPS seeds=$SEEDS models=$MODELS workers=$WORKERS backend=$BACKEND"
 } 2>&1 | tee "$out/machine.txt"
 
-timeout "$LIMIT" python3 -m place3d_kernels.downstream.command --rigs "$RIGS" --towns "$TOWNS" \
+timeout "$LIMIT" python3 -m place3d_app.cli downstream --rigs "$RIGS" --towns "$TOWNS" \
   --heldout-towns "$HELDOUT" --train-routes "$TRAIN_ROUTES" --test-routes "$TEST_ROUTES" --frames "$FRAMES" \
   --steps "$STEPS" --seeds "$SEEDS" --models "$MODELS" --workers "$WORKERS" --backend "$BACKEND" \
   --device cuda --output "$work/study" --quiet 2>&1 | tee "$out/log.txt"

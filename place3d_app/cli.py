@@ -138,6 +138,10 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_arguments(p)
     p.set_defaults(func=reproduce.run)
 
+    from place3d_app.commands import downstream
+
+    downstream.add_parser(sub)
+
     p = sub.add_parser("bench", help="kernel microbenchmarks per backend (a table; JSON with --json / --output)")
     p.add_argument("--backends", nargs="*", default=None, help="backends to time (default: all available)")
     p.add_argument("--quick", action="store_true", help="skip the 1M-triangle city (ray-mesh on the town only)")

@@ -225,7 +225,7 @@ def test_bootstrap_intervals_and_tau():
 
 # ------------------------------------------------------------------------------------------ study
 def _study_args(out, tiny_lidar, seeds="0"):
-    from place3d_kernels.downstream import command
+    from place3d_app.commands import downstream as command
 
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="command")
@@ -241,7 +241,7 @@ def _study_args(out, tiny_lidar, seeds="0"):
 def test_study_resumes_finished_cells(tmp_path, tiny_lidar, capsys):
     import json
 
-    from place3d_kernels.downstream import command
+    from place3d_app.commands import downstream as command
 
     args = _study_args(tmp_path / "study", tiny_lidar)
     assert args.func is command.run

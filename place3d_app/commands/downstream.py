@@ -3,7 +3,7 @@ with M-SOG (``place3d_kernels.downstream.study``; docs/downstream.md).
 
 The CLI wires ``add_parser(subparsers)`` and ``run(args)``; until then::
 
-    python3 -m place3d_kernels.downstream.command --rigs center,pyramid --towns town --frames 8 ...
+    place3d downstream --rigs center,pyramid --towns town --frames 8 ...
 
 Nothing here imports PyTorch: ``run`` does, through the study, and says how to install it when missing.
 """
