@@ -153,8 +153,9 @@ def cmd_evaluate(args) -> int:
                "provenance": provenance(backend=b.name)}
         if boots is not None:
             out["bootstrap"] = _bootstrap_summary(args, boots)
-        Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.output).write_text(json.dumps(out, indent=2))
+        from place3d_kernels.atomic import atomic_write_text
+
+        atomic_write_text(args.output, json.dumps(out, indent=2))
     plot = args.plot or (str(Path(args.output).with_suffix(".png")) if args.output and boots else None)
     if plot and boots is not None:
         from place3d_kernels.uncertainty import plot_scores
@@ -316,7 +317,9 @@ def cmd_bench(args) -> int:
 
         res["provenance"] = provenance()
         Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.output).write_text(json.dumps(res, indent=2))
+        from place3d_kernels.atomic import atomic_write_text
+
+        atomic_write_text(args.output, json.dumps(res, indent=2))
         print(f"wrote {args.output}")
     return 0
 
@@ -462,6 +465,7 @@ def _wait_for_saves() -> None:
 
 
 def main(argv=None) -> int:
+    from place3d_kernels.atomic import WriteError
     from place3d_kernels.manifest import set_command_line
 
     if asks_for_server(sys.argv[1:] if argv is None else argv):
@@ -485,8 +489,8 @@ def main(argv=None) -> int:
                 return int(args.func(args) or 0)
             finally:
                 _wait_for_saves()
-    except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
-        print(f"place3d: error: {e}", file=sys.stderr)
+    except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, WriteError) as e:
+        print(f"place3d: error: {e}", file=sys.stderr)     # one line; a full disk too (atomic.WriteError)
         return 2
     except KeyboardInterrupt:
         hint = ""

@@ -42,7 +42,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -88,9 +87,9 @@ def _safe(s: str) -> str:
 
 
 def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    from place3d_kernels.atomic import atomic_write_text
+
+    atomic_write_text(path, text)
 
 
 def _psog_task(t) -> str:
