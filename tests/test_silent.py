@@ -61,7 +61,7 @@ def test_study_rerun_with_other_settings_is_refused_then_recomputed_with_overwri
 def test_optimize_resume_with_another_task_is_refused(capsys):
     args = ["optimize", *TINY, "--max-evals", "10", "--output", "o"]
     assert main(args) == 0
-    assert Path("o/checkpoint.pkl").exists()                  # checkpoints into the output folder by default
+    assert Path("o/checkpoint.ckpt").exists()                 # checkpoints into the output folder by default
     before = Path("o/result.json").read_text()
     capsys.readouterr()
     assert main(args + ["--resume", "--task", "det"]) == 2
