@@ -6,7 +6,6 @@ import argparse
 import contextlib
 import json
 import sys
-from pathlib import Path
 
 from place3d_app.commands.common import add_common, check_output_file, psog_for_spec
 from place3d_app.commands.evaluate import cmd_evaluate
@@ -39,8 +38,9 @@ def cmd_bench(args) -> int:
         from place3d_kernels.manifest import provenance
 
         res["provenance"] = provenance()
-        Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.output).write_text(json.dumps(res, indent=2))
+        from place3d_kernels.atomic import atomic_write_text
+
+        atomic_write_text(args.output, json.dumps(res, indent=2))
         print(f"wrote {args.output}")
     return 0
 
@@ -190,6 +190,7 @@ def _wait_for_saves() -> None:
 
 
 def main(argv=None) -> int:
+    from place3d_kernels.atomic import WriteError
     from place3d_kernels.manifest import set_command_line
 
     if asks_for_server(sys.argv[1:] if argv is None else argv):
@@ -206,8 +207,8 @@ def main(argv=None) -> int:
                 return int(args.func(args) or 0)
             finally:
                 _wait_for_saves()
-    except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
-        print(f"place3d: error: {e}", file=sys.stderr)
+    except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, WriteError) as e:
+        print(f"place3d: error: {e}", file=sys.stderr)     # one line; a full disk too (atomic.WriteError)
         return 2
     except KeyboardInterrupt:
         hint = ""

@@ -215,7 +215,9 @@ class BlindSpotMap:
         ext_txt = "inf" if not np.isfinite(self.max_extent()) else f"{self.max_extent():.2f} m"
         ax.set_title(title or f"Blind spots at z = {self.ground_z:g} m (max extent from body {ext_txt})")
         fig.tight_layout()
-        fig.savefig(path)
+        from place3d_kernels.atomic import atomic_savefig
+
+        atomic_savefig(fig, path)
         plt.close(fig)
         return path
 
@@ -374,7 +376,9 @@ def cmd_blindspot(args) -> int:
                "vehicle": None if body is None else {"name": body.name, "key": body.key,
                                                      "bounds_m": np.round(body.bounds, 4).tolist()},
                "sensors_m": np.round(m.sensors, 4).tolist(), **m.summary()}
-    (out / "blindspot.json").write_text(json.dumps(summary, indent=2))
+    from place3d_kernels.atomic import atomic_write_text
+
+    atomic_write_text(out / "blindspot.json", json.dumps(summary, indent=2))
     m.plot(out / "blindspot.png", title=f"{summary['placement']} on {body.name if body else 'no body'}: "
                                         f"blind spots at z = {args.ground_z:g} m")
     ext = summary["max_extent_m"]

@@ -21,7 +21,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
-import os
 import pickle
 from pathlib import Path
 
@@ -87,10 +86,9 @@ class IntervalMemo:
         """Write the entries atomically (if any changed) and remove this record file's older memos."""
         if not self._dirty:
             return
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_name(f"{self.path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps({"code": code_digest(), "entries": self._entries}))
-        os.replace(tmp, self.path)
+        from place3d_kernels.atomic import atomic_write_text
+
+        atomic_write_text(self.path, json.dumps({"code": code_digest(), "entries": self._entries}))
         self._dirty = False
         for old in self.path.parent.glob(f"{self._prefix}*.json"):
             if old != self.path:

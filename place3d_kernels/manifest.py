@@ -14,13 +14,12 @@ from __future__ import annotations
 import datetime
 import hashlib
 import json
-import os
 import sys
-import threading
 from pathlib import Path
 
 __all__ = ["spec_hash", "write_manifest", "read_manifest", "verify_manifest", "first_difference", "provenance",
-           "set_command_line", "MANIFEST_NAME"]
+           "set_command_line", "MANIFEST_NAME", "content_hash", "verified_bytes", "ContentMismatch", "StaleCacheWarning",
+           "cache_warning"]
 
 MANIFEST_NAME = "manifest.json"
 
@@ -66,17 +65,66 @@ def _path(where) -> Path:
     return where / MANIFEST_NAME if where.is_dir() or not where.suffix else where
 
 
-def write_manifest(where, spec: dict) -> Path:
+def content_hash(data: bytes) -> str:
+    """sha256 (hex) of a file's bytes, as manifests record it (``content_sha256``)."""
+    return hashlib.sha256(data).hexdigest()
+
+
+def write_manifest(where, spec: dict, content_sha256: str | None = None) -> Path:
     """Write ``{"spec", "sha256", "version", "provenance"}`` atomically to ``where`` (a folder: its
-    ``manifest.json``; a ``.json`` path: that file)."""
+    ``manifest.json``; a ``.json`` path: that file); with ``content_sha256``, the sha256 of the file the
+    manifest describes too (``verified_bytes`` checks it)."""
+    from place3d_kernels.atomic import atomic_write_text
+
     path = _path(where)
-    path.parent.mkdir(parents=True, exist_ok=True)
     spec = _plain(spec)
     body = {"spec": spec, "sha256": spec_hash(spec), "version": _version(), "provenance": provenance()}
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}-{threading.get_ident()}")
-    tmp.write_text(json.dumps(body, indent=2, sort_keys=True))
-    os.replace(tmp, path)
+    if content_sha256 is not None:
+        body["content_sha256"] = content_sha256
+    atomic_write_text(path, json.dumps(body, indent=2, sort_keys=True))
     return path
+
+
+class StaleCacheWarning(RuntimeWarning):
+    """A cache file that is not used (damaged, rewritten, without its manifest, of other inputs): rebuilt."""
+
+
+def cache_warning(path, cause) -> None:
+    """Warn, in one line naming ``path`` and ``cause``, that a cache file is ignored and rebuilt."""
+    import warnings
+
+    why = " ".join(str(cause).split()) or type(cause).__name__
+    if str(path) not in why:
+        why = f"{path}: {why}"
+    warnings.warn(f"cache file ignored and rebuilt: {why}", StaleCacheWarning, stacklevel=3)
+
+
+class ContentMismatch(ValueError):
+    """A file whose bytes are not those its manifest recorded (or which has no manifest to say)."""
+
+
+def verified_bytes(path, manifest, spec: dict, what: str) -> bytes:
+    """The bytes of ``path``, checked against the manifest at ``manifest``: written for ``spec`` and with
+    the sha256 of exactly these bytes.
+
+    Raises:
+        ContentMismatch: no manifest, one without a content hash (an earlier version's), or other bytes;
+            the message is one line naming the file and the cause.
+        ValueError: the manifest was written for other settings (``verify_manifest``).
+    """
+    path = Path(path)
+    if not verify_manifest(manifest, spec, what, "it is rebuilt"):
+        raise ContentMismatch(f"{path}: {what} without its manifest ({Path(manifest).name}), so its content "
+                              f"cannot be checked")
+    want = read_manifest(manifest).get("content_sha256")
+    if not want:
+        raise ContentMismatch(f"{path}: the manifest of this {what} records no content hash (written by an "
+                              f"earlier version)")
+    data = path.read_bytes()
+    if content_hash(data) != want:
+        raise ContentMismatch(f"{path}: content differs from the sha256 its manifest recorded (damaged or "
+                              f"rewritten)")
+    return data
 
 
 def read_manifest(where) -> dict | None:

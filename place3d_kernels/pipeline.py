@@ -10,7 +10,7 @@ import numpy as np
 
 from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.lidar import LidarModel
-from place3d_kernels.manifest import verify_manifest, write_manifest
+from place3d_kernels.manifest import cache_warning, verified_bytes, write_manifest
 from place3d_kernels.profiling import section
 from place3d_kernels.scene.keymemo import SceneRef
 from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
@@ -81,8 +81,7 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
             if save_in_background:
                 _saves.append(_saver().submit(_save, psog, path, manifest, inputs))
             else:
-                psog.save(path)
-                write_manifest(manifest, inputs)
+                _save(psog, path, manifest, inputs)
     return psog
 
 
@@ -115,13 +114,13 @@ def _load_cached(path: Path, manifest: Path, inputs: dict) -> PSOG | None:
     if not path.exists():
         return None
     try:
-        # the file name is a hash of the inputs; the manifest beside it holds the inputs themselves,
-        # so a stale or colliding file is caught here instead of silently reused
-        verify_manifest(manifest, inputs, "P-SOG cache", "it is rebuilt")
+        # the file name is a hash of the inputs; the manifest beside it holds the inputs themselves and the
+        # sha256 of the file's bytes, so a stale, colliding, damaged or rewritten file (or one without a
+        # manifest) is caught here instead of silently reused
         with section("P-SOG cache load"):
-            return PSOG.load(path)
+            return PSOG.load(path, check=lambda: verified_bytes(path, manifest, inputs, "P-SOG cache"))
     except Exception as e:  # noqa: BLE001 - a broken or mismatching cache file is rebuilt, not fatal
-        log.warning("ignoring P-SOG cache %s: %s", path, e)
+        cache_warning(path, e)
         return None
 
 
@@ -144,7 +143,9 @@ def _save(psog: PSOG, path: Path, manifest: Path, inputs: dict) -> None:
     with section("P-SOG save (thread)"):
         try:
             psog.save(path)
-            write_manifest(manifest, inputs)    # after the file: a manifest never names a missing P-SOG
+            # after the file: a manifest never names a missing P-SOG; a kill between the two leaves a file
+            # whose manifest is missing or records another hash, which the next load rebuilds
+            write_manifest(manifest, inputs, psog.sha256)
         except OSError as e:
             # the cache only saves time: a full disk or a read-only folder costs the next command a rebuild
             log.warning("P-SOG cache %s not written: %s", path, e)

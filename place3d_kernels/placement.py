@@ -88,7 +88,9 @@ class Placement:
             lines.append("[[lidar]]")
             lines += [f"{k} = {float(v)!r}" for k, v in zip(_KEYS, p)]
             lines.append("")
-        path.write_text("\n".join(lines))
+        from place3d_kernels.atomic import atomic_write_text
+
+        atomic_write_text(path, "\n".join(lines))
         return path
 
     @staticmethod

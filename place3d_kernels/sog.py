@@ -181,6 +181,7 @@ class PSOG:
         if self.probs.shape != (len(self.voxels), len(self.channels)):
             raise ValueError(f"PSOG probs must be (M={len(self.voxels)}, K={len(self.channels)}), got {self.probs.shape}")
         self._cache: dict = {}
+        self.sha256: str | None = None      # of the file last written by ``save``
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -301,11 +302,11 @@ class PSOG:
 
     # ------------------------------------------------------------------ persistence
     def save(self, path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        # a name of its own per writer: processes that build the same cached P-SOG at once (tests, Ray
-        # workers) each write their own file, and the last rename wins with identical content
-        tmp = path.with_name(f"{path.name}.{os.getpid()}-{threading.get_ident()}.tmp.npz")
+        """Write the P-SOG to ``path`` atomically (``atomic.atomic_write``); ``self.sha256`` is then the
+        sha256 of the bytes written, which the cache's manifest records (``pipeline.scene_psog``)."""
+        from place3d_kernels.atomic import atomic_write
+        from place3d_kernels.manifest import content_hash
+
         arrays = dict(voxels=self.voxels, counts=self.counts if self.counts is not None else np.zeros(0),
                       meta=json.dumps({"grid": self.grid.to_dict(), "channels": list(self.channels),
                                        "n_subsets": self.n_subsets, "format": _FORMAT}))
@@ -313,9 +314,12 @@ class PSOG:
         # decompress on every cached load (0.1-0.2 s of a warm optimise on the dev VM, more beside other work)
         if not self.probs_are_counts():
             arrays["probs"] = self.probs
-        _write_npz(tmp, arrays)
-        os.replace(tmp, path)
-        return path
+        data = _npz_bytes(arrays)
+        # processes that build the same cached P-SOG at once (tests, Ray workers) each write a temporary
+        # file of their own, and the last rename wins with identical content
+        atomic_write(path, data)
+        self.sha256 = content_hash(data)
+        return Path(path)
 
     def probs_are_counts(self) -> bool:
         """Whether ``probs`` is ``counts / n_subsets`` to the bit (P-SOGs from frames or subset records, and
@@ -328,10 +332,14 @@ class PSOG:
         return self._cache["probs_from_counts"]
 
     @classmethod
-    def load(cls, path) -> "PSOG":
-        """The P-SOG saved at ``path`` (by ``save``); the one already in memory if ``keep_loaded`` allows."""
+    def load(cls, path, check=None) -> "PSOG":
+        """The P-SOG saved at ``path`` (by ``save``); the one already in memory if ``keep_loaded`` allows.
+
+        ``check``: optional ``check() -> bytes``, the file's bytes once verified (``manifest.verified_bytes``),
+        called whenever the file is read (not for a P-SOG kept in memory: it was checked when read, and a
+        rewritten file has another identity)."""
         if not _keep:
-            return cls._read(path)
+            return cls._read(path, check)
         st = os.stat(path)
         key = (os.path.realpath(path), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
         with _loaded_lock:
@@ -339,7 +347,7 @@ class PSOG:
             if psog is not None:
                 _loaded.move_to_end(key)
                 return psog
-        psog = cls._read(path)
+        psog = cls._read(path, check)
         with _loaded_lock:
             _loaded[key] = psog
             while len(_loaded) > _keep:
@@ -347,8 +355,11 @@ class PSOG:
         return psog
 
     @classmethod
-    def _read(cls, path) -> "PSOG":
-        with np.load(path) as z:
+    def _read(cls, path, check=None) -> "PSOG":
+        import io
+
+        src = path if check is None else io.BytesIO(check())
+        with np.load(src, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
             counts = z["counts"] if z["counts"].size else None
             # files without probs stored them as counts / T (save checked that this gives the same bits)
@@ -371,17 +382,19 @@ class PSOG:
 _ZLIB_LEVEL = {"voxels": 1}
 
 
-def _write_npz(path: Path, arrays: dict) -> None:
-    """``np.savez_compressed(path, **arrays)`` with the zlib level of ``_ZLIB_LEVEL`` per member: the same
-    .npz layout (one deflated ``NAME.npy`` per array), so ``np.load`` gives the same arrays."""
+def _npz_bytes(arrays: dict) -> bytes:
+    """The bytes ``np.savez_compressed(f, **arrays)`` would write, with the zlib level of ``_ZLIB_LEVEL`` per
+    member: the same .npz layout (one deflated ``NAME.npy`` per array), so ``np.load`` gives the same arrays."""
     import io
     import zipfile
 
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
         for name, value in arrays.items():
             buf = io.BytesIO()
             np.lib.format.write_array(buf, np.asanyarray(value), allow_pickle=False)
             zf.writestr(f"{name}.npy", buf.getvalue(), compresslevel=_ZLIB_LEVEL.get(name, 6))
+    return out.getvalue()
 
 
 def cache_key(**inputs) -> str:

@@ -10,6 +10,7 @@ more (``spec_subset_records``).
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 from typing import Callable
@@ -92,7 +93,7 @@ def spec_subset_records(spec, backend=None, cache: bool = True) -> list:
     Simulates the frames once and keeps the sparse records on disk beside the P-SOG cache (a few MB at
     0.2 m), so later bootstraps cost no simulation. ``cache=False`` rebuilds and writes nothing.
     """
-    from place3d_kernels.manifest import verify_manifest
+    from place3d_kernels.manifest import cache_warning, verified_bytes
     from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
     from place3d_kernels.pooled import DriveRecord
     from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
@@ -104,15 +105,15 @@ def spec_subset_records(spec, backend=None, cache: bool = True) -> list:
     path, inputs = subset_records_path(spec) if cache else (None, None)
     if path is not None and path.exists():
         try:
-            if not verify_manifest(path.with_suffix(".json"), inputs, "subset-record cache", "it is rebuilt"):
-                raise ValueError(f"{path}: no manifest")
-            z = np.load(path)
+            # inputs and the sha256 of the bytes, both from the manifest beside the file (manifest.py)
+            data = verified_bytes(path, path.with_suffix(".json"), inputs, "subset-record cache")
+            z = np.load(io.BytesIO(data), allow_pickle=False)
             cut = np.cumsum(z["sizes"])[:-1]
             return [DriveRecord(str(lab), int(t), v, c, n) for lab, t, v, c, n in
                     zip(z["labels"], z["n_subsets"], np.split(z["voxels"], cut), np.split(z["classes"], cut),
                         np.split(z["counts"], cut))]
-        except Exception:  # noqa: BLE001 - a broken or stale cache file is rebuilt, not fatal
-            pass
+        except Exception as e:  # noqa: BLE001 - a broken or stale cache file is rebuilt, not fatal
+            cache_warning(path, e)
     if spec.scene.kind == "semantickitti":
         from place3d_kernels.io.semantickitti import read_sequence
 
@@ -155,15 +156,23 @@ def keyed_subset_records(spec, backend=None, cache: bool = True) -> tuple[list, 
 
 
 def _write_records(path: Path, inputs: dict, recs) -> None:
-    from place3d_kernels.manifest import write_manifest
+    """Write the records and their manifest (inputs and content sha256); a cache that cannot be written (a
+    full disk, a read-only folder) is a one-line warning: the next command simulates them again."""
+    import logging
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, labels=np.array([r.label for r in recs]), n_subsets=np.array([r.n_subsets for r in recs]),
+    from place3d_kernels.atomic import atomic_write
+    from place3d_kernels.manifest import content_hash, write_manifest
+
+    buf = io.BytesIO()
+    np.savez(buf, labels=np.array([r.label for r in recs]), n_subsets=np.array([r.n_subsets for r in recs]),
              sizes=np.array([len(r.voxels) for r in recs]), voxels=np.concatenate([r.voxels for r in recs]),
              classes=np.concatenate([r.classes for r in recs]), counts=np.concatenate([r.counts for r in recs]))
-    os.replace(tmp, path)
-    write_manifest(path.with_suffix(".json"), inputs)
+    data = buf.getvalue()
+    try:
+        atomic_write(path, data)
+        write_manifest(path.with_suffix(".json"), inputs, content_hash(data))
+    except OSError as e:
+        logging.getLogger(__name__).warning("subset-record cache %s not written: %s", path, e)
 
 
 def records_aggregator(spec) -> Callable:

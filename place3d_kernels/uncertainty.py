@@ -252,7 +252,9 @@ def plot_scores(boots: dict, path, title: str = "M-SOG with bootstrap intervals"
         ax.legend(handles=handles, loc="best", fontsize=7, framealpha=0.85)
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    from place3d_kernels.atomic import atomic_savefig
+
+    atomic_savefig(fig, path, dpi=120)
     plt.close(fig)
     return str(path)
 

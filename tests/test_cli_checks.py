@@ -61,7 +61,7 @@ def test_study_rerun_with_other_settings_is_refused_then_recomputed_with_overwri
 def test_optimize_resume_with_another_task_is_refused(capsys):
     args = ["optimize", *TINY, "--max-evals", "10", "--output", "o"]
     assert main(args) == 0
-    assert Path("o/checkpoint.pkl").exists()                  # checkpoints into the output folder by default
+    assert Path("o/checkpoint.ckpt").exists()                 # checkpoints into the output folder by default
     before = Path("o/result.json").read_text()
     capsys.readouterr()
     assert main(args + ["--resume", "--task", "det"]) == 2
@@ -111,8 +111,9 @@ def test_psog_cache_stores_and_checks_its_inputs(tmp_path, caplog):
     assert stored["spec"]["k"] == 4 and stored["spec"]["grid"]["voxel_size"] == 0.8
     stored["spec"]["k"] = 5                                    # a cache whose inputs do not match ...
     man.write_text(json.dumps(stored))
-    b = scene_psog(sc, grid, "place3d_16ch", cache=tmp_path / "c")
-    assert "ignoring P-SOG cache" in caplog.text and "k" in caplog.text    # ... is rebuilt, loudly
+    with pytest.warns(RuntimeWarning, match="rebuilt.*k:") as w:     # ... is rebuilt, loudly
+        b = scene_psog(sc, grid, "place3d_16ch", cache=tmp_path / "c")
+    assert str(man.with_suffix(".npz")) in str(w[0].message)
     np.testing.assert_array_equal(a.probs, b.probs)
     assert json.loads(man.read_text())["spec"]["k"] == 4
 

@@ -71,8 +71,9 @@ def cmd_evaluate(args) -> int:
                "provenance": provenance(backend=b.name)}
         if boots is not None:
             out["bootstrap"] = _bootstrap_summary(args, boots)
-        Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.output).write_text(json.dumps(out, indent=2))
+        from place3d_kernels.atomic import atomic_write_text
+
+        atomic_write_text(args.output, json.dumps(out, indent=2))
     plot = args.plot or (str(Path(args.output).with_suffix(".png")) if args.output and boots else None)
     if plot and boots is not None:
         from place3d_kernels.uncertainty import plot_scores

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -42,9 +43,11 @@ def add_arguments(p) -> None:
                         "the fused batched kernel is faster)")
     p.add_argument("--checkpoint", default=None,
                    help="checkpoint file written after a generation, at most once a second (default: "
-                        "OUTPUT/checkpoint.pkl with --output)")
+                        "OUTPUT/checkpoint.ckpt with --output)")
     p.add_argument("--resume", action="store_true",
                    help="continue from --checkpoint (the run's settings must match; they are checked first)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the results and checkpoint of another run in --output (refused otherwise)")
     p.add_argument("--output", default=None, help="folder for result.json, placement TOML, history.csv and plots")
     # issue 13 item 4: an optimiser that cannot game the metric (docs/metric-normalisation.md)
     p.add_argument("--normalisation", default="paper", choices=["paper", "evidence", "uncertain"],
@@ -83,6 +86,8 @@ def check_args(args, spec) -> None:
     """Every check that needs no P-SOG, before it is built: counts, paths, the start, the checkpoint."""
     from place3d_kernels.manifest import verify_manifest
     from place3d_kernels.optimize import SearchSpace
+    from place3d_kernels.optimize.checkpoint import DEFAULT_NAME
+    from place3d_kernels.outputs import claim_optimize_folder
     from place3d_kernels.placement import Placement
 
     if args.max_evals < 1:
@@ -92,11 +97,11 @@ def check_args(args, spec) -> None:
     if args.output is not None and Path(args.output).exists() and not Path(args.output).is_dir():
         raise ValueError(f"--output {args.output} is an existing file; give a folder")
     if args.checkpoint is None and args.output is not None and args.restarts == 0:
-        args.checkpoint = str(Path(args.output) / "checkpoint.pkl")
+        args.checkpoint = str(Path(args.output) / DEFAULT_NAME)
     if args.checkpoint is not None and Path(args.checkpoint).is_dir():
         raise ValueError(f"--checkpoint {args.checkpoint} is a folder; give a file path")
     if args.resume and args.checkpoint is None:
-        raise ValueError("--resume needs --checkpoint FILE (or --output DIR, whose checkpoint.pkl is used)")
+        raise ValueError(f"--resume needs --checkpoint FILE (or --output DIR, whose {DEFAULT_NAME} is used)")
     if args.x0 not in ("best-baseline", "centre"):
         space = SearchSpace(n_lidars=args.lidars)
         x = space.from_placement(Placement.load(args.x0))
@@ -110,6 +115,8 @@ def check_args(args, spec) -> None:
                                           or getattr(args, "ray_address", None)):
         raise ValueError(f"--normalisation {args.normalisation} is not supported with the Ray executor; "
                          f"run locally or use --normalisation paper")
+    claim_optimize_folder(args.output, args.checkpoint, run_setup(args, spec), getattr(args, "overwrite", False),
+                          args.resume)           # another run's results or an old pickle checkpoint: refused
     if args.resume and args.checkpoint is not None and Path(args.checkpoint).exists():
         man = Path(str(args.checkpoint) + ".manifest.json")
         if not verify_manifest(man, run_setup(args, spec), "checkpoint",
@@ -168,6 +175,7 @@ def run(args, spec, psog_for) -> int:
 
 def _run(args, spec, psog_for, plotter, t0) -> int:
     """``run`` after the checks: the P-SOG, the search, the reports and the outputs."""
+    from place3d_kernels.atomic import atomic_write_text
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.manifest import provenance, write_manifest
     from place3d_kernels.metrics import msog_batch
@@ -306,12 +314,13 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
                   "intervals": res.intervals,
                   "details": res.to_dict(), "provenance": provenance(backend=b.name)}
         with section("writing result.json"):
-            (out / "result.json").write_text(json.dumps(result, indent=2, default=float))
-        with open(out / "history.csv", "w", newline="") as fh:
-            if res.history:
-                w = csv.DictWriter(fh, fieldnames=list(res.history[0].keys()))
-                w.writeheader()
-                w.writerows(res.history)
+            atomic_write_text(out / "result.json", json.dumps(result, indent=2, default=float))
+        fh = io.StringIO(newline="")
+        if res.history:
+            w = csv.DictWriter(fh, fieldnames=list(res.history[0].keys()))
+            w.writeheader()
+            w.writerows(res.history)
+        atomic_write_text(out / "history.csv", fh.getvalue())
         with section("plotting (wait)"):
             plots.result()             # re-raises a plotting error here
         print(f"wrote {out}/result.json, history.csv, optimized-{args.task}.toml, convergence.png, rig.png, coverage.png")

@@ -301,7 +301,9 @@ def write_outputs(res: dict, out) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     js = out / "reproduce.json"
-    js.write_text(json.dumps({k: v for k, v in res.items() if not k.startswith("_")}, indent=1))
+    from place3d_kernels.atomic import atomic_write_text
+
+    atomic_write_text(js, json.dumps({k: v for k, v in res.items() if not k.startswith("_")}, indent=1))
     png = out / "reproduce.png"
     boots = res["_boots"]
     panels = {f"{t} ({'ours = ' + paper.OURS[t]})": boots[t] for t in TASKS}

@@ -216,7 +216,9 @@ def run_rig(args, spec, psog_for) -> int:
 
 
 def _write_outputs(out: Path, result, front, best, bs, a, args) -> list:
-    (out / "result.json").write_text(json.dumps(result, indent=2, default=float))
+    from place3d_kernels.atomic import atomic_write_text
+
+    atomic_write_text(out / "result.json", json.dumps(result, indent=2, default=float))
     _write_rig_toml(out / "rig.toml", best, a, args)
     plot_rig_on_body(best, a["body"], a["surfaces"], out / "rig.png",
                      title=f"Best rig on {a['body'].name if a['body'] is not None else 'no body'}: M-SOG "
@@ -225,7 +227,7 @@ def _write_outputs(out: Path, result, front, best, bs, a, args) -> list:
                                          f"({bs.area_m2:.1f} m$^2$ within {bs.radius:g} m)")
     files = ["result.json", "rig.toml", "rig.png", "blindspot.png"]
     if front is not None:
-        (out / "pareto.json").write_text(json.dumps(front, indent=2, default=float))
+        atomic_write_text(out / "pareto.json", json.dumps(front, indent=2, default=float))
         plot_pareto(front, out / "pareto.png", args.task)
         files += ["pareto.json", "pareto.png"]
     return files
@@ -301,7 +303,9 @@ def plot_rig_on_body(rig, body, surfaces, path, title: str = ""):
     axes[1].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path)
+    from place3d_kernels.atomic import atomic_savefig
+
+    atomic_savefig(fig, path)
     plt.close(fig)
     return Path(path)
 
@@ -337,6 +341,8 @@ def plot_pareto(front: dict, path, task: str = "seg"):
     axes[0].set_title("M-SOG against cost")
     axes[1].set_title("M-SOG against sensor count")
     fig.tight_layout()
-    fig.savefig(path)
+    from place3d_kernels.atomic import atomic_savefig
+
+    atomic_savefig(fig, path)
     plt.close(fig)
     return Path(path)

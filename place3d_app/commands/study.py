@@ -42,7 +42,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -61,7 +60,8 @@ def add_arguments(p) -> None:
                    help="bootstrap resamples per cell over its drive's subsets (default: [study] resamples or 200; "
                         "0: no intervals)")
     p.add_argument("--overwrite", action="store_true",
-                   help="discard the cells of an earlier study in --output made with other settings")
+                   help="discard the cells of an earlier study in --output made with other settings, and its "
+                        "table when it lists other scenes, conditions or placements")
     add_executor_arguments(p)
 
 
@@ -88,9 +88,9 @@ def _safe(s: str) -> str:
 
 
 def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    from place3d_kernels.atomic import atomic_write_text
+
+    atomic_write_text(path, text)
 
 
 def _psog_task(t) -> str:
@@ -185,6 +185,9 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
     if out.exists() and not out.is_dir():
         raise ValueError(f"study output {out} is a file; give a folder (--output DIR)")
     _check_entries(cfg)
+    from place3d_kernels.outputs import claim_study_folder, study_entries
+
+    claim_study_folder(out, cfg, overwrite)          # a table of other entries is not replaced silently
     settings = study_settings(cfg)
     if settings["resamples"] < 0:
         raise ValueError(f"study resamples must be >= 0 (0: no intervals), got {settings['resamples']}")
@@ -244,7 +247,8 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
                "psogs_built_or_loaded": len(groups), "backend": bname, "executor": executor.kind,
                "lidar": lidar if isinstance(lidar, str) else lidar.name, "occlusion": occlusion,
                "settings": settings, "settings_sha256": spec_hash(settings),
-               "scenes": cfg["scenes"], "conditions": cfg["conditions"], "within_noise": noise,
+               "scenes": cfg["scenes"], "conditions": cfg["conditions"],
+               "placements": study_entries(cfg)["placements"], "within_noise": noise,
                "seconds": time.perf_counter() - t0}
     # provenance: the time and command line change per run, so a finished study's table stays comparable
     # by its rows and settings, not byte for byte

@@ -43,7 +43,6 @@ Label ids outside the table raise ValueError (``strict=True``, default) or becom
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
@@ -271,10 +270,11 @@ def psog_from_semantickitti(folder, grid, frames_per_subset: int = 5, labels: st
 
 # ------------------------------------------------------------------------------ writing
 def atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename (readers never see half a file)."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    """Write ``data`` to ``path`` through a temporary file and a rename (``place3d_kernels.atomic``: readers
+    never see half a file; a full disk leaves no temporary file and raises a one-line ``WriteError``)."""
+    from place3d_kernels.atomic import atomic_write as write
+
+    write(path, data)
 
 
 def write_frame_bin(path_bin, path_label, points_sensor, intensity, labels) -> None:

@@ -1,8 +1,10 @@
 """Search strategies over the integer grid indices: pycma's CMA-ES, uniform random search, exhaustive grid.
 
 All strategies work on integer grid indices ``k`` (grid value = ``k * delta``) of the free dimensions,
-propose batches with ``ask()``, learn from ``tell(values)`` (lower is better: values of G), and pickle
-completely (random state included), which is what makes checkpoints resume bit for bit.
+propose batches with ``ask()`` and learn from ``tell(values)`` (lower is better: values of G). Each is
+deterministic given its constructor's arguments and the sequence of asks and tells, which is what makes
+checkpoints resume bit for bit: a resumed run builds a fresh strategy and replays that sequence
+(``optimize/checkpoint.py``); no strategy is ever pickled to disk.
 
 CMA-ES runs pycma in index coordinates with ``integer_variables`` set for every dimension, so pycma
 samples lattice points itself (its LB+IC integer handling keeps a minimum step size, so the search does
@@ -45,9 +47,9 @@ _GLOBAL_NAMES = tuple(n for n in dir(np.random) if getattr(getattr(np.random, n)
 
 
 def _global_randn(*shape):
-    # pycma calls opts['randn'](lam, N). A module-level function pickles by name, and looks up
-    # np.random.randn at each call, so it draws from the generator the strategy points np.random at
-    # (``_rng``); np.random.randn itself would pickle a copy of the global RandomState.
+    # pycma calls opts['randn'](lam, N). This function looks np.random.randn up at each call, so it draws
+    # from the generator the strategy points np.random at (``_rng``); np.random.randn itself would be the
+    # global RandomState's method, bound once.
     return np.random.randn(*shape)
 
 
@@ -91,14 +93,6 @@ class CMAStrategy:
             yield
         finally:
             module.update(outer)
-
-    def __setstate__(self, state):
-        # a strategy pickled before 2026-11-25 (a checkpoint of format 1 or 2) kept the state, not the generator
-        if "_np_state" in state:
-            rs = np.random.RandomState()
-            rs.set_state(state.pop("_np_state"))
-            state["_rs"] = rs
-        self.__dict__.update(state)
 
     def ask(self) -> np.ndarray:
         with section("CMA-ES ask/tell"), self._rng():

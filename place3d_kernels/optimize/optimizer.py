@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from place3d_kernels.optimize.certificate import certify
-from place3d_kernels.optimize.checkpoint import load_checkpoint, save_checkpoint, snapshot, write_snapshot
+from place3d_kernels.optimize.checkpoint import load_checkpoint, replay, save_checkpoint, snapshot, write_snapshot
 from place3d_kernels.optimize.cmaes import METHODS, make_strategy
 from place3d_kernels.optimize.constraints import Constraint, prepare, total_penalty
 from place3d_kernels.optimize.space import DEFAULT_DELTA, SearchSpace
@@ -345,6 +345,17 @@ def _searched_grid(space, constraints, delta, x0, penalty_weight):
 
 def _initial_state(grid: _Grid, setup, checkpoint, resume, method, k0, x0_vec, sigma0, popsize, seed, cma_options):
     """(state, resumed): the checkpoint's state when resuming one of the same setup, else a fresh one."""
+    free = grid.free
+
+    def fresh_strategy():
+        s = make_strategy(method, x0=k0, kmin=grid.kmin[free], kmax=grid.kmax[free], sigma0=sigma0,
+                          widths_idx=grid.search.widths[free] / grid.steps[free], popsize=popsize, seed=seed,
+                          options=cma_options)
+        if x0_vec is not None and hasattr(s, "es"):
+            # the first generation scores x0 itself, so a warm start never ends below its starting rig
+            s.es.inject([k0], force=True)
+        return s
+
     if resume and Path(checkpoint).exists():
         state = load_checkpoint(checkpoint)
         if state.get("setup") != setup:
@@ -352,17 +363,15 @@ def _initial_state(grid: _Grid, setup, checkpoint, resume, method, k0, x0_vec, s
             diff = sorted(k for k in set(old) | set(setup) if old.get(k) != setup.get(k))
             raise ValueError(f"Checkpoint {checkpoint} was written by a run with a different setup "
                              f"(differs in {diff}); resume with the same arguments or use resume=False")
+        # the strategy is rebuilt, not unpickled: a fresh one replays the run's asks and tells (checkpoint.py)
+        state["strategy"] = fresh_strategy()
+        with section("checkpoint replay"):
+            replay(state["strategy"], state["log"], state["asked"], checkpoint)
         return state, True
-    free = grid.free
-    strategy = make_strategy(method, x0=k0, kmin=grid.kmin[free], kmax=grid.kmax[free], sigma0=sigma0,
-                             widths_idx=grid.search.widths[free] / grid.steps[free], popsize=popsize, seed=seed,
-                             options=cma_options)
-    if x0_vec is not None and hasattr(strategy, "es"):
-        # the first generation scores x0 itself, so a warm start never ends below its starting rig
-        strategy.es.inject([k0], force=True)
-    state = {"setup": setup, "strategy": strategy, "cache": {}, "U": np.zeros((0, grid.search.dim)), "F": [],
-             "P": [], "history": [], "evaluations": 0, "generation": 0, "hits": 0, "stall": 0, "nonfinite": 0,
-             "worst_G": None, "best": None, "seconds": 0.0, "stop_reason": None, "asked": None, "strategy_calls": 0}
+    state = {"setup": setup, "strategy": fresh_strategy(), "cache": {}, "U": np.zeros((0, grid.search.dim)),
+             "F": [], "P": [], "history": [], "evaluations": 0, "generation": 0, "hits": 0, "stall": 0,
+             "nonfinite": 0, "worst_G": None, "best": None, "seconds": 0.0, "stop_reason": None, "asked": None,
+             "strategy_calls": 0, "log": []}
     return state, False
 
 
@@ -400,12 +409,12 @@ def _run_generations(grid: _Grid, state, objective, max_evals, max_stall_generat
                 break
             entry, new, partial = _generation(grid, state, objective, max_evals, warned)
             state["seconds"] = seconds_before + time.perf_counter() - t0
-            # At most one checkpoint per CHECKPOINT_SECONDS: a pickle of the growing state and an fsync per
+            # At most one checkpoint per CHECKPOINT_SECONDS: encoding the growing state and an fsync per
             # generation cost 0.17 s of a 2,000-evaluation run on the dev VM, more on slower disks. A
             # generation answered wholly from the cache is not worth an fsync either: replaying it after a
             # crash costs no evaluation and, with the same cache and random state, gives the same result.
-            # Between writes the latest state is kept as a snapshot (lengths and references, no pickle:
-            # pickling the state each generation cost 0.2-0.3 ms on the dev VM, about three times that
+            # Between writes the latest state is kept as a snapshot (lengths and references, no copy:
+            # serialising the state each generation cost 0.2-0.3 ms on the dev VM, about three times that
             # on the H100 host), written when the run raises, so only a kill (SIGKILL, power) can lose
             # up to the last second.
             unsaved += 1
@@ -473,6 +482,7 @@ def _generation(grid: _Grid, state, objective, max_evals, warned) -> tuple[dict,
         sigma = strategy.sigma
         state["strategy_calls"] = state.get("strategy_calls", 0) + 1   # counted before: a call may not return
         state["asked"] = {"K": strategy.ask(), "sigma": sigma}
+        state["log"].append(("a", state["asked"]["K"]))     # what a resumed run replays (checkpoint.py)
     # else a resumed run: the batch the interrupted run had asked for (checkpoint.py)
     Kf, sigma = state["asked"]["K"], state["asked"]["sigma"]
     n = len(Kf)
@@ -522,6 +532,7 @@ def _generation(grid: _Grid, state, objective, max_evals, warned) -> tuple[dict,
     if not partial:
         state["strategy_calls"] += 1
         strategy.tell(G)
+        state["log"].append(("t", G.copy()))
     kf = known & fin
     entry = {"generation": state["generation"], "evaluations": state["evaluations"], "new": len(new),
              "cache_hits": hits,

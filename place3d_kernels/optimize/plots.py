@@ -39,10 +39,11 @@ def _save(fig, path, margins: Mapping[str, float]) -> Path:
     labels) and write the figure. Measuring the labels instead (``tight_layout``) lays out every text
     once more before drawing: it took a quarter to a third of each figure's time (bench/README.md,
     "A warm command's host time and figures"), and ``bbox_inches="tight"`` drew every figure twice."""
+    from place3d_kernels.atomic import atomic_savefig
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig.subplots_adjust(**margins)
-    fig.savefig(path, pil_kwargs=PNG)
+    atomic_savefig(fig, path, pil_kwargs=PNG)      # never an empty or half PNG, even on a full disk
     return path
 
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -89,8 +88,8 @@ def remember(folder: Path, ident: str | None, name: str, key: str) -> None:
     path = _file(folder, ident)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps({"name": name, "key": key}))
-        os.replace(tmp, path)
+        from place3d_kernels.atomic import atomic_write_text
+
+        atomic_write_text(path, json.dumps({"name": name, "key": key}))
     except OSError:
         pass   # a read-only cache folder: the scene is simply built next time

@@ -188,6 +188,8 @@ def save_mesh(mesh: Mesh, path) -> Path:
     """
     import trimesh
 
+    from place3d_kernels.atomic import atomic_write
+
     path = Path(path)
     kind = path.suffix.lower().lstrip(".")
     if kind not in _FORMATS:
@@ -200,10 +202,10 @@ def save_mesh(mesh: Mesh, path) -> Path:
                 "end_header\n").encode()
         fd = np.zeros(mesh.n_faces, dtype=[("n", "u1"), ("v", "<i4", (3,)), ("label", "<i4")])
         fd["n"], fd["v"], fd["label"] = 3, mesh.faces, mesh.labels
-        path.write_bytes(head + mesh.vertices.astype("<f8").tobytes() + fd.tobytes())
+        atomic_write(path, head + mesh.vertices.astype("<f8").tobytes() + fd.tobytes())
         return path
     if kind in ("stl", "off"):
-        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(path)
+        atomic_write(path, trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(file_type=kind))
         return path
     verts = mesh.vertices
     if kind in _Y_UP_FORMATS:
@@ -216,7 +218,7 @@ def save_mesh(mesh: Mesh, path) -> Path:
         name = CLASSES[int(c)].replace(" ", "_")
         scene.add_geometry(trimesh.Trimesh(verts[used], inv.reshape(-1, 3), process=False),
                            node_name=name, geom_name=name)
-    scene.export(path)
+    atomic_write(path, scene.export(file_type=kind))
     return path
 
 
