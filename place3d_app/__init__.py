@@ -10,6 +10,13 @@ server refuses (its code is older than the package on disk, or a start-up variab
 The server writes into this process's own standard output and error (the descriptors are passed over
 the socket), runs in this process's working directory with its environment, and returns the exit code;
 Ctrl-C here interrupts the command there. See ``docs/commands.md``, section ``serve``.
+
+Since the first message carries the whole environment and the live standard streams, the client sends
+nothing before it knows the server is this user's: the socket's folder may be written by nobody else,
+the socket is this user's, and the kernel reports the listening process as running under this user's
+uid (``_checked_socket``). Whenever the client runs a command here that it was asked to send, it says
+why in one line on stderr; the one quiet case is a standing ``PLACE3D_SERVER`` with no socket at all
+(no server started). See ``docs/security.md``, "The server".
 """
 
 from __future__ import annotations
@@ -25,8 +32,11 @@ FLAG = "--server"
 ENV = "PLACE3D_SERVER"
 #: ``PLACE3D_FAST_EXIT``: ``0`` = the console script exits through the interpreter's full teardown (see ``leave``).
 FAST_EXIT_ENV = "PLACE3D_FAST_EXIT"
-#: Seconds without the server's greeting after which the client says it waits for a busy server.
+#: Seconds without an answer from the server after which the client says that it waits, and for what.
 BUSY_NOTE_AFTER_S = 1.0
+#: Seconds the server has to greet a client (it does so from a thread of its own at once, busy or not);
+#: past this the client runs the command itself.
+GREETING_TIMEOUT_S = 10.0
 
 
 def server_request(argv: list[str], environ=None) -> tuple[str | None, bool, list[str]]:
@@ -136,65 +146,140 @@ def _streams() -> dict:
     return out
 
 
-def forward(path: str, argv: list[str], explicit: bool) -> int | None:
-    """Run ``place3d ARGV`` on the server at ``path`` ("" = the default socket).
+def _one_line(text) -> str:
+    """``text`` on one line, control characters shown escaped (a server's message is printed as data)."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in " ".join(str(text).split()))
 
-    Returns:
-        The command's exit code, or None when no server took it (none listening, or it refused): the
-        caller then runs the command here. The reason is said on stderr when the user asked for the
-        server with ``--server`` or when the server refused.
+
+#: What the client adds when no server runs at the socket.
+START_HINT = ". Start one with 'place3d serve --detach'"
+
+
+def _fallback(why: str, hint: str = "") -> None:
+    """Say on stderr, in one line, why the command runs here instead of on the server; None (run here)."""
+    print(f"place3d: {_one_line(why)}; running here{hint}", file=sys.stderr)
+    return None
+
+
+def _checked_socket(where: str, explicit: bool):
+    """Connect to the server socket ``where`` once it is shown to be this user's: (socket, None), or (None,
+    why) with why None or a reason for ``_fallback`` with its hint.
+
+    Nothing is sent before these checks pass: the socket's folder (symbolic links resolved) and every folder
+    above it may be written by nobody but this user (``wire.unsafe_folder``), the socket belongs to this
+    user (``wire.socket_problem``), and the process listening on it runs as this user (``SO_PEERCRED``,
+    ``wire.peer_credentials``: the check no one can plant around). ``why`` is None when nothing is at
+    ``where`` and no one asked for this socket explicitly: a standing ``PLACE3D_SERVER`` with no server
+    started runs the command here without a word.
     """
-    import signal
+    import errno
     import socket
 
     from place3d_app import wire
 
-    where = path or str(wire.default_socket())
+    folder = os.path.realpath(os.path.dirname(os.path.abspath(where)))
+    real = os.path.join(folder, os.path.basename(where))
+    missing = (f"no server at {where} (No such file or directory)", START_HINT)
+    try:
+        entry = wire.socket_problem(real)
+    except FileNotFoundError:
+        return None, (missing if explicit else None)
+    except OSError as e:
+        return None, (f"cannot use the server socket {where} ({e.strerror or e})", "")
+    problem = wire.unsafe_folder(folder) or entry
+    if problem:
+        return None, (f"refusing the server socket {where}: {problem}", "")
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
-        sock.connect(where)
+        sock.connect(real)
+        pid, uid, _gid = wire.peer_credentials(sock)
     except OSError as e:
         sock.close()
-        if explicit:
-            print(f"place3d: no server at {where} ({e.strerror or e}); running here. Start one with "
-                  f"'place3d serve --detach'", file=sys.stderr)
-        return None
+        if e.errno == errno.ENOENT:
+            return None, (missing if explicit else None)
+        if e.errno == errno.ECONNREFUSED:       # a socket left behind: its server died
+            return None, (f"the server at {where} is gone (nothing answers on its socket)", START_HINT)
+        return None, (f"cannot reach the server at {where} ({e.strerror or e})", "")
+    if uid != os.getuid():
+        sock.close()
+        return None, (f"refusing the server at {where}: it runs as uid {uid} (pid {pid}), not as this user "
+                      f"(uid {os.getuid()}); nothing was sent to it", "")
+    return sock, None
+
+
+def forward(path: str, argv: list[str], explicit: bool) -> int | None:
+    """Run ``place3d ARGV`` on the server at ``path`` ("" = the default socket).
+
+    Returns:
+        The command's exit code, or None when no server took it: the caller then runs the command here.
+        Why is said in one line on stderr every time, except in one case: nothing at all at the socket path
+        (no server started) when the server was asked for by ``PLACE3D_SERVER``, a standing setting, rather
+        than by ``--server``.
+    """
+    import signal
+
+    from place3d_app import wire
+
+    where = path or str(wire.default_socket())
+    sock, why = _checked_socket(where, explicit)
+    if sock is None:
+        return None if why is None else _fallback(*why)
     opened: list[int] = []
     try:
-        sock.settimeout(BUSY_NOTE_AFTER_S)
-        try:
-            greeting = wire.recv(sock)
-        except TimeoutError:
-            print(f"place3d: the server at {where} is busy with another command; waiting for it (Ctrl-C to "
-                  f"stop waiting)", file=sys.stderr)
-            sock.settimeout(None)
-            greeting = wire.recv(sock)
-        sock.settimeout(None)
+        greeting = _recv_waiting(sock, wire, GREETING_TIMEOUT_S,
+                                 f"place3d: waiting for the server at {where} to answer (at most "
+                                 f"{GREETING_TIMEOUT_S:g} s)")
         if greeting is None:
-            if explicit:
-                print(f"place3d: the server at {where} closed the connection; running here", file=sys.stderr)
-            return None
+            return _fallback(f"the server at {where} closed the connection before greeting")
+        if greeting.get("type") != "ready":
+            return _fallback(f"the server at {where} turned this client away: "
+                             f"{greeting.get('message', greeting.get('type'))}")
         umask = os.umask(0)
         os.umask(umask)
         fds, opened = _std_fds()
         wire.send_with_fds(sock, {"type": "run", "argv": list(sys.argv[:1]) + list(argv), "cwd": os.getcwd(),
                                   "env": dict(os.environ), "umask": umask, "identity": wire.identity(),
                                   "streams": _streams()}, fds)
-        reply = wire.recv(sock)
-        if reply is None or reply.get("type") == "refused":
-            why = "it closed the connection" if reply is None else reply.get("message", "")
-            print(f"place3d: the server at {where} did not run the command: {why}; running here",
-                  file=sys.stderr)
-            return None
+        reply = _recv_waiting(sock, wire, None, f"place3d: the server at {where} is busy with another command; "
+                                                f"waiting for it (Ctrl-C to stop waiting)")
+        if reply is None:
+            return _fallback(f"the server at {where} did not run the command: it closed the connection")
+        if reply.get("type") != "started":
+            return _fallback(f"the server at {where} did not run the command: "
+                             f"{reply.get('message', reply.get('type'))}")
         return _wait(sock, where, signal)
     except KeyboardInterrupt:
         # Ctrl-C before the server started the command: nothing ran
         print("place3d: interrupted", file=sys.stderr)
         return 130
+    except TimeoutError:
+        return _fallback(f"the server at {where} did not answer within {GREETING_TIMEOUT_S:g} s")
+    except wire.FrameError as e:
+        return _fallback(f"the server at {where} sent a malformed message ({e})")
+    except OSError as e:
+        return _fallback(f"the connection to the server at {where} failed ({e.strerror or e})")
     finally:
         for fd in opened:
             os.close(fd)
         sock.close()
+
+
+def _recv_waiting(sock, wire, limit_s: float | None, note: str):
+    """One message from the server; after ``BUSY_NOTE_AFTER_S`` without one, ``note`` on stderr (once), then
+    wait up to ``limit_s`` s in all (None: as long as it takes).
+
+    Raises:
+        TimeoutError: nothing within ``limit_s``.
+    """
+    sock.settimeout(BUSY_NOTE_AFTER_S)
+    try:
+        return wire.recv(sock)
+    except TimeoutError:
+        print(note, file=sys.stderr)
+        sock.settimeout(None if limit_s is None else max(limit_s - BUSY_NOTE_AFTER_S, 0.1))
+        return wire.recv(sock)
+    finally:
+        sock.settimeout(None)
 
 
 def _wait(sock, where: str, signal) -> int:
@@ -218,9 +303,18 @@ def _wait(sock, where: str, signal) -> int:
     except KeyboardInterrupt:
         print("place3d: interrupted (the server stops the command as this client leaves)", file=sys.stderr)
         return 130
+    except (OSError, wire.FrameError) as e:
+        print(f"place3d: the connection to the server at {where} failed while the command ran "
+              f"({_one_line(e)})", file=sys.stderr)
+        return 1
     finally:
         signal.signal(signal.SIGINT, old)
     if msg is None:
         print(f"place3d: the server at {where} stopped before the command finished", file=sys.stderr)
         return 1
-    return int(msg.get("code", 1))
+    code = msg.get("code")
+    if msg.get("type") != "exit" or type(code) is not int or not 0 <= code <= 255:
+        print(f"place3d: the server at {where} ended the command without an exit code: "
+              f"{_one_line(msg.get('message', msg))}", file=sys.stderr)
+        return 1
+    return code

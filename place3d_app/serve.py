@@ -9,25 +9,36 @@ instances with their compiled kernels are kept by the registry, and the last P-S
 
 Per command the server takes on the client's side of the process: its standard input, output and error
 (passed as descriptors, so the output is the bytes the in-process command writes, C-level output
-included), working directory, environment, umask and ``sys.argv``; it restores its own afterwards. One
-command runs at a time, on the main thread; a client that connects meanwhile waits its turn (and says so
-after a second). Ctrl-C on the client (or the client going away) interrupts the command with
+included), working directory, environment, umask and ``sys.argv``; it restores its own afterwards.
+
+Each connection is greeted and checked on a thread of its own: the peer must run as this user (kernel
+credentials, ``SO_PEERCRED``), and its request must arrive within ``HANDSHAKE_TIMEOUT_S`` as one frame
+of at most ``wire.MAX_REQUEST_BYTES`` holding a well-formed ``run`` request (``wire.run_problem``). A bad
+frame gets an error reply and the server goes on; a silent client holds only its own thread. Accepted
+requests queue for the main thread, which runs one command at a time (a client whose command waits says
+so after a second). Ctrl-C on the client (or the client going away) interrupts the command with
 ``KeyboardInterrupt``, as Ctrl-C does in-process; the server carries on.
 
 The server refuses a client whose package, interpreter or dependencies differ from what it loaded
 (``place3d_app.wire.identity``) and then stops, since its code is out of date; it also refuses a client
 whose start-up variables (``CUDA_VISIBLE_DEVICES``, ``POCL_*``, ...) differ. Refused clients run the
-command themselves, so old code never answers silently.
+command themselves and say why, so old code never answers silently.
+
+It listens only in a folder no other user may write (created with mode 0700), never removes anything at
+its socket path but a stale socket of its own, and ``--detach`` opens its log without following a
+symbolic link. ``docs/security.md`` ("The server") lists what it trusts and what it refuses.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import os
+import queue
 import signal
 import socket
-import struct
+import stat
 import sys
 import threading
 import time
@@ -36,7 +47,8 @@ from pathlib import Path
 
 from place3d_kernels.profiling import count_start_up_of
 
-__all__ = ["add_arguments", "serve", "Server", "client_wire", "is_listening", "DEFAULT_IDLE_TIMEOUT_S", "KEEP_PSOGS"]
+__all__ = ["add_arguments", "serve", "Server", "client_wire", "is_listening", "claim_socket_path", "open_log",
+           "DEFAULT_IDLE_TIMEOUT_S", "KEEP_PSOGS", "HANDSHAKE_TIMEOUT_S", "MAX_HANDSHAKES"]
 
 #: Seconds without a command after which the server exits.
 DEFAULT_IDLE_TIMEOUT_S = 900.0
@@ -45,13 +57,19 @@ DEFAULT_IDLE_TIMEOUT_S = 900.0
 KEEP_PSOGS = 4
 #: The most bytes of a Unix socket path (``sun_path`` holds 108 with its terminating NUL).
 MAX_SOCKET_PATH = 107
+#: Seconds a connected client has to send its request after the greeting; the client sends it at once
+#: (computing its identity takes milliseconds), so only a stalled or hostile peer reaches this.
+HANDSHAKE_TIMEOUT_S = 10.0
+#: Connections greeted and checked at the same time; one more is turned away with an error reply.
+MAX_HANDSHAKES = 32
 
 
 def add_arguments(p) -> None:
     """The options of ``place3d serve``."""
     p.add_argument("--socket", default=None,
-                   help="Unix socket to listen on (default: per user, interpreter and checkout, under "
-                        "$XDG_RUNTIME_DIR/place3d or the P-SOG cache folder); clients name it with --server=PATH")
+                   help="Unix socket to listen on, in a folder only you may write (default: per user, interpreter "
+                        "and checkout, under $XDG_RUNTIME_DIR/place3d or ~/.cache/place3d-serve, created with mode "
+                        "0700); clients name it with --server=PATH")
     p.add_argument("--idle-timeout", type=float, default=DEFAULT_IDLE_TIMEOUT_S,
                    help=f"exit after this many seconds without a command (default {DEFAULT_IDLE_TIMEOUT_S:.0f}; "
                         f"0 = never)")
@@ -65,10 +83,14 @@ def add_arguments(p) -> None:
 def serve(args, command, warm) -> int:
     """Run ``place3d serve`` (``command``: the CLI's ``main``; ``warm``: a call that imports its subcommands)."""
     wire = client_wire()
-    path = Path(args.socket) if args.socket else wire.default_socket()
+    path = Path(os.path.abspath(args.socket)) if args.socket else wire.default_socket()
     if args.idle_timeout < 0:
         raise ValueError(f"--idle-timeout must be >= 0 seconds (0 = never), got {args.idle_timeout}")
     _check_socket_path(path)
+    # refused before the slow start: a folder others may write, or something at the path that is not a
+    # stale socket of ours
+    wire.private_folder(path.parent)
+    claim_socket_path(path, remove=False)
     if args.detach:
         return _detach(args, path)
     server = Server(path, command, idle_timeout=args.idle_timeout)
@@ -96,15 +118,31 @@ def _check_socket_path(path: Path) -> None:
     n = len(os.fsencode(str(path)))
     if n > MAX_SOCKET_PATH:
         raise ValueError(f"socket path {path} is {n} bytes, Unix sockets allow {MAX_SOCKET_PATH}; give a shorter "
-                         f"one with --socket (e.g. /tmp/place3d.sock)")
+                         f"one with --socket, in a folder only you may write (mode 0700)")
 
 
 class _Stop(BaseException):
     """SIGTERM: leave the serve loop (a BaseException, so no command's ``except Exception`` swallows it)."""
 
 
+class _Job:
+    """A checked request waiting for the main thread: the connection, the request, the client's descriptors."""
+
+    def __init__(self, conn: socket.socket, hello: dict, fds: list, pid: int):
+        self.conn, self.hello, self.fds, self.pid = conn, hello, fds, pid
+
+    def close(self) -> None:
+        for fd in self.fds:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self.fds = []
+        with contextlib.suppress(OSError):
+            self.conn.shutdown(socket.SHUT_RDWR)        # ends the watcher's read
+        self.conn.close()
+
+
 class Server:
-    """One listening socket, one command at a time on the main thread (see the module doc).
+    """One listening socket; connections checked on threads, commands run one at a time on the main thread.
 
     Args:
         path: the socket path.
@@ -122,15 +160,22 @@ class Server:
         self.startup_env = wire.startup_env()
         self.backend = None
         self.stopping = False
+        self.handshake_timeout = HANDSHAKE_TIMEOUT_S
         self._lock = threading.Lock()
         self._busy = False
         self._client_interrupt = False
         self._run_id = 0                       # which command runs: a late watcher of an earlier one stays quiet
+        self._jobs: queue.Queue = queue.Queue()
+        self._handshakes = threading.BoundedSemaphore(MAX_HANDSHAKES)
+        self._closing = False
+        self._bound = None                     # (st_dev, st_ino) of the socket this server made
+        self._say_lock = threading.Lock()
         # the server's own messages go to its stderr as it was at start, never into a client's
         self.log = open(os.dup(2), "w", buffering=1, encoding="utf-8", errors="backslashreplace")
 
     def say(self, text: str) -> None:
-        print(f"place3d serve: {text}", file=self.log)
+        with self._say_lock:
+            print(f"place3d serve: {text}", file=self.log)
 
     # ------------------------------------------------------------------ start-up
     def warm(self, backend: str | None, warm) -> None:
@@ -164,27 +209,36 @@ class Server:
         listener = self._bind()
         old_int = signal.signal(signal.SIGINT, self._on_sigint)
         old_term = signal.signal(signal.SIGTERM, self._on_sigterm)
+        threading.Thread(target=self._accept_loop, args=(listener,), name="place3d-serve-accept",
+                         daemon=True).start()
         self.say(f"listening on {self.path}" + (f" (exits after {self.idle_timeout:g} s idle)"
                                                  if self.idle_timeout else ""))
         why = "stopped"
         try:
             while not self.stopping:
-                listener.settimeout(self.idle_timeout or None)
                 try:
-                    conn, _ = listener.accept()
-                except TimeoutError:
+                    job = self._jobs.get(timeout=self.idle_timeout or None)
+                except queue.Empty:
                     why = f"idle for {self.idle_timeout:g} s, exiting"
                     break
+                if job is None:                 # a wake-up: see whether to stop
+                    continue
                 try:
-                    self.handle(conn)
+                    self._serve_job(job)
                 except KeyboardInterrupt:
                     if not self._client_interrupt:
                         raise
                     # a client's Ctrl-C that landed just after its command ended: nothing left to stop
                 except OSError as e:
                     self.say(f"connection failed: {e}")
+                except Exception as e:          # a fault of this code on one request: it fails, the server stays
+                    self.say(f"the request of pid {job.pid} failed: {e!r}")
+                    traceback.print_exc(file=self.log)
+                    with contextlib.suppress(OSError):
+                        self.wire.send(job.conn, {"type": "error", "message": f"the server failed: {e!r}"})
                 finally:
-                    conn.close()
+                    job.close()
+                settle_memory()                 # after the client has its exit code
             else:
                 why = "a client runs newer code; exiting (start the server again to serve it)"
         except KeyboardInterrupt:
@@ -194,28 +248,49 @@ class Server:
         finally:
             signal.signal(signal.SIGINT, old_int)
             signal.signal(signal.SIGTERM, old_term)
+            self._closing = True
+            with contextlib.suppress(OSError):
+                listener.shutdown(socket.SHUT_RDWR)     # wakes the accepting thread
             listener.close()
-            with contextlib.suppress(FileNotFoundError):
-                self.path.unlink()
+            while True:                                 # requests still queued: their clients run here
+                try:
+                    job = self._jobs.get_nowait()
+                except queue.Empty:
+                    break
+                if job is not None:
+                    job.close()
+            self._unlink_own_socket()
         self.say(why)
         return 0
 
     def _bind(self) -> socket.socket:
-        self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-        if self.path.exists():
-            if is_listening(self.path):
-                raise ValueError(f"a server already listens on {self.path}; use it (place3d --server ...), stop it "
-                                 f"(SIGTERM to its pid), or start this one with another --socket")
-            self.path.unlink()                  # left by a server that did not exit cleanly
+        self.wire.private_folder(self.path.parent)
+        claim_socket_path(self.path, remove=True)
         listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         old = os.umask(0o177)                   # the socket is born 0600: this user only
         try:
             listener.bind(str(self.path))
+        except OSError as e:
+            listener.close()
+            raise ValueError(f"cannot listen on {self.path} ({e.strerror or e}); is another server starting "
+                             f"there? Use another --socket") from None
         finally:
             os.umask(old)
         os.chmod(self.path, 0o600)
+        st = os.lstat(self.path)
+        self._bound = (st.st_dev, st.st_ino)
         listener.listen(16)
         return listener
+
+    def _unlink_own_socket(self) -> None:
+        """Remove the socket this server made, and nothing else that may have replaced it since."""
+        try:
+            st = os.lstat(self.path)
+        except OSError:
+            return
+        if stat.S_ISSOCK(st.st_mode) and (st.st_dev, st.st_ino) == self._bound:
+            with contextlib.suppress(FileNotFoundError):
+                self.path.unlink()
 
     def _on_sigint(self, signum, frame) -> None:
         if self._busy:
@@ -227,41 +302,152 @@ class Server:
     def _on_sigterm(self, signum, frame) -> None:
         raise _Stop()
 
-    # ------------------------------------------------------------------ one client
-    def handle(self, conn: socket.socket) -> None:
-        """Greet one client, check it, run its command and send the exit code."""
-        pid, uid, _gid = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
-                                                             struct.calcsize("3i")))
+    # ------------------------------------------------------------------ connections (their own threads)
+    def _accept_loop(self, listener: socket.socket) -> None:
+        while True:
+            try:
+                conn, _ = listener.accept()
+            except OSError as e:
+                if self._closing:
+                    return
+                self.say(f"accept failed: {e}")
+                time.sleep(0.1)                 # out of descriptors, say: do not spin
+                continue
+            if self._closing:
+                conn.close()
+                return
+            if not self._handshakes.acquire(blocking=False):
+                self._turn_away(conn, None, f"{MAX_HANDSHAKES} connections are being set up already; try again")
+                continue
+            try:
+                threading.Thread(target=self._handshake_thread, args=(conn,), name="place3d-serve-handshake",
+                                 daemon=True).start()
+            except RuntimeError as e:           # no thread could start
+                self._handshakes.release()
+                self._turn_away(conn, None, f"cannot take the connection ({e})")
+
+    def _handshake_thread(self, conn: socket.socket) -> None:
+        try:
+            job = self.handshake(conn)
+        except Exception as e:                  # a fault of this code: this connection fails, the server goes on
+            self.say(f"a connection failed: {e!r}")
+            job = None
+        finally:
+            self._handshakes.release()
+        if job is None:
+            conn.close()
+        elif self.stopping or self._closing:
+            job.close()                         # the client runs the command itself and says why
+        else:
+            self._jobs.put(job)
+
+    def _turn_away(self, conn: socket.socket, pid: int | None, message: str) -> None:
+        """Answer ``conn`` with an error (best effort: a peer that does not read is not waited for) and close it."""
+        self.say(f"turned away {'a connection' if pid is None else f'pid {pid}'}: {message}")
+        with contextlib.suppress(OSError):
+            conn.settimeout(1.0)
+            self.wire.send(conn, {"type": "error", "message": message})
+        conn.close()
+
+    def handshake(self, conn: socket.socket) -> _Job | None:
+        """Check one connection and read its request: the job to run, or None (answered and closed, or gone).
+
+        Runs on the connection's own thread, so a client that stalls here holds up nobody else."""
+        try:
+            pid, uid, _gid = self.wire.peer_credentials(conn)
+        except OSError as e:
+            self._turn_away(conn, None, f"cannot tell which user connected ({e}); refused")
+            return None
         if uid != os.getuid():
-            self.say(f"refused a client of uid {uid} (pid {pid})")
-            return
+            self.say(f"refused a client of uid {uid} (pid {pid}): this server serves uid {os.getuid()} only")
+            conn.close()
+            return None
+        conn.settimeout(self.handshake_timeout)
         try:
             self.wire.send(conn, {"type": "ready", "pid": os.getpid(), "backend": self.backend})
-            hello, fds = self.wire.recv_with_fds(conn)
-        except (BrokenPipeError, ConnectionResetError):
-            return                              # a client that only checked the server is up, and left
-        try:
-            if hello is None or hello.get("type") != "run":
-                return                          # a client that only checked the server is up
-            refusal = self._refusal(hello, fds)
-            if refusal:
-                self.say(f"refused pid {pid}: {refusal}")
-                self.wire.send(conn, {"type": "refused", "message": refusal})
-                return
-            self._check_plot_worker()
-            self.wire.send(conn, {"type": "started"})
-            t = time.perf_counter()
-            code = self._run(conn, hello, fds, pid)
-            self.say(f"pid {pid} in {hello['cwd']}: {' '.join(hello['argv'][1:])} -> exit {code} in "
-                     f"{time.perf_counter() - t:.2f} s")
-            with contextlib.suppress(OSError):          # the client may have gone (Ctrl-C twice)
-                self.wire.send(conn, {"type": "exit", "code": code})
-        finally:
+            hello, fds = self.wire.recv_with_fds(conn, timeout=self.handshake_timeout)
+        except self.wire.FrameError as e:
+            self._turn_away(conn, pid, f"bad request: {e}")
+            return None
+        except TimeoutError:
+            self._turn_away(conn, pid, f"no request within {self.handshake_timeout:g} s")
+            return None
+        except OSError:
+            conn.close()                        # a client that only checked the server is up, and left
+            return None
+        if hello is None:
             for fd in fds:
                 os.close(fd)
-            with contextlib.suppress(OSError):
-                conn.shutdown(socket.SHUT_RDWR)         # ends the watcher's read
-        settle_memory()                                 # after the client has its exit code
+            conn.close()
+            return None
+        try:
+            problem, refusal = self.wire.run_problem(hello), None
+            if hello.get("type") == "run" and hello.get("identity") != self.identity:
+                problem, refusal = None, self._identity_refusal()
+            elif problem is None:
+                refusal = self._refusal(hello, fds)
+        except BaseException:
+            for fd in fds:
+                os.close(fd)
+            raise
+        if problem or refusal:
+            for fd in fds:
+                os.close(fd)
+            if problem:
+                self._turn_away(conn, pid, f"bad request: {problem}")
+            else:
+                self.say(f"refused pid {pid}: {refusal}")
+                with contextlib.suppress(OSError):
+                    self.wire.send(conn, {"type": "refused", "message": refusal})
+                conn.close()
+            if self.stopping:
+                self._jobs.put(None)            # wakes the main thread, which then stops
+            return None
+        conn.settimeout(None)
+        return _Job(conn, hello, fds, pid)
+
+    def _identity_refusal(self) -> str:
+        self.stopping = True
+        return (f"the server (pid {os.getpid()}) runs the package, interpreter or dependencies as they were "
+                f"when it started, and they have changed since; it stops now. Start it again with "
+                f"'place3d serve' to use the server")
+
+    def _refusal(self, hello: dict, fds: list) -> str | None:
+        """Why a well-formed request cannot run here (the server's state, not the request's form)."""
+        env = self.wire.startup_env(hello["env"])
+        if env != self.startup_env:
+            names = sorted(k for k in set(env) | set(self.startup_env) if env.get(k) != self.startup_env.get(k))
+            return (f"start-up variables differ from the server's ({', '.join(names)}), and a running process "
+                    f"cannot take new ones; start a server with this environment (another --socket) to use one")
+        if len(fds) != 3:
+            return f"expected the client's 3 standard descriptors, got {len(fds)}"
+        for i, fd in enumerate(fds):
+            try:
+                mode = os.fstat(fd).st_mode
+            except OSError as e:
+                return f"standard descriptor {i} cannot be used ({e.strerror or e})"
+            if stat.S_ISDIR(mode):
+                return f"standard descriptor {i} is a folder"
+        if not os.path.isdir(hello["cwd"]):
+            return f"the working directory {hello['cwd']!r} is not a folder here"
+        return None
+
+    # ------------------------------------------------------------------ one command (the main thread)
+    def _serve_job(self, job: _Job) -> None:
+        """Run one checked request and send its exit code."""
+        if self.stopping:
+            return                              # closed unanswered: the client runs it itself and says why
+        if _gone(job.conn):
+            self.say(f"pid {job.pid} left before its turn")
+            return
+        self._check_plot_worker()
+        self.wire.send(job.conn, {"type": "started"})
+        t = time.perf_counter()
+        code = self._run(job.conn, job.hello, job.fds, job.pid)
+        self.say(f"pid {job.pid} in {job.hello['cwd']}: {' '.join(job.hello['argv'][1:])} -> exit {code} in "
+                 f"{time.perf_counter() - t:.2f} s")
+        with contextlib.suppress(OSError):      # the client may have gone (Ctrl-C twice)
+            self.wire.send(job.conn, {"type": "exit", "code": code})
 
     def _check_plot_worker(self) -> None:
         """Before a command, with the server's own streams: replace the plot pool if its process died."""
@@ -269,23 +455,6 @@ class Server:
 
         if keep_worker():
             self.say("the plot worker had stopped; started a new one")
-
-    def _refusal(self, hello: dict, fds: list) -> str | None:
-        if hello.get("identity") != self.identity:
-            self.stopping = True
-            return (f"the server (pid {os.getpid()}) runs the package, interpreter or dependencies as they were "
-                    f"when it started, and they have changed since; it stops now. Start it again with "
-                    f"'place3d serve' to use the server")
-        env = self.wire.startup_env(hello.get("env", {}))
-        if env != self.startup_env:
-            names = sorted(k for k in set(env) | set(self.startup_env) if env.get(k) != self.startup_env.get(k))
-            return (f"start-up variables differ from the server's ({', '.join(names)}), and a running process "
-                    f"cannot take new ones; start a server with this environment (another --socket) to use one")
-        if len(fds) != 3:
-            return f"expected the client's 3 standard descriptors, got {len(fds)}"
-        if not os.path.isdir(hello.get("cwd", "")):
-            return f"the working directory {hello.get('cwd')!r} is not a folder here"
-        return None
 
     def _run(self, conn: socket.socket, hello: dict, fds: list, pid: int) -> int:
         with self._lock:
@@ -310,7 +479,8 @@ class Server:
         """Pass a client's interrupt (or its leaving) to the main thread as SIGINT, while its command runs.
 
         A watcher can see its client's connection close after the next command has started (a loaded
-        machine); ``run_id`` keeps it from interrupting that command."""
+        machine); ``run_id`` keeps it from interrupting that command. A malformed message counts as the
+        client leaving."""
         while True:
             try:
                 msg = self.wire.recv(conn)
@@ -323,6 +493,16 @@ class Server:
                         signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
             if msg is None:
                 return
+
+
+def _gone(conn: socket.socket) -> bool:
+    """Whether the peer of ``conn`` has closed its end (a client that stopped waiting for its turn)."""
+    try:
+        return conn.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except BlockingIOError:
+        return False
+    except OSError:
+        return True
 
 
 def settle_memory() -> None:
@@ -425,6 +605,73 @@ def is_listening(path: Path) -> bool:
         probe.close()
 
 
+def claim_socket_path(path: Path, remove: bool) -> None:
+    """Make sure ``path`` is free for this user's server: nothing there, or a stale socket of ours.
+
+    Stale means: a socket (not a link, file or folder), owned by this user, on which a connect is refused
+    (``ECONNREFUSED``: nobody listens; a server that did not exit cleanly left it). Only such a socket is
+    removed (with ``remove``); anything else is refused, and left as it is.
+
+    Raises:
+        ValueError: something else is at ``path``, or a server answers on it.
+    """
+    wire = client_wire()
+    try:
+        problem = wire.socket_problem(path)
+    except FileNotFoundError:
+        return
+    if problem:
+        raise ValueError(f"refusing to listen on {path}: {problem}. Nothing was removed; move it away yourself "
+                         f"or start the server with another --socket")
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        probe.connect(str(path))
+    except ConnectionRefusedError:
+        if remove:
+            path.unlink()                       # ours, and nobody answers: left by a server that did not exit
+        return
+    except OSError as e:
+        raise ValueError(f"refusing to listen on {path}: cannot tell whether the socket there is in use "
+                         f"({e.strerror or e}); nothing was removed") from None
+    finally:
+        probe.close()
+    raise ValueError(f"a server already listens on {path}; use it (place3d --server ...), stop it (SIGTERM to "
+                     f"its pid), or start this one with another --socket")
+
+
+def open_log(path: Path) -> int:
+    """Open the server log ``path`` for appending, created 0600: a descriptor.
+
+    ``O_NOFOLLOW``: a symbolic link at ``path`` (one another user could plant to make the server append to
+    a file of theirs choosing) is refused, not followed; so is anything that is not a plain file of ours
+    with one name (a FIFO, a device, a hard link).
+
+    Raises:
+        ValueError: the log cannot be opened safely.
+    """
+    flags = (os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NOCTTY
+             | os.O_NONBLOCK)               # a planted FIFO must not block the open; refused below
+    try:
+        fd = os.open(path, flags, 0o600)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise ValueError(f"refusing the log {path}: it is a symbolic link, which the server does not follow; "
+                             f"remove it, or start the server with another --socket") from None
+        if e.errno == errno.ENXIO:          # a FIFO nobody reads, or a socket
+            raise ValueError(f"refusing the log {path}: it is not a plain file; remove it, or start the server "
+                             f"with another --socket") from None
+        raise ValueError(f"cannot open the log {path} ({e.strerror or e})") from None
+    st = os.fstat(fd)
+    problem = (None if stat.S_ISREG(st.st_mode) else "it is not a plain file") or \
+              (None if st.st_uid == os.getuid() else f"it belongs to uid {st.st_uid}") or \
+              (None if st.st_nlink == 1 else f"it has {st.st_nlink} names (hard links)")
+    if problem:
+        os.close(fd)
+        raise ValueError(f"refusing the log {path}: {problem}; remove it, or start the server with another --socket")
+    os.set_blocking(fd, True)
+    return fd
+
+
 def _detach(args, path: Path) -> int:
     """Start ``place3d serve`` in a session of its own and return once it listens."""
     import subprocess
@@ -432,11 +679,10 @@ def _detach(args, path: Path) -> int:
     if is_listening(path):
         raise ValueError(f"a server already listens on {path}; use it (place3d --server ...), stop it (SIGTERM to "
                          f"its pid), or start this one with another --socket")
-    path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-    log = path.with_suffix(".log")
+    log = path.with_suffix(".log") if path.suffix != ".log" else path.with_name(path.name + ".log")
     cmd = [sys.executable, "-m", "place3d_app", "serve", "--socket", str(path),
            "--idle-timeout", str(args.idle_timeout)] + (["--backend", args.backend] if args.backend else [])
-    with open(log, "ab") as f:
+    with os.fdopen(open_log(log), "ab") as f:
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=f, stderr=subprocess.STDOUT,
                                 start_new_session=True)
     deadline = time.monotonic() + 300
