@@ -1,4 +1,4 @@
-"""Fault table of docs/security-state.md: kills, damaged files and full disks against stored state.
+"""Fault table of docs/security.md ("Stored state and how it is verified"): kills, damaged files and full disks against stored state.
 
     PYTHONPATH=. python3 bench/fault_state.py [--kills 5] [--full DIR]
 
