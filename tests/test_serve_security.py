@@ -28,7 +28,7 @@ from pathlib import Path
 import pytest
 
 from place3d_app import wire
-from place3d_kernels import serve
+from place3d_app import serve
 from place3d_app.serve import is_listening
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,7 +65,7 @@ def _rmtree(folder: Path) -> None:
 
 #: A server started with a short handshake timeout; ``argv[1]``: the socket; ``argv[2]``: Python run first
 #: (a replaced credential read).
-SERVER = ("import sys; exec(sys.argv[2]); from place3d_kernels import serve; serve.HANDSHAKE_TIMEOUT_S = "
+SERVER = ("import sys; exec(sys.argv[2]); from place3d_app import serve; serve.HANDSHAKE_TIMEOUT_S = "
           f"{HANDSHAKE_S}; from place3d_app import main; "
           "sys.exit(main(['serve', '--socket', sys.argv[1], '--backend', 'reference', '--idle-timeout', '0']))")
 
@@ -274,7 +274,7 @@ def test_a_server_that_answers_with_an_error_is_said():
     """A greeting that is not 'ready' (here: the server turns the client away) is said, and run here."""
     folder = _folder()
     path = folder / "s.sock"
-    proc = _start_server(path, prelude="from place3d_kernels import serve; serve.MAX_HANDSHAKES = 0")
+    proc = _start_server(path, prelude="from place3d_app import serve; serve.MAX_HANDSHAKES = 0")
     try:
         r = _client_with_peer(path)
         _ran_here(r, r"turned this client away: 0 connections are being set up")
