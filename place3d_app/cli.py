@@ -60,9 +60,12 @@ def cmd_optimize(args) -> int:
     if wants_rig_mode(args) and args.vehicle is None:
         # real-rig mode scores on a car by default; the P-SOG is collected from the same body
         args.vehicle = "car"
+    from place3d_app.commands.routes import drive_specs, psog_for_routes
+
     spec = specs_from_args(args)
+    args.drives = drive_specs(args, spec)             # scenes x route seeds, checked before any work
     start_for_spec(spec, cache=not args.no_cache)    # the scene is built on another core during the probe
-    return run_optimize(args, spec, psog_for=lambda backend: psog_for_spec(spec, args, backend, with_scene=False))
+    return run_optimize(args, spec, psog_for=lambda backend: psog_for_routes(spec, args, backend))
 
 
 def cmd_serve(args) -> int:
@@ -95,8 +98,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_blindspot_parser(sub)
 
-    p = sub.add_parser("evaluate", help="score the paper's placements by M-SOG on a scene")
-    add_common(p)
+    from place3d_app.commands.routes import add_route_arguments
+
+    p = sub.add_parser("evaluate", help="score the paper's placements by M-SOG on a P-SOG pooled over routes")
+    add_common(p, several_scenes=True)
+    add_route_arguments(p)
     p.add_argument("placements", nargs="*", help="placement names or TOML paths (default: all eleven)")
     p.add_argument("--lidar", default="place3d_16ch", help="LiDAR model name or TOML (default place3d_16ch)")
     p.add_argument("--occlusion", default="sog", choices=["sog", "none"], help="ray occlusion mode (default sog)")
@@ -104,9 +110,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--normalisation", default="paper", choices=["paper", "evidence", "uncertain"],
                    help="M-SOG denominator (docs/metric-normalisation.md): 'paper' (default), 'evidence', 'uncertain'")
     p.add_argument("--interval", default="jackknife", choices=["jackknife", "bootstrap", "none"],
-                   help="95 %% intervals and pairwise orders over the drive's subsets: 'jackknife' (default; one "
-                        "rescoring per subset, unbiased for the full drive), 'bootstrap' (--resamples draws; its "
-                        "resamples repeat subsets and score high, see docs/commands.md), or 'none'")
+                   help="95 %% intervals and pairwise orders: 'jackknife' (default; over the routes of a pooled "
+                        "P-SOG, each left out once, or over the subsets of a single drive), 'bootstrap' (single "
+                        "drive only: --resamples draws of its subsets, which repeat subsets and score high, see "
+                        "docs/commands.md), or 'none'")
     p.add_argument("--resamples", type=int, default=200,
                    help="bootstrap resamples (with --interval bootstrap; default 200; 0 switches intervals off)")
     p.add_argument("--resample-seed", type=int, default=0, help="seed of the bootstrap resampling (default 0)")
@@ -156,7 +163,8 @@ def build_parser() -> argparse.ArgumentParser:
         add_opt = None
     if add_opt is not None:
         p = sub.add_parser("optimize", help="optimise a placement with CMA-ES")
-        add_common(p)
+        add_common(p, several_scenes=True)
+        add_route_arguments(p)
         add_opt(p)
         add_executor_arguments(p)
         p.set_defaults(func=cmd_optimize)

@@ -29,7 +29,12 @@ from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.sog import PSOG
 
 __all__ = ["Drive", "PoolSettings", "DriveRecord", "PooledPSOG", "build_pooled", "drive_record",
-           "subset_records", "backend_name"]
+           "subset_records", "backend_name", "parse_route_seeds", "pool_specs", "DEFAULT_ROUTES"]
+
+#: Routes per scene of the commands' default pooled P-SOG: the smallest count at which the order of the
+#: paper's placements no longer moved when the routes were doubled (bench/route_convergence.py; the
+#: measurement is in docs/guide.md, "How many routes").
+DEFAULT_ROUTES = 4
 
 
 @dataclass(frozen=True)
@@ -369,3 +374,61 @@ def subset_records(drive: Drive, settings: PoolSettings = PoolSettings()) -> lis
         ps = PSOG.from_frames(g, settings.grid, len(g), backend=settings.backend)
         out.append(DriveRecord.from_psog(ps, f"{drive.label}#{j}"))
     return out
+
+
+# ====================================================================== routes from specs
+def parse_route_seeds(text) -> list[int]:
+    """Route seeds from ``"100-107"``, ``"1,2,5"`` or ``"0-3,10"`` (ranges inclusive; order kept, no repeats).
+
+    Raises:
+        ValueError: anything else (a descending range, a repeated seed, a non-integer, nothing).
+    """
+    seeds: list[int] = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            if "-" in part[1:]:                          # a range; a leading '-' is a negative seed
+                i = part.index("-", 1)
+                lo, hi = int(part[:i]), int(part[i + 1:])
+                if hi < lo:
+                    raise ValueError
+                seeds.extend(range(lo, hi + 1))
+            else:
+                seeds.append(int(part))
+        except ValueError:
+            raise ValueError(f"route seeds {text!r}: give integers and ranges such as 100-107 or 1,2,5 "
+                             f"(a range runs low-high)") from None
+    if not seeds:
+        raise ValueError(f"route seeds {text!r}: no seeds")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"route seeds {text!r}: seed {next(x for x in seeds if seeds.count(x) > 1)} is repeated; "
+                         f"a pool counts each route once")
+    return seeds
+
+
+def pool_specs(specs, backend=None, cache=True, progress: bool = False) -> PooledPSOG:
+    """The pooled P-SOG of several ``spec.PSOGSpec`` (one per drive: scene x route seed, each with the run's
+    condition, vehicle and collection LiDAR), each built or read from the on-disk cache by ``spec.build``.
+
+    ``build_pooled`` pools ``Drive``s (scene, seed, frames); this pools full specs, so a command's adverse
+    condition and vehicle body apply to every drive. Records come back in spec order, labelled by the
+    scene's label (``Town06-s3-f40``).
+    """
+    import sys
+    import time
+
+    specs = list(specs)
+    if not specs:
+        raise ValueError("pool_specs needs at least one P-SOG spec")
+    grids = {s.grid.grid().to_dict().__repr__() for s in specs}
+    if len(grids) != 1:
+        raise ValueError("pooled drives must share one ROI grid")
+    pooled = PooledPSOG(specs[0].grid.grid())
+    for i, s in enumerate(specs):
+        t0 = time.perf_counter()
+        pooled.add(DriveRecord.from_psog(s.build(backend=backend, cache=cache), s.scene.label))
+        if progress:
+            print(f"  drive {i + 1}/{len(specs)} {s.scene.label}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    return pooled

@@ -132,7 +132,14 @@ class SceneSpec:
 
     @property
     def path(self) -> Path | None:
-        return Path(self.name.split(":", 1)[1]) if ":" in self.name else None
+        """The scene's file; for 'opendrive:Town06' (a shipped CARLA map by name, no such file here) the
+        shipped map's plain .xodr file, so every reader (the scene key, the builder) finds it."""
+        if ":" not in self.name:
+            return None
+        p = Path(self.name.split(":", 1)[1])
+        if self.kind == "opendrive" and not p.is_file():
+            return _shipped_map(p.name) or p
+        return p
 
     def validate(self) -> "SceneSpec":
         """Raise ``ValueError`` / ``FileNotFoundError`` for an unknown scene kind, a missing file or a
@@ -148,12 +155,6 @@ class SceneSpec:
         if self.name.startswith("mitsuba:") and self.path.suffix.lower() != ".xml":
             raise ValueError(f"scene {self.name!r}: 'mitsuba:PATH' takes a Mitsuba 3 XML scene (.xml); other mesh "
                              f"files go with 'mesh:PATH'")
-        if self.kind == "opendrive" and not self.path.is_file():
-            from place3d_kernels.data import CARLA_TOWNS
-
-            # a shipped CARLA map by name ('opendrive:Town01'), as parse_opendrive resolves it
-            if self.path.name.removesuffix(".xodr") in CARLA_TOWNS:
-                return self
         if self.kind in ("opendrive", "mesh"):
             if not self.path.is_file():
                 raise FileNotFoundError(f"scene {self.name!r}: no such file {self.path}"
@@ -183,6 +184,16 @@ class SceneSpec:
     def from_dict(cls, d: dict) -> "SceneSpec":
         return cls(str(d.get("name", "town")), int(d.get("seed", 0)), int(d.get("frames", 40)), d.get("labels"),
                    d.get("route"))
+
+
+@functools.lru_cache(maxsize=16)
+def _shipped_map(name: str) -> Path | None:
+    """The shipped CARLA map called ``name`` ('Town06' or 'Town06.xodr') as a plain file, or None."""
+    from place3d_kernels.data import CARLA_TOWNS, opendrive_path
+
+    if name.removesuffix(".xodr") not in CARLA_TOWNS:
+        return None
+    return opendrive_path(name)
 
 
 def read_route(path) -> "np.ndarray":

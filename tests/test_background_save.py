@@ -75,7 +75,7 @@ def test_cli_command_ends_with_the_psog_on_disk(tmp_path, monkeypatch):
     cache = tmp_path / "cache"
     monkeypatch.setenv("PLACE3D_CACHE", str(cache))
     out = tmp_path / "ev.json"
-    assert main(["evaluate", "--quiet", "--frames", "8", "--voxel-size", "0.4", "--interval", "none", "center",
+    assert main(["evaluate", "--quiet", "--routes", "1", "--frames", "8", "--voxel-size", "0.4", "--interval", "none", "center",
                  "--output", str(out)]) == 0
     assert started and list(cache.glob("psog-*.npz")) and list(cache.glob("psog-*.json"))
     assert not PIPE._saves

@@ -153,7 +153,7 @@ def test_cli_evaluate_vehicle_car_differs_from_none(tmp_path):
     rows = {}
     for v in ("none", "car"):
         out = tmp_path / f"{v}.json"
-        r = _cli("evaluate", "center", "line", "--frames", "8", "--voxel-size", "0.4", "--quiet", "--interval",
+        r = _cli("evaluate", "center", "line", "--frames", "8", "--voxel-size", "0.4", "--quiet", "--routes", "1", "--interval",
                  "none", "--backend", "warp:cpu", "--vehicle", v, "--output", str(out), cache=tmp_path / "c")
         assert r.returncode == 0, r.stderr
         data = json.loads(out.read_text())

@@ -17,7 +17,7 @@ import pytest
 
 from place3d_app.cli import main
 
-TINY = ["--frames", "8", "--voxel-size", "0.8", "--quiet"]
+TINY = ["--frames", "8", "--voxel-size", "0.8", "--quiet", "--routes", "1"]
 
 
 def _err(capsys) -> str:
@@ -164,7 +164,7 @@ def test_result_json_records_sensor_grid_setup_and_provenance():
 
 # ------------------------------------------------------------------------------ 3. degenerate inputs
 def test_psog_without_entropy_is_an_error(capsys):
-    assert main(["evaluate", "--frames", "3", "--voxel-size", "0.8", "--quiet",
+    assert main(["evaluate", "--frames", "3", "--voxel-size", "0.8", "--quiet", "--routes", "1",
                  "center", "--output", "e.json"]) == 2
     msg = _err(capsys)
     assert "no entropy" in msg and "T = 1" in msg and "8 frames" in msg

@@ -17,7 +17,7 @@ from place3d_kernels.subset_records import spec_subset_records
 from place3d_kernels.uncertainty import NOISE_LEVEL, bootstrap_records, pairwise, rig_vs_baselines_intervals
 
 #: 16 frames at k = 4: T = 4 subsets, so resamples differ (35 distinct pools) and intervals are not trivial
-TINY = ["--frames", "16", "--voxel-size", "0.8", "--quiet"]
+TINY = ["--frames", "16", "--voxel-size", "0.8", "--quiet", "--routes", "1"]
 NAMES = ["center", "line", "pyramid", "square"]
 
 

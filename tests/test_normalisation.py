@@ -128,7 +128,7 @@ def test_cli_writes_diagnostics_and_holdout(tmp_path, capsys):
     have = {name for name, ok, _ in backend_report() if ok}
     b = "opencl:pocl" if "opencl:pocl" in have else "reference"
     out = tmp_path / "run"
-    assert main(["optimize", "--frames", "8", "--voxel-size", "0.8", "--max-evals", "24", "--quiet", "--backend", b,
+    assert main(["optimize", "--frames", "8", "--voxel-size", "0.8", "--max-evals", "24", "--quiet", "--routes", "1", "--backend", b,
                  "--holdout-seeds", "1", "--output", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "diagnostics: N_L" in printed and "held out town seed 1" in printed

@@ -83,7 +83,7 @@ def _cli(*args, env_cache):
 
 def test_cli_evaluate_writes_json(tmp_path):
     out = tmp_path / "eval.json"
-    r = _cli("evaluate", "center", "pyramid", "ours-seg", "--frames", "8", "--voxel-size", "0.4", "--quiet",
+    r = _cli("evaluate", "center", "pyramid", "ours-seg", "--frames", "8", "--voxel-size", "0.4", "--quiet", "--routes", "1",
              "--backend", "warp:cpu", "--output", str(out), env_cache=tmp_path / "c")
     assert r.returncode == 0, r.stderr
     data = json.loads(out.read_text())

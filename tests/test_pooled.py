@@ -165,20 +165,24 @@ def test_reproduce_tiny_end_to_end(tmp_path):
     from place3d_app.cli import main
 
     out = tmp_path / "repro"
-    rc = main(["reproduce", "--towns", "town", "--routes", "2", "--frames", "4", "--voxel-size", "0.4",
-               "--frames-per-subset", "2", "--resamples", "8", "--output", str(out),
+    rc = main(["reproduce", "--towns", "town", "--route-seeds", "100,101", "--frames", "4", "--voxel-size", "0.4",
+               "--frames-per-subset", "2", "--placements", "2d-plane", "--output", str(out),
                "--quiet"])
     assert rc == 0
     res = json.loads((out / "reproduce.json").read_text())
     assert set(res) >= {"settings", "machine", "time_utc", "seconds", "drives", "tasks", "convergence"}
     assert res["settings"]["voxel_size"] == 0.4 and res["settings"]["routes"] == 2 and len(res["drives"]) == 2
+    assert res["settings"]["route_seeds"] == [100, 101] and res["drives"] == ["town-s100-f4", "town-s101-f4"]
     for task in ("seg", "det"):
         t = res["tasks"][task]
         for k in ("placements", "msog", "ci_low", "ci_high", "se", "bias", "rank", "paper_msog_1e-6", "paper_rank",
-                  "downstream", "samples", "tau_paper", "tau_paper_ci", "tau_downstream", "tau_downstream_ci", "order_freq",
-                  "within_noise"):
+                  "downstream", "samples", "tau_paper", "tau_paper_loo_range", "tau_downstream",
+                  "tau_downstream_loo_range", "order_freq", "within_noise"):
             assert k in t, k
-        assert len(t["msog"]) == 8 and all(lo <= hi for lo, hi in zip(t["ci_low"], t["ci_high"]))
+        # the user's rig ranked beside the paper's eight; every interval contains its own point
+        assert t["placements"][-1] == "2d-plane" and len(t["msog"]) == 9 and t["paper_rank"][-1] is None
+        assert all(lo <= x <= hi for lo, x, hi in zip(t["ci_low"], t["msog"], t["ci_high"]))
+        assert t["df"] == 1 and len(t["samples"]) == 2          # two routes, each left out once
         assert -1.0 <= t["tau_paper"] <= 1.0
     assert res["convergence"][0]["n"] == 1 and "tau_seg" in res["convergence"][0]
     assert (out / "reproduce.png").stat().st_size > 10_000

@@ -15,13 +15,26 @@ from place3d_app.prefetch import backend_after_actors
 __all__ = ["add_common", "check_output_file", "check_output_dir", "psog_for_spec"]
 
 
-def add_common(p: argparse.ArgumentParser) -> None:
+class SceneList(argparse.Action):
+    """``--scene`` given several times: ``args.scenes`` lists them all, ``args.scene`` stays the first
+    (``commands/routes.py`` pools them)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        scenes = list(getattr(namespace, "scenes", None) or []) + [values]
+        namespace.scenes = scenes
+        namespace.scene = scenes[0]
+
+
+def add_common(p: argparse.ArgumentParser, several_scenes: bool = False) -> None:
+    """The scene and condition options; ``several_scenes``: ``--scene`` may repeat (pooled commands)."""
     p.add_argument("--backend", default=None,
                    help="reference | warp[:cpu|:cuda:N] | opencl[:platform] | auto (default: $PLACE3D_BACKEND or auto)")
-    p.add_argument("--scene", default="town",
-                   help="scene: 'town' (the embedded procedural town), 'opendrive:PATH' (e.g. a CARLA .xodr map), "
-                        "'mesh:PATH' (a mesh file trimesh reads or a Mitsuba XML; see --labels, --route) or "
-                        "'semantickitti:DIR' (labelled frames + poses.txt: the P-SOG is built from them)")
+    extra = {"action": SceneList} if several_scenes else {}
+    p.add_argument("--scene", default="town", **extra,
+                   help="scene: 'town' (the embedded procedural town), 'opendrive:PATH' (e.g. a CARLA .xodr map) or "
+                        "'opendrive:Town06' (a shipped CARLA map by name), 'mesh:PATH' (a mesh file trimesh reads or "
+                        "a Mitsuba XML; see --labels, --route) or 'semantickitti:DIR' (labelled frames + poses.txt: "
+                        "the P-SOG is built from them)" + ("; repeat it to pool several scenes" if several_scenes else ""))
     p.add_argument("--labels", default=None,
                    help="mesh scenes: TOML label map (part name -> class) or one class for the whole file")
     p.add_argument("--route", default=None,

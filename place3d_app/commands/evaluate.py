@@ -33,7 +33,17 @@ def cmd_evaluate(args) -> int:
     names = args.placements or list(PAPER_PLACEMENTS)
     placements = [Placement.load(n) for n in names]
     body = spec.vehicle_body()
-    _, psog = psog_for_spec(spec, args, b)
+    from place3d_app.commands.routes import drive_specs, pooled_psog
+
+    drives = drive_specs(args, spec)
+    if len(drives) > 1 and args.interval == "bootstrap":
+        raise ValueError("--interval bootstrap resamples the subsets of a single drive (--routes 1); over routes "
+                         "its resamples repeat drives and score high, so a pooled P-SOG takes the jackknife")
+    pool = pooled_psog(args, spec, b, drives)
+    if pool is None:
+        _, psog = psog_for_spec(spec, args, b)
+    else:
+        psog = pool[2]
     rows = []
     for name, pl in tqdm(list(zip(names, placements)), desc="evaluate", unit="placement", disable=args.quiet,
                          leave=False):
@@ -43,11 +53,18 @@ def cmd_evaluate(args) -> int:
                                body=body)[0])
         rows.append({"placement": pl.name or name, "msog_seg": seg, "msog_det": det})
     rows.sort(key=lambda r: -r["msog_seg"])
-    boots = (_evaluate_bootstrap(args, spec, b, lidar, names, placements, rows)
-             if args.resamples and args.interval != "none" else None)
+    if args.interval == "none" or (pool is None and not args.resamples):
+        boots = None
+    elif pool is None:
+        boots = _evaluate_bootstrap(args, spec, b, lidar, names, placements, rows)
+    else:
+        boots = _route_intervals(args, pool, psog, b, lidar, names, placements, rows, body)
     seconds = time.perf_counter() - t0
     cond = f", condition {args.condition}" if args.condition else ""
-    print(f"M-SOG on scene {args.scene} (seed {args.seed}{cond}), backend {b.name}, grid {psog.grid.shape} "
+    where = (f"scene {args.scene} (seed {args.seed}{cond})" if pool is None else
+             f"a P-SOG pooled over {len(drives)} drives ({', '.join(dict.fromkeys(pool[1]))}; route seeds "
+             f"{_seed_text(drives)}{cond})")
+    print(f"M-SOG on {where}, backend {b.name}, grid {psog.grid.shape} "
           f"@ {psog.grid.voxel_size} m, occlusion {args.occlusion}, vehicle {spec.vehicle or 'none'}"
           + (f", normalisation {args.normalisation}" if args.normalisation != "paper" else "") + "; higher is better")
     det_rank = {r["placement"]: i + 1 for i, r in enumerate(sorted(rows, key=lambda r: -r["msog_det"]))}
@@ -60,15 +77,19 @@ def cmd_evaluate(args) -> int:
         _print_intervals(rows, boots, det_rank)
     print(f"{seconds:.1f} s")
     if args.output:
+        from place3d_app.commands.reproduce import machine_info
         from place3d_kernels.manifest import provenance
 
         out = {"rows": rows, "backend": b.name, "grid": psog.grid.to_dict(), "seconds": seconds,
                "scene": spec.scene.to_dict(), "occlusion": args.occlusion, "lidar": lidar.name,
                "condition": None if spec.condition is None else spec.condition.to_dict(),
                "psog": spec.to_dict(), "n_subsets": psog.n_subsets, "seed": args.seed,
-               "normalisation": args.normalisation, "vehicle": None if body is None else
+               "normalisation": args.normalisation,
+               "drives": [d.scene.label for d in drives], "scenes": list(dict.fromkeys(d.scene.name for d in drives)),
+               "route_seeds": sorted({d.scene.seed for d in drives}),
+               "vehicle": None if body is None else
                {"name": body.name, "key": body.key, "bounds_m": body.bounds.round(4).tolist()},
-               "provenance": provenance(backend=b.name)}
+               "machine": machine_info(b.name), "provenance": provenance(backend=b.name)}
         if boots is not None:
             out["bootstrap"] = _bootstrap_summary(args, boots)
         from place3d_kernels.atomic import atomic_write_text
@@ -79,12 +100,46 @@ def cmd_evaluate(args) -> int:
         from place3d_kernels.uncertainty import plot_scores
 
         with section("plotting"):
-            plot_scores({f"M-SOG {t} ({args.scene}, seed {args.seed}{cond})": boots[t] for t in ("seg", "det")},
-                        plot, title=f"M-SOG of {len(rows)} placements, {int(boots['seg'].level * 100)} % bootstrap "
-                                    f"intervals over the drive's subsets")
+            what = (f"{args.scene}, seed {args.seed}{cond}" if pool is None else f"{len(drives)} drives pooled{cond}")
+            plot_scores({f"M-SOG {t} ({what})": boots[t] for t in ("seg", "det")},
+                        plot, title=f"M-SOG of {len(rows)} placements, {int(boots['seg'].level * 100)} % intervals over "
+                                    f"the {boots['seg'].unit} ({boots['seg'].method if hasattr(boots['seg'], 'method') else 'bootstrap'})")
         if not args.quiet:
             print(f"wrote {plot}", file=sys.stderr)
     return 0
+
+
+def _seed_text(drives) -> str:
+    seeds = sorted({d.scene.seed for d in drives})
+    if seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 2:
+        return f"{seeds[0]}-{seeds[-1]}"
+    return ",".join(str(s) for s in seeds)
+
+
+def _route_intervals(args, pool, psog, backend, lidar, names, placements, rows, body) -> dict | None:
+    """{task: Jackknife} over the pooled drives (each left out once, stratified by scene, t quantiles);
+    None where no scene has two routes. Point estimates are the printed scores; ``ci`` and ``pairwise``
+    are added to each row."""
+    from place3d_kernels.uncertainty import jackknife_records, pairwise, route_df
+
+    pooled, strata, _ = pool
+    df = route_df(len(pooled), strata)
+    if df < 1:
+        print("no intervals: every scene has one route (an interval over routes needs two in some scene)",
+              file=sys.stderr)
+        return None
+    order = [r["placement"] for r in rows]
+    by_name = {(pl.name or n): pl for n, pl in zip(names, placements)}
+    point = {t: [r[f"msog_{t}"] for r in rows] for t in ("seg", "det")}
+    with section("jackknife over routes: rescoring"):
+        boots = jackknife_records(pooled.records, pooled.grid, lidar, {n: by_name[n] for n in order}, ("seg", "det"),
+                                  args.occlusion, backend, point=point, unit="drives", progress=not args.quiet,
+                                  normalisation=args.normalisation, body=body, reference=psog, strata=strata, df=df)
+    pw = {t: pairwise(bt) for t, bt in boots.items()}
+    for i, r in enumerate(rows):
+        r["ci"] = {t: boots[t].ci[i].tolist() for t in boots}
+        r["pairwise"] = {t: pw[t][r["placement"]] for t in boots}
+    return boots
 
 
 def _evaluate_bootstrap(args, spec, backend, lidar, names, placements, rows) -> dict:
@@ -137,7 +192,11 @@ def _print_intervals(rows, boots, det_rank) -> None:
         cs, cd = seg.ci[i], det.ci[i]
         print(f"{mark}  {i + 1:>4}  {r['placement']:14s} {r['msog_seg']:12.6f} [{cs[0]:10.6f}, {cs[1]:10.6f}] "
               f"{r['msog_det']:12.6f} [{cd[0]:10.6f}, {cd[1]:10.6f}]   (det rank {det_rank[r['placement']]})")
-    if getattr(seg, "method", "bootstrap") == "jackknife":
+    if getattr(seg, "method", "bootstrap") == "jackknife" and seg.unit == "drives":
+        print(f"intervals: jackknife over the {seg.n_units} pooled routes (each left out once, stratified by scene), "
+              f"point +- {seg._z():.2f} se (t, {seg.df} df): the expected score of a pool of this many routes; "
+              f"'~': P(order with the row above holds) < {NOISE_LEVEL:.2f}")
+    elif getattr(seg, "method", "bootstrap") == "jackknife":
         print(f"intervals: delete-one-subset jackknife over the drive's {seg.n_units} subsets, point +- "
               f"{seg._z():.2f} se (within one drive: narrower than over routes); '~': P(order with the row above "
               f"holds) < {NOISE_LEVEL:.2f}, from the jackknife se of the difference")
@@ -162,7 +221,10 @@ def _print_intervals(rows, boots, det_rank) -> None:
 
 def _bootstrap_summary(args, boots) -> dict:
     seg = boots["seg"]
-    if args.interval == "jackknife":
+    if seg.unit == "drives":
+        method = ("jackknife over the pooled routes, each left out once, stratified by scene (rows: ci = point +- "
+                  "t(df) se; pairwise[task][B] = T_df(d / se_d), d = row - B, se_d the jackknife se of the difference)")
+    elif args.interval == "jackknife":
         method = ("delete-one-subset jackknife of the drive (rows: ci = point +- z se; pairwise[task][B] = "
                   "Phi(d / se_d), d = row - B, se_d the jackknife se of the difference)")
     else:
@@ -171,6 +233,7 @@ def _bootstrap_summary(args, boots) -> dict:
     return {"unit": seg.unit, "n_units": seg.n_units,
             "n_resamples": int(args.resamples) if args.interval == "bootstrap" else seg.n_units,
             "seed": args.resample_seed, "level": seg.level, "method": method, "interval": args.interval,
+            "df": getattr(seg, "df", None),
             "within_noise": {t: [list(p) for p in bt.within_noise()] for t, bt in boots.items()},
             "se": {t: dict(zip(bt.names, bt.se.tolist())) for t, bt in boots.items()},
             "bias": {t: dict(zip(bt.names, bt.bias.tolist())) for t, bt in boots.items()}}

@@ -78,6 +78,9 @@ def run_setup(args, spec) -> dict:
             "fixed_height": args.fixed_height, "min_distance": args.min_distance, "popsize": args.popsize,
             "sigma0": args.sigma0, "x0": args.x0, "restarts": args.restarts, "delta": args.delta,
             "seed": args.opt_seed, "occlusion": args.occlusion,
+            # pooled runs only, so the manifests of single-drive runs still match
+            **({"drives": [d.scene.to_dict() for d in args.drives]} if len(getattr(args, "drives", None) or ()) > 1
+               else {}),
             # only when not the paper's, so the manifests of earlier runs still match
             **({"normalisation": args.normalisation} if getattr(args, "normalisation", "paper") != "paper" else {})}
 
@@ -111,6 +114,13 @@ def check_args(args, spec) -> None:
     from place3d_app.executors import check_actor_arguments
 
     check_actor_arguments(args)          # --gpu-actors / --cpu-actors need --executor ray
+    if len(getattr(args, "drives", None) or ()) > 1 and args.interval == "bootstrap":
+        raise ValueError("--interval bootstrap resamples the subsets of a single drive (--routes 1); over routes its "
+                         "resamples repeat drives and score high, so a pooled P-SOG takes the jackknife")
+    if len(getattr(args, "drives", None) or ()) > 1 and (getattr(args, "executor", "local") == "ray"
+                                                         or getattr(args, "ray_address", None)):
+        raise ValueError("the Ray executor scores on one drive's P-SOG; run a pooled P-SOG locally, or use "
+                         "--routes 1 with --executor ray")
     if args.normalisation != "paper" and (getattr(args, "executor", "local") == "ray"
                                           or getattr(args, "ray_address", None)):
         raise ValueError(f"--normalisation {args.normalisation} is not supported with the Ray executor; "
@@ -209,7 +219,8 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     # The jackknife after the search scores the rigs on the drive's left-out grids, which depend on the
     # records and the task, not on the search: they are prepared on a thread while it runs
     # (place3d_app.prefetch.prepare_in_background)
-    if args.interval == "jackknife" and args.lidars == 4:      # the baselines' intervals: 4-LiDAR rigs
+    if args.interval == "jackknife" and args.lidars == 4 and getattr(args, "pool", None) is None:
+        # the baselines' intervals over one drive's subsets: 4-LiDAR rigs (a pool's are over its routes)
         from place3d_app.prefetch import prefetch_wanted, prepare_in_background
 
         if prefetch_wanted():
@@ -304,6 +315,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
                   "evaluations": res.evaluations, "seconds": seconds, "backend": b.name, "seed": args.opt_seed,
                   "x0": x0.name if x0 is not None else "box centre", "sigma0": sigma0,
                   "scene": spec.scene.to_dict(), "grid": psog.grid.to_dict(), "n_subsets": psog.n_subsets,
+                  "drives": [d.scene.label for d in getattr(args, "drives", None) or [spec]],
                   "sensor": {"name": lidar.name, "n_lidars": args.lidars, "occlusion": args.occlusion},
                   "condition": None if spec.condition is None else spec.condition.to_dict(),
                   "setup": run_setup(args, spec), "left_start": res.left_start,
@@ -346,9 +358,10 @@ def holdout_specs(args, spec) -> list:
     # a bare map name (Town03) is looked up like `place3d reproduce` does (shipped CARLA maps included)
     scenes = [n if ":" in n or n == "town" else resolve_town(n) for n in scenes]
     out = []
+    trained = {(d.scene.name, d.scene.seed) for d in getattr(args, "drives", None) or [spec]}
     for name in scenes:
         for seed in seeds:
-            if name == spec.scene.name and seed == spec.scene.seed:
+            if (name, seed) in trained:
                 raise ValueError(f"held-out P-SOG {name} seed {seed} is the training one; hold out other seeds "
                                  f"or scenes")
             scene = dataclasses.replace(spec.scene, name=name, seed=seed)
@@ -363,14 +376,19 @@ def report_intervals(args, spec, res, lidar, b, base_poses, psog=None) -> dict |
     """Intervals of the best rig and each baseline over the drive's subsets, printed (issue 13, item 3)."""
     if args.interval == "none" or not base_poses:
         return None
-    from place3d_kernels.uncertainty import rig_vs_baselines_intervals
+    from place3d_kernels.uncertainty import rig_vs_baselines_intervals, route_df
 
+    pool = getattr(args, "pool", None)         # a pooled P-SOG: intervals over its routes (jackknife only)
+    if pool is not None and route_df(len(pool[0]), pool[1]) < 1:
+        print("no intervals: every scene has one route (an interval over routes needs two in some scene)")
+        return None
     with section(f"intervals ({args.interval})"):
-        iv = rig_vs_baselines_intervals(spec, lidar, res.best_placement.poses, base_poses, args.task,
-                                        args.occlusion, b, args.resamples, args.opt_seed, method=args.interval,
-                                        best_name="optimised", normalisation=args.normalisation, reference=psog)
+        iv = rig_vs_baselines_intervals(spec if pool is None else pool[0], lidar, res.best_placement.poses, base_poses,
+                                        args.task, args.occlusion, b, args.resamples, args.opt_seed,
+                                        method=args.interval, best_name="optimised", normalisation=args.normalisation,
+                                        reference=psog, strata=None if pool is None else pool[1])
     lo, hi = iv["best"]["ci"]
-    print(f"95 % intervals ({iv['method']} over the drive's {iv['n_units']} {iv['unit']}): optimised "
+    print(f"95 % intervals ({iv['method']} over the {iv['n_units']} {iv['unit']}): optimised "
           f"{iv['best']['score']:.6f} [{lo:.6f}, {hi:.6f}]")
     noisy = [r for r in iv["baselines"] if r["within_noise"]]
     for r in sorted(iv["baselines"], key=lambda r: -r["score"])[:4]:

@@ -1,20 +1,24 @@
 """``place3d reproduce``: the paper's M-SOG study of its eight placements, pooled, with intervals.
 
-For segmentation and detection it scores the seven baselines and the task's optimised placement
-("ours") on a P-SOG pooled over the four CARLA towns (``--towns``) x ``--routes`` routes each, gives
-every score a bootstrap interval over routes, the share of resamples in which each pairwise order
-holds, and Kendall's tau of the package's order against the paper's Table 1 M-SOG and against the
-paper's downstream results (``paper_results``). ``convergence`` shows whether the order still moves
-with more routes: tau between the P-SOG of N routes per town and that of 2N routes.
+For segmentation and detection it scores the seven baselines, the task's optimised placement ("ours")
+and any of the user's rigs (``--placements``) on a P-SOG pooled over the four CARLA towns (``--towns``) x
+``--routes`` routes each (or the seeds ``--route-seeds`` names), gives every score a 95 % interval over
+routes (a jackknife: each route left out once, stratified by town, t quantiles;
+``uncertainty.jackknife_pooled``), the probability that each pairwise order holds, and Kendall's tau of the
+order of the paper's eight against the paper's Table 1 M-SOG and against the paper's downstream results
+(``paper_results``). ``convergence`` shows whether the order still moves with more routes: tau between the
+P-SOG of N routes per town and that of 2N routes.
 
 Output (``--output``, default ``bench/results/reproduce-<date>/``): ``reproduce.json`` (keys:
 ``settings``, ``machine``, ``time_utc``, ``seconds``, ``drives``, ``tasks`` -> seg/det -> placements,
-msog, ci_low, ci_high, se, bias, rank, paper_msog, paper_rank, downstream, tau_paper, tau_paper_ci,
-tau_downstream, tau_downstream_ci, order_freq, within_noise, samples; ``convergence``) and ``reproduce.png``.
+msog, ci_low, ci_high, se, bias, df, rank, paper_msog, paper_rank, downstream, tau_paper,
+tau_paper_loo_range, tau_downstream, tau_downstream_loo_range, order_freq, within_noise, samples (the
+leave-one-route-out scores); ``convergence``) and ``reproduce.png``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -28,7 +32,7 @@ import numpy as np
 
 from place3d_kernels import paper_results as paper
 from place3d_kernels.pooled import Drive, PooledPSOG, PoolSettings, build_pooled
-from place3d_kernels.uncertainty import Bootstrap, bootstrap_pooled, kendall_tau, plot_scores
+from place3d_kernels.uncertainty import Jackknife, jackknife_pooled, kendall_tau, plot_scores
 
 __all__ = ["reproduce", "convergence", "paper_poses", "placement_scorer", "det_view", "resolve_town", "DEFAULT_TOWNS", "DET_VARIANTS",
            "add_arguments", "run", "machine_info"]
@@ -106,11 +110,18 @@ def det_view(psog, variant: str = "vehicle"):
                 ("empty", "vehicle", "pedestrian", "other"), psog.n_subsets)
 
 
-def placement_scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: str):
-    """score(psog) -> (16,) seg scores of the eight placements, then det scores."""
+def placement_scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: str, extra=None):
+    """score(psog) -> (2 P,) seg scores of the eight placements and the ``extra`` ones ((E, L, 6) poses, the
+    user's rigs), then their det scores (P = 8 + E)."""
     from place3d_kernels.metrics import msog_batch
 
     seg_poses, det_poses = paper_poses("seg", roll_units), paper_poses("det", roll_units)
+    if extra is not None and len(extra):
+        extra = np.asarray(extra, dtype=np.float64)
+        if extra.shape[1:] != seg_poses.shape[1:]:
+            raise ValueError(f"--placements: rigs of {extra.shape[1]} LiDARs cannot be scored in one batch with the "
+                             f"paper's {seg_poses.shape[1]}-LiDAR rigs")
+        seg_poses, det_poses = np.concatenate([seg_poses, extra]), np.concatenate([det_poses, extra])
 
     def score(psog):
         seg = msog_batch(psog, lidar, seg_poses, occlusion=occlusion, task="seg", backend=backend)
@@ -139,32 +150,39 @@ def machine_info(backend_name: str | None = None) -> dict:
 
 
 # ---------------------------------------------------------------------------------------- study
-def _task_table(task: str, boot: Bootstrap) -> dict:
+def _task_table(task: str, boot: Jackknife) -> dict:
+    """One task's table. The paper's columns and the taus use the paper's eight placements (the first
+    eight); the user's rigs (``--placements``) follow them, ranked among all."""
     ref, down = np.array(paper.paper_msog(task)), np.array(paper.downstream(task))
     pt = boot.point
     ci = boot.ci
-    taus_p = np.array([kendall_tau(s, ref) for s in boot.samples])
-    taus_d = np.array([kendall_tau(s, down) for s in boot.samples])
-    a = (1 - boot.level) / 2
+    P = len(pt)
+    # tau of every leave-one-route-out pool: how far the agreement moves when one route goes (a range,
+    # not a confidence interval: tau is a step function of the scores)
+    taus_p = np.array([kendall_tau(s[:8], ref) for s in boot.samples])
+    taus_d = np.array([kendall_tau(s[:8], down) for s in boot.samples])
 
-    def q(x):
-        return [float(v) for v in np.nanquantile(x, [a, 1 - a])] if np.any(np.isfinite(x)) else [None, None]
+    def rng(x):
+        return [float(np.nanmin(x)), float(np.nanmax(x))] if np.any(np.isfinite(x)) else [None, None]
+
+    def pad(v):
+        return list(v) + [None] * (P - 8)
 
     rank = (-pt).argsort().argsort() + 1
     prank = (-ref).argsort().argsort() + 1
-    return {"placements": list(paper.PLACEMENTS), "ours_is": paper.OURS[task], "msog": pt.tolist(),
+    return {"placements": list(boot.names), "ours_is": paper.OURS[task], "msog": pt.tolist(),
             "ci_low": ci[:, 0].tolist(), "ci_high": ci[:, 1].tolist(), "se": boot.se.tolist(),
-            "bias": boot.bias.tolist(),
-            "rank": rank.tolist(), "paper_msog_1e-6": ref.tolist(), "paper_rank": prank.tolist(),
-            "downstream": [round(v, 4) for v in down.tolist()],
+            "bias": boot.bias.tolist(), "df": boot.df,
+            "rank": rank.tolist(), "paper_msog_1e-6": pad(ref.tolist()), "paper_rank": pad(prank.tolist()),
+            "downstream": pad(round(v, 4) for v in down.tolist()),
             "downstream_metric": "mean clean mIoU (%) of 4 models" if task == "seg" else
                                  "mean clean car mAP (%) of 4 models",
-            "tau_paper": kendall_tau(pt, ref), "tau_paper_ci": q(taus_p),
-            "tau_downstream": kendall_tau(pt, down), "tau_downstream_ci": q(taus_d),
+            "tau_paper": kendall_tau(pt[:8], ref), "tau_paper_loo_range": rng(taus_p),
+            "tau_downstream": kendall_tau(pt[:8], down), "tau_downstream_loo_range": rng(taus_d),
             "paper_tau_msog_vs_downstream": kendall_tau(ref, down),
             "order_freq": np.round(boot.order_freq, 4).tolist(),
             "within_noise": [list(p) for p in boot.within_noise()],
-            "samples": boot.samples.tolist()}        # (R, 8): replot or recompute intervals from the JSON
+            "samples": boot.samples.tolist()}        # (drives, P) leave-one-route-out scores
 
 
 def convergence(pooled: PooledPSOG, routes_of: list[int], score, ns=None) -> list[dict]:
@@ -179,7 +197,7 @@ def convergence(pooled: PooledPSOG, routes_of: list[int], score, ns=None) -> lis
         rows {n, tau_seg, tau_det (N vs 2N, nested: the 2N pool contains the N pool), tau_seg_disjoint,
         tau_det_disjoint (routes [0, N) vs [N, 2N)), tau_seg_paper and tau_det_paper of the 2N pool}.
     """
-    R = max(routes_of) + 1
+    R = max(routes_of) + 1          # routes_of: the route's index (0 .. R-1) in the run's seed list
     if ns is None:
         ns, n = [], 1
         while 2 * n <= R:
@@ -199,34 +217,47 @@ def convergence(pooled: PooledPSOG, routes_of: list[int], score, ns=None) -> lis
         if 2 * n > R:
             raise ValueError(f"convergence N={n} needs {2 * n} routes per town, only {R} were built")
         a, b, c = scores(0, n), scores(0, 2 * n), scores(n, 2 * n)
+        P = len(a) // 2
         rows.append({"n": n, "two_n": 2 * n,
-                     "tau_seg": kendall_tau(a[:8], b[:8]), "tau_det": kendall_tau(a[8:], b[8:]),
-                     "tau_seg_disjoint": kendall_tau(a[:8], c[:8]), "tau_det_disjoint": kendall_tau(a[8:], c[8:]),
+                     "tau_seg": kendall_tau(a[:P], b[:P]), "tau_det": kendall_tau(a[P:], b[P:]),
+                     "tau_seg_disjoint": kendall_tau(a[:P], c[:P]), "tau_det_disjoint": kendall_tau(a[P:], c[P:]),
                      "tau_seg_paper": kendall_tau(b[:8], paper.paper_msog("seg")),
-                     "tau_det_paper": kendall_tau(b[8:], paper.paper_msog("det"))})
+                     "tau_det_paper": kendall_tau(b[P:P + 8], paper.paper_msog("det"))})
     return rows
 
 
 def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size: float | None = None,
               frames_per_subset: int | None = None, occlusion: str = "sog", rig_lidar: str = "place3d_16ch",
               collection_lidar: str = "collection_64ch", roll_units: str = "rad", det_variant: str = "vehicle",
-              n_resamples: int = 200, seed: int = 0, backend=None, executor=None, opendrive_dir=None,
-              with_convergence: bool = True, cache=None, progress: bool = False) -> dict:
-    """Run the study; returns the JSON-able result (see the module docstring for its keys)."""
+              backend=None, executor=None, opendrive_dir=None, with_convergence: bool = True, cache=None,
+              progress: bool = False, route_seeds=None, placements=()) -> dict:
+    """Run the study; returns the JSON-able result (see the module docstring for its keys).
+
+    ``route_seeds``: the seeds of the routes (default 0 .. routes-1); ``placements``: the user's rigs
+    (names or TOML paths), scored beside the paper's eight."""
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
+    from place3d_kernels.placement import Placement
 
     t0 = time.perf_counter()
+    seeds = list(range(routes)) if route_seeds is None else [int(s) for s in route_seeds]
+    routes = len(seeds)
     if routes < 1 or frames < 1:
         raise ValueError(f"routes and frames must be >= 1, got routes={routes}, frames={frames}")
+    if routes < 2:
+        raise ValueError("an interval over routes needs at least 2 routes per town (--routes 2 or more)")
+    extra = [Placement.load(p) for p in placements]
+    names = list(paper.PLACEMENTS) + [pl.name or Path(str(p)).stem for pl, p in zip(extra, placements)]
+    if len(set(names)) != len(names):
+        raise ValueError(f"--placements: names must differ from each other and from the paper's {list(paper.PLACEMENTS)}")
     if det_variant not in DET_VARIANTS:
         raise ValueError(f"det_variant must be one of {DET_VARIANTS}, got {det_variant!r}")
     b = get_backend(backend)
     scenes = [resolve_town(t, opendrive_dir) for t in towns]
     drives, routes_of, town_of = [], [], []
-    for r in range(routes):                    # route-major, so a partial pool still spans every town
+    for r, seed_r in enumerate(seeds):         # route-major, so a partial pool still spans every town
         for i, s in enumerate(scenes):
-            drives.append(Drive(s, seed=r, frames=frames))
+            drives.append(Drive(s, seed=seed_r, frames=frames))
             routes_of.append(r)
             town_of.append(i)
     settings = PoolSettings(voxel_size, collection_lidar, frames_per_subset, b.name, cache)
@@ -234,23 +265,27 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
     pooled = build_pooled(drives, settings, executor=executor, progress=progress)
     t_pool = time.perf_counter() - t1
     lidar = LidarModel.load(rig_lidar)
-    score = placement_scorer(lidar, occlusion, b, roll_units, det_variant)
+    score = placement_scorer(lidar, occlusion, b, roll_units, det_variant,
+                             np.stack([pl.poses for pl in extra]) if extra else None)
     t1 = time.perf_counter()
-    # routes are resampled within each town: the four towns are the study's design, the routes its sample
-    point, samples, _ = bootstrap_pooled(pooled, score, n_resamples, seed, progress, strata=town_of)
+    # each route left out once, stratified by town: the four towns are the study's design, the routes its
+    # sample (uncertainty.jackknife_pooled: the bootstrap's resamples repeat routes and score high)
+    jk = jackknife_pooled(pooled, score, strata=town_of)
     t_boot = time.perf_counter() - t1
-    names = list(paper.PLACEMENTS)
-    boots = {task: Bootstrap(names, point[i * 8:(i + 1) * 8], samples[:, i * 8:(i + 1) * 8], 0.95, "drives",
-                             len(pooled)) for i, task in enumerate(TASKS)}
-    conv = convergence(pooled, routes_of, score) if with_convergence and routes >= 2 else []
-    settings_d = {"towns": list(towns), "routes": routes, "frames": frames, **settings.to_dict(),
-                  "grid": settings.grid.to_dict(), "occlusion": occlusion, "rig_lidar": rig_lidar,
-                  "roll_units": roll_units, "det_variant": det_variant, "n_resamples": n_resamples,
-                  "bootstrap": "routes resampled with replacement within each town",
-                  "seed": seed, "executor": getattr(executor, "kind", "local"), "n_subsets_total": pooled.n_subsets}
+    P = len(names)
+    boots = {task: dataclasses.replace(jk, names=names, point=jk.point[i * P:(i + 1) * P],
+                                       samples=jk.samples[:, i * P:(i + 1) * P]) for i, task in enumerate(TASKS)}
+    conv = convergence(pooled, routes_of, score) if with_convergence else []
+    settings_d = {"towns": list(towns), "routes": routes, "route_seeds": seeds, "frames": frames,
+                  **settings.to_dict(), "grid": settings.grid.to_dict(), "occlusion": occlusion,
+                  "rig_lidar": rig_lidar, "roll_units": roll_units, "det_variant": det_variant,
+                  "placements": [str(p) for p in placements],
+                  "interval": "jackknife over routes, each left out once, stratified by town; point +- t se "
+                              f"({jk.df} df)",
+                  "executor": getattr(executor, "kind", "local"), "n_subsets_total": pooled.n_subsets}
     return {"settings": settings_d, "machine": machine_info(b.name),
             "time_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "seconds": {"pool": round(t_pool, 2), "bootstrap": round(t_boot, 2),
+            "seconds": {"pool": round(t_pool, 2), "jackknife": round(t_boot, 2),
                         "total": round(time.perf_counter() - t0, 2)},
             "drives": pooled.labels, "tasks": {t: _task_table(t, boots[t]) for t in TASKS},
             "convergence": conv, "_boots": boots}
@@ -260,27 +295,31 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
 def format_report(res: dict) -> str:
     s = res["settings"]
     lines = [f"Pooled M-SOG over {len(res['drives'])} drives ({len(s['towns'])} towns x {s['routes']} routes, "
-             f"{s['frames']} frames, T = {s['n_subsets_total']} subsets), voxel {s['voxel_size']} m, k = "
-             f"{s['frames_per_subset']}, occlusion {s['occlusion']}, roll in {s['roll_units']}, det = {s['det_variant']}; "
-             f"95 % intervals over {s['n_resamples']} route resamples. Higher is better."]
+             f"route seeds {_seeds_text(s['route_seeds'])}, {s['frames']} frames, T = {s['n_subsets_total']} subsets), "
+             f"voxel {s['voxel_size']} m, k = {s['frames_per_subset']}, occlusion {s['occlusion']}, roll in "
+             f"{s['roll_units']}, det = {s['det_variant']}; 95 % intervals: {s['interval']}. Higher is better."]
     for task, t in res["tasks"].items():
         lines.append("")
         lines.append(f"[{task}]  'ours' = {t['ours_is']}; downstream = {t['downstream_metric']}")
         lines.append(f"{'rank':>4} {'placement':13s} {'M-SOG':>10s} {'95 % interval':>23s}  {'paper rank':>10s} "
                      f"{'paper x1e-6':>11s} {'downstream':>10s}")
+        def opt(v, fmt):
+            return f"{'-':>{len(format(0.0, fmt))}s}" if v is None else format(v, fmt)
+
         for i in np.argsort(t["rank"]):
             lines.append(f"{t['rank'][i]:>4} {t['placements'][i]:13s} {t['msog'][i]:10.5f} "
-                         f"[{t['ci_low'][i]:9.5f}, {t['ci_high'][i]:9.5f}]  {t['paper_rank'][i]:>10} "
-                         f"{t['paper_msog_1e-6'][i]:11.2f} {t['downstream'][i]:10.2f}")
+                         f"[{t['ci_low'][i]:9.5f}, {t['ci_high'][i]:9.5f}]  {opt(t['paper_rank'][i], '>10')} "
+                         f"{opt(t['paper_msog_1e-6'][i], '11.2f')} {opt(t['downstream'][i], '10.2f')}")
 
         def ci(c):
             return "n/a" if c[0] is None else f"[{c[0]:+.2f}, {c[1]:+.2f}]"
 
-        lines.append(f"Kendall tau vs paper M-SOG: {t['tau_paper']:+.3f} {ci(t['tau_paper_ci'])};  vs downstream: "
-                     f"{t['tau_downstream']:+.3f} {ci(t['tau_downstream_ci'])}  (paper's own M-SOG vs downstream: "
+        lines.append(f"Kendall tau (paper's eight) vs paper M-SOG: {t['tau_paper']:+.3f} (leave-one-route-out range "
+                     f"{ci(t['tau_paper_loo_range'])});  vs downstream: {t['tau_downstream']:+.3f} "
+                     f"({ci(t['tau_downstream_loo_range'])})  (paper's own M-SOG vs downstream: "
                      f"{t['paper_tau_msog_vs_downstream']:+.3f})")
         noise = ", ".join(f"{a}>{b} ({f:.2f})" for a, b, f in t["within_noise"]) or "none"
-        lines.append(f"within noise (order holds in < 95 % of resamples): {noise}")
+        lines.append(f"within noise (P(order holds) < 0.95, from the jackknife se of the difference): {noise}")
     if res["convergence"]:
         lines.append("")
         lines.append("Convergence: Kendall tau of the order from N routes/town vs 2N (nested) and vs routes N..2N-1 "
@@ -291,9 +330,15 @@ def format_report(res: dict) -> str:
             lines.append(f"{r['n']:>3} {r['two_n']:>3} {r['tau_seg']:9.3f} {r['tau_det']:9.3f} "
                          f"{r['tau_seg_disjoint']:9.3f} {r['tau_det_disjoint']:9.3f} {r['tau_seg_paper']:9.3f} "
                          f"{r['tau_det_paper']:9.3f}")
-    lines.append(f"{res['seconds']['total']:.1f} s (pool {res['seconds']['pool']:.1f} s, bootstrap "
-                 f"{res['seconds']['bootstrap']:.1f} s) on {res['machine']['cpu']}, backend {res['machine']['backend']}")
+    lines.append(f"{res['seconds']['total']:.1f} s (pool {res['seconds']['pool']:.1f} s, jackknife "
+                 f"{res['seconds']['jackknife']:.1f} s) on {res['machine']['cpu']}, backend {res['machine']['backend']}")
     return "\n".join(lines)
+
+
+def _seeds_text(seeds) -> str:
+    if len(seeds) > 2 and list(seeds) == list(range(seeds[0], seeds[-1] + 1)):
+        return f"{seeds[0]}-{seeds[-1]}"
+    return ",".join(str(s) for s in seeds)
 
 
 def write_outputs(res: dict, out) -> dict:
@@ -307,7 +352,9 @@ def write_outputs(res: dict, out) -> dict:
     png = out / "reproduce.png"
     boots = res["_boots"]
     panels = {f"{t} ({'ours = ' + paper.OURS[t]})": boots[t] for t in TASKS}
-    ref = {f"{t} ({'ours = ' + paper.OURS[t]})": paper.paper_msog(t) for t in TASKS}
+    # the paper's values for its eight; the user's rigs (--placements) have none
+    ref = {f"{t} ({'ours = ' + paper.OURS[t]})": list(paper.paper_msog(t)) + [np.nan] * (len(boots[t].names) - 8)
+           for t in TASKS}
     s = res["settings"]
     plot_scores(panels, png, title=f"Pooled M-SOG, {len(res['drives'])} drives ({len(s['towns'])} towns x "
                 f"{s['routes']} routes), {s['voxel_size']} m voxels", reference=ref,
@@ -323,6 +370,11 @@ def add_arguments(p) -> None:
     p.add_argument("--opendrive-dir", default=None, help="folder of the .xodr maps (default: $PLACE3D_OPENDRIVE_DIR, "
                                                          "./data/opendrive, then the shipped CARLA maps)")
     p.add_argument("--routes", type=int, default=4, help="routes (seeds 0..N-1) per town (default 4)")
+    p.add_argument("--route-seeds", default=None, metavar="SEEDS",
+                   help="the route seeds instead, e.g. 100-107 or 1,2,5 (ranges inclusive; routes the package never "
+                        "tuned on)")
+    p.add_argument("--placements", nargs="+", default=[], metavar="NAME|PATH",
+                   help="also score these placements (names or TOML files, 4 LiDARs), ranked beside the paper's eight")
     p.add_argument("--frames", type=int, default=40, help="frames per route (default 40, as the paper)")
     p.add_argument("--voxel-size", type=float, default=None, help="voxel size in metres (default 0.2)")
     p.add_argument("--frames-per-subset", type=int, default=None, help="k frames per SOG (default 4)")
@@ -332,8 +384,6 @@ def add_arguments(p) -> None:
     p.add_argument("--roll-units", default="rad", choices=["rad", "deg"],
                    help="read the paper's roll values as radians (default) or degrees (docs/assumptions.md)")
     p.add_argument("--det-variant", default="vehicle", choices=list(DET_VARIANTS), help="detection P-SOG classes")
-    p.add_argument("--resamples", type=int, default=200, help="bootstrap resamples over routes (default 200)")
-    p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
     p.add_argument("--no-convergence", action="store_true", help="skip the N vs 2N routes table")
     p.add_argument("--backend", default=None, help="backend (default: $PLACE3D_BACKEND or auto)")
     p.add_argument("--output", default=None, help="output folder (default bench/results/reproduce-<date>/)")
@@ -344,12 +394,15 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from place3d_app.executors import executor_from_args
 
+    from place3d_kernels.pooled import parse_route_seeds
+
+    seeds = None if args.route_seeds is None else parse_route_seeds(args.route_seeds)
     ex = executor_from_args(args)
     try:
         res = reproduce(args.towns, args.routes, args.frames, args.voxel_size, args.frames_per_subset, args.occlusion,
-                        args.lidar, args.collection_lidar, args.roll_units, args.det_variant, args.resamples,
-                        args.seed, args.backend, ex, args.opendrive_dir, not args.no_convergence,
-                        progress=not args.quiet)
+                        args.lidar, args.collection_lidar, args.roll_units, args.det_variant, args.backend, ex,
+                        args.opendrive_dir, not args.no_convergence, progress=not args.quiet, route_seeds=seeds,
+                        placements=args.placements)
     finally:
         ex.shutdown()
     out = args.output or f"bench/results/reproduce-{datetime.now(timezone.utc).date().isoformat()}"

@@ -1,0 +1,110 @@
+"""Several routes and scenes for one answer: ``--routes N``, ``--route-seeds 100-107``, repeated ``--scene``.
+
+``evaluate`` and ``optimize`` score on a P-SOG pooled over drives (every scene x every route seed,
+``pooled.pool_specs``); the default is ``pooled.DEFAULT_ROUTES`` routes per scene. One drive remains an
+explicit choice (``--routes 1``), which keeps the single-drive path (intervals over its subsets) and
+warns that the order is not converged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+
+__all__ = ["add_route_arguments", "route_seeds", "drive_specs", "pooled_psog", "psog_for_routes",
+           "SINGLE_ROUTE_WARNING"]
+
+SINGLE_ROUTE_WARNING = ("warning: one route: the order of the placements is not converged on a single drive "
+                        "(docs/guide.md, 'How many routes'); pool several with --routes N")
+
+
+def add_route_arguments(p) -> None:
+    from place3d_kernels.pooled import DEFAULT_ROUTES
+
+    p.set_defaults(scenes=None)
+    p.add_argument("--routes", type=int, default=None,
+                   help=f"routes per scene pooled into one P-SOG, seeds --seed .. --seed+N-1 (default "
+                        f"{DEFAULT_ROUTES}; 1 = a single drive, with a warning that its order is not converged)")
+    p.add_argument("--route-seeds", default=None, metavar="SEEDS",
+                   help="the route seeds to pool instead, e.g. 100-107 or 1,2,5 (ranges inclusive)")
+
+
+def route_seeds(args) -> list[int]:
+    """The route seeds of the run (``--route-seeds``, else ``--routes`` from ``--seed``)."""
+    from place3d_kernels.pooled import DEFAULT_ROUTES, parse_route_seeds
+
+    routes = getattr(args, "routes", None)
+    text = getattr(args, "route_seeds", None)
+    if text is not None:
+        seeds = parse_route_seeds(text)
+        if routes is not None and routes != len(seeds):
+            raise ValueError(f"--routes {routes} and --route-seeds {text} ({len(seeds)} seeds) disagree; give one")
+        return seeds
+    n = DEFAULT_ROUTES if routes is None else routes
+    if n < 1:
+        raise ValueError(f"--routes must be >= 1, got {n}")
+    return [int(args.seed) + i for i in range(n)]
+
+
+def drive_specs(args, spec) -> list:
+    """One ``PSOGSpec`` per drive: every ``--scene`` x every route seed, each with the run's condition,
+    grid and vehicle. Scenes that take no seed (mesh, semantickitti: one fixed route) give one drive;
+    asking them for several routes is refused."""
+    scenes = getattr(args, "scenes", None) or [spec.scene.name]
+    seeds = route_seeds(args)
+    explicit = getattr(args, "routes", None) is not None or getattr(args, "route_seeds", None) is not None
+    out = []
+    for name in scenes:
+        scene = dataclasses.replace(spec.scene, name=name)
+        if name != spec.scene.name:
+            scene = dataclasses.replace(scene, labels=None, route=None)
+        scene.validate()
+        if scene.kind in ("mesh", "semantickitti"):
+            if explicit and len(seeds) > 1:
+                raise ValueError(f"scene {name!r} has one fixed route (its file), so --routes / --route-seeds "
+                                 f"cannot pool several; use --routes 1 (or several --scene)")
+            out.append(dataclasses.replace(spec, scene=scene))
+            continue
+        out.extend(dataclasses.replace(spec, scene=dataclasses.replace(scene, seed=s)) for s in seeds)
+    return out
+
+
+def pooled_psog(args, spec, backend, specs=None):
+    """(PooledPSOG, strata, its P-SOG) for the run's drives, or None for a single drive (then the caller
+    keeps the single-drive path and this prints the warning)."""
+    from place3d_kernels.pipeline import check_entropy
+    from place3d_kernels.pooled import pool_specs
+    from place3d_kernels.profiling import section
+
+    specs = drive_specs(args, spec) if specs is None else specs
+    if len(specs) == 1:
+        if specs[0].scene.kind in ("town", "opendrive"):
+            print(SINGLE_ROUTE_WARNING, file=sys.stderr)
+        return None
+    if spec.scene.kind == "semantickitti" and len({s.scene.name for s in specs}) != len(specs):
+        raise ValueError("a semantickitti: sequence is one recorded drive; pool several sequences with --scene")
+    import time
+
+    t = time.perf_counter()
+    with section("P-SOG (pooled drives)"):
+        pooled = pool_specs(specs, backend=backend, cache=not args.no_cache, progress=not args.quiet)
+        psog = pooled.psog()
+    check_entropy(psog, spec.frames_per_subset)
+    strata = [s.scene.name for s in specs]
+    if not args.quiet:
+        print(f"pooled P-SOG of {len(specs)} drives ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
+    return pooled, strata, psog
+
+
+def psog_for_routes(spec, args, backend):
+    """``optimize``'s ``psog_for``: (None, P-SOG) of the run's drives, pooled when there are several
+    (``args.pool`` then holds ``(PooledPSOG, strata, P-SOG)`` for the intervals over routes), else the
+    single drive's P-SOG as before."""
+    from place3d_app.commands.common import psog_for_spec
+
+    drives = getattr(args, "drives", None) or drive_specs(args, spec)
+    pool = pooled_psog(args, spec, backend, drives)
+    args.pool = pool
+    if pool is None:
+        return psog_for_spec(spec, args, backend, with_scene=False)
+    return None, pool[2]

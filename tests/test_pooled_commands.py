@@ -1,0 +1,125 @@
+"""Pooled answers in the commands (issue 34, item 3): --routes, --route-seeds, repeated --scene, shipped
+CARLA maps by name, and a tiny pooled evaluate / optimize on the embedded town."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from place3d_app.cli import build_parser, main
+from place3d_app.commands.routes import SINGLE_ROUTE_WARNING, drive_specs
+from place3d_kernels.pooled import DEFAULT_ROUTES, parse_route_seeds
+from place3d_kernels.spec import SceneSpec, specs_from_args
+
+TINY = ["--frames", "8", "--voxel-size", "0.8", "--quiet"]
+
+
+@pytest.fixture(autouse=True)
+def _cache(tmp_path_factory, monkeypatch):
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path_factory.getbasetemp() / "pooled-cache"))
+
+
+# ------------------------------------------------------------------------------ parsing
+@pytest.mark.parametrize("text, want", [("100-107", list(range(100, 108))), ("1,2,5", [1, 2, 5]),
+                                        ("0-2, 10", [0, 1, 2, 10]), ("7", [7]), ("-1", [-1])])
+def test_route_seeds_parse_ranges_and_lists(text, want):
+    assert parse_route_seeds(text) == want
+
+
+@pytest.mark.parametrize("text", ["7-3", "1,1", "0-2,2", "x", "", "1.5"])
+def test_bad_route_seeds_are_refused(text):
+    with pytest.raises(ValueError, match="route seeds"):
+        parse_route_seeds(text)
+
+
+def _drives(argv):
+    args = build_parser().parse_args(argv)
+    return args, drive_specs(args, specs_from_args(args))
+
+
+def test_scenes_times_route_seeds_make_the_drives():
+    args, drives = _drives(["evaluate", "--scene", "town", "--scene", "opendrive:Town06", "--route-seeds", "100-101"])
+    assert args.scene == "town" and args.scenes == ["town", "opendrive:Town06"]
+    assert [(d.scene.name, d.scene.seed) for d in drives] == [("town", 100), ("town", 101), ("opendrive:Town06", 100),
+                                                              ("opendrive:Town06", 101)]
+    _, drives = _drives(["evaluate", "--seed", "5", "--routes", "3"])
+    assert [d.scene.seed for d in drives] == [5, 6, 7]
+    _, drives = _drives(["optimize", "--condition", "fog"])         # the default: pooled, condition on each drive
+    assert [d.scene.seed for d in drives] == list(range(DEFAULT_ROUTES)) and DEFAULT_ROUTES > 1
+    assert all(d.condition is not None and d.condition.name == "fog" for d in drives)
+
+
+def test_disagreeing_or_impossible_route_choices_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="disagree"):
+        _drives(["evaluate", "--routes", "3", "--route-seeds", "1-2"])
+    with pytest.raises(ValueError, match="--routes must be >= 1"):
+        _drives(["evaluate", "--routes", "0"])
+    mesh = tmp_path / "m.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(ValueError, match="one fixed route"):
+        _drives(["evaluate", "--scene", f"mesh:{mesh}", "--labels", "road", "--routes", "2"])
+    _, drives = _drives(["evaluate", "--scene", f"mesh:{mesh}", "--labels", "road"])   # default: its one route
+    assert len(drives) == 1
+
+
+# ------------------------------------------------------------------------------ shipped maps by name
+def test_shipped_carla_map_resolves_by_name_everywhere():
+    from place3d_app.commands.reproduce import resolve_town
+    from place3d_kernels.scene.keymemo import identity
+
+    s = SceneSpec("opendrive:Town06").validate()
+    assert s.path.is_file() and s.path.name == "Town06.xodr" and s.label == "Town06-s0-f40"
+    # the scene key's identity reads the file: this raised "No such file or directory: 'Town06'"
+    assert identity(s.to_dict(), s.kind, s.path) is not None
+    assert resolve_town("Town06").endswith("Town06.xodr")
+    with pytest.raises(FileNotFoundError, match="shipped maps by name"):
+        SceneSpec("opendrive:Town99").validate()
+
+
+# ------------------------------------------------------------------------------ pooled commands
+def test_tiny_pooled_evaluate_scores_the_pool_of_its_routes(tmp_path, capsys):
+    from place3d_kernels.lidar import LidarModel
+    from place3d_kernels.metrics import msog_batch
+    from place3d_kernels.placement import Placement
+    from place3d_kernels.pooled import pool_specs
+
+    out = tmp_path / "e.json"
+    assert main(["evaluate", *TINY, "--routes", "2", "center", "line-roll", "--output", str(out)]) == 0
+    assert SINGLE_ROUTE_WARNING not in capsys.readouterr().err
+    d = json.loads(out.read_text())
+    assert d["drives"] == ["town-s0-f8", "town-s1-f8"] and d["route_seeds"] == [0, 1]
+    assert d["bootstrap"]["unit"] == "drives" and d["bootstrap"]["n_units"] == 2 and d["bootstrap"]["df"] == 1
+    _, drives = _drives(["evaluate", *TINY, "--routes", "2"])
+    pooled = pool_specs(drives, backend=d["backend"])
+    assert pooled.n_subsets == d["n_subsets"] == 4
+    want = msog_batch(pooled.psog(), LidarModel.load("place3d_16ch"),
+                      np.stack([Placement.load(r["placement"]).poses for r in d["rows"]]), "sog", "seg", d["backend"])
+    assert [r["msog_seg"] for r in d["rows"]] == want.tolist()
+    for r in d["rows"]:
+        for t in ("seg", "det"):
+            lo, hi = r["ci"][t]
+            assert lo < r[f"msog_{t}"] < hi                    # the interval contains its own estimate
+
+
+def test_one_route_is_explicit_and_warns(tmp_path, capsys):
+    out = tmp_path / "one.json"
+    assert main(["evaluate", *TINY, "--routes", "1", "center", "--interval", "none", "--output", str(out)]) == 0
+    assert SINGLE_ROUTE_WARNING in capsys.readouterr().err
+    assert json.loads(out.read_text())["drives"] == ["town-s0-f8"]
+    assert main(["evaluate", *TINY, "--routes", "2", "--interval", "bootstrap", "center"]) == 2
+    assert "jackknife" in capsys.readouterr().err
+
+
+def test_tiny_pooled_optimize_reports_intervals_over_routes(tmp_path):
+    out = tmp_path / "opt"
+    assert main(["optimize", *TINY, "--route-seeds", "3,4", "--max-evals", "12", "--output", str(out)]) == 0
+    r = json.loads((out / "result.json").read_text())
+    assert r["drives"] == ["town-s3-f8", "town-s4-f8"] and r["n_subsets"] == 4
+    assert r["intervals"]["unit"] == "drives" and r["intervals"]["n_units"] == 2
+    assert [d["seed"] for d in r["setup"]["drives"]] == [3, 4]          # a resume must pool the same drives
+    lo, hi = r["intervals"]["best"]["ci"]
+    assert lo < r["best_score"] < hi
+    # a held-out seed that the pool trained on validates nothing
+    assert main(["optimize", *TINY, "--route-seeds", "3,4", "--max-evals", "12", "--holdout-seeds", "4"]) == 2
