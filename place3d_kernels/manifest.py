@@ -19,7 +19,7 @@ from pathlib import Path
 
 __all__ = ["spec_hash", "write_manifest", "read_manifest", "verify_manifest", "first_difference", "provenance",
            "set_command_line", "MANIFEST_NAME", "content_hash", "verified_bytes", "ContentMismatch", "StaleCacheWarning",
-           "cache_warning"]
+           "cache_warning", "plain", "field_value"]
 
 MANIFEST_NAME = "manifest.json"
 
@@ -37,7 +37,7 @@ def _canonical(d) -> str:
     return json.dumps(d, sort_keys=True, separators=(",", ":"), default=str)
 
 
-def _plain(d):
+def plain(d):
     """``d`` as it reads back from JSON (tuples become lists), so stored and current specs compare equal."""
     return json.loads(_canonical(d))
 
@@ -77,7 +77,7 @@ def write_manifest(where, spec: dict, content_sha256: str | None = None) -> Path
     from place3d_kernels.atomic import atomic_write_text
 
     path = _path(where)
-    spec = _plain(spec)
+    spec = plain(spec)
     body = {"spec": spec, "sha256": spec_hash(spec), "version": _version(), "provenance": provenance()}
     if content_sha256 is not None:
         body["content_sha256"] = content_sha256
@@ -152,7 +152,7 @@ def first_difference(stored, current, prefix: str = "") -> str | None:
     return None if stored == current else (prefix or "<spec>")
 
 
-def _get(d, dotted):
+def field_value(d, dotted):
     for part in dotted.split("."):
         if not isinstance(d, dict) or part not in d:
             return "<absent>"
@@ -174,10 +174,10 @@ def verify_manifest(where, spec: dict, what: str = "output",
     m = read_manifest(where)
     if m is None:
         return False
-    current = _plain(spec)
+    current = plain(spec)
     stored = m.get("spec")
     if m.get("sha256") == spec_hash(current) and stored == current:
         return True
     field = first_difference(stored, current) or "sha256"
     raise ValueError(f"{_path(where)}: this {what} was made with different settings ({field}: "
-                     f"{_get(stored, field)!r} there, {_get(current, field)!r} now); {fix}")
+                     f"{field_value(stored, field)!r} there, {field_value(current, field)!r} now); {fix}")

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from place3d_kernels.manifest import _get, _plain, first_difference
+from place3d_kernels.manifest import field_value, first_difference, plain
 
 __all__ = ["refuse_other_run", "stored_setup", "remove_owned"]
 
@@ -38,12 +38,12 @@ def refuse_other_run(where, stored, current: dict, what: str, fix: str = FIX) ->
     ``current``; the message is one line naming ``where``, the first differing field and ``fix``."""
     if stored is None:
         return
-    stored, current = _plain(stored), _plain(current)
+    stored, current = plain(stored), plain(current)
     field = first_difference(stored, current)
     if field is None:
         return
-    raise ValueError(f"{where} holds the {what} of another run ({field}: {_get(stored, field)!r} there, "
-                     f"{_get(current, field)!r} now); {fix}")
+    raise ValueError(f"{where} holds the {what} of another run ({field}: {field_value(stored, field)!r} there, "
+                     f"{field_value(current, field)!r} now); {fix}")
 
 
 def remove_owned(folder, patterns) -> list:

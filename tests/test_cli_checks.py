@@ -318,6 +318,8 @@ def test_mesh_scene_with_route_and_label_map_from_the_cli(tmp_path, capsys):
         for side in (-1, 1):
             b = trimesh.creation.box((6, 6, 4 + (i % 3) * 3)).apply_translation((x, side * 12, 2 + (i % 3) * 1.5))
             sc.add_geometry(b, node_name=f"house{i}{side}", geom_name=f"house{i}{side}")
+    # glTF is Y-up (the loader turns it Z-up; trimesh writes coordinates as they are): turn the Z-up street
+    sc.apply_transform(np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=float))
     sc.export(tmp_path / "street.glb")
     (tmp_path / "labels.toml").write_text('"*" = "building"\nroad = "road"\n')
     (tmp_path / "route.txt").write_text("# x y yaw\n" + "".join(f"{x} 0 0\n" for x in np.linspace(-20, 20, 8)))

@@ -85,6 +85,10 @@ def pooled_psog(args, spec, backend, specs=None):
         raise ValueError("a semantickitti: sequence is one recorded drive; pool several sequences with --scene")
     import time
 
+    from concurrent.futures import Future
+
+    if isinstance(backend, Future):
+        backend = backend.result()      # optimize's probe thread: the library takes a resolved backend
     t = time.perf_counter()
     with section("P-SOG (pooled drives)"):
         pooled = pool_specs(specs, backend=backend, cache=not args.no_cache, progress=not args.quiet)
