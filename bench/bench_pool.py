@@ -3,14 +3,15 @@
 
     python3 bench/bench_pool.py --routes 2 --runs 3 --tree /tmp/before --tree .        # A/B on one machine
     python3 bench/bench_pool.py --routes 8 --backend warp:cuda:0 --runs 3              # the GPU host (gpu_reproduce.sh)
+    python3 bench/bench_pool.py --executors local process                             # executors alternating
 
 Each run is the command as the ``place3d`` console script runs it (``python -m place3d_app reproduce``), in a
 subprocess with the tree first on ``PYTHONPATH``, timed from start to exit, with an empty P-SOG cache
 (``PLACE3D_CACHE``), so every drive is simulated and pooled, and a Warp kernel cache shared by the runs of a
 tree, filled by one untimed small run first (issue 36's goal is stated with a warm kernel cache). Runs of
-the trees alternate. The command's own split (``seconds``: pool, bootstrap, total) comes from its
+the variants (each tree, with each of ``--executors``) alternate. The command's own split (``seconds``: pool, bootstrap, total) comes from its
 ``reproduce.json``; every run's study numbers (``tasks``, ``convergence``: scores, intervals, taus) must be
-the same to the last digit across runs and trees (``same_results``).
+the same to the last digit across runs and variants (``same_results``).
 
 Writes ``bench/results/reproduce-pool-<machine>-<date>.json`` (or ``$OUT`` / ``--out``), rewritten after every
 run so a run cut short by a time limit keeps the runs before it.
@@ -61,7 +62,8 @@ def main(argv=None) -> int:
     ap.add_argument("--resamples", type=int, default=200)
     ap.add_argument("--no-convergence", action="store_true")
     ap.add_argument("--backend", default="auto")
-    ap.add_argument("--executor", default=None, help="--executor for the command (default: the command's own)")
+    ap.add_argument("--executors", nargs="+", default=[None],
+                    help="--executor values to alternate (default: the command's own default)")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--timeout", type=float, default=3600)
     ap.add_argument("--machine", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
@@ -73,13 +75,16 @@ def main(argv=None) -> int:
            str(a.resamples), "--backend", a.backend]
     if a.no_convergence:
         cmd.append("--no-convergence")
-    if a.executor:
-        cmd += ["--executor", a.executor]
     info = run_info(a.machine)
     name = "reproduce-pool" + (f"-{a.label}" if a.label else "")
     path = results_path(name, info["machine"], info["date"], a.out)
-    per: dict[str, dict] = {str(t): {"wall_s": [], "pool_s": [], "bootstrap_s": [], "total_s": [], "executor": None}
-                            for t in trees}
+    variants = [(t, e) for t in trees for e in a.executors]
+
+    def vname(t, e):
+        return str(t) + ("" if e is None else f" --executor {e}")
+
+    per: dict[str, dict] = {vname(t, e): {"wall_s": [], "pool_s": [], "bootstrap_s": [], "total_s": [],
+                                          "executor": None} for t, e in variants}
     studies: list[dict] = []
     with tempfile.TemporaryDirectory() as scratch:
         warp = {t: Path(scratch, f"warp{i}") for i, t in enumerate(trees)}
@@ -88,25 +93,26 @@ def main(argv=None) -> int:
                 run_once(t, ["--towns", "town", "--routes", "1", "--frames", "2", "--resamples", "2",
                              "--no-convergence", "--backend", a.backend], Path(c), warp[t], a.timeout)
         for i in range(a.runs):
-            for t in trees:
+            for t, e in variants:
                 with tempfile.TemporaryDirectory() as c:
-                    wall, res = run_once(t, cmd, Path(c), warp[t], a.timeout)
-                r = per[str(t)]
+                    wall, res = run_once(t, cmd + ([] if e is None else ["--executor", e]), Path(c), warp[t],
+                                         a.timeout)
+                r = per[vname(t, e)]
                 r["wall_s"].append(round(wall, 3))
                 for k in ("pool", "bootstrap", "total"):
                     r[f"{k}_s"].append(res["seconds"][k])
                 r["executor"] = res["settings"].get("executor")
                 studies.append({"tasks": {k: {f: v for f, v in d.items()} for k, d in res["tasks"].items()},
                                 "convergence": res["convergence"]})
-                print(f"run {i + 1} {t}: wall {wall:.1f} s, {res['seconds']} on {r['executor']}", file=sys.stderr,
+                print(f"run {i + 1} {vname(t, e)}: wall {wall:.1f} s, {res['seconds']} on {r['executor']}", file=sys.stderr,
                       flush=True)
                 record = {"command": "place3d reproduce " + " ".join(cmd) + " --quiet --output DIR",
-                          "settings": res["settings"], "trees": {k: {**v, **{f"{m}_stats": stats(v[f"{m}_s"])
+                          "settings": res["settings"], "variants": {k: {**v, **{f"{m}_stats": stats(v[f"{m}_s"])
                                                                           for m in ("wall", "pool", "bootstrap",
                                                                                     "total")}}
                                                                for k, v in per.items()},
                           "same_results": all(s == studies[0] for s in studies), "runs_done": i + 1,
-                          "note": "empty P-SOG cache per run, warm kernel cache; trees alternate"}
+                          "note": "empty P-SOG cache per run, warm kernel cache; variants alternate"}
                 write_result(name, record, a.machine, path=path)
     for k, v in per.items():
         print(f"{k}: wall {stats(v['wall_s'])['median']:.1f} s [{min(v['wall_s']):.1f}-{max(v['wall_s']):.1f}], pool "
