@@ -2,10 +2,10 @@
 """``place3d reproduce`` end to end: wall time of the whole command, cold and warm.
 
     python3 bench/bench_reproduce.py [--backend opencl:pocl] [--runs 3] [--machine cpu-2core-dev]
-    python3 bench/bench_reproduce.py --towns Town01 Town03 Town04 Town06 --routes 4 --frames 40 --resamples 200
+    python3 bench/bench_reproduce.py --towns Town01 Town03 Town04 Town06 --routes 4 --frames 40
 
 The command runs as the ``place3d`` console script runs it (``python -m place3d_app reproduce``), in a
-subprocess, timed from start to exit. The default size (one town, two routes of 8 frames, 20 resamples, no
+subprocess, timed from start to exit. The default size (one town, two routes of 8 frames, no
 convergence table) finishes in about 20 s on the 2-core dev VM; the second line above is the paper's size
 (``docs/commands.md``). Cold: every run gets empty P-SOG and Warp kernel caches (``PLACE3D_CACHE``,
 ``WARP_CACHE_PATH``), so each drive is simulated and pooled; warm: one untimed run fills a pair of caches,
@@ -62,7 +62,6 @@ def main(argv=None) -> int:
     ap.add_argument("--towns", nargs="+", default=["Town01"])
     ap.add_argument("--routes", type=int, default=2)
     ap.add_argument("--frames", type=int, default=8)
-    ap.add_argument("--resamples", type=int, default=20)
     ap.add_argument("--convergence", action="store_true", help="also the N vs 2N routes table (off by default)")
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--runs", type=int, default=3, help="timed runs of each, cold and warm (default 3)")
@@ -71,7 +70,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="folder (default $OUT, else bench/results/)")
     args = ap.parse_args(argv)
     cmd = [sys.executable, "-m", "place3d_app", "reproduce", "--towns", *args.towns, "--routes", str(args.routes),
-           "--frames", str(args.frames), "--resamples", str(args.resamples), "--backend", args.backend, "--quiet"]
+           "--frames", str(args.frames), "--backend", args.backend, "--quiet"]
     if not args.convergence:
         cmd.append("--no-convergence")
     walls: dict[str, list[float]] = {"cold": [], "warm": []}

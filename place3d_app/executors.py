@@ -9,7 +9,8 @@ on any worker as the local executor does in-process:
     >>> simulate_to_folder(SceneSpec("town", seed=0, frames=40), "collection_64ch", "seq/", ex, chunk=8)
 
 - ``get_executor(kind, address, num_cpus, num_gpus_per_task)`` -> ``Executor`` with ``map(fn, tasks)``
-  (results in task order). The Ray executor retries a task whose worker process dies (Ray's
+  (results in task order): ``"local"`` (in-process, one task after the other), ``"process"`` (worker
+  processes of this machine, ``ProcessExecutor``) or ``"ray"``. The Ray executor retries a task whose worker process dies (Ray's
   ``max_retries``); an exception raised by the task itself is not retried and reaches the caller.
 - ``simulate_to_folder``: frames split into chunks of frame indices; each task simulates its frames,
   applies the condition with the frame's *global* index and writes ``velodyne/NNNNNN.bin`` and
@@ -35,6 +36,8 @@ Multi-machine clusters: the output folder and the P-SOG cache folder should be o
 
 from __future__ import annotations
 
+import contextlib
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,7 +50,8 @@ from place3d_kernels.io import (atomic_write, frame_paths, pose_row, prepare_seq
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec, backend_name, resolve_lidar
 
-__all__ = ["Executor", "LocalExecutor", "RayExecutor", "get_executor", "add_executor_arguments",
+__all__ = ["Executor", "LocalExecutor", "ProcessExecutor", "RayExecutor", "get_executor", "usable_cores",
+           "default_workers", "WORKERS_ENV", "add_executor_arguments",
            "executor_from_args", "check_actor_arguments", "task_seed", "SceneSpec", "ConditionSpec", "PSOGSpec",
            "simulate_to_folder",
            "DistributedObjective", "INSTALL_HINT", "chunks"]
@@ -95,6 +99,141 @@ class LocalExecutor(Executor):
         tasks = list(tasks)
         self.submitted += len(tasks)
         return [fn(t) for t in tasks]
+
+
+#: ``PLACE3D_WORKERS=N``: at most N worker processes for the process executor (default: the usable cores)
+WORKERS_ENV = "PLACE3D_WORKERS"
+
+#: What each worker process starts with, unless the user set it: one BLAS thread. The workers fill the cores
+#: themselves; a BLAS library that also starts a thread per core in every worker (NumPy's OpenBLAS does for a
+#: matrix product of one frame's points) oversubscribes them many times over. BLAS threads split a product's
+#: output, not its sums, so a product's values are the same with any number of them (the test of this
+#: executor compares its pooled counts with the local executor's bit for bit).
+WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the platform tells it, else all)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def default_workers() -> int:
+    """Worker processes of the process executor: the usable cores, at most ``$PLACE3D_WORKERS``."""
+    n = usable_cores()
+    cap = os.environ.get(WORKERS_ENV, "").strip()
+    if cap:
+        try:
+            c = int(cap)
+        except ValueError:
+            c = 0
+        if c < 1:
+            raise ValueError(f"{WORKERS_ENV}={cap!r}: give a whole number of worker processes >= 1")
+        n = min(n, c)
+    return n
+
+
+@contextlib.contextmanager
+def _worker_environment():
+    """``WORKER_ENV`` in ``os.environ`` while worker processes start (a spawned process copies it then)."""
+    added = {k: v for k, v in WORKER_ENV.items() if k not in os.environ}
+    os.environ.update(added)
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
+
+
+def _start_worker(backend: str | None) -> None:
+    # each worker resolves the run's backend once, at its start, so its first task finds it ready (kernels
+    # compiled or loaded) and every later task reuses it (get_backend keeps one instance per name)
+    if backend:
+        from place3d_kernels.backends.registry import get_backend
+
+        get_backend(backend)
+
+
+def _no_task() -> None:
+    return None
+
+
+class ProcessExecutor(Executor):
+    """Worker processes on this machine (``concurrent.futures.ProcessPoolExecutor``), results in task order.
+
+    Processes start with ``spawn`` (a fresh interpreter; ``forkserver`` by ``start_method``), never by a plain
+    fork: a forked copy of a process that has started CUDA or OpenCL cannot use them. Tasks and results
+    cross a pickle boundary, so ``fn`` must be a module-level function and its tasks picklable, as for Ray.
+    Several workers share one GPU (each has its own context; Warp and OpenCL allow it).
+
+    Args:
+        workers: worker processes (default ``default_workers()``: the usable cores, at most
+            ``$PLACE3D_WORKERS``); a ``map`` of fewer tasks starts no more processes than it has tasks.
+        backend: backend name each worker resolves when it starts (None: none ahead of the first task).
+        start_method: ``"spawn"`` (default) or ``"forkserver"``.
+        prestart: start the workers now instead of at the first ``map``, so that they import the package
+            and resolve the backend while this process goes on.
+    """
+
+    kind = "process"
+
+    def __init__(self, workers: int | None = None, backend: str | None = None, start_method: str = "spawn",
+                 prestart: bool = False) -> None:
+        super().__init__()
+        if start_method not in ("spawn", "forkserver"):
+            raise ValueError(f"start_method must be 'spawn' or 'forkserver', got {start_method!r}")
+        self.workers = default_workers() if workers is None else int(workers)
+        if self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {workers}")
+        self.backend = backend
+        self.start_method = start_method
+        self._pool = None
+        self._started = 0
+        if prestart:
+            self._ensure(self.workers)
+
+    def _ensure(self, n_tasks: int):
+        """The pool, with at least min(n_tasks, workers) processes started."""
+        import concurrent.futures
+        import multiprocessing
+
+        if self._pool is None:
+            ctx = multiprocessing.get_context(self.start_method)
+            self._pool = concurrent.futures.ProcessPoolExecutor(self.workers, mp_context=ctx,
+                                                                initializer=_start_worker,
+                                                                initargs=(self.backend,))
+        want = min(max(n_tasks, 1), self.workers)
+        if self._started < want:
+            with _worker_environment():
+                # one empty task per missing worker: a pool of spawned processes starts one per task while
+                # none is idle; each runs the initializer before anything else
+                for _ in range(want - self._started):
+                    self._pool.submit(_no_task)
+            self._started = want
+        return self._pool
+
+    def map(self, fn, tasks, *, num_gpus=None) -> list:
+        tasks = list(tasks)
+        self.submitted += len(tasks)
+        if not tasks:
+            return []
+        pool = self._ensure(len(tasks))
+        with _worker_environment():
+            futures = [pool.submit(fn, t) for t in tasks]
+        try:
+            return [f.result() for f in futures]
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+
+    def shutdown(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+        self._pool = None
+        self._started = 0
 
 
 def _import_ray():
@@ -181,23 +320,29 @@ class RayExecutor(Executor):
 
 def get_executor(kind: str = "local", address: str | None = None, num_cpus: int | None = None,
                  num_gpus_per_task: float = 0, **kw) -> Executor:
-    """``"local"`` or ``"ray"``; a Ray address implies ``"ray"``. Keywords go to ``RayExecutor`` (e.g.
+    """``"local"``, ``"process"`` or ``"ray"``; a Ray address implies ``"ray"``. Keywords go to
+    ``ProcessExecutor`` (``workers``, ``backend``, ``prestart``) or ``RayExecutor`` (e.g.
     ``gpu_actors=2, cpu_actors=1`` for population scoring on actors)."""
     kind = (kind or "local").lower()
     if kind == "local" and address:
         kind = "ray"
     if kind == "local":
         return LocalExecutor()
+    if kind == "process":
+        return ProcessExecutor(**kw)
     if kind == "ray":
         return RayExecutor(address=address, num_cpus=num_cpus, num_gpus_per_task=num_gpus_per_task, **kw)
-    raise ValueError(f"unknown executor {kind!r}; use 'local' or 'ray'")
+    raise ValueError(f"unknown executor {kind!r}; use 'local', 'process' or 'ray'")
 
 
-def add_executor_arguments(p) -> None:
-    """``--executor local|ray``, ``--ray-address``, ``--num-cpus``, ``--gpus-per-task``, ``--chunk``,
-    ``--gpu-actors``, ``--cpu-actors``."""
-    p.add_argument("--executor", default="local", choices=["local", "ray"],
-                   help=f"where tasks run (default local; ray needs {INSTALL_HINT})")
+def add_executor_arguments(p, default: str = "local") -> None:
+    """``--executor auto|local|process|ray``, ``--ray-address``, ``--num-cpus``, ``--gpus-per-task``, ``--chunk``,
+    ``--gpu-actors``, ``--cpu-actors``. ``default="auto"`` for a command that pools several drives."""
+    p.add_argument("--executor", default=default, choices=["auto", "local", "process", "ray"],
+                   help=f"where tasks run: local (this process), process (one worker process per usable core, "
+                        f"at most ${WORKERS_ENV}), ray (needs {INSTALL_HINT}), auto (process where the command "
+                        f"has several drives to build and more than one core is usable, else local; default "
+                        f"{default})")
     p.add_argument("--ray-address", default=None,
                    help="Ray cluster to join: auto | HOST:PORT | ray://HOST:10001 (default: start a local one)")
     p.add_argument("--num-cpus", type=int, default=None, help="CPUs of a local Ray cluster (default: all)")
@@ -226,11 +371,23 @@ def check_actor_arguments(args) -> dict:
     return actors
 
 
-def executor_from_args(args) -> Executor:
+def executor_from_args(args, tasks: int | None = None, backend=None) -> Executor:
+    """The executor the command line asks for. ``tasks``: how many independent tasks (drives) the command has,
+    for ``--executor auto`` (process when more than one and more than one core is usable, else local);
+    ``backend``: the backend name worker processes resolve as they start."""
     kind = getattr(args, "executor", "local") or "local"
-    if kind == "local" and getattr(args, "ray_address", None):
+    if kind == "auto":
+        if getattr(args, "ray_address", None):
+            kind = "ray"
+        else:
+            kind = "process" if (tasks or 0) > 1 and min(default_workers(), tasks) > 1 else "local"
+    if kind in ("local", "process") and getattr(args, "ray_address", None):
         raise ValueError("--ray-address needs --executor ray")
     actors = check_actor_arguments(args)
+    if kind == "process":
+        n = default_workers() if tasks is None else max(1, min(default_workers(), tasks))
+        # started now: the workers import the package and resolve the backend while this process does too
+        return ProcessExecutor(n, backend=str(backend or "auto"), prestart=True)
     if kind == "ray":
         try:
             return get_executor("ray", getattr(args, "ray_address", None), getattr(args, "num_cpus", None),

@@ -328,7 +328,7 @@ def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(
         executor: an object with ``map(fn, tasks)`` (the application's executors: local processes, Ray);
             None, or one whose ``kind`` is ``"local"``, runs the drives here one after the other, so at most
             one drive's frames are in memory at a time.
-        progress: print one line per drive to stderr (local executor only).
+        progress: print one line per drive to stderr (local executor; others: one line for all drives).
     """
     drives = list(drives)
     if not drives:
@@ -352,8 +352,17 @@ def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(
                 print(f"  drive {i + 1}/{len(drives)} {d.label}: {time.perf_counter() - t0:.1f} s",
                       file=sys.stderr)
         return pooled
+    import time
+
+    t0 = time.perf_counter()
     for rec in executor.map(_record_task, [(d, settings) for d in drives]):
         pooled.add(rec)
+    if progress:
+        import sys
+
+        workers = getattr(executor, "workers", None)
+        print(f"  {len(drives)} drives on the {getattr(executor, 'kind', 'given')} executor"
+              + (f" ({workers} workers)" if workers else "") + f": {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return pooled
 
 

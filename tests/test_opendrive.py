@@ -280,3 +280,29 @@ def test_builder_version_is_part_of_the_key(tmp_path):
     b.meta["builder"] = "opendrive-older"
     b.__dict__.pop("_key", None)
     assert a.key != b.key
+
+
+def test_routes_of_a_town_share_its_roads_and_match_a_fresh_build(tmp_path):
+    from place3d_kernels.scene import opendrive
+
+    lanes = lanes_xml(left=(("driving", 3.5), ("sidewalk", 3.0)), right=(("driving", 3.5), ("sidewalk", 3.0)))
+    p = write(tmp_path, road_xml(0, 200.0, geom(200.0, "<line/>"), lanes))
+    kw = dict(n_frames=6, n_traffic=2, n_pedestrians=2)
+    opendrive._BASES.clear()
+    from_opendrive(p, seed=0, **kw)
+    shared = from_opendrive(p, seed=1, **kw)                # the roads of seed 0's build, reused
+    assert len(opendrive._BASES) == 1
+    opendrive._BASES.clear()
+    fresh = from_opendrive(p, seed=1, **kw)
+    assert shared.key == fresh.key
+    for a, b in ((shared.static.vertices, fresh.static.vertices), (shared.static.faces, fresh.static.faces),
+                 (shared.static.labels, fresh.static.labels), (shared.ego_poses, fresh.ego_poses)):
+        assert np.array_equal(a, b)
+    assert [a.poses.tobytes() for a in shared.actors] == [a.poses.tobytes() for a in fresh.actors]
+    (base,) = opendrive._BASES.values()
+    with pytest.raises(ValueError, match="read-only"):      # what every route reads, none may change
+        base.parts[0][0][0, 0] = 1.0
+    # the file rewritten with another road: another town
+    write(tmp_path, road_xml(0, 120.0, geom(120.0, "<line/>"), lanes))
+    other = from_opendrive(p, seed=1, **kw)
+    assert len(opendrive._BASES) == 2 and other.meta["road_length"] == pytest.approx(120.0)

@@ -388,7 +388,7 @@ def add_arguments(p) -> None:
     p.add_argument("--backend", default=None, help="backend (default: $PLACE3D_BACKEND or auto)")
     p.add_argument("--output", default=None, help="output folder (default bench/results/reproduce-<date>/)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
-    add_executor_arguments(p)
+    add_executor_arguments(p, default="auto")      # drives built in worker processes where cores allow
 
 
 def run(args) -> int:
@@ -397,7 +397,8 @@ def run(args) -> int:
     from place3d_kernels.pooled import parse_route_seeds
 
     seeds = None if args.route_seeds is None else parse_route_seeds(args.route_seeds)
-    ex = executor_from_args(args)
+    n_routes = args.routes if seeds is None else len(seeds)
+    ex = executor_from_args(args, tasks=n_routes * len(args.towns), backend=args.backend)
     try:
         res = reproduce(args.towns, args.routes, args.frames, args.voxel_size, args.frames_per_subset, args.occlusion,
                         args.lidar, args.collection_lidar, args.roll_units, args.det_variant, args.backend, ex,

@@ -40,6 +40,8 @@ Modules: ``xodr_geometry`` and ``xodr`` (parsing), ``opendrive_mesh`` (lanes and
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path as _FsPath
 
 import numpy as np
@@ -101,41 +103,22 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
     n_frames = int(n_frames)
     if n_frames < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
-    od = parse_opendrive(path)
+    base = _town_base(path, opt)
+    od, info, ref, ref_tree, lo, hi = base.od, base.info, base.ref, base.ref_tree, base.lo, base.hi
     rng = np.random.default_rng(seed)
-    surf, lines = Strips(), Strips()
-    info = {"area": {}, "lanes": [], "edges": [], "ref": []}
-    for road in od.roads:
-        mesh_road(road, opt, surf, lines, info)
-    sp = surf.parts()
-    if sp is None:
-        raise ValueError(f"{od.path}: no lane surfaces to mesh (all lanes have zero width or type 'none')")
-    v, f, lab = sp
-    f = orient_up(v, f)
-    parts = [(v, f, lab)]
-    lp = lines.parts()
-    if lp is not None:
-        parts.append((lp[0], orient_up(lp[0], lp[1]), lp[2]))
-
-    ref = np.concatenate(info["ref"])
-    lo, hi = v[:, :2].min(axis=0), v[:, :2].max(axis=0)
-    from scipy.spatial import cKDTree
-
-    ref_tree = cKDTree(ref[:, :2])
+    parts = list(base.parts)
 
     def height_at(x, y):
         d, i = ref_tree.query([x, y], k=min(8, len(ref)))
         return float(np.min(ref[np.atleast_1d(i), 2]))
 
-    if opt["ground"]:
-        parts.append(_ground(ref, ref_tree, lo, hi, float(opt["ground_margin"]), float(opt["ground_cell"])))
     T = Props(rng, {})
     n_parked = 0
     static_boxes: list = []
     if opt["roadside"]:
         raster = Raster(lo - 40.0, hi + 40.0, 1.0)
-        raster.mark_points(road_area_points((v, f, lab)))
-        road_mask = raster.occ.copy()
+        raster.occ = base.road_occ.copy()
+        road_mask = base.road_occ
         edges = [e for e in info["edges"]]
         order = rng.permutation(len(edges))
         n_parked = roadside(T, rng, raster, [edges[i] for i in order], info["lanes"], height_at, opt,
@@ -176,6 +159,91 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
     }
     return Scene(static=static, ego_poses=ego_poses, actors=actors, name=f"opendrive-{_FsPath(path).stem}",
                  seed=seed, frame_interval=dt, meta=meta)
+
+
+#: options that decide a town's roads, lane marks, ground and road raster (``_town_base``); the others
+#: (roadside content, traffic, the drive) are drawn per seed
+_BASE_OPTIONS = ("step", "curb_height", "line_width", "ground", "ground_cell", "ground_margin")
+
+
+@dataclass(frozen=True)
+class _TownBase:
+    """What a town's scene is made of before its seed is drawn, the same for every route: the parsed file,
+    the meshed lanes, marks and ground (``parts``), the lanes and edges the roadside and traffic use
+    (``info``), the reference line samples and their tree (heights), and the road area on the 1 m raster.
+    Its arrays are read-only: every route's scene reads them and none may change them."""
+
+    od: OpenDrive
+    parts: tuple
+    info: dict
+    ref: np.ndarray
+    ref_tree: object
+    lo: np.ndarray
+    hi: np.ndarray
+    road_occ: np.ndarray
+
+
+#: a few towns' bases, most recent last (the study's four towns fit)
+_BASES: "OrderedDict[tuple, _TownBase]" = OrderedDict()
+_BASES_KEPT = 4
+
+
+def _town_base(path, opt) -> _TownBase:
+    """The town's ``_TownBase`` for these options, built once per process and file content: the routes of a
+    pooled study share one town's roads instead of parsing and meshing the file again for each (the seed is
+    drawn after all of this, so every route's scene is what a fresh build makes)."""
+    import hashlib
+
+    try:
+        # by content: a file rewritten in place is a new town, the same map under two paths one
+        key = (hashlib.sha256(_FsPath(path).read_bytes()).hexdigest(),) + tuple(repr(opt[k]) for k in _BASE_OPTIONS)
+    except OSError:         # a map found by name (parse_opendrive resolves it) or unreadable: not kept
+        key = None
+    if key is not None and key in _BASES:
+        _BASES.move_to_end(key)
+        return _BASES[key]
+    od = parse_opendrive(path)
+    surf, lines = Strips(), Strips()
+    info = {"area": {}, "lanes": [], "edges": [], "ref": []}
+    for road in od.roads:
+        mesh_road(road, opt, surf, lines, info)
+    sp = surf.parts()
+    if sp is None:
+        raise ValueError(f"{od.path}: no lane surfaces to mesh (all lanes have zero width or type 'none')")
+    v, f, lab = sp
+    f = orient_up(v, f)
+    parts = [(v, f, lab)]
+    lp = lines.parts()
+    if lp is not None:
+        parts.append((lp[0], orient_up(lp[0], lp[1]), lp[2]))
+
+    ref = np.concatenate(info["ref"])
+    lo, hi = v[:, :2].min(axis=0), v[:, :2].max(axis=0)
+    from scipy.spatial import cKDTree
+
+    ref_tree = cKDTree(ref[:, :2])
+    if opt["ground"]:
+        parts.append(_ground(ref, ref_tree, lo, hi, float(opt["ground_margin"]), float(opt["ground_cell"])))
+    raster = Raster(lo - 40.0, hi + 40.0, 1.0)
+    raster.mark_points(road_area_points((v, f, lab)))
+    base = _TownBase(od, tuple(parts), info, ref, ref_tree, lo, hi, raster.occ)
+    for a in _arrays(base.parts, info, ref, lo, hi, raster.occ):
+        a.setflags(write=False)
+    if key is not None:
+        _BASES[key] = base
+        while len(_BASES) > _BASES_KEPT:
+            _BASES.popitem(last=False)
+    return base
+
+
+def _arrays(*objs):
+    for o in objs:
+        if isinstance(o, np.ndarray):
+            yield o
+        elif isinstance(o, (list, tuple)):
+            yield from _arrays(*o)
+        elif isinstance(o, dict):
+            yield from _arrays(*o.values())
 
 
 def _ground(ref, ref_tree, lo, hi, margin, cell):

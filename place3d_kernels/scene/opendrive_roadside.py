@@ -33,33 +33,57 @@ class Raster:
         ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < self.shape[0]) & (ij[:, 1] < self.shape[1])
         self.occ[ij[ok, 0], ij[ok, 1]] = True
 
-    def _rect_points(self, x, y, w, d, yaw, pad):
-        u = np.arange(-w / 2 - pad, w / 2 + pad + 1e-9, self.cell * 0.5)
-        v = np.arange(-d / 2 - pad, d / 2 + pad + 1e-9, self.cell * 0.5)
-        U, V = np.meshgrid(np.r_[u, w / 2 + pad], np.r_[v, d / 2 + pad], indexing="ij")
+    def _rect_cells(self, x, y, w, d, yaw, pad):
+        """The cells (i, j) of the rectangle's sample points: a grid of half-cell steps over the padded
+        rectangle and its far edges, rotated by ``yaw`` about (x, y). Computed as one broadcast pair of
+        (u, v) arrays instead of stacked point arrays (a town tries thousands of rectangles): each point's
+        sums and products are the ones the stacked form made, so its cells are too."""
+        u = np.append(np.arange(-w / 2 - pad, w / 2 + pad + 1e-9, self.cell * 0.5), w / 2 + pad)[:, None]
+        v = np.append(np.arange(-d / 2 - pad, d / 2 + pad + 1e-9, self.cell * 0.5), d / 2 + pad)[None, :]
         c, s = math.cos(yaw), math.sin(yaw)
-        return np.stack([x + c * U.ravel() - s * V.ravel(), y + s * U.ravel() + c * V.ravel()], 1)
+        px = (x + c * u) - s * v
+        py = (y + s * u) + c * v
+        i = np.floor((px.ravel() - self.lo[0]) / self.cell).astype(np.int64)
+        j = np.floor((py.ravel() - self.lo[1]) / self.cell).astype(np.int64)
+        return i, j
 
-    def free(self, x, y, w, d, yaw, pad=0.5):
-        # cheap rejection on the centre and the corners first
+    def _inside(self, i, j) -> bool:
+        return not (i.min() < 0 or j.min() < 0 or i.max() >= self.shape[0] or j.max() >= self.shape[1])
+
+    def _free_cells(self, x, y, w, d, yaw, pad):
+        """The rectangle's cells when it is inside the raster and free, else None (see ``free``)."""
+        # cheap rejection on the centre and the corners first, in scalars: the same float64 operations
+        # as on arrays of the five points, without building them
         c, s = math.cos(yaw), math.sin(yaw)
         a, b = w / 2 + pad, d / 2 + pad
-        quick = np.array([[x, y], [x + c * a - s * b, y + s * a + c * b], [x - c * a - s * b, y - s * a + c * b],
-                          [x + c * a + s * b, y + s * a - c * b], [x - c * a + s * b, y - s * a - c * b]])
-        ij = self.idx(quick)
-        if np.any(ij < 0) or np.any(ij[:, 0] >= self.shape[0]) or np.any(ij[:, 1] >= self.shape[1]):
-            return False
-        if self.occ[ij[:, 0], ij[:, 1]].any():
-            return False
-        ij = self.idx(self._rect_points(x, y, w, d, yaw, pad))
-        if np.any(ij < 0) or np.any(ij[:, 0] >= self.shape[0]) or np.any(ij[:, 1] >= self.shape[1]):
-            return False
-        return not self.occ[ij[:, 0], ij[:, 1]].any()
+        lo0, lo1, cell = float(self.lo[0]), float(self.lo[1]), self.cell
+        nx, ny = self.shape[0], self.shape[1]
+        occ = self.occ
+        for qx, qy in ((x, y), (x + c * a - s * b, y + s * a + c * b), (x - c * a - s * b, y - s * a + c * b),
+                       (x + c * a + s * b, y + s * a - c * b), (x - c * a + s * b, y - s * a - c * b)):
+            fi, fj = (qx - lo0) / cell, (qy - lo1) / cell
+            if not (math.isfinite(fi) and math.isfinite(fj)):
+                return None
+            qi, qj = math.floor(fi), math.floor(fj)
+            if qi < 0 or qj < 0 or qi >= nx or qj >= ny:
+                return None
+        for qx, qy in ((x, y), (x + c * a - s * b, y + s * a + c * b), (x - c * a - s * b, y - s * a + c * b),
+                       (x + c * a + s * b, y + s * a - c * b), (x - c * a + s * b, y - s * a - c * b)):
+            if occ[math.floor((qx - lo0) / cell), math.floor((qy - lo1) / cell)]:
+                return None
+        i, j = self._rect_cells(x, y, w, d, yaw, pad)
+        if not self._inside(i, j) or occ[i, j].any():
+            return None
+        return i, j
+
+    def free(self, x, y, w, d, yaw, pad=0.5):
+        return self._free_cells(x, y, w, d, yaw, pad) is not None
 
     def take(self, x, y, w, d, yaw, pad=0.5):
-        if not self.free(x, y, w, d, yaw, pad):
+        cells = self._free_cells(x, y, w, d, yaw, pad)
+        if cells is None:
             return False
-        self.mark_points(self._rect_points(x, y, w, d, yaw, pad))
+        self.occ[cells] = True          # inside the raster, as _free_cells found
         return True
 
 

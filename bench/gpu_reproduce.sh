@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# issue 36, goal 1 on the lent GPU host: `place3d reproduce --routes 8 --backend warp:cuda:0` (four towns,
+# P-SOGs pooled from scratch, the eight placements, intervals, convergence) timed three times with a warm
+# Warp kernel cache (bench/bench_pool.py: an empty P-SOG cache per run, one untimed small run first).
+# Run after the .gpu parts are staged (../shared/gpu/README.md):
+#   source /tmp/gpu-env.sh && bash bench/gpu_reproduce.sh
+# Environment: ROUTES (default 8), RUNS (default 3), BASELINE=1 to alternate `--executor local` (the drives
+# one after the other, as before issue 36) with the default (auto: one worker process per core). A `run`
+# command on the host may take 10 minutes: where the runs do not fit, call the script once per run with
+# RUNS=1 (bench_pool.py rewrites its file after every run, so a run cut short keeps the runs before it).
+# Writes $OUT/reproduce-pool-gpu-<machine>-<date>.json (or bench/results/) and a log beside it.
+set -uo pipefail
+out=${OUT:-bench/results}
+mkdir -p "$out"
+if [ -d .whl ]; then python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl; fi
+routes=${ROUTES:-8}
+runs=${RUNS:-3}
+log="$out/reproduce-pool-gpu-$(date -u +%F).log"
+{ nvidia-smi --query-gpu=name,driver_version --format=csv,noheader | head -1; nproc;
+  python3 -c "import place3d_kernels as p; print(p.available_backends())"; } | tee "$log"
+args=(--routes "$routes" --runs "$runs" --backend warp:cuda:0 --out "$out" --label gpu)
+# BASELINE=1: the local executor (the drives one after the other, as before issue 36) alternates with the
+# default on the same machine
+[ "${BASELINE:-0}" = 1 ] && args+=(--executors local auto)
+python3 bench/bench_pool.py "${args[@]}" 2>&1 | tee -a "$log"

@@ -1,0 +1,94 @@
+"""The process executor (issue 36): drives built in worker processes give the pool the local executor gives,
+bit for bit and in drive order; ``--executor auto`` picks it only where there are several drives and cores."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+import pytest
+
+from place3d_app import executors
+from place3d_app.executors import LocalExecutor, ProcessExecutor, executor_from_args
+from place3d_kernels.pooled import Drive, PoolSettings, build_pooled
+
+
+def _same_records(a, b) -> None:
+    assert a.labels == b.labels
+    for ra, rb in zip(a.records, b.records):
+        assert ra.n_subsets == rb.n_subsets
+        for field in ("voxels", "classes", "counts"):
+            x, y = getattr(ra, field), getattr(rb, field)
+            assert x.dtype == y.dtype and np.array_equal(x, y), (ra.label, field)
+
+
+def test_process_pool_is_the_local_pool_bit_for_bit(device_backend):
+    # three routes of the embedded town, of different lengths, so that a pool put together in another order
+    # than the drives' would differ; a fresh build in every worker (no cache to read)
+    settings = PoolSettings(0.8, "collection_64ch", 4, device_backend, False)
+    drives = [Drive("town", seed=s, frames=f) for s, f in ((0, 8), (1, 4), (2, 8))]
+    local = build_pooled(drives, settings, executor=LocalExecutor())
+    with ProcessExecutor(2, backend=device_backend) as ex:
+        procs = build_pooled(drives, settings, executor=ex)
+        assert ex.submitted == 3
+    _same_records(procs, local)
+    (va, ca, ta), (vb, cb, tb) = procs.counts(), local.counts()
+    assert ta == tb == 5 and np.array_equal(va, vb) and np.array_equal(ca, cb)
+    assert np.array_equal(procs.psog().probs, local.psog().probs)
+
+
+def test_process_executor_keeps_task_order_and_raises_the_task_error():
+    with ProcessExecutor(2) as ex:
+        assert ex.map(abs, [-5, 4, -3, 2, -1]) == [5, 4, 3, 2, 1]
+        assert ex.map(abs, []) == []
+        with pytest.raises(ValueError, match="math domain error"):
+            ex.map(math.sqrt, [4.0, -1.0, 9.0])
+        assert ex.map(abs, [-7]) == [7]                     # the pool survives a task's own error
+        assert ex.submitted == 9
+
+
+def _args(executor="auto", ray_address=None):
+    return argparse.Namespace(executor=executor, ray_address=ray_address, gpu_actors=0, cpu_actors=0)
+
+
+@pytest.fixture
+def no_spawn(monkeypatch):
+    """ProcessExecutors that start no process (what is checked here is the choice, not the workers)."""
+    monkeypatch.setattr(ProcessExecutor, "_ensure", lambda self, n: None)
+
+
+def test_auto_picks_processes_for_several_drives_on_several_cores(monkeypatch, no_spawn):
+    monkeypatch.delenv(executors.WORKERS_ENV, raising=False)
+    monkeypatch.setattr(executors, "usable_cores", lambda: 4)
+    assert isinstance(executor_from_args(_args(), tasks=1), LocalExecutor)        # one drive: nothing to split
+    ex = executor_from_args(_args(), tasks=8, backend="reference")
+    assert ex.kind == "process" and ex.workers == 4 and ex.backend == "reference"
+    assert executor_from_args(_args(), tasks=3).workers == 3                    # no more workers than drives
+    assert isinstance(executor_from_args(_args("local"), tasks=8), LocalExecutor)
+    assert executor_from_args(_args("process"), tasks=1).kind == "process"       # asked for: given
+    monkeypatch.setattr(executors, "usable_cores", lambda: 1)
+    assert isinstance(executor_from_args(_args(), tasks=8), LocalExecutor)        # one core
+    with pytest.raises(ValueError, match="--ray-address needs --executor ray"):
+        executor_from_args(_args("process", ray_address="auto"), tasks=8)
+
+
+def test_workers_env_caps_the_workers(monkeypatch, no_spawn):
+    monkeypatch.setattr(executors, "usable_cores", lambda: 16)
+    monkeypatch.setenv(executors.WORKERS_ENV, "3")
+    assert executors.default_workers() == 3 and executor_from_args(_args(), tasks=32).workers == 3
+    monkeypatch.setenv(executors.WORKERS_ENV, "1")
+    assert isinstance(executor_from_args(_args(), tasks=32), LocalExecutor)
+    for bad in ("0", "two"):
+        monkeypatch.setenv(executors.WORKERS_ENV, bad)
+        with pytest.raises(ValueError, match=executors.WORKERS_ENV):
+            executors.default_workers()
+
+
+def test_reproduce_defaults_to_auto_and_takes_process():
+    from place3d_app.commands import reproduce
+
+    p = argparse.ArgumentParser()
+    reproduce.add_arguments(p)
+    assert p.parse_args([]).executor == "auto"
+    assert p.parse_args(["--executor", "process"]).executor == "process"
