@@ -257,7 +257,7 @@ def test_output_paths_of_the_wrong_kind_are_refused_up_front(capsys, monkeypatch
     Path("adir").mkdir()
     assert main(["optimize", *TINY, "--output", "afile"]) == 2
     assert "afile" in _err(capsys)
-    assert main(["simulate", *TINY, "--output", "afile"]) == 2
+    assert main(["simulate", *TINY[:-2], "--output", "afile"]) == 2        # simulate takes no --routes
     assert "afile" in _err(capsys)
     assert main(["evaluate", *TINY, "--output", "adir"]) == 2
     assert "adir" in _err(capsys)
@@ -271,12 +271,12 @@ def test_study_with_unknown_placement_writes_nothing(tmp_path, capsys):
 
 
 def test_ctrl_c_is_one_line_and_exit_130(capsys, monkeypatch):
-    import place3d_app.cli as cli
+    import place3d_app.commands.common as common
 
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "psog_for_spec", boom)
+    monkeypatch.setattr(common, "psog_for_spec", boom)      # the single-drive P-SOG (TINY has --routes 1)
     try:
         rc = main(["optimize", *TINY, "--output", "o"])
     except KeyboardInterrupt:

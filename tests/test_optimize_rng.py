@@ -1,6 +1,5 @@
 """CMA-ES's private generator (optimize.cmaes): np.random pointed at it for each pycma call, and restored."""
 
-import pickle
 
 import numpy as np
 import pytest
@@ -34,16 +33,3 @@ def test_np_random_is_the_global_generator_again_after_each_call_even_one_that_r
             raise RuntimeError("inside")
     for n, f in before.items():
         assert getattr(np.random, n) == f and getattr(np.random, n).__self__ is f.__self__, n
-
-
-def test_a_strategy_pickled_with_the_state_of_before_resumes_the_same():
-    """Checkpoints written before the private generator kept its state (``_np_state``) load and go on
-    drawing the same numbers."""
-    s = _strategy()
-    _run(s, 3)
-    old = pickle.loads(pickle.dumps(s))
-    state = dict(vars(old))
-    state["_np_state"] = state.pop("_rs").get_state()
-    converted = type(old).__new__(type(old))
-    converted.__setstate__(pickle.loads(pickle.dumps(state)))
-    np.testing.assert_array_equal(_run(converted), _run(s))

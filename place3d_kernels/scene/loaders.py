@@ -218,7 +218,15 @@ def save_mesh(mesh: Mesh, path) -> Path:
         name = CLASSES[int(c)].replace(" ", "_")
         scene.add_geometry(trimesh.Trimesh(verts[used], inv.reshape(-1, 3), process=False),
                            node_name=name, geom_name=name)
-    atomic_write(path, scene.export(file_type=kind))
+    out = scene.export(file_type=kind)
+    if isinstance(out, dict):
+        # glTF (.gltf) is a JSON file and the buffers it names beside it: each file written atomically, the
+        # buffers first, so the JSON never names a missing one
+        main = [k for k in out if k.endswith(".gltf")]
+        for name, data in sorted(out.items(), key=lambda kv: kv[0] in main):
+            atomic_write(path if name in main else path.parent / name, data)
+        return path
+    atomic_write(path, out)
     return path
 
 
