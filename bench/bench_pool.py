@@ -91,7 +91,7 @@ def main(argv=None) -> int:
         warp = {t: Path(scratch, f"warp{i}") for i, t in enumerate(trees)}
         for t in trees:         # kernels compiled into each tree's cache, untimed
             with tempfile.TemporaryDirectory() as c:
-                run_once(t, ["--towns", "town", "--routes", "1", "--frames", "2",
+                run_once(t, ["--towns", "town", "--routes", "2", "--frames", "2",
                              "--no-convergence", "--backend", a.backend], Path(c), warp[t], a.timeout)
         for i in range(a.runs):
             for t, e in variants:
