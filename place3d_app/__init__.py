@@ -93,13 +93,14 @@ def leave(code) -> None:
 
     Python's own exit does three things once the program returns: it tells thread pools to stop and joins
     the threads that are not daemons, it runs the ``atexit`` handlers, and then it tears the interpreter
-    down (module namespaces, every object still alive, the loaded C libraries' destructors: Warp's LLVM,
-    the CUDA driver, PoCL). A finished command needs the first two (a P-SOG file written on a thread,
-    Ray's shutdown, temporary directories' finalizers) and none of the third, which took 0.2-0.25 s of a
-    ``place3d optimize`` on the dev VM (README, "What a user waits for, ninth session"). So this runs the
-    first two as the interpreter would, flushes the standard streams and leaves with ``os._exit``. Where
-    the interpreter lacks the hooks it uses (``threading._shutdown``, ``atexit._run_exitfuncs``: CPython
-    has both), or with ``PLACE3D_FAST_EXIT=0``, it calls ``sys.exit`` instead.
+    down (module namespaces, every object still alive, the loaded C libraries' destructors: Warp's LLVM, the
+    CUDA driver, PoCL). A finished command needs the first two (a P-SOG file written on a thread, Ray's
+    shutdown, temporary directories' finalizers) and none of the third, which was a visible part of a
+    ``place3d optimize`` (bench/README.md, "What the studies found", cold command: imports, tail and exit).
+    So this runs the first two as the interpreter would, flushes the standard streams and leaves with
+    ``os._exit``. Where the interpreter lacks the hooks it uses (``threading._shutdown``,
+    ``atexit._run_exitfuncs``: CPython has both), or with ``PLACE3D_FAST_EXIT=0``, it calls ``sys.exit``
+    instead.
     """
     import atexit
     import threading

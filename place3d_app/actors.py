@@ -39,7 +39,7 @@ import numpy as np
 __all__ = ["ScoringPool", "ScoringActor", "ActorScoringError", "is_gpu_backend", "worth_dispatching", "CPU_BACKENDS",
            "GPU_BACKENDS"]
 
-#: Backends a CPU actor picks from when none is named, fastest first (README performance table).
+#: Backends a CPU actor picks from when none is named, fastest first (docs/performance.md).
 CPU_BACKENDS = ("opencl:pocl", "warp:cpu", "reference")
 #: Backends a GPU actor picks from when the run's backend is not a GPU one.
 GPU_BACKENDS = ("warp:cuda:0", "opencl:nvidia")
@@ -218,8 +218,9 @@ class ScoringPool:
             spec: the ``PSOGSpec`` (resolved: backend name and cache folder fixed in the driver).
             lidar: LiDAR name or model; occlusion, task: as ``msog_batch``.
             chunk: rigs per chunk (default: one chunk per actor when all are GPU actors, since every
-                round trip costs a GPU actor about 3 ms: on 2 x H200, 2,048 rigs took 44 ms in two chunks
-                against 88 ms on one GPU actor; with CPU actors in the pool the batch is cut into 4 chunks
+                round trip costs a GPU actor a fixed overhead: on two GPUs, a large population in two chunks
+                took about half the time of one GPU actor (bench/README.md, "What the studies found",
+                populations on Ray actors); with CPU actors in the pool the batch is cut into 4 chunks
                 per actor, small enough for a slow actor to help without holding up the batch).
 
         Raises:

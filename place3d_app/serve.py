@@ -1,11 +1,11 @@
 """``place3d serve``: a resident process that runs ``place3d`` commands with everything slow already loaded.
 
-A warm ``place3d optimize --max-evals 2000`` spent about 2.4 s of its 6.5 s on the H100 host in start-up:
-the interpreter and package imports, Warp, CUDA, pycma, the cached P-SOG. The kernels take milliseconds.
-Like ``dmypy`` or the Gradle daemon, ``place3d serve`` pays that once and then runs each command sent by
-``place3d --server ...`` (``place3d_app``) in its own process, where the imports are done, the backend
-instances with their compiled kernels are kept by the registry, and the last P-SOGs read stay in memory
-(``sog.keep_loaded``).
+A warm ``place3d optimize --max-evals 2000`` spent a large part of its time in start-up: the interpreter and
+package imports, Warp, CUDA, pycma, the cached P-SOG, while the kernels take milliseconds (bench/README.md,
+"What the studies found", warm command and ``place3d serve``). Like ``dmypy`` or the Gradle daemon,
+``place3d serve`` pays that once and then runs each command sent by ``place3d --server ...``
+(``place3d_app``) in its own process, where the imports are done, the backend instances with their compiled
+kernels are kept by the registry, and the last P-SOGs read stay in memory (``sog.keep_loaded``).
 
 Per command the server takes on the client's side of the process: its standard input, output and error
 (passed as descriptors, so the output is the bytes the in-process command writes, C-level output
@@ -510,10 +510,10 @@ def settle_memory() -> None:
 
     A resident process holds some 10^5 objects that live as long as it does (modules, the parser, pycma,
     matplotlib's registries). Python's oldest-generation collection walks all of them, and one ran during
-    each warm ``place3d optimize`` (0.11 s on the 2-core dev VM, in the middle of the search). Frozen,
-    they are skipped, so a command's collections see only what the command made. This runs between
-    commands, when the client already has its answer: unfreezing first lets the next collection free
-    what an earlier command left in reference cycles, so nothing frozen leaks."""
+    each warm ``place3d optimize`` (a visible pause in the middle of the search). Frozen, they are skipped,
+    so a command's collections see only what the command made. This runs between commands, when the client
+    already has its answer: unfreezing first lets the next collection free what an earlier command left in
+    reference cycles, so nothing frozen leaks."""
     import gc
 
     gc.unfreeze()

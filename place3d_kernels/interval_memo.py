@@ -3,9 +3,9 @@
 ``place3d optimize`` prints an interval for the optimised rig and for each of the eleven paper baselines:
 every rig is rescored on each leave-one-out (or resampled) P-SOG of the drive. The baselines' scores there
 depend only on the scene's subset records, the rig, the LiDAR, the task, the occlusion mode, the
-normalisation and the code, never on the search, yet they were 80 % of the interval's scoring
-(0.7 of 0.8 s on the dev VM). So they are remembered: one JSON file per subset-record file and code
-identity, one entry per rig (its point score and its row of resampled scores).
+normalisation and the code, never on the search, yet they were most of the interval's scoring. So they are
+remembered: one JSON file per subset-record file and code identity, one entry per rig (its point score and
+its row of resampled scores).
 
 A stale entry is never used. The file's name carries a digest of the package's source (every ``.py``
 and ``.cl`` file under ``place3d_kernels/``), the package and NumPy versions, so any code change starts a

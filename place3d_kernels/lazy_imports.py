@@ -1,15 +1,16 @@
 """Imports that cost more than what a command uses from them.
 
-``import cma`` (pycma 4.x) took 0.87 s on the dev VM, most of it in two optional extras that CMA-ES
-ask/tell never touches: ``cma.s`` imports ``matplotlib.pyplot`` (0.23 s) for pycma's plotting shortcuts,
-and ``cma.fitness_models`` imports ``scipy.stats`` (0.53 s) only for ``kendalltau``, used by the surrogate
-models of ``fmin_lq_surr``. :func:`import_cma` imports pycma with both hidden from pycma's import only: a
-``None`` entry in ``sys.modules`` makes an import of that name raise ImportError (Python docs, "The import
-system", 5.3.1 The module cache), and pycma handles both ImportErrors itself. ``matplotlib`` itself is
-hidden too: ``cma.s`` writes ``from matplotlib import pyplot``, which imports the ``matplotlib`` package
-before it finds ``pyplot`` hidden, and in ``place3d optimize`` nothing else in the main process imports it
-(the figures are drawn in processes of their own; with a thread instead, after the search). With it
-hidden, ``import_cma`` after NumPy took 0.016-0.025 s against 0.104-0.115 s (dev VM, 3 fresh processes each).
+``import cma`` (pycma 4.x) spends most of its time in two optional extras that CMA-ES ask/tell never
+touches: ``cma.s`` imports ``matplotlib.pyplot`` for pycma's plotting shortcuts, and ``cma.fitness_models``
+imports ``scipy.stats`` only for ``kendalltau``, used by the surrogate models of ``fmin_lq_surr``.
+:func:`import_cma` imports pycma with both hidden from pycma's import only: a ``None`` entry in
+``sys.modules`` makes an import of that name raise ImportError (Python docs, "The import system", 5.3.1 The
+module cache), and pycma handles both ImportErrors itself. ``matplotlib`` itself is hidden too: ``cma.s``
+writes ``from matplotlib import pyplot``, which imports the ``matplotlib`` package before it finds
+``pyplot`` hidden, and in ``place3d optimize`` nothing else in the main process imports it (the figures are
+drawn in processes of their own; with a thread instead, after the search). With it hidden too,
+``import_cma`` after NumPy is several times faster (bench/README.md, "What the studies found", cold
+command: imports, tail and exit).
 
 * ``cma.fitness_models`` takes its documented fallback ``_kendall_tau`` ("implemented only to potentially
   remove dependency on scipy.stats"): the same coefficient, used only by ``fmin_lq_surr``.

@@ -281,7 +281,7 @@ def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog",
     check_inputs(psog, poses, occlusion, mesh)
     b = get_backend(backend)
     # the union mask of the coverage kernel, not traverse + np.unique: the same sorted set (C order is the
-    # flat index order), without writing out every visit (0.65 s of a CPU optimise run's plot)
+    # flat index order), without writing out every visit (a large part of a CPU optimise run's plot)
     from place3d_kernels.ops import coverage
 
     if not lidar.is_grid or lidar.min_range > 0:

@@ -50,7 +50,7 @@ class Traversal:
 
 def _row_norm(a: np.ndarray) -> np.ndarray:
     # Euclidean norm of each row of an (N, 3) array: the same sum order as np.linalg.norm(a, axis=1)
-    # (x^2 + y^2, then + z^2; bit-identical), faster than its reduction over a length-3 axis (bench/README.md)
+    # (x^2 + y^2, then + z^2; bit-identical), faster than its reduction over a length-3 axis
     return np.sqrt(a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1] + a[:, 2] * a[:, 2])
 
 

@@ -252,7 +252,7 @@ class PooledPSOG:
         if keep.all():              # every voxel still occupied (the plain pool, a jackknife): no row copy
             vox = uvox.copy()
         else:
-            # rows by index: the rows a boolean mask selects, without its slow 2-D path (80 ms here)
+            # rows by index: the rows a boolean mask selects, without its slow 2-D path
             rows = np.flatnonzero(keep)
             out, vox, occ = out.take(rows, axis=0), uvox[rows], occ[rows]
         out[:, 0] = T - occ

@@ -37,7 +37,8 @@ Defects of the original public code that this version does not repeat:
    wrapped around to voxels on the opposite side of the grid (here segments are clipped to the grid and
    indices are checked; see ``place3d_kernels.ops.traverse``);
 4. (speed) ray casting and the full-grid entropy loop ran in pure Python (minutes per placement; the
-   peers comparison in bench/README.md); here both are kernels and the entropy is summed only over covered voxels.
+   pure-Python loop of bench/peers.py); here both are kernels and the entropy is summed only over covered
+   voxels.
 """
 
 from __future__ import annotations

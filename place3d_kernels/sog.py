@@ -40,11 +40,11 @@ def keep_loaded(n: int) -> None:
     """Keep the last ``n`` P-SOGs read by ``PSOG.load`` in memory (0, the default, keeps none).
 
     A resident process (``place3d serve``) turns this on, so a command on a cached P-SOG skips reading and
-    decompressing the file (0.03-0.4 s on the dev VM) and keeps what the P-SOG derives on first use: its
-    entropy, weights, stop mask and each backend's prepared grid (a device upload). An entry is keyed by
-    the file's resolved path, device, inode, size and modification time (ns), so a file that was rewritten
-    (``PSOG.save`` replaces it: a new inode) is read again. Nothing in the package writes into a P-SOG's
-    arrays after it is made, so sharing one between commands gives the same results.
+    decompressing the file (a visible part of a warm command on a large P-SOG) and keeps what the P-SOG
+    derives on first use: its entropy, weights, stop mask and each backend's prepared grid (a device upload).
+    An entry is keyed by the file's resolved path, device, inode, size and modification time (ns), so a file
+    that was rewritten (``PSOG.save`` replaces it: a new inode) is read again. Nothing in the package writes
+    into a P-SOG's arrays after it is made, so sharing one between commands gives the same results.
     """
     global _keep
     if n < 0:
@@ -79,8 +79,8 @@ def entropy(probs: np.ndarray) -> np.ndarray:
 
 
 def _entropy_rows(p: np.ndarray) -> np.ndarray:
-    # logs of the nonzero probabilities only (about a tenth of a P-SOG's entries): 17x faster than a log
-    # of every entry, and the same terms in the same places, so the row sums are bit-identical
+    # logs of the nonzero probabilities only (a small share of a P-SOG's entries): many times faster than
+    # a log of every entry, and the same terms in the same places, so the row sums are bit-identical
     nz = p > 0
     terms = np.zeros(p.shape, dtype=np.float64)
     v = p[nz]
@@ -152,7 +152,7 @@ def pool_votes(votes: list[tuple[np.ndarray, np.ndarray]], n_voxels: int,
     else:
         uniq, inv = np.unique(vox, return_inverse=True)
     # integer counts of (row, class) pairs (a pair repeats across subsets, never within one), by bincount:
-    # the counts np.add.at gave, in 13 instead of 31 ms for the default town's 0.43 M votes (dev VM)
+    # the counts np.add.at gave, in well under half its time (np.add.at's unbuffered loop is slow)
     counts = np.bincount(inv * n_classes + lab, minlength=len(uniq) * n_classes).astype(np.int32)
     counts = counts.reshape(len(uniq), n_classes)
     counts[:, 0] = T - counts[:, 1:].sum(axis=1)
@@ -311,7 +311,7 @@ class PSOG:
                       meta=json.dumps({"grid": self.grid.to_dict(), "channels": list(self.channels),
                                        "n_subsets": self.n_subsets, "format": _FORMAT}))
         # probs left out when they are counts / T to the bit (P-SOGs from frames): a third of the bytes to
-        # decompress on every cached load (0.1-0.2 s of a warm optimise on the dev VM, more beside other work)
+        # decompress on every cached load, a visible part of a warm optimise (more beside other work)
         if not self.probs_are_counts():
             arrays["probs"] = self.probs
         data = _npz_bytes(arrays)
@@ -376,8 +376,8 @@ class PSOG:
 
 
 #: zlib level per member of a saved P-SOG (others: zlib's default, 6, as ``np.savez_compressed`` uses).
-#: The ascending voxel ids compress to 383 KB at level 1 against 371 KB at 6, in 10 ms instead of 82 ms
-#: (default town, dev VM), and inflate as fast; the counts keep level 6, which halves their size and
+#: The ascending voxel ids compress at level 1 to within a few percent of level 6's size in a fraction of
+#: its time, and inflate as fast; the counts keep level 6, which halves their size and
 #: makes every cached load inflate them faster than a level-1 file would.
 _ZLIB_LEVEL = {"voxels": 1}
 

@@ -377,7 +377,7 @@ class Jackknife:
         return v
 
     def _z(self) -> float:
-        # the standard library's normal quantile: importing scipy.stats for it cost 0.8 s of a 17 s optimise
+        # the standard library's normal quantile: importing scipy.stats for it was a visible part of an optimise
         if self.df is None:
             return NormalDist().inv_cdf(0.5 + self.level / 2.0)
         if self.df < 1:
@@ -517,9 +517,9 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     from place3d_kernels.left_out import fused_path, prepared_grids
 
     if fused_path(L, occlusion, normalisation, body):
-        # msog_batch's fused path: each left-out grid patched from the full pool (left_out.py, 5x faster) and
-        # prepared once; with a pool_key the prepared grids are kept for the next jackknife on these records
-        # (or were prepared during the search: prepare_in_background)
+        # msog_batch's fused path: each left-out grid patched from the full pool (left_out.py, several times
+        # faster) and prepared once; with a pool_key the prepared grids are kept for the next jackknife on these
+        # records (or were prepared during the search: prepare_in_background)
         from place3d_kernels.metrics import msog_on_handle
 
         # an iterator per task: kept handles, or (not kept) each grid prepared just before its scoring

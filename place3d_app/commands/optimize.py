@@ -192,14 +192,14 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     from place3d_kernels.optimize import FixedHeight, MinDistance, MSOGObjective, SearchSpace, optimize
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
 
-    # The backend probe (importing Warp and starting CUDA: 1.1-1.5 s on the H100 host) runs on a thread
-    # while this one builds the scene and reads the cached P-SOG, which need no backend; a cache miss
-    # waits for it (scene_psog takes the Future). The same thread then imports pycma, which a cold command
-    # otherwise imported once the P-SOG was built; on a cache miss it overlaps the simulation. Where the
-    # figures have processes, the certificate is computed in their helper process (optimize's
-    # certificate_executor) and this process never imports SciPy: its import held the interpreter lock
-    # beside the simulation (0.46-0.71 s alone on the H100 host; bench/README.md, "twelfth session").
-    # Elsewhere this thread imports the certificate's SciPy module too.
+    # The backend probe (importing Warp and starting CUDA: a large part of a cold command) runs on a thread
+    # while this one builds the scene and reads the cached P-SOG, which need no backend; a cache miss waits
+    # for it (scene_psog takes the Future). The same thread then imports pycma, which a cold command otherwise
+    # imported once the P-SOG was built; on a cache miss it overlaps the simulation. Where the figures have
+    # processes, the certificate is computed in their helper process (optimize's certificate_executor) and
+    # this process never imports SciPy: its import held the interpreter lock beside the simulation
+    # (bench/README.md, "What the studies found", cold command: imports, tail and exit). Elsewhere this thread
+    # imports the certificate's SciPy module too.
     bg = ThreadPoolExecutor(max_workers=1, thread_name_prefix="place3d-optimize")
     probe = bg.submit(_probe, args.backend)
     helper = plotter.helper if plotter is not None else None
@@ -254,7 +254,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     # A warm start from the best paper placement with a smaller step: on the default town the "center"
     # rig is a strong local optimum for detection, which 2,000-evaluation runs from the box centre
     # (sigma0 0.3) beat in none of seeds 0-3 and runs from center (sigma0 0.15) in each of them
-    # (tests/test_optimize_scene.py, README "Optimisation")
+    # (tests/test_optimize_scene.py, docs/guide.md, "Optimisation")
     x0 = None
     if args.x0 == "best-baseline":
         if baselines:

@@ -350,8 +350,8 @@ class DirectionCache:
     ``upload(sensor_directions(elevations, azimuths))``, computed once per (elevations, azimuths).
 
     A search scores every generation with the same LiDAR model; building its (C*A, 3) table and copying it
-    to the device took a large share of a generation's host time on the H100 host (``bench/README.md``,
-    "A warm command's host time and figures"). Keyed by the arrays' bytes, so a changed model is a new
+    to the device took a large share of a generation's host time on a GPU (``bench/README.md``, "What the
+    studies found", warm command and place3d serve). Keyed by the arrays' bytes, so a changed model is a new
     entry; the oldest of ``size`` entries is dropped."""
 
     def __init__(self, upload, size: int = 4):

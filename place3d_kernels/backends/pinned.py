@@ -2,7 +2,7 @@
 
 A copy from a GPU into pageable NumPy memory goes through the driver's staging buffer; into page-locked
 (pinned) memory it is one DMA. The ray-mesh API returns 20 bytes per ray (float64 distance, int64 face,
-int32 label), five times what a plain float32 caster returns, so on an H100 host that copy was most of the
+int32 label), five times what a plain float32 caster returns, so on a GPU host that copy was most of the
 API's distance to a plain Warp kernel (issue 17, goal 2). Allocating pinned memory per call would cost
 more than it saves (every page is locked), so blocks are pooled: a block goes back to the pool when the
 last NumPy view of it is garbage-collected (the view's base is the block's owner, whose ``__del__``

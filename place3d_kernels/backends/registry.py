@@ -87,8 +87,9 @@ def _probe_family(fam: str, spec: Family) -> tuple[list[str], list[tuple[str, st
 
 @lru_cache(maxsize=None)
 def _probe_cached(fam: str) -> tuple[tuple[str, ...], tuple[tuple[str, str], ...]]:
-    """``_probe_family`` of one family, cached: probing imports that family's runtime (Warp: 0.3 s and
-    more; OpenCL: PyOpenCL plus a probe kernel build), which a command naming another backend never needs."""
+    """``_probe_family`` of one family, cached: probing imports that family's runtime (Warp: a visible
+    part of a command's start; OpenCL: PyOpenCL plus a probe kernel build), which a command naming another
+    backend never needs."""
     names, missing = _probe_family(fam, FAMILIES[fam])
     return tuple(names), tuple(missing)
 
@@ -128,8 +129,8 @@ def backend_report() -> list[tuple[str, bool, str]]:
 
 
 def _cuda_driver_loadable() -> bool:
-    """Whether the NVIDIA driver library loads (a few ms), so "auto" on a machine without one never
-    imports Warp only to learn that it has no CUDA device (0.3 s of every CPU command)."""
+    """Whether the NVIDIA driver library loads (cheap), so "auto" on a machine without one never imports
+    Warp only to learn that it has no CUDA device (a visible part of every CPU command)."""
     import ctypes
 
     for lib in ("libcuda.so.1", "libcuda.so", "nvcuda.dll", "libcuda.dylib"):
@@ -150,7 +151,7 @@ def _cpu_name(name: str) -> bool:
 def _auto() -> str:
     """The backend "auto" names: a CUDA GPU through Warp, then an OpenCL GPU, then PoCL (all cores) before
     Warp's CPU device (PoCL's walk keeps 16 rays in vector lanes and ran the M-SOG faster than Warp's CPU
-    kernels: bench/README.md, "What the studies found"), then the reference.
+    kernels: bench/README.md, "What the studies found", M-SOG walk on the CPU), then the reference.
     Families are probed in that order and only until one answers (each probe imports a runtime)."""
     if _cuda_driver_loadable():
         cuda = [x for x in _probe(("warp",))[0] if x.startswith("warp:cuda")]

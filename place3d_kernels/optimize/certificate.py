@@ -38,11 +38,11 @@ _SCREEN_SLACK = 1e-12
 def _max_slope(U: np.ndarray, G: np.ndarray) -> tuple[float, int]:
     """(largest slope over the pairs of distinct points, number of such pairs).
 
-    Screened with SciPy's ``pdist`` (all n (n-1) / 2 distances in C, 10-20x faster than broadcasting the
-    differences in NumPy, which took 0.3-0.4 s of a warm optimise through ``place3d serve`` on the H100
-    host for 2,000 samples), then recomputed exactly (``_pair_slopes``) for every pair within
-    ``_SCREEN_SLACK`` of the screened maximum. The pair that attains the exact maximum is among those, so
-    the value is the exact one, whatever order ``pdist`` sums in.
+    Screened with SciPy's ``pdist`` (all n (n-1) / 2 distances in C, many times faster than broadcasting the
+    differences in NumPy, which was a visible part of a warm optimise through ``place3d serve`` for 2,000
+    samples), then recomputed exactly (``_pair_slopes``) for every pair within ``_SCREEN_SLACK`` of the
+    screened maximum. The pair that attains the exact maximum is among those, so the value is the exact one,
+    whatever order ``pdist`` sums in.
     """
     from scipy.spatial.distance import pdist
 

@@ -40,8 +40,8 @@ def default_popsize(n: int) -> int:
 #: the names in ``np.random`` that draw from (or set) NumPy's legacy global generator: its bound methods
 #: (``rand``, ``randn``, ``get_state``, ``seed``, ...). Pointing them at another ``RandomState`` for a pycma
 #: call gives pycma that generator's numbers, as copying its state into the global generator and back did;
-#: that copy (``get_state`` / ``set_state``, four per call) cost 0.1 ms a call on the dev VM and 52 ms of
-#: a 2,000-evaluation run's 370 calls on the H100 host (results/cprofile-warm-H100-2026-11-25-threadplots.txt)
+#: that copy (``get_state`` / ``set_state``, four per call) was a visible part of a warm optimise's host time
+#: (bench/README.md, "What the studies found", warm command and place3d serve)
 _GLOBAL_NAMES = tuple(n for n in dir(np.random) if getattr(getattr(np.random, n), "__self__", None)
                       is np.random.rand.__self__)
 

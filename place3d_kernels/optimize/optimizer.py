@@ -214,8 +214,8 @@ def optimize(objective: _Fn, space: SearchSpace, constraints: Sequence[Constrain
             executor (``submit(fn, *args, **kw)`` returning a ``concurrent.futures.Future``), to which it is
             handed before ``on_search_end`` and waited for after it. ``place3d optimize`` passes a helper
             process started with the command, so that its own process never imports SciPy (the pair scan's
-            ``pdist``, some 0.5-0.7 s of import on the H100 host, which had held the interpreter lock during
-            the simulation). Default (None), or a process pool found broken: computed here, after
+            ``pdist``, a visible part of a cold command's import time, which had held the interpreter lock
+            during the simulation). Default (None), or a process pool found broken: computed here, after
             ``on_search_end``. The result is the same either way (the same function on the same arrays).
 
     Returns:
@@ -410,13 +410,12 @@ def _run_generations(grid: _Grid, state, objective, max_evals, max_stall_generat
             entry, new, partial = _generation(grid, state, objective, max_evals, warned)
             state["seconds"] = seconds_before + time.perf_counter() - t0
             # At most one checkpoint per CHECKPOINT_SECONDS: encoding the growing state and an fsync per
-            # generation cost 0.17 s of a 2,000-evaluation run on the dev VM, more on slower disks. A
-            # generation answered wholly from the cache is not worth an fsync either: replaying it after a
-            # crash costs no evaluation and, with the same cache and random state, gives the same result.
-            # Between writes the latest state is kept as a snapshot (lengths and references, no copy:
-            # serialising the state each generation cost 0.2-0.3 ms on the dev VM, about three times that
-            # on the H100 host), written when the run raises, so only a kill (SIGKILL, power) can lose
-            # up to the last second.
+            # generation was a visible part of a 2,000-evaluation run, more on slower disks. A generation
+            # answered wholly from the cache is not worth an fsync either: replaying it after a crash costs no
+            # evaluation and, with the same cache and random state, gives the same result. Between writes the
+            # latest state is kept as a snapshot (lengths and references, no copy: serialising the state each
+            # generation added up over a run), written when the run raises, so only a kill (SIGKILL, power) can
+            # lose up to the last second.
             unsaved += 1
             if checkpoint is not None:
                 with section("checkpoint"):

@@ -29,16 +29,16 @@ def _figure(w, h):
     return fig
 
 
-#: PNG writer settings: zlib level 1 (matplotlib's Pillow writer uses 6), which spent a fifth of a
-#: figure's time compressing; the files grow by under 10 %
+#: PNG writer settings: zlib level 1 (matplotlib's Pillow writer uses 6, whose compressing was a visible
+#: part of a figure's time); the files grow only a little
 PNG = {"compress_level": 1}
 
 
 def _save(fig, path, margins: Mapping[str, float]) -> Path:
     """Place the axes at fixed ``margins`` (``Figure.subplots_adjust`` fractions, sized for each figure's
     labels) and write the figure. Measuring the labels instead (``tight_layout``) lays out every text
-    once more before drawing: it took a quarter to a third of each figure's time (bench/README.md,
-    "A warm command's host time and figures"), and ``bbox_inches="tight"`` drew every figure twice."""
+    once more before drawing: it took a large part of each figure's time (bench/README.md, "What the
+    studies found", warm command and place3d serve), and ``bbox_inches="tight"`` drew every figure twice."""
     from place3d_kernels.atomic import atomic_savefig
 
     path = Path(path)
@@ -194,8 +194,7 @@ def draw_coverage(entropy2d, covered2d, n_covered: int, extent, name: str, path,
 def _coverage_left(fig, entropy2d, extent) -> None:
     ax = fig.add_subplot(1, 2, 1)
     # nearest: one grid column is about one pixel here, and the smoothing resampler ("antialiased")
-    # cost a fifth of the figure's time and tripled the file (bench/README.md, "A warm command's host
-    # time and figures")
+    # cost a visible part of the figure's time and made the file several times larger
     im = ax.imshow(entropy2d, origin="lower", extent=extent, cmap="magma", interpolation="nearest")
     ax.set_title("P-SOG entropy, summed over z (nats)")
     ax.set_xlabel("y (m, left)")
@@ -299,13 +298,13 @@ def _worker_started() -> None:
 
     A worker leaves when its pool shuts down, by returning from multiprocessing's bootstrap into
     ``sys.exit``; the teardown that follows (every module of NumPy, matplotlib and Pillow, the loaded C
-    libraries) took 0.29-0.38 s per command on the H100 host, and ``PlotWorker.close`` waits for it
-    (bench/README.md, "The cold command's tail"). Each figure is written and closed before its result goes
-    back, and the bootstrap has already run multiprocessing's own exit steps and flushed the streams when
-    the ``atexit`` handler registered here runs (before any registered earlier, as ``atexit`` goes last
-    first), so it flushes the streams again and leaves with ``os._exit``.
-    The exit status is 0 even for a worker that failed; a pool tells a dead worker by its process
-    sentinel, not by the status.
+    libraries) was a visible part of each command, and ``PlotWorker.close`` waits for it (bench/README.md,
+    "What the studies found", cold command: imports, tail and exit). Each figure is written and closed
+    before its result goes back, and the bootstrap has already run multiprocessing's own exit steps and
+    flushed the streams when the ``atexit`` handler registered here runs (before any registered earlier, as
+    ``atexit`` goes last first), so it flushes the streams again and leaves with ``os._exit``. The exit
+    status is 0 even for a worker that failed; a pool tells a dead worker by its process sentinel, not by
+    the status.
     """
     import atexit
 
@@ -450,11 +449,11 @@ def keep_worker() -> bool:
     """Start the plot pool every later ``PlotWorker()`` of this process shares (``place3d serve``).
 
     A resident process calls it at start and after each command: the pool (processes on 4 or more cores,
-    else a thread, as for one command) then has matplotlib imported before a command needs it, instead
-    of each command spawning processes that import NumPy, the package and matplotlib again (about 2 s on
-    the H100 host). Call it between commands only (``place3d serve`` calls it before each): a process
-    spawned during one would inherit that command's standard streams. A pool found broken (a process
-    died) is replaced.
+    else a thread, as for one command) then has matplotlib imported before a command needs it, instead of
+    each command spawning processes that import NumPy, the package and matplotlib again (a large part of a
+    warm command). Call it between commands only (``place3d serve`` calls it before each): a process spawned
+    during one would inherit that command's standard streams. A pool found broken (a process died) is
+    replaced.
 
     Returns:
         True when a new pool was started (the first call, or after a broken one).
@@ -477,14 +476,13 @@ class PlotWorker:
     """Draws the outputs of ``place3d optimize`` beside the main thread.
 
     Where the machine has cores to spare (4 or more) these are ``PLOT_PROCESSES`` processes of their own,
-    started with the command so that importing matplotlib and a first drawing (1-1.3 s on the H100 host)
-    overlap the search, and each figure is drawn in its own process (coverage.png always in the same
-    one, which keeps the P-SOG's panel: ``_Pools``), neither waiting for the main
-    thread's Python (the GIL) nor slowing it; elsewhere (the 2-core dev VM, where PoCL's scoring uses
-    both cores) one thread draws them in turn. In a process that called ``keep_worker`` it uses that
-    pool, and ``close`` waits for this worker's drawings only. A pool whose process died (or could not
-    start) is replaced by a thread. ``submit`` returns a Future whose ``result()`` is the list of paths,
-    or re-raises a plotting error.
+    started with the command so that importing matplotlib and a first drawing (a visible part of a command)
+    overlap the search, and each figure is drawn in its own process (coverage.png always in the same one,
+    which keeps the P-SOG's panel: ``_Pools``), neither waiting for the main thread's Python (the GIL) nor
+    slowing it; elsewhere (a 2-core machine, where PoCL's scoring uses both cores) one thread draws them in
+    turn. In a process that called ``keep_worker`` it uses that pool, and ``close`` waits for this worker's
+    drawings only. A pool whose process died (or could not start) is replaced by a thread. ``submit``
+    returns a Future whose ``result()`` is the list of paths, or re-raises a plotting error.
     """
 
     def __init__(self, processes: bool | None = None):

@@ -1,14 +1,13 @@
 """Remembered scene cache keys: a cached P-SOG is found without building its scene.
 
 A P-SOG cache file is named by ``Scene.key``, a hash of the built scene's geometry, labels, route and
-actors. Building the procedural town only to learn that hash took 0.3 s on the dev VM and 0.5-0.75 s on
-the H100 host, most of a warm ``place3d optimize`` start. So the key of each generated scene is
-remembered on disk under an identity that covers everything the build depends on: the scene spec (name,
-seed, frames), the source of every module of the scene builder (``place3d_kernels/scene/*.py``,
-``mesh.py`` and ``classes.py``, all it imports from the package), the package, NumPy and SciPy versions,
-and for an OpenDRIVE map the bytes of the map file. Any change to one of them is a new identity, so the
-scene is built again and the new key remembered: a stale key is never used. Scenes read from user files (``mesh:``, ``mitsuba:``) are always
-built (their content is the scene).
+actors. Building the procedural town only to learn that hash was most of a warm ``place3d optimize`` start.
+So the key of each generated scene is remembered on disk under an identity that covers everything the build
+depends on: the scene spec (name, seed, frames), the source of every module of the scene builder
+(``place3d_kernels/scene/*.py``, ``mesh.py`` and ``classes.py``, all it imports from the package), the
+package, NumPy and SciPy versions, and for an OpenDRIVE map the bytes of the map file. Any change to one of
+them is a new identity, so the scene is built again and the new key remembered: a stale key is never used.
+Scenes read from user files (``mesh:``, ``mitsuba:``) are always built (their content is the scene).
 """
 
 from __future__ import annotations

@@ -9,14 +9,15 @@ Layout (what ``raycast.cl`` reads):
 * ``tris``: (F, 12) float32 in leaf order: ``v0 xyz, face id (int32 bits), v1 xyz, 0, v2 xyz, 0`` with
   the ORIGINAL face id, so hits report faces in the caller's order.
 
-Build: top-down, one level of the tree per NumPy pass (every node of a level is split at once), binned
-SAH over up to ``bins`` centroid bins (Wald 2007; fewer bins once nodes are small), on all three axes
-while a level has few nodes and on the widest centroid axis after that. Triangles whose node becomes a
-leaf leave the working set, so each pass costs O(active triangles) (build times: bench/README.md,
-"Figures behind backend code comments"). Child boxes are padded outward by ~2**-21 of their coordinates (see ``_pad``).
+Build: top-down, one level of the tree per NumPy pass (every node of a level is split at once), binned SAH
+over up to ``bins`` centroid bins (Wald 2007; fewer bins once nodes are small), on all three axes while a
+level has few nodes and on the widest centroid axis after that. Triangles whose node becomes a leaf leave
+the working set, so each pass costs O(active triangles) (build times: bench/run_bench.py). Child boxes are
+padded outward by ~2**-21 of their coordinates (see ``_pad``).
 
 Devices traverse the 4-wide collapse of this tree by default (``collapse_bvh4``: one float4 slab test per
-node; on an H100 about 10 % faster than the binary tree, bench/README.md).
+node; somewhat faster than the binary tree on an NVIDIA GPU, bench/README.md, "What the studies found",
+ray-mesh, OpenCL on NVIDIA).
 
 Depth bound (why a fixed traversal stack is safe). Let ``L = leaf_size`` and, for a node of ``n``
 triangles, ``need(n) = ceil(log2(ceil(n / L)))`` = the number of inner levels an object-median split

@@ -116,9 +116,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
             to exercise the overflow fallback in tests.
         rays_per_item: rays walked by one work-item of the atomic ``score_placements`` strategy (default 1).
         bvh_width: 4 (a 4-wide tree: SIMD box tests on CPUs, fewer nodes visited on GPUs; the default) or 2
-            (binary, the smaller traversal stack). On an H100 the 4-wide kernel took 0.96-1.04 of a plain
-            Warp kernel's time against the binary one's 1.07-1.13, with identical hits (three runs of
-            bench/raymesh_bvh.py, bench/README.md).
+            (binary, the smaller traversal stack). On an NVIDIA GPU the 4-wide kernel was faster than the
+            binary one in every run, with identical hits (bench/README.md, "What the studies found", ray-mesh,
+            OpenCL on NVIDIA).
         score_strategy: ``"private"`` (a bitset per work-item, OR-reduced; default on CPUs) or ``"atomic"``
             (one shared bitset per candidate, atomic_or; default on GPUs). Both give identical results.
 
@@ -171,7 +171,7 @@ class OpenCLBackend(Backend, OpenCLConditions):
             raise ValueError(f"score_strategy must be 'private' or 'atomic', got {score_strategy!r}")
         self.score_strategy = score_strategy or ("private" if self.is_cpu else "atomic")
         #: on CPUs the private strategy walks 16 rays per work-item in vector lanes (walk_lanes.cl); False: one
-        #: at a time (score_walk). Same bitsets; bench/bench_pocl_walk.py compares the two.
+        #: at a time (score_walk). Same bitsets; bench/bench_pocl_walk.py (tag lab-2026-11-27) compared the two.
         self.walk_lanes = self.is_cpu
         if bvh_width not in (None, 2, 4):
             raise ValueError(f"bvh_width must be 2 or 4, got {bvh_width!r}")
@@ -219,7 +219,7 @@ class OpenCLBackend(Backend, OpenCLConditions):
         return cl.Buffer(self.ctx, _MF.READ_ONLY | flag, hostbuf=a)
 
     #: per-call device buffers of the ray caster come from a pool kept between calls (False: a new
-    #: cl.Buffer each time; bench/opencl_raycast_parts.py compares the two)
+    #: cl.Buffer each time; bench/opencl_raycast_parts.py, tag lab-2026-11-27, compared the two)
     reuse_device_buffers = True
     #: largest pooled device buffer (bytes); larger ones are made and freed per call
     _SCRATCH_MAX = 256 * 2**20
@@ -249,9 +249,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
     def _upload(self, a: np.ndarray, scratch: list | None = None) -> cl.Buffer:
         """A read-only input buffer filled by an explicit copy on GPUs (``_in`` on CPU devices). NVIDIA's
         OpenCL moved a ``COPY_HOST_PTR`` buffer to the device only when the first kernel using it was
-        enqueued, and that took longer than the copy itself (the ray-mesh kernel's enqueue 2.1 ms a call for
-        524,288 float32 rays, bench/README.md, "Figures behind backend code comments"). The copy waits
-        for the queue: for inputs of a call whose queue is idle (the ray caster's)."""
+        enqueued, and that took longer than the copy itself (bench/README.md, "What the studies found",
+        ray-mesh, OpenCL on NVIDIA). The copy waits for the queue: for inputs of a call whose queue is idle
+        (the ray caster's)."""
         a = np.ascontiguousarray(a)
         if self.is_cpu or a.nbytes == 0:
             return self._in(a)
@@ -291,9 +291,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
             cl.enqueue_copy(self.queue, out, buf)
         return out
 
-    #: work-group size of the ray casters on GPUs (None: the driver's choice). 128 read 0.96-1.14 of the plain
-    #: Warp kernel's time on an H100 where the driver's choice read 1.01-1.16, lower in each of three runs
-    #: (bench/raymesh_bvh.py's ``:l<N>`` variants; bench/README.md)
+    #: work-group size of the ray casters on GPUs (None: the driver's choice). 128 was a little faster than the
+    #: driver's choice on an NVIDIA GPU in each run (bench/raymesh_bvh.py's ``:l<N>`` variants, tag
+    #: lab-2026-11-27; bench/README.md, "What the studies found", ray-mesh, OpenCL on NVIDIA)
     ray_group_size: int | None = 128
 
     def _launch(self, name: str, n, *args):

@@ -103,17 +103,17 @@ def cpu_threads() -> int:
         return os.cpu_count() or 1
 
 
-# a chunk smaller than this many items is not worth a thread hand-off (launch cost: bench/README.md,
-# "Figures behind backend code comments")
+# a chunk smaller than this many items is not worth a thread hand-off (its launch costs more than the work
+# it moves)
 MIN_CHUNK = 2048
 CHUNKS_PER_THREAD = 8    # many small chunks per thread balance rays of very different lengths
 # Split a single rig on the CPU over the threads (per-thread bitsets, OR-ed; _score_one_rig_split)? Exact
-# either way. It pays only for large rigs on cores that are really idle: the split work costs 8-17 % more
-# (near-sensor voxels marked once per thread) plus the union's sum on the host. Figures (bench/README.md,
-# "Figures behind backend code comments"): on the idle 2-core dev VM 97 against 162 ms for a 262k-ray
-# rig and no difference at 16k rays; under other load it was slower at every size. So None (the default)
-# splits rigs of SPLIT_MIN_RAYS or more when the 1-minute load average leaves a core idle beside this
-# process; True / False force it (tests force it on to check it stays exact).
+# either way. It pays only for large rigs on cores that are really idle: the split work costs somewhat more
+# (near-sensor voxels marked once per thread) plus the union's sum on the host. On an idle machine a large rig
+# scored markedly faster split and a small one no faster; under other load it was slower at every size
+# (bench/README.md, "What the studies found", M-SOG walk on the CPU). So None (the default) splits rigs of
+# SPLIT_MIN_RAYS or more when the 1-minute load average leaves a core idle beside this process; True / False
+# force it (tests force it on to check it stays exact).
 SPLIT_SINGLE_RIG: bool | None = None
 SPLIT_MIN_RAYS = 65536
 
@@ -276,10 +276,10 @@ class WarpCore(Backend):
 
     # ------------------------------------------------------------------ ray-mesh
     # The BVH builder: on CUDA cuBQL (Warp >= 1.19, "experimental" there), whose trees Warp's own query walked
-    # 1.4x faster than its SAH trees on the 1M-triangle city with the same hits, which put this backend's two
+    # clearly faster than its SAH trees on the 1M-triangle city with the same hits, which put this backend's two
     # passes ahead of a plain Warp kernel on a default (SAH) tree; SAH where cuBQL is missing, and on the CPU
-    # (figures: bench/README.md, "Figures behind backend code comments"). None: that choice; a name forces one
-    # (bench/raymesh_bvh.py times the others). bvh_leaf_size None is the builder's default.
+    # (bench/README.md, "What the studies found", ray-mesh, Warp (CUDA)). None: that choice; a name forces one
+    # (bench/raymesh_bvh.py at tag lab-2026-11-27 timed the others). bvh_leaf_size None is the builder's default.
     bvh_constructor = None
     bvh_leaf_size = None
     #: the builder the last uploaded mesh got, and why when it is not the one asked for
@@ -579,7 +579,7 @@ class WarpCore(Backend):
     @property
     def patches_grids(self) -> bool:
         # on CUDA; on the CPU the host's patched copy and prepare_grid were faster than these kernels, which
-        # run there too (the default town's ten left-out grids, dev VM, 3 processes: 0.302 s against 0.378-0.396)
+        # run there too (measured on the default town's left-out grids)
         return self.device.is_cuda
 
     def grid_base(self, grid, weights, stop):
@@ -650,12 +650,12 @@ class WarpCore(Backend):
                 self._give_bits(kept, max(clean, n) if done else 0)
 
     # CUDA: the bitsets of a score call are kept for the next one. Allocating them through Warp's memory pool
-    # (hundreds of MB for a population of dense rigs) cost about 1 ms a call on the H100, whose pool hands
-    # freed memory back at once, and zeroing them a sixth of that; the bit count after the score kernel zeroes
-    # what it counts (score_gpu.count_clear_kernel), so a kept buffer comes back clean (figures:
-    # bench/README.md, "The dense rig's API cost"). One buffer per backend, the largest recently needed,
-    # with the number of leading words known to be zero; a call that finds it taken (another thread
-    # scoring) allocates its own.
+    # (hundreds of MB for a population of dense rigs) was a visible part of each call, as the pool hands freed
+    # memory back at once, and zeroing them added to it; the bit count after the score kernel zeroes what it
+    # counts (score_gpu.count_clear_kernel), so a kept buffer comes back clean (bench/README.md, "What the studies
+    # found", dense-rig score kernel, API around the kernel). One buffer per backend, the largest recently needed,
+    # with the number of leading words known to be zero; a call that finds it taken (another thread scoring)
+    # allocates its own.
     def _take_bits(self, n: int):
         """A buffer of at least ``n`` words whose first ``n`` are zero (stream-ordered after the previous
         call's kernels, as a fresh array), and how many leading words were zero already."""

@@ -101,7 +101,7 @@ def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fa
 # and face; the second computes the winning face's distance in float64. As one kernel of this module the
 # query ran markedly slower on CUDA than these two passes, with the same bits; the same one-kernel code
 # built in a module of its own did not, and why was not found (bench/README.md, "What the studies found",
-# ray-mesh, Warp).
+# ray-mesh, Warp (CUDA)).
 @wp.func
 def query_hit_in(mesh: wp.uint64, o64: wp.vec3d, d64: wp.vec3d, tm: wp.float64, root: wp.int32):
     # Warp's ordered BVH query and watertight triangle test, on a mesh whose BVH boxes were built padded
@@ -736,8 +736,8 @@ def count_words_per_thread(total_words: int) -> int:
     """Words per thread of ``count_bits_kernel`` (the CPU's count; CUDA runs ``score_gpu.count_clear_kernel``
     since 2026-11-25) for ``total_words`` bitset words in all: each thread ends with one atomic add on its
     candidate's counter, and for the dense rig's bitsets (hundreds of MB) on a GPU those atomics made the
-    count slow at 64 words per thread (bench/README.md, "What the studies found", dense rig, API); the rule
-    was kept as it was when the CPU became its only user. Small bitsets keep 64."""
+    count slow at 64 words per thread (bench/README.md, "What the studies found", dense-rig score kernel,
+    API around the kernel); the rule was kept when the CPU became its only user. Small bitsets keep 64."""
     return 1024 if total_words >= 2**24 else COUNT_WORDS
 
 

@@ -26,16 +26,16 @@ The walk's state is a ``WalkGPU``, ``kernels.Walk32`` without the fields a step 
 has ended has i = DEAD = -1; a float64-only walk has t1 = -1; the float64 segment end is a local of the
 kernel), and the float32 step's certainty test is written with the minimum and the median of the three
 crossings: the same decision and axis as ``walk32_next``'s chain of compares (proof at ``certain_step``),
-fewer instructions and registers (bench/README.md, "What the studies found").
+fewer instructions and registers (bench/README.md, "What the studies found", dense-rig score kernel).
 
 Why the loop needs no grid test (``inside``, which the walk's tests still use): a walk starts in the grid
-(``walk32_begin`` clamps its first voxel, or starts none: i = DEAD) and ends only where ``exact_step`` finds
-the next crossing at or after the segment end ``t1d`` and sets i = DEAD. The float32 step is taken only where
-the float64 step would take the same axis before ``t1d`` (``certain_step``), so neither leaves the grid first:
-the float64 crossing of a far plane, ``(b * s - o) / d`` in ``next_t``, has the operands and order of the
-clip's exit in ``_clip_grid``, so the same bits, and ``t1d`` is at most that exit (the argument in full:
-bench/gpu_dense_round7_kernels.py). Nor is a bound on the steps needed: each step moves one voxel along a
-ray of finite length.
+(``walk32_begin`` clamps its first voxel, or starts none: i = DEAD) and ends only where ``exact_step`` finds the
+next crossing at or after the segment end ``t1d`` and sets i = DEAD. The float32 step is taken only where the
+float64 step would take the same axis before ``t1d`` (``certain_step``), so neither leaves the grid first: the
+float64 crossing of a far plane, ``(b * s - o) / d`` in ``next_t``, has the operands and order of the clip's
+exit in ``_clip_grid``, so the same bits, and ``t1d`` is at most that exit (the argument in full:
+bench/gpu_dense_round7_kernels.py at tag lab-2026-11-27). Nor is a bound on the steps needed: each step moves
+one voxel along a ray of finite length.
 
 Limits: a candidate's bitset must have fewer than 2^31 words (32 x that many voxels) and each grid axis
 fewer than 2^31 voxels; ``WarpBackend.score_placements`` checks the first.
@@ -408,7 +408,8 @@ def flat_masks_kernel(pairs: wp.array(dtype=wp.uint64), bx: wp.int32, by: wp.int
 # The bit count that follows every score launch, and the zeroing before the next, are passes over the whole
 # bitset (512 MB for 16 dense rigs). Here they are one pass: each thread of a candidate counts every T-th word
 # (so a warp's 32 loads are consecutive words) and zeroes the words it found set, which leaves the buffer as
-# the next call needs it (WarpCore keeps it; bench/README.md, "What the studies found", dense rig, API).
+# the next call needs it (WarpCore keeps it; bench/README.md, "What the studies found", dense-rig score
+# kernel, API around the kernel).
 def count_threads_per_candidate(words: int, candidates: int) -> int:
     """Threads per candidate of ``count_clear_kernel``: 64 words per thread for small bitsets, and for large
     ones about 2^18 threads in all (one atomic add each, so few enough that the counters do not queue)."""
