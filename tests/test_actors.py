@@ -172,7 +172,9 @@ def test_cli_optimize_on_actors_writes_the_local_result(spec, tmp_path, capsys):
 
     from place3d_app.cli import main
 
-    base = ["optimize", "--frames", "8", "--voxel-size", "0.8", "--lidars", "2", "--popsize", "8", "--max-evals", "24",
+    # the Ray executor scores on one drive's P-SOG (a pooled one is refused): --routes 1
+    base = ["optimize", "--routes", "1", "--frames", "8", "--voxel-size", "0.8", "--lidars", "2", "--popsize", "8",
+            "--max-evals", "24",
             "--quiet", "--backend", "warp:cpu"]
     assert main(base + ["--output", str(tmp_path / "local")]) == 0
     # the module's Ray cluster is joined (not owned), so the command ends its actors and leaves Ray running
