@@ -38,12 +38,21 @@ HANDSHAKE_S = 2.0
 IS_ROOT = os.geteuid() == 0
 
 
+#: This process's environment when the module was imported: servers, clients and forged requests all start
+#: from it, so a variable set here later (Ray's import sets PYTHONBREAKPOINT when an earlier test used it)
+#: cannot make a server refuse a client for its start-up variables instead of what a test checks.
+_BASE = dict(os.environ)
+
+
 def _env(**extra) -> dict:
-    path = os.pathsep.join([str(ROOT)] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else []))
-    env = dict(os.environ, PYTHONPATH=path)
+    path = os.pathsep.join([str(ROOT)] + ([_BASE["PYTHONPATH"]] if _BASE.get("PYTHONPATH") else []))
+    env = dict(_BASE, PYTHONPATH=path)
     env.pop("PLACE3D_SERVER", None)
     env.update(extra)
     return env
+
+
+ENV = _env()
 
 
 def _place3d(*args, env=None, timeout=120, **kw) -> subprocess.CompletedProcess:
@@ -71,7 +80,7 @@ SERVER = ("import sys; exec(sys.argv[2]); from place3d_app import serve; serve.H
 
 
 def _start_server(path: Path, prelude: str = "pass") -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-c", SERVER, str(path), prelude], env=_env(),
+    proc = subprocess.Popen([sys.executable, "-c", SERVER, str(path), prelude], env=ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 120
     while not is_listening(path):
@@ -335,7 +344,7 @@ def _frame(body: bytes) -> bytes:
 
 
 def _request(**change) -> bytes:
-    msg = {"type": "run", "argv": ["place3d", "--version"], "cwd": "/", "env": _env(),
+    msg = {"type": "run", "argv": ["place3d", "--version"], "cwd": "/", "env": ENV,
            "umask": 0o022, "identity": wire.identity(), "streams": {}}
     msg.update(change)
     for k in [k for k, v in change.items() if v is _DROP]:
