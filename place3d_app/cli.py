@@ -209,8 +209,12 @@ def main(argv=None) -> int:
         return 2
     args = build_parser().parse_args(argv)
     set_command_line(None if argv is None else ["place3d", *argv])
+    from place3d_app.messages import cli_output
+
     try:
-        with (profile() if args.profile else contextlib.nullcontext()):
+        # warnings and the library's log lines print as one line each (only those that matter under --quiet)
+        with cli_output(quiet=bool(getattr(args, "quiet", False))), \
+                (profile() if args.profile else contextlib.nullcontext()):
             try:
                 return int(args.func(args) or 0)
             finally:

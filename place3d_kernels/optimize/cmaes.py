@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import sys
 import warnings
 
 import numpy as np
@@ -30,6 +31,8 @@ __all__ = ["METHODS", "make_strategy", "default_popsize"]
 
 METHODS = ("cma", "random", "grid")
 _GRID_LIMIT = 10_000_000
+#: pycma's ``verbose`` for every search: no output at all (its display, logs and notes are ours to print)
+_VERBOSE = -9
 
 
 def default_popsize(n: int) -> int:
@@ -44,6 +47,27 @@ def default_popsize(n: int) -> int:
 #: (bench/README.md, "What the studies found", warm command and place3d serve)
 _GLOBAL_NAMES = tuple(n for n in dir(np.random) if getattr(getattr(np.random, n), "__self__", None)
                       is np.random.rand.__self__)
+
+
+@contextlib.contextmanager
+def quiet_pycma():
+    """pycma prints nothing on stdout for the block.
+
+    pycma's ``NOTE (module=cma, ...)`` lines (e.g. "condition in coordinate system exceeded", in ``tell``)
+    are printed unless ``cma.utilities.utils.global_verbosity`` is below 0. That is one module-wide value,
+    set by the ``verbose`` option of whichever ``CMAEvolutionStrategy`` was built last, so a strategy built
+    elsewhere in the process (another search, the user's own code) with pycma's default verbosity made
+    this search chat on stdout. It is pinned for every pycma call and put back after."""
+    utils = sys.modules.get("cma.utilities.utils")
+    if utils is None:
+        yield
+        return
+    outer = utils.global_verbosity
+    utils.global_verbosity = _VERBOSE
+    try:
+        yield
+    finally:
+        utils.global_verbosity = outer
 
 
 def _global_randn(*shape):
@@ -73,7 +97,7 @@ class CMAStrategy:
             "CMA_stds": np.asarray(widths_idx, float).tolist(),
             "seed": np.nan,  # seeding happens through the private state above
             "randn": _global_randn,
-            "verbose": -9, "verb_log": 0, "verb_disp": 0,
+            "verbose": _VERBOSE, "verb_log": 0, "verb_disp": 0,
         }
         if popsize is not None:
             opts["popsize"] = int(popsize)
@@ -90,7 +114,8 @@ class CMAStrategy:
         outer = {n: module[n] for n in _GLOBAL_NAMES}
         module.update({n: getattr(self._rs, n) for n in _GLOBAL_NAMES})
         try:
-            yield
+            with quiet_pycma():
+                yield
         finally:
             module.update(outer)
 

@@ -232,6 +232,8 @@ def search_rigs(problem: RigProblem, max_evals: int, seed: int = 0, popsize: int
     """
     import cma
 
+    from place3d_kernels.optimize.cmaes import quiet_pycma
+
     if max_evals < 1:
         raise ValueError(f"max_evals must be >= 1, got {max_evals}")
     combos = sensor_combinations(problem.sensor_names, problem.n_slots, sizes)
@@ -249,7 +251,8 @@ def search_rigs(problem: RigProblem, max_evals: int, seed: int = 0, popsize: int
         lam = popsize or min(4 + int(3 * np.log(len(lo))), budget)
         opts = {"bounds": [lo, hi], "seed": seed + c + 1, "verbose": -9, "integer_variables": ints,
                 "popsize": max(2, lam)}
-        es = cma.CMAEvolutionStrategy(sub.x0(integer), sigma0, opts)
+        with quiet_pycma():
+            es = cma.CMAEvolutionStrategy(sub.x0(integer), sigma0, opts)
         runs.append({"problem": sub, "combo": combo, "es": es, "evals": 0, "best": None})
     evals = launches = 0
     history = []
@@ -259,7 +262,8 @@ def search_rigs(problem: RigProblem, max_evals: int, seed: int = 0, popsize: int
             break
         asked, rigs, meta = [], [], []
         for r in active:
-            X = r["es"].ask()
+            with quiet_pycma():
+                X = r["es"].ask()
             asked.append(X)
             for x in X:
                 sn, surf, poses, uvw = r["problem"].decode(x, r["combo"])
@@ -271,7 +275,8 @@ def search_rigs(problem: RigProblem, max_evals: int, seed: int = 0, popsize: int
         k = 0
         for r, X in zip(active, asked):
             fx = f[k:k + len(X)]
-            r["es"].tell(X, fx.tolist())
+            with quiet_pycma():
+                r["es"].tell(X, fx.tolist())
             r["evals"] += len(X)
             for i in range(len(X)):
                 _, sn, surf, poses, uvw = meta[k + i]
