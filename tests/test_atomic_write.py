@@ -130,11 +130,15 @@ def test_cli_output_on_a_full_disk_is_one_line_and_no_file(tmp_path, monkeypatch
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "cache"))
-    code = main(["evaluate", "--frames", "8", "--voxel-size", "0.8", "--quiet", "center", "--resamples", "0",
-                 "--backend", "warp:cpu", "--lidar", "place3d_16ch", "--output", "out/eval.json"])
+    code = main(["evaluate", "--routes", "1", "--frames", "8", "--voxel-size", "0.8", "--quiet", "center",
+                 "--resamples", "0", "--backend", "warp:cpu", "--lidar", "place3d_16ch", "--output", "out/eval.json"])
     err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.startswith("place3d")]
+    # the cache that could not be written is a one-line warning each (the command goes on); the output
+    # that could not be written is the one error
+    lines = [ln for ln in err.splitlines() if ln.startswith("place3d: error")]
+    warned = [ln for ln in err.splitlines() if ln.startswith("place3d: warning")]
     assert code == 2 and len(lines) == 1, err
+    assert all("not written" in w and "no space left on device" in w for w in warned), err
     assert "out/eval.json" in lines[0] and "no space left on device" in lines[0] and "Traceback" not in err
     assert not (tmp_path / "out/eval.json").exists() and not _temps(tmp_path)
 
