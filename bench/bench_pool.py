@@ -9,7 +9,7 @@ Each run is the command as the ``place3d`` console script runs it (``python -m p
 subprocess with the tree first on ``PYTHONPATH``, timed from start to exit, with an empty P-SOG cache
 (``PLACE3D_CACHE``), so every drive is simulated and pooled, and a Warp kernel cache shared by the runs of a
 tree, filled by one untimed small run first (issue 36's goal is stated with a warm kernel cache). Runs of
-the variants (each tree, with each of ``--executors``) alternate. The command's own split (``seconds``: pool, bootstrap, total) comes from its
+the variants (each tree, with each of ``--executors``) alternate. The command's own split (``seconds``: pool, jackknife, total) comes from its
 ``reproduce.json``; every run's study numbers (``tasks``, ``convergence``: scores, intervals, taus) must be
 the same to the last digit across runs and variants (``same_results``).
 
@@ -84,7 +84,7 @@ def main(argv=None) -> int:
     def vname(t, e):
         return str(t) + ("" if e is None else f" --executor {e}")
 
-    per: dict[str, dict] = {vname(t, e): {"wall_s": [], "pool_s": [], "bootstrap_s": [], "total_s": [],
+    per: dict[str, dict] = {vname(t, e): {"wall_s": [], "pool_s": [], "jackknife_s": [], "total_s": [],
                                           "executor": None} for t, e in variants}
     studies: list[dict] = []
     with tempfile.TemporaryDirectory() as scratch:
@@ -100,7 +100,7 @@ def main(argv=None) -> int:
                                          a.timeout)
                 r = per[vname(t, e)]
                 r["wall_s"].append(round(wall, 3))
-                for k in ("pool", "bootstrap", "total"):
+                for k in ("pool", "jackknife", "total"):
                     r[f"{k}_s"].append(res["seconds"][k])
                 r["executor"] = res["settings"].get("executor")
                 studies.append({"tasks": {k: {f: v for f, v in d.items()} for k, d in res["tasks"].items()},
@@ -109,7 +109,7 @@ def main(argv=None) -> int:
                       flush=True)
                 record = {"command": "place3d reproduce " + " ".join(cmd) + " --quiet --output DIR",
                           "settings": res["settings"], "variants": {k: {**v, **{f"{m}_stats": stats(v[f"{m}_s"])
-                                                                          for m in ("wall", "pool", "bootstrap",
+                                                                          for m in ("wall", "pool", "jackknife",
                                                                                     "total")}}
                                                                for k, v in per.items()},
                           "same_results": all(s == studies[0] for s in studies), "runs_done": i + 1,

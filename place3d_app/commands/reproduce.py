@@ -34,8 +34,8 @@ from place3d_kernels import paper_results as paper
 from place3d_kernels.pooled import Drive, PooledPSOG, PoolSettings, build_pooled
 from place3d_kernels.uncertainty import Jackknife, jackknife_pooled, kendall_tau, plot_scores
 
-__all__ = ["reproduce", "convergence", "paper_poses", "placement_scorer", "det_view", "resolve_town", "DEFAULT_TOWNS", "DET_VARIANTS",
-           "add_arguments", "run", "machine_info"]
+__all__ = ["reproduce", "convergence", "paper_poses", "placement_poses", "placement_scorer", "jackknife_placements",
+           "det_view", "resolve_town", "DEFAULT_TOWNS", "DET_VARIANTS", "add_arguments", "run", "machine_info"]
 
 #: The paper's maps (Sec. 4 "Data Generation": Towns 1, 3, 4 and 6 of CARLA 0.9.10).
 DEFAULT_TOWNS = ("Town01", "Town03", "Town04", "Town06")
@@ -110,11 +110,9 @@ def det_view(psog, variant: str = "vehicle"):
                 ("empty", "vehicle", "pedestrian", "other"), psog.n_subsets)
 
 
-def placement_scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: str, extra=None):
-    """score(psog) -> (2 P,) seg scores of the eight placements and the ``extra`` ones ((E, L, 6) poses, the
-    user's rigs), then their det scores (P = 8 + E)."""
-    from place3d_kernels.metrics import msog_batch
-
+def placement_poses(roll_units: str, extra=None) -> dict:
+    """{"seg": (P, L, 6), "det": (P, L, 6)}: each task's eight paper placements, then the ``extra`` ones
+    ((E, L, 6) poses, the user's rigs; P = 8 + E)."""
     seg_poses, det_poses = paper_poses("seg", roll_units), paper_poses("det", roll_units)
     if extra is not None and len(extra):
         extra = np.asarray(extra, dtype=np.float64)
@@ -122,15 +120,49 @@ def placement_scorer(lidar, occlusion: str, backend, roll_units: str, det_varian
             raise ValueError(f"--placements: rigs of {extra.shape[1]} LiDARs cannot be scored in one batch with the "
                              f"paper's {seg_poses.shape[1]}-LiDAR rigs")
         seg_poses, det_poses = np.concatenate([seg_poses, extra]), np.concatenate([det_poses, extra])
+    return {"seg": seg_poses, "det": det_poses}
+
+
+def placement_scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: str, extra=None):
+    """score(psog) -> (2 P,) seg scores of the placements of ``placement_poses(roll_units, extra)``, then
+    their det scores."""
+    from place3d_kernels.metrics import msog_batch
+
+    poses = placement_poses(roll_units, extra)
 
     def score(psog):
-        seg = msog_batch(psog, lidar, seg_poses, occlusion=occlusion, task="seg", backend=backend)
+        seg = msog_batch(psog, lidar, poses["seg"], occlusion=occlusion, task="seg", backend=backend)
         # a det view built here is scored as a plain P-SOG (task "seg" = its own channels as given)
-        det = msog_batch(det_view(psog, det_variant), lidar, det_poses, occlusion=occlusion, task="seg",
+        det = msog_batch(det_view(psog, det_variant), lidar, poses["det"], occlusion=occlusion, task="seg",
                          backend=backend)
         return np.concatenate([seg, det])
 
     return score
+
+
+def jackknife_placements(pooled: PooledPSOG, lidar, occlusion: str, backend, roll_units: str, det_variant: str,
+                         extra=None, strata=None) -> Jackknife:
+    """Each drive left out once: what ``jackknife_pooled(pooled, placement_scorer(...), strata)`` gives,
+    (n, 2 P) seg then det scores.
+
+    Where the metric allows it (``left_out.fused_path`` and the package's own detection view), each
+    left-out grid is patched from the full pool and only the rigs are launched (``jackknife_records``),
+    instead of n whole P-SOGs rebuilt and rescored; the scores are the same to the last bit
+    (tests/test_pooled.py)."""
+    from place3d_kernels.left_out import fused_path
+    from place3d_kernels.uncertainty import jackknife_records, route_df
+
+    if det_variant != "vehicle" or not fused_path(lidar, occlusion):
+        return jackknife_pooled(pooled, placement_scorer(lidar, occlusion, backend, roll_units, det_variant, extra),
+                                strata=strata)
+    poses = placement_poses(roll_units, extra)
+    df = route_df(len(pooled), strata)
+    parts = [jackknife_records(pooled.records, pooled.grid, lidar, {f"{t}{i}": p for i, p in enumerate(poses[t])},
+                               (t,), occlusion, backend, unit="drives", strata=strata, df=df)[t] for t in TASKS]
+    return Jackknife([f"s{i}" for i in range(sum(len(j.names) for j in parts))],
+                     np.concatenate([j.point for j in parts]), np.column_stack([j.samples for j in parts]),
+                     parts[0].level, "drives", len(pooled),
+                     strata=None if strata is None else tuple(np.asarray(strata).tolist()), df=df)
 
 
 def machine_info(backend_name: str | None = None) -> dict:
@@ -265,12 +297,12 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
     pooled = build_pooled(drives, settings, executor=executor, progress=progress)
     t_pool = time.perf_counter() - t1
     lidar = LidarModel.load(rig_lidar)
-    score = placement_scorer(lidar, occlusion, b, roll_units, det_variant,
-                             np.stack([pl.poses for pl in extra]) if extra else None)
+    extra_poses = np.stack([pl.poses for pl in extra]) if extra else None
+    score = placement_scorer(lidar, occlusion, b, roll_units, det_variant, extra_poses)
     t1 = time.perf_counter()
     # each route left out once, stratified by town: the four towns are the study's design, the routes its
     # sample (uncertainty.jackknife_pooled: the bootstrap's resamples repeat routes and score high)
-    jk = jackknife_pooled(pooled, score, strata=town_of)
+    jk = jackknife_placements(pooled, lidar, occlusion, b, roll_units, det_variant, extra_poses, strata=town_of)
     t_boot = time.perf_counter() - t1
     P = len(names)
     boots = {task: dataclasses.replace(jk, names=names, point=jk.point[i * P:(i + 1) * P],
