@@ -53,12 +53,15 @@ def add_arguments(p) -> None:
     p.add_argument("--normalisation", default="paper", choices=["paper", "evidence", "uncertain"],
                    help="M-SOG denominator: 'paper' (N_L, every covered voxel; default), 'evidence' (covered voxels "
                         "ever occupied in the P-SOG) or 'uncertain' (covered voxels with H > 0)")
-    p.add_argument("--holdout-seeds", default=None, metavar="S1,S2",
-                   help="after the search, re-score the best rig and the baselines on the P-SOGs of these route "
-                        "seeds (same scene) and report whether it still beats them")
+    p.add_argument("--holdout-seeds", default=None, metavar="SEEDS",
+                   help="route seeds of the held-out P-SOGs, pooled per scene, e.g. 100-103 (default: as many routes "
+                        "as the search pooled, from seed 100); the winner's rank among the baselines there is the "
+                        "run's verdict")
     p.add_argument("--holdout-scenes", default=None, metavar="SCENE1,SCENE2",
-                   help="as --holdout-seeds, on other scenes (a map name such as Town03, or opendrive:PATH), with --seed (or each of "
-                        "--holdout-seeds)")
+                   help="scenes of the held-out P-SOGs (map names such as Town03, or opendrive:PATH; default: the "
+                        "searched scenes)")
+    p.add_argument("--no-holdout", action="store_true",
+                   help="skip the held-out re-scoring (the search's answer then has no transfer verdict)")
     p.add_argument("--interval", default="jackknife", choices=["jackknife", "bootstrap", "none"],
                    help="95 %% intervals of the best rig and the baselines over the drive's subsets, and P(best > "
                         "baseline): 'jackknife' (default), 'bootstrap' (--resamples draws) or 'none'")
@@ -322,7 +325,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
                   "feasible": res.feasible,
                   "pose_cache": ({"traversed": objective.pose_misses, "reused": objective.pose_hits}
                                  if args.pose_cache and executor is None else None),
-                  "normalisation": args.normalisation, "diagnostics": res.diagnostics, "holdout": res.holdout,
+                  "normalisation": args.normalisation, "transfer": res.transfer, "diagnostics": res.diagnostics, "holdout": res.holdout,
                   "intervals": res.intervals,
                   "details": res.to_dict(), "provenance": provenance(backend=b.name)}
         with section("writing result.json"):
@@ -339,36 +342,56 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     return 0
 
 
-def holdout_specs(args, spec) -> list:
-    """``(scene name, seed, PSOGSpec)`` for each held-out P-SOG of --holdout-seeds x --holdout-scenes.
+#: First route seed of the default held-out P-SOGs: routes no default search pools (those start at --seed).
+HOLDOUT_SEED = 100
 
-    Seeds alone: the training scene at each seed. Scenes alone: each scene at --seed. Both: every pair.
-    A held-out P-SOG equal to the training one (same scene and seed) is refused: it validates nothing.
+
+def holdout_specs(args, spec) -> list:
+    """``(scene name, seeds, [PSOGSpec per seed])``: one held-out P-SOG per scene of --holdout-scenes (default:
+    the searched scenes), pooled over the route seeds of --holdout-seeds (default: as many as the search
+    pooled, from ``HOLDOUT_SEED``). None with --no-holdout, and by default for scenes with one fixed route
+    (mesh, semantickitti), which have no other routes to hold out.
+
+    A held-out drive the search pooled (same scene and seed) is refused: it validates nothing.
     """
+    from place3d_kernels.pooled import parse_route_seeds
+
     seeds_arg, scenes_arg = getattr(args, "holdout_seeds", None), getattr(args, "holdout_scenes", None)
-    if not seeds_arg and not scenes_arg:
+    if getattr(args, "no_holdout", False):
+        if seeds_arg or scenes_arg:
+            raise ValueError("--no-holdout with --holdout-seeds / --holdout-scenes: give one or the other")
         return []
-    try:
-        seeds = [int(v) for v in seeds_arg.split(",") if v.strip()] if seeds_arg else [spec.scene.seed]
-    except ValueError:
-        raise ValueError(f"--holdout-seeds takes comma-separated integers, e.g. 1,2; got {seeds_arg!r}") from None
-    scenes = [v.strip() for v in scenes_arg.split(",") if v.strip()] if scenes_arg else [spec.scene.name]
+    trained_specs = getattr(args, "drives", None) or [spec]
+    if not seeds_arg and not scenes_arg and spec.scene.kind not in ("town", "opendrive"):
+        return []
+    if seeds_arg:
+        try:
+            seeds = parse_route_seeds(seeds_arg)
+        except ValueError as e:
+            raise ValueError(f"--holdout-seeds: {e}") from None
+    else:
+        n = len({d.scene.seed for d in trained_specs})
+        seeds = list(range(HOLDOUT_SEED, HOLDOUT_SEED + n))
+    searched = list(dict.fromkeys(d.scene.name for d in trained_specs))
+    scenes = [v.strip() for v in scenes_arg.split(",") if v.strip()] if scenes_arg else searched
     from place3d_app.commands.reproduce import resolve_town
 
     # a bare map name (Town03) is looked up like `place3d reproduce` does (shipped CARLA maps included)
     scenes = [n if ":" in n or n == "town" else resolve_town(n) for n in scenes]
+    trained = {(d.scene.name, d.scene.seed) for d in trained_specs}
     out = []
-    trained = {(d.scene.name, d.scene.seed) for d in getattr(args, "drives", None) or [spec]}
     for name in scenes:
+        specs = []
         for seed in seeds:
             if (name, seed) in trained:
-                raise ValueError(f"held-out P-SOG {name} seed {seed} is the training one; hold out other seeds "
-                                 f"or scenes")
+                raise ValueError(f"held-out P-SOG {name} seed {seed} is one the search pooled; hold out other "
+                                 f"seeds or scenes")
             scene = dataclasses.replace(spec.scene, name=name, seed=seed)
             if name != spec.scene.name:
                 scene = dataclasses.replace(scene, labels=None, route=None)
             scene.validate()
-            out.append((name, seed, dataclasses.replace(spec, scene=scene)))
+            specs.append(dataclasses.replace(spec, scene=scene))
+        out.append((name, seeds, specs))
     return out
 
 
@@ -401,7 +424,8 @@ def report_intervals(args, spec, res, lidar, b, base_poses, psog=None) -> dict |
 
 
 def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
-    """Fill ``res.diagnostics`` (and ``res.holdout`` when asked) and print them (issue 13, item 4)."""
+    """Fill ``res.diagnostics``, ``res.holdout`` and ``res.transfer`` (the held-out verdict, unless
+    --no-holdout) and print them (issue 34, item 4)."""
     from place3d_kernels.optimize.diagnostics import diagnose, format_diagnostics, format_holdout, holdout
     from place3d_kernels.pipeline import check_entropy
     from place3d_kernels.placement import Placement
@@ -419,14 +443,23 @@ def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
         return
 
     def scenes():
-        for name, seed, hs in specs:
-            p = hs.build(backend=b, cache=not args.no_cache, progress=not args.quiet)
-            check_entropy(p, hs.frames_per_subset)
-            yield name, seed, p
+        from place3d_kernels.pooled import pool_specs
+
+        for name, seeds, drives in specs:
+            with section("held-out P-SOGs"):
+                if len(drives) == 1:
+                    p = drives[0].build(backend=b, cache=not args.no_cache, progress=not args.quiet)
+                else:
+                    p = pool_specs(drives, backend=b, cache=not args.no_cache).psog()
+            check_entropy(p, spec.frames_per_subset)
+            yield name, seeds, p
+
+    from place3d_kernels.optimize.diagnostics import transfer
 
     res.holdout = holdout(scenes(), lidar, res.best_placement.poses, base_poses, occlusion=args.occlusion,
                           task=args.task, backend=b, normalisation=args.normalisation)
-    for line in format_holdout(res.holdout):
+    res.transfer = transfer(res.holdout)
+    for line in format_holdout(res.holdout, res.transfer):
         print(line)
 
 

@@ -1,28 +1,28 @@
-"""Diagnostics of an optimised rig: is the winner real, or did it game the metric?
+"""Diagnostics of an optimised rig: does the winner hold on drives it was not searched on?
 
 M-SOG divides the entropy summed over the covered voxels by their number N_L. A voxel no frame ever saw
 occupied has entropy 0, so a rig whose beams cross empty air (LiDARs rolled to the bound, beams to the sky)
-gains covered voxels that cost nothing and lower the mean (docs/metric-normalisation.md). The signs:
-several variables on a bound of the search box, and a small share of covered voxels that carry entropy
-compared with the paper's placements. ``diagnose`` reports both and flags a ``degenerate`` winner;
-``holdout`` re-scores the winner and the baselines on P-SOGs of other routes or towns.
+gains covered voxels that cost nothing and lower the mean (docs/metric-normalisation.md). ``diagnose``
+reports the signs (variables on a bound of the search box; the share of covered voxels that carry entropy
+beside the paper's placements') as information. The verdict is ``holdout`` + ``transfer``: the winner and
+the baselines re-scored on P-SOGs pooled over routes and towns the search never saw, and the winner's rank
+among them there. A threshold on the entropy share (0.8 x the baselines' median) had been the verdict
+before; it passed a Town06 winner (share 4.8 %) that then ranked 12, 5, 3 and 6 of 12 on held-out P-SOGs.
 """
 
 from __future__ import annotations
 
 import math
 import re
+from pathlib import Path
 
 import numpy as np
 
 from place3d_kernels.metrics import coverage_counts, score_from_counts
 
-__all__ = ["bound_variables", "coverage_shares", "diagnose", "holdout", "format_diagnostics", "format_holdout",
-           "SHARE_RATIO", "BOUND_TOL"]
+__all__ = ["bound_variables", "coverage_shares", "diagnose", "holdout", "transfer", "format_diagnostics",
+           "format_holdout", "BOUND_TOL"]
 
-#: "Much lower": the winner's entropy share below this fraction of the baselines' median share.
-#: A judgement call, not a derived constant (docs/metric-normalisation.md gives the figures it was set from).
-SHARE_RATIO = 0.8
 #: A value within this distance (metres or radians) of a bound, or of the outermost grid value, is on it.
 BOUND_TOL = 1e-9
 
@@ -78,7 +78,8 @@ def _finite(v):
 
 def diagnose(psog, lidar, search_space, best_poses, baselines: dict, delta=None, occlusion="sog", task="seg",
              backend=None) -> dict:
-    """Bound variables, entropy shares and a ``degenerate`` verdict for an optimised rig.
+    """Bound variables and entropy shares of an optimised rig beside the baselines' (information: whether
+    the winner holds is ``holdout`` / ``transfer``'s answer).
 
     Args:
         psog, lidar: the P-SOG and LiDAR model the rig was optimised on.
@@ -92,7 +93,7 @@ def diagnose(psog, lidar, search_space, best_poses, baselines: dict, delta=None,
     Returns:
         dict with ``on_bounds`` (list of "lidar2.roll = -0.3 (lower bound)"), ``n_on_bounds``,
         ``n_variables``, ``n_lidars``, ``best`` and ``baselines`` (``coverage_shares`` rows),
-        ``baseline_median_entropy_share``, ``bound_hugging``, ``degenerate`` and ``reason`` (one line).
+        ``baseline_median_entropy_share`` and ``summary`` (one line).
     """
     best_poses = np.asarray(best_poses, dtype=np.float64)
     x = search_space.from_poses(best_poses[None])[0]
@@ -101,30 +102,16 @@ def diagnose(psog, lidar, search_space, best_poses, baselines: dict, delta=None,
     stack = np.stack([best_poses] + [np.asarray(baselines[n], dtype=np.float64) for n in names])
     rows = coverage_shares(psog, lidar, stack, occlusion, task, backend)
     best, base = rows[0], dict(zip(names, rows[1:]))
-    n_l = int(best_poses.shape[0])
-    # bound-hugging: on average at least one variable per LiDAR pinned to the box
-    hugging = len(on) >= max(1, n_l)
     shares = [r["entropy_share"] for r in base.values() if r["entropy_share"] is not None]
     med = float(np.median(shares)) if shares else None
     bs = best["entropy_share"]
-    low = med is not None and bs is not None and bs < SHARE_RATIO * med
-    degenerate = bool(hugging and low)
     if bs is None:
-        reason = "the rig covers no voxel"
-    elif degenerate:
-        reason = (f"{len(on)} of {len(x)} variables on a bound and only {bs:.1%} of its {best['n_covered']:,} "
-                  f"covered voxels carry entropy (baselines' median {med:.1%}): its score comes from beams "
-                  f"through never-occupied voxels (H = 0), not from certain ones")
-    elif med is None:
-        reason = "no baselines to compare the entropy share with"
-    elif hugging:
-        reason = (f"{len(on)} variables on a bound, but its entropy share {bs:.1%} is close to the baselines' "
-                  f"median {med:.1%}")
+        summary = "the rig covers no voxel"
     else:
-        reason = f"{len(on)} variables on a bound; entropy share {bs:.1%} vs baselines' median {med:.1%}"
-    return {"on_bounds": on, "n_on_bounds": len(on), "n_variables": int(len(x)), "n_lidars": n_l,
-            "best": best, "baselines": base, "baseline_median_entropy_share": med, "share_ratio": SHARE_RATIO,
-            "bound_hugging": bool(hugging), "degenerate": degenerate, "reason": reason}
+        summary = f"{len(on)} of {len(x)} variables on a bound; entropy share {bs:.1%}" + (
+            f" (baselines' median {med:.1%})" if med is not None else "")
+    return {"on_bounds": on, "n_on_bounds": len(on), "n_variables": int(len(x)), "n_lidars": int(best_poses.shape[0]),
+            "best": best, "baselines": base, "baseline_median_entropy_share": med, "summary": summary}
 
 
 def holdout(scenes, lidar, best_poses, baselines: dict, occlusion="sog", task="seg", backend=None,
@@ -132,25 +119,62 @@ def holdout(scenes, lidar, best_poses, baselines: dict, occlusion="sog", task="s
     """Re-score the winner and the baselines on held-out P-SOGs.
 
     Args:
-        scenes: iterable of ``(scene_name, seed, psog)``.
+        scenes: iterable of ``(scene_name, seeds, psog)``: the P-SOG of that scene pooled over the route
+            ``seeds`` (a list; one seed: a single drive).
         best_poses, baselines: as in ``diagnose``.
         normalisation: the M-SOG denominator the run optimised.
 
     Returns:
-        one dict per scene: ``scene``, ``seed``, ``best``, ``baselines`` ({name: score}),
-        ``beats_all_baselines`` (strictly above every baseline), ``entropy_share`` of the winner.
+        one dict per scene: ``scene``, ``seeds``, ``best``, ``baselines`` ({name: score}), ``rank`` (the
+        winner's, 1 = best, among itself and the baselines: one plus the baselines scoring strictly higher),
+        ``n_rigs``, ``ranks`` (the same under each normalisation), ``beats_all_baselines`` (strictly above
+        every baseline: a tie shares rank 1 but beats nothing) and the winner's ``entropy_share``.
     """
     names = list(baselines)
     stack = np.stack([np.asarray(best_poses, np.float64)] + [np.asarray(baselines[n], np.float64) for n in names])
     out = []
-    for scene, seed, psog in scenes:
+    for scene, seeds, psog in scenes:
         rows = coverage_shares(psog, lidar, stack, occlusion, task, backend)
+        ranks = {}
+        for norm in ("paper", "evidence", "uncertain"):
+            sc = [r["msog"][norm] for r in rows]
+            ranks[norm] = None if sc[0] is None else 1 + sum(v is not None and v > sc[0] for v in sc[1:])
         sc = [r["msog"][normalisation] for r in rows]
         best, base = sc[0], dict(zip(names, sc[1:]))
-        beats = best is not None and all(v is None or best > v for v in base.values())
-        out.append({"scene": scene, "seed": int(seed), "best": best, "baselines": base,
-                    "beats_all_baselines": bool(beats), "entropy_share": rows[0]["entropy_share"]})
+        out.append({"scene": scene, "seeds": [int(v) for v in seeds], "best": best, "baselines": base,
+                    "rank": ranks[normalisation], "n_rigs": len(rows), "ranks": ranks,
+                    "beats_all_baselines": bool(names) and best is not None and all(v is None or v < best
+                                                                                    for v in base.values()),
+                    "entropy_share": rows[0]["entropy_share"]})
     return out
+
+
+def transfer(rows: list[dict]) -> dict:
+    """The verdict on ``holdout`` rows: the winner transfers when it scores strictly above every baseline on
+    every held-out P-SOG. Returns ``transfers`` (bool, None without held-out P-SOGs or baselines),
+    ``ranks`` ([rank per held-out P-SOG]), ``worst_rank``, ``n_rigs`` and ``reason`` (one line)."""
+    if not rows or not rows[0]["baselines"]:
+        return {"transfers": None, "ranks": [], "worst_rank": None, "n_rigs": None,
+                "reason": "no held-out P-SOG" if not rows else "no baselines to rank the winner among"}
+    ranks = [r["rank"] for r in rows]
+    worst = max((v for v in ranks if v is not None), default=None)
+    n = rows[0]["n_rigs"]
+    ok = all(r["beats_all_baselines"] for r in rows)
+    where = "; ".join(f"{_where(r)} {r['rank'] if r['rank'] is not None else 'n/a'} of {r['n_rigs']}" for r in rows)
+    reason = (f"first of {n} on every held-out P-SOG ({where})" if ok else
+              f"not above every baseline on the held-out P-SOGs: rank {where}; its lead on the training drives "
+              f"does not hold")
+    return {"transfers": ok, "ranks": ranks, "worst_rank": worst, "n_rigs": n, "reason": reason}
+
+
+def _where(r: dict) -> str:
+    s = r["seeds"]
+    routes = f"route {s[0]}" if len(s) == 1 else (f"routes {s[0]}-{s[-1]}" if s == list(range(s[0], s[-1] + 1))
+                                                  else "routes " + ",".join(map(str, s)))
+    scene = r["scene"]
+    if scene.startswith("opendrive:"):          # a map by its name (Town06), not its full path
+        scene = Path(scene.split(":", 1)[1]).stem
+    return f"{scene} {routes}"
 
 
 def _fmt(v, spec: str) -> str:
@@ -165,18 +189,17 @@ def format_diagnostics(d: dict) -> list[str]:
     lines.append("  on a bound: " + ("; ".join(d["on_bounds"]) if d["on_bounds"] else "none"))
     for name, r in sorted(d["baselines"].items(), key=lambda kv: -(kv[1]["entropy_share"] or 0)):
         lines.append(f"  {name:14s} N_L {r['n_covered']:>10,}  entropy share {_fmt(r['entropy_share'], '.1%')}")
-    lines.append(("DEGENERATE: " if d["degenerate"] else "not degenerate: ") + d["reason"])
     return lines
 
 
-def format_holdout(rows: list[dict]) -> list[str]:
-    """Printable lines of a ``holdout`` result."""
+def format_holdout(rows: list[dict], verdict: dict | None = None) -> list[str]:
+    """Printable lines of ``holdout`` rows, ending with the ``transfer`` verdict (the run's headline)."""
     lines = []
     for r in rows:
         top = max((v for v in r["baselines"].values() if v is not None), default=None)
-        verdict = "beats every baseline" if r["beats_all_baselines"] else "does NOT beat every baseline"
-        if not r["baselines"]:
-            verdict = "no baselines to compare"
-        lines.append(f"held out {r['scene']} seed {r['seed']}: best {_fmt(r['best'], '.6f')}, best baseline "
-                     f"{_fmt(top, '.6f')}: {verdict}")
+        lines.append(f"held out {_where(r)}: optimised {_fmt(r['best'], '.6f')}, best baseline {_fmt(top, '.6f')}: "
+                     f"rank {r['rank'] if r['rank'] is not None else 'n/a'} of {r['n_rigs']}")
+    v = verdict if verdict is not None else transfer(rows)
+    head = {True: "TRANSFERS", False: "DOES NOT TRANSFER", None: "transfer not tested"}[v["transfers"]]
+    lines.append(f"{head}: {v['reason']}")
     return lines

@@ -80,9 +80,10 @@ class OptimizeResult:
         method: the strategy that ran (``cma``, ``random``, ``grid``).
         space / search_space: the user's space and the one actually searched (after FixedHeight).
         diagnostics: filled by callers that know the P-SOG (``place3d optimize``): variables on a bound,
-            entropy shares of the winner and the baselines, ``degenerate`` and its reason
-            (``optimize.diagnostics.diagnose``); None otherwise.
-        holdout: re-scoring on held-out P-SOGs (``optimize.diagnostics.holdout``), or None.
+            entropy shares of the winner and the baselines (``optimize.diagnostics.diagnose``); None otherwise.
+        holdout: re-scoring on held-out P-SOGs, the winner's rank there (``optimize.diagnostics.holdout``),
+            or None.
+        transfer: the verdict on them (``optimize.diagnostics.transfer``: first on every one), or None.
         intervals: the best rig's and the baselines' intervals over the drive's subsets
             (``uncertainty.rig_vs_baselines_intervals``, filled by ``place3d optimize``), or None.
     """
@@ -113,6 +114,7 @@ class OptimizeResult:
     extra: dict = field(default_factory=dict)
     diagnostics: dict | None = None
     holdout: list | None = None
+    transfer: dict | None = None
     intervals: dict | None = None
 
     def to_dict(self) -> dict:
@@ -128,7 +130,8 @@ class OptimizeResult:
             "cache": self.cache,
             "certificate": self.certificate, "space": self.space.to_dict(),
             "search_space": self.search_space.to_dict(), "names": list(self.space.names),
-            "history": self.history, "diagnostics": self.diagnostics, "holdout": self.holdout, **self.extra})
+            "history": self.history, "diagnostics": self.diagnostics, "holdout": self.holdout, "transfer": self.transfer,
+            **self.extra})
 
     def __repr__(self) -> str:
         return (f"OptimizeResult(best_score={self.best_score:.6g}, feasible={self.feasible}, "
