@@ -97,6 +97,7 @@ def check_args(args, spec) -> None:
         raise ValueError(f"--max-evals must be >= 1, got {args.max_evals}")
     if not 1 <= args.lidars <= 8:
         raise ValueError(f"--lidars must be 1-8, got {args.lidars}")
+    check_search_options(args)
     if args.output is not None and Path(args.output).exists() and not Path(args.output).is_dir():
         raise ValueError(f"--output {args.output} is an existing file; give a folder")
     if args.checkpoint is None and args.output is not None and args.restarts == 0:
@@ -133,6 +134,40 @@ def check_args(args, spec) -> None:
                                "resume with the same settings, or start a fresh run (without --resume)"):
             raise ValueError(f"{args.checkpoint} has no manifest ({man.name}), so its settings cannot be checked; "
                              f"start a fresh run (without --resume)")
+
+
+def check_search_options(args) -> None:
+    """The search's options, named as the command line names them, before any work.
+
+    The library checks the same values after the P-SOG is built and names its own parameters
+    (``popsize``, ``sigma0``, ``seed``, ``MinDistance(...)``); here they are refused first, as options."""
+    import math
+
+    from place3d_kernels.optimize import MinDistance, SearchSpace
+
+    if args.popsize is not None and args.popsize < 2:
+        raise ValueError(f"--popsize must be >= 2 (CMA-ES needs two candidates a generation), got {args.popsize}")
+    if args.sigma0 is not None and not (math.isfinite(args.sigma0) and args.sigma0 > 0):
+        raise ValueError(f"--sigma0 must be > 0 (a fraction of each bound width, e.g. 0.15), got {args.sigma0}")
+    if not (math.isfinite(args.delta) and args.delta > 0):
+        raise ValueError(f"--delta must be a positive grid step in metres and radians, got {args.delta}")
+    seed = args.opt_seed if args.opt_seed is not None else args.seed
+    if not 0 <= seed < 2 ** 32:
+        raise ValueError(f"--opt-seed (default: --seed) must be from 0 to 2**32 - 1, got {seed}")
+    if args.restarts < 0:
+        raise ValueError(f"--restarts must be >= 0, got {args.restarts}")
+    if args.restarts and (args.checkpoint is not None or args.resume):
+        raise ValueError(f"--restarts {args.restarts} runs several searches, which are not checkpointed: drop "
+                         f"--checkpoint / --resume, or --restarts")
+    if args.fixed_height is not None and not math.isfinite(args.fixed_height):
+        raise ValueError(f"--fixed-height must be a finite height in metres, got {args.fixed_height}")
+    if args.lidars > 1:
+        if not (math.isfinite(args.min_distance) and args.min_distance > 0):
+            raise ValueError(f"--min-distance must be a positive distance in metres, got {args.min_distance}")
+        why = MinDistance(args.min_distance).impossibility(SearchSpace(n_lidars=args.lidars), args.delta)
+        if why:
+            raise ValueError(f"--min-distance {args.min_distance:g} cannot hold {why}; lower it or use fewer "
+                             f"--lidars")
 
 
 def _probe(name):
