@@ -12,7 +12,10 @@ from place3d_kernels.profiling import section
 from place3d_app.commands.common import check_output_file, psog_for_spec
 from place3d_app.prefetch import start_for_spec
 
-__all__ = ["cmd_evaluate"]
+__all__ = ["cmd_evaluate", "PLOT_SUFFIXES"]
+
+#: What --plot writes (matplotlib's format follows the suffix).
+PLOT_SUFFIXES = (".png", ".svg", ".pdf")
 
 
 def cmd_evaluate(args) -> int:
@@ -26,6 +29,10 @@ def cmd_evaluate(args) -> int:
 
     t0 = time.perf_counter()
     check_output_file(args.output)
+    check_output_file(args.plot, PLOT_SUFFIXES, "--plot")        # before the JSON is written, not after
+    if args.plot and (args.interval == "none" or (args.interval == "bootstrap" and not args.resamples)):
+        raise ValueError(f"--plot draws the scores with their intervals; --interval {args.interval}"
+                         f"{' with --resamples 0' if args.interval == 'bootstrap' else ''} has none to draw")
     spec = specs_from_args(args)
     start_for_spec(spec, cache=not args.no_cache)    # the scene is built on another core during the probe
     b = get_backend(args.backend)
