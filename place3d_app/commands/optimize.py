@@ -7,6 +7,7 @@ import dataclasses
 import io
 import json
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -312,10 +313,13 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
             plots = start_plots(plotter, history, placement, space, psog, lidar, b, args.occlusion, out)
 
     try:
-        res = optimize(objective, space, cons, sigma0=sigma0, popsize=args.popsize, max_evals=args.max_evals,
-                       delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
-                       progress=not args.quiet, restarts=args.restarts, x0=x0, on_search_end=search_ended,
-                       certificate_executor=helper)
+        with warnings.catch_warnings():
+            # the report below says so itself, naming the options to change (no second line on stderr)
+            warnings.filterwarnings("ignore", message="the search never left its start", category=RuntimeWarning)
+            res = optimize(objective, space, cons, sigma0=sigma0, popsize=args.popsize, max_evals=args.max_evals,
+                           delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
+                           progress=not args.quiet, restarts=args.restarts, x0=x0, on_search_end=search_ended,
+                           certificate_executor=helper)
     finally:
         if executor is not None:
             executor.shutdown()
