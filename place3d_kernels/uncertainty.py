@@ -34,6 +34,18 @@ __all__ = ["Bootstrap", "resample_multiplicities", "bootstrap_pooled", "bootstra
 #: An order of two placements counts as settled when it holds in at least this share of resamples.
 NOISE_LEVEL = 0.95
 
+#: Fewest subsets of one drive that an interval over them needs. Leaving one of two out (the jackknife), or
+#: drawing one of them twice (the bootstrap), pools a single subset, whose every voxel holds one class: each
+#: rescored M-SOG is 0, so the jackknife's interval has zero width and every order looks certain.
+MIN_SUBSETS = 3
+
+
+def too_few_subsets(n_subsets: int) -> str | None:
+    """Why no interval over a drive's ``n_subsets`` subsets can be estimated (one line), or None."""
+    if n_subsets >= MIN_SUBSETS:
+        return None
+    return f"intervals need at least {MIN_SUBSETS} subsets; this drive has {n_subsets}"
+
 
 def resample_multiplicities(n: int, n_resamples: int, seed: int = 0, strata=None) -> np.ndarray:
     """(R, n) int64: how often each of n units is drawn in each resample (n draws with replacement).
@@ -675,4 +687,4 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
 
 
 __all__ += ["bootstrap_records", "pairwise", "rig_vs_baselines_intervals", "Jackknife", "jackknife_records",
-            "jackknife_pooled", "route_df"]
+            "jackknife_pooled", "route_df", "MIN_SUBSETS", "too_few_subsets"]

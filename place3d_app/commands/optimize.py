@@ -415,11 +415,15 @@ def report_intervals(args, spec, res, lidar, b, base_poses, psog=None) -> dict |
     """Intervals of the best rig and each baseline over the drive's subsets, printed (issue 13, item 3)."""
     if args.interval == "none" or not base_poses:
         return None
-    from place3d_kernels.uncertainty import rig_vs_baselines_intervals, route_df
+    from place3d_kernels.uncertainty import rig_vs_baselines_intervals, route_df, too_few_subsets
 
     pool = getattr(args, "pool", None)         # a pooled P-SOG: intervals over its routes (jackknife only)
     if pool is not None and route_df(len(pool[0]), pool[1]) < 1:
         print("no intervals: every scene has one route (an interval over routes needs two in some scene)")
+        return None
+    if pool is None and psog is not None and too_few_subsets(psog.n_subsets):
+        # leaving one of two subsets out pools one, whose entropy is 0: a zero-width interval, not a narrow one
+        print(f"no intervals: {too_few_subsets(psog.n_subsets)} (use more --frames)")
         return None
     with section(f"intervals ({args.interval})"):
         iv = rig_vs_baselines_intervals(spec if pool is None else pool[0], lidar, res.best_placement.poses, base_poses,
