@@ -118,13 +118,13 @@ def cmd_evaluate(args) -> int:
         atomic_write_text(args.output, json.dumps(out, indent=2))
     plot = args.plot or (str(Path(args.output).with_suffix(".png")) if args.output and boots else None)
     if plot and boots is not None:
-        from place3d_kernels.uncertainty import plot_scores
+        from place3d_kernels.uncertainty import interval_method, plot_scores
 
         with section("plotting"):
             what = (f"{args.scene}, seed {args.seed}{cond}" if pool is None else f"{len(drives)} drives pooled{cond}")
             plot_scores({f"M-SOG {t} ({what})": boots[t] for t in ("seg", "det")},
-                        plot, title=f"M-SOG of {len(rows)} placements, {int(boots['seg'].level * 100)} % intervals over "
-                                    f"the {boots['seg'].unit} ({boots['seg'].method if hasattr(boots['seg'], 'method') else 'bootstrap'})")
+                        plot, title=f"M-SOG of {len(rows)} placements, {int(boots['seg'].level * 100)} % intervals: "
+                                    f"{interval_method(boots['seg'])}")
         if not args.quiet:
             print(f"wrote {plot}", file=sys.stderr)
     return 0
