@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from place3d_kernels.optimize.certificate import certify
-from place3d_kernels.optimize.checkpoint import (_FRESH, load_checkpoint, replay, save_checkpoint, snapshot,
+from place3d_kernels.optimize.checkpoint import (FRESH_RUN_HINT, load_checkpoint, replay, save_checkpoint, snapshot,
                                                  write_snapshot)
 from place3d_kernels.optimize.cmaes import METHODS, make_strategy
 from place3d_kernels.optimize.constraints import Constraint, prepare, total_penalty
@@ -364,7 +364,7 @@ def _initial_state(grid: _Grid, setup, checkpoint, resume, method, k0, x0_vec, s
             old = state.get("setup", {})
             diff = sorted(k for k in set(old) | set(setup) if old.get(k) != setup.get(k))
             raise ValueError(f"Checkpoint {checkpoint} was written by a run with a different setup "
-                             f"(differs in {diff}); resume with the same settings, or {_FRESH}")
+                             f"(differs in {diff}); resume with the same settings, or {FRESH_RUN_HINT}")
         # the strategy is rebuilt, not unpickled: a fresh one replays the run's asks and tells (checkpoint.py)
         state["strategy"] = fresh_strategy()
         with section("checkpoint replay"):

@@ -145,7 +145,7 @@ def _built_marker(ctx: "cl.Context", src: str, options: tuple[str, ...]) -> Path
 
     from pyopencl.cache import get_device_cache_id
 
-    from place3d_kernels.sog import cache_dir
+    from place3d_kernels.backends.base import cache_dir
 
     ident = repr(([get_device_cache_id(d) for d in ctx.devices], tuple(options), src))
     return cache_dir() / "opencl-built" / hashlib.sha256(ident.encode()).hexdigest()[:32]
