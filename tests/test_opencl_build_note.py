@@ -30,6 +30,7 @@ def ctx():
 
 def test_a_first_build_is_announced_once(ctx, monkeypatch, caplog):
     monkeypatch.setattr(rt, "kernel_source", lambda *files: SOURCE)
+    monkeypatch.setattr(rt, "_noted", set())       # as in a fresh process: earlier tests built for this device
     options = (f"-DPLACE3D_NOTE_TEST={uuid.uuid4().int % 10**9}",)        # a build no cache has seen
     with caplog.at_level(logging.INFO, logger="place3d_kernels"):
         rt.build_program(ctx, ("probe.cl",), options)
