@@ -75,6 +75,16 @@ def warning_line(message, category: type[Warning], filename: str) -> str:
     return "place3d: warning: " + " ".join(text.split())
 
 
+def _emit(line: str, file=None) -> None:
+    """``line`` on its own line of ``file`` (stderr), above any progress bar being drawn there."""
+    file = sys.stderr if file is None else file
+    tqdm = sys.modules.get("tqdm")
+    if tqdm is not None and getattr(tqdm.tqdm, "_instances", None):
+        tqdm.tqdm.write(line, file=file)       # clears the bars, writes, draws them again
+    else:
+        print(line, file=file, flush=True)
+
+
 class _LogFormatter(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
         text = " ".join(record.getMessage().split())
@@ -86,7 +96,7 @@ class _StderrHandler(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            print(self.format(record), file=sys.stderr, flush=True)
+            _emit(self.format(record))
         except Exception:  # noqa: BLE001 - logging must never break the command
             self.handleError(record)
 
@@ -97,7 +107,7 @@ def cli_output(quiet: bool = False):
     def show(message, category, filename, lineno, file=None, line=None):
         if quiet and not matters(category, filename):
             return
-        print(warning_line(message, category, filename), file=sys.stderr if file is None else file, flush=True)
+        _emit(warning_line(message, category, filename), file)
 
     handler = _StderrHandler(logging.WARNING if quiet else logging.INFO)
     handler.setFormatter(_LogFormatter())

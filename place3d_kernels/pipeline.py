@@ -13,7 +13,7 @@ from place3d_kernels.lidar import LidarModel
 from place3d_kernels.manifest import cache_warning, verified_bytes, write_manifest
 from place3d_kernels.profiling import section
 from place3d_kernels.scene.keymemo import SceneRef
-from place3d_kernels.simulate import DEFAULT_MOUNT, simulate
+from place3d_kernels.simulate import DEFAULT_MOUNT, check_frames, simulate
 from place3d_kernels.sog import PSOG, cache_dir, cache_key
 
 __all__ = ["scene_psog", "cached_psog", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy", "wait_for_saves"]
@@ -62,6 +62,7 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
     if isinstance(scene, SceneRef):
         with section("P-SOG build: scene"):
             scene = scene.build()    # known by its key only (PSOGSpec.build): the geometry is needed now
+    check_frames(scene.n_frames, lidar, "frames")      # every frame is held before the vote
     # actor meshes made ahead by whoever built the scene (the application's forked build), else none yet
     dynamic = scene.take_prebuilt()
     with section("P-SOG build: simulate"):

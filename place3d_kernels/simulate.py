@@ -10,6 +10,7 @@ paper's setting (no ego body).
 
 from __future__ import annotations
 
+import logging
 import os
 
 import numpy as np
@@ -24,7 +25,22 @@ from place3d_kernels.pose import pose_from_matrix, pose_matrix
 from place3d_kernels.profiling import section
 from place3d_kernels.rig_metrics import check_outside_body
 
-__all__ = ["simulate_frame", "simulate", "body_hits", "DEFAULT_MOUNT", "SWEEP_BATCH_RAYS"]
+__all__ = ["simulate_frame", "simulate", "body_hits", "DEFAULT_MOUNT", "SWEEP_BATCH_RAYS", "check_frames",
+           "simulation_size", "BYTES_PER_RETURN", "ANNOUNCE_RAYS"]
+
+log = logging.getLogger(__name__)
+
+#: Host memory of one return of a simulated frame (``PointCloud``: float64 point and origin, int32 label,
+#: float32 intensity). ``simulate`` returns every frame, and a P-SOG build holds them all before it votes.
+BYTES_PER_RETURN = 3 * 8 + 3 * 8 + 4 + 4
+
+#: A simulation of at least this many rays says how big it is (frames x rays, memory) before it starts
+#: (``check_frames(announce=True)``; about 1,500 frames of the collection LiDAR, minutes on a CPU).
+ANNOUNCE_RAYS = 10 ** 8
+
+#: Share of the physical memory the returns of one simulation may take: they are not all a run holds (the
+#: scene with an actor mesh per frame, the vote's arrays, the process itself).
+MEMORY_SHARE = 0.5
 
 #: Pose of the collection LiDAR in the ego frame (roof centre, 2.5 m above ground).
 DEFAULT_MOUNT = np.array([0.0, 0.0, 2.5, 0.0, 0.0, 0.0])
@@ -37,6 +53,49 @@ SWEEP_BATCH_RAYS = 1 << 20
 #: ``PLACE3D_ACTOR_GROUPS=0``: cast each frame's actors through a tree of their own (one build and one cast
 #: per frame) also where the backend can cast all frames' actors through one grouped tree (``MeshGroups``)
 ACTOR_GROUPS_ENV = "PLACE3D_ACTOR_GROUPS"
+
+
+def physical_memory() -> int | None:
+    """Bytes of physical memory of this machine, or None where the system does not say."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def simulation_size(n_frames: int, lidar: LidarModel | str) -> tuple[int, int]:
+    """(rays, bytes): the rays ``n_frames`` sweeps of ``lidar`` cast and the host memory their returns take
+    at most (every ray a return)."""
+    if isinstance(lidar, str):
+        lidar = LidarModel.load(lidar)
+    rays = int(n_frames) * len(lidar.elevations) * len(lidar.azimuths)
+    return rays, rays * BYTES_PER_RETURN
+
+
+def check_frames(n_frames: int, lidar: LidarModel | str, what: str = "--frames", announce: bool = False) -> None:
+    """Refuse a frame count whose returns cannot fit in this machine's memory (``simulate`` returns every
+    frame; a P-SOG build holds them all), naming the most that can, before any work. With ``announce``, a
+    simulation of ``ANNOUNCE_RAYS`` rays or more says how big it is (an INFO line on this module's logger,
+    which the command prints unless --quiet).
+
+    Raises:
+        ValueError: the returns of ``n_frames`` sweeps of ``lidar`` could take more than ``MEMORY_SHARE`` of
+            the physical memory.
+    """
+    if isinstance(lidar, str):
+        lidar = LidarModel.load(lidar)
+    rays, size = simulation_size(n_frames, lidar)
+    per_sweep = len(lidar.elevations) * len(lidar.azimuths)
+    mem = physical_memory()
+    if mem is not None and size > MEMORY_SHARE * mem:
+        most = int(MEMORY_SHARE * mem) // simulation_size(1, lidar)[1]
+        raise ValueError(f"{what} {n_frames} would hold up to {size / 2**30:,.0f} GiB of returns in memory "
+                         f"({n_frames:,} frames x {per_sweep:,} rays of {lidar.name}); this machine has "
+                         f"{mem / 2**30:.0f} GiB: use at most {most:,} frames (the paper uses 40)")
+    if announce and rays >= ANNOUNCE_RAYS:
+        log.info("simulating %s frames x %s rays of %s: %.3g rays, up to %.1f GiB of returns in memory; the "
+                 "scene and the frames take a while", f"{n_frames:,}", f"{per_sweep:,}", lidar.name, rays,
+                 size / 2**30)
 
 
 def _intensity(normals: np.ndarray, d: np.ndarray, labels: np.ndarray) -> np.ndarray:

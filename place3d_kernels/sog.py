@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from place3d_kernels.backends.registry import get_backend
-from place3d_kernels.backends.base import ENTROPY_SCALE
+from place3d_kernels.backends.base import ENTROPY_SCALE, cache_dir
 from place3d_kernels.classes import CLASSES, N_CLASSES, VEHICLE
 from place3d_kernels.grid import Grid
 from place3d_kernels.pointcloud import PointCloud
@@ -53,11 +53,6 @@ def keep_loaded(n: int) -> None:
         _keep = int(n)
         while len(_loaded) > _keep:
             _loaded.popitem(last=False)
-
-
-def cache_dir() -> Path:
-    """Where P-SOGs are cached: ``$PLACE3D_CACHE`` or ``~/.cache/place3d``."""
-    return Path(os.environ.get("PLACE3D_CACHE", Path.home() / ".cache" / "place3d"))
 
 
 #: Rows per block in ``entropy``: 8192 rows of 22 float64 channels are 1.4 MB, so a block's temporaries

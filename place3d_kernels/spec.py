@@ -463,9 +463,12 @@ def _load_psog(spec: PSOGSpec):
 
 
 # ============================================================================== CLI
-def specs_from_args(args) -> PSOGSpec:
+def specs_from_args(args, frames_lidar=COLLECTION_LIDAR) -> PSOGSpec:
     """The P-SOG spec named by the CLI's common options (--scene, --seed, --frames, --voxel-size,
-    --condition, --severity, --param, --backend, --vehicle), built once per command."""
+    --condition, --severity, --param, --backend, --vehicle), built once per command.
+
+    ``--frames`` sweeps of ``frames_lidar`` (the collection LiDAR of the P-SOG; ``place3d simulate``: its
+    --lidar; None: no check) must fit in memory (``simulate.check_frames``), checked before the scene is built."""
     cond = None
     params = parse_params(getattr(args, "param", []))
     if params and not getattr(args, "condition", None):
@@ -480,6 +483,11 @@ def specs_from_args(args) -> PSOGSpec:
     if voxel is not None and not voxel > 0:
         raise ValueError(f"--voxel-size must be > 0 metres, got {voxel}")
     scene = SceneSpec(args.scene, args.seed, args.frames, getattr(args, "labels", None), getattr(args, "route", None))
+    if frames_lidar is not None and scene.kind in ("town", "opendrive") and args.frames >= 1:
+        from place3d_kernels.simulate import check_frames
+
+        # before the scene is built: a town of 100,000 frames took minutes to build alone
+        check_frames(args.frames, frames_lidar, announce=True)
     spec = PSOGSpec(scene.validate(), getattr(args, "backend", None), RoiSpec(voxel), cond,
                     vehicle=getattr(args, "vehicle", None))
     spec.vehicle_body()                 # an unknown preset or a missing mesh fails here, before any work

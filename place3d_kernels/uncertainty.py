@@ -34,6 +34,32 @@ __all__ = ["Bootstrap", "resample_multiplicities", "bootstrap_pooled", "bootstra
 #: An order of two placements counts as settled when it holds in at least this share of resamples.
 NOISE_LEVEL = 0.95
 
+#: Fewest subsets of one drive that an interval over them needs. Leaving one of two out (the jackknife), or
+#: drawing one of them twice (the bootstrap), pools a single subset, whose every voxel holds one class: each
+#: rescored M-SOG is 0, so the jackknife's interval has zero width and every order looks certain.
+MIN_SUBSETS = 3
+
+
+def too_few_subsets(n_subsets: int) -> str | None:
+    """Why no interval over a drive's ``n_subsets`` subsets can be estimated (one line), or None."""
+    if n_subsets >= MIN_SUBSETS:
+        return None
+    return f"intervals need at least {MIN_SUBSETS} subsets; this drive has {n_subsets}"
+
+
+def interval_method(b) -> str:
+    """What the intervals of ``b`` (a ``Bootstrap`` or ``Jackknife``) are, in words, for titles and legends:
+    "jackknife over 8 routes ...", "jackknife over 10 subsets ..." or "bootstrap over 10 subsets ..."."""
+    unit = "routes" if b.unit == "drives" else b.unit
+    if getattr(b, "method", "bootstrap") == "jackknife":
+        how = "each left out once"
+        if getattr(b, "strata", None) is not None and len(set(b.strata)) > 1:
+            how += ", stratified by scene"
+        if getattr(b, "df", None) is not None:
+            how += f", t with {b.df} df"
+        return f"jackknife over {b.n_units} {unit} ({how})"
+    return f"bootstrap over {b.n_units} {unit} ({len(b.samples)} resamples, percentile)"
+
 
 def resample_multiplicities(n: int, n_resamples: int, seed: int = 0, strata=None) -> np.ndarray:
     """(R, n) int64: how often each of n units is drawn in each resample (n draws with replacement).
@@ -210,13 +236,14 @@ def bootstrap_subsets(drive, lidar, placements, settings=None, task: str = "seg"
 
 
 # ====================================================================== plot
-def plot_scores(boots: dict, path, title: str = "M-SOG with bootstrap intervals", reference: dict | None = None,
+def plot_scores(boots: dict, path, title: str | None = None, reference: dict | None = None,
                 reference_label: str = "paper") -> str:
     """Scores with their intervals, one panel per entry of ``boots`` ({panel title: Bootstrap}).
 
     Args:
-        boots: {panel title: Bootstrap}.
+        boots: {panel title: Bootstrap or Jackknife}; each panel's legend names its method (``interval_method``).
         path: PNG path.
+        title: the figure's title; default "M-SOG with 95 % intervals: <method>" (the first panel's method).
         reference: optional {panel title: (P,) values} drawn on a second y axis (other scale).
         reference_label: legend label of the reference values.
     """
@@ -232,12 +259,8 @@ def plot_scores(boots: dict, path, title: str = "M-SOG with bootstrap intervals"
         ci = b.ci
         # the interval is drawn from its own ends, not as error bars around the point: a percentile interval
         # need not contain the point (bootstrap bias, see Bootstrap.bias)
-        if getattr(b, "method", "bootstrap") == "jackknife":
-            what = f"jackknife interval ({b.n_units} {b.unit}, each left out once)"
-        else:
-            what = f"percentile interval ({b.n_units} {b.unit}, {len(b.samples)} resamples)"
         h0 = ax.errorbar(x, ci.mean(axis=1), yerr=(ci[:, 1] - ci[:, 0]) / 2.0, fmt="none", ecolor="tab:blue",
-                         capsize=4, label=f"{int(b.level * 100)} % {what}")
+                         capsize=4, label=f"{int(b.level * 100)} % interval: {interval_method(b)}")
         (h1,) = ax.plot(x, b.point, "o", color="tab:blue", label="M-SOG of the full sample")
         ax.set_xticks(x)
         ax.set_xticklabels(b.names, rotation=35, ha="right")
@@ -253,6 +276,9 @@ def plot_scores(boots: dict, path, title: str = "M-SOG with bootstrap intervals"
             ax2.set_ylabel(reference_label, color="tab:red")
             handles.append(h2)
         ax.legend(handles=handles, loc="best", fontsize=7, framealpha=0.85)
+    if title is None:
+        first = panels[0][1]
+        title = f"M-SOG with {int(first.level * 100)} % intervals: {interval_method(first)}"
     fig.suptitle(title)
     fig.tight_layout()
     from place3d_kernels.atomic import atomic_savefig
@@ -675,4 +701,4 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
 
 
 __all__ += ["bootstrap_records", "pairwise", "rig_vs_baselines_intervals", "Jackknife", "jackknife_records",
-            "jackknife_pooled", "route_df"]
+            "jackknife_pooled", "route_df", "MIN_SUBSETS", "too_few_subsets", "interval_method"]

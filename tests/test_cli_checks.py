@@ -22,7 +22,8 @@ TINY = ["--frames", "8", "--voxel-size", "0.8", "--quiet", "--routes", "1"]
 
 def _err(capsys) -> str:
     err = capsys.readouterr().err.strip().splitlines()
-    lines = [ln for ln in err if ln.startswith("place3d")]
+    # the one error line; warnings and notes ("place3d: warning: ...") may come beside it
+    lines = [ln for ln in err if ln.startswith("place3d") and not ln.startswith(("place3d: warning:", "place3d: note:"))]
     assert len(lines) == 1, err
     return lines[0]
 

@@ -68,3 +68,20 @@ def test_handlers_are_put_back_after_the_command(noisy_evaluate):
     assert main(["evaluate", "--quiet"]) == 0
     assert warnings.showwarning is before
     assert logging.getLogger("place3d_kernels").handlers == handlers
+
+
+def test_a_plot_path_of_another_format_is_refused_before_any_output(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    argv = ["evaluate", "--frames", "12", "--voxel-size", "0.8", "--routes", "1", "--quiet", "--backend", "warp:cpu",
+            "center", "line", "--output", "r.json", "--plot", "x.xyz"]
+    assert main(argv) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "--plot x.xyz" in err[0] and ".png" in err[0], err
+    assert not (tmp_path / "r.json").exists()
+    assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").rglob("psog-*.npz"))
+
+
+def test_a_plot_without_intervals_is_refused_before_any_output(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["evaluate", "--quiet", "--interval", "none", "--plot", "p.png", "center"]) == 2
+    assert "--interval none" in capsys.readouterr().err

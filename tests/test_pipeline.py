@@ -83,7 +83,8 @@ def _cli(*args, env_cache):
 
 def test_cli_evaluate_writes_json(tmp_path):
     out = tmp_path / "eval.json"
-    r = _cli("evaluate", "center", "pyramid", "ours-seg", "--frames", "8", "--voxel-size", "0.4", "--quiet", "--routes", "1",
+    # 12 frames: T = 3 subsets, the fewest an interval needs (tests/test_few_subsets.py)
+    r = _cli("evaluate", "center", "pyramid", "ours-seg", "--frames", "12", "--voxel-size", "0.4", "--quiet", "--routes", "1",
              "--backend", "warp:cpu", "--output", str(out), env_cache=tmp_path / "c")
     assert r.returncode == 0, r.stderr
     data = json.loads(out.read_text())

@@ -12,7 +12,10 @@ from place3d_kernels.profiling import section
 from place3d_app.commands.common import check_output_file, psog_for_spec
 from place3d_app.prefetch import start_for_spec
 
-__all__ = ["cmd_evaluate"]
+__all__ = ["cmd_evaluate", "PLOT_SUFFIXES"]
+
+#: What --plot writes (matplotlib's format follows the suffix).
+PLOT_SUFFIXES = (".png", ".svg", ".pdf")
 
 
 def cmd_evaluate(args) -> int:
@@ -23,9 +26,14 @@ def cmd_evaluate(args) -> int:
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
     from place3d_kernels.spec import specs_from_args
+    from place3d_kernels.uncertainty import MIN_SUBSETS, too_few_subsets
 
     t0 = time.perf_counter()
     check_output_file(args.output)
+    check_output_file(args.plot, PLOT_SUFFIXES, "--plot")        # before the JSON is written, not after
+    if args.plot and (args.interval == "none" or (args.interval == "bootstrap" and not args.resamples)):
+        raise ValueError(f"--plot draws the scores with their intervals; --interval {args.interval}"
+                         f"{' with --resamples 0' if args.interval == 'bootstrap' else ''} has none to draw")
     spec = specs_from_args(args)
     start_for_spec(spec, cache=not args.no_cache)    # the scene is built on another core during the probe
     b = get_backend(args.backend)
@@ -53,7 +61,18 @@ def cmd_evaluate(args) -> int:
                                body=body)[0])
         rows.append({"placement": pl.name or name, "msog_seg": seg, "msog_det": det})
     rows.sort(key=lambda r: -r["msog_seg"])
+    interval_note = None
     if args.interval == "none" or (pool is None and not args.resamples):
+        boots = None
+    elif pool is None and too_few_subsets(psog.n_subsets):
+        # leaving one of two subsets out pools one, whose entropy is 0: a zero-width interval, not a narrow one
+        from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
+
+        k = spec.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET
+        interval_note = (f"{too_few_subsets(psog.n_subsets)} (k = {k} frames each), so the table has no interval "
+                         f"columns{' and no plot' if args.plot else ''}; intervals need at least {MIN_SUBSETS * k} "
+                         f"frames")
+        print(f"place3d: note: {interval_note}", file=sys.stderr)
         boots = None
     elif pool is None:
         boots = _evaluate_bootstrap(args, spec, b, lidar, names, placements, rows)
@@ -92,18 +111,20 @@ def cmd_evaluate(args) -> int:
                "machine": machine_info(b.name), "provenance": provenance(backend=b.name)}
         if boots is not None:
             out["bootstrap"] = _bootstrap_summary(args, boots)
+        elif interval_note:
+            out["intervals_note"] = interval_note
         from place3d_kernels.atomic import atomic_write_text
 
         atomic_write_text(args.output, json.dumps(out, indent=2))
     plot = args.plot or (str(Path(args.output).with_suffix(".png")) if args.output and boots else None)
     if plot and boots is not None:
-        from place3d_kernels.uncertainty import plot_scores
+        from place3d_kernels.uncertainty import interval_method, plot_scores
 
         with section("plotting"):
             what = (f"{args.scene}, seed {args.seed}{cond}" if pool is None else f"{len(drives)} drives pooled{cond}")
             plot_scores({f"M-SOG {t} ({what})": boots[t] for t in ("seg", "det")},
-                        plot, title=f"M-SOG of {len(rows)} placements, {int(boots['seg'].level * 100)} % intervals over "
-                                    f"the {boots['seg'].unit} ({boots['seg'].method if hasattr(boots['seg'], 'method') else 'bootstrap'})")
+                        plot, title=f"M-SOG of {len(rows)} placements, {int(boots['seg'].level * 100)} % intervals: "
+                                    f"{interval_method(boots['seg'])}")
         if not args.quiet:
             print(f"wrote {plot}", file=sys.stderr)
     return 0
@@ -146,15 +167,14 @@ def _evaluate_bootstrap(args, spec, backend, lidar, names, placements, rows) -> 
     """{task: Jackknife | Bootstrap} over the subsets of the evaluated drive; point estimates are the printed
     scores (bit-identical), ``ci`` and ``pairwise`` are added to each row."""
     from place3d_kernels.subset_records import keyed_subset_records
-    from place3d_kernels.uncertainty import bootstrap_records, jackknife_records, pairwise
+    from place3d_kernels.uncertainty import bootstrap_records, jackknife_records, pairwise, too_few_subsets
 
     if args.resamples < 0:
         raise ValueError(f"--resamples must be >= 0 (0 switches the intervals off), got {args.resamples}")
     with section("bootstrap: subset records"):
         records, pool_key = keyed_subset_records(spec, backend, cache=not args.no_cache)
-    if len(records) < 2:
-        raise ValueError(f"intervals need at least 2 subsets, the drive has {len(records)}; use more "
-                         f"--frames or --interval none")
+    if too_few_subsets(len(records)):
+        raise ValueError(f"{too_few_subsets(len(records))}; use more --frames or --interval none")
     order = [r["placement"] for r in rows]
     by_name = {(pl.name or n): pl for n, pl in zip(names, placements)}
     point = {t: [r[f"msog_{t}"] for r in rows] for t in ("seg", "det")}

@@ -7,6 +7,7 @@ import dataclasses
 import io
 import json
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -100,6 +101,7 @@ def check_args(args, spec) -> None:
         raise ValueError(f"--max-evals must be >= 1, got {args.max_evals}")
     if not 1 <= args.lidars <= 8:
         raise ValueError(f"--lidars must be 1-8, got {args.lidars}")
+    check_search_options(args)
     if args.output is not None and Path(args.output).exists() and not Path(args.output).is_dir():
         raise ValueError(f"--output {args.output} is an existing file; give a folder")
     if args.checkpoint is None and args.output is not None and args.restarts == 0:
@@ -136,6 +138,40 @@ def check_args(args, spec) -> None:
                                "resume with the same settings, or start a fresh run (without --resume)"):
             raise ValueError(f"{args.checkpoint} has no manifest ({man.name}), so its settings cannot be checked; "
                              f"start a fresh run (without --resume)")
+
+
+def check_search_options(args) -> None:
+    """The search's options, named as the command line names them, before any work.
+
+    The library checks the same values after the P-SOG is built and names its own parameters
+    (``popsize``, ``sigma0``, ``seed``, ``MinDistance(...)``); here they are refused first, as options."""
+    import math
+
+    from place3d_kernels.optimize import MinDistance, SearchSpace
+
+    if args.popsize is not None and args.popsize < 2:
+        raise ValueError(f"--popsize must be >= 2 (CMA-ES needs two candidates a generation), got {args.popsize}")
+    if args.sigma0 is not None and not (math.isfinite(args.sigma0) and args.sigma0 > 0):
+        raise ValueError(f"--sigma0 must be > 0 (a fraction of each bound width, e.g. 0.15), got {args.sigma0}")
+    if not (math.isfinite(args.delta) and args.delta > 0):
+        raise ValueError(f"--delta must be a positive grid step in metres and radians, got {args.delta}")
+    seed = args.opt_seed if args.opt_seed is not None else args.seed
+    if not 0 <= seed < 2 ** 32:
+        raise ValueError(f"--opt-seed (default: --seed) must be from 0 to 2**32 - 1, got {seed}")
+    if args.restarts < 0:
+        raise ValueError(f"--restarts must be >= 0, got {args.restarts}")
+    if args.restarts and (args.checkpoint is not None or args.resume):
+        raise ValueError(f"--restarts {args.restarts} runs several searches, which are not checkpointed: drop "
+                         f"--checkpoint / --resume, or --restarts")
+    if args.fixed_height is not None and not math.isfinite(args.fixed_height):
+        raise ValueError(f"--fixed-height must be a finite height in metres, got {args.fixed_height}")
+    if args.lidars > 1:
+        if not (math.isfinite(args.min_distance) and args.min_distance > 0):
+            raise ValueError(f"--min-distance must be a positive distance in metres, got {args.min_distance}")
+        why = MinDistance(args.min_distance).impossibility(SearchSpace(n_lidars=args.lidars), args.delta)
+        if why:
+            raise ValueError(f"--min-distance {args.min_distance:g} cannot hold {why}; lower it or use fewer "
+                             f"--lidars")
 
 
 def _probe(name):
@@ -280,10 +316,13 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
             plots = start_plots(plotter, history, placement, space, psog, lidar, b, args.occlusion, out)
 
     try:
-        res = optimize(objective, space, cons, sigma0=sigma0, popsize=args.popsize, max_evals=args.max_evals,
-                       delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
-                       progress=not args.quiet, restarts=args.restarts, x0=x0, on_search_end=search_ended,
-                       certificate_executor=helper)
+        with warnings.catch_warnings():
+            # the report below says so itself, naming the options to change (no second line on stderr)
+            warnings.filterwarnings("ignore", message="the search never left its start", category=RuntimeWarning)
+            res = optimize(objective, space, cons, sigma0=sigma0, popsize=args.popsize, max_evals=args.max_evals,
+                           delta=args.delta, seed=args.opt_seed, checkpoint=args.checkpoint, resume=args.resume,
+                           progress=not args.quiet, restarts=args.restarts, x0=x0, on_search_end=search_ended,
+                           certificate_executor=helper)
     finally:
         if executor is not None:
             executor.shutdown()
@@ -399,11 +438,15 @@ def report_intervals(args, spec, res, lidar, b, base_poses, psog=None) -> dict |
     """Intervals of the best rig and each baseline over the drive's subsets, printed (issue 13, item 3)."""
     if args.interval == "none" or not base_poses:
         return None
-    from place3d_kernels.uncertainty import rig_vs_baselines_intervals, route_df
+    from place3d_kernels.uncertainty import rig_vs_baselines_intervals, route_df, too_few_subsets
 
     pool = getattr(args, "pool", None)         # a pooled P-SOG: intervals over its routes (jackknife only)
     if pool is not None and route_df(len(pool[0]), pool[1]) < 1:
         print("no intervals: every scene has one route (an interval over routes needs two in some scene)")
+        return None
+    if pool is None and psog is not None and too_few_subsets(psog.n_subsets):
+        # leaving one of two subsets out pools one, whose entropy is 0: a zero-width interval, not a narrow one
+        print(f"no intervals: {too_few_subsets(psog.n_subsets)} (use more --frames)")
         return None
     with section(f"intervals ({args.interval})"):
         iv = rig_vs_baselines_intervals(spec if pool is None else pool[0], lidar, res.best_placement.poses, base_poses,

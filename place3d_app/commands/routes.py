@@ -14,8 +14,8 @@ import sys
 __all__ = ["add_route_arguments", "route_seeds", "drive_specs", "pooled_psog", "psog_for_routes",
            "SINGLE_ROUTE_WARNING"]
 
-SINGLE_ROUTE_WARNING = ("warning: one route: the order of the placements is not converged on a single drive "
-                        "(docs/guide.md, 'How many routes'); pool several with --routes N")
+SINGLE_ROUTE_WARNING = ("place3d: warning: one route: the order of the placements is not converged on a single "
+                        "drive (docs/guide.md, 'How many routes'); pool several with --routes N")
 
 
 def add_route_arguments(p) -> None:

@@ -12,14 +12,15 @@ def cmd_simulate(args) -> int:
     from place3d_kernels.simulate import DEFAULT_MOUNT
     from place3d_kernels.spec import specs_from_args
 
-    spec = specs_from_args(args)
+    distributed = getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None)
+    # here every frame is held until the sequence is written; Ray workers write theirs chunk by chunk
+    spec = specs_from_args(args, frames_lidar=None if distributed else args.lidar)
     meta = sequence_spec(spec.scene.to_dict(), LidarModel.load(args.lidar),
                          None if spec.condition is None else spec.condition.to_dict(), DEFAULT_MOUNT)
     body = spec.vehicle_body()
     if body is not None:
         # a sequence made with another body is another sequence (prepare_sequence_folder compares specs)
         meta["vehicle"] = {"name": body.name, "key": body.key}
-    distributed = getattr(args, "executor", "local") == "ray" or getattr(args, "ray_address", None)
     if distributed and body is not None:
         raise ValueError(f"--vehicle {spec.vehicle} is not supported with --executor ray yet; simulate locally "
                          f"(drop --executor/--ray-address) or drop --vehicle")

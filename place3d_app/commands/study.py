@@ -94,7 +94,11 @@ def _atomic_text(path: Path, text: str) -> None:
 
 
 def _psog_task(t) -> str:
-    spec, resamples = t
+    spec, resamples, *shown = t
+    if shown and shown[0]:
+        # in this process, with a bar of its frames (the simulation is most of a study's time); the cache it
+        # writes is what load() reads next
+        spec.build(cache=spec.cache if spec.cache else True, progress=True)
     spec.load()                                   # builds the cache file if it is absent
     if resamples:
         from place3d_kernels.subset_records import spec_subset_records
@@ -228,10 +232,17 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
     if progress:
         print(f"study {cfg['name']}: {len(cells)} cells, {len(cells) - len(todo)} done, {len(todo)} to run "
               f"on {executor.kind} ({len(groups)} P-SOGs)", file=sys.stderr)
+    # a bar per stage where the tasks run in this process; Ray runs them elsewhere, all at once
+    bars = progress and executor.kind == "local"
+    if progress and not bars and (groups or todo):
+        print(f"study {cfg['name']}: waiting for {len(groups)} P-SOGs, then {len(todo)} cells, on {executor.kind} "
+              f"(per-cell progress shows with --executor local)", file=sys.stderr)
     if groups:
-        executor.map(_psog_task, [(g, boot["resamples"]) for g in groups])     # one P-SOG per (scene, condition), so cells never race
+        # one P-SOG per (scene, condition), so cells never race
+        executor.map(*_ticking(_psog_task, [(g, boot["resamples"], bars) for g in groups], bars, "study: P-SOGs",
+                               "P-SOG"))
     if todo:
-        executor.map(_cell_task, todo)
+        executor.map(*_ticking(_cell_task, todo, bars, "study: cells", "cell"))
     rows = [json.loads(p.read_text()) for p in cells]
     noise = _within_noise(rows, settings["resamples"])
     rows = [{k: v for k, v in r.items() if not k.startswith("samples_")} for r in rows]
@@ -256,6 +267,33 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
                                                  "provenance": provenance()}, indent=2, default=str))
     summary["csv"], summary["json"] = str(out / "study.csv"), str(out / "study.json")
     return summary
+
+
+class _Tick:
+    """``fn`` that advances a progress bar after each task (tasks run in this process: the local executor)."""
+
+    def __init__(self, fn, bar):
+        self.fn, self.bar = fn, bar
+
+    def __call__(self, task):
+        try:
+            out = self.fn(task)
+        except BaseException:
+            self.bar.close()          # the error's message follows on a line of its own
+            raise
+        self.bar.update(1)
+        if self.bar.n >= self.bar.total:
+            self.bar.close()
+        return out
+
+
+def _ticking(fn, tasks: list, bar: bool, desc: str, unit: str) -> tuple:
+    """(fn, tasks) for ``executor.map``: with ``bar``, ``fn`` advances a tqdm bar of ``len(tasks)`` on stderr."""
+    if not bar:
+        return fn, tasks
+    from tqdm import tqdm
+
+    return _Tick(fn, tqdm(total=len(tasks), desc=desc, unit=unit, file=sys.stderr)), tasks
 
 
 def _within_noise(rows: list, resamples: int) -> dict:

@@ -29,8 +29,10 @@ Semantics (``reference`` is the executable specification):
 from __future__ import annotations
 
 import abc
+import os
 import threading
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -53,6 +55,12 @@ ENTROPY_SCALE = float(2**32)
 #: Warp and OpenCL), so the domain refuses such inputs on every backend alike. World coordinates may be
 #: anything finite: the shifts are subtracted in float64 before a kernel runs.
 COORDINATE_LIMIT = 1e5
+
+
+def cache_dir() -> Path:
+    """Where place3d keeps what it built (P-SOGs, OpenCL build markers): ``$PLACE3D_CACHE`` or
+    ``~/.cache/place3d``. Here so the backends can find it without importing the domain."""
+    return Path(os.environ.get("PLACE3D_CACHE", Path.home() / ".cache" / "place3d"))
 
 
 def first_far_row(points: np.ndarray, centre) -> int:

@@ -52,8 +52,8 @@ CHECKPOINT_FORMAT = 3
 MAGIC = b"PLACE3D-CHECKPOINT 3\n"
 #: the parts of an optimisation state that only ever grow by appending: a snapshot keeps their lengths
 APPENDED = ("cache", "F", "P", "history", "log")
-_FRESH = "start a fresh run (place3d optimize without --resume, with --overwrite or into a fresh folder; " \
-         "in Python resume=False)"
+FRESH_RUN_HINT = "start a fresh run (place3d optimize without --resume, with --overwrite or into a fresh folder; " \
+                 "in Python resume=False)"
 
 
 class CheckpointError(ValueError):
@@ -66,7 +66,7 @@ class LegacyCheckpointError(CheckpointError):
 
 def _legacy(path) -> str:
     return (f"{path} is a pickle checkpoint of an earlier place3d version; it is not read, because loading a "
-            f"pickle can run any code its author put in it; {_FRESH}")
+            f"pickle can run any code its author put in it; {FRESH_RUN_HINT}")
 
 
 # ------------------------------------------------------------------------------ encoding
@@ -133,17 +133,17 @@ def decode(data: bytes, path="checkpoint") -> dict:
         raise LegacyCheckpointError(_legacy(path))
     if not data.startswith(MAGIC):
         raise CheckpointError(f"{path} is not a place3d checkpoint of format {CHECKPOINT_FORMAT} (its first line "
-                              f"differs: damaged, or another kind of file); {_FRESH}")
+                              f"differs: damaged, or another kind of file); {FRESH_RUN_HINT}")
     head = len(MAGIC)
     digest, payload = data[head:head + 64], data[head + 65:]
     if data[head + 64:head + 65] != b"\n" or hashlib.sha256(payload).hexdigest().encode() != digest:
         raise CheckpointError(f"{path} is damaged (its content does not match the sha256 it was written with); "
-                              f"{_FRESH}")
+                              f"{FRESH_RUN_HINT}")
     try:
         return _state(payload)
     except Exception as e:  # noqa: BLE001 - an intact digest over a malformed body: written by something else
         raise CheckpointError(f"{path} is not a readable place3d checkpoint ({type(e).__name__}: {e}); "
-                              f"{_FRESH}") from None
+                              f"{FRESH_RUN_HINT}") from None
 
 
 def _state(payload: bytes) -> dict:
@@ -219,7 +219,7 @@ def replay(strategy, log, asked, path="checkpoint") -> None:
             raise CheckpointError(
                 f"{path}: replaying the run's strategy did not reproduce its batch {n_ask} (another version of "
                 f"pycma or NumPy than the one that wrote it?), so the run cannot continue as it would have; "
-                f"{_FRESH}")
+                f"{FRESH_RUN_HINT}")
 
 
 # ------------------------------------------------------------------------------ snapshots

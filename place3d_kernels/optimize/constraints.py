@@ -90,6 +90,19 @@ class MinDistance(Constraint):
         L = space.n_lidars
         if L < 2:
             return
+        why = self.impossibility(space, delta)
+        if why:
+            raise ValueError(f"MinDistance({self.d:g}) cannot hold {why}. Lower the distance, widen the bounds "
+                             f"or use fewer LiDARs.")
+
+        # 2) Quick constructive search on the grid (greedy farthest point); warn if it finds nothing.
+        if not self._greedy_feasible(self._axes(space, delta), L):
+            warnings.warn(f"MinDistance({self.d:g}): a quick search found no arrangement of {L} LiDARs on the "
+                          f"delta grid that keeps this distance; it may be impossible, and the optimiser "
+                          f"may end with an infeasible placement", RuntimeWarning, stacklevel=3)
+
+    @staticmethod
+    def _axes(space: SearchSpace, delta) -> list:
         # Reachable centre coordinates per axis: grid values of a per-LiDAR variable, a shared variable
         # (one value for all), or fixed values (one per LiDAR).
         kmin, kmax = space.grid_index_bounds(delta)
@@ -102,7 +115,15 @@ class MinDistance(Constraint):
             i = space.dim_variables.index(name)
             vals = np.clip(np.round(np.arange(kmin[i], kmax[i] + 1) * steps[i], 12), space.lower[i], space.upper[i])
             axes.append(("shared" if name in space.shared else "var", vals))
+        return axes
 
+    def impossibility(self, space: SearchSpace, delta=DEFAULT_DELTA) -> str | None:
+        """Why no placement of ``space``'s LiDARs on the ``delta`` grid can keep this distance ("for L
+        LiDARs in the search box (...): reason"), or None when the quick bounds find no reason."""
+        L = space.n_lidars
+        if L < 2:
+            return None
+        axes = self._axes(space, delta)
         # 1) Impossibility bounds (only when fixed coordinates do not already separate the LiDARs).
         if all(kind != "fixed" or np.all(v == v[0]) for kind, v in axes):
             ext = [float(v.max() - v.min()) if kind == "var" else 0.0 for kind, v in axes]
@@ -130,15 +151,8 @@ class MinDistance(Constraint):
                                f"fewer than the {L} LiDARs")
                         break
             if why:
-                raise ValueError(f"MinDistance({self.d:g}) cannot hold for {L} LiDARs in the search box "
-                                 f"(x, y, z extents {box} m): {why}. Lower the distance, widen the bounds "
-                                 f"or use fewer LiDARs.")
-
-        # 2) Quick constructive search on the grid (greedy farthest point); warn if it finds nothing.
-        if not self._greedy_feasible(axes, L):
-            warnings.warn(f"MinDistance({self.d:g}): a quick search found no arrangement of {L} LiDARs on the "
-                          f"delta grid that keeps this distance; it may be impossible, and the optimiser "
-                          f"may end with an infeasible placement", RuntimeWarning, stacklevel=3)
+                return f"for {L} LiDARs in the search box (x, y, z extents {box} m): {why}"
+        return None
 
     def _greedy_feasible(self, axes, L: int) -> bool:
         def thin(v):  # at most 25 values per axis, endpoints kept

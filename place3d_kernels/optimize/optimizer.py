@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from place3d_kernels.optimize.certificate import certify
-from place3d_kernels.optimize.checkpoint import load_checkpoint, replay, save_checkpoint, snapshot, write_snapshot
+from place3d_kernels.optimize.checkpoint import (FRESH_RUN_HINT, load_checkpoint, replay, save_checkpoint, snapshot,
+                                                 write_snapshot)
 from place3d_kernels.optimize.cmaes import METHODS, make_strategy
 from place3d_kernels.optimize.constraints import Constraint, prepare, total_penalty
 from place3d_kernels.optimize.space import DEFAULT_DELTA, SearchSpace
@@ -304,7 +305,8 @@ def _check_run(seed, popsize, max_stall_generations, sigma0, penalty_weight, res
     if not (math.isfinite(penalty_weight) and penalty_weight >= 0):
         raise ValueError(f"penalty_weight must be finite and >= 0, got {penalty_weight}")
     if resume and checkpoint is None:
-        raise ValueError("resume=True needs a checkpoint path")
+        raise ValueError("resume=True needs a checkpoint path (place3d optimize: --resume needs --checkpoint "
+                         "FILE or --output DIR)")
     if callback is not None and not callable(callback):
         raise ValueError(f"callback must be callable, got {callback!r}")
     return seed, popsize, max_stall_generations, sigma0, penalty_weight
@@ -365,7 +367,7 @@ def _initial_state(grid: _Grid, setup, checkpoint, resume, method, k0, x0_vec, s
             old = state.get("setup", {})
             diff = sorted(k for k in set(old) | set(setup) if old.get(k) != setup.get(k))
             raise ValueError(f"Checkpoint {checkpoint} was written by a run with a different setup "
-                             f"(differs in {diff}); resume with the same arguments or use resume=False")
+                             f"(differs in {diff}); resume with the same settings, or {FRESH_RUN_HINT}")
         # the strategy is rebuilt, not unpickled: a fresh one replays the run's asks and tells (checkpoint.py)
         state["strategy"] = fresh_strategy()
         with section("checkpoint replay"):

@@ -5,6 +5,7 @@ Imports PyOpenCL at module import: ``ImportError`` here means the OpenCL backend
 
 from __future__ import annotations
 
+import logging
 import re
 import threading
 from functools import lru_cache
@@ -18,6 +19,8 @@ except ImportError as e:  # pragma: no cover - depends on the environment
     raise ImportError(f"PyOpenCL is not installed ({e})") from e
 
 __all__ = ["INSTALL_HINT", "platform_table", "unusable_platforms", "short_name", "build_program", "kernel_source"]
+
+log = logging.getLogger(__name__)
 
 INSTALL_HINT = "pip install 'place3d-kernels[opencl]'  (PyOpenCL + the PoCL CPU driver)"
 
@@ -130,16 +133,56 @@ _programs: dict[tuple, "cl.Program"] = {}
 _lock = threading.Lock()
 
 
+#: Devices this process has said it compiles for (the note is printed once per device).
+_noted: set = set()
+
+
+def _built_marker(ctx: "cl.Context", src: str, options: tuple[str, ...]) -> Path:
+    """The file that records that this process's user built ``src`` with ``options`` for ``ctx``'s devices
+    (driver versions included) before. PyOpenCL keeps the binaries itself, or leaves it to the driver (PoCL,
+    NVIDIA), whose caches cannot be asked; a build that is not recorded here is about to compile."""
+    import hashlib
+
+    from pyopencl.cache import get_device_cache_id
+
+    from place3d_kernels.backends.base import cache_dir
+
+    ident = repr(([get_device_cache_id(d) for d in ctx.devices], tuple(options), src))
+    return cache_dir() / "opencl-built" / hashlib.sha256(ident.encode()).hexdigest()[:32]
+
+
+def _note_first_build(ctx: "cl.Context", marker: Path) -> None:
+    dev = ctx.devices[0]
+    name = f"{dev.name.strip()} ({short_name(dev.platform.name)})"
+    if marker.exists() or name in _noted:
+        return
+    _noted.add(name)
+    # INFO: the command prints it (place3d_app.messages) unless --quiet; a library user sees it with logging on
+    log.info("compiling OpenCL kernels for %s (first use; cached afterwards)", name)
+
+
+def _mark_built(marker: Path) -> None:
+    try:
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        marker.touch()
+    except OSError:
+        pass                    # a read-only cache: the note shows again next time, nothing else changes
+
+
 def build_program(ctx: "cl.Context", files: tuple[str, ...], options: tuple[str, ...]) -> "cl.Program":
     """Compile once per (context, sources, options); later calls return the cached Program.
 
-    PyOpenCL also keeps compiled binaries on disk, so a new process skips the compiler as well.
+    PyOpenCL (or the driver) also keeps compiled binaries on disk, so a new process skips the compiler as
+    well. The first build of a program on a device can take a minute or more (PoCL compiles for the host
+    CPU); before it, one INFO line says so on the ``place3d_kernels.backends.opencl._runtime`` logger.
     """
     key = (ctx.int_ptr, files, options)
     with _lock:
         prg = _programs.get(key)
         if prg is None:
             src = kernel_source(*files)
+            marker = _built_marker(ctx, src, options)
+            _note_first_build(ctx, marker)
             with ignoring(cl.CompilerWarning):
                 prg = cl.Program(ctx, src).build(options=list(options))
             if not prg.all_kernels():
@@ -149,4 +192,5 @@ def build_program(ctx: "cl.Context", files: tuple[str, ...], options: tuple[str,
                 raise RuntimeError(f"OpenCL platform {dev.platform.name} ({dev.platform.version.strip()}) built "
                                    f"{'+'.join(files)} without any kernel; {POCL_CPU_HINT}")
             _programs[key] = prg
+            _mark_built(marker)
         return prg
