@@ -96,7 +96,7 @@ def plot(cells, summary, path: Path) -> None:
         ax.set_title(f"judged by M-SOG ({judge})")
         ax.set_ylim(n_rigs + 0.5, 0.5)
         ax.grid(axis="y", alpha=0.3)
-    axes[0].set_ylabel(f"winner's rank among {n_rigs} rigs on held-out P-SOGs (1 = best)")
+    axes[0].set_ylabel(f"held-out rank of the winner\n(1 = best of {n_rigs} rigs)")
     fig.suptitle("Do the optimiser's winners transfer? (dots: held-out P-SOGs x runs; bar: median)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -115,8 +115,13 @@ def main(argv=None) -> int:
     p.add_argument("--max-evals", type=int, default=2000)
     p.add_argument("--backend", default=None)
     p.add_argument("--out", default=f"bench/results/transfer-{datetime.now(timezone.utc).date().isoformat()}")
+    p.add_argument("--replot", action="store_true", help="only redraw transfer.png from --out's results.json")
     args = p.parse_args(argv)
     out = Path(args.out)
+    if args.replot:
+        res = json.loads((out / "results.json").read_text())
+        plot(res["cells"], res["summary"], out / "transfer.png")
+        return 0
     (out / "cells").mkdir(parents=True, exist_ok=True)
     (out / "winners").mkdir(exist_ok=True)
     t0 = time.perf_counter()
