@@ -61,7 +61,7 @@ def entry_module(tree: Path, cprofile: bool) -> str:
     return "place3d_kernels.cli" if cprofile else "place3d_client"
 
 
-def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = None,
+def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = None, args: tuple = (),
              extra_env: dict | None = None) -> tuple[float, str, str]:
     """One cold run of the command from ``tree``: (wall seconds, last stdout line, stderr's profile table)."""
     with tempfile.TemporaryDirectory() as cold, tempfile.TemporaryDirectory() as o:
@@ -74,7 +74,7 @@ def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = N
         # the console script's module (its exit included); cProfile runs the package's CLI module, as before
         entry = entry_module(tree, cprofile)
         cmd = pre + ["-m", entry, "--profile", "optimize", "--max-evals", str(max_evals),
-                     "--task", "seg", "--backend", backend, "--quiet", "--output", o]
+                     "--task", "seg", "--backend", backend, "--quiet", *args, "--output", o]
         t = time.perf_counter()
         p = subprocess.run(cmd, env=env, cwd=tree, capture_output=True, text=True, timeout=600)
         wall = time.perf_counter() - t
@@ -126,12 +126,13 @@ def main() -> None:
     ap.add_argument("--max-evals", type=int, default=2000)
     ap.add_argument("--cprofile", action="store_true", help="one more run per tree under cProfile")
     ap.add_argument("--bytecode", action="store_true", help="compile the trees' and packages' bytecode first")
+    ap.add_argument("--args", default="", help="more options of the command, e.g. '--routes 1 --no-holdout'")
     ap.add_argument("--machine", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
     ap.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "bench" / "results")))
     a = ap.parse_args()
     trees = [parse_tree(t) for t in (a.tree or [str(ROOT)])]
     walls: dict[str, list[float]] = {label: [] for label, _, _ in trees}
-    log = [f"# cold place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend}; fresh Warp, "
+    log = [f"# cold place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend} {a.args}; fresh Warp, "
            f"CUDA and P-SOG caches each run; trees alternating: {[f'{t} {e or {}}' for _, t, e in trees]}"]
     if a.bytecode:
         lines = compile_bytecode([t for _, t, _ in trees])
@@ -141,7 +142,7 @@ def main() -> None:
         log.append(f"# bytecode as the host has it (PYTHONDONTWRITEBYTECODE={os.environ.get('PYTHONDONTWRITEBYTECODE', 'unset')})")
     for r in range(a.runs):
         for label, t, env in trees:
-            w, last, table = cold_run(t, a.backend, a.max_evals, extra_env=env)
+            w, last, table = cold_run(t, a.backend, a.max_evals, args=tuple(a.args.split()), extra_env=env)
             walls[label].append(w)
             log += [f"## {label} run {r + 1}: wall {w:.3f} s | {last}", table.rstrip(), ""]
             print(f"{label} run {r + 1}: wall {w:.3f} s | {last}", flush=True)
@@ -152,7 +153,7 @@ def main() -> None:
     if a.cprofile:
         for label, t, env in trees:
             pf = Path(tempfile.mkdtemp()) / "cold.pstats"
-            w, last, _ = cold_run(t, a.backend, a.max_evals, cprofile=pf, extra_env=env)
+            w, last, _ = cold_run(t, a.backend, a.max_evals, cprofile=pf, args=tuple(a.args.split()), extra_env=env)
             log.append(f"## cProfile {label}: wall {w:.3f} s (under cProfile) | {last}")
             with tempfile.TemporaryFile("w+") as s:
                 st = pstats.Stats(str(pf), stream=s)
@@ -161,7 +162,7 @@ def main() -> None:
                 s.seek(0)
                 log.append(s.read())
     path = write_result("cold-profile", {
-        "command": f"place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend}",
+        "command": f"place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend} {a.args}".strip(),
         "trees": {label: str(t) for label, t, _ in trees}, "walls_s": summary, "bytecode_compiled_ahead": a.bytecode,
         "log": "\n".join(log) + "\n"}, a.machine, a.out)
     print(f"wrote {path}")

@@ -35,3 +35,17 @@ def test_quiet_study_shows_none(config, capsys):
     assert main(["study", str(config), "--output", "st", "--backend", "warp:cpu", "--quiet"]) == 0
     err = capsys.readouterr().err
     assert "study:" not in err and "simulate" not in err
+
+
+def test_a_study_of_too_few_subsets_has_no_intervals_and_says_why_once(config, capsys):
+    # 8 frames at k = 4 are 2 subsets: an interval over them would have zero width (uncertainty.MIN_SUBSETS)
+    assert main(["study", str(config), "--output", "st", "--backend", "warp:cpu", "--quiet", "--resamples", "50"]) == 0
+    cap = capsys.readouterr()
+    warnings = [ln for ln in cap.err.splitlines() if "no intervals" in ln]
+    assert len(warnings) == 1, cap.err
+    assert warnings[0].startswith("place3d: warning: no intervals: scene town seed 0: intervals need at least 3 "
+                                  "subsets; this drive has 2 (8 frames, k = 4); give every scene at least 12 frames")
+    assert "95 % interval" not in cap.out and "square" in cap.out            # the table, without interval columns
+    import json
+
+    assert json.loads(Path("st/study.json").read_text())["settings"]["resamples"] == 0

@@ -135,6 +135,22 @@ def _cell_task(t) -> dict:
     return row
 
 
+def few_subsets(cfg: dict, k: int) -> str | None:
+    """Why the study's cells get no interval over their drive's subsets (a scene too short for
+    ``uncertainty.MIN_SUBSETS`` subsets of ``k`` frames), or None."""
+    from place3d_kernels.sog import subset_groups
+    from place3d_kernels.spec import SceneSpec
+    from place3d_kernels.uncertainty import MIN_SUBSETS, too_few_subsets
+
+    for sc in cfg["scenes"]:
+        frames = SceneSpec.from_dict(sc).frames
+        reason = too_few_subsets(len(subset_groups(list(range(frames)), int(k))))
+        if reason:
+            return (f"scene {sc.get('name', 'town')} seed {sc.get('seed', 0)}: {reason} ({frames} frames, k = {k}); "
+                    f"give every scene at least {MIN_SUBSETS * int(k)} frames")
+    return None
+
+
 def study_settings(cfg: dict) -> dict:
     """The settings every cell depends on besides its own scene, condition and placement (the study
     folder's manifest; the backend is left out: the three backends agree bit for bit)."""
@@ -195,6 +211,11 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
     settings = study_settings(cfg)
     if settings["resamples"] < 0:
         raise ValueError(f"study resamples must be >= 0 (0: no intervals), got {settings['resamples']}")
+    short = few_subsets(cfg, settings["frames_per_subset"])
+    if settings["resamples"] and short:
+        # an interval over 1-2 subsets has zero width (uncertainty.MIN_SUBSETS): none, said once, not per cell
+        print(f"place3d: warning: no intervals: {short}", file=sys.stderr)
+        settings["resamples"] = 0
     boot = {"resamples": settings["resamples"], "seed": settings["resample_seed"]}
     if overwrite and (out / "cells").exists():
         shutil.rmtree(out / "cells")
