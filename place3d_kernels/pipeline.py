@@ -16,7 +16,7 @@ from place3d_kernels.scene.keymemo import SceneRef
 from place3d_kernels.simulate import DEFAULT_MOUNT, check_frames, simulate
 from place3d_kernels.sog import PSOG, cache_dir, cache_key
 
-__all__ = ["scene_psog", "cached_psog", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy", "wait_for_saves"]
+__all__ = ["scene_psog", "cached_psog", "cache_file", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy", "wait_for_saves"]
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +94,17 @@ def cached_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "col
         lidar = LidarModel.load(lidar)
     entry = _cache_entry(scene, grid, lidar, frames_per_subset, mount, cache, condition, body)
     return None if entry is None else _load_cached(*entry)
+
+
+def cache_file(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "collection_64ch",
+               frames_per_subset: int = DEFAULT_FRAMES_PER_SUBSET, mount=DEFAULT_MOUNT,
+               cache: bool | str | Path = True, condition=None, body=None) -> Path | None:
+    """The file ``scene_psog`` caches these inputs' P-SOG in (``scene``: a ``Scene`` or a ``SceneRef``), or
+    None without a cache; it need not exist, and is not read or verified here."""
+    if isinstance(lidar, str):
+        lidar = LidarModel.load(lidar)
+    entry = _cache_entry(scene, grid, lidar, frames_per_subset, mount, cache, condition, body)
+    return None if entry is None else entry[0]
 
 
 def _cache_entry(scene, grid, lidar, frames_per_subset, mount, cache, condition, body):

@@ -405,6 +405,22 @@ class PSOGSpec:
         cond = None if self.condition is None else self.condition.condition(None)
         return cached_psog(**self._psog_inputs(cache, cond))
 
+    def cache_file(self, cache: bool | str = True) -> Path | None:
+        """The cache file ``build`` would read, found without building the scene, or None when that cannot
+        be known so: a scene whose cache key was never remembered (``scene.keymemo``), a scene read from a
+        file or a recorded sequence, or no cache. The file may not exist; nothing is read or verified."""
+        from place3d_kernels.pipeline import cache_file
+        from place3d_kernels.scene.keymemo import identity, recall
+        from place3d_kernels.sog import cache_dir
+
+        if not cache or self.scene.kind not in ("town", "opendrive"):
+            return None
+        folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
+        if recall(folder, identity(self.scene.to_dict(), self.scene.kind, self.scene.path)) is None:
+            return None
+        cond = None if self.condition is None else self.condition.condition(None)
+        return cache_file(**self._psog_inputs(cache, cond))
+
     def _psog_inputs(self, cache, cond) -> dict:
         """``scene_psog``'s inputs but the backend: the scene (built here unless its key is remembered in
         the cache folder; then ``scene_psog`` builds it on a cache miss), grid, sensor, k, mount, body."""

@@ -123,3 +123,30 @@ def test_tiny_pooled_optimize_reports_intervals_over_routes(tmp_path):
     assert lo < r["best_score"] < hi
     # a held-out seed that the pool trained on validates nothing
     assert main(["optimize", *TINY, "--route-seeds", "3,4", "--max-evals", "12", "--holdout-seeds", "4"]) == 2
+
+
+# ------------------------------------------------------------------------------ drives built in workers
+def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_path, monkeypatch):
+    # the drives a cold cache lacks are built by worker processes; the pool read back from the cache is the
+    # pool built one drive after another in this process, bit for bit; a warm cache starts no worker
+    import argparse
+
+    from place3d_app.commands.routes import build_missing
+    from place3d_kernels.pooled import pool_specs
+
+    monkeypatch.setenv("PLACE3D_WORKERS", "2")
+    monkeypatch.setattr("place3d_app.executors.usable_cores", lambda: 2)
+    args = build_parser().parse_args(["optimize", *TINY, "--route-seeds", "3,4", "--backend", "warp:cpu"])
+    specs = drive_specs(args, specs_from_args(args))
+    assert len(specs) == 2
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "workers"))
+    assert [s.cache_file() for s in specs] == [None, None]       # scene keys never remembered here
+    opts = argparse.Namespace(no_cache=False, quiet=True)
+    assert build_missing(opts, specs, "warp:cpu") == 2
+    assert all(s.cache_file() is not None and s.cache_file().exists() for s in specs)
+    assert build_missing(opts, specs, "warp:cpu") == 0               # warm: nothing missing, no workers
+    a = pool_specs(specs, backend="warp:cpu").psog()
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "here"))
+    b = pool_specs(specs, backend="warp:cpu").psog()
+    assert np.array_equal(a.voxels, b.voxels) and np.array_equal(a.counts, b.counts) and a.n_subsets == b.n_subsets
+    assert build_missing(argparse.Namespace(no_cache=True, quiet=True), specs, "warp:cpu") == 0

@@ -41,12 +41,13 @@ def cmd_evaluate(args) -> int:
     names = args.placements or list(PAPER_PLACEMENTS)
     placements = [Placement.load(n) for n in names]
     body = spec.vehicle_body()
-    from place3d_app.commands.routes import drive_specs, pooled_psog
+    from place3d_app.commands.routes import build_missing, drive_specs, pooled_psog
 
     drives = drive_specs(args, spec)
     if len(drives) > 1 and args.interval == "bootstrap":
         raise ValueError("--interval bootstrap resamples the subsets of a single drive (--routes 1); over routes "
                          "its resamples repeat drives and score high, so a pooled P-SOG takes the jackknife")
+    build_missing(args, drives, b)                   # drives the cache lacks, in worker processes
     pool = pooled_psog(args, spec, b, drives)
     if pool is None:
         _, psog = psog_for_spec(spec, args, b)

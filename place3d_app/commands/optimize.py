@@ -115,7 +115,8 @@ def check_args(args, spec) -> None:
         x = space.from_placement(Placement.load(args.x0))
         if not np.all(space.contains(x, tol=1e-9)):
             raise ValueError(f"--x0 {args.x0} lies outside the search box {space}; choose a placement inside it")
-    holdout_specs(args, spec)            # parses --holdout-seeds / --holdout-scenes, raising on bad values
+    # parses --holdout-seeds / --holdout-scenes, raising on bad values; the drives are built with the search's
+    args.holdout = holdout_specs(args, spec)
     from place3d_app.executors import check_actor_arguments
 
     check_actor_arguments(args)          # --gpu-actors / --cpu-actors need --executor ray

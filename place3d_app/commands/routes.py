@@ -12,7 +12,7 @@ import dataclasses
 import sys
 
 __all__ = ["add_route_arguments", "route_seeds", "drive_specs", "pooled_psog", "psog_for_routes",
-           "SINGLE_ROUTE_WARNING"]
+           "build_missing", "SINGLE_ROUTE_WARNING"]
 
 SINGLE_ROUTE_WARNING = ("place3d: warning: one route: the order of the placements is not converged on a single "
                         "drive (docs/guide.md, 'How many routes'); pool several with --routes N")
@@ -100,6 +100,49 @@ def pooled_psog(args, spec, backend, specs=None):
     return pooled, strata, psog
 
 
+def _build_spec(spec) -> None:
+    spec.build(cache=True)          # a worker's task: the P-SOG lands in the cache, the command reads it there
+
+
+def build_missing(args, specs, backend) -> int:
+    """Build the drives of ``specs`` that the cache lacks in worker processes, one per usable core (at most
+    one per drive), so the command then reads every drive from the cache; returns how many were built.
+
+    A drive counts as cached when its cache file exists (``PSOGSpec.cache_file``: found without building
+    its scene; one whose scene key was never remembered counts as missing). Nothing is started for fewer
+    than two missing drives, one usable core, ``--no-cache``, or an executor other than the local one
+    (Ray runs place their own work). ``backend`` may be a Future (optimize's probe), waited for only here."""
+    from concurrent.futures import Future
+
+    from place3d_app.executors import ProcessExecutor, default_workers
+    from place3d_kernels.spec import backend_name
+
+    if getattr(args, "no_cache", False) or getattr(args, "ray_address", None) \
+            or getattr(args, "executor", "local") not in ("local", "auto", None):
+        return 0
+    missing = []
+    for s in specs:
+        f = s.cache_file()
+        if s.scene.kind in ("town", "opendrive") and (f is None or not f.exists()):
+            missing.append(s)
+    n = min(default_workers(), len(missing))
+    if len(missing) < 2 or n < 2:
+        return 0
+    if isinstance(backend, Future):
+        backend = backend.result()
+    name = backend_name(backend)
+    t = __import__("time").perf_counter()
+    ex = ProcessExecutor(n, backend=name)
+    try:
+        ex.map(_build_spec, [dataclasses.replace(s, backend=name) for s in missing])
+    finally:
+        ex.shutdown()
+    if not getattr(args, "quiet", False):
+        print(f"built {len(missing)} drives in {n} worker processes in {__import__('time').perf_counter() - t:.1f} s",
+              file=sys.stderr)
+    return len(missing)
+
+
 def psog_for_routes(spec, args, backend):
     """``optimize``'s ``psog_for``: (None, P-SOG) of the run's drives, pooled when there are several
     (``args.pool`` then holds ``(PooledPSOG, strata, P-SOG)`` for the intervals over routes), else the
@@ -107,6 +150,9 @@ def psog_for_routes(spec, args, backend):
     from place3d_app.commands.common import psog_for_spec
 
     drives = getattr(args, "drives", None) or drive_specs(args, spec)
+    # the held-out drives (optimize's check) are built beside the searched ones, in parallel
+    held_out = [d for _, _, ds in (getattr(args, "holdout", None) or ()) for d in ds]
+    build_missing(args, list(drives) + held_out, backend)
     pool = pooled_psog(args, spec, backend, drives)
     args.pool = pool
     if pool is None:
