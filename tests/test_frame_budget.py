@@ -29,6 +29,8 @@ def no_work(monkeypatch, tmp_path):
         raise AssertionError("work started before --frames was checked")
 
     monkeypatch.setattr(spec_mod, "_build_scene", boom)
+    # the drives a cold cache lacks go to worker processes first, which this process's patches do not reach
+    monkeypatch.setattr("place3d_app.commands.routes.build_missing", boom)
     monkeypatch.setattr(simulate, "simulate", boom)
     monkeypatch.setattr(pipeline, "simulate", boom)
     monkeypatch.setattr(simulate, "physical_memory", lambda: 16 * GIB, raising=False)
