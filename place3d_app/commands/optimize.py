@@ -482,7 +482,7 @@ def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
     for line in format_diagnostics(res.diagnostics):
         print(line)
     res.intervals = report_intervals(args, spec, res, lidar, b, base_poses, psog)
-    specs = holdout_specs(args, spec)
+    specs = args.holdout if getattr(args, "holdout", None) is not None else holdout_specs(args, spec)
     if not specs:
         return
 

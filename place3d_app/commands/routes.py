@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import time
 
 __all__ = ["add_route_arguments", "route_seeds", "drive_specs", "pooled_psog", "psog_for_routes",
            "build_missing", "SINGLE_ROUTE_WARNING"]
@@ -83,7 +84,6 @@ def pooled_psog(args, spec, backend, specs=None):
         return None
     if spec.scene.kind == "semantickitti" and len({s.scene.name for s in specs}) != len(specs):
         raise ValueError("a semantickitti: sequence is one recorded drive; pool several sequences with --scene")
-    import time
 
     from concurrent.futures import Future
 
@@ -131,14 +131,14 @@ def build_missing(args, specs, backend) -> int:
     if isinstance(backend, Future):
         backend = backend.result()
     name = backend_name(backend)
-    t = __import__("time").perf_counter()
+    t = time.perf_counter()
     ex = ProcessExecutor(n, backend=name)
     try:
         ex.map(_build_spec, [dataclasses.replace(s, backend=name) for s in missing])
     finally:
         ex.shutdown()
     if not getattr(args, "quiet", False):
-        print(f"built {len(missing)} drives in {n} worker processes in {__import__('time').perf_counter() - t:.1f} s",
+        print(f"built {len(missing)} drives in {n} worker processes in {time.perf_counter() - t:.1f} s",
               file=sys.stderr)
     return len(missing)
 
