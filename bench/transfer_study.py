@@ -9,7 +9,7 @@ eight baselines) on each held-out P-SOG, judged by the objective it optimised an
 
     python3 bench/transfer_study.py --backend warp:cuda:0 --out bench/results/transfer-<date>
 
-Cells whose result.json exists are read, not rerun (a second call resumes). Writes results.json,
+Cells made by the same optimize command (``argv.json``) are read, not rerun (a second call resumes). Writes results.json,
 table.csv, transfer.png and the winners' placement TOMLs (winners/<objective>-<town>-s<seed>.toml).
 """
 
@@ -37,19 +37,19 @@ NORMS = ("paper", "evidence", "uncertain")
 def run_cell(town, seed, objective, args, cell: Path) -> dict:
     from place3d_app.cli import main
 
-    res = cell / "result.json"
-    if not res.exists():
+    res, made_by = cell / "result.json", cell / "argv.json"
+    argv = ["optimize", "--scene", f"opendrive:{town}", "--seed", str(seed), "--routes", str(args.routes),
+            "--frames", str(args.frames), "--normalisation", objective, "--holdout-scenes", args.holdout_towns,
+            "--holdout-seeds", args.holdout_seeds, "--interval", "none", "--max-evals", str(args.max_evals),
+            "--quiet", "--overwrite", "--output", str(cell)] + (["--backend", args.backend] if args.backend else [])
+    # a cell is reused only when the command that made it is this one (every option, the backend included)
+    if not (res.exists() and made_by.exists() and json.loads(made_by.read_text()) == argv):
         t0 = time.perf_counter()
-        argv = ["optimize", "--scene", f"opendrive:{town}", "--seed", str(seed), "--routes", str(args.routes),
-                "--frames", str(args.frames), "--normalisation", objective, "--holdout-scenes", args.holdout_towns,
-                "--holdout-seeds", args.holdout_seeds, "--interval", "none", "--max-evals", str(args.max_evals),
-                "--quiet", "--overwrite", "--output", str(cell)]
-        if args.backend:
-            argv += ["--backend", args.backend]
         rc = main(argv)
         if rc != 0:
             raise SystemExit(f"optimize failed (exit {rc}) for {town} seed {seed} {objective}")
         (cell / "wall.txt").write_text(f"{time.perf_counter() - t0:.2f}\n")
+        made_by.write_text(json.dumps(argv))
     r = json.loads(res.read_text())
     wall = float((cell / "wall.txt").read_text()) if (cell / "wall.txt").exists() else None
     return {"town": town, "seed": seed, "objective": objective, "wall_s": wall,
