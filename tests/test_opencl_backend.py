@@ -535,10 +535,12 @@ def test_flat_masks_on_the_device_match_their_layout(shape, rng):
     assert b._flat_masks(h) is h.flat, "made once per grid"
 
 
-def test_gpu_score_on_ties_matches_the_reference(rng):
-    """The atomic strategy's kernel (score_rays_flat: grid.cl's walk, flat bricks, a flush per brick) on rays built
-    of ties: LiDARs on voxel corners and edges, azimuths on the axes and diagonals (equal direction components,
-    components exactly 0), elevations 0 and 45 degrees; sums and counts equal the reference's."""
+@pytest.mark.parametrize("kernel", ["flat", "gpu"])
+def test_gpu_score_on_ties_matches_the_reference(kernel, rng):
+    """The atomic strategy's kernels (score_rays_flat: grid.cl's walk, flat bricks, a flush per brick; score_rays_gpu:
+    the same with the min/median certainty test and no grid test in the loop) on rays built of ties: LiDARs on
+    voxel corners and edges, azimuths on the axes and diagonals (equal direction components, components exactly
+    0), elevations 0 and 45 degrees; sums and counts equal the reference's."""
     if not _DEVICES:
         pytest.skip(_WHY)
     spec = GridSpec(0.25, (19, 14, 7))
@@ -551,7 +553,7 @@ def test_gpu_score_on_ties_matches_the_reference(rng):
                       [[4.75, 3.25, 1.5, 0, 0, 0], [3.0, 0.25, 0.25, 0, 0, 0]]])
     ref = ReferenceBackend()
     want = ref.score_placements(ref.prepare_grid(spec, w, stop), el, az, 20.0, poses)
-    b = OpenCLBackend(_DEVICES[0], score_strategy="atomic")
+    b = OpenCLBackend(_DEVICES[0], score_strategy="atomic", score_kernel=kernel)
     got = b.score_placements(b.prepare_grid(spec, w, stop), el, az, 20.0, poses)
     assert (want[1] > 0).all()
     np.testing.assert_array_equal(got[0], want[0])
@@ -559,8 +561,8 @@ def test_gpu_score_on_ties_matches_the_reference(rng):
 
 
 def test_score_strategies_agree(rng):
-    """Private bitsets + OR-reduction (CPU default) and the shared atomic bitset (GPU default), with any
-    number of rays per work-item and any population size, give the same exact sums."""
+    """Private bitsets + OR-reduction (CPU default) and the shared atomic bitset (GPU default), with either
+    atomic kernel, any number of rays per work-item and any population size, give the same exact sums."""
     if not _DEVICES:
         pytest.skip(_WHY)
     spec = GridSpec(0.25, (41, 38, 11))      # partial 4 x 4 x 2 and 8 x 4 x 1 bricks at the far faces
@@ -571,8 +573,9 @@ def test_score_strategies_agree(rng):
     w[rng.uniform(size=spec.n_voxels) < 0.7] = 0   # free space: the atomic path skips reading zero weights
     stop = (rng.uniform(size=spec.n_voxels) < 0.01).astype(np.uint8)
     res = []
-    for strategy, per in (("private", 1), ("atomic", 1), ("atomic", 7), ("atomic", 64)):
-        b = OpenCLBackend(_DEVICES[0], rays_per_item=per, score_strategy=strategy)
+    for strategy, per, kernel in (("private", 1, None), ("atomic", 1, "flat"), ("atomic", 7, "flat"),
+                                  ("atomic", 64, "flat"), ("atomic", 1, "gpu")):
+        b = OpenCLBackend(_DEVICES[0], rays_per_item=per, score_strategy=strategy, score_kernel=kernel)
         res.append(b.score_placements(b.prepare_grid(spec, w, stop), el, az, 15.0, poses))
         one = b.score_placements(b.prepare_grid(spec, w, stop), el, az, 15.0, poses[4:5])
         assert one[0][0] == res[-1][0][4] and one[1][0] == res[-1][1][4]

@@ -121,6 +121,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
             OpenCL on NVIDIA).
         score_strategy: ``"private"`` (a bitset per work-item, OR-reduced; default on CPUs) or ``"atomic"``
             (one shared bitset per candidate, atomic_or; default on GPUs). Both give identical results.
+        score_kernel: the atomic strategy's kernel: ``"gpu"`` (``score_gpu.cl``: one ray per work-item,
+            work-groups of ``SCORE_GROUP``, a register cap on NVIDIA; default where the device has 64-bit
+            atomics) or ``"flat"`` (``score_rays_flat``: ``rays_per_item`` rays per work-item). Identical results.
 
     Raises:
         BackendUnavailable: no OpenCL platform/device, or the named one is absent.
@@ -130,7 +133,8 @@ class OpenCLBackend(Backend, OpenCLConditions):
     resident_kernels = True
 
     def __init__(self, platform: str = "pocl", *, fp64: bool | None = None, stack_size: int | None = None,
-                 rays_per_item: int | None = None, score_strategy: str | None = None, bvh_width: int | None = None):
+                 rays_per_item: int | None = None, score_strategy: str | None = None, bvh_width: int | None = None,
+                 score_kernel: str | None = None):
         table = rt.platform_table()
         if not table:
             raise BackendUnavailable(
@@ -170,6 +174,13 @@ class OpenCLBackend(Backend, OpenCLConditions):
         if score_strategy not in (None, "private", "atomic"):
             raise ValueError(f"score_strategy must be 'private' or 'atomic', got {score_strategy!r}")
         self.score_strategy = score_strategy or ("private" if self.is_cpu else "atomic")
+        if score_kernel not in (None, "gpu", "flat"):
+            raise ValueError(f"score_kernel must be 'gpu' or 'flat', got {score_kernel!r}")
+        has_atom64 = "cl_khr_int64_base_atomics" in self.device.extensions
+        if score_kernel == "gpu" and not has_atom64:
+            raise BackendUnavailable(f"device {self.device.name!r} has no cl_khr_int64_base_atomics, which "
+                                     "score_kernel='gpu' needs; use 'flat'")
+        self.score_kernel = score_kernel or ("gpu" if has_atom64 and not self.is_cpu else "flat")
         #: on CPUs the private strategy walks 16 rays per work-item in vector lanes (walk_lanes.cl); False: one
         #: at a time (score_walk). Same bitsets; bench/bench_pocl_walk.py (tag lab-2026-11-27) compared the two.
         self.walk_lanes = self.is_cpu
@@ -637,20 +648,50 @@ class OpenCLBackend(Backend, OpenCLConditions):
         bits = self._out(chunk * words * 4)
         per_count = 256
         n_chunks = (words + per_count - 1) // per_count
-        ps, pc = self._out(chunk * items * 8), self._out(chunk * n_chunks * 8)
+        gpu = self.score_kernel == "gpu" and n_rays < 2**31
+        ps = self._out(chunk * (1 if gpu else items) * 8)
+        pc = self._out(chunk * n_chunks * 8)
+        grid_args = (self.real(t_max), self.real(spec.voxel_size), *(np.int32(v) for v in spec.shape),
+                     np.int32(fx), np.int32(fy), flat, handle.weights, bits, np.int64(words))
         for p0 in range(0, P, chunk):
             pn = min(chunk, P - p0)
             cl.enqueue_fill_buffer(self.queue, bits, np.uint32(0), 0, pn * words * 4)
             rig_b = self._in(rig[p0 * L:(p0 + pn) * L])
-            self._launch("score_rays_flat", (items, pn), rig_b, sdir_b, np.int32(L), np.int32(CA),
-                         self.real(t_max), self.real(spec.voxel_size), *(np.int32(v) for v in spec.shape),
-                         np.int32(fx), np.int32(fy), flat, handle.weights, bits, np.int64(words),
-                         np.int32(per), np.int32(items), ps)
+            if gpu:
+                cl.enqueue_fill_buffer(self.queue, ps, np.int64(0), 0, pn * 8)
+                G = int(self.score_group_size)
+                k = self._score_gpu_kernel()
+                with self._lock:
+                    k(self.queue, (-(-n_rays // G) * G, pn), (G, 1), rig_b, sdir_b, np.int32(L), np.int32(CA),
+                      *grid_args, np.int32(n_rays), ps)
+            else:
+                self._launch("score_rays_flat", (items, pn), rig_b, sdir_b, np.int32(L), np.int32(CA), *grid_args,
+                             np.int32(per), np.int32(items), ps)
             self._launch("count_bits", (n_chunks, pn), bits, np.int64(words), np.int32(per_count),
                          np.int32(n_chunks), pc)
-            sums[p0:p0 + pn] = self._read(ps, np.int64, pn * items).reshape(pn, items).sum(axis=1, dtype=np.int64)
+            part = self._read(ps, np.int64, pn * (1 if gpu else items))
+            sums[p0:p0 + pn] = part.reshape(pn, -1).sum(axis=1, dtype=np.int64)
             counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(axis=1, dtype=np.int64)
         return sums, counts
+
+    #: work-group size of score_gpu.cl's kernel, and the register cap it is built with on NVIDIA
+    #: (``-cl-nv-maxrregcount``; None: the compiler's choice). The Warp CUDA score kernel found 128-thread
+    #: blocks and a cap of 56 fastest on the dense rig (backends/warp/score_gpu.py).
+    score_group_size: int = 128
+    score_max_registers: int | None = 56
+
+    def _score_gpu_kernel(self) -> cl.Kernel:
+        """score_gpu.cl's kernel, built once per (group size, register cap)."""
+        opts = self._options() + (f"-DSCORE_GROUP={int(self.score_group_size)}",)
+        nv = "cl_nv_compiler_options" in self.device.extensions
+        if nv and self.score_max_registers:
+            opts += (f"-cl-nv-maxrregcount={int(self.score_max_registers)}",)
+        key = "score_rays_gpu" + " ".join(opts)
+        k = self._kernels.get(key)
+        if k is None:
+            k = self._kernels[key] = rt.build_program(self.ctx, ("common.cl", "grid.cl", "score_gpu.cl"),
+                                                      opts).score_rays_gpu
+        return k
 
     def _flat_masks(self, handle):
         """score_rays_flat's masks for a grid (atomic strategy), made once on the device from its brick pairs."""
