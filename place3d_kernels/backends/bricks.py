@@ -5,7 +5,7 @@ One 32-bit word holds a brick of 4 x 4 x 2 voxels (x, y, z), so the next voxel o
 usually in the word just read. Bricks are numbered ``((i >> 2) * by + (j >> 2)) * bz + (k >> 1)``
 and a voxel's bit is ``(i & 3) | (j & 3) << 2 | (k & 1) << 4``, with (bx, by, bz) = ``brick_shape``.
 
-The GPU score kernels (Warp's ``warp/score_gpu.py`` on CUDA, OpenCL's ``score_rays_flat``) keep their
+The GPU score kernels (Warp's ``warp/score_gpu.py`` on CUDA, OpenCL's ``score_gpu.cl`` and ``score_rays_flat``) keep their
 bitsets in flat bricks of 8 x 4 x 1 voxels numbered ``(k * nbx + (i >> 3)) * nby + (j >> 2)`` (z slowest,
 y fastest), bit ``(i & 7) | (j & 3) << 3``, with (nbx, nby, nz) = ``flat_shape``: the voxel bit needs no z
 term, and the 8 words of a 32-byte memory sector cover 8 x 32 voxels of one layer, along which the LiDAR's

@@ -121,9 +121,9 @@ class OpenCLBackend(Backend, OpenCLConditions):
             OpenCL on NVIDIA).
         score_strategy: ``"private"`` (a bitset per work-item, OR-reduced; default on CPUs) or ``"atomic"``
             (one shared bitset per candidate, atomic_or; default on GPUs). Both give identical results.
-        score_kernel: the atomic strategy's kernel: ``"gpu"`` (``score_gpu.cl``: one ray per work-item,
-            work-groups of ``SCORE_GROUP``, a register cap on NVIDIA; default where the device has 64-bit
-            atomics) or ``"flat"`` (``score_rays_flat``: ``rays_per_item`` rays per work-item). Identical results.
+        score_kernel: the atomic strategy's kernel: ``"gpu"`` (``score_gpu.cl``: one ray per work-item, the
+            Warp CUDA kernel's step; default on GPUs with 64-bit atomics) or ``"flat"`` (``score_rays_flat``:
+            ``rays_per_item`` rays per work-item). Identical results.
 
     Raises:
         BackendUnavailable: no OpenCL platform/device, or the named one is absent.
@@ -674,18 +674,13 @@ class OpenCLBackend(Backend, OpenCLConditions):
             counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(axis=1, dtype=np.int64)
         return sums, counts
 
-    #: work-group size of score_gpu.cl's kernel, and the register cap it is built with on NVIDIA
-    #: (``-cl-nv-maxrregcount``; None: the compiler's choice). The Warp CUDA score kernel found 128-thread
-    #: blocks and a cap of 56 fastest on the dense rig (backends/warp/score_gpu.py).
+    #: work-group size of score_gpu.cl's kernel. On an H100 groups of 64 and 128 were equally fast, 256 slower, and
+    #: NVIDIA register caps from 40 to 80 changed nothing (bench/README.md, "What the studies found", dense rig)
     score_group_size: int = 128
-    score_max_registers: int | None = 56
 
     def _score_gpu_kernel(self) -> cl.Kernel:
-        """score_gpu.cl's kernel, built once per (group size, register cap)."""
+        """score_gpu.cl's kernel, built once per work-group size."""
         opts = self._options() + (f"-DSCORE_GROUP={int(self.score_group_size)}",)
-        nv = "cl_nv_compiler_options" in self.device.extensions
-        if nv and self.score_max_registers:
-            opts += (f"-cl-nv-maxrregcount={int(self.score_max_registers)}",)
         key = "score_rays_gpu" + " ".join(opts)
         k = self._kernels.get(key)
         if k is None:

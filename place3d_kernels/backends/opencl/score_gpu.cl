@@ -1,10 +1,9 @@
 /* score_rays_gpu: the batched placement score on GPUs (atomic strategy). Needs common.cl and grid.cl in
- * front (dda_init, dda_step_slow, flush_flat, rig_ray).
+ * front (dda_init, dda_step_slow, flush_flat, rig_ray), and 64-bit atomics for the per-candidate sums.
  *
  * The same walk, voxels, bitsets and sums as score_rays_flat, laid out as the Warp CUDA score kernel
  * (backends/warp/score_gpu.py), which is several times faster on the same GPU:
- *   - one ray per work-item (no loop over rays), work-groups of SCORE_GROUP, and the program built with
- *     a register cap on NVIDIA (host.py), so that enough warps fit on a multiprocessor;
+ *   - one ray per work-item (no loop over rays), in work-groups of SCORE_GROUP;
  *   - the float32 step's certainty test by the minimum and median of the three crossings (the same
  *     decision and axis as dda_step's chain of compares: the argument is at certain_step in score_gpu.py);
  *   - no grid test and no step counter in the loop: a walk ends only where dda_step_slow finds the next
@@ -58,7 +57,9 @@ void score_rays_gpu(__global const real* rig, __global const real* sdir, const i
     rig_ray(rig, sdir, p, r, L, CA, o, d);
     dda_t st;
     if (!dda_init(&st, o[0], o[1], o[2], d[0], d[1], d[2], t_max, s, nx, ny, nz)) return;
-    __global volatile uint* mine = bits + (long)p * words;
+    /* not volatile: a stale word only filters what this ray sends (below), and NVIDIA's compiler turns
+     * volatile loads into ones that skip the L1 cache, which cost 4 % on the dense rig */
+    __global uint* mine = bits + (long)p * words;
     long sum = 0;
     int cur = -1;
     uint seen = 0u, pending = 0u, nz_w = 0u;
