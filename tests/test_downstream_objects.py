@@ -1,4 +1,5 @@
-"""place3d downstream (issue 35), the second part on tiny data: the triangle each simulated return hit."""
+"""place3d downstream (issue 35), the second part on tiny data: instance ids from the ray cast in the .label
+files, and sequences written before them."""
 
 from __future__ import annotations
 
@@ -42,6 +43,19 @@ def _rig(lidar, name="two"):
     return Rig(name, ((0.5, 0.3, 2.0, 0.0, 0.0, 0.0), (-0.5, -0.3, 1.8, 0.2, 0.0, 0.0)), lidar)
 
 
+# ------------------------------------------------------------------------------------ instance ids
+def test_label_packing_is_the_semantickitti_layout():
+    raw = pack_labels([10, 4, 7, 0], [3, 65535, 0, 0])
+    assert raw.dtype == np.uint32
+    # the class in the low 16 bits, the instance in the high 16 (semantic-kitti-api: label & 0xFFFF, label >> 16)
+    np.testing.assert_array_equal(raw, [3 * 65536 + 10, 65535 * 65536 + 4, 7, 0])
+    cls, inst = unpack_labels(raw)
+    np.testing.assert_array_equal(cls, [10, 4, 7, 0])
+    np.testing.assert_array_equal(inst, [3, 65535, 0, 0])
+    with pytest.raises(ValueError, match="16 bits"):
+        pack_labels([1], [65536])
+
+
 @needs_backend
 def test_simulate_hit_faces_names_the_triangle_of_each_return(tiny_lidar):
     from place3d_kernels.lidar import LidarModel
@@ -61,6 +75,99 @@ def test_simulate_hit_faces_names_the_triangle_of_each_return(tiny_lidar):
         lab = np.where(on_actor, dyn.labels[np.where(on_actor, face, 0)], scene.static.labels[np.where(on_actor, 0, face)])
         np.testing.assert_array_equal(lab, b.labels)
         assert on_actor.any() and not on_actor.all()
+
+
+@needs_backend
+def test_instance_ids_round_trip_and_name_the_actor_hit(tmp_path, tiny_lidar):
+    from place3d_kernels.io import read_semantickitti
+    from place3d_kernels.io.semantickitti import frame_paths
+    from place3d_kernels.pose import invert, pose_matrix, transform_points
+
+    rig = _rig(tiny_lidar)
+    splits = Splits(("town",), (3,), (4,), 2)
+    build_datasets(tmp_path, [rig], splits, backend=BACKEND)
+    d = splits.drives("train")[0]
+    scene = d.build()
+    (frames,) = read_frames(tmp_path, rig, [d], instances=True)
+    static, _ = instance_tables(scene)
+    moving, parked = set(), set()
+    for f, (pts, lab, inst) in enumerate(frames):
+        # the classes read by the package's reader (low 16 bits) are the classes written
+        _, _, place3d = read_semantickitti(*frame_paths(sequence_folder(tmp_path, rig, d), f), labels="place3d")
+        np.testing.assert_array_equal(place3d, lab)
+        is_object = np.isin(lab, [VEHICLE, PEDESTRIAN])
+        assert np.all(inst[is_object] > 0) and np.all(inst[~is_object] == 0)
+        # instance k <= len(actors) lies on actor k - 1: inside its posed mesh bounds; a larger k is a parked
+        # car: inside the bounds of the static triangles of that id
+        world = transform_points(pose_matrix(scene.ego_poses[f]), pts.astype(np.float64))
+        for k in np.unique(inst[inst > 0]):
+            if k <= len(scene.actors):
+                actor = scene.actors[k - 1]
+                local = transform_points(invert(pose_matrix(actor.poses[f])), world[inst == k])
+                lo, hi = actor.mesh.bounds
+                assert set(lab[inst == k].tolist()) == {int(actor.mesh.labels[0])}
+                moving.add(int(k))
+            else:
+                local = world[inst == k]
+                corners = scene.static.vertices[scene.static.faces[static == k]].reshape(-1, 3)
+                lo, hi = corners.min(axis=0), corners.max(axis=0)
+                assert set(lab[inst == k].tolist()) == {VEHICLE}
+                parked.add(int(k))
+            assert np.all(local >= lo - 0.01) and np.all(local <= hi + 0.01), k
+    assert len(moving) >= 2 and len(parked) >= 2
+
+
+def test_parked_cars_get_their_own_ids():
+    from place3d_kernels.downstream.dataset import _touching_parts
+    from place3d_kernels.pooled import Drive
+
+    scene = Drive("opendrive:Town01", 0, 1).build()
+    static, actors = instance_tables(scene)
+    boxes = scene.meta["static_boxes"]
+    n_act = len(scene.actors)
+    cars = scene.static.labels == VEHICLE
+    assert len(boxes) > 0 and len(actors) == sum(a.mesh.n_faces for a in scene.actors)
+    # every parked car's triangles, and only vehicle triangles, carry an id after the actors' ids
+    assert np.all(static[cars] > n_act) and np.all(static[~cars] == 0)
+    np.testing.assert_array_equal(np.unique(static[cars]), n_act + 1 + np.arange(len(boxes)))
+    np.testing.assert_array_equal(np.unique(actors), np.arange(1, n_act + 1))
+    # the grouping used where no boxes are recorded finds the same cars as the boxes here
+    groups = _touching_parts(scene.static, np.flatnonzero(cars))
+    assert len(set(zip(groups.tolist(), static[cars].tolist()))) == len(boxes) == groups.max() + 1
+    # the embedded town records no boxes: each group it finds has the footprint of one car or van
+    town = Drive("town", 0, 1).build()
+    static, _ = instance_tables(town)
+    ids = np.unique(static[static > 0])
+    assert len(ids) > 10 and ids[0] == len(town.actors) + 1
+    for k in ids:
+        corners = town.static.vertices[town.static.faces[static == k]].reshape(-1, 3)
+        short, long = np.sort(corners.max(axis=0)[:2] - corners.min(axis=0)[:2])
+        assert 1.7 < short < 2.1 and 3.9 < long < 5.7, (k, short, long)
+
+
+@needs_backend
+def test_sequences_written_before_instance_ids_are_written_again(tmp_path, tiny_lidar):
+    from place3d_kernels.io.semantickitti import SEQUENCE_META
+    from place3d_kernels.manifest import write_manifest
+
+    rig = _rig(tiny_lidar)
+    d = Splits(("town",), (3,), (4,), 2).drives("train")[0]
+    write_drive(tmp_path, [rig], d, BACKEND)
+    folder = sequence_folder(tmp_path, rig, d)
+    want = [(folder / "labels" / f"{i:06d}.label").read_bytes() for i in range(2)]
+    # as a study before the detection proxy left it: classes only, a manifest without "instances"
+    for i in range(2):
+        p = folder / "labels" / f"{i:06d}.label"
+        p.write_bytes((np.fromfile(p, np.uint32) & 0xFFFF).astype(np.uint32).tobytes())
+    old = {k: v for k, v in sequence_spec(rig, d).items() if k != "instances"}
+    write_manifest(folder / SEQUENCE_META, old)
+    assert write_drive(tmp_path, [rig], d, BACKEND)["written"] == [rig.name]
+    assert [(folder / "labels" / f"{i:06d}.label").read_bytes() for i in range(2)] == want
+    assert write_drive(tmp_path, [rig], d, BACKEND)["skipped"] == [rig.name]
+    # other settings are still refused, not rewritten
+    write_manifest(folder / SEQUENCE_META, {**old, "merged": "something else"})
+    with pytest.raises(ValueError, match="different settings"):
+        write_drive(tmp_path, [rig], d, BACKEND)
 
 
 def _study_args(out, lidar, *extra):
