@@ -1,5 +1,6 @@
 """place3d downstream (issue 35), the second part on tiny data: instance ids from the ray cast in the .label
-files, and sequences written before them."""
+files, the detection proxy (object recall) against hand-computed cases, and resume of sequences and cells
+made before the proxy."""
 
 from __future__ import annotations
 
@@ -145,6 +146,56 @@ def test_parked_cars_get_their_own_ids():
         assert 1.7 < short < 2.1 and 3.9 < long < 5.7, (k, short, long)
 
 
+# ------------------------------------------------------------------------------------ proxy metric
+def test_instance_rows_count_points_and_hits_per_object():
+    from place3d_kernels.downstream.train import _instance_rows
+
+    inst = torch.tensor([0, 1, 1, 1, 2, 2, 1, 3])
+    lab = torch.tensor([7, 10, 10, 10, 4, 4, 10, 9])
+    pred = torch.tensor([7, 10, 7, 10, 4, 9, 10, 9])
+    frame = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1])
+    rows = _instance_rows(inst, lab, pred, frame, (10, 4))
+    # (frame, instance, class, points, hits); instance 3 is of a class not counted, instance 0 is none
+    np.testing.assert_array_equal(rows, [[0, 1, 10, 3, 2], [0, 2, 4, 2, 1], [1, 1, 10, 1, 1]])
+
+
+def test_detection_counts_and_recall_against_hand_computed_values():
+    def t(*rows):
+        return np.array(rows, np.int64).reshape(-1, 6)
+
+    # two rigs, two seeds, two drives; rows: drive, frame, instance, class, points, points predicted right
+    a0 = t([0, 0, 1, 10, 10, 10], [0, 0, 2, 10, 6, 2], [1, 3, 1, 10, 20, 15], [1, 3, 5, 4, 8, 8])
+    a1 = t([0, 0, 1, 10, 10, 4], [0, 0, 2, 10, 6, 6], [1, 3, 1, 10, 20, 9], [1, 3, 5, 4, 8, 0])
+    b0 = t([0, 0, 1, 10, 3, 3], [0, 0, 2, 10, 9, 9], [0, 1, 7, 10, 12, 12])
+    b1 = t([0, 0, 1, 10, 3, 3], [0, 0, 2, 10, 9, 5], [0, 1, 7, 10, 12, 5])
+    c = dm.detection_counts([[a0, a1], [b0, b1]], 2, VEHICLE)
+    # vehicles seen with >= 5 points by some rig: drive 0: (0,1) by a, (0,2) by both, (1,7) by b; drive 1: (3,1)
+    np.testing.assert_array_equal(c["objects"], [3, 1])
+    np.testing.assert_array_equal(c["seen"], [[2, 1], [2, 0]])
+    # found: >= 5 right and >= half right. a0: (0,1) yes, (0,2) 2 < 5 no, (3,1) yes -> [1, 1]
+    # a1: (0,1) 4 < 5 no, (0,2) yes, (3,1) 9 < 10 (half of 20) no -> [1, 0]
+    # b0: (0,1) 3 points no, (0,2) yes, (1,7) yes, (3,1) unseen -> [2, 0]; b1: (0,2) 5 >= 4.5 yes, (1,7) 5 < 6 no
+    np.testing.assert_array_equal(c["found"], [[[1, 1], [1, 0]], [[2, 0], [1, 0]]])
+    boot = dm.bootstrap_recall(c["found"], c["objects"], resamples=200)
+    np.testing.assert_allclose(boot["per_seed"], [[2 / 4, 1 / 4], [2 / 4, 1 / 4]])
+    np.testing.assert_allclose(boot["recall"], [3 / 8, 3 / 8])
+    assert np.all(boot["lo"] <= boot["recall"]) and np.all(boot["recall"] <= boot["hi"])
+    ped = dm.detection_counts([[a0, a1], [b0, b1]], 2, PEDESTRIAN)
+    np.testing.assert_array_equal(ped["objects"], [0, 1])
+    np.testing.assert_array_equal(ped["found"], [[[0, 1], [0, 0]], [[0, 0], [0, 0]]])
+
+
+def test_recall_tau_follows_the_order_of_the_rigs():
+    found = np.array([[[1, 2], [1, 1]], [[2, 2], [2, 3]], [[3, 3], [3, 4]]])
+    objects = np.array([4, 4])
+    up = dm.bootstrap_recall_tau([1.0, 2.0, 3.0], found, objects, resamples=100)
+    assert up["tau"] == pytest.approx(1.0) and up["p_positive"] == 1.0
+    assert dm.bootstrap_recall_tau([3.0, 2.0, 1.0], found, objects, resamples=20)["tau"] == pytest.approx(-1.0)
+    # identical drives: the interval is that of the seeds alone
+    same = dm.bootstrap_recall(np.array([[[1, 1], [3, 3]]]), np.array([4, 4]), resamples=200)
+    assert same["lo"][0] == pytest.approx(0.25) and same["hi"][0] == pytest.approx(0.75)
+
+
 @needs_backend
 def test_sequences_written_before_instance_ids_are_written_again(tmp_path, tiny_lidar):
     from place3d_kernels.io.semantickitti import SEQUENCE_META
@@ -181,3 +232,31 @@ def _study_args(out, lidar, *extra):
                           "--steps", "2", "--seeds", "0", "--bev-cells", "16", "--width", "4", "--depth", "2",
                           "--resamples", "20", "--device", "cpu", "--backend", BACKEND or "reference",
                           "--output", str(out), "--quiet", *extra])
+
+
+@needs_backend
+def test_study_reports_the_proxy_and_retrains_cells_made_before_it(tmp_path, tiny_lidar, capsys):
+    from place3d_app.commands import downstream as command
+
+    args = _study_args(tmp_path / "study", tiny_lidar)
+    assert command.run(args) == 0
+    res = json.loads((tmp_path / "study" / "results.json").read_text())
+    objects = res["table"]["bev"]["test"]["objects"]
+    assert set(objects) == {"vehicle", "pedestrian"}
+    veh = objects["vehicle"]
+    assert veh["objects"] > 0 and veh["thresholds"]["detect_min_share"] == dm.DETECT_MIN_SHARE
+    assert [r["rig"] for r in veh["rows"]] == ["center", "pyramid"]
+    assert all(0.0 <= r["lo"] <= r["recall"] <= r["hi"] <= 1.0 and 0.0 < r["seen"] <= 1.0 for r in veh["rows"])
+    assert set(veh["tau"]) == {"paper", "evidence", "uncertain"}
+    header = (tmp_path / "study" / "table.csv").read_text().splitlines()[0]
+    assert "vehicle_recall" in header and "pedestrian_seen" in header
+    assert "vehicle recall (detection proxy" in capsys.readouterr().out
+    # a cell written before the proxy (no object tables) is trained again; the other one resumes
+    cell = next((tmp_path / "study" / "cells" / "center").glob("bev-s0-*.npz"))
+    with np.load(cell) as z:
+        kept = {k: z[k] for k in z.files if not k.startswith("objects_")}
+    np.savez_compressed(cell, **kept)
+    assert command.run(args) == 0
+    again = json.loads((tmp_path / "study" / "results.json").read_text())
+    assert again["cells_run"] == 1 and again["cells_skipped"] == 1
+    assert again["table"]["bev"]["test"]["objects"]["vehicle"]["rows"] == veh["rows"]

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-__all__ = ["add_parser", "add_arguments", "run", "PAPER_RIGS"]
+__all__ = ["add_parser", "add_arguments", "run", "format_table", "PAPER_RIGS"]
 
 #: the eight placements of the paper's Table 1 ("ours" = the segmentation-optimised one)
 PAPER_RIGS = ("center", "line", "pyramid", "square", "trapezoid", "line-roll", "pyramid-roll", "ours-seg")
@@ -133,6 +133,16 @@ def format_table(res: dict) -> str:
             for n, tau in t["tau"].items():
                 lines.append(f"  Kendall tau (M-SOG {n} vs mIoU): {tau['tau']:+.3f} [{tau['lo']:+.3f}, {tau['hi']:+.3f}], "
                              f"P(tau > 0) = {tau['p_positive']:.2f}")
+            for cls, o in t.get("objects", {}).items():
+                th = o["thresholds"]
+                lines.append(f"  {cls} recall (detection proxy: found with >= {th['detect_min_points']} points and "
+                             f">= {100 * th['detect_min_share']:.0f} % of them predicted {cls}; {o['objects']} objects):")
+                for r in sorted(o["rows"], key=lambda r: -r["recall"] if r["recall"] == r["recall"] else 1):
+                    lines.append(f"    {r['rig']:16s} {100 * r['recall']:6.2f} [{100 * r['lo']:5.2f}, "
+                                 f"{100 * r['hi']:5.2f}]  seen {100 * r['seen']:5.1f} %")
+                for n, tau in o["tau"].items():
+                    lines.append(f"    Kendall tau (M-SOG {n} vs {cls} recall): {tau['tau']:+.3f} [{tau['lo']:+.3f}, "
+                                 f"{tau['hi']:+.3f}], P(tau > 0) = {tau['p_positive']:.2f}")
     return "\n".join(lines)
 
 
