@@ -1,6 +1,6 @@
 """place3d downstream (issue 35), the second part on tiny data: instance ids from the ray cast in the .label
-files, the detection proxy (object recall) against hand-computed cases, and resume of sequences and cells
-made before the proxy."""
+files, the detection proxy (object recall) against hand-computed cases, dataset tasks on Ray giving the
+local files, and resume of sequences and cells made before the proxy."""
 
 from __future__ import annotations
 
@@ -196,6 +196,35 @@ def test_recall_tau_follows_the_order_of_the_rigs():
     assert same["lo"][0] == pytest.approx(0.25) and same["hi"][0] == pytest.approx(0.75)
 
 
+# ------------------------------------------------------------------------------------ Ray and resume
+@needs_backend
+def test_ray_tasks_write_the_files_of_the_local_path_and_resume(tmp_path, tiny_lidar):
+    pytest.importorskip("ray")
+    from place3d_app.executors import RayExecutor
+    from place3d_kernels.manifest import read_manifest
+    from place3d_kernels.pooled import PoolSettings
+
+    rig = _rig(tiny_lidar)
+    splits = Splits(("town",), (0,), (4,), 2)
+    settings = PoolSettings(frames_per_subset=1, backend=BACKEND, cache=str(tmp_path / "cache"))
+    _, here = build_datasets(tmp_path / "a", [rig], splits, BACKEND, psog=settings)
+    with RayExecutor(num_cpus=1) as ex:
+        tot, there = build_datasets(tmp_path / "b", [rig], splits, BACKEND, psog=settings, executor=ex)
+        assert tot["written"] == 2 and ex.submitted == 2
+        again, _ = build_datasets(tmp_path / "b", [rig], splits, BACKEND, psog=settings, executor=ex)
+    assert again["written"] == 0 and again["skipped"] == 2
+    np.testing.assert_array_equal(here[0].counts, there[0].counts)
+    for d in splits.all_drives():
+        a, b = sequence_folder(tmp_path / "a", rig, d), sequence_folder(tmp_path / "b", rig, d)
+        names = sorted(str(p.relative_to(a)) for p in a.rglob("*") if p.is_file())
+        assert names == sorted(str(p.relative_to(b)) for p in b.rglob("*") if p.is_file())
+        for n in names:
+            if n == "sequence.json":           # its provenance (time, command line) differs; its spec may not
+                assert read_manifest(a / n)["spec"] == read_manifest(b / n)["spec"]
+            else:
+                assert (a / n).read_bytes() == (b / n).read_bytes(), n
+
+
 @needs_backend
 def test_sequences_written_before_instance_ids_are_written_again(tmp_path, tiny_lidar):
     from place3d_kernels.io.semantickitti import SEQUENCE_META
@@ -260,3 +289,15 @@ def test_study_reports_the_proxy_and_retrains_cells_made_before_it(tmp_path, tin
     again = json.loads((tmp_path / "study" / "results.json").read_text())
     assert again["cells_run"] == 1 and again["cells_skipped"] == 1
     assert again["table"]["bev"]["test"]["objects"]["vehicle"]["rows"] == veh["rows"]
+
+
+def test_executor_options_follow_the_other_commands(tmp_path, capsys):
+    from place3d_app.commands import downstream as command
+
+    args = _study_args(tmp_path / "s", "place3d_16ch", "--executor", "ray", "--workers", "2")
+    assert command.run(args) == 2
+    assert "--num-cpus" in capsys.readouterr().err
+    workers, ex = command.dataset_executor(_study_args(tmp_path / "s", "place3d_16ch", "--workers", "3"), 4)
+    assert workers == 3 and ex is None
+    workers, ex = command.dataset_executor(_study_args(tmp_path / "s", "place3d_16ch", "--executor", "local"), 4)
+    assert workers == 0 and ex is None

@@ -356,8 +356,12 @@ def _drive_task(t):
 
 
 def build_datasets(root, rigs, splits: Splits, backend=None, overwrite: bool = False, progress: bool = False,
-                   psog=None, workers: int = 0) -> tuple[dict, list]:
+                   psog=None, workers: int = 0, executor=None) -> tuple[dict, list]:
     """Every (rig, drive) sequence of ``splits``, drive by drive (a scene is built once for all rigs).
+
+    One task per drive writes that drive's sequence for every rig still missing it (and its P-SOG record):
+    the scene, the costly part to build, is made once per drive and serves every rig. A task depends only
+    on its arguments and writes only its own drive's folders, so wherever it runs it writes the same bytes.
 
     Args:
         psog: optional ``pooled.PoolSettings``: the training drives' P-SOG records are built too, each right
@@ -366,6 +370,9 @@ def build_datasets(root, rigs, splits: Splits, backend=None, overwrite: bool = F
         workers: drives run in this many spawned processes at once (0: here, one after the other). Scene
             building and the simulation's per-frame host work are single-threaded Python, so on a GPU host
             processes overlap them; each process opens its own device context.
+        executor: instead of ``workers``, anything with ``map(fn, tasks) -> results in task order``, e.g.
+            ``place3d_app.executors.RayExecutor`` (tasks on a Ray cluster; ``root`` and the P-SOG cache
+            must then be on storage every node sees).
     Returns: ({"written", "skipped", "seconds", "psog_seconds"} totals, the training drives' records in drive
         order, empty without ``psog``).
     """
@@ -373,14 +380,19 @@ def build_datasets(root, rigs, splits: Splits, backend=None, overwrite: bool = F
     train = {d.label for d in splits.drives("train")}
     tasks = [(str(root), list(rigs), d, backend, overwrite, psog if psog is not None and d.label in train else None)
              for d in drives]
-    if workers and workers > 0:
+    if executor is not None and workers:
+        raise ValueError("give workers or an executor, not both")
+    pool = None
+    if executor is not None:
+        results = executor.map(_drive_task, tasks)
+        progress = False                      # the results come back together
+    elif workers and workers > 0:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
 
         pool = ProcessPoolExecutor(min(workers, len(tasks)), mp_context=mp.get_context("spawn"))
         results = pool.map(_drive_task, tasks)
     else:
-        pool = None
         results = map(_drive_task, tasks)
     if progress:
         from tqdm import tqdm

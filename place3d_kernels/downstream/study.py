@@ -161,9 +161,9 @@ def _msog(cfg: StudyConfig, rigs, pooled, backend) -> dict:
 
 
 def run_study(cfg: StudyConfig, output, backend=None, device=None, progress: bool = False,
-              overwrite: bool = False, data=None, workers: int = 0) -> dict:
+              overwrite: bool = False, data=None, workers: int = 0, executor=None) -> dict:
     """Run (or resume) the study; returns the results dict also written to ``results.json``
-    (``workers``: processes for the datasets, see ``dataset.build_datasets``)."""
+    (``workers`` or ``executor``: where the dataset tasks run, see ``dataset.build_datasets``)."""
     from place3d_kernels.downstream.train import resolve_device
     from place3d_kernels.manifest import provenance, write_manifest
     from place3d_kernels.pooled import PooledPSOG, PoolSettings, backend_name
@@ -178,7 +178,7 @@ def run_study(cfg: StudyConfig, output, backend=None, device=None, progress: boo
     settings = PoolSettings(cfg.voxel_size, frames_per_subset=cfg.frames_per_subset, backend=backend,
                             cache=str(cache_dir()))
     t0 = time.perf_counter()
-    ds, records = build_datasets(root, rigs, cfg.splits, backend, overwrite, progress, settings, workers)
+    ds, records = build_datasets(root, rigs, cfg.splits, backend, overwrite, progress, settings, workers, executor)
     timing = {"datasets_wall_seconds": time.perf_counter() - t0, "dataset_seconds": ds["seconds"],
               "psog_seconds": ds["psog_seconds"]}
     pooled = PooledPSOG(settings.grid, records)
@@ -218,6 +218,7 @@ def run_study(cfg: StudyConfig, output, backend=None, device=None, progress: boo
     res = summarise(cfg, rigs, cells, msog)
     res.update(settings={"config": _config_dict(cfg), "backend": backend, "device": str(dev)},
                datasets={**ds, "root": str(root),
+                         "executor": getattr(executor, "kind", "process" if workers else "local"),
                          "route_overlap_10m": {s: route_overlap(root, rigs[0], cfg.splits.drives("train"),
                                                                 cfg.splits.drives(s)) for s in SPLITS
                                                if cfg.splits.drives(s)}},
