@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # The downstream study of issue 35 on one GPU host: the paper's eight placements, trained on three CARLA
 # towns and tested on other routes of them and on a held-out town; a BEV U-Net, 3 seeds per rig; mIoU with
-# intervals, M-SOG (three normalisations), Kendall tau, the plot (docs/downstream.md).
+# intervals, M-SOG (three normalisations), Kendall tau, the plot (docs/downstream.md); and the detection
+# proxy from the same models: vehicle and pedestrian object recall per rig with intervals and tau
+# ("objects" in results.json, the *_recall columns of table.csv, the plot's second row, the log).
 #
 #   bash bench/downstream_study.sh            # on the GPU host, from the repository root
 #
@@ -13,6 +15,8 @@
 #
 # Budget: sized for about 10 minutes of one H100 (see docs/downstream.md for the estimate and its
 # parts); every size below can be overridden from the environment, e.g. STEPS=600 SEEDS=0-4.
+# EXECUTOR=ray runs the dataset tasks on a local Ray cluster of $WORKERS CPUs (each task asks for
+# $GPUS_PER_TASK of the GPU) instead of $WORKERS local processes; it needs Ray on the host.
 set -uo pipefail
 day=$(date -u +%Y-%m-%d)
 out=${OUT:-bench/results}/downstream-$day
@@ -32,6 +36,8 @@ STEPS=${STEPS:-300}
 SEEDS=${SEEDS:-0,1,2}
 MODELS=${MODELS:-bev}
 WORKERS=${WORKERS:-8}
+EXECUTOR=${EXECUTOR:-}
+GPUS_PER_TASK=${GPUS_PER_TASK:-0.125}
 BACKEND=${BACKEND:-warp:cuda:0}
 LIMIT=${LIMIT:-570}          # seconds; the device tool stops a command at 600
 
@@ -41,12 +47,17 @@ t0=$(date +%s)
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
   python3 -c "import torch, place3d_kernels as p; print('torch', torch.__version__, 'cuda', torch.version.cuda); print(p.available_backends())"
   echo "cpus $(nproc)"
-  echo "settings: rigs=$RIGS towns=$TOWNS heldout=$HELDOUT train_routes=$TRAIN_ROUTES test_routes=$TEST_ROUTES frames=$FRAMES steps=$STEPS seeds=$SEEDS models=$MODELS workers=$WORKERS backend=$BACKEND"
+  echo "settings: rigs=$RIGS towns=$TOWNS heldout=$HELDOUT train_routes=$TRAIN_ROUTES test_routes=$TEST_ROUTES frames=$FRAMES steps=$STEPS seeds=$SEEDS models=$MODELS workers=$WORKERS executor=${EXECUTOR:-process} backend=$BACKEND"
 } 2>&1 | tee "$out/machine.txt"
 
+if [ "$EXECUTOR" = ray ]; then
+  datasets=(--executor ray --num-cpus "$WORKERS" --gpus-per-task "$GPUS_PER_TASK")
+else
+  datasets=(--workers "$WORKERS")
+fi
 timeout "$LIMIT" python3 -m place3d_app.cli downstream --rigs "$RIGS" --towns "$TOWNS" \
   --heldout-towns "$HELDOUT" --train-routes "$TRAIN_ROUTES" --test-routes "$TEST_ROUTES" --frames "$FRAMES" \
-  --steps "$STEPS" --seeds "$SEEDS" --models "$MODELS" --workers "$WORKERS" --backend "$BACKEND" \
+  --steps "$STEPS" --seeds "$SEEDS" --models "$MODELS" "${datasets[@]}" --backend "$BACKEND" \
   --device cuda --output "$work/study" --quiet 2>&1 | tee "$out/log.txt"
 rc=${PIPESTATUS[0]}
 t1=$(date +%s)

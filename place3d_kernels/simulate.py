@@ -124,10 +124,11 @@ def simulate_frame(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, sensor
 
 
 def _returns(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, o, d, hits, b, body_t, dh=None,
-             intensity: bool = True):
+             intensity: bool = True, faces: bool = False):
     """``simulate_frame`` after its sweep's rays ``o``, ``d`` were cast into the static mesh (``hits``) and,
     when ``dh`` is given, into the actors' mesh ``dynamic``; without ``intensity`` the returns' intensities
-    are None (no normals read)."""
+    are None (no normals read). With ``faces``, a fifth item: (from_actors (N,) bool, face (N,) int32), the
+    mesh and face each return hit."""
     t, face, lab, src = hits.t, hits.face, hits.label, np.zeros(len(o), dtype=bool)
     if dynamic is not None:
         if dh is None:
@@ -152,8 +153,9 @@ def _returns(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, o, d, hits, 
     at = np.flatnonzero(hit)
     d_hit, face_hit, lab_hit = d.take(at, axis=0), face.take(at), lab.take(at)
     pts = o.take(at, axis=0) + t.take(at)[:, None] * d_hit
+    hit_ids = (src.take(at), face_hit.astype(np.int32)) if faces else None
     if not intensity:
-        return pts, lab_hit.astype(np.int32), None, o[0]
+        return (pts, lab_hit.astype(np.int32), None, o[0]) + ((hit_ids,) if faces else ())
     if dynamic is None:                         # every return is the static mesh's
         normals = static.normals.take(face_hit, axis=0)
     else:
@@ -164,7 +166,7 @@ def _returns(static: Mesh, dynamic: Mesh | None, lidar: LidarModel, o, d, hits, 
                            dynamic.normals.take(np.minimum(face_hit, len(dynamic.normals) - 1), axis=0),
                            static.normals.take(np.minimum(face_hit, len(static.normals) - 1), axis=0))
     inten = _intensity(normals, d_hit, lab_hit)
-    return pts, lab_hit.astype(np.int32), inten, o[0]
+    return (pts, lab_hit.astype(np.int32), inten, o[0]) + ((hit_ids,) if faces else ())
 
 
 def body_hits(body, lidar: LidarModel, mount=DEFAULT_MOUNT, backend=None) -> np.ndarray | None:
@@ -187,7 +189,7 @@ def body_hits(body, lidar: LidarModel, mount=DEFAULT_MOUNT, backend=None) -> np.
 
 def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_MOUNT, frames=None,
              backend=None, progress: bool = False, body=None, dynamic=None,
-             intensity: bool = True) -> list[PointCloud]:
+             intensity: bool = True, hit_faces: bool = False):
     """Semantic LiDAR frames along the scene's ego route (world points, ego pose, sensor origin per return).
 
     Args:
@@ -204,6 +206,13 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         intensity: compute each return's intensity (False: the frames' intensities are zeros and no face
             normal is read; a P-SOG without a condition votes on labels alone, so ``scene_psog`` skips
             them there).
+        hit_faces: also say which triangle each return hit: returns (frames, faces), ``faces`` one
+            (from_actors, face) pair per frame: (N,) bool, True where the return is on the frame's actors
+            (``scene.dynamic(f)``, actors concatenated in ``scene.actors`` order) rather than the static
+            mesh, and (N,) int32 face index into that mesh. The frames are the same as without it.
+
+    Returns:
+        list of ``PointCloud``, one per frame (with ``hit_faces``: (that list, the faces list)).
     """
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
@@ -228,7 +237,7 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         # every frame's actor mesh in one tree with a subtree per frame
         with section("simulate: actors (build)"):
             groups = MeshGroups([dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f) for f in frames], b)
-    out = []
+    out, faces = [], []
     for at in range(0, len(frames), per_batch):
         batch = frames[at:at + per_batch]
         sensor = np.stack([pose_from_matrix(pose_matrix(scene.ego_poses[f]) @ mount_T) for f in batch])
@@ -250,11 +259,13 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
             r = slice(j * rays_per_sweep, (j + 1) * rays_per_sweep)
             hits = Hits(h_all.t[r], h_all.face[r], h_all.label[r])
             dh = None if dh_all is None else Hits(dh_all.t[r], dh_all.face[r], dh_all.label[r])
-            pts, lab, inten, origin = _returns(scene.static, dyn, lidar, o_all[r], d_all[r], hits, b, body_t, dh,
-                                               intensity)
+            pts, lab, inten, origin, *ids = _returns(scene.static, dyn, lidar, o_all[r], d_all[r], hits, b, body_t,
+                                                     dh, intensity, hit_faces)
+            if hit_faces:
+                faces.append(ids[0])
             out.append(PointCloud(pts, lab, inten, origin, ego_pose=scene.ego_poses[f].copy()))
             if bar is not None:
                 bar.update(1)
     if bar is not None:
         bar.close()
-    return out
+    return (out, faces) if hit_faces else out

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-__all__ = ["add_parser", "add_arguments", "run", "PAPER_RIGS"]
+__all__ = ["add_parser", "add_arguments", "run", "dataset_executor", "format_table", "PAPER_RIGS"]
 
 #: the eight placements of the paper's Table 1 ("ours" = the segmentation-optimised one)
 PAPER_RIGS = ("center", "line", "pyramid", "square", "trapezoid", "line-roll", "pyramid-roll", "ours-seg")
@@ -63,7 +63,21 @@ def add_arguments(p) -> None:
     p.add_argument("--backend", default=None, help="ray-cast backend for the simulation and M-SOG "
                    "(default: $PLACE3D_BACKEND or auto; the reference backend is far too slow for this)")
     p.add_argument("--workers", type=int, default=0,
-                   help="processes that build scenes and simulate drives at once (0: in this process)")
+                   help="processes that build scenes and simulate drives at once (0: in this process; with "
+                        "--executor local or process)")
+    # the executor options of simulate/optimize/study (place3d_app.executors), for the dataset tasks
+    p.add_argument("--executor", default="local", choices=["auto", "local", "process", "ray"],
+                   help="where the dataset tasks (one per drive) run: local (this process, or --workers "
+                        "processes), process (one worker process per usable core, at most $PLACE3D_WORKERS, or "
+                        "--workers), ray (a Ray cluster; needs pip install 'place3d-kernels[dist]'), auto "
+                        "(process where there are several drives and more than one usable core, else local; "
+                        "default local)")
+    p.add_argument("--ray-address", default=None,
+                   help="Ray cluster to join: auto | HOST:PORT | ray://HOST:10001 (default: start a local one)")
+    p.add_argument("--num-cpus", type=int, default=None, help="CPUs of a local Ray cluster (default: all)")
+    p.add_argument("--gpus-per-task", type=float, default=0,
+                   help="GPUs each Ray task requests (default 0; Ray hides the GPUs from a task that asks for "
+                        "none, so give a share, e.g. 0.125, with a GPU backend)")
     p.add_argument("--output", required=True, help="study folder (datasets/, cells/, results.json, plot)")
     p.add_argument("--data", default=None, help="dataset folder to share between studies (default: OUTPUT/datasets)")
     p.add_argument("--overwrite", action="store_true", help="rebuild datasets and cells instead of resuming")
@@ -94,6 +108,29 @@ def config_from_args(args):
                        model, {"batch_size": int(args.batch_size), "lr": float(args.lr)}, resamples=int(args.resamples))
 
 
+def dataset_executor(args, n_drives: int):
+    """(workers, executor) for ``run_study``: ``--workers N`` alone keeps the local worker processes
+    (``build_datasets``'s own pool); ``--executor process|ray|auto`` gives a ``place3d_app.executors``
+    executor, as ``simulate``, ``optimize`` and ``study`` choose theirs. ``ValueError`` for a bad mix."""
+    kind = getattr(args, "executor", "local") or "local"
+    workers = int(getattr(args, "workers", 0) or 0)
+    address = getattr(args, "ray_address", None)
+    if workers < 0:
+        raise ValueError(f"--workers must be >= 0, got {workers}")
+    if (kind == "ray" or address) and workers:
+        raise ValueError("--workers counts local processes; with --executor ray size a local cluster with "
+                         "--num-cpus instead")
+    if kind == "local" and not address:
+        return workers, None
+    if kind in ("process", "auto") and workers:
+        from place3d_app.executors import ProcessExecutor
+
+        return 0, ProcessExecutor(min(workers, max(n_drives, 1)), backend=str(args.backend or "auto"), prestart=True)
+    from place3d_app.executors import executor_from_args
+
+    return 0, executor_from_args(args, tasks=n_drives, backend=args.backend)
+
+
 def run(args) -> int:
     try:
         import torch
@@ -105,13 +142,18 @@ def run(args) -> int:
 
     try:
         cfg = config_from_args(args)
+        workers, executor = dataset_executor(args, len(cfg.splits.all_drives()))
     except ValueError as e:
         print(f"place3d downstream: {e}", file=sys.stderr)
         return 2
     if args.threads:
         torch.set_num_threads(int(args.threads))
-    res = run_study(cfg, args.output, args.backend, args.device, progress=not args.quiet, overwrite=args.overwrite,
-                    data=args.data, workers=args.workers)
+    try:
+        res = run_study(cfg, args.output, args.backend, args.device, progress=not args.quiet,
+                        overwrite=args.overwrite, data=args.data, workers=workers, executor=executor)
+    finally:
+        if executor is not None:
+            executor.shutdown()
     print(format_table(res))
     t = res["timing"]
     print(f"{res['cells_run']} cells trained, {res['cells_skipped']} resumed; datasets {t['dataset_seconds']:.1f} s, "
@@ -133,6 +175,16 @@ def format_table(res: dict) -> str:
             for n, tau in t["tau"].items():
                 lines.append(f"  Kendall tau (M-SOG {n} vs mIoU): {tau['tau']:+.3f} [{tau['lo']:+.3f}, {tau['hi']:+.3f}], "
                              f"P(tau > 0) = {tau['p_positive']:.2f}")
+            for cls, o in t.get("objects", {}).items():
+                th = o["thresholds"]
+                lines.append(f"  {cls} recall (detection proxy: found with >= {th['detect_min_points']} points and "
+                             f">= {100 * th['detect_min_share']:.0f} % of them predicted {cls}; {o['objects']} objects):")
+                for r in sorted(o["rows"], key=lambda r: -r["recall"] if r["recall"] == r["recall"] else 1):
+                    lines.append(f"    {r['rig']:16s} {100 * r['recall']:6.2f} [{100 * r['lo']:5.2f}, "
+                                 f"{100 * r['hi']:5.2f}]  seen {100 * r['seen']:5.1f} %")
+                for n, tau in o["tau"].items():
+                    lines.append(f"    Kendall tau (M-SOG {n} vs {cls} recall): {tau['tau']:+.3f} [{tau['lo']:+.3f}, "
+                                 f"{tau['hi']:+.3f}], P(tau > 0) = {tau['p_positive']:.2f}")
     return "\n".join(lines)
 
 

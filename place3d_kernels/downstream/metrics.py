@@ -6,6 +6,16 @@ Conventions: a confusion matrix ``conf[g, p]`` counts points of ground-truth cla
 the SemanticKITTI benchmark's definition). mIoU is the mean over an explicit class list, so every rig of a
 study is scored on the same classes (``present_classes`` of the test sets).
 
+Detection proxy (``detection_counts``, ``bootstrap_recall``): per-object recall from the segmentation
+models' point predictions, with no extra training. An object is one instance (one actor or parked car, by
+the instance ids of the dataset) in one test frame; the ground truth of a (drive, frame) is every object of
+the class that at least one rig of the study hits with ``OBJECT_MIN_POINTS`` points inside the ROI (one
+list for all rigs, so their recalls share a denominator). A rig's model finds an object when at least
+``DETECT_MIN_POINTS`` of the object's points in that rig's cloud, and at least ``DETECT_MIN_SHARE`` of them,
+are predicted as its class; an object the rig hits with fewer points is missed. Recall = found / objects.
+This is not average precision: there are no boxes, no scores and no false positives, and two objects
+side by side predicted as one blob both count as found.
+
 Intervals: the statistic of a rig is the mean over its training seeds of each seed's mIoU on all its test
 drives pooled (confusion matrices summed). The bootstrap resamples seeds (per rig) and test drives (the
 same drive draw for every rig: the rigs drive the same routes, so their scores are paired) with
@@ -14,10 +24,21 @@ replacement; the interval is the percentile interval of the resampled statistic.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 __all__ = ["confusion_matrix", "per_class_iou", "miou", "present_classes", "seed_mious", "bootstrap_miou",
-           "kendall_tau", "bootstrap_tau"]
+           "kendall_tau", "bootstrap_tau", "OBJECT_MIN_POINTS", "DETECT_MIN_POINTS", "DETECT_MIN_SHARE",
+           "detection_counts", "bootstrap_recall", "bootstrap_recall_tau"]
+
+#: an object (one instance in one frame) is in the ground truth when some rig of the study puts at least this
+#: many of its points inside the ROI
+OBJECT_MIN_POINTS = 5
+#: a rig's model finds an object when at least this many of its points are predicted as its class ...
+DETECT_MIN_POINTS = 5
+#: ... and at least this share of them
+DETECT_MIN_SHARE = 0.5
 
 
 def confusion_matrix(gt, pred, n_classes: int, ignore: int | None = 0) -> np.ndarray:
@@ -133,6 +154,94 @@ def bootstrap_tau(scores, confs, classes, resamples: int = 1000, seed: int = 0, 
     confs = np.asarray(confs)
     point = kendall_tau(scores, miou(confs.sum(axis=2), classes).mean(axis=1))
     samples = _resampled_stat(confs, classes, np.random.default_rng(seed), resamples)
+    taus = np.array([kendall_tau(scores, s) for s in samples])
+    taus = taus[np.isfinite(taus)]
+    a = (1 - level) / 2
+    if taus.size == 0:
+        return {"tau": point, "lo": float("nan"), "hi": float("nan"), "p_positive": float("nan")}
+    return {"tau": point, "lo": float(np.quantile(taus, a)), "hi": float(np.quantile(taus, 1 - a)),
+            "p_positive": float(np.mean(taus > 0))}
+
+
+def detection_counts(tables, n_drives: int, cls: int, min_points: int = OBJECT_MIN_POINTS,
+                     detect_points: int = DETECT_MIN_POINTS, detect_share: float = DETECT_MIN_SHARE) -> dict:
+    """Objects of class ``cls`` found per rig, seed and drive (see the module docstring).
+
+    Args:
+        tables: ``tables[r][s]``: (K, 6) int arrays of rig r, seed s, one row per (drive, frame, instance)
+            with a point in the ROI: drive, frame, instance id, class, points, points predicted as the class
+            (``train.evaluate(objects=...)`` per drive, the drive index put first). A rig's points do not
+            depend on the seed; its seeds' predictions do.
+    Returns: {"found": (R, S, D) int64, "objects": (D,) int64 ground-truth objects, "seen": (R, D) int64
+        objects the rig hits with ``min_points`` points or more}.
+    """
+    R, S = len(tables), len(tables[0])
+    keyed = [[_keyed(t, cls) for t in row] for row in tables]
+    truth = set()
+    for row in keyed:
+        truth |= {k for k, (pts, _) in row[0].items() if pts >= min_points}
+    objects = np.bincount([k[0] for k in truth], minlength=n_drives).astype(np.int64)
+    found = np.zeros((R, S, n_drives), np.int64)
+    seen = np.zeros((R, n_drives), np.int64)
+    for r, row in enumerate(keyed):
+        for k in truth:
+            pts = row[0].get(k, (0, 0))[0]
+            seen[r, k[0]] += pts >= min_points
+        for s, tab in enumerate(row):
+            for k in truth:
+                pts, hits = tab.get(k, (0, 0))
+                found[r, s, k[0]] += hits >= detect_points and hits >= detect_share * pts
+    return {"found": found, "objects": objects, "seen": seen}
+
+
+def _keyed(table, cls: int) -> dict:
+    t = np.asarray(table, dtype=np.int64).reshape(-1, 6)
+    t = t[t[:, 3] == cls]
+    return {(int(d), int(f), int(i)): (int(p), int(h)) for d, f, i, _, p, h in t}
+
+
+def _resampled_recall(found, objects, rng, resamples: int) -> np.ndarray:
+    """(B, R) resampled mean-over-seeds recall; drives drawn once for all rigs, seeds per rig."""
+    found = np.asarray(found, dtype=np.float64)
+    objects = np.asarray(objects, dtype=np.float64)
+    R, S, D = found.shape
+    out = np.empty((resamples, R))
+    drive_draws = _draws(rng, D, D, resamples)
+    seed_draws = rng.integers(0, S, size=(resamples, R, S))
+    for b in range(resamples):
+        m = np.bincount(drive_draws[b], minlength=D).astype(np.float64)
+        den = float(objects @ m)
+        per_seed = found @ m / den if den > 0 else np.full((R, S), np.nan)
+        out[b] = np.take_along_axis(per_seed, seed_draws[b], axis=1).mean(axis=1)
+    return out
+
+
+def bootstrap_recall(found, objects, resamples: int = 1000, seed: int = 0, level: float = 0.95) -> dict:
+    """Each rig's recall (found / objects over all drives), the mean over its seeds, with a percentile
+    interval over resampled seeds and drives (as ``bootstrap_miou``).
+
+    Args:
+        found: (R, S, D) objects found; objects: (D,) ground-truth objects per drive.
+    Returns: {"recall": (R,), "lo": (R,), "hi": (R,), "per_seed": (R, S)} (NaN where there is no object).
+    """
+    found = np.asarray(found, dtype=np.float64)
+    total = float(np.sum(objects))
+    per_seed = found.sum(axis=2) / total if total > 0 else np.full(found.shape[:2], np.nan)
+    samples = _resampled_recall(found, objects, np.random.default_rng(seed), resamples)
+    a = (1 - level) / 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)              # all-NaN columns: no object at all
+        lo, hi = np.nanquantile(samples, a, axis=0), np.nanquantile(samples, 1 - a, axis=0)
+    return {"recall": per_seed.mean(axis=1), "lo": lo, "hi": hi, "per_seed": per_seed}
+
+
+def bootstrap_recall_tau(scores, found, objects, resamples: int = 1000, seed: int = 0, level: float = 0.95) -> dict:
+    """Kendall tau between ``scores`` (R,) and the rigs' mean-over-seeds recall, with a percentile interval
+    over the resamples of ``bootstrap_recall``. Returns {"tau", "lo", "hi", "p_positive"}."""
+    found = np.asarray(found, dtype=np.float64)
+    total = float(np.sum(objects))
+    point = kendall_tau(scores, found.sum(axis=2).mean(axis=1) / total) if total > 0 else float("nan")
+    samples = _resampled_recall(found, objects, np.random.default_rng(seed), resamples)
     taus = np.array([kendall_tau(scores, s) for s in samples])
     taus = taus[np.isfinite(taus)]
     a = (1 - level) / 2

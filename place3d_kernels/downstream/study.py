@@ -17,6 +17,10 @@ Steps (``run_study``):
 4. The table, from the cell files: per model and split, each rig's mean mIoU over seeds with a bootstrap
    interval over seeds and test drives, on the classes every rig's test set holds; Kendall tau of each
    M-SOG normalisation against it with a bootstrap interval; the plot.
+5. The detection proxy, from the same cells (no other training): the evaluation also counts, per object
+   (instance) of ``OBJECT_CLASSES`` in each test frame, its points and those predicted as its class; the
+   table gets each rig's object recall with an interval and Kendall tau against M-SOG beside mIoU's
+   (``metrics.detection_counts``; what it measures: docs/downstream.md).
 
 Outputs in ``output``: ``datasets/`` (unless ``data`` points elsewhere), ``cells/``, ``results.json``,
 ``table.csv``, ``msog_vs_miou.png``.
@@ -36,9 +40,13 @@ import numpy as np
 from place3d_kernels.downstream.dataset import Rig, Splits, build_datasets, read_frames, route_overlap
 from place3d_kernels.downstream import metrics as dm
 
-__all__ = ["StudyConfig", "run_study", "summarise", "plot_results", "SPLITS"]
+__all__ = ["StudyConfig", "run_study", "summarise", "plot_results", "SPLITS", "OBJECT_CLASSES"]
 
 SPLITS = ("test", "heldout")
+
+#: classes whose objects the detection proxy counts: Place3D "vehicle" (cars, vans, trucks, buses; the
+#: paper's detection class is the car) and "pedestrian"
+OBJECT_CLASSES = ("vehicle", "pedestrian")
 
 
 @dataclass(frozen=True)
@@ -102,19 +110,42 @@ def _run_cell(spec: dict, banks: dict, device, progress: bool) -> dict:
     model, info = train_model(banks["train"], mc, tc, spec["seed"], device, progress,
                               desc=f"{spec['rig']['name']} {mc.name} s{spec['seed']}")
     t0 = time.perf_counter()
-    confs = {s: evaluate(model, banks[s], mc.n_classes, tc.eval_batch, tc.amp) for s in SPLITS if banks.get(s)}
-    return {"confs": confs, "losses": np.asarray(info["losses"], np.float32), "train_seconds": info["seconds"],
-            "eval_seconds": time.perf_counter() - t0, "parameters": info["parameters"]}
+    confs, objects = {}, {}
+    for s in SPLITS:
+        if banks.get(s):
+            confs[s], tables = evaluate(model, banks[s], mc.n_classes, tc.eval_batch, tc.amp, _object_ids())
+            # one table for the split: the drive index first
+            objects[s] = np.concatenate([np.c_[np.full(len(t), d, np.int64), t] for d, t in enumerate(tables)])
+    return {"confs": confs, "objects": objects, "losses": np.asarray(info["losses"], np.float32),
+            "train_seconds": info["seconds"], "eval_seconds": time.perf_counter() - t0,
+            "parameters": info["parameters"]}
+
+
+def _object_ids() -> tuple:
+    from place3d_kernels.classes import CLASS_ID
+
+    return tuple(CLASS_ID[c] for c in OBJECT_CLASSES)
 
 
 def _banks(root, rig: Rig, splits: Splits, mc, device) -> dict:
     from place3d_kernels.downstream.train import FrameBank
 
-    train = [f for d in read_frames(root, rig, splits.drives("train")) for f in d]
+    train = [f[:2] for d in read_frames(root, rig, splits.drives("train")) for f in d]
     out = {"train": FrameBank(train, mc, device)}
     for s in SPLITS:
-        out[s] = [FrameBank(fr, mc, device) for fr in read_frames(root, rig, splits.drives(s))]
+        out[s] = [FrameBank(fr, mc, device) for fr in read_frames(root, rig, splits.drives(s), instances=True)]
     return out
+
+
+def _cell_done(path: Path, spec: dict) -> bool:
+    """A cell with a matching manifest and its object tables (cells written before the detection proxy
+    have none: they are trained again, which gives the same confusion matrices on the CPU)."""
+    from place3d_kernels.manifest import verify_manifest
+
+    if not (path.exists() and verify_manifest(path.with_suffix(".json"), spec, "downstream cell")):
+        return False
+    with np.load(path) as z:
+        return all(f"objects_{s}" in z.files for s in SPLITS if f"conf_{s}" in z.files)
 
 
 def _msog(cfg: StudyConfig, rigs, pooled, backend) -> dict:
@@ -130,11 +161,11 @@ def _msog(cfg: StudyConfig, rigs, pooled, backend) -> dict:
 
 
 def run_study(cfg: StudyConfig, output, backend=None, device=None, progress: bool = False,
-              overwrite: bool = False, data=None, workers: int = 0) -> dict:
+              overwrite: bool = False, data=None, workers: int = 0, executor=None) -> dict:
     """Run (or resume) the study; returns the results dict also written to ``results.json``
-    (``workers``: processes for the datasets, see ``dataset.build_datasets``)."""
+    (``workers`` or ``executor``: where the dataset tasks run, see ``dataset.build_datasets``)."""
     from place3d_kernels.downstream.train import resolve_device
-    from place3d_kernels.manifest import provenance, verify_manifest, write_manifest
+    from place3d_kernels.manifest import provenance, write_manifest
     from place3d_kernels.pooled import PooledPSOG, PoolSettings, backend_name
     from place3d_kernels.sog import cache_dir
 
@@ -147,7 +178,7 @@ def run_study(cfg: StudyConfig, output, backend=None, device=None, progress: boo
     settings = PoolSettings(cfg.voxel_size, frames_per_subset=cfg.frames_per_subset, backend=backend,
                             cache=str(cache_dir()))
     t0 = time.perf_counter()
-    ds, records = build_datasets(root, rigs, cfg.splits, backend, overwrite, progress, settings, workers)
+    ds, records = build_datasets(root, rigs, cfg.splits, backend, overwrite, progress, settings, workers, executor)
     timing = {"datasets_wall_seconds": time.perf_counter() - t0, "dataset_seconds": ds["seconds"],
               "psog_seconds": ds["psog_seconds"]}
     pooled = PooledPSOG(settings.grid, records)
@@ -164,7 +195,7 @@ def run_study(cfg: StudyConfig, output, backend=None, device=None, progress: boo
                 spec = _cell_spec(cfg, rig, model, seed)
                 path = _cell_path(out, spec)
                 meta = path.with_suffix(".json")
-                if not overwrite and path.exists() and verify_manifest(meta, spec, "downstream cell"):
+                if not overwrite and _cell_done(path, spec):
                     skipped += 1
                 else:
                     if banks is None:
@@ -172,6 +203,7 @@ def run_study(cfg: StudyConfig, output, backend=None, device=None, progress: boo
                     res = _run_cell(spec, banks, dev, progress)
                     path.parent.mkdir(parents=True, exist_ok=True)
                     arrays = {f"conf_{s}": c for s, c in res["confs"].items()}
+                    arrays.update({f"objects_{s}": t for s, t in res["objects"].items()})
                     tmp = path.with_name(path.stem + ".tmp.npz")
                     np.savez_compressed(tmp, losses=res["losses"], **arrays)
                     os.replace(tmp, path)
@@ -186,6 +218,7 @@ def run_study(cfg: StudyConfig, output, backend=None, device=None, progress: boo
     res = summarise(cfg, rigs, cells, msog)
     res.update(settings={"config": _config_dict(cfg), "backend": backend, "device": str(dev)},
                datasets={**ds, "root": str(root),
+                         "executor": getattr(executor, "kind", "process" if workers else "local"),
                          "route_overlap_10m": {s: route_overlap(root, rigs[0], cfg.splits.drives("train"),
                                                                 cfg.splits.drives(s)) for s in SPLITS
                                                if cfg.splits.drives(s)}},
@@ -223,7 +256,36 @@ def summarise(cfg: StudyConfig, rigs, cells: dict, msog: dict) -> dict:
             taus = {n: dm.bootstrap_tau(msog[n], confs, classes, cfg.resamples) for n in msog}
             table[model][split] = {"classes": [CLASSES[c] for c in classes], "rows": rows, "tau": taus,
                                    "drives": int(confs.shape[2])}
+            okey = f"objects_{split}"
+            if all(okey in z.files for row in loaded for z in row):
+                tables = [[z[okey] for z in row] for row in loaded]
+                table[model][split]["objects"] = _object_summary(cfg, rigs, tables, int(confs.shape[2]), msog)
+            for row in loaded:
+                for z in row:
+                    z.close()
     return {"table": table}
+
+
+def _object_summary(cfg: StudyConfig, rigs, tables, n_drives: int, msog: dict) -> dict:
+    """Per object class: each rig's recall (mean over seeds, interval), the share of objects its points
+    reach (``seen``), and Kendall tau of each M-SOG normalisation against the recall."""
+    from place3d_kernels.classes import CLASS_ID
+
+    out = {}
+    for name in OBJECT_CLASSES:
+        c = dm.detection_counts(tables, n_drives, CLASS_ID[name])
+        total = int(c["objects"].sum())
+        boot = dm.bootstrap_recall(c["found"], c["objects"], cfg.resamples)
+        rows = [{"rig": r.name, "recall": float(boot["recall"][i]), "lo": float(boot["lo"][i]),
+                 "hi": float(boot["hi"][i]), "per_seed": [float(v) for v in boot["per_seed"][i]],
+                 "seen": float(c["seen"][i].sum() / total) if total else float("nan")}
+                for i, r in enumerate(rigs)]
+        taus = {n: dm.bootstrap_recall_tau(msog[n], c["found"], c["objects"], cfg.resamples) for n in msog}
+        out[name] = {"objects": total, "objects_per_drive": c["objects"].tolist(), "rows": rows, "tau": taus,
+                     "thresholds": {"object_min_points": dm.OBJECT_MIN_POINTS,
+                                    "detect_min_points": dm.DETECT_MIN_POINTS,
+                                    "detect_min_share": dm.DETECT_MIN_SHARE}}
+    return out
 
 
 def _config_dict(cfg: StudyConfig) -> dict:
@@ -256,45 +318,66 @@ def _jsonable(o):
 
 
 def _write_csv(path: Path, res: dict) -> None:
+    """One row per (model, split, rig): mIoU, its interval and seeds, M-SOG, then per object class the
+    recall of the detection proxy, its interval and the share of objects the rig's points reach."""
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         norms = None
         for model, splits in res["table"].items():
             for split, t in splits.items():
-                for r in t["rows"]:
+                objects = t.get("objects", {})
+                for i, r in enumerate(t["rows"]):
                     if norms is None:
                         norms = list(r["msog"])
-                        w.writerow(["model", "split", "rig", "miou", "lo", "hi", "per_seed"] + [f"msog_{n}" for n in norms])
+                        w.writerow(["model", "split", "rig", "miou", "lo", "hi", "per_seed"] + [f"msog_{n}" for n in norms]
+                                   + [f"{c}_{k}" for c in OBJECT_CLASSES for k in ("recall", "lo", "hi", "seen")])
+                    obj = []
+                    for c in OBJECT_CLASSES:
+                        o = objects[c]["rows"][i] if c in objects else None
+                        obj += ["" if o is None else f"{o[k]:.4f}" for k in ("recall", "lo", "hi", "seen")]
                     w.writerow([model, split, r["rig"], f"{r['miou']:.4f}", f"{r['lo']:.4f}", f"{r['hi']:.4f}",
-                                " ".join(f"{v:.4f}" for v in r["per_seed"])] + [f"{r['msog'][n]:.6f}" for n in norms])
+                                " ".join(f"{v:.4f}" for v in r["per_seed"])] + [f"{r['msog'][n]:.6f}" for n in norms]
+                               + obj)
 
 
 def plot_results(res: dict, path) -> Path:
     """M-SOG (paper normalisation, else the first) against mIoU with its interval, one panel per
-    (model, split), tau in each title."""
+    (model, split), tau in each title; a second row against the vehicle recall of the detection proxy
+    where the table has it."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     panels = [(m, s, t) for m, sp in res["table"].items() for s, t in sp.items()]
-    fig, axes = plt.subplots(1, max(len(panels), 1), figsize=(5.2 * max(len(panels), 1), 4.4), squeeze=False)
+    recall = [(m, s, t["objects"][OBJECT_CLASSES[0]]) for m, s, t in panels if "objects" in t]
+    n_rows = 2 if recall else 1
+    fig, axes = plt.subplots(n_rows, max(len(panels), 1), figsize=(5.2 * max(len(panels), 1), 4.4 * n_rows),
+                             squeeze=False)
     for ax, (model, split, t) in zip(axes[0], panels):
-        norm = "paper" if "paper" in t["tau"] else next(iter(t["tau"]))
-        x = np.array([r["msog"][norm] for r in t["rows"]])
-        y = np.array([r["miou"] for r in t["rows"]]) * 100
-        lo = np.array([r["lo"] for r in t["rows"]]) * 100
-        hi = np.array([r["hi"] for r in t["rows"]]) * 100
-        ax.errorbar(x, y, yerr=[np.maximum(y - lo, 0), np.maximum(hi - y, 0)], fmt="o", capsize=3)
-        for xi, yi, r in zip(x, y, t["rows"]):
-            ax.annotate(r["rig"], (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=8)
-        tau = t["tau"][norm]
-        ax.set_title(f"{model}, {split}: tau {tau['tau']:+.2f} [{tau['lo']:+.2f}, {tau['hi']:+.2f}]", fontsize=10)
-        ax.set_xlabel(f"M-SOG ({norm} normalisation; higher is better)")
-        ax.set_ylabel("mIoU (%), mean over seeds, 95 % interval")
-        ax.grid(alpha=0.3)
+        _panel(ax, t["rows"], t["tau"], "miou", [r["msog"] for r in t["rows"]], f"{model}, {split}",
+               "mIoU (%), mean over seeds, 95 % interval")
+    for ax, (model, split, o) in zip(axes[-1] if recall else [], recall):
+        _panel(ax, o["rows"], o["tau"], "recall", [r["msog"] for r in res["table"][model][split]["rows"]],
+               f"{model}, {split}, {OBJECT_CLASSES[0]}s", f"{OBJECT_CLASSES[0]} recall (%), proxy, 95 % interval")
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def _panel(ax, rows, taus, key: str, msog, what: str, ylabel: str) -> None:
+    norm = "paper" if "paper" in taus else next(iter(taus))
+    x = np.array([m[norm] for m in msog])
+    y = np.array([r[key] for r in rows]) * 100
+    lo = np.array([r["lo"] for r in rows]) * 100
+    hi = np.array([r["hi"] for r in rows]) * 100
+    ax.errorbar(x, y, yerr=[np.maximum(y - lo, 0), np.maximum(hi - y, 0)], fmt="o", capsize=3)
+    for xi, yi, r in zip(x, y, rows):
+        ax.annotate(r["rig"], (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    tau = taus[norm]
+    ax.set_title(f"{what}: tau {tau['tau']:+.2f} [{tau['lo']:+.2f}, {tau['hi']:+.2f}]", fontsize=10)
+    ax.set_xlabel(f"M-SOG ({norm} normalisation; higher is better)")
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)

@@ -69,38 +69,53 @@ def resolve_device(device: str | None) -> torch.device:
 
 
 class FrameBank:
-    """Frames (points inside the ROI, labels) packed into device tensors.
+    """Frames (points inside the ROI, labels, optionally instance ids) packed into device tensors.
 
     Args:
-        frames: list of (N, 3) float32 points, (N,) int labels.
-    Attributes: points (P, 3), labels (P,), offsets (F + 1,) on ``device``; ``kept``: share of the
-        frames' labelled points inside the ROI.
+        frames: list of (N, 3) float32 points, (N,) int labels and, optionally, (N,) int instance ids.
+    Attributes: points (P, 3), labels (P,), instances (P,) or None, offsets (F + 1,) on ``device``;
+        ``kept``: share of the frames' labelled points inside the ROI.
     """
 
     def __init__(self, frames, cfg: ModelConfig, device):
-        pts, labs, offs, total, kept = [], [], [0], 0, 0
-        for p, lab in frames:
+        pts, labs, insts, offs, total, kept = [], [], [], [0], 0, 0
+        for fr in frames:
+            p, lab = fr[0], fr[1]
             m = in_roi(p, cfg)
             total += int(np.sum(lab > 0))
             kept += int(np.sum(lab[m] > 0))
             pts.append(p[m])
             labs.append(lab[m])
+            if len(fr) > 2:
+                insts.append(np.asarray(fr[2])[m])
             offs.append(offs[-1] + int(m.sum()))
+        if insts and len(insts) != len(frames):
+            raise ValueError("give instance ids for every frame of a bank or for none")
         self.points = torch.from_numpy(np.concatenate(pts).astype(np.float32)).to(device)
         self.labels = torch.from_numpy(np.concatenate(labs).astype(np.int64)).to(device)
+        self.instances = torch.from_numpy(np.concatenate(insts).astype(np.int64)).to(device) if insts else None
         self.offsets = torch.tensor(offs, dtype=torch.long, device=device)
         self.n_frames = len(frames)
         self.kept = kept / total if total else float("nan")
 
-    def batch(self, frames):
-        """(points, labels, frame index per point) of the frames ``frames`` (a list of ints)."""
+    def _index(self, frames):
         idx, which = [], []
         for j, f in enumerate(frames):
             a, b = int(self.offsets[f]), int(self.offsets[f + 1])
             idx.append(torch.arange(a, b, device=self.points.device))
             which.append(torch.full((b - a,), j, dtype=torch.long, device=self.points.device))
-        idx = torch.cat(idx)
-        return self.points[idx], self.labels[idx], torch.cat(which)
+        return torch.cat(idx), torch.cat(which)
+
+    def batch(self, frames):
+        """(points, labels, frame index per point) of the frames ``frames`` (a list of ints)."""
+        idx, which = self._index(frames)
+        return self.points[idx], self.labels[idx], which
+
+    def batch_instances(self, frames):
+        """The instance ids of ``batch(frames)``'s points."""
+        if self.instances is None:
+            raise ValueError("this FrameBank was made without instance ids")
+        return self.instances[self._index(frames)[0]]
 
 
 def class_weights(labels: torch.Tensor, n_classes: int, mode: str = "sqrt-inverse") -> torch.Tensor:
@@ -210,13 +225,21 @@ def train_model(bank: FrameBank, model_cfg: ModelConfig, cfg: TrainConfig, seed:
 
 
 @torch.no_grad()
-def evaluate(model, banks, n_classes: int, batch_frames: int = 8, amp: bool = False) -> np.ndarray:
+def evaluate(model, banks, n_classes: int, batch_frames: int = 8, amp: bool = False, objects=None):
     """(D, C, C) int64 confusion matrices, one per drive (``banks``: one ``FrameBank`` per drive); class 0
-    is left out of the ground truth."""
+    is left out of the ground truth.
+
+    Args:
+        objects: classes whose instances are counted too (the banks need instance ids). Then returns
+            (the matrices, per drive a (K, 5) int64 array): one row per (frame, instance) of those classes
+            with a point in the ROI: frame, instance id, class, points, points predicted as that class.
+    """
     model.eval()
     out = np.zeros((len(banks), n_classes, n_classes), np.int64)
+    tables = []
     for d, bank in enumerate(banks):
         conf = torch.zeros(n_classes * n_classes, dtype=torch.long, device=bank.points.device)
+        rows = []
         for a in range(0, bank.n_frames, batch_frames):
             frames = list(range(a, min(a + batch_frames, bank.n_frames)))
             p, lab, b = bank.batch(frames)
@@ -226,8 +249,26 @@ def evaluate(model, banks, n_classes: int, batch_frames: int = 8, amp: bool = Fa
                 pred = model(p, b, len(frames)).argmax(dim=1)
             keep = lab > 0
             conf += torch.bincount(lab[keep] * n_classes + pred[keep], minlength=n_classes * n_classes)
+            if objects is not None:
+                rows.append(_instance_rows(bank.batch_instances(frames), lab, pred, b + a, objects))
         out[d] = conf.view(n_classes, n_classes).cpu().numpy()
-    return out
+        if objects is not None:
+            tables.append(np.concatenate(rows) if rows else np.zeros((0, 5), np.int64))
+    return (out, tables) if objects is not None else out
+
+
+def _instance_rows(inst, lab, pred, frame, objects) -> np.ndarray:
+    """(K, 5) rows frame, instance, class, points, points predicted as the class, for the points of
+    instances (id > 0) of the classes ``objects``."""
+    sel = (inst > 0) & torch.isin(lab, torch.as_tensor(list(objects), device=lab.device))
+    if not bool(sel.any()):
+        return np.zeros((0, 5), np.int64)
+    key = frame[sel] * (1 << 16) + inst[sel]             # instance ids are 16 bits (the .label layout)
+    uniq, inv = torch.unique(key, return_inverse=True)
+    points = torch.bincount(inv, minlength=len(uniq))
+    hits = torch.bincount(inv[pred[sel] == lab[sel]], minlength=len(uniq))
+    cls = torch.zeros(len(uniq), dtype=torch.long, device=lab.device).scatter_(0, inv, lab[sel])
+    return torch.stack([uniq >> 16, uniq & 0xFFFF, cls, points, hits], 1).cpu().numpy().astype(np.int64)
 
 
 def steps_per_epoch(n_frames: int, batch_size: int) -> float:
