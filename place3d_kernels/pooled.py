@@ -25,7 +25,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from place3d_kernels.classes import N_CLASSES
-from place3d_kernels.grid import DEFAULT_GRID, Grid
+from place3d_kernels.grid import Grid, roi_grid
 from place3d_kernels.sog import PSOG
 
 __all__ = ["Drive", "PoolSettings", "DriveRecord", "PooledPSOG", "build_pooled", "drive_record",
@@ -65,11 +65,13 @@ class PoolSettings:
     """Everything besides the drive that decides a per-drive P-SOG (the inputs of ``scene_psog``).
 
     Args:
-        voxel_size: ROI voxel edge in metres (None: ``DEFAULT_GRID``'s 0.2 m; the ROI box stays the same).
+        voxel_size: ROI voxel edge in metres (None: ``DEFAULT_GRID``'s 0.2 m).
         lidar: the collection LiDAR (name or TOML path) that records the drives.
         frames_per_subset: k frames merged per SOG (None: ``pipeline.DEFAULT_FRAMES_PER_SUBSET``).
         backend: backend name (None: ``$PLACE3D_BACKEND`` or auto, resolved once in the driver).
         cache: P-SOG cache folder (None: ``sog.cache_dir()``); False disables the cache.
+        roi: the ROI box: None (``DEFAULT_GRID``'s 80 x 80 x 5 m), 3 sizes or 6 corners in metres
+            (``grid.roi_bounds``). It is part of the grid, so of every per-drive P-SOG's cache key.
     """
 
     voxel_size: float | None = None
@@ -77,12 +79,15 @@ class PoolSettings:
     frames_per_subset: int | None = None
     backend: str | None = None
     cache: Any = None
+    roi: tuple | None = None
+
+    def __post_init__(self):
+        if self.roi is not None:
+            object.__setattr__(self, "roi", tuple(float(x) for x in self.roi))
 
     @property
     def grid(self) -> Grid:
-        if self.voxel_size is None:
-            return DEFAULT_GRID
-        return Grid(DEFAULT_GRID.lower, DEFAULT_GRID.upper, float(self.voxel_size))
+        return roi_grid(self.roi, self.voxel_size)
 
     @property
     def k(self) -> int:
@@ -91,8 +96,8 @@ class PoolSettings:
         return int(self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET)
 
     def to_dict(self) -> dict:
-        return {"voxel_size": self.grid.voxel_size, "collection_lidar": self.lidar, "frames_per_subset": self.k,
-                "backend": self.backend}
+        return {"voxel_size": self.grid.voxel_size, "roi": None if self.roi is None else list(self.roi),
+                "collection_lidar": self.lidar, "frames_per_subset": self.k, "backend": self.backend}
 
 
 @dataclass
@@ -337,7 +342,7 @@ def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(
     from place3d_kernels.sog import cache_dir
 
     settings = PoolSettings(settings.voxel_size, settings.lidar, settings.k, backend_name(settings.backend),
-                            str(cache_dir()) if settings.cache is None else settings.cache)
+                            str(cache_dir()) if settings.cache is None else settings.cache, settings.roi)
     pooled = PooledPSOG(settings.grid)
     if executor is None or getattr(executor, "kind", None) == "local":
         import sys

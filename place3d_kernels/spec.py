@@ -6,7 +6,7 @@ consume the same objects, so a task rebuilds exactly what the driver would have 
 
 The grid spec is called ``RoiSpec``: ``backends.base.GridSpec`` is the kernel-facing grid (voxel size and
 shape only, no ROI corners), and ``Grid.spec`` returns that one; ``RoiSpec`` is the domain choice a user
-makes (the voxel size of the default ROI) and builds a ``Grid`` with ``.grid()``.
+makes (the ROI box and its voxel size, ``--roi`` / ``--voxel-size``) and builds a ``Grid`` with ``.grid()``.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from place3d_kernels.grid import DEFAULT_GRID, Grid
+from place3d_kernels.grid import Grid, check_roi, roi_grid
 from place3d_kernels.profiling import section
 
 __all__ = ["SceneSpec", "RoiSpec", "ConditionSpec", "PSOGSpec", "specs_from_args", "backend_name", "resolve_lidar",
@@ -260,22 +260,27 @@ def make_scene(spec: SceneSpec):
 # ============================================================================== grid
 @dataclass(frozen=True)
 class RoiSpec:
-    """The ROI grid: the default ROI box at ``voxel_size`` metres (None: the default grid itself)."""
+    """The ROI grid: a box (``roi``: None for the default 80 x 80 x 5 m, 3 sizes or 6 corners in metres,
+    ``grid.roi_bounds``) at ``voxel_size`` metres (None: 0.2 m). Both None: the default grid itself."""
 
     voxel_size: float | None = None
+    roi: tuple | None = None
+
+    def __post_init__(self):
+        if self.roi is not None:
+            object.__setattr__(self, "roi", tuple(float(x) for x in self.roi))
 
     def grid(self) -> Grid:
-        if self.voxel_size is None:
-            return DEFAULT_GRID
-        return Grid(DEFAULT_GRID.lower, DEFAULT_GRID.upper, self.voxel_size)
+        return roi_grid(self.roi, self.voxel_size)
 
     def to_dict(self) -> dict:
-        return {"voxel_size": self.voxel_size}
+        # "roi" only when chosen, so the manifests of runs made before ROIs could be chosen still match
+        return {"voxel_size": self.voxel_size, **({"roi": list(self.roi)} if self.roi is not None else {})}
 
     @classmethod
     def from_dict(cls, d: dict) -> "RoiSpec":
-        v = d.get("voxel_size")
-        return cls(None if v is None else float(v))
+        v, roi = d.get("voxel_size"), d.get("roi")
+        return cls(None if v is None else float(v), None if roi is None else tuple(roi))
 
 
 # ============================================================================== condition
@@ -369,6 +374,14 @@ class PSOGSpec:
     @property
     def voxel_size(self) -> float | None:
         return self.grid.voxel_size
+
+    def check_mount(self) -> None:
+        """``ValueError`` naming --roi when the collection LiDAR's mount lies outside the ROI."""
+        from place3d_kernels.grid import check_inside
+        from place3d_kernels.simulate import DEFAULT_MOUNT
+
+        check_inside(self.grid.grid(), (DEFAULT_MOUNT if self.mount is None else self.mount)[:3],
+                     "the collection LiDAR")
 
     def build(self, backend=None, cache: bool | str = True, progress: bool = False, aggregate=None,
               save_in_background: bool = False):
@@ -480,7 +493,7 @@ def _load_psog(spec: PSOGSpec):
 
 # ============================================================================== CLI
 def specs_from_args(args, frames_lidar=COLLECTION_LIDAR) -> PSOGSpec:
-    """The P-SOG spec named by the CLI's common options (--scene, --seed, --frames, --voxel-size,
+    """The P-SOG spec named by the CLI's common options (--scene, --seed, --frames, --voxel-size, --roi,
     --condition, --severity, --param, --backend, --vehicle), built once per command.
 
     ``--frames`` sweeps of ``frames_lidar`` (the collection LiDAR of the P-SOG; ``place3d simulate``: its
@@ -498,13 +511,16 @@ def specs_from_args(args, frames_lidar=COLLECTION_LIDAR) -> PSOGSpec:
     voxel = getattr(args, "voxel_size", None)
     if voxel is not None and not voxel > 0:
         raise ValueError(f"--voxel-size must be > 0 metres, got {voxel}")
+    roi = getattr(args, "roi", None)
+    check_roi(roi, voxel)                # malformed or too many voxels for memory: refused before any work
     scene = SceneSpec(args.scene, args.seed, args.frames, getattr(args, "labels", None), getattr(args, "route", None))
     if frames_lidar is not None and scene.kind in ("town", "opendrive") and args.frames >= 1:
         from place3d_kernels.simulate import check_frames
 
         # before the scene is built: a town of 100,000 frames took minutes to build alone
         check_frames(args.frames, frames_lidar, announce=True)
-    spec = PSOGSpec(scene.validate(), getattr(args, "backend", None), RoiSpec(voxel), cond,
+    spec = PSOGSpec(scene.validate(), getattr(args, "backend", None), RoiSpec(voxel, roi), cond,
                     vehicle=getattr(args, "vehicle", None))
+    spec.check_mount()                   # the collection LiDAR inside the ROI
     spec.vehicle_body()                 # an unknown preset or a missing mesh fails here, before any work
     return spec

@@ -12,7 +12,42 @@ from place3d_kernels.profiling import section
 
 from place3d_app.prefetch import backend_after_actors
 
-__all__ = ["add_common", "check_output_file", "check_output_dir", "psog_for_spec"]
+__all__ = ["add_common", "add_roi_argument", "check_rigs_in_roi", "check_pool_roi", "check_output_file",
+           "check_output_dir", "psog_for_spec"]
+
+
+#: --roi's help, shared by every command that takes --voxel-size.
+ROI_HELP = ("ROI box in metres, ego frame (x forward, y left, z up, z = 0 on the ground): 3 sizes LX LY LZ (x, y "
+            "centred on the ego, z from 0.45 m below the ground) or 6 corners X0 Y0 Z0 X1 Y1 Z1; faces snap outward "
+            "to -0.05 m + whole voxels (docs/assumptions.md, section 1). Default 80 80 5")
+
+
+def add_roi_argument(p) -> None:
+    """``--roi`` (3 sizes or 6 corners; ``grid.roi_bounds``), beside ``--voxel-size``."""
+    p.add_argument("--roi", type=float, nargs="+", default=None, metavar="M", help=ROI_HELP)
+
+
+def check_pool_roi(roi, voxel_size, rigs):
+    """The grid of ``--roi`` / ``--voxel-size``, checked before any drive is built: it fits in memory and
+    holds the collection LiDAR and every LiDAR of ``rigs`` (``{name: (..., L, 6) poses}``); ``ValueError``
+    naming the option otherwise."""
+    from place3d_kernels.grid import check_inside, check_roi
+    from place3d_kernels.simulate import DEFAULT_MOUNT
+
+    grid = check_roi(roi, voxel_size)
+    check_inside(grid, DEFAULT_MOUNT[:3], "the collection LiDAR")
+    check_rigs_in_roi(grid, rigs)
+    return grid
+
+
+def check_rigs_in_roi(grid, rigs) -> None:
+    """``ValueError`` naming --roi when a LiDAR of ``rigs`` (``{name: (L, 6) poses}``) lies outside ``grid``."""
+    import numpy as np
+
+    from place3d_kernels.grid import check_inside
+
+    for name, poses in rigs.items():
+        check_inside(grid, np.asarray(poses, dtype=np.float64)[..., :3], f"a LiDAR of {name!r}")
 
 
 class SceneList(argparse.Action):
@@ -42,6 +77,7 @@ def add_common(p: argparse.ArgumentParser, several_scenes: bool = False) -> None
     p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     p.add_argument("--frames", type=int, default=40, help="frames along the ego route (default 40, as the paper)")
     p.add_argument("--voxel-size", type=float, default=None, help="ROI voxel size in metres (default 0.2)")
+    add_roi_argument(p)
     p.add_argument("--no-cache", action="store_true", help="rebuild the P-SOG even if a cached one exists")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--condition", default=None,

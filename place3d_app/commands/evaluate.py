@@ -9,7 +9,7 @@ from pathlib import Path
 
 from place3d_kernels.profiling import section
 
-from place3d_app.commands.common import check_output_file, psog_for_spec
+from place3d_app.commands.common import check_output_file, check_rigs_in_roi, psog_for_spec
 from place3d_app.prefetch import start_for_spec
 
 __all__ = ["cmd_evaluate", "PLOT_SUFFIXES"]
@@ -40,6 +40,7 @@ def cmd_evaluate(args) -> int:
     lidar = LidarModel.load(args.lidar)
     names = args.placements or list(PAPER_PLACEMENTS)
     placements = [Placement.load(n) for n in names]
+    check_rigs_in_roi(spec.grid.grid(), {n: pl.poses for n, pl in zip(names, placements)})
     body = spec.vehicle_body()
     from place3d_app.commands.routes import build_missing, drive_specs, pooled_psog
 

@@ -102,6 +102,7 @@ def check_args(args, spec) -> None:
     if not 1 <= args.lidars <= 8:
         raise ValueError(f"--lidars must be 1-8, got {args.lidars}")
     check_search_options(args)
+    check_box_in_roi(args, spec.grid.grid())
     if args.output is not None and Path(args.output).exists() and not Path(args.output).is_dir():
         raise ValueError(f"--output {args.output} is an existing file; give a folder")
     if args.checkpoint is None and args.output is not None and args.restarts == 0:
@@ -139,6 +140,22 @@ def check_args(args, spec) -> None:
                                "resume with the same settings, or start a fresh run (without --resume)"):
             raise ValueError(f"{args.checkpoint} has no manifest ({man.name}), so its settings cannot be checked; "
                              f"start a fresh run (without --resume)")
+
+
+def check_box_in_roi(args, grid) -> None:
+    """``ValueError`` naming --roi when a corner of the search box (the paper's, at --fixed-height if given)
+    or a LiDAR of the paper's placements (the baselines) lies outside the ROI ``grid``."""
+    import itertools
+
+    from place3d_app.commands.common import check_rigs_in_roi
+    from place3d_kernels.grid import check_inside
+    from place3d_kernels.optimize import DEFAULT_BOUNDS
+    from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
+
+    zs = DEFAULT_BOUNDS["z"] if args.fixed_height is None else (args.fixed_height,)
+    check_inside(grid, list(itertools.product(DEFAULT_BOUNDS["x"], DEFAULT_BOUNDS["y"], zs)),
+                 "a corner of the search box")
+    check_rigs_in_roi(grid, {n: Placement.load(n).poses for n in PAPER_PLACEMENTS})
 
 
 def check_search_options(args) -> None:

@@ -262,11 +262,12 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
               frames_per_subset: int | None = None, occlusion: str = "sog", rig_lidar: str = "place3d_16ch",
               collection_lidar: str = "collection_64ch", roll_units: str = "rad", det_variant: str = "vehicle",
               backend=None, executor=None, opendrive_dir=None, with_convergence: bool = True, cache=None,
-              progress: bool = False, route_seeds=None, placements=()) -> dict:
+              progress: bool = False, route_seeds=None, placements=(), roi=None) -> dict:
     """Run the study; returns the JSON-able result (see the module docstring for its keys).
 
     ``route_seeds``: the seeds of the routes (default 0 .. routes-1); ``placements``: the user's rigs
-    (names or TOML paths), scored beside the paper's eight."""
+    (names or TOML paths), scored beside the paper's eight; ``roi``: the ROI box (``grid.roi_bounds``:
+    None for the default, 3 sizes or 6 corners in metres)."""
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.placement import Placement
@@ -292,7 +293,11 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
             drives.append(Drive(s, seed=seed_r, frames=frames))
             routes_of.append(r)
             town_of.append(i)
-    settings = PoolSettings(voxel_size, collection_lidar, frames_per_subset, b.name, cache)
+    settings = PoolSettings(voxel_size, collection_lidar, frames_per_subset, b.name, cache, roi)
+    from place3d_app.commands.common import check_pool_roi
+
+    check_pool_roi(roi, voxel_size, {f"{t} placements": p for t, p in
+                                     placement_poses("rad", [pl.poses for pl in extra] or None).items()})
     t1 = time.perf_counter()
     pooled = build_pooled(drives, settings, executor=executor, progress=progress)
     t_pool = time.perf_counter() - t1
@@ -409,6 +414,9 @@ def add_arguments(p) -> None:
                    help="also score these placements (names or TOML files, 4 LiDARs), ranked beside the paper's eight")
     p.add_argument("--frames", type=int, default=40, help="frames per route (default 40, as the paper)")
     p.add_argument("--voxel-size", type=float, default=None, help="voxel size in metres (default 0.2)")
+    from place3d_app.commands.common import add_roi_argument
+
+    add_roi_argument(p)
     p.add_argument("--frames-per-subset", type=int, default=None, help="k frames per SOG (default 4)")
     p.add_argument("--occlusion", default="sog", choices=["sog", "none"], help="ray occlusion (default sog)")
     p.add_argument("--lidar", default="place3d_16ch", help="the rig's LiDAR (default place3d_16ch)")
@@ -435,7 +443,7 @@ def run(args) -> int:
         res = reproduce(args.towns, args.routes, args.frames, args.voxel_size, args.frames_per_subset, args.occlusion,
                         args.lidar, args.collection_lidar, args.roll_units, args.det_variant, args.backend, ex,
                         args.opendrive_dir, not args.no_convergence, progress=not args.quiet, route_seeds=seeds,
-                        placements=args.placements)
+                        placements=args.placements, roi=args.roi)
     finally:
         ex.shutdown()
     out = args.output or f"bench/results/reproduce-{datetime.now(timezone.utc).date().isoformat()}"

@@ -145,6 +145,10 @@ def run_rig(args, spec, psog_for) -> int:
 
     t0 = time.perf_counter()
     a = check_rig_args(args)
+    from place3d_kernels.grid import check_inside
+
+    for surf in a["surfaces"].values():
+        check_inside(spec.grid.grid(), surf.corners(), f"mounting surface {surf.name!r}")
     seed = args.opt_seed if args.opt_seed is not None else args.seed
     b = get_backend(args.backend)
     _, psog = psog_for(b)

@@ -7,6 +7,7 @@ The config (``place3d_kernels/configs/study/example.toml``)::
     lidar = "place3d_16ch"          # the rig's LiDAR model
     occlusion = "sog"
     voxel_size = 0.2                 # optional; default grid otherwise
+    roi = [80, 80, 5]                # optional ROI box: 3 sizes or 6 corners, metres (or --roi)
     frames_per_subset = 4            # optional
     placements = ["center", "line", "pyramid"]     # names or TOML paths
 
@@ -56,6 +57,9 @@ def add_arguments(p) -> None:
     p.add_argument("--output", default=None, help="output folder (default: study-<name>/)")
     p.add_argument("--backend", default=None, help="backend of the tasks (default: $PLACE3D_BACKEND or auto)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    from place3d_app.commands.common import add_roi_argument
+
+    add_roi_argument(p)                 # overrides [study] roi
     p.add_argument("--resamples", type=int, default=None,
                    help="bootstrap resamples per cell over its drive's subsets (default: [study] resamples or 200; "
                         "0: no intervals)")
@@ -159,7 +163,10 @@ def study_settings(cfg: dict) -> dict:
     return {"lidar": cfg.get("lidar", "place3d_16ch"), "occlusion": cfg.get("occlusion", "sog"),
             "voxel_size": cfg.get("voxel_size"), "frames_per_subset": cfg.get("frames_per_subset")
             or DEFAULT_FRAMES_PER_SUBSET, "collection_lidar": cfg.get("collection_lidar", "collection_64ch"),
-            "resamples": int(cfg.get("resamples", DEFAULT_RESAMPLES)), "resample_seed": int(cfg.get("resample_seed", 0))}
+            "resamples": int(cfg.get("resamples", DEFAULT_RESAMPLES)),
+            "resample_seed": int(cfg.get("resample_seed", 0)),
+            # only when chosen, so the cells and manifests of studies made before ROIs could be chosen still match
+            **({"roi": [float(x) for x in cfg["roi"]]} if cfg.get("roi") is not None else {})}
 
 
 #: Bootstrap resamples per cell unless the config or --resamples says otherwise.
@@ -171,8 +178,14 @@ def _check_entries(cfg: dict) -> None:
     from place3d_kernels.placement import Placement
     from place3d_kernels.spec import ConditionSpec, SceneSpec, resolve_lidar
 
+    from place3d_kernels.grid import check_inside, check_roi
+
+    from place3d_kernels.simulate import DEFAULT_MOUNT
+
+    grid = check_roi(cfg.get("roi"), cfg.get("voxel_size"))
+    check_inside(grid, DEFAULT_MOUNT[:3], "the collection LiDAR")
     for p in cfg["placements"]:
-        Placement.load(p)
+        check_inside(grid, Placement.load(p).poses[:, :3], f"a LiDAR of {p!r}")
     resolve_lidar(cfg.get("lidar", "place3d_16ch"))
     if cfg.get("occlusion", "sog") not in ("sog", "none"):
         raise ValueError(f"study occlusion must be 'sog' or 'none', got {cfg.get('occlusion')!r}")
@@ -235,7 +248,7 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
         sspec = SceneSpec.from_dict(s)
         for c in cfg["conditions"]:
             cspec = ConditionSpec.from_dict(c)
-            pspec = PSOGSpec(sspec, bname, RoiSpec(cfg.get("voxel_size")), cspec,
+            pspec = PSOGSpec(sspec, bname, RoiSpec(cfg.get("voxel_size"), cfg.get("roi")), cspec,
                              cfg.get("collection_lidar", "collection_64ch"), cfg.get("frames_per_subset")).resolved()
             clabel = "clean" if cspec is None else cspec.label
             for p in cfg["placements"]:
@@ -345,6 +358,8 @@ def run(args) -> int:
     cfg = load_config(args.config)
     if args.resamples is not None:
         cfg["resamples"] = args.resamples
+    if args.roi is not None:
+        cfg["roi"] = args.roi
     ex = executor_from_args(args)
     try:
         res = run_study(cfg, args.output, ex, args.backend, progress=not args.quiet,
