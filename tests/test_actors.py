@@ -95,6 +95,11 @@ def test_mixed_pool_scores_equal_in_process_in_candidate_order(spec):
         assert sum(s["rigs"] for s in pool.stats) == 30
         det = msog_batch(psog, TINY, poses[:7], occlusion="none", task="det", backend="warp:cpu")
         np.testing.assert_array_equal(pool.score(spec, TINY, poses[:7], "none", "det", chunk=1), det)
+        # the normalisation reaches the actors (optimize's default is uncertain, issue 34 item 4)
+        for n in ("evidence", "uncertain"):
+            want_n = msog_batch(psog, TINY, poses, backend="warp:cpu", normalisation=n)
+            assert not np.array_equal(want_n, want["warp:cpu"])
+            np.testing.assert_array_equal(pool.score(spec, TINY, poses, chunk=3, normalisation=n), want_n)
     finally:
         pool.shutdown()
 

@@ -155,6 +155,26 @@ def test_search_enumerates_small_and_uses_integer_genes_for_large(psog):
     assert set(r.best.sensors) <= set(many)
 
 
+@pytest.mark.parametrize("normalisation", ["evidence", "uncertain"])
+def test_search_scores_with_its_normalisation(psog, normalisation):
+    """optimize's default normalisation (uncertain) reaches the real-rig search: every rig it reports
+    carries the score of that denominator, not the paper's (issue 34, item 4)."""
+    surf = surfaces_for(CAR, ["roof", "front-bumper"])
+    prob = RigProblem(psog, {"grid": GRID_M, "offset": OFFSET_M}, surf, 2, ("x", "y", "yaw"), CAR,
+                      backend="reference", normalisation=normalisation)
+    r = search_rigs(prob, max_evals=12, seed=1)
+    for c in r.per_combination:
+        rig = [([prob.sensors[s] for s in c.sensors], c.poses)]
+        assert rm.msog_rigs(psog, rig, CAR, backend="reference", normalisation=normalisation).msog[0] == c.msog
+        assert rm.msog_rigs(psog, rig, CAR, backend="reference").msog[0] != c.msog
+    # a one-model rig: the number msog_batch gives with the body
+    same = ([OFFSET_M] * 2, r.per_combination[-1].poses)
+    assert rm.msog_rigs(psog, [same], CAR, backend="reference", normalisation=normalisation).msog[0] == \
+        p3k.msog(psog, OFFSET_M, same[1], body=CAR, backend="reference", normalisation=normalisation)
+    with pytest.raises(ValueError, match="normalisation must be one of"):
+        RigProblem(psog, {"grid": GRID_M}, surf, 1, ("x",), CAR, normalisation="per-ray")
+
+
 def test_blind_spot_constraint_penalises_exactly_the_rigs_that_break_it(psog):
     from place3d_kernels.blindspot import max_blind_extent
 
