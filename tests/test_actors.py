@@ -188,6 +188,7 @@ def test_cli_optimize_on_actors_writes_the_local_result(spec, tmp_path, capsys):
     a, b = (json.loads((tmp_path / d / "result.json").read_text()) for d in ("local", "actors"))
     for k in ("best_score", "best_placement", "evaluations", "baseline_scores"):
         assert a[k] == b[k], k
+    assert a["normalisation"] == b["normalisation"] == "uncertain"     # optimize's default, on actors too
     rows = [list(csv.DictReader((tmp_path / d / "history.csv").open())) for d in ("local", "actors")]
     drop = ("seconds", "time")
     assert [{k: v for k, v in r.items() if k not in drop} for r in rows[0]] \

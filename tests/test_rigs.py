@@ -236,13 +236,27 @@ def cli_runs(tmp_path_factory):
     return root, rc1, rc2
 
 
-def test_cli_writes_rig_outputs(cli_runs):
+def test_cli_writes_rig_outputs(cli_runs, monkeypatch):
     root, rc1, rc2 = cli_runs
     assert rc1 == 0 and rc2 == 0
     for d, extra in (("best", []), ("pareto", ["pareto.json", "pareto.png"])):
         names = sorted(p.name for p in (root / d).iterdir())
         assert names == sorted(["result.json", "rig.toml", "rig.png", "blindspot.png", *extra])
     res = json.loads((root / "best" / "result.json").read_text())
+    assert res["normalisation"] == "uncertain"          # optimize's default (issue 34, item 4)
+    # the winner's score is its uncertain M-SOG on the searched P-SOG (poses rounded to 1e-6 m in result.json)
+    from place3d_app.cli import build_parser
+    from place3d_app.commands.rig import check_rig_args
+    from place3d_kernels.spec import specs_from_args
+
+    monkeypatch.setenv("PLACE3D_CACHE", str(root / "cache"))
+    args = build_parser().parse_args(["optimize", *RIG, *TINY])
+    sensors = check_rig_args(args)["sensors"]
+    rig = [([sensors[s] for s in res["best"]["sensors"]], np.array(res["best"]["poses"]))]
+    psog = specs_from_args(args).load()
+    score = {n: rm.msog_rigs(psog, rig, CAR, normalisation=n).msog[0] for n in ("paper", "uncertain")}
+    assert res["best_msog"] == pytest.approx(score["uncertain"], rel=1e-4)
+    assert res["best_msog"] != pytest.approx(score["paper"], rel=1e-2)
     assert len(res["best"]["sensors"]) == 3 and set(res["best"]["sensors"]) <= {"vlp16", "os1-64"}
     assert set(res["best"]["surfaces"]) <= {"roof", "front-bumper"} and res["vehicle"]["name"] == "car"
     assert res["best_msog"] == max(c["msog"] for c in res["per_combination"] if c["msog"] is not None)
