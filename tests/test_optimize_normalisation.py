@@ -25,8 +25,8 @@ TINY = ["--frames", "8", "--voxel-size", "0.8", "--max-evals", "24", "--quiet", 
 RUNS = {
     # pooled over two routes, held out on a third; in-process fused scoring
     "default": ["--routes", "2", "--holdout-seeds", "5"],
-    # the pose cache (MSOGObjective) on one drive
-    "pose_cache": ["--routes", "1", "--pose-cache", "--no-holdout", "--interval", "none"],
+    # the pose cache (MSOGObjective) on one drive of 12 frames (T = 3: uncertain is flat on T = 2, see below)
+    "pose_cache": ["--routes", "1", "--frames", "12", "--pose-cache", "--no-holdout", "--interval", "none"],
     # the paper's definition, asked for: a run as every run without --normalisation was before the switch
     "paper": ["--routes", "1", "--normalisation", "paper", "--no-holdout", "--interval", "none"],
 }
@@ -101,6 +101,7 @@ def test_each_path_scores_with_its_normalisation(runs, monkeypatch, name, normal
     other = "paper" if normalisation != "paper" else "uncertain"
     assert r["best_score"] != score(best, other)          # the test tells the normalisations apart
     assert r["baseline_scores"] and all(v == score(Placement.load(k).poses) for k, v in r["baseline_scores"].items())
+    assert len(set(r["baseline_scores"].values())) > 1       # the objective tells rigs apart (not flat)
     if name == "default":
         # held-out re-scoring under the run's normalisation
         from place3d_app.commands.optimize import holdout_specs
@@ -172,3 +173,30 @@ def test_process_executor_scores_with_the_normalisation():
         ex.shutdown()
     with pytest.raises(ValueError, match="normalisation must be one of"):
         DistributedObjective(spec, "place3d_16ch", space, ex, normalisation="per-ray")
+
+
+def test_uncertain_on_two_subsets_is_flat_and_the_command_says_so(capsys):
+    """With T = 2 subsets every voxel with entropy has H = ln 2: uncertain scores every rig alike, so the
+    search has nothing to follow; the command warns (the tiny drives of the tests above are such P-SOGs)."""
+    from place3d_app.commands.optimize import flat_objective, warn_flat_objective
+    from place3d_kernels.optimize import SearchSpace
+    from place3d_kernels.spec import PSOGSpec, RoiSpec, SceneSpec
+
+    two = PSOGSpec(SceneSpec("town", 0, 8), B, RoiSpec(0.8)).resolved().load()
+    assert two.n_subsets == 2
+    space = SearchSpace(n_lidars=2)
+    X = np.random.default_rng(2).uniform(space.lower, space.upper, (5, space.dim))
+    poses = space.to_poses(X)
+    lidar = LidarModel.load("place3d_16ch")
+    flat = msog_batch(two, lidar, poses, backend=B, normalisation="uncertain")
+    assert np.all(flat == flat[0]) and flat[0] == pytest.approx(-np.log(2), abs=1e-9)
+    assert len(set(msog_batch(two, lidar, poses, backend=B).tolist())) > 1        # paper still ranks them
+    assert "T = 2 subsets" in flat_objective(two, "uncertain")
+    assert flat_objective(two, "paper") is None and flat_objective(two, "evidence") is None
+    three = PSOGSpec(SceneSpec("town", 0, 12), B, RoiSpec(0.8)).resolved().load()
+    assert three.n_subsets == 3 and flat_objective(three, "uncertain") is None
+    capsys.readouterr()
+    warn_flat_objective(two, "uncertain")
+    err = capsys.readouterr().err
+    assert err.startswith("place3d: warning: --normalisation uncertain on a P-SOG of T = 2 subsets")
+    assert "--normalisation paper" in err and len(err.strip().splitlines()) == 1
