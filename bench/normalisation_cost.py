@@ -63,7 +63,8 @@ def main() -> None:
            for n in ("paper", "uncertain")}
     summary = {"what": "place3d optimize, --normalisation paper vs uncertain, alternating", "runs": rows,
                "median": med, "max_evals": args.max_evals, "backend": args.backend, "extra": args.extra,
-               "machine": {"node": platform.node(), "processor": platform.processor(), "python": sys.version.split()[0]},
+               "machine": {"node": platform.node(), "processor": platform.processor(),
+                           "python": sys.version.split()[0]},
                "time_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -8,6 +8,8 @@ them) are refused, naming the option. The Ray paths are in tests/test_distribute
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import shutil
 
@@ -59,9 +61,6 @@ def runs(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("PLACE3D_CACHE", str(root / "cache"))
         for name, extra in RUNS.items():
-            import contextlib
-            import io
-
             buf = io.StringIO()
             with contextlib.redirect_stdout(buf):
                 assert main(["optimize", *TINY, *extra, "--output", str(root / name)]) == 0, name

@@ -160,11 +160,11 @@ def refuse_other_normalisation(args) -> None:
         man = Path(str(args.checkpoint) + ".manifest.json")
         found.append((man, stored_setup(man, "spec")))
     for where, setup in found:
-        if not setup:                # none there, or unreadable (claim_optimize_folder names that)
+        if not isinstance(setup, dict) or not setup:     # none, or unreadable (claim_optimize_folder names that)
             continue
         theirs = setup.get("normalisation", "paper")
         if theirs != args.normalisation:
-            was = (f" (optimize's default; it was 'paper' before)"
+            was = (" (optimize's default; it was 'paper' before)"
                    if args.normalisation == DEFAULT_NORMALISATION and theirs == "paper" else "")
             fix = (f"add --normalisation {theirs} to resume it, or drop --resume and pass --overwrite to start afresh"
                    if args.resume else f"add --normalisation {theirs} to continue that run, --overwrite to discard "
@@ -385,8 +385,9 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     best = res.best_placement
     best.name = f"optimized-{args.task}"
     print(f"best M-SOG ({args.task}, {args.normalisation} normalisation) {res.best_score:.6f} after "
-          f"{res.evaluations} evaluations in {seconds:.1f} s on {b.name}" + (f"; LiDAR poses traversed {objective.pose_misses}, reused {objective.pose_hits}"
-                            if args.pose_cache and executor is None else ""))
+          f"{res.evaluations} evaluations in {seconds:.1f} s on {b.name}"
+          + (f"; LiDAR poses traversed {objective.pose_misses}, reused {objective.pose_hits}"
+             if args.pose_cache and executor is None else ""))
     if not res.left_start:
         print(f"warning: the search never left its start ({res.evaluations} evaluations found nothing better "
               f"than {x0.name if x0 is not None else 'the box centre'}); raise --max-evals or --sigma0, or start "
