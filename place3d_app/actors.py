@@ -115,14 +115,16 @@ class ScoringActor:
             self._psogs[spec] = dataclasses.replace(spec, backend=self.backend.name).load()
         return self._psogs[spec]
 
-    def score(self, spec, lidar, poses, occlusion: str = "sog", task: str = "seg") -> tuple:
+    def score(self, spec, lidar, poses, occlusion: str = "sog", task: str = "seg",
+              normalisation: str = "paper") -> tuple:
         """``(scores, seconds)``: ``msog_batch`` of the chunk ``poses`` (n, L, 6) and its time here."""
         from place3d_kernels.metrics import msog_batch
         from place3d_kernels.spec import resolve_lidar
 
         psog = self.psog(spec)
         t = time.perf_counter()
-        s = msog_batch(psog, resolve_lidar(lidar), poses, occlusion=occlusion, task=task, backend=self.backend)
+        s = msog_batch(psog, resolve_lidar(lidar), poses, occlusion=occlusion, task=task, backend=self.backend,
+                       normalisation=normalisation)
         return np.asarray(s, dtype=np.float64), time.perf_counter() - t
 
 
@@ -199,10 +201,10 @@ class ScoringPool:
                 text = lines[-1].strip() if lines else type(e).__name__
             raise ActorScoringError(f"{desc} failed {what}: {text}") from e
 
-    def warm(self, spec, lidar, poses, occlusion: str = "sog", task: str = "seg") -> None:
+    def warm(self, spec, lidar, poses, occlusion: str = "sog", task: str = "seg", normalisation: str = "paper") -> None:
         """Load the P-SOG and compile the kernels in every actor (one rig each), before timing."""
         self.info()
-        refs = [a.score.remote(spec, lidar, poses[:1], occlusion, task) for a in self.actors]
+        refs = [a.score.remote(spec, lidar, poses[:1], occlusion, task, normalisation) for a in self.actors]
         for i, r in enumerate(refs):
             self._get(r, i, "warming up")
 
@@ -211,12 +213,12 @@ class ScoringPool:
                                  left)
 
     def score(self, spec, lidar, poses, occlusion: str = "sog", task: str = "seg",
-              chunk: int | None = None) -> np.ndarray:
+              chunk: int | None = None, normalisation: str = "paper") -> np.ndarray:
         """M-SOG of each rig of ``poses`` (P, L, 6), in candidate order.
 
         Args:
             spec: the ``PSOGSpec`` (resolved: backend name and cache folder fixed in the driver).
-            lidar: LiDAR name or model; occlusion, task: as ``msog_batch``.
+            lidar: LiDAR name or model; occlusion, task, normalisation: as ``msog_batch``.
             chunk: rigs per chunk (default: one chunk per actor when all are GPU actors, since every
                 round trip costs a GPU actor a fixed overhead: on two GPUs, a large population in two chunks
                 took about half the time of one GPU actor (bench/README.md, "What the studies found",
@@ -255,7 +257,7 @@ class ScoringPool:
                 left -= n
                 busy += n
                 idle.remove(i)
-                ref = self.actors[i].score.remote(spec, lidar, poses[s:s + n], occlusion, task)
+                ref = self.actors[i].score.remote(spec, lidar, poses[s:s + n], occlusion, task, normalisation)
                 inflight[ref] = (i, k, s, time.perf_counter())
             done, _ = self._ray.wait(list(inflight), num_returns=1)
             i, k, s, t0 = inflight.pop(done[0])

@@ -506,11 +506,11 @@ def simulate_to_folder(scene: SceneSpec | tuple, lidar="collection_64ch", out="s
 
 # ============================================================================== P-SOG and scoring
 def _score_task(t: tuple) -> np.ndarray:
-    psog_spec, lidar, poses, occlusion, task, backend = t
+    psog_spec, lidar, poses, occlusion, task, backend, normalisation = t
     from place3d_kernels.metrics import msog_batch
 
     return np.asarray(msog_batch(psog_spec.load(), resolve_lidar(lidar), poses, occlusion=occlusion, task=task,
-                                 backend=backend), dtype=np.float64)
+                                 backend=backend, normalisation=normalisation), dtype=np.float64)
 
 
 @dataclass
@@ -518,7 +518,8 @@ class DistributedObjective:
     """``objective(X) -> (P,) M-SOG`` with each batch split into chunks scored as executor tasks, or on
     the executor's scoring actors when it has them (``RayExecutor(gpu_actors=..., cpu_actors=...)``).
 
-    Same scores as ``msog_batch(psog, lidar, space.to_poses(X), ...)`` (each rig is scored on its own).
+    Same scores as ``msog_batch(psog, lidar, space.to_poses(X), ...)`` (each rig is scored on its own), with
+    the same ``normalisation`` (the M-SOG denominator travels with every task and actor call).
 
     Args:
         psog: ``PSOGSpec`` (workers load the cached P-SOG; call ``psog.load()`` in the driver first so
@@ -526,6 +527,7 @@ class DistributedObjective:
         lidar: LiDAR name or model of the rig; space: the ``SearchSpace``.
         executor: the executor; chunk: candidates per task (default: batch split into 2 x workers' tasks,
             here simply ``ceil(P / n_chunks)`` with ``n_chunks`` given; on actors: see ``ScoringPool.score``).
+        normalisation: M-SOG denominator, as in ``msog_batch`` ("paper", "evidence", "uncertain").
     """
 
     psog: PSOGSpec
@@ -537,9 +539,13 @@ class DistributedObjective:
     backend: str | None = None
     chunk: int | None = None
     n_chunks: int = 2
+    normalisation: str = "paper"
     calls: int = field(default=0, init=False)
 
     def __post_init__(self):
+        from place3d_kernels.metrics import check_normalisation
+
+        check_normalisation(self.normalisation)       # refused in the driver, before any task
         self.psog = self.psog.resolved()
         self.backend = backend_name(self.backend if self.backend is not None else self.psog.backend)
 
@@ -550,9 +556,10 @@ class DistributedObjective:
         self.calls += 1
         if getattr(self.executor, "has_actors", False):
             pool = self.executor.scoring_pool(self.backend)
-            return pool.score(self.psog, self.lidar, poses, self.occlusion, self.task, chunk=self.chunk)
+            return pool.score(self.psog, self.lidar, poses, self.occlusion, self.task, chunk=self.chunk,
+                              normalisation=self.normalisation)
         size = self.chunk or -(-len(poses) // max(1, self.n_chunks))
         parts = [poses[i:i + size] for i in range(0, len(poses), size)]
-        res = self.executor.map(_score_task, [(self.psog, self.lidar, p, self.occlusion, self.task, self.backend)
-                                              for p in parts])
+        res = self.executor.map(_score_task, [(self.psog, self.lidar, p, self.occlusion, self.task, self.backend,
+                                               self.normalisation) for p in parts])
         return np.concatenate(res) if res else np.zeros(0)

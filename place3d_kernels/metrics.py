@@ -101,11 +101,13 @@ def _indicator_handle(p: PSOG, kind: str, b, occlusion: str):
 
 
 def coverage_counts(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", task: str = "seg",
-                    backend=None, mesh: Mesh | None = None, kinds=INDICATORS) -> dict:
+                    backend=None, mesh: Mesh | None = None, kinds=INDICATORS, body=None) -> dict:
     """Exact integer pieces of M-SOG for P rigs: entropy sums, N_L and the indicator counts.
 
     Args:
-        psog, lidar, poses, occlusion, task, backend, mesh: as in ``msog_batch``.
+        psog, lidar, poses, occlusion, task, backend, mesh, body: as in ``msog_batch``; a sensor that
+            ``msog_batch`` scores by explicit rays (not a grid, a minimum range, a body) is counted on the
+            same rays, so ``score_from_counts`` gives its scores bit for bit.
         kinds: indicator counts to add (subset of ``("evidence", "uncertain")``).
 
     Returns:
@@ -123,6 +125,8 @@ def coverage_counts(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog"
     p = psog.for_task(task)
     b = get_backend(backend)
     out = {}
+    if body is not None or not lidar.is_grid or lidar.min_range > 0:
+        return _ray_counts(p, lidar, poses, occlusion, b, mesh, kinds, body)
     if occlusion == "mesh":
         masks = [mesh_mask(p, lidar, rig, mesh, b) for rig in poses]
         out["sum"] = np.array([p.weights[m].sum(dtype=np.int64) for m in masks], dtype=np.int64)
@@ -138,6 +142,25 @@ def coverage_counts(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog"
     out["sum"], out["n_covered"] = np.asarray(sums, np.int64), np.asarray(counts, np.int64)
     for k in kinds:
         n, _ = b.score_placements(_indicator_handle(p, k, b, occlusion), el, az, r, local)
+        out[f"n_{k}"] = np.asarray(n, np.int64)
+    return out
+
+
+def _ray_counts(p: PSOG, lidar: LidarModel, poses: np.ndarray, occlusion: str, b, mesh, kinds, body) -> dict:
+    """``coverage_counts`` on the explicit rays ``msog_batch`` scores such a sensor with (``rig_metrics``)."""
+    from place3d_kernels.rig_metrics import rigs_rays
+
+    o, d, te, off, reasons = rigs_rays([([lidar] * len(rig), rig) for rig in poses], body, b,
+                                       mesh if occlusion == "mesh" else None)
+    bad = [i for i, r in enumerate(reasons) if r]
+    if bad:
+        raise ValueError(f"rig {bad[0]}: {reasons[bad[0]]}")
+    occ = "none" if occlusion == "mesh" else occlusion       # the mesh already ended the rays
+    local = p.grid.to_local(o)
+    sums, counts = b.score_rays(p.handle(b, occ), local, d, te, off)
+    out = {"sum": np.asarray(sums, np.int64), "n_covered": np.asarray(counts, np.int64)}
+    for k in kinds:
+        n, _ = b.score_rays(_indicator_handle(p, k, b, occ), local, d, te, off)
         out[f"n_{k}"] = np.asarray(n, np.int64)
     return out
 
@@ -172,8 +195,9 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
         normalisation: denominator of the mean: ``"paper"`` (N_L, every covered voxel; the default and
             the paper's definition), ``"evidence"`` (covered voxels stored in the P-SOG, i.e. occupied in at
             least one subset) or ``"uncertain"`` (covered voxels with H > 0). See
-            docs/metric-normalisation.md for why N_L rewards rays through empty air. The alternatives take
-            grid LiDARs without a body or minimum range.
+            docs/metric-normalisation.md for why N_L rewards rays through empty air. Every normalisation
+            takes every sensor, body and minimum range (the alternatives count their voxels with a second
+            call of the same kernel).
         body: optional ``VehicleBody`` (ego frame) whose surface blocks rays.
 
     Returns:
@@ -182,10 +206,8 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
     Raises:
         ValueError: bad inputs, or a LiDAR origin inside ``body`` (the message names it).
     """
-    if check_normalisation(normalisation) != "paper":
-        if body is not None or not lidar.is_grid or lidar.min_range > 0:
-            raise ValueError(f"normalisation {normalisation!r} takes grid LiDARs without a body or minimum "
-                             f"range; use normalisation='paper' for {lidar.name or 'this sensor'}")
+    rays = body is not None or not lidar.is_grid or lidar.min_range > 0
+    if check_normalisation(normalisation) != "paper" and not rays:
         return score_from_counts(coverage_counts(psog, lidar, poses, occlusion, task, backend, mesh,
                                                  kinds=(normalisation,)), normalisation)
     poses = _poses(poses)
@@ -196,11 +218,12 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
         return np.zeros(0, dtype=np.float64)
     p = psog.for_task(task)
     b = get_backend(backend)
-    if body is not None or not lidar.is_grid or lidar.min_range > 0:
+    if rays:
         from place3d_kernels.rig_metrics import msog_rigs
 
         r = msog_rigs(psog, [([lidar] * len(rig), rig) for rig in poses], body, task,
-                      "none" if occlusion == "mesh" else occlusion, b, mesh if occlusion == "mesh" else None)
+                      "none" if occlusion == "mesh" else occlusion, b, mesh if occlusion == "mesh" else None,
+                      normalisation=normalisation)
         bad = np.flatnonzero(~r.feasible)
         if len(bad):
             raise ValueError(f"rig {int(bad[0])}: {r.reasons[bad[0]]}")

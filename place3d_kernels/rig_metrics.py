@@ -251,13 +251,25 @@ def rigs_rays(rigs, body: VehicleBody | None = None, backend=None, mesh=None):
 
 
 def msog_rigs(psog: PSOG, rigs, body: VehicleBody | None = None, task: str = "seg", occlusion: str = "sog",
-              backend=None, mesh=None) -> BatchScores:
+              backend=None, mesh=None, normalisation: str = "paper") -> BatchScores:
     """M-SOG of P heterogeneous rigs (see ``rigs_rays``) in one ``score_rays`` launch.
 
     Infeasible rigs (a LiDAR inside the body) get NaN and a reason, never an exception.
+
+    ``normalisation`` picks the denominator as in ``metrics.msog_batch``. For ``"evidence"`` and
+    ``"uncertain"`` the same rays are scored a second time on the grid of 0/1 indicator weights
+    (``metrics.indicator_weights``), whose exact integer sums count the covered voxels that belong in the
+    denominator; ``counts`` stays N_L.
     """
+    from place3d_kernels.metrics import _indicator_handle, check_normalisation
+
+    check_normalisation(normalisation)
     b = get_backend(backend)
     o, d, te, off, reasons = rigs_rays(rigs, body, b, mesh)
     feasible = np.array([r == "" for r in reasons], dtype=bool)
     sums, counts = rig_sums(psog, o, d, te, off, task, occlusion, b)
-    return BatchScores(np.where(feasible, msog_from_sums(sums, counts), np.nan), feasible, reasons, sums, counts)
+    den = counts
+    if normalisation != "paper":
+        p = psog.for_task(task)
+        den, _ = b.score_rays(_indicator_handle(p, normalisation, b, occlusion), p.grid.to_local(o), d, te, off)
+    return BatchScores(np.where(feasible, msog_from_sums(sums, den), np.nan), feasible, reasons, sums, counts)

@@ -95,6 +95,13 @@ def test_mixed_pool_scores_equal_in_process_in_candidate_order(spec):
         assert sum(s["rigs"] for s in pool.stats) == 30
         det = msog_batch(psog, TINY, poses[:7], occlusion="none", task="det", backend="warp:cpu")
         np.testing.assert_array_equal(pool.score(spec, TINY, poses[:7], "none", "det", chunk=1), det)
+        # the normalisation reaches the actors (optimize's default is uncertain, issue 34 item 4)
+        for n in ("evidence", "uncertain"):
+            want_n = msog_batch(psog, TINY, poses, backend="warp:cpu", normalisation=n)
+            assert not np.array_equal(want_n, want["warp:cpu"])
+            # T = 2 here: uncertain is -ln 2 for every rig; evidence still tells the rigs (and their order) apart
+            assert n == "uncertain" or len(set(want_n.tolist())) > 1
+            np.testing.assert_array_equal(pool.score(spec, TINY, poses, chunk=3, normalisation=n), want_n)
     finally:
         pool.shutdown()
 
@@ -173,7 +180,8 @@ def test_cli_optimize_on_actors_writes_the_local_result(spec, tmp_path, capsys):
     from place3d_app.cli import main
 
     # the Ray executor scores on one drive's P-SOG (a pooled one is refused): --routes 1
-    base = ["optimize", "--routes", "1", "--frames", "8", "--voxel-size", "0.8", "--lidars", "2", "--popsize", "8",
+    # 12 frames (T = 3): the default normalisation, uncertain, is flat on T = 2 and would hide an order error
+    base = ["optimize", "--routes", "1", "--frames", "12", "--voxel-size", "0.8", "--lidars", "2", "--popsize", "8",
             "--max-evals", "24",
             "--quiet", "--backend", "warp:cpu"]
     assert main(base + ["--output", str(tmp_path / "local")]) == 0
@@ -183,6 +191,7 @@ def test_cli_optimize_on_actors_writes_the_local_result(spec, tmp_path, capsys):
     a, b = (json.loads((tmp_path / d / "result.json").read_text()) for d in ("local", "actors"))
     for k in ("best_score", "best_placement", "evaluations", "baseline_scores"):
         assert a[k] == b[k], k
+    assert a["normalisation"] == b["normalisation"] == "uncertain"     # optimize's default, on actors too
     rows = [list(csv.DictReader((tmp_path / d / "history.csv").open())) for d in ("local", "actors")]
     drop = ("seconds", "time")
     assert [{k: v for k, v in r.items() if k not in drop} for r in rows[0]] \

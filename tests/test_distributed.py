@@ -7,6 +7,7 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from checks import assert_same_run
 
@@ -101,25 +102,34 @@ def test_ray_simulate_same_as_local_and_survives_a_killed_worker(tmp_path, ray_e
 
 
 @needs_ray
-def test_ray_optimize_same_as_local(tmp_path, ray_executor):
+@pytest.mark.parametrize("normalisation", ["paper", "uncertain"])
+def test_ray_optimize_same_as_local(tmp_path, ray_executor, normalisation):
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.optimize import MinDistance, SearchSpace, optimize
 
-    spec = PSOGSpec(SCENE, BACKEND, frames_per_subset=2).resolved()
+    # k = 1: T = 4 subsets (on T = 2 uncertain scores every rig -ln 2 and would hide an order error)
+    spec = PSOGSpec(SCENE, BACKEND, frames_per_subset=1).resolved()
     psog = spec.load()                                      # driver builds the cache; workers load it
     space = SearchSpace(n_lidars=2)
     lidar = "place3d_16ch"
     L = LidarModel.load(lidar)
 
     def local(X):
-        return msog_batch(psog, L, space.to_poses(X), occlusion="sog", task="seg", backend=BACKEND)
+        return msog_batch(psog, L, space.to_poses(X), occlusion="sog", task="seg", backend=BACKEND,
+                          normalisation=normalisation)
 
+    X = np.random.default_rng(0).uniform(space.lower, space.upper, (6, space.dim))
+    assert len(set(local(X).tolist())) > 1                  # the objective tells rigs apart
     kw = dict(max_evals=24, popsize=8, seed=5, progress=False)
     a = optimize(local, space, [MinDistance(0.2)], **kw)
-    dist = DistributedObjective(spec, lidar, space, ray_executor, task="seg", backend=BACKEND, n_chunks=2)
+    dist = DistributedObjective(spec, lidar, space, ray_executor, task="seg", backend=BACKEND, n_chunks=2,
+                                normalisation=normalisation)
     b = optimize(dist, space, [MinDistance(0.2)], **kw)
     assert dist.calls >= 2
     assert_same_run(a, b)
+    # the Ray tasks scored with the normalisation asked for (optimize's default is uncertain, issue 34)
+    assert b.best_score == msog_batch(psog, L, b.best_placement.poses[None], backend=BACKEND,
+                                      normalisation=normalisation)[0]
 
 
 @needs_ray

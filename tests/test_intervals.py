@@ -221,15 +221,17 @@ def test_evaluate_default_jackknife_matches_the_records(tmp_path):
             assert r["ci"][task][0] <= r[f"msog_{task}"] <= r["ci"][task][1]   # contains the printed score
 
 
-@pytest.mark.parametrize("ahead", ["0", "1"])
-def test_optimize_reports_intervals_of_the_best_rig_and_the_baselines(tmp_path, monkeypatch, ahead):
+@pytest.mark.parametrize("ahead, normalisation", [("0", "paper"), ("1", "paper"), ("1", "uncertain")])
+def test_optimize_reports_intervals_of_the_best_rig_and_the_baselines(tmp_path, monkeypatch, ahead, normalisation):
     # ahead "1": the left-out grids are prepared on a thread during the search (place3d_app.prefetch.prepare_in_background)
+    # where the jackknife takes them (the paper's normalisation); uncertain, optimize's default, takes the
+    # unprepared path and must give the library's intervals all the same
     from place3d_app.prefetch import PREFETCH_ENV
     from place3d_kernels.uncertainty import rig_vs_baselines_intervals
 
     monkeypatch.setenv(PREFETCH_ENV, ahead)
     out = tmp_path / "opt"
-    assert main(["optimize", *TINY, "--max-evals", "24", "--output", str(out)]) == 0
+    assert main(["optimize", *TINY, "--max-evals", "24", "--normalisation", normalisation, "--output", str(out)]) == 0
     d = json.loads((out / "result.json").read_text())
     iv = d["intervals"]
     assert iv["method"] == "jackknife" and iv["unit"] == "subsets" and iv["n_units"] == 4
@@ -238,7 +240,8 @@ def test_optimize_reports_intervals_of_the_best_rig_and_the_baselines(tmp_path, 
     # the same numbers from the library call
     want = rig_vs_baselines_intervals(_spec(), "place3d_16ch", np.asarray(d["best_placement"]),
                                       {n: Placement.load(n) for n in d["baseline_scores"]}, "seg", "sog",
-                                      method="jackknife", best_name="optimised")
+                                      method="jackknife", best_name="optimised", normalisation=normalisation)
+    assert d["normalisation"] == normalisation
     assert iv["best"]["ci"] == want["best"]["ci"]
     for r, w in zip(sorted(iv["baselines"], key=lambda r: r["name"]),
                     sorted(want["baselines"], key=lambda r: r["name"])):

@@ -108,6 +108,60 @@ def test_default_msog_is_the_paper_definition_bit_for_bit(psog, backend):
         assert default[i] == -(float(w[vox].sum(dtype=np.int64)) / p3k.backends.base.ENTROPY_SCALE) / len(vox)
 
 
+# sensors msog_batch scores by explicit rays (issue 34 item 4: optimize's default must take every sensor)
+OFFSET = p3k.LidarModel(elevations=[-0.5, -0.35, -0.2], azimuths=np.linspace(0, 2 * np.pi, 36, endpoint=False),
+                        max_range=40.0, azimuth_offsets=[0.0, 0.03, -0.02], min_range=0.6, name="offset")
+NEAR = p3k.LidarModel(elevations=[-0.5, -0.35, -0.2], azimuths=np.linspace(0, 2 * np.pi, 36, endpoint=False),
+                      max_range=40.0, min_range=0.6, name="near")
+
+
+@pytest.fixture(scope="module")
+def mixed():
+    """The ground of ``psog`` with a strip that is road in every subset (stored, H = 0): there the three
+    denominators differ (N_L > evidence > uncertain)."""
+    probs = np.zeros(GRID.shape + (22,))
+    probs[..., 0] = 1.0
+    probs[:, :, 0, 0] = 0.5
+    probs[:, :, 0, ROAD] = 0.5
+    probs[:, 20:, 0, 0] = 0.0
+    probs[:, 20:, 0, ROAD] = 1.0
+    return p3k.PSOG.from_probabilities(GRID, probs)
+
+
+@pytest.mark.parametrize("normalisation", ["paper", "evidence", "uncertain"])
+def test_ray_sensors_take_every_normalisation(mixed, backend, normalisation):
+    from place3d_kernels.metrics import coverage_counts, indicator_weights, score_from_counts
+    from place3d_kernels.ops import coverage
+    from place3d_kernels.rig_metrics import rigs_rays
+    from place3d_kernels.vehicle import VehicleBody
+
+    # a box under the rig: some downward rays end on it instead of the ground
+    box = VehicleBody.from_boxes([[[-1.0, -1.0, 0.0], [1.0, 1.0, 1.5]]], "box")
+    poses = SPACE.to_poses(np.array([[0.0, 0.0], [0.3, -0.2]]))
+    w = mixed.weights
+    den = np.ones_like(w) if normalisation == "paper" else indicator_weights(mixed, normalisation)
+    scores = {}
+    for lidar, body in ((OFFSET, None), (NEAR, None), (NEAR, box)):
+        got = msog_batch(mixed, lidar, poses, backend=backend, normalisation=normalisation, body=body)
+        # by hand: the covered voxels of the rays msog_batch builds (min range, offsets, body), summed in NumPy
+        o, d, te, off, _ = rigs_rays([([lidar] * 2, rig) for rig in poses], body, "reference")
+        want = []
+        for i in range(len(poses)):
+            s = slice(off[i], off[i + 1])
+            m = coverage(GRID, o[s], d[s], te[s], backend="reference", stop=mixed.stop_mask).reshape(-1)
+            want.append(-(float(w[m].sum(dtype=np.int64)) / p3k.backends.base.ENTROPY_SCALE)
+                        / int(den[m].sum(dtype=np.int64)))
+        assert got.tolist() == want, (lidar.name, body)
+        # the diagnostics and the held-out ranks count the same rays (optimize.diagnostics)
+        c = coverage_counts(mixed, lidar, poses, backend=backend, body=body)
+        assert np.array_equal(score_from_counts(c, normalisation), got)
+        scores[lidar.name, body is None] = c["n_covered"]
+    assert np.all(scores["near", False] < scores["near", True])        # the box ends rays early
+    # the three denominators differ on this P-SOG: the test tells them apart
+    others = {n: msog_batch(mixed, OFFSET, poses, normalisation=n) for n in ("paper", "evidence", "uncertain")}
+    assert len({tuple(v) for v in others.values()}) == 3
+
+
 def test_unknown_normalisation_is_refused(psog):
     with pytest.raises(ValueError, match="normalisation must be one of"):
         msog_batch(psog, LIDAR, LEVEL[None], normalisation="per-ray")
@@ -160,14 +214,16 @@ def test_cli_writes_diagnostics_and_holdout(tmp_path, capsys):
     assert "diagnostics: N_L" in printed and "held out town route 1: optimised" in printed
     assert "TRANSFERS: first of" in printed or "DOES NOT TRANSFER: not above every baseline" in printed
     r = json.loads((out / "result.json").read_text())
-    assert r["normalisation"] == "paper"
+    assert r["normalisation"] == "uncertain"                # optimize's default since issue 34, item 4
     assert set(r["diagnostics"]) >= {"on_bounds", "summary", "best", "baselines"}
     assert r["diagnostics"]["best"]["n_covered"] > 0
     (h,) = r["holdout"]
     assert h["scene"] == "town" and h["seeds"] == [1] and 1 <= h["rank"] <= h["n_rigs"] == 1 + len(r["baseline_scores"])
     assert set(h["baselines"]) == set(r["baseline_scores"])
     assert r["details"]["holdout"] == r["holdout"]
-    assert r["transfer"]["ranks"] == [h["rank"]] and r["transfer"]["transfers"] == (h["rank"] == 1)
+    # transfers: strictly above every baseline (a tie shares rank 1 and beats nothing)
+    assert r["transfer"]["ranks"] == [h["rank"]] and r["transfer"]["transfers"] == h["beats_all_baselines"]
+    assert h["beats_all_baselines"] == all(v < h["best"] for v in h["baselines"].values())
 
 
 def test_default_holdout_pools_unseen_routes_and_can_be_skipped():

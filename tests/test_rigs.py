@@ -155,6 +155,26 @@ def test_search_enumerates_small_and_uses_integer_genes_for_large(psog):
     assert set(r.best.sensors) <= set(many)
 
 
+@pytest.mark.parametrize("normalisation", ["evidence", "uncertain"])
+def test_search_scores_with_its_normalisation(psog, normalisation):
+    """optimize's default normalisation (uncertain) reaches the real-rig search: every rig it reports
+    carries the score of that denominator, not the paper's (issue 34, item 4)."""
+    surf = surfaces_for(CAR, ["roof", "front-bumper"])
+    prob = RigProblem(psog, {"grid": GRID_M, "offset": OFFSET_M}, surf, 2, ("x", "y", "yaw"), CAR,
+                      backend="reference", normalisation=normalisation)
+    r = search_rigs(prob, max_evals=12, seed=1)
+    for c in r.per_combination:
+        rig = [([prob.sensors[s] for s in c.sensors], c.poses)]
+        assert rm.msog_rigs(psog, rig, CAR, backend="reference", normalisation=normalisation).msog[0] == c.msog
+        assert rm.msog_rigs(psog, rig, CAR, backend="reference").msog[0] != c.msog
+    # a one-model rig: the number msog_batch gives with the body
+    same = ([OFFSET_M] * 2, r.per_combination[-1].poses)
+    assert rm.msog_rigs(psog, [same], CAR, backend="reference", normalisation=normalisation).msog[0] == \
+        p3k.msog(psog, OFFSET_M, same[1], body=CAR, backend="reference", normalisation=normalisation)
+    with pytest.raises(ValueError, match="normalisation must be one of"):
+        RigProblem(psog, {"grid": GRID_M}, surf, 1, ("x",), CAR, normalisation="per-ray")
+
+
 def test_blind_spot_constraint_penalises_exactly_the_rigs_that_break_it(psog):
     from place3d_kernels.blindspot import max_blind_extent
 
@@ -198,7 +218,8 @@ def test_price_table_names_missing_sensors(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------ CLI
-TINY = ["--frames", "8", "--voxel-size", "0.8", "--max-evals", "24", "--quiet", "--routes", "1",
+# 12 frames: T = 3 subsets, where optimize's default (uncertain) is not the same for every rig
+TINY = ["--frames", "12", "--voxel-size", "0.8", "--max-evals", "24", "--quiet", "--routes", "1",
         "--azimuth-step", "4"]
 RIG = ["--n-lidars", "3", "--sensors", "vlp16,os1-64", "--surfaces", "roof,front-bumper", "--dofs",
        "x,y,z,pitch,yaw", "--vehicle", "car"]
@@ -216,13 +237,27 @@ def cli_runs(tmp_path_factory):
     return root, rc1, rc2
 
 
-def test_cli_writes_rig_outputs(cli_runs):
+def test_cli_writes_rig_outputs(cli_runs, monkeypatch):
     root, rc1, rc2 = cli_runs
     assert rc1 == 0 and rc2 == 0
     for d, extra in (("best", []), ("pareto", ["pareto.json", "pareto.png"])):
         names = sorted(p.name for p in (root / d).iterdir())
         assert names == sorted(["result.json", "rig.toml", "rig.png", "blindspot.png", *extra])
     res = json.loads((root / "best" / "result.json").read_text())
+    assert res["normalisation"] == "uncertain"          # optimize's default (issue 34, item 4)
+    # the winner's score is its uncertain M-SOG on the searched P-SOG (poses rounded to 1e-6 m in result.json)
+    from place3d_app.cli import build_parser
+    from place3d_app.commands.rig import check_rig_args
+    from place3d_kernels.spec import specs_from_args
+
+    monkeypatch.setenv("PLACE3D_CACHE", str(root / "cache"))
+    args = build_parser().parse_args(["optimize", *RIG, *TINY])
+    sensors = check_rig_args(args)["sensors"]
+    rig = [([sensors[s] for s in res["best"]["sensors"]], np.array(res["best"]["poses"]))]
+    psog = specs_from_args(args).load()
+    score = {n: rm.msog_rigs(psog, rig, CAR, normalisation=n).msog[0] for n in ("paper", "uncertain")}
+    assert res["best_msog"] == pytest.approx(score["uncertain"], rel=1e-4)
+    assert res["best_msog"] != pytest.approx(score["paper"], rel=1e-2)
     assert len(res["best"]["sensors"]) == 3 and set(res["best"]["sensors"]) <= {"vlp16", "os1-64"}
     assert set(res["best"]["surfaces"]) <= {"roof", "front-bumper"} and res["vehicle"]["name"] == "car"
     assert res["best_msog"] == max(c["msog"] for c in res["per_combination"] if c["msog"] is not None)

@@ -138,6 +138,8 @@ def test_optimize_outputs_are_the_same(server, tmp_path):
     ra, rb = (json.loads((d / "out" / "result.json").read_text()) for d in (here, there))
     assert _untimed(ra) == _untimed(rb)
     assert ra["provenance"]["argv"] == rb["provenance"]["argv"]
+    # the server parses the command as the client would: optimize's default normalisation (issue 34, item 4)
+    assert ra["normalisation"] == "uncertain" and "(seg, uncertain normalisation)" in b.stdout
 
 
 def test_profile_counts_the_clients_start_up_not_the_servers_age(server):

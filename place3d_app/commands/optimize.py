@@ -15,7 +15,12 @@ import numpy as np
 
 from place3d_kernels.profiling import section
 
-__all__ = ["add_arguments", "run", "start_plots"]
+__all__ = ["add_arguments", "run", "start_plots", "DEFAULT_NORMALISATION"]
+
+#: The M-SOG denominator ``place3d optimize`` searches with unless ``--normalisation`` says otherwise: the one
+#: whose winners held best on held-out routes and towns (docs/metric-normalisation.md, "Which objective's
+#: winners transfer"). ``evaluate`` and ``reproduce`` keep the paper's definition ("paper").
+DEFAULT_NORMALISATION = "uncertain"
 
 
 def add_arguments(p) -> None:
@@ -50,10 +55,12 @@ def add_arguments(p) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace the results and checkpoint of another run in --output (refused otherwise)")
     p.add_argument("--output", default=None, help="folder for result.json, placement TOML, history.csv and plots")
-    # issue 13 item 4: an optimiser that cannot game the metric (docs/metric-normalisation.md)
-    p.add_argument("--normalisation", default="paper", choices=["paper", "evidence", "uncertain"],
-                   help="M-SOG denominator: 'paper' (N_L, every covered voxel; default), 'evidence' (covered voxels "
-                        "ever occupied in the P-SOG) or 'uncertain' (covered voxels with H > 0)")
+    # issue 13 item 4, issue 34 item 4: an optimiser whose winners transfer (docs/metric-normalisation.md)
+    p.add_argument("--normalisation", default=DEFAULT_NORMALISATION, choices=["paper", "evidence", "uncertain"],
+                   help=f"M-SOG denominator the search maximises: 'uncertain' (covered voxels with H > 0; default "
+                        f"{DEFAULT_NORMALISATION!r}: its winners transferred best to held-out routes and towns), "
+                        f"'evidence' (covered voxels ever occupied in the P-SOG) or 'paper' (N_L, every covered "
+                        f"voxel: the paper's definition, evaluate's default)")
     p.add_argument("--holdout-seeds", default=None, metavar="SEEDS",
                    help="route seeds of the held-out P-SOGs, pooled per scene, e.g. 100-103 (default: as many routes "
                         "as the search pooled, from seed 100); the winner's rank among the baselines there is the "
@@ -128,10 +135,8 @@ def check_args(args, spec) -> None:
                                                          or getattr(args, "ray_address", None)):
         raise ValueError("the Ray executor scores on one drive's P-SOG; run a pooled P-SOG locally, or use "
                          "--routes 1 with --executor ray")
-    if args.normalisation != "paper" and (getattr(args, "executor", "local") == "ray"
-                                          or getattr(args, "ray_address", None)):
-        raise ValueError(f"--normalisation {args.normalisation} is not supported with the Ray executor; "
-                         f"run locally or use --normalisation paper")
+    if not getattr(args, "overwrite", False):
+        refuse_other_normalisation(args)
     claim_optimize_folder(args.output, args.checkpoint, run_setup(args, spec), getattr(args, "overwrite", False),
                           args.resume)           # another run's results or an old pickle checkpoint: refused
     if args.resume and args.checkpoint is not None and Path(args.checkpoint).exists():
@@ -156,6 +161,53 @@ def check_box_in_roi(args, grid) -> None:
     check_inside(grid, list(itertools.product(DEFAULT_BOUNDS["x"], DEFAULT_BOUNDS["y"], zs)),
                  "a corner of the search box")
     check_rigs_in_roi(grid, {n: Placement.load(n).poses for n in PAPER_PLACEMENTS})
+
+
+def refuse_other_normalisation(args) -> None:
+    """Refuse results or a checkpoint (``--output``, ``--checkpoint``) of a run that searched with another
+    normalisation, naming the option: before ``uncertain`` became the default, a run without
+    ``--normalisation`` searched with ``paper``, and its checkpoint must not be continued as ``uncertain``.
+    (``run_setup`` records the normalisation only when it is not the paper's, so such files hold none.)"""
+    from place3d_kernels.outputs import stored_setup
+
+    found = []
+    if args.output is not None:
+        found.append((Path(args.output) / "result.json", stored_setup(Path(args.output) / "result.json", "setup")))
+    if args.checkpoint is not None:
+        man = Path(str(args.checkpoint) + ".manifest.json")
+        found.append((man, stored_setup(man, "spec")))
+    for where, setup in found:
+        if not isinstance(setup, dict) or not setup:     # none, or unreadable (claim_optimize_folder names that)
+            continue
+        theirs = setup.get("normalisation", "paper")
+        if theirs != args.normalisation:
+            was = (" (optimize's default; it was 'paper' before)"
+                   if args.normalisation == DEFAULT_NORMALISATION and theirs == "paper" else "")
+            fix = (f"add --normalisation {theirs} to resume it, or drop --resume and pass --overwrite to start afresh"
+                   if args.resume else f"add --normalisation {theirs} to continue that run, --overwrite to discard "
+                                       f"it, or choose a fresh folder")
+            raise ValueError(f"{where} is from a run that searched with --normalisation {theirs}; this one searches "
+                             f"with {args.normalisation}{was}: {fix}")
+
+
+def flat_objective(psog, normalisation: str) -> str | None:
+    """Why ``normalisation`` scores every rig alike on ``psog``, or None. With T = 2 subsets a voxel's class
+    frequencies are 1 or 1/2 + 1/2, so every voxel with H > 0 has H = ln 2 and the uncertain M-SOG is -ln 2
+    for any rig that covers one: the search has nothing to follow."""
+    if normalisation == "uncertain" and psog.n_subsets == 2:
+        return (f"--normalisation uncertain on a P-SOG of T = 2 subsets scores every rig -ln 2 = {-np.log(2):.6f} "
+                f"(each voxel with entropy has H = ln 2): pool more routes (--routes), use more --frames (T >= 3), "
+                f"or --normalisation paper")
+    return None
+
+
+def warn_flat_objective(psog, normalisation: str) -> None:
+    """Print ``flat_objective``'s reason as a warning on stderr (the search still runs, as asked)."""
+    import sys
+
+    why = flat_objective(psog, normalisation)
+    if why:
+        print(f"place3d: warning: {why}", file=sys.stderr)
 
 
 def check_search_options(args) -> None:
@@ -271,6 +323,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
             b = probe.result()
     finally:
         bg.shutdown(wait=False)
+    warn_flat_objective(psog, args.normalisation)
     if plotter is not None and plotter.processes:
         plotter.keep_panel(*entropy_view(psog))     # coverage.png's left panel, drawn during the search
     # The jackknife after the search scores the rigs on the drive's left-out grids, which depend on the
@@ -292,8 +345,9 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
         from place3d_app.executors import DistributedObjective, executor_from_args
 
         executor = executor_from_args(args)
-        objective = DistributedObjective(dataclasses.replace(spec, backend=b.name), lidar, space, executor, task=args.task, occlusion=args.occlusion,
-                                         backend=b.name, chunk=args.chunk)
+        objective = DistributedObjective(dataclasses.replace(spec, backend=b.name), lidar, space, executor,
+                                         task=args.task, occlusion=args.occlusion, backend=b.name, chunk=args.chunk,
+                                         normalisation=args.normalisation)
     elif args.pose_cache:
         objective = MSOGObjective(psog, lidar, space, task=args.task, occlusion=args.occlusion, backend=b,
                                   normalisation=args.normalisation)
@@ -347,9 +401,10 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     seconds = time.perf_counter() - t0
     best = res.best_placement
     best.name = f"optimized-{args.task}"
-    print(f"best M-SOG ({args.task}) {res.best_score:.6f} after {res.evaluations} evaluations in {seconds:.1f} s "
-          f"on {b.name}" + (f"; LiDAR poses traversed {objective.pose_misses}, reused {objective.pose_hits}"
-                            if args.pose_cache and executor is None else ""))
+    print(f"best M-SOG ({args.task}, {args.normalisation} normalisation) {res.best_score:.6f} after "
+          f"{res.evaluations} evaluations in {seconds:.1f} s on {b.name}"
+          + (f"; LiDAR poses traversed {objective.pose_misses}, reused {objective.pose_hits}"
+             if args.pose_cache and executor is None else ""))
     if not res.left_start:
         print(f"warning: the search never left its start ({res.evaluations} evaluations found nothing better "
               f"than {x0.name if x0 is not None else 'the box centre'}); raise --max-evals or --sigma0, or start "
@@ -364,9 +419,10 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     cert = res.certificate
     if args.output:
         best.save(out / f"optimized-{args.task}.toml",
-                  note=f"place3d optimize --task {args.task}: M-SOG {res.best_score:.6f} on scene {args.scene} "
-                       f"seed {args.seed}, backend {b.name}")
-        result = {"task": args.task, "best_score": res.best_score, "best_placement": best.poses.tolist(),
+                  note=f"place3d optimize --task {args.task} --normalisation {args.normalisation}: M-SOG "
+                       f"{res.best_score:.6f} on scene {args.scene} seed {args.seed}, backend {b.name}")
+        result = {"task": args.task, "normalisation": args.normalisation, "best_score": res.best_score,
+                  "best_placement": best.poses.tolist(),
                   "baseline_scores": baselines,
                   # over feasible samples, G = -M-SOG: the penalty term would otherwise dominate k_G and C_M
                   "certificate": {k: (cert.get("feasible") or cert).get(k)
@@ -382,7 +438,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
                   "feasible": res.feasible,
                   "pose_cache": ({"traversed": objective.pose_misses, "reused": objective.pose_hits}
                                  if args.pose_cache and executor is None else None),
-                  "normalisation": args.normalisation, "transfer": res.transfer, "diagnostics": res.diagnostics, "holdout": res.holdout,
+                  "transfer": res.transfer, "diagnostics": res.diagnostics, "holdout": res.holdout,
                   "intervals": res.intervals,
                   "details": res.to_dict(), "provenance": provenance(backend=b.name)}
         with section("writing result.json"):

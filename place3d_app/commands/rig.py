@@ -78,7 +78,6 @@ def check_rig_args(args) -> dict:
                    "--resume": getattr(args, "resume", False),
                    "--x0": getattr(args, "x0", "best-baseline") != "best-baseline",
                    "--executor ray": getattr(args, "executor", "local") == "ray" or bool(getattr(args, "ray_address", None)),
-                   "--normalisation": getattr(args, "normalisation", "paper") != "paper",
                    "--holdout-seeds": getattr(args, "holdout_seeds", None) is not None,
                    "--holdout-scenes": getattr(args, "holdout_scenes", None) is not None}
     given = [k for k, v in unsupported.items() if v]
@@ -152,8 +151,11 @@ def run_rig(args, spec, psog_for) -> int:
     seed = args.opt_seed if args.opt_seed is not None else args.seed
     b = get_backend(args.backend)
     _, psog = psog_for(b)
+    from place3d_app.commands.optimize import warn_flat_objective
+
+    warn_flat_objective(psog, args.normalisation)
     prob = RigProblem(psog, a["sensors"], a["surfaces"], a["n"], a["dofs"], a["body"], args.task, args.occlusion, b,
-                      args.min_distance, args.max_blind_extent, args.blind_z)
+                      args.min_distance, args.max_blind_extent, args.blind_z, args.normalisation)
     pareto = args.objective == "pareto"
     sizes = list(range(1, a["n"] + 1)) if pareto else None
     res = search_rigs(prob, args.max_evals, seed=seed, popsize=args.popsize,
@@ -170,7 +172,8 @@ def run_rig(args, spec, psog_for) -> int:
         return None if prices is None else rig_cost(prices, c.sensors)
 
     seconds = time.perf_counter() - t0
-    result = {"objective": args.objective, "task": args.task, "best_msog": best.msog, "best": best.to_dict(),
+    result = {"objective": args.objective, "task": args.task, "normalisation": args.normalisation,
+              "best_msog": best.msog, "best": best.to_dict(),
               "best_cost_usd": cost(best), "per_combination": [dict(c.to_dict(), cost_usd=cost(c))
                                                                for c in res.per_combination],
               "search": {"mode": res.mode, "evaluations": res.evaluations, "launches": res.launches,
@@ -199,8 +202,8 @@ def run_rig(args, spec, psog_for) -> int:
                  "all": [dict(c.to_dict(), cost_usd=float(k)) for c, k in zip(cands, costs)]}
         result["pareto"] = {"vs_cost": len(fc), "vs_sensor_count": len(fn)}
 
-    print(f"best M-SOG ({args.task}) {best.msog:.6f}: " + ", ".join(f"{s} on {f}" for s, f in
-                                                                  zip(best.sensors, best.surfaces))
+    print(f"best M-SOG ({args.task}, {args.normalisation} normalisation) {best.msog:.6f}: "
+          + ", ".join(f"{s} on {f}" for s, f in zip(best.sensors, best.surfaces))
           + (f", US${cost(best):,.0f} (illustrative)" if prices is not None else "")
           + f"; {res.evaluations} rigs in {res.launches} launches, {seconds:.1f} s on {b.name}")
     print(f"blind area {bs.area_m2:.2f} m^2 within {bs.radius:g} m of the body at z = {bs.ground_z:g} m")
@@ -226,7 +229,7 @@ def _write_outputs(out: Path, result, front, best, bs, a, args) -> list:
     _write_rig_toml(out / "rig.toml", best, a, args)
     plot_rig_on_body(best, a["body"], a["surfaces"], out / "rig.png",
                      title=f"Best rig on {a['body'].name if a['body'] is not None else 'no body'}: M-SOG "
-                           f"{best.msog:.4f} ({args.task})")
+                           f"{best.msog:.4f} ({args.task}, {args.normalisation})")
     bs.plot(out / "blindspot.png", title=f"Blind spots of the best rig at z = {bs.ground_z:g} m "
                                          f"({bs.area_m2:.1f} m$^2$ within {bs.radius:g} m)")
     files = ["result.json", "rig.toml", "rig.png", "blindspot.png"]
@@ -241,8 +244,8 @@ def _write_rig_toml(path, best, a, args) -> None:
     """The rig as a placement TOML (``Placement.save``'s layout) plus ``[[mount]]`` tables."""
     from place3d_kernels.placement import Placement
 
-    note = (f"place3d optimize (real rig): M-SOG {best.msog:.6f} ({args.task}) on scene {args.scene}, vehicle "
-            f"{a['body'].name if a['body'] is not None else 'none'}\n"
+    note = (f"place3d optimize (real rig): M-SOG {best.msog:.6f} ({args.task}, {args.normalisation} normalisation) "
+            f"on scene {args.scene}, vehicle {a['body'].name if a['body'] is not None else 'none'}\n"
             "[[lidar]] rows are a placement (Placement.load, place3d blindspot); [[mount]] rows say which sensor "
             "sits where\n(surface parameters u, v, w in [0, 1], see place3d_kernels/mounting.py)")
     Placement(best.poses, "optimized-rig").save(path, note=note)

@@ -53,6 +53,7 @@ class RigProblem:
             a rig breaking it gets ``PENALTY`` plus its blind area / 1000 m^2 (so the search can follow
             the area down towards feasible rigs).
         blind_z: plane height for that constraint, metres (0 road, 0.5 bumper height).
+        normalisation: M-SOG denominator, as in ``msog_batch`` ("paper", "evidence", "uncertain").
     """
 
     psog: object
@@ -67,8 +68,12 @@ class RigProblem:
     min_separation: float = 0.2
     max_blind_extent: float | None = None
     blind_z: float = 0.0
+    normalisation: str = "paper"
 
     def __post_init__(self):
+        from place3d_kernels.metrics import check_normalisation
+
+        check_normalisation(self.normalisation)
         if not 1 <= int(self.n_slots) <= 8:
             raise ValueError(f"a rig has 1-8 LiDARs, got {self.n_slots}")
         if not self.sensors:
@@ -152,7 +157,7 @@ class RigProblem:
     def score(self, rigs) -> tuple[np.ndarray, np.ndarray, list]:
         """(M-SOG (P,), minimised f (P,), reasons) of decoded rigs ``[(sensors, poses), ...]`` in one launch."""
         r = msog_rigs(self.psog, [([self.sensors[s] for s in sn], p) for sn, p in rigs], self.body, self.task,
-                      self.occlusion, self.backend)
+                      self.occlusion, self.backend, normalisation=self.normalisation)
         f = np.where(np.isfinite(r.msog), -r.msog, PENALTY)
         reasons = list(r.reasons)
         for i, (_, p) in enumerate(rigs):
@@ -306,4 +311,4 @@ def _resized(problem: RigProblem, n: int) -> RigProblem:
         return problem
     return RigProblem(problem.psog, problem.sensors, problem.surfaces, n, problem.dofs, problem.body, problem.task,
                       problem.occlusion, problem.backend, problem.min_separation, problem.max_blind_extent,
-                      problem.blind_z)
+                      problem.blind_z, problem.normalisation)
