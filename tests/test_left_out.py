@@ -175,3 +175,81 @@ def test_patched_grid_on_partial_bricks_and_its_checks(name):
         assert got[2].tobytes() == flat_brick_masks(spec.shape, w2 != 0, None).tobytes()
     with pytest.raises(ValueError, match="one weight and one stop value per voxel"):
         b.patched_grid(base, np.array([1, 2], dtype=np.int64), np.array([5]), np.array([True, False]))
+
+
+def _in_place_backends():
+    import place3d_kernels as p3k
+    from place3d_kernels.backends.registry import get_backend
+
+    names = [n for n in ["reference", *p3k.available_backends()] if get_backend(n).writes_grids]
+    return list(dict.fromkeys(names)) + (["opencl:pocl/atomic"] if "opencl:pocl" in names else [])
+
+
+def _in_place_backend(name):
+    from place3d_kernels.backends.registry import get_backend
+
+    if name.endswith("/atomic"):          # the GPU's score strategy (brick pairs, flat masks), on the CPU device
+        from place3d_kernels.backends.opencl.host import OpenCLBackend
+
+        return OpenCLBackend(name.split(":")[1].split("/")[0], score_strategy="atomic")
+    return get_backend(name)
+
+
+def _grid_arrays(b, h):
+    """The arrays a handle holds, by backend: what score_placements reads."""
+    if b.name == "reference":
+        return [h.weights, h.stop]
+    n = h.spec.n_voxels
+    out = [b._read(h.weights, np.int64, n)]
+    if h.masks is not None and b.score_strategy == "atomic":
+        out.append(b._read(h.masks, np.uint32, h.masks.size // 4))
+        out.append(None if h.flat is None else b._read(h.flat, np.uint64, h.flat.size // 8))
+    else:
+        words = h.nonzero.size // 4
+        out.append(b._read(h.nonzero, np.uint32, words))
+        if h.use_stop:
+            out += [b._read(h.stop, np.uint8, n), b._read(h.stop_bits, np.uint32, words)]
+    return out
+
+
+@pytest.mark.parametrize("name", _in_place_backends())
+@pytest.mark.parametrize("with_stop", [True, False])
+def test_voxels_written_in_place_are_the_uploaded_grid(name, with_stop):
+    """working_grid and write_voxels on random grids whose shape leaves partial bricks and words: after each
+    write (nothing, a few voxels, all of them, set and cleared) the handle holds what prepare_grid makes of
+    the dense arrays so changed; rows of mismatched length are refused with a message."""
+    from place3d_kernels.backends.base import GridSpec
+
+    b = _in_place_backend(name)
+    rng = np.random.default_rng(5)
+    spec = GridSpec(voxel_size=0.5, shape=(9, 6, 5))
+    n = 9 * 6 * 5
+    at = np.sort(rng.choice(n, 40, replace=False)).astype(np.int64)
+    w = np.zeros(n, dtype=np.int64)
+    stop = np.zeros(n, dtype=bool)
+    w[at] = rng.integers(0, 10**6, len(at))
+    stop[at] = rng.random(len(at)) < 0.5
+    sv = (lambda s: s) if with_stop else (lambda s: None)
+    h = b.working_grid(spec, at, w[at], sv(stop[at]))
+    for k in (0, 1, 17, n, 3):
+        if b.name != "reference" and b.score_strategy == "atomic" and k == 17:
+            b._flat_masks(h)               # made once scored: later writes must make it again
+        ids = np.sort(rng.choice(n, k, replace=False)).astype(np.int64)
+        wr = np.where(rng.random(k) < 0.5, rng.integers(1, 10**6, k), 0).astype(np.int64)
+        sr = rng.random(k) < 0.5
+        w[ids], stop[ids] = wr, sr
+        b.write_voxels(h, ids, wr, sv(sr))
+        want = b.prepare_grid(spec, w, sv(stop))
+        if b.name != "reference" and b.score_strategy == "atomic" and h.flat is not None:
+            b._flat_masks(want)
+        got_a, want_a = _grid_arrays(b, h), _grid_arrays(b, want)
+        assert len(got_a) == len(want_a)
+        for g, x in zip(got_a, want_a):
+            assert (g is None) == (x is None) and (g is None or g.tobytes() == x.tobytes()), k
+    with pytest.raises(ValueError, match="one weight and one stop value per voxel"):
+        b.write_voxels(h, np.array([1, 2], dtype=np.int64), np.array([5]), np.array([True, False]))
+    with pytest.raises(ValueError, match=r"voxel indices must lie in \[0, 270\)"):
+        b.write_voxels(h, np.array([n], dtype=np.int64), np.array([5]), np.array([True]))
+    if b.name != "reference":
+        with pytest.raises(TypeError, match="working_grid"):
+            b.write_voxels(b.prepare_grid(spec, w, sv(stop)), at[:1], w[at[:1]], sv(stop[at[:1]]))

@@ -8,8 +8,8 @@ import threading
 import numpy as np
 import pyopencl as cl
 
-from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, GridSpec, mesh_face_tables,
-                                           rotation_matrices, sensor_directions)
+from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, GridSpec, check_voxel_rows,
+                                           mesh_face_tables, rotation_matrices, sensor_directions)
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 from place3d_kernels.backends.geometry import brute_force_raycast
 from place3d_kernels.backends.opencl import _runtime as rt
@@ -102,6 +102,27 @@ class CLGrid:
             m = brick_masks(spec.shape, w != 0, sm)
             self.masks = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=m)
         self.flat = None      # score_rays_flat's masks (bricks.flat_brick_masks), made from masks on first use
+        self.writable = False  # read-only buffers: write_voxels takes working grids only
+
+    @classmethod
+    def working(cls, backend: "OpenCLBackend", spec: GridSpec, use_stop: bool) -> "CLGrid":
+        """A grid of zero weights and no stop, its buffers writable (``OpenCLBackend.working_grid``), in the
+        form of the backend's score strategy; filled on the device, nothing uploaded."""
+        self = cls.__new__(cls)
+        self.spec, self.use_stop, self.writable = spec, bool(use_stop), True
+        n = spec.n_voxels
+        words = max((n + 31) // 32, 1)
+        zeros = backend._zeroed
+        self.weights = zeros(n * 8)
+        self.stop = self.masks = self.flat = None
+        if backend.score_strategy == "private":
+            self.nonzero = zeros(words * 4)
+            self.stop = zeros(n) if use_stop else backend._dummy
+            self.stop_bits = zeros(words * 4) if use_stop else backend._dummy
+        else:
+            bx, by, bz = brick_shape(spec.shape)
+            self.masks = zeros(2 * bx * by * bz * 4)
+        return self
 
 
 class OpenCLBackend(Backend, OpenCLConditions):
@@ -199,6 +220,8 @@ class OpenCLBackend(Backend, OpenCLConditions):
                 files, opts = ("common.cl", "raycast.cl"), self._options() + (f"-DSTACK_SIZE={self.stack_size}",)
             elif name.startswith("vote_"):
                 files, opts = ("common.cl", "vote.cl"), self._options()
+            elif name.startswith("patch_"):
+                files, opts = ("patch.cl",), ()
             elif self.walk_lanes:   # walk_lanes.cl: the CPU walk, 32-bit voxel indices (see score_placements)
                 files, opts = ("common.cl", "grid.cl", "walk_lanes.cl"), self._options() + ("-DFLAT32",)
             else:
@@ -583,6 +606,38 @@ class OpenCLBackend(Backend, OpenCLConditions):
     def prepare_grid(self, grid, weights, stop):
         return CLGrid(self, grid, weights, stop)
 
+    writes_grids = True
+
+    def working_grid(self, grid, voxels, weights, stop):
+        h = CLGrid.working(self, grid, stop is not None)
+        self.write_voxels(h, voxels, weights, stop)
+        return h
+
+    def write_voxels(self, handle, voxels, weights, stop):
+        if not isinstance(handle, CLGrid) or not handle.writable:
+            raise TypeError(f"write_voxels needs a handle from {self.name}.working_grid, got {type(handle).__name__}")
+        spec = handle.spec
+        ids, w, s = check_voxel_rows(voxels, weights, stop, spec.n_voxels, handle.use_stop)
+        n = len(ids)
+        if n:
+            rows = (self._in(ids), self._in(w), self._in(s), np.int64(n), handle.weights)
+            if self.score_strategy == "private":
+                self._launch("patch_private", n, *rows, handle.nonzero, np.int32(handle.use_stop), handle.stop,
+                             handle.stop_bits)
+                handle.masks = None                  # score_rays derives them again from the new buffers
+            else:
+                _, by, bz = brick_shape(spec.shape)
+                self._launch("patch_bricked", n, *rows, handle.masks, np.int32(handle.use_stop),
+                             *(np.int32(v) for v in (spec.shape[1], spec.shape[2], by, bz)))
+                if handle.flat is not None:          # the score kernel's bricks, made again from the pairs
+                    self._fill_flat(handle)
+        self.queue.finish()         # the rows' host memory (_in uses it in place on CPUs) is free after this
+
+    def _zeroed(self, nbytes: int) -> cl.Buffer:
+        buf = self._out(nbytes)
+        cl.enqueue_fill_buffer(self.queue, buf, np.uint8(0), 0, buf.size)
+        return buf
+
     def score_placements(self, handle, elevations, azimuths, t_max, poses):
         if not isinstance(handle, CLGrid):
             raise TypeError(f"score_placements needs the handle from {self.name}.prepare_grid, "
@@ -655,14 +710,18 @@ class OpenCLBackend(Backend, OpenCLConditions):
     def _flat_masks(self, handle):
         """score_rays_flat's masks for a grid (atomic strategy), made once on the device from its brick pairs."""
         if handle.flat is None:
-            spec = handle.spec
-            bx, by, bz = brick_shape(spec.shape)
-            fx, fy, fz = flat_shape(spec.shape)
-            n = fx * fy * fz
-            handle.flat = cl.Buffer(self.ctx, _MF.READ_WRITE, size=max(n, 1) * 8)
-            self._launch("flat_masks", n, handle.masks, np.int32(bx), np.int32(by), np.int32(bz), np.int32(fx),
-                         np.int32(fy), np.int64(n), handle.flat)
+            fx, fy, fz = flat_shape(handle.spec.shape)
+            handle.flat = cl.Buffer(self.ctx, _MF.READ_WRITE, size=max(fx * fy * fz, 1) * 8)
+            self._fill_flat(handle)
         return handle.flat
+
+    def _fill_flat(self, handle) -> None:
+        spec = handle.spec
+        bx, by, bz = brick_shape(spec.shape)
+        fx, fy, fz = flat_shape(spec.shape)
+        n = fx * fy * fz
+        self._launch("flat_masks", n, handle.masks, np.int32(bx), np.int32(by), np.int32(bz), np.int32(fx),
+                     np.int32(fy), np.int64(n), handle.flat)
 
     # ----------------------------------------------------------------- occupancy grids
     def voxel_keys(self, grid, points):
