@@ -230,12 +230,23 @@ def msog_on_grid(grid, weights: np.ndarray, stop: np.ndarray | None, lidar: Lida
     return _fused_scores(grid, b.prepare_grid(grid.spec, weights, stop), lidar, poses, b)
 
 
-def msog_on_handle(grid, handle, lidar: LidarModel, poses, backend) -> np.ndarray:
+def msog_on_handle(grid, handle, lidar: LidarModel, poses, backend, indicator=None) -> np.ndarray:
     """``msog_on_grid`` on a grid already prepared by ``backend.prepare_grid(grid.spec, weights, stop)``
     (``handle``; ``backend`` the same instance): the same checks and scores, without the upload. The
-    jackknife keeps its left-out grids prepared so (``left_out.PreparedLeftOut``)."""
+    jackknife keeps its left-out grids prepared so (``left_out.PreparedLeftOut``).
+
+    ``indicator``: for the ``evidence`` and ``uncertain`` normalisations, the handle of the grid's 0/1
+    ``indicator_weights`` with the same stop mask; its sums are the denominators (``coverage_counts``)."""
     poses = _grid_lidar_poses(grid, lidar, poses, "msog_on_handle")
-    return _fused_scores(grid, handle, lidar, poses, get_backend(backend))
+    b = get_backend(backend)
+    if indicator is None:
+        return _fused_scores(grid, handle, lidar, poses, b)
+    local = poses.copy()
+    local[..., :3] = grid.to_local(poses[..., :3])
+    el, az, r = lidar.elevations, lidar.azimuths, lidar.max_range
+    sums, _ = b.score_placements(handle, el, az, r, local)
+    n, _ = b.score_placements(indicator, el, az, r, local)
+    return _score(sums, n)
 
 
 def _grid_lidar_poses(grid, lidar: LidarModel, poses, caller: str) -> np.ndarray:

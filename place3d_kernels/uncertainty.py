@@ -546,17 +546,24 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
         # msog_batch's fused path: each left-out grid patched from the full pool (left_out.py, several times
         # faster) and prepared once; with a pool_key the prepared grids are kept for the next jackknife on these
         # records (or were prepared during the search: prepare_in_background)
+        from place3d_kernels.left_out import LeftOutRows
         from place3d_kernels.metrics import msog_on_handle
 
-        # an iterator per task: kept handles, or (not kept) each grid prepared just before its scoring
+        # an iterator per task: kept handles, or (not kept) each grid prepared just before its scoring, in one
+        # working grid per task where the backend writes grids in place; the tasks share each record's rows
+        reuse = not HANDLES.will_keep(pool_key)
+        with section("jackknife: left-out grid"):
+            rows = LeftOutRows(pooled)
         handles = {t: iter(HANDLES.get(pool_key, pooled.grid, t, occlusion, b,
-                                       lambda t=t: prepared_grids(pooled, t, occlusion, b)))
+                                       lambda t=t: prepared_grids(pooled, t, occlusion, b, normalisation, reuse, rows),
+                                       normalisation=normalisation))
                    for t in tasks}
         for i in it:
             for t in tasks:
                 h = next(handles[t])
+                h, ind = h if isinstance(h, tuple) else (h, None)
                 with section("jackknife: scoring"):
-                    scores[t][i] = msog_on_handle(pooled.grid, h, L, poses, b)
+                    scores[t][i] = msog_on_handle(pooled.grid, h, L, poses, b, ind)
     else:
         left_out = _left_out_psogs(pooled, tasks)
         for i in it:
