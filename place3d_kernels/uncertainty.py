@@ -505,6 +505,7 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     """{task: Jackknife} of ``placements`` leaving each record (subset or drive) out in turn: n rescorings,
     one ``msog_batch`` call over all placements per left-out unit and task (``body``: the ego
     ``VehicleBody`` the rigs are scored on, as ``msog_batch``; ``reference``: as ``bootstrap_records``).
+    ``records``: the ``DriveRecord``s, or their ``PooledPSOG`` on ``grid`` (its summed counts reused).
 
     ``pool_key``: the records' content identity (``subset_records.keyed_subset_records``), or None. With
     one, the prepared left-out grids and the reference's identity check are kept in the process
@@ -519,7 +520,9 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     L = LidarModel.load(lidar) if isinstance(lidar, str) else lidar
     b = get_backend(backend)
     names, poses = _poses(placements)
-    pooled = PooledPSOG(grid, records)
+    # a PooledPSOG passed as it is keeps its summed counts (a pooled command has them from its P-SOG)
+    pooled = records if isinstance(records, PooledPSOG) and records.grid == grid else PooledPSOG(
+        grid, getattr(records, "records", records))
     n = len(pooled)
     if n < 2:
         raise ValueError(f"the jackknife needs at least 2 units, got {n}")

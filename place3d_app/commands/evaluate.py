@@ -154,7 +154,7 @@ def _route_intervals(args, pool, psog, backend, lidar, names, placements, rows, 
     by_name = {(pl.name or n): pl for n, pl in zip(names, placements)}
     point = {t: [r[f"msog_{t}"] for r in rows] for t in ("seg", "det")}
     with section("jackknife over routes: rescoring"):
-        boots = jackknife_records(pooled.records, pooled.grid, lidar, {n: by_name[n] for n in order}, ("seg", "det"),
+        boots = jackknife_records(pooled, pooled.grid, lidar, {n: by_name[n] for n in order}, ("seg", "det"),
                                   args.occlusion, backend, point=point, unit="drives", progress=not args.quiet,
                                   normalisation=args.normalisation, body=body, reference=psog, strata=strata, df=df)
     pw = {t: pairwise(bt) for t, bt in boots.items()}
