@@ -515,7 +515,7 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     ``route_df``)."""
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
-    from place3d_kernels.metrics import msog_batch
+    from place3d_kernels.metrics import msog_batch, msog_tasks
 
     L = LidarModel.load(lidar) if isinstance(lidar, str) else lidar
     b = get_backend(backend)
@@ -532,10 +532,8 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
 
     with section("jackknife: point"):
         full = None if point is not None else HANDLES.plain_psog(pooled, reference, pool_key)
-        for t in tasks:
-            if point is None:
-                point_scores[t] = msog_batch(full, L, poses, occlusion, t, b, normalisation=normalisation,
-                                             body=body)
+        if point is None:
+            point_scores = msog_tasks(full, L, poses, occlusion, tasks, b, normalisation, body)
         del full
     scores = {t: np.empty((n, len(names))) for t in tasks}
     it = range(n)
@@ -550,7 +548,7 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
         # faster) and prepared once; with a pool_key the prepared grids are kept for the next jackknife on these
         # records (or were prepared during the search: prepare_in_background)
         from place3d_kernels.left_out import LeftOutRows
-        from place3d_kernels.metrics import msog_on_handle
+        from place3d_kernels.metrics import msog_on_handles
 
         # an iterator per task: kept handles, or (not kept) each grid prepared just before its scoring, in one
         # working grid per task where the backend writes grids in place; the tasks share each record's rows
@@ -562,11 +560,12 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
                                        normalisation=normalisation))
                    for t in tasks}
         for i in it:
-            for t in tasks:
-                h = next(handles[t])
-                h, ind = h if isinstance(h, tuple) else (h, None)
-                with section("jackknife: scoring"):
-                    scores[t][i] = msog_on_handle(pooled.grid, h, L, poses, b, ind)
+            got = [next(handles[t]) for t in tasks]
+            with section("jackknife: scoring"):
+                # one call for every task: the tasks' grids share the stop mask, so the rays may be walked once
+                pairs = [h if isinstance(h, tuple) else (h, None) for h in got]
+                for t, s in zip(tasks, msog_on_handles(pooled.grid, pairs, L, poses, b)):
+                    scores[t][i] = s
     else:
         left_out = _left_out_psogs(pooled, tasks)
         for i in it:

@@ -283,3 +283,34 @@ def test_voxels_written_in_place_are_the_uploaded_grid(name, with_stop):
     if b.name != "reference":
         with pytest.raises(TypeError, match="working_grid"):
             b.write_voxels(b.prepare_grid(spec, w, sv(stop)), at[:1], w[at[:1]], sv(stop[at[:1]]))
+
+
+@pytest.mark.parametrize("name", [*dict.fromkeys(["reference", *__import__("place3d_kernels").available_backends()]),
+                                  "opencl:pocl/atomic"])
+def test_grids_of_one_stop_mask_score_together_as_alone(name):
+    """score_placements_many (OpenCL's private strategy walks the rays once for all grids) gives each grid
+    what score_placements gives it alone: random weights, one shared stop mask, and an indicator grid."""
+    import place3d_kernels as p3k
+    from place3d_kernels.backends.base import GridSpec
+
+    if name.startswith("opencl:") and "opencl:pocl" not in p3k.available_backends():
+        pytest.skip("no opencl:pocl here")
+    b = _in_place_backend(name)
+    rng = np.random.default_rng(11)
+    spec = GridSpec(voxel_size=0.5, shape=(21, 19, 7))
+    n = 21 * 19 * 7
+    stop = rng.random(n) < 0.03
+    grids = [np.where(rng.random(n) < 0.4, rng.integers(1, 10**9, n), 0).astype(np.int64) for _ in range(2)]
+    grids.append((grids[0] > 0).astype(np.int64))
+    lidar = _small_lidar()
+    poses = np.zeros((3, 2, 6))
+    poses[..., :3] = rng.uniform(1.0, 3.0, (3, 2, 3))
+    poses[..., 3:] = rng.uniform(-0.3, 0.3, (3, 2, 3))
+    for s in (stop, None):
+        handles = [b.prepare_grid(spec, w, s) for w in grids]
+        got = b.score_placements_many(handles, lidar.elevations, lidar.azimuths, 6.0, poses)
+        assert len(got) == len(handles)
+        for h, (sums, counts) in zip(handles, got):
+            want = b.score_placements(h, lidar.elevations, lidar.azimuths, 6.0, poses)
+            assert sums.tobytes() == want[0].tobytes() and counts.tobytes() == want[1].tobytes()
+        assert got[0][1].tobytes() == got[1][1].tobytes()          # one walk: the same voxels counted

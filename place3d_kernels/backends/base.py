@@ -281,6 +281,18 @@ class Backend(abc.ABC):
             sums (P,) int64 of weights over each candidate's covered voxels, counts (P,) int64 of them.
         """
 
+    def score_placements_many(self, handles, elevations: np.ndarray, azimuths: np.ndarray, t_max: float,
+                              poses: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """``score_placements`` of the same rigs on several grids that share one stop mask (or none), such
+        as the seg and det views of one P-SOG and their indicator grids: the covered voxels are the same on
+        each, so a backend may walk the rays once and sum each grid's weights over them. Here, one call per
+        grid.
+
+        Returns:
+            one (sums, counts) pair per handle, what ``score_placements`` gives for it.
+        """
+        return [self.score_placements(h, elevations, azimuths, t_max, poses) for h in handles]
+
     @abc.abstractmethod
     def score_rays(self, handle: object, origins: np.ndarray, directions: np.ndarray, t_end: np.ndarray,
                    ray_offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
