@@ -19,11 +19,8 @@ PLOT_SUFFIXES = (".png", ".svg", ".pdf")
 
 
 def cmd_evaluate(args) -> int:
-    from tqdm import tqdm
-
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
-    from place3d_kernels.metrics import msog_batch
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
     from place3d_kernels.spec import specs_from_args
     from place3d_kernels.uncertainty import MIN_SUBSETS, too_few_subsets
@@ -54,12 +51,9 @@ def cmd_evaluate(args) -> int:
     else:
         psog = pool[2]
     rows = []
-    for name, pl in tqdm(list(zip(names, placements)), desc="evaluate", unit="placement", disable=args.quiet,
-                         leave=False):
-        seg = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "seg", b, normalisation=args.normalisation,
-                               body=body)[0])
-        det = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "det", b, normalisation=args.normalisation,
-                               body=body)[0])
+    with section("scoring: placements"):
+        scores = _placement_scores(psog, lidar, placements, args.occlusion, b, args.normalisation, body, args.quiet)
+    for name, pl, (seg, det) in zip(names, placements, scores):
         rows.append({"placement": pl.name or name, "msog_seg": seg, "msog_det": det})
     rows.sort(key=lambda r: -r["msog_seg"])
     interval_note = None
@@ -129,6 +123,27 @@ def cmd_evaluate(args) -> int:
         if not args.quiet:
             print(f"wrote {plot}", file=sys.stderr)
     return 0
+
+
+def _placement_scores(psog, lidar, placements, occlusion, b, normalisation, body, quiet) -> list[tuple[float, float]]:
+    """(seg, det) M-SOG of each placement: one ``msog_tasks`` call (both tasks) for the placements of each LiDAR
+    count (a rig's score does not depend on the others scored beside it), instead of one per placement."""
+    import numpy as np
+    from tqdm import tqdm
+
+    from place3d_kernels.metrics import msog_tasks
+
+    out = [None] * len(placements)
+    groups: dict = {}
+    for i, pl in enumerate(placements):
+        groups.setdefault(pl.poses.shape, []).append(i)
+    for idx in tqdm(list(groups.values()), desc="evaluate", unit="group", disable=quiet, leave=False):
+        poses = np.stack([placements[i].poses for i in idx])
+        got = msog_tasks(psog, lidar, poses, occlusion, ("seg", "det"), b, normalisation, body)
+        seg, det = got["seg"], got["det"]
+        for k, i in enumerate(idx):
+            out[i] = (float(seg[k]), float(det[k]))
+    return out
 
 
 def _seed_text(drives) -> str:
