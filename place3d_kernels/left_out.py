@@ -70,8 +70,8 @@ def indicator_rows(kind: str | None, counts: np.ndarray, T: int, w: np.ndarray) 
 
 class LeftOutRows:
     """The plain pool's count rows and, per left-out record, the rows it touched with its counts taken out:
-    the part of a left-out grid both tasks share, computed once per record (the last one is kept, as a
-    jackknife asks for record i's grid of every task before record i + 1's)."""
+    the part of a left-out grid both tasks share (where the record's entries fall is found once per record;
+    the last one is kept, as a jackknife asks for record i's grid of every task before record i + 1's)."""
 
     def __init__(self, pooled):
         self.pooled = pooled
@@ -79,8 +79,9 @@ class LeftOutRows:
         self.voxels, self.counts, self.T = pooled.counts()    # the plain pool: every record once
         self._last = None
 
-    def of(self, i: int) -> tuple[int, np.ndarray, np.ndarray]:
-        """(T, rows of the plain pool record ``i`` touched (sorted), their count rows (R, K) without it)."""
+    def of(self, i: int) -> tuple[int, np.ndarray, tuple]:
+        """(T, rows of the plain pool record ``i`` touched (sorted), where its entries go: each entry's
+        position among those rows, and the first entry of every block of ``BASE_BLOCK`` rows)."""
         if self._last is not None and self._last[0] == i:
             return self._last[1]
         r = self.pooled.records[i]
@@ -88,12 +89,29 @@ class LeftOutRows:
         if T <= 0:
             raise ValueError(f"leaving record {i} out leaves no subsets (T = {T})")
         at = np.searchsorted(self.voxels, r.voxels)            # each entry's row in the plain pool
-        rows, pos = np.unique(at, return_inverse=True)
-        sub = self.counts[rows]
-        sub[pos, r.classes.astype(np.intp)] -= r.counts       # one entry per (voxel, class): no repeats
-        sub[:, 0] = T - sub[:, 1:].sum(axis=1)
-        self._last = (i, (T, rows, sub))
-        return T, rows, sub
+        cls, cnt = r.classes.astype(np.intp), r.counts
+        if np.all(at[1:] >= at[:-1]):                         # a record's voxels ascend: no sort needed
+            first = np.r_[True, at[1:] != at[:-1]] if len(at) else np.zeros(0, dtype=bool)
+            rows, pos = at[first], np.cumsum(first) - 1
+        else:                                                 # entries in voxel order, so blocks are runs
+            order = np.argsort(at, kind="stable")
+            at, cls, cnt = at[order], cls[order], cnt[order]
+            rows, pos = np.unique(at, return_inverse=True)
+        cuts = np.searchsorted(pos, np.arange(0, len(rows) + BASE_BLOCK, BASE_BLOCK))
+        out = (T, rows, (pos, cls, cnt, cuts))
+        self._last = (i, out)
+        return out
+
+    def blocks(self, i: int):
+        """(first row, count rows (R, K) without record ``i``) for each block of its touched rows, in order:
+        small enough to stay in the cache while a task's fields are made of them."""
+        T, rows, (pos, cls, cnt, cuts) = self.of(i)
+        for k, a in enumerate(range(0, len(rows), BASE_BLOCK)):
+            e0, e1 = cuts[k], cuts[k + 1]
+            sub = self.counts[rows[a:a + BASE_BLOCK]]
+            sub[pos[e0:e1] - a, cls[e0:e1]] -= cnt[e0:e1]    # one entry per (voxel, class): no repeats
+            sub[:, 0] = T - sub[:, 1:].sum(axis=1)
+            yield a, sub
 
 
 class LeftOutGrids:
@@ -140,9 +158,16 @@ class LeftOutGrids:
         voxel indices, weights int64 and stop bool over T subsets, indicator int64 or None). Every other
         voxel keeps the base's fields for that T (``dense_base``); a voxel no longer occupied gets weight 0
         and no stop."""
-        T, rows, sub = self.source.of(i)
-        w, s = left_out_fields(sub, T, self.task)
-        return T, rows, self.voxels[rows], w, s, indicator_rows(self.indicator, sub, T, w)
+        T, rows, _ = self.source.of(i)
+        R = len(rows)
+        w, s = np.empty(R, dtype=np.int64), np.empty(R, dtype=bool)
+        ind = None if self.indicator is None else np.empty(R, dtype=np.int64)
+        for a, sub in self.source.blocks(i):
+            b = a + len(sub)
+            w[a:b], s[a:b] = left_out_fields(sub, T, self.task)
+            if ind is not None:
+                ind[a:b] = indicator_rows(self.indicator, sub, T, w[a:b])
+        return T, rows, self.voxels[rows], w, s, ind
 
     def dense_base(self, T: int) -> tuple[np.ndarray, np.ndarray]:
         """(weights (n_voxels,) int64, stop (n_voxels,) uint8): the plain pool's fields over T subsets on the

@@ -314,3 +314,19 @@ def test_grids_of_one_stop_mask_score_together_as_alone(name):
             want = b.score_placements(h, lidar.elevations, lidar.azimuths, 6.0, poses)
             assert sums.tobytes() == want[0].tobytes() and counts.tobytes() == want[1].tobytes()
         assert got[0][1].tobytes() == got[1][1].tobytes()          # one walk: the same voxels counted
+
+
+def test_records_in_any_entry_order_give_the_same_left_out_grids(drives):
+    """A record's entries are found in the pool by voxel; entries out of voxel order (not what from_psog
+    writes, but allowed) take the sorting path and give the same grids."""
+    recs = list(drives.records)
+    r = recs[1]
+    order = np.random.default_rng(2).permutation(len(r.voxels))
+    recs[1] = DriveRecord(r.label, r.n_subsets, r.voxels[order], r.classes[order], r.counts[order])
+    shuffled = PooledPSOG(drives.grid, recs)
+    for task in ("seg", "det"):
+        a, b = LeftOutGrids(drives, task), LeftOutGrids(shuffled, task)
+        for i in range(len(recs)):
+            wa, sa = (x.copy() for x in a.fields(i))
+            wb, sb = b.fields(i)
+            assert wa.tobytes() == wb.tobytes() and sa.tobytes() == sb.tobytes(), (task, i)
