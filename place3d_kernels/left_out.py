@@ -35,7 +35,7 @@ from place3d_kernels.left_out_memo import HANDLES, KEEP_LEFT_OUT, PreparedLeftOu
 from place3d_kernels.profiling import section
 from place3d_kernels.sog import entropy
 
-__all__ = ["LeftOutRows", "LeftOutGrids", "left_out_fields", "PreparedLeftOut", "HANDLES", "KEEP_LEFT_OUT",
+__all__ = ["LeftOutRows", "LeftOutGrids", "left_out_fields", "FieldTables", "PreparedLeftOut", "HANDLES", "KEEP_LEFT_OUT",
            "fused_path", "prepared_grids", "patched_on_host", "patched_on_backend", "patched_in_place"]
 
 
@@ -55,6 +55,59 @@ def left_out_fields(counts: np.ndarray, T: int, task: str) -> tuple[np.ndarray, 
     return w, stop
 
 
+class FieldTables:
+    """``left_out_fields`` for count rows over T subsets by table look-ups: every probability is c / T for an
+    integer c in [0, T], so each entropy term -p ln p (and, for "det", the "other" channel's term, a function
+    of the empty and vehicle counts) is computed once per value, by the same NumPy expressions on the same
+    float64 values, and gathered per row; the rows' terms are then summed as ``sog.entropy`` sums them (one
+    (R, K) array along its last axis). Bit for bit the same fields (tests/test_left_out.py), without a log
+    per entry."""
+
+    #: beyond this T the det table ((T + 1)^2 float64) grows large: ``left_out_fields`` is used instead
+    MAX_T = 2048
+
+    def __init__(self, T: int, task: str):
+        if task not in ("seg", "det"):
+            raise ValueError(f"task must be 'seg' or 'det', got {task!r}")
+        self.T, self.task = int(T), task
+        v = np.arange(self.T + 1) / float(self.T)             # c / T as PooledPSOG.psog divides
+        self.term = _terms(v)
+        self.stop = (1.0 - v) >= 0.5 - 1e-12                  # PSOG.stop_mask of p(empty) = c / T
+        if task == "det":                                     # PSOG.detection's "other", per (empty, vehicle)
+            self.other = _terms(np.clip(1.0 - v[:, None] - v[None, :], 0.0, 1.0))
+
+    def __call__(self, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        c0 = counts[:, 0]
+        if self.task == "seg":
+            terms = self.term[counts]
+        else:
+            veh = counts[:, VEHICLE] if counts.shape[1] > VEHICLE else np.zeros(len(counts), dtype=np.intp)
+            terms = np.stack([self.term[c0], self.term[veh], self.other[c0, veh]], axis=1)
+        w = np.rint(terms.sum(axis=-1) * ENTROPY_SCALE).astype(np.int64)
+        return w, self.stop[c0]
+
+
+def _terms(v: np.ndarray) -> np.ndarray:
+    # sog._entropy_rows' terms: -p ln p where p > 0, else 0
+    out = np.zeros(v.shape, dtype=np.float64)
+    nz = v > 0
+    p = v[nz]
+    out[nz] = -p * np.log(p)
+    return out
+
+
+def fields_of(T: int, task: str, cache: dict | None = None):
+    """A callable giving ``left_out_fields(counts, T, task)``: ``FieldTables`` where T allows (kept in
+    ``cache`` by (T, task)), else ``left_out_fields`` itself."""
+    if T > FieldTables.MAX_T:
+        return lambda counts: left_out_fields(counts, T, task)
+    if cache is None:
+        return FieldTables(T, task)
+    if (T, task) not in cache:
+        cache[T, task] = FieldTables(T, task)
+    return cache[T, task]
+
+
 def indicator_rows(kind: str | None, counts: np.ndarray, T: int, w: np.ndarray) -> np.ndarray | None:
     """``metrics.indicator_weights(psog, kind)`` of count rows ``counts`` over T subsets whose weights are
     ``w``: 1 where the voxel is stored in the P-SOG, i.e. occupied in some subset (``"evidence"``), or where
@@ -70,8 +123,8 @@ def indicator_rows(kind: str | None, counts: np.ndarray, T: int, w: np.ndarray) 
 
 class LeftOutRows:
     """The plain pool's count rows and, per left-out record, the rows it touched with its counts taken out:
-    the part of a left-out grid both tasks share (where the record's entries fall is found once per record;
-    the last one is kept, as a jackknife asks for record i's grid of every task before record i + 1's)."""
+    the part of a left-out grid both tasks share, computed once per record (the last one is kept, as a
+    jackknife asks for record i's grid of every task before record i + 1's)."""
 
     def __init__(self, pooled):
         self.pooled = pooled
@@ -79,9 +132,8 @@ class LeftOutRows:
         self.voxels, self.counts, self.T = pooled.counts()    # the plain pool: every record once
         self._last = None
 
-    def of(self, i: int) -> tuple[int, np.ndarray, tuple]:
-        """(T, rows of the plain pool record ``i`` touched (sorted), where its entries go: each entry's
-        position among those rows, and the first entry of every block of ``BASE_BLOCK`` rows)."""
+    def of(self, i: int) -> tuple[int, np.ndarray, np.ndarray]:
+        """(T, rows of the plain pool record ``i`` touched (sorted), their count rows (R, K) without it)."""
         if self._last is not None and self._last[0] == i:
             return self._last[1]
         r = self.pooled.records[i]
@@ -89,29 +141,16 @@ class LeftOutRows:
         if T <= 0:
             raise ValueError(f"leaving record {i} out leaves no subsets (T = {T})")
         at = np.searchsorted(self.voxels, r.voxels)            # each entry's row in the plain pool
-        cls, cnt = r.classes.astype(np.intp), r.counts
         if np.all(at[1:] >= at[:-1]):                         # a record's voxels ascend: no sort needed
             first = np.r_[True, at[1:] != at[:-1]] if len(at) else np.zeros(0, dtype=bool)
             rows, pos = at[first], np.cumsum(first) - 1
-        else:                                                 # entries in voxel order, so blocks are runs
-            order = np.argsort(at, kind="stable")
-            at, cls, cnt = at[order], cls[order], cnt[order]
+        else:
             rows, pos = np.unique(at, return_inverse=True)
-        cuts = np.searchsorted(pos, np.arange(0, len(rows) + BASE_BLOCK, BASE_BLOCK))
-        out = (T, rows, (pos, cls, cnt, cuts))
-        self._last = (i, out)
-        return out
-
-    def blocks(self, i: int):
-        """(first row, count rows (R, K) without record ``i``) for each block of its touched rows, in order:
-        small enough to stay in the cache while a task's fields are made of them."""
-        T, rows, (pos, cls, cnt, cuts) = self.of(i)
-        for k, a in enumerate(range(0, len(rows), BASE_BLOCK)):
-            e0, e1 = cuts[k], cuts[k + 1]
-            sub = self.counts[rows[a:a + BASE_BLOCK]]
-            sub[pos[e0:e1] - a, cls[e0:e1]] -= cnt[e0:e1]    # one entry per (voxel, class): no repeats
-            sub[:, 0] = T - sub[:, 1:].sum(axis=1)
-            yield a, sub
+        sub = self.counts[rows]
+        sub[pos, r.classes.astype(np.intp)] -= r.counts       # one entry per (voxel, class): no repeats
+        sub[:, 0] = T - sub[:, 1:].sum(axis=1)
+        self._last = (i, (T, rows, sub))
+        return T, rows, sub
 
 
 class LeftOutGrids:
@@ -131,6 +170,7 @@ class LeftOutGrids:
         self.n_voxels = self.source.n_voxels
         self.voxels, self.counts, self.T = self.source.voxels, self.source.counts, self.source.T
         self._base: dict = {}
+        self._tables: dict = {}     # (T, task) -> FieldTables
         self._work: dict = {}       # T -> (weights, stop, rows last written): the base, patched in place
 
     def _base_fields(self, T: int):
@@ -144,10 +184,14 @@ class LeftOutGrids:
             M = len(self.voxels)
             w, s = np.empty(M, dtype=np.int64), np.empty(M, dtype=bool)
             ind = None if self.indicator is None else np.empty(M, dtype=np.int64)
+            fields = fields_of(T, self.task, self._tables)
             for a in range(0, M, BASE_BLOCK):
                 c = self.counts[a:a + BASE_BLOCK].copy()
                 c[:, 0] = T - c[:, 1:].sum(axis=1)
-                w[a:a + BASE_BLOCK], s[a:a + BASE_BLOCK] = left_out_fields(c, T, self.task)
+                # rows some record with this T touched can hold more than T subsets here (its own included);
+                # every left-out grid overwrites them, but the tables take counts in [0, T] only
+                np.clip(c, 0, T, out=c)
+                w[a:a + BASE_BLOCK], s[a:a + BASE_BLOCK] = fields(c)
                 if ind is not None:
                     ind[a:a + BASE_BLOCK] = indicator_rows(self.indicator, c, T, w[a:a + BASE_BLOCK])
             self._base[T] = (w, s, ind)
@@ -158,15 +202,16 @@ class LeftOutGrids:
         voxel indices, weights int64 and stop bool over T subsets, indicator int64 or None). Every other
         voxel keeps the base's fields for that T (``dense_base``); a voxel no longer occupied gets weight 0
         and no stop."""
-        T, rows, _ = self.source.of(i)
+        T, rows, sub = self.source.of(i)
         R = len(rows)
         w, s = np.empty(R, dtype=np.int64), np.empty(R, dtype=bool)
         ind = None if self.indicator is None else np.empty(R, dtype=np.int64)
-        for a, sub in self.source.blocks(i):
-            b = a + len(sub)
-            w[a:b], s[a:b] = left_out_fields(sub, T, self.task)
+        fields = fields_of(T, self.task, self._tables)
+        for a in range(0, R, BASE_BLOCK):        # blocks: the temporaries stay in the cache
+            b = min(a + BASE_BLOCK, R)
+            w[a:b], s[a:b] = fields(sub[a:b])
             if ind is not None:
-                ind[a:b] = indicator_rows(self.indicator, sub, T, w[a:b])
+                ind[a:b] = indicator_rows(self.indicator, sub[a:b], T, w[a:b])
         return T, rows, self.voxels[rows], w, s, ind
 
     def dense_base(self, T: int) -> tuple[np.ndarray, np.ndarray]:

@@ -330,3 +330,29 @@ def test_records_in_any_entry_order_give_the_same_left_out_grids(drives):
             wa, sa = (x.copy() for x in a.fields(i))
             wb, sb = b.fields(i)
             assert wa.tobytes() == wb.tobytes() and sa.tobytes() == sb.tobytes(), (task, i)
+
+
+@pytest.mark.parametrize("task", ["seg", "det"])
+@pytest.mark.parametrize("T", [1, 2, 3, 7, 30, 81])
+def test_field_tables_are_left_out_fields(task, T):
+    """FieldTables (look-ups of each c / T's entropy term) gives left_out_fields' weights and stop masks bit
+    for bit: every split of T subsets among empty, vehicle and one other class, and random rows over all
+    22 channels."""
+    from place3d_kernels.classes import N_CLASSES, VEHICLE
+    from place3d_kernels.left_out import FieldTables, left_out_fields
+
+    rows = []
+    for e in range(T + 1):                                  # empty, vehicle, one more class: every split
+        for v in range(T + 1 - e):
+            r = np.zeros(N_CLASSES, dtype=np.int64)
+            r[0], r[VEHICLE], r[1 if VEHICLE != 1 else 2] = e, v, T - e - v
+            rows.append(r)
+    rng = np.random.default_rng(T)
+    for _ in range(2000):                                   # T subsets spread over random classes
+        r = np.bincount(rng.integers(0, N_CLASSES, T), minlength=N_CLASSES).astype(np.int64)
+        rows.append(r)
+    counts = np.array(rows)
+    want = left_out_fields(counts, T, task)
+    got = FieldTables(T, task)(counts)
+    assert got[0].dtype == want[0].dtype and got[0].tobytes() == want[0].tobytes()
+    assert got[1].dtype == want[1].dtype and got[1].tobytes() == want[1].tobytes()
