@@ -10,9 +10,11 @@ and written over the base.
 
 Where they are written (``prepared_grids``): on backends that write grids in place (``Backend.writes_grids``:
 reference, OpenCL) one working grid per T stays on the device and each record's rows, with the previous
-record's rows restored, are all that moves (``patched_in_place``); on Warp's CUDA devices a copy of a base
-on the device is patched per grid (``patched_on_backend``); elsewhere a dense host copy is patched and
-uploaded whole (``patched_on_host``). Sets kept between jackknifes (``HANDLES``) are made of copies.
+record's rows restored, are all that moves (``patched_in_place``); on Warp's CUDA devices every record's
+rows are computed there in one batch (``device_fields``) and a copy of a base on the device is patched per
+grid (``patched_on_backend``); elsewhere a dense host copy is patched and uploaded whole
+(``patched_on_host``). Sets kept between jackknifes (``HANDLES``) are made of copies. The fields of a row
+(``left_out_tables``) come from per-T tables of entropy terms.
 
 The ``evidence`` and ``uncertain`` normalisations (docs/metric-normalisation.md) count covered voxels with
 0/1 weights (``metrics.indicator_weights``); their indicator is patched the same way, in a second grid
@@ -32,93 +34,11 @@ import numpy as np
 from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.classes import VEHICLE
 from place3d_kernels.left_out_memo import HANDLES, KEEP_LEFT_OUT, PreparedLeftOut
+from place3d_kernels.left_out_tables import FieldTables, fields_of, indicator_rows, left_out_fields
 from place3d_kernels.profiling import section
-from place3d_kernels.sog import entropy
 
 __all__ = ["LeftOutRows", "LeftOutGrids", "left_out_fields", "FieldTables", "PreparedLeftOut", "HANDLES", "KEEP_LEFT_OUT",
-           "fused_path", "prepared_grids", "patched_on_host", "patched_on_backend", "patched_in_place"]
-
-
-def left_out_fields(counts: np.ndarray, T: int, task: str) -> tuple[np.ndarray, np.ndarray]:
-    """(weights (R,) int64, stop (R,) bool) of count rows ``counts`` (R, K) (column 0 = empty) pooled over T
-    subsets, for ``task`` ("seg" or "det"): the values ``PSOG.weights`` and ``PSOG.stop_mask`` give those
-    voxels in ``pooled.psog(m).for_task(task)``."""
-    p = counts / float(T)                                     # PooledPSOG.psog
-    if task == "det":                                         # PSOG.detection
-        veh = p[:, VEHICLE] if p.shape[1] > VEHICLE else np.zeros(len(p))
-        other = 1.0 - p[:, 0] - veh
-        p = np.stack([p[:, 0], veh, np.clip(other, 0.0, 1.0)], axis=1)
-    elif task != "seg":
-        raise ValueError(f"task must be 'seg' or 'det', got {task!r}")
-    w = np.rint(entropy(p) * ENTROPY_SCALE).astype(np.int64)  # PSOG.weights
-    stop = (1.0 - p[:, 0]) >= 0.5 - 1e-12                     # PSOG.stop_mask
-    return w, stop
-
-
-class FieldTables:
-    """``left_out_fields`` for count rows over T subsets by table look-ups: every probability is c / T for an
-    integer c in [0, T], so each entropy term -p ln p (and, for "det", the "other" channel's term, a function
-    of the empty and vehicle counts) is computed once per value, by the same NumPy expressions on the same
-    float64 values, and gathered per row; the rows' terms are then summed as ``sog.entropy`` sums them (one
-    (R, K) array along its last axis). Bit for bit the same fields (tests/test_left_out.py), without a log
-    per entry."""
-
-    #: beyond this T the det table ((T + 1)^2 float64) grows large: ``left_out_fields`` is used instead
-    MAX_T = 2048
-
-    def __init__(self, T: int, task: str):
-        if task not in ("seg", "det"):
-            raise ValueError(f"task must be 'seg' or 'det', got {task!r}")
-        self.T, self.task = int(T), task
-        v = np.arange(self.T + 1) / float(self.T)             # c / T as PooledPSOG.psog divides
-        self.term = _terms(v)
-        self.stop = (1.0 - v) >= 0.5 - 1e-12                  # PSOG.stop_mask of p(empty) = c / T
-        if task == "det":                                     # PSOG.detection's "other", per (empty, vehicle)
-            self.other = _terms(np.clip(1.0 - v[:, None] - v[None, :], 0.0, 1.0))
-
-    def __call__(self, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        c0 = counts[:, 0]
-        if self.task == "seg":
-            terms = self.term[counts]
-        else:
-            veh = counts[:, VEHICLE] if counts.shape[1] > VEHICLE else np.zeros(len(counts), dtype=np.intp)
-            terms = np.stack([self.term[c0], self.term[veh], self.other[c0, veh]], axis=1)
-        w = np.rint(terms.sum(axis=-1) * ENTROPY_SCALE).astype(np.int64)
-        return w, self.stop[c0]
-
-
-def _terms(v: np.ndarray) -> np.ndarray:
-    # sog._entropy_rows' terms: -p ln p where p > 0, else 0
-    out = np.zeros(v.shape, dtype=np.float64)
-    nz = v > 0
-    p = v[nz]
-    out[nz] = -p * np.log(p)
-    return out
-
-
-def fields_of(T: int, task: str, cache: dict | None = None):
-    """A callable giving ``left_out_fields(counts, T, task)``: ``FieldTables`` where T allows (kept in
-    ``cache`` by (T, task)), else ``left_out_fields`` itself."""
-    if T > FieldTables.MAX_T:
-        return lambda counts: left_out_fields(counts, T, task)
-    if cache is None:
-        return FieldTables(T, task)
-    if (T, task) not in cache:
-        cache[T, task] = FieldTables(T, task)
-    return cache[T, task]
-
-
-def indicator_rows(kind: str | None, counts: np.ndarray, T: int, w: np.ndarray) -> np.ndarray | None:
-    """``metrics.indicator_weights(psog, kind)`` of count rows ``counts`` over T subsets whose weights are
-    ``w``: 1 where the voxel is stored in the P-SOG, i.e. occupied in some subset (``"evidence"``), or where
-    its weight is above 0 (``"uncertain"``); None for no indicator (the paper's normalisation)."""
-    if kind is None:
-        return None
-    if kind == "evidence":
-        return (counts[:, 0] < T).astype(np.int64)          # PooledPSOG.counts keeps the occupied rows
-    if kind == "uncertain":
-        return (w > 0).astype(np.int64)
-    raise ValueError(f"indicator must be 'evidence' or 'uncertain', got {kind!r}")
+           "fused_path", "prepared_grids", "patched_on_host", "patched_on_backend", "patched_in_place", "device_fields"]
 
 
 class LeftOutRows:
@@ -136,21 +56,27 @@ class LeftOutRows:
         """(T, rows of the plain pool record ``i`` touched (sorted), their count rows (R, K) without it)."""
         if self._last is not None and self._last[0] == i:
             return self._last[1]
+        T, rows, first, cls, cnt = self.index(i)
+        sub = self.counts[rows]
+        sub[np.cumsum(first) - 1, cls] -= cnt                 # one entry per (voxel, class): no repeats
+        sub[:, 0] = T - sub[:, 1:].sum(axis=1)
+        self._last = (i, (T, rows, sub))
+        return T, rows, sub
+
+    def index(self, i: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Where record ``i``'s entries fall: (T without it, the rows it touched (sorted), and its entries in
+        row order: a flag where each row's first entry is, their classes and counts)."""
         r = self.pooled.records[i]
         T = self.T - int(r.n_subsets)
         if T <= 0:
             raise ValueError(f"leaving record {i} out leaves no subsets (T = {T})")
         at = np.searchsorted(self.voxels, r.voxels)            # each entry's row in the plain pool
-        if np.all(at[1:] >= at[:-1]):                         # a record's voxels ascend: no sort needed
-            first = np.r_[True, at[1:] != at[:-1]] if len(at) else np.zeros(0, dtype=bool)
-            rows, pos = at[first], np.cumsum(first) - 1
-        else:
-            rows, pos = np.unique(at, return_inverse=True)
-        sub = self.counts[rows]
-        sub[pos, r.classes.astype(np.intp)] -= r.counts       # one entry per (voxel, class): no repeats
-        sub[:, 0] = T - sub[:, 1:].sum(axis=1)
-        self._last = (i, (T, rows, sub))
-        return T, rows, sub
+        cls, cnt = r.classes.astype(np.intp), r.counts
+        if np.any(at[1:] < at[:-1]):                          # a record's voxels ascend; else sort them so
+            order = np.argsort(at, kind="stable")
+            at, cls, cnt = at[order], cls[order], cnt[order]
+        first = np.r_[True, at[1:] != at[:-1]] if len(at) else np.zeros(0, dtype=bool)
+        return T, at[first], first, cls, cnt
 
 
 class LeftOutGrids:
@@ -326,13 +252,23 @@ def patched_on_host(pooled, task: str, occlusion: str, backend, indicator: str |
 def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: str | None = None, rows=None):
     """``prepared_grids`` by the backend: the base of each T sent once (``grid_base``), each left-out grid
     the base with the record's rows written over a copy of it there (``patched_grid``): per grid, no dense
-    host copy, no host brick masks and no upload of the whole grid."""
+    host copy, no host brick masks and no upload of the whole grid. Where the backend computes fields
+    (``fields_on_device``: Warp on CUDA), every record's rows are made there in one batch first
+    (``device_fields``; not for an indicator)."""
     grids = LeftOutGrids(pooled, task, indicator, rows)
     sog = occlusion == "sog"
     bases = {}
+    batch = None
+    if indicator is None and getattr(backend, "fields_on_device", False) and grids.T <= FieldTables.MAX_T \
+            and (len(grids.counts) == 0 or int(grids.counts.max()) < 2**31):
+        with section("jackknife: left-out grid"):
+            batch = device_fields(pooled, task, backend, grids.source)
     for i in range(len(pooled)):
         with section("jackknife: left-out grid"):
-            T, _, at, w, stop, ind = grids.rows(i)
+            if batch is not None:
+                (T, at, w, stop), ind = batch[i], None
+            else:
+                T, _, at, w, stop, ind = grids.rows(i)
         with section("jackknife: grid upload"):
             if T not in bases:
                 wb, sb, ib = grids._base_fields(T)
@@ -344,6 +280,36 @@ def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: st
             if ind is not None:
                 h = (h, backend.patched_grid(bases[T][1], at, ind, stop if sog else None))
         yield h
+
+
+def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):
+    """Every record's left-out rows computed on the backend in one batch (``Backend.left_out_fields``, Warp
+    on CUDA): per record (T, its rows' flat voxel indices (host), weights and stop flags (device arrays,
+    slices of the batch)). Only the index work (where each record's entries fall) stays on the host."""
+    src = rows if rows is not None else LeftOutRows(pooled)
+    idx = [src.index(i) for i in range(len(pooled))]
+    Ts = sorted({t for t, *_ in idx})
+    tables = [FieldTables(t, task) for t in Ts]
+    n = max(Ts) + 1
+    term, stop_t = np.zeros((len(Ts), n)), np.zeros((len(Ts), n), dtype=np.uint8)
+    other = np.zeros((len(Ts), n, n) if task == "det" else (1, 1, 1))
+    for j, tb in enumerate(tables):
+        term[j, :tb.T + 1], stop_t[j, :tb.T + 1] = tb.term, tb.stop
+        if task == "det":
+            other[j, :tb.T + 1, :tb.T + 1] = tb.other
+    R = np.array([len(r) for _, r, *_ in idx], dtype=np.int64)
+    E = np.array([len(c) for *_, c in idx], dtype=np.int64)
+    e_off = np.concatenate([[0], np.cumsum(E)])
+    estart = np.concatenate([np.flatnonzero(f) + e_off[k] for k, (_, _, f, _, _) in enumerate(idx)] + [e_off[-1:]])
+    row_t = np.repeat(np.array([Ts.index(t) for t, *_ in idx], dtype=np.int32), R)
+    all_rows = np.concatenate([r for _, r, *_ in idx])
+    w, s = backend.left_out_fields(src.counts.astype(np.int32), all_rows, estart,
+                                   np.concatenate([c for *_, c, _ in idx]), np.concatenate([c for *_, c in idx]),
+                                   row_t, np.array(Ts), term, stop_t, other, task == "det", VEHICLE,
+                                   float(ENTROPY_SCALE))
+    r_off = [0, *np.cumsum(R).tolist()]
+    return [(t, src.voxels[r], w[r_off[k]:r_off[k + 1]], s[r_off[k]:r_off[k + 1]])
+            for k, (t, r, *_) in enumerate(idx)]
 
 
 def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str | None = None, rows=None):

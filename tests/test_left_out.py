@@ -356,3 +356,76 @@ def test_field_tables_are_left_out_fields(task, T):
     got = FieldTables(T, task)(counts)
     assert got[0].dtype == want[0].dtype and got[0].tobytes() == want[0].tobytes()
     assert got[1].dtype == want[1].dtype and got[1].tobytes() == want[1].tobytes()
+
+
+@pytest.mark.parametrize("name", _patching_backends())
+@pytest.mark.parametrize("task", ["seg", "det"])
+@pytest.mark.parametrize("pool", ["subsets", "drives"])
+def test_left_out_rows_made_on_the_device_are_the_hosts(request, monkeypatch, pool, task, name):
+    """left_out.device_fields (every record's rows in one Warp launch, tables from the host, NumPy's order of
+    addition) gives each record's weights and stop flags bit for bit as LeftOutGrids.rows; patched_on_backend
+    takes that way where the backend says so (on CUDA), and its grids are then the uploaded ones."""
+    from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.left_out import device_fields, patched_on_backend
+
+    pooled = request.getfixturevalue(pool)
+    b = get_backend(name)
+    host = LeftOutGrids(pooled, task)
+    batch = device_fields(pooled, task, b)
+    for i, (T, at, w, s) in enumerate(batch):
+        hT, _, hat, hw, hs, _ = host.rows(i)
+        assert T == hT and at.tobytes() == hat.tobytes(), i
+        assert w.numpy().tobytes() == hw.tobytes(), f"weights, record {i}"
+        assert s.numpy().tobytes() == hs.astype(np.uint8).tobytes(), f"stop, record {i}"
+    monkeypatch.setattr(type(b), "fields_on_device", property(lambda self: True))
+    dense = LeftOutGrids(pooled, task)
+    for i, h in enumerate(patched_on_backend(pooled, task, "sog", b)):
+        w, stop = dense.fields(i)
+        want = b.prepare_grid(pooled.grid.spec, w, stop)
+        assert h.weights.numpy().tobytes() == want.weights.numpy().tobytes(), f"weights, record {i}"
+        assert h.masks.numpy().tobytes() == want.masks.numpy().tobytes(), f"masks, record {i}"
+
+
+@pytest.mark.parametrize("name", _patching_backends())
+@pytest.mark.parametrize("task", ["seg", "det"])
+def test_device_fields_add_terms_in_numpys_order(name, task):
+    """Backend.left_out_fields on rows whose T = 81 subsets spread over all 22 channels (many terms per row,
+    where the order of addition shows) and one entry taken out of each: FieldTables' weights bit for bit."""
+    from place3d_kernels.backends.base import ENTROPY_SCALE
+    from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.classes import N_CLASSES, VEHICLE
+    from place3d_kernels.left_out import FieldTables
+
+    b = get_backend(name)
+    rng = np.random.default_rng(4)
+    T, R = 81, 5000
+    counts = np.stack([np.bincount(rng.integers(0, N_CLASSES, T + 3), minlength=N_CLASSES) for _ in range(R)])
+    cls = np.array([1 + int(np.flatnonzero(r[1:])[0]) for r in counts])       # one occupied class per row
+    cnt = np.minimum(counts[np.arange(R), cls], rng.integers(1, 4, R))
+    want_rows = counts.copy()
+    want_rows[np.arange(R), cls] -= cnt
+    keep = want_rows[:, 1:].sum(axis=1) <= T                                  # rows that fit T subsets
+    counts, cls, cnt, want_rows = counts[keep], cls[keep], cnt[keep], want_rows[keep]
+    want_rows[:, 0] = T - want_rows[:, 1:].sum(axis=1)
+    tb = FieldTables(T, task)
+    ww, ws = tb(want_rows)
+    n = len(counts)
+    assert n > 1000
+    w, s = b.left_out_fields(counts.astype(np.int32), np.arange(n), np.arange(n + 1), cls, cnt,
+                             np.zeros(n, dtype=np.int32), np.array([T]), tb.term[None], tb.stop[None].astype(np.uint8),
+                             tb.other[None] if task == "det" else np.zeros((1, 1, 1)), task == "det", VEHICLE,
+                             float(ENTROPY_SCALE))
+    assert w.numpy().tobytes() == ww.tobytes() and s.numpy().tobytes() == ws.astype(np.uint8).tobytes()
+    # at ENTROPY_SCALE the rounding hides most last-bit differences of H; at 2**60 every bit of H shows
+    # (H <= ln 22 < 8, so H * 2**60 fits an int64)
+    if task == "seg":
+        terms = tb.term[want_rows]
+    else:
+        c0, cv = want_rows[:, 0], want_rows[:, VEHICLE]
+        terms = np.stack([tb.term[c0], tb.term[cv], tb.other[c0, cv]], axis=1)
+    exact = np.rint(terms.sum(axis=-1) * 2.0**60).astype(np.int64)
+    w60, _ = b.left_out_fields(counts.astype(np.int32), np.arange(n), np.arange(n + 1), cls, cnt,
+                               np.zeros(n, dtype=np.int32), np.array([T]), tb.term[None],
+                               tb.stop[None].astype(np.uint8), tb.other[None] if task == "det" else np.zeros((1, 1, 1)),
+                               task == "det", VEHICLE, 2.0**60)
+    assert w60.numpy().tobytes() == exact.tobytes()
