@@ -37,8 +37,9 @@ from place3d_kernels.left_out_memo import HANDLES, KEEP_LEFT_OUT, PreparedLeftOu
 from place3d_kernels.left_out_tables import FieldTables, fields_of, indicator_rows, left_out_fields
 from place3d_kernels.profiling import section
 
-__all__ = ["LeftOutRows", "LeftOutGrids", "left_out_fields", "FieldTables", "PreparedLeftOut", "HANDLES", "KEEP_LEFT_OUT",
-           "fused_path", "prepared_grids", "patched_on_host", "patched_on_backend", "patched_in_place", "device_fields"]
+__all__ = ["LeftOutRows", "LeftOutGrids", "left_out_fields", "FieldTables", "PreparedLeftOut", "HANDLES",
+           "KEEP_LEFT_OUT", "fused_path", "prepared_grids", "patched_on_host", "patched_on_backend", "patched_in_place",
+           "device_fields"]
 
 
 class LeftOutRows:

@@ -42,10 +42,10 @@ class PreparedLeftOut:
     - the backend instance itself, not its name: two instances of one name may hold different contexts,
       and a handle is only valid on the one that prepared it (as ``PSOG.handle`` keys its grids).
 
-    Handles are opaque and read-only to their users (a kept set is made of copies, never of one working
-    grid rewritten per record), so one set serves any number of jackknifes. The memo lives as long as the process: a one-shot command frees
-    it at exit, ``place3d serve`` keeps it between commands. Thread-safe; ``keep(0)`` or ``clear()``
-    frees every handle.
+    Handles are opaque and read-only to their users (a kept set is made of copies, never of one working grid
+    rewritten per record), so one set serves any number of jackknifes. The memo lives as long as the process: a
+    one-shot command frees it at exit, ``place3d serve`` keeps it between commands. Thread-safe; ``keep(0)`` or
+    ``clear()`` frees every handle.
     """
 
     def __init__(self, keep: int = KEEP_LEFT_OUT):
@@ -93,9 +93,10 @@ class PreparedLeftOut:
     def get(self, pool_key, grid, task: str, occlusion: str, backend, prepare: Callable[[], Iterable],
             normalisation: str = "paper") -> Iterable:
         """The prepared left-out grids (one item per record, in record order: ``left_out.prepared_grids``) of
-        this pool, task, occlusion, normalisation and backend: the kept list; or ``prepare()``'s handles, collected into a list and kept
-        when ``pool_key`` is not None (and ``keep`` > 0), else ``prepare()`` itself, returned as it is (an
-        iterator that prepares each grid when asked keeps one grid in memory at a time).
+        this pool, task, occlusion, normalisation and backend: the kept list; or ``prepare()``'s handles,
+        collected into a list and kept when ``pool_key`` is not None (and ``keep`` > 0), else ``prepare()``
+        itself, returned as it is (an iterator that prepares each grid when asked keeps one grid in memory at a
+        time).
 
         A call that finds another thread preparing the same set (``place3d_app.prefetch.prepare_in_background``)
         waits for its list; should that preparation fail, this call prepares the set itself."""
