@@ -31,16 +31,17 @@ def cmd_evaluate(args) -> int:
     if args.plot and (args.interval == "none" or (args.interval == "bootstrap" and not args.resamples)):
         raise ValueError(f"--plot draws the scores with their intervals; --interval {args.interval}"
                          f"{' with --resamples 0' if args.interval == 'bootstrap' else ''} has none to draw")
-    spec = specs_from_args(args)
-    start_for_spec(spec, cache=not args.no_cache)    # the scene is built on another core during the probe
-    b = get_backend(args.backend)
-    lidar = LidarModel.load(args.lidar)
-    names = args.placements or list(PAPER_PLACEMENTS)
-    placements = [Placement.load(n) for n in names]
-    body = spec.vehicle_body()
-    from place3d_app.commands.routes import build_missing, drive_specs, pooled_psog
+    with section("setup: specs, backend, placements"):
+        spec = specs_from_args(args)
+        start_for_spec(spec, cache=not args.no_cache)    # the scene is built on another core during the probe
+        b = get_backend(args.backend)
+        lidar = LidarModel.load(args.lidar)
+        names = args.placements or list(PAPER_PLACEMENTS)
+        placements = [Placement.load(n) for n in names]
+        body = spec.vehicle_body()
+        from place3d_app.commands.routes import build_missing, drive_specs, pooled_psog
 
-    drives = drive_specs(args, spec)
+        drives = drive_specs(args, spec)
     if len(drives) > 1 and args.interval == "bootstrap":
         raise ValueError("--interval bootstrap resamples the subsets of a single drive (--routes 1); over routes "
                          "its resamples repeat drives and score high, so a pooled P-SOG takes the jackknife")
@@ -88,7 +89,8 @@ def cmd_evaluate(args) -> int:
             print(f"{i + 1:>4}  {r['placement']:14s} {r['msog_seg']:12.6f} {r['msog_det']:12.6f}"
                   f"   (det rank {det_rank[r['placement']]})")
     else:
-        _print_intervals(rows, boots, det_rank)
+        with section("intervals: table"):
+            _print_intervals(rows, boots, det_rank)
     print(f"{seconds:.1f} s")
     if args.output:
         from place3d_app.commands.reproduce import machine_info
@@ -172,10 +174,11 @@ def _route_intervals(args, pool, psog, backend, lidar, names, placements, rows, 
         boots = jackknife_records(pooled, pooled.grid, lidar, {n: by_name[n] for n in order}, ("seg", "det"),
                                   args.occlusion, backend, point=point, unit="drives", progress=not args.quiet,
                                   normalisation=args.normalisation, body=body, reference=psog, strata=strata, df=df)
-    pw = {t: pairwise(bt) for t, bt in boots.items()}
-    for i, r in enumerate(rows):
-        r["ci"] = {t: boots[t].ci[i].tolist() for t in boots}
-        r["pairwise"] = {t: pw[t][r["placement"]] for t in boots}
+    with section("intervals: bounds and pairwise order"):      # SciPy's t distribution is imported here
+        pw = {t: pairwise(bt) for t, bt in boots.items()}
+        for i, r in enumerate(rows):
+            r["ci"] = {t: boots[t].ci[i].tolist() for t in boots}
+            r["pairwise"] = {t: pw[t][r["placement"]] for t in boots}
     return boots
 
 
