@@ -257,7 +257,8 @@ def prepare_in_background(spec, reference, lidar, task: str, occlusion: str, bac
                 pooled = PooledPSOG(spec.grid.grid(), records)
                 HANDLES.plain_psog(pooled, reference, pool_key)     # the counts from the reference, checked once
                 done.set_result(HANDLES.get(pool_key, pooled.grid, task, occlusion, backend,
-                                            lambda: prepared_grids(pooled, task, occlusion, backend)))
+                                            lambda: prepared_grids(pooled, task, occlusion, backend, normalisation),
+                                            normalisation=normalisation))
         except BaseException as e:  # noqa: BLE001 - handed to whoever asks the Future; the jackknife retries
             done.set_exception(e)
 

@@ -5,331 +5,343 @@ from scratch, each is a dense (M, K) table of counts and probabilities (some 100
 its entropies and its stop mask, which made most of a warm optimise's jackknife. Yet a
 voxel the left-out record never saw keeps its counts; only the number of subsets T changes. So the
 weights and stop mask of every voxel are computed once per T (the "base"), and for each left-out record
-only the rows of the voxels it touched are recomputed and written over the base (in one working copy,
-the previous record's rows restored first).
+only the rows of the voxels it touched are recomputed (``LeftOutRows``, once per record for both tasks)
+and written over the base.
+
+Where they are written (``prepared_grids``): on backends that write grids in place (``Backend.writes_grids``:
+reference, OpenCL) one working grid per T stays on the device and each record's rows, with the previous
+record's rows restored, are all that moves (``patched_in_place``); on Warp's CUDA devices every record's
+rows are computed there in one batch (``device_fields``) and a copy of a base on the device is patched per
+grid (``patched_on_backend``); elsewhere a dense host copy is patched and uploaded whole
+(``patched_on_host``). Sets kept between jackknifes (``HANDLES``) are made of copies. The fields of a row
+(``left_out_tables``) come from per-T tables of entropy terms.
+
+The ``evidence`` and ``uncertain`` normalisations (docs/metric-normalisation.md) count covered voxels with
+0/1 weights (``metrics.indicator_weights``); their indicator is patched the same way, in a second grid
+with the same stop mask, and scored beside the weights.
 
 Exact: a voxel's weight is a function of its own count row and T alone (``PSOG.weights`` reduces each
 row on its own), and ``left_out_fields`` mirrors ``PooledPSOG.psog``, ``PSOG.detection``, ``PSOG.weights``
 and ``PSOG.stop_mask`` step for step; tests/test_left_out.py checks every left-out grid of the default
-town against ``pooled.psog(m).for_task(task)`` bit for bit, for both tasks.
-
-A resident process (``place3d serve``) runs the same jackknife again and again on the same records: the
-left-out grids depend on the records, the task and the occlusion, never on the rigs scored. ``HANDLES``
-keeps their prepared backend grids between calls (see ``PreparedLeftOut``) and remembers that the
-scene's P-SOG passed ``PooledPSOG.plain_psog``'s identity check, so a warm jackknife on a known
-pool patches, uploads and compares nothing: it only launches the scoring.
+town against ``pooled.psog(m).for_task(task)`` bit for bit, for both tasks, and the scores of every path
+against ``msog_batch`` on the rebuilt pools.
 """
 
 from __future__ import annotations
-
-import json
-import threading
-import weakref
-from collections import OrderedDict
-from concurrent.futures import Future
-from typing import Callable, Iterable
 
 import numpy as np
 
 from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.classes import VEHICLE
+from place3d_kernels.left_out_memo import HANDLES, KEEP_LEFT_OUT, PreparedLeftOut
+from place3d_kernels.left_out_tables import FieldTables, fields_of, indicator_rows, left_out_fields
 from place3d_kernels.profiling import section
-from place3d_kernels.sog import entropy
 
-__all__ = ["LeftOutGrids", "left_out_fields", "PreparedLeftOut", "HANDLES", "KEEP_LEFT_OUT", "fused_path",
-           "prepared_grids", "patched_on_host", "patched_on_backend"]
+__all__ = ["LeftOutRows", "LeftOutGrids", "left_out_fields", "FieldTables", "PreparedLeftOut", "HANDLES",
+           "KEEP_LEFT_OUT", "fused_path", "prepared_grids", "patched_on_host", "patched_on_backend", "patched_in_place",
+           "device_fields"]
 
 
-def left_out_fields(counts: np.ndarray, T: int, task: str) -> tuple[np.ndarray, np.ndarray]:
-    """(weights (R,) int64, stop (R,) bool) of count rows ``counts`` (R, K) (column 0 = empty) pooled over T
-    subsets, for ``task`` ("seg" or "det"): the values ``PSOG.weights`` and ``PSOG.stop_mask`` give those
-    voxels in ``pooled.psog(m).for_task(task)``."""
-    p = counts / float(T)                                     # PooledPSOG.psog
-    if task == "det":                                         # PSOG.detection
-        veh = p[:, VEHICLE] if p.shape[1] > VEHICLE else np.zeros(len(p))
-        other = 1.0 - p[:, 0] - veh
-        p = np.stack([p[:, 0], veh, np.clip(other, 0.0, 1.0)], axis=1)
-    elif task != "seg":
-        raise ValueError(f"task must be 'seg' or 'det', got {task!r}")
-    w = np.rint(entropy(p) * ENTROPY_SCALE).astype(np.int64)  # PSOG.weights
-    stop = (1.0 - p[:, 0]) >= 0.5 - 1e-12                     # PSOG.stop_mask
-    return w, stop
+class LeftOutRows:
+    """The plain pool's count rows and, per left-out record, the rows it touched with its counts taken out:
+    the part of a left-out grid both tasks share, computed once per record (the last one is kept, as a
+    jackknife asks for record i's grid of every task before record i + 1's)."""
+
+    def __init__(self, pooled):
+        self.pooled = pooled
+        self.n_voxels = pooled.grid.n_voxels
+        self.voxels, self.counts, self.T = pooled.counts()    # the plain pool: every record once
+        self._last = None
+
+    def of(self, i: int) -> tuple[int, np.ndarray, np.ndarray]:
+        """(T, rows of the plain pool record ``i`` touched (sorted), their count rows (R, K) without it)."""
+        if self._last is not None and self._last[0] == i:
+            return self._last[1]
+        T, rows, first, cls, cnt = self.index(i)
+        sub = self.counts[rows]
+        sub[np.cumsum(first) - 1, cls] -= cnt                 # one entry per (voxel, class): no repeats
+        sub[:, 0] = T - sub[:, 1:].sum(axis=1)
+        self._last = (i, (T, rows, sub))
+        return T, rows, sub
+
+    def index(self, i: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Where record ``i``'s entries fall: (T without it, the rows it touched (sorted), and its entries in
+        row order: a flag where each row's first entry is, their classes and counts)."""
+        r = self.pooled.records[i]
+        T = self.T - int(r.n_subsets)
+        if T <= 0:
+            raise ValueError(f"leaving record {i} out leaves no subsets (T = {T})")
+        at = np.searchsorted(self.voxels, r.voxels)            # each entry's row in the plain pool
+        cls, cnt = r.classes.astype(np.intp), r.counts
+        if np.any(at[1:] < at[:-1]):                          # a record's voxels ascend; else sort them so
+            order = np.argsort(at, kind="stable")
+            at, cls, cnt = at[order], cls[order], cnt[order]
+        first = np.r_[True, at[1:] != at[:-1]] if len(at) else np.zeros(0, dtype=bool)
+        return T, at[first], first, cls, cnt
 
 
 class LeftOutGrids:
-    """The dense weights and stop masks of a pool's leave-one-out P-SOGs, one record left out at a time.
+    """The weights and stop masks (and an indicator, for a normalisation other than the paper's) of a
+    pool's leave-one-out P-SOGs for one task, one record left out at a time.
 
     Args:
         pooled: the ``PooledPSOG``.
         task: "seg" or "det".
+        indicator: None, "evidence" or "uncertain" (``indicator_rows``).
+        rows: a ``LeftOutRows`` of ``pooled`` to share with the other task's grids (None: one of its own).
     """
 
-    def __init__(self, pooled, task: str):
-        self.pooled, self.task = pooled, task
-        self.n_voxels = pooled.grid.n_voxels
-        self.voxels, self.counts, self.T = pooled.counts()    # the plain pool: every record once
+    def __init__(self, pooled, task: str, indicator: str | None = None, rows: LeftOutRows | None = None):
+        self.pooled, self.task, self.indicator = pooled, task, indicator
+        self.source = rows if rows is not None else LeftOutRows(pooled)
+        self.n_voxels = self.source.n_voxels
+        self.voxels, self.counts, self.T = self.source.voxels, self.source.counts, self.source.T
         self._base: dict = {}
+        self._tables: dict = {}     # (T, task) -> FieldTables
         self._work: dict = {}       # T -> (weights, stop, rows last written): the base, patched in place
 
     def _base_fields(self, T: int):
-        """(weights (M,) int64, stop (M,) bool) of the plain pool's count rows taken over T subsets: right
-        for every voxel a left-out record did not touch (the others are overwritten).
+        """(weights (M,) int64, stop (M,) bool, indicator (M,) int64 or None) of the plain pool's count rows
+        taken over T subsets: right for every voxel a left-out record did not touch (the others are
+        overwritten).
 
         Computed in blocks of rows: each row's fields depend on that row alone, and blocks that stay in
         the cache spare the passes over fresh (M, K) temporaries (some 40 MB each on the default grid)."""
         if T not in self._base:
             M = len(self.voxels)
             w, s = np.empty(M, dtype=np.int64), np.empty(M, dtype=bool)
+            ind = None if self.indicator is None else np.empty(M, dtype=np.int64)
+            fields = fields_of(T, self.task, self._tables)
             for a in range(0, M, BASE_BLOCK):
                 c = self.counts[a:a + BASE_BLOCK].copy()
                 c[:, 0] = T - c[:, 1:].sum(axis=1)
-                w[a:a + BASE_BLOCK], s[a:a + BASE_BLOCK] = left_out_fields(c, T, self.task)
-            self._base[T] = (w, s)
+                # rows some record with this T touched can hold more than T subsets here (its own included);
+                # every left-out grid overwrites them, but the tables take counts in [0, T] only
+                np.clip(c, 0, T, out=c)
+                w[a:a + BASE_BLOCK], s[a:a + BASE_BLOCK] = fields(c)
+                if ind is not None:
+                    ind[a:a + BASE_BLOCK] = indicator_rows(self.indicator, c, T, w[a:a + BASE_BLOCK])
+            self._base[T] = (w, s, ind)
         return self._base[T]
 
-    def rows(self, i: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def rows(self, i: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """What leaving record ``i`` out changes: (T, rows of the plain pool it touched (sorted), their flat
-        voxel indices, weights int64 and stop bool over T subsets). Every other voxel keeps the base's
-        fields for that T (``dense_base``); a voxel no longer occupied gets weight 0 and no stop."""
-        r = self.pooled.records[i]
-        T = self.T - int(r.n_subsets)
-        if T <= 0:
-            raise ValueError(f"leaving record {i} out leaves no subsets (T = {T})")
-        at = np.searchsorted(self.voxels, r.voxels)            # each entry's row in the plain pool
-        rows, pos = np.unique(at, return_inverse=True)
-        sub = self.counts[rows].copy()
-        sub[pos, r.classes.astype(np.intp)] -= r.counts       # one entry per (voxel, class): no repeats
-        sub[:, 0] = T - sub[:, 1:].sum(axis=1)
-        w, s = left_out_fields(sub, T, self.task)
-        return T, rows, self.voxels[rows], w, s
+        voxel indices, weights int64 and stop bool over T subsets, indicator int64 or None). Every other
+        voxel keeps the base's fields for that T (``dense_base``); a voxel no longer occupied gets weight 0
+        and no stop."""
+        T, rows, sub = self.source.of(i)
+        R = len(rows)
+        w, s = np.empty(R, dtype=np.int64), np.empty(R, dtype=bool)
+        ind = None if self.indicator is None else np.empty(R, dtype=np.int64)
+        fields = fields_of(T, self.task, self._tables)
+        for a in range(0, R, BASE_BLOCK):        # blocks: the temporaries stay in the cache
+            b = min(a + BASE_BLOCK, R)
+            w[a:b], s[a:b] = fields(sub[a:b])
+            if ind is not None:
+                ind[a:b] = indicator_rows(self.indicator, sub[a:b], T, w[a:b])
+        return T, rows, self.voxels[rows], w, s, ind
 
     def dense_base(self, T: int) -> tuple[np.ndarray, np.ndarray]:
         """(weights (n_voxels,) int64, stop (n_voxels,) uint8): the plain pool's fields over T subsets on the
         whole grid (zero where no record saw anything), a new pair each call."""
-        wb, sb = self._base_fields(T)
-        wd = np.zeros(self.n_voxels, dtype=np.int64)
-        sd = np.zeros(self.n_voxels, dtype=np.uint8)
-        wd[self.voxels], sd[self.voxels] = wb, sb
-        return wd, sd
+        wb, sb, _ = self._base_fields(T)
+        return self._dense(wb), self._dense(sb, np.uint8)
+
+    def _dense(self, values: np.ndarray, dtype=np.int64) -> np.ndarray:
+        d = np.zeros(self.n_voxels, dtype=dtype)
+        d[self.voxels] = values
+        return d
 
     def fields(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """(weights (n_voxels,) int64, stop (n_voxels,) uint8) of the pool without record ``i``.
 
         The arrays are reused: they hold record ``i``'s grid until the next call (copy them to keep one).
         """
-        T, rows, at, w, s = self.rows(i)
+        return self.dense(i)[:2]
+
+    def dense(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """``fields(i)`` and the dense indicator (None without one), reused alike."""
+        T, rows, at, w, s, ind = self.rows(i)
         if T not in self._work:
             # one dense copy of the base per T, patched and restored from the base's rows
-            self._work[T] = (*self.dense_base(T), None)
-        wd, sd, last = self._work[T]
+            wb, sb, ib = self._base_fields(T)
+            self._work[T] = (self._dense(wb), self._dense(sb, np.uint8), None if ib is None else self._dense(ib),
+                             None)
+        wd, sd, idn, last = self._work[T]
         if last is not None:                                  # undo the previous record's rows
-            wb, sb = self._base_fields(T)
+            wb, sb, ib = self._base_fields(T)
             back = self.voxels[last]
             wd[back], sd[back] = wb[last], sb[last]
+            if idn is not None:
+                idn[back] = ib[last]
         wd[at], sd[at] = w, s
-        self._work[T] = (wd, sd, rows)
-        return wd, sd
+        if idn is not None:
+            idn[at] = ind
+        self._work[T] = (wd, sd, idn, rows)
+        return wd, sd, idn
+
+    def changes(self, i: int, last: np.ndarray | None, mark: np.ndarray):
+        """(T, voxels, weights, stop, indicator or None) to write over a grid that holds the base for T with
+        the rows ``last`` of the previous record written (None: the base as it is) so that it holds record
+        ``i``'s left-out grid: record ``i``'s rows, and the base's values back on the rows of ``last`` it did
+        not touch. Also returns its rows (the next call's ``last``). ``mark``: (M,) bool scratch, all False
+        (and left so)."""
+        T, rows, at, w, s, ind = self.rows(i)
+        if last is None or not len(last):
+            return (T, at, w, s, ind), rows
+        mark[rows] = True
+        back = last[~mark[last]]
+        mark[rows] = False
+        wb, sb, ib = self._base_fields(T)
+        out = (T, np.concatenate([self.voxels[back], at]), np.concatenate([wb[back], w]),
+               np.concatenate([sb[back], s]), None if ind is None else np.concatenate([ib[back], ind]))
+        return out, rows
 
 
 def fused_path(lidar, occlusion: str, normalisation: str = "paper", body=None) -> bool:
     """Whether ``uncertainty.jackknife_records`` scores these settings on patched left-out grids (the path
-    of ``metrics.msog_on_handle``: paper normalisation, no ego body, a grid LiDAR from range 0, occlusion
-    by the SOG or none) rather than on whole left-out P-SOGs."""
-    return (normalisation == "paper" and body is None and lidar.is_grid and lidar.min_range == 0
+    of ``metrics.msog_on_handle``: any normalisation, no ego body, a grid LiDAR from range 0, occlusion by
+    the SOG or none) rather than on whole left-out P-SOGs."""
+    from place3d_kernels.metrics import NORMALISATIONS
+
+    return (normalisation in NORMALISATIONS and body is None and lidar.is_grid and lidar.min_range == 0
             and occlusion in ("sog", "none"))
 
 
-def prepared_grids(pooled, task: str, occlusion: str, backend):
+def _indicator(normalisation: str) -> str | None:
+    from place3d_kernels.metrics import check_normalisation
+
+    return None if check_normalisation(normalisation) == "paper" else normalisation
+
+
+def prepared_grids(pooled, task: str, occlusion: str, backend, normalisation: str = "paper", reuse: bool = False,
+                   rows: LeftOutRows | None = None):
     """Each left-out grid of ``pooled`` (one record left out at a time, in record order) for ``task``,
     prepared on ``backend`` (the stop mask only with ``occlusion="sog"``), made one at a time as the
-    iterator is advanced: by ``patched_on_backend`` where the backend patches grids itself
-    (``Backend.patches_grids``: Warp on CUDA), else by ``patched_on_host``. Both give the handle
-    ``prepare_grid`` gives for the dense arrays (tests/test_left_out.py)."""
-    make = patched_on_backend if backend.patches_grids else patched_on_host
-    yield from make(pooled, task, occlusion, backend)
+    iterator is advanced. An item is the handle ``prepare_grid`` gives for the dense arrays
+    (tests/test_left_out.py); for the ``evidence`` and ``uncertain`` normalisations, a pair (that handle,
+    the handle of the indicator's 0/1 weights with the same stop mask).
+
+    ``reuse=True`` lets an item be valid only until the next one is asked for: where the backend writes
+    grids in place (``Backend.writes_grids``) every item is then one working grid per T, rewritten
+    (``patched_in_place``). Otherwise each item is a grid of its own: patched on the device where the
+    backend patches copies (``Backend.patches_grids``: Warp on CUDA), else on the host. ``rows``: a
+    ``LeftOutRows`` shared with the other task's grids."""
+    kind = _indicator(normalisation)
+    if reuse and backend.writes_grids:
+        make = patched_in_place
+    else:
+        make = patched_on_backend if backend.patches_grids else patched_on_host
+    yield from make(pooled, task, occlusion, backend, kind, rows)
 
 
-def patched_on_host(pooled, task: str, occlusion: str, backend):
+def patched_on_host(pooled, task: str, occlusion: str, backend, indicator: str | None = None, rows=None):
     """``prepared_grids`` by one dense host copy per T, patched with each record's rows
-    (``LeftOutGrids.fields``) and uploaded whole with ``prepare_grid``."""
-    grids = LeftOutGrids(pooled, task)
+    (``LeftOutGrids.dense``) and uploaded whole with ``prepare_grid``."""
+    grids = LeftOutGrids(pooled, task, indicator, rows)
     for i in range(len(pooled)):
         with section("jackknife: left-out grid"):
-            w, stop = grids.fields(i)
+            w, stop, ind = grids.dense(i)
         with section("jackknife: grid upload"):
-            h = backend.prepare_grid(pooled.grid.spec, w, stop if occlusion == "sog" else None)
+            stop = stop if occlusion == "sog" else None
+            h = backend.prepare_grid(pooled.grid.spec, w, stop)
+            if ind is not None:
+                h = (h, backend.prepare_grid(pooled.grid.spec, ind, stop))
         yield h
 
 
-def patched_on_backend(pooled, task: str, occlusion: str, backend):
+def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: str | None = None, rows=None):
     """``prepared_grids`` by the backend: the base of each T sent once (``grid_base``), each left-out grid
     the base with the record's rows written over a copy of it there (``patched_grid``): per grid, no dense
-    host copy, no host brick masks and no upload of the whole grid."""
-    grids = LeftOutGrids(pooled, task)
+    host copy, no host brick masks and no upload of the whole grid. Where the backend computes fields
+    (``fields_on_device``: Warp on CUDA), every record's rows are made there in one batch first
+    (``device_fields``; not for an indicator)."""
+    grids = LeftOutGrids(pooled, task, indicator, rows)
     sog = occlusion == "sog"
     bases = {}
+    batch = None
+    if indicator is None and getattr(backend, "fields_on_device", False) and grids.T <= FieldTables.MAX_T \
+            and (len(grids.counts) == 0 or int(grids.counts.max()) < 2**31):
+        with section("jackknife: left-out grid"):
+            batch = device_fields(pooled, task, backend, grids.source)
     for i in range(len(pooled)):
         with section("jackknife: left-out grid"):
-            T, _, at, w, stop = grids.rows(i)
+            if batch is not None:
+                (T, at, w, stop), ind = batch[i], None
+            else:
+                T, _, at, w, stop, ind = grids.rows(i)
         with section("jackknife: grid upload"):
             if T not in bases:
-                wd, sd = grids.dense_base(T)
-                bases[T] = backend.grid_base(pooled.grid.spec, wd, sd if sog else None)
-            h = backend.patched_grid(bases[T], at, w, stop if sog else None)
+                wb, sb, ib = grids._base_fields(T)
+                sd = grids._dense(sb, np.uint8) if sog else None
+                bases[T] = [backend.grid_base(pooled.grid.spec, grids._dense(wb), sd)]
+                if ib is not None:
+                    bases[T].append(backend.grid_base(pooled.grid.spec, grids._dense(ib), sd))
+            h = backend.patched_grid(bases[T][0], at, w, stop if sog else None)
+            if ind is not None:
+                h = (h, backend.patched_grid(bases[T][1], at, ind, stop if sog else None))
         yield h
+
+
+def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):
+    """Every record's left-out rows computed on the backend in one batch (``Backend.left_out_fields``, Warp
+    on CUDA): per record (T, its rows' flat voxel indices (host), weights and stop flags (device arrays,
+    slices of the batch)). Only the index work (where each record's entries fall) stays on the host."""
+    src = rows if rows is not None else LeftOutRows(pooled)
+    idx = [src.index(i) for i in range(len(pooled))]
+    Ts = sorted({t for t, *_ in idx})
+    tables = [FieldTables(t, task) for t in Ts]
+    n = max(Ts) + 1
+    term, stop_t = np.zeros((len(Ts), n)), np.zeros((len(Ts), n), dtype=np.uint8)
+    other = np.zeros((len(Ts), n, n) if task == "det" else (1, 1, 1))
+    for j, tb in enumerate(tables):
+        term[j, :tb.T + 1], stop_t[j, :tb.T + 1] = tb.term, tb.stop
+        if task == "det":
+            other[j, :tb.T + 1, :tb.T + 1] = tb.other
+    R = np.array([len(r) for _, r, *_ in idx], dtype=np.int64)
+    E = np.array([len(c) for *_, c in idx], dtype=np.int64)
+    e_off = np.concatenate([[0], np.cumsum(E)])
+    estart = np.concatenate([np.flatnonzero(f) + e_off[k] for k, (_, _, f, _, _) in enumerate(idx)] + [e_off[-1:]])
+    row_t = np.repeat(np.array([Ts.index(t) for t, *_ in idx], dtype=np.int32), R)
+    all_rows = np.concatenate([r for _, r, *_ in idx])
+    w, s = backend.left_out_fields(src.counts.astype(np.int32), all_rows, estart,
+                                   np.concatenate([c for *_, c, _ in idx]), np.concatenate([c for *_, c in idx]),
+                                   row_t, np.array(Ts), term, stop_t, other, task == "det", VEHICLE,
+                                   float(ENTROPY_SCALE))
+    r_off = [0, *np.cumsum(R).tolist()]
+    return [(t, src.voxels[r], w[r_off[k]:r_off[k + 1]], s[r_off[k]:r_off[k + 1]])
+            for k, (t, r, *_) in enumerate(idx)]
+
+
+def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str | None = None, rows=None):
+    """``prepared_grids`` with ``reuse``, on a backend that writes grids in place: per T one working grid
+    (``Backend.working_grid``, filled from the base's M voxels on the device), and per record only its rows
+    and the previous record's rows it did not touch written (``Backend.write_voxels``). An item is valid
+    until the next is asked for."""
+    grids = LeftOutGrids(pooled, task, indicator, rows)
+    sog = occlusion == "sog"
+    spec = pooled.grid.spec
+    work = {}                     # T -> [handle, indicator handle or None, rows last written]
+    mark = np.zeros(len(grids.voxels), dtype=bool)
+    for i in range(len(pooled)):
+        with section("jackknife: left-out grid"):
+            T = grids.source.of(i)[0]
+            last = work[T][2] if T in work else None
+            (T, at, w, stop, ind), written = grids.changes(i, last, mark)
+        with section("jackknife: grid upload"):
+            if T not in work:
+                wb, sb, ib = grids._base_fields(T)
+                sv = sb if sog else None
+                work[T] = [backend.working_grid(spec, grids.voxels, wb, sv),
+                           None if ib is None else backend.working_grid(spec, grids.voxels, ib, sv), None]
+            h, hi, _ = work[T]
+            backend.write_voxels(h, at, w, stop if sog else None)
+            if hi is not None:
+                backend.write_voxels(hi, at, ind, stop if sog else None)
+            work[T][2] = written
+        yield h if hi is None else (h, hi)
 
 
 #: Rows of the plain pool's counts per block when the base fields are computed (``LeftOutGrids``): 8192
 #: rows of 22 float64 channels are 1.4 MB, so a block's temporaries stay in the cache.
 BASE_BLOCK = 8192
-
-
-#: Sets of prepared left-out grids (one set: the n grids of one pool, task, occlusion and backend) that
-#: ``HANDLES`` keeps; 2 holds both tasks of one pool. One grid is its int64 weights plus masks, about
-#: 40 MB on the default 0.2 m grid, so a set of 10 subsets is about 400 MB of device (or, on a CPU
-#: backend, host) memory.
-KEEP_LEFT_OUT = 2
-
-
-class PreparedLeftOut:
-    """A bounded memo of the prepared backend grids of left-out P-SOGs, most recently used kept.
-
-    A key names everything a left-out grid is made of, so an entry is never served for other data:
-
-    - ``pool_key``, the records' content identity, given by the caller: for records read from the
-      subset-record cache, the file's resolved path, device, inode, size and modification time in ns
-      (``subset_records.records_file_identity``), taken before and after the read. A rewritten file
-      (``os.replace``: a new inode) or a touched one gets another key. Callers without such an identity
-      pass None and nothing is kept.
-    - the grid (its bounds and voxel size), the task and the occlusion mode (the stop mask or none);
-    - the backend instance itself, not its name: two instances of one name may hold different contexts,
-      and a handle is only valid on the one that prepared it (as ``PSOG.handle`` keys its grids).
-
-    Handles are opaque and read-only to their users (``Backend.prepare_grid`` copies its inputs), so one
-    set serves any number of jackknifes. The memo lives as long as the process: a one-shot command frees
-    it at exit, ``place3d serve`` keeps it between commands. Thread-safe; ``keep(0)`` or ``clear()``
-    frees every handle.
-    """
-
-    def __init__(self, keep: int = KEEP_LEFT_OUT):
-        self._sets: OrderedDict = OrderedDict()
-        self._pending: dict = {}    # key -> Future of the list a caller is preparing now (another waits for it)
-        # (pool_key, grid) -> weak reference to the P-SOG that passed PooledPSOG.plain_psog's check for that
-        # pool; a P-SOG that dies is never matched again (its weak reference then returns None)
-        self._verified: OrderedDict = OrderedDict()
-        self._lock = threading.Lock()
-        self._keep = 0
-        self.keep(keep)
-
-    def keep(self, n: int) -> None:
-        """Keep at most ``n`` sets (0: none, and nothing kept now)."""
-        if n < 0:
-            raise ValueError(f"keep needs n >= 0 sets of left-out grids, got {n}")
-        with self._lock:
-            self._keep = int(n)
-            self._trim()
-
-    def _trim(self) -> None:
-        for d in (self._sets, self._verified):
-            while len(d) > self._keep:
-                d.popitem(last=False)
-
-    def clear(self) -> None:
-        """Forget every set (their device memory is freed with the last reference) and every check."""
-        with self._lock:
-            self._sets.clear()
-            self._verified.clear()
-
-    def __len__(self) -> int:
-        return len(self._sets)
-
-    @property
-    def keeps(self) -> bool:
-        """Whether any set is kept (``keep`` > 0)."""
-        return self._keep > 0
-
-    def get(self, pool_key, grid, task: str, occlusion: str, backend, prepare: Callable[[], Iterable]) -> Iterable:
-        """The prepared left-out grids (one handle per record, in record order) of this pool, task,
-        occlusion and backend: the kept list; or ``prepare()``'s handles, collected into a list and kept
-        when ``pool_key`` is not None (and ``keep`` > 0), else ``prepare()`` itself, returned as it is (an
-        iterator that prepares each grid when asked keeps one grid in memory at a time).
-
-        A call that finds another thread preparing the same set (``place3d_app.prefetch.prepare_in_background``)
-        waits for its list; should that preparation fail, this call prepares the set itself."""
-        if pool_key is None or not self._keep:
-            return prepare()
-        key = (pool_key, _grid_key(grid), task, occlusion, backend)
-        while True:
-            with self._lock:
-                handles = self._sets.get(key)
-                if handles is not None:
-                    self._sets.move_to_end(key)
-                    return handles
-                other = self._pending.get(key)
-                if other is None:
-                    mine = self._pending[key] = Future()
-                    break
-            try:
-                return other.result()
-            except BaseException:  # noqa: BLE001 - that caller's failure: prepare here (and meet it here)
-                with self._lock:
-                    if self._pending.get(key) is other:
-                        del self._pending[key]
-        try:
-            handles = list(prepare())
-        except BaseException as e:
-            with self._lock:
-                del self._pending[key]
-            mine.set_exception(e)
-            raise
-        with self._lock:
-            self._sets[key] = handles
-            self._trim()
-            del self._pending[key]
-        mine.set_result(handles)
-        return handles
-
-    def remember_plain(self, pool_key, psog) -> None:
-        """Remember ``psog`` as exactly the plain pool of the records ``pool_key`` names, without the check of
-        ``plain_psog``: for a P-SOG pooled from those very records (``subset_records.records_aggregator``
-        writes the records of a cold build and pools its P-SOG from them). None keeps nothing."""
-        if pool_key is None or not self._keep:
-            return
-        key = (pool_key, _grid_key(psog.grid))
-        with self._lock:
-            self._verified[key] = weakref.ref(psog)
-            self._verified.move_to_end(key)
-            self._trim()
-
-    def plain_psog(self, pooled, reference=None, pool_key=None):
-        """``pooled.plain_psog(reference)``, without its check when ``reference`` already passed it for the
-        pool ``pool_key`` names (None: always checked).
-
-        The check compares the pool's summed counts, voxels and probabilities with the reference's (a sum
-        over every record and three full-array comparisons); its answer depends only on the records and on
-        the reference's arrays, which nothing writes to after a P-SOG is made. So the same P-SOG object on
-        the same records passes again, and the point estimate reuses its weights and device grids at once.
-        """
-        if pool_key is None or reference is None or not self._keep:
-            return pooled.plain_psog(reference)
-        key = (pool_key, _grid_key(pooled.grid))
-        with self._lock:
-            ref = self._verified.get(key)
-            if ref is not None and ref() is reference:
-                self._verified.move_to_end(key)
-                pooled.known_plain(reference)      # its counts, should the left-out grids ask for them
-                return reference
-        full = pooled.plain_psog(reference)
-        if full is reference:
-            with self._lock:
-                self._verified[key] = weakref.ref(reference)
-                self._trim()
-        return full
-
-
-#: The process's memo of prepared left-out grids (``uncertainty.jackknife_records`` uses it).
-HANDLES = PreparedLeftOut()
-
-
-def _grid_key(grid) -> str:
-    return json.dumps(grid.to_dict(), sort_keys=True)

@@ -23,8 +23,8 @@ from place3d_kernels.mesh import Mesh
 from place3d_kernels.ops import coverage, raycast
 from place3d_kernels.sog import PSOG
 
-__all__ = ["msog", "msog_batch", "msog_on_grid", "msog_on_handle", "covered_voxels", "msog_from_voxels",
-           "coverage_counts", "OCCLUSION_MODES", "NORMALISATIONS"]
+__all__ = ["msog", "msog_batch", "msog_tasks", "msog_on_grid", "msog_on_handle", "msog_on_handles", "covered_voxels",
+           "msog_from_voxels", "coverage_counts", "OCCLUSION_MODES", "NORMALISATIONS"]
 
 OCCLUSION_MODES = ("none", "sog", "mesh")
 #: Denominators of M-SOG: the paper's N_L, and two that do not reward rays through never-occupied air.
@@ -234,6 +234,29 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
     return _fused_scores(p.grid, p.handle(b, occlusion), lidar, poses, b)
 
 
+def msog_tasks(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tasks=("seg", "det"), backend=None,
+               normalisation: str = "paper", body=None) -> dict:
+    """{task: ``msog_batch(psog, lidar, poses, occlusion, task, backend, normalisation=..., body=...)``}, the
+    same scores. Where ``msog_batch`` takes its fused kernel (a grid LiDAR from range 0, no body, occlusion
+    by the SOG or none) the tasks' grids, which share the stop mask, are scored in one
+    ``Backend.score_placements_many`` call, which may walk the rays once for all of them."""
+    check_normalisation(normalisation)
+    if body is not None or not lidar.is_grid or lidar.min_range > 0 or occlusion not in ("sog", "none"):
+        return {t: msog_batch(psog, lidar, poses, occlusion, t, backend, normalisation=normalisation, body=body)
+                for t in tasks}
+    poses = _poses(poses)
+    if poses.ndim == 2:
+        poses = poses[None]
+    check_inputs(psog, poses, occlusion, None)
+    b = get_backend(backend)
+    pairs = []
+    for t in tasks:
+        p = psog.for_task(t)
+        pairs.append((p.handle(b, occlusion),
+                      None if normalisation == "paper" else _indicator_handle(p, normalisation, b, occlusion)))
+    return dict(zip(tasks, msog_on_handles(psog.grid, pairs, lidar, poses, b)))
+
+
 def _fused_scores(grid, handle, lidar: LidarModel, poses: np.ndarray, b) -> np.ndarray:
     """Scores of rigs (P, L, 6) in the ego frame by the fused kernel on a prepared grid handle."""
     local = poses.copy()
@@ -253,12 +276,31 @@ def msog_on_grid(grid, weights: np.ndarray, stop: np.ndarray | None, lidar: Lida
     return _fused_scores(grid, b.prepare_grid(grid.spec, weights, stop), lidar, poses, b)
 
 
-def msog_on_handle(grid, handle, lidar: LidarModel, poses, backend) -> np.ndarray:
+def msog_on_handle(grid, handle, lidar: LidarModel, poses, backend, indicator=None) -> np.ndarray:
     """``msog_on_grid`` on a grid already prepared by ``backend.prepare_grid(grid.spec, weights, stop)``
     (``handle``; ``backend`` the same instance): the same checks and scores, without the upload. The
-    jackknife keeps its left-out grids prepared so (``left_out.PreparedLeftOut``)."""
+    jackknife keeps its left-out grids prepared so (``left_out.PreparedLeftOut``).
+
+    ``indicator``: for the ``evidence`` and ``uncertain`` normalisations, the handle of the grid's 0/1
+    ``indicator_weights`` with the same stop mask; its sums are the denominators (``coverage_counts``)."""
+    return msog_on_handles(grid, [(handle, indicator)], lidar, poses, backend)[0]
+
+
+def msog_on_handles(grid, pairs, lidar: LidarModel, poses, backend) -> list[np.ndarray]:
+    """``msog_on_handle`` for each (handle, indicator or None) of ``pairs``, grids that share one stop mask
+    (the seg and det views of one P-SOG do: both stop where p(empty) <= 0.5): one
+    ``Backend.score_placements_many`` call, which may walk the rays once for all of them."""
     poses = _grid_lidar_poses(grid, lidar, poses, "msog_on_handle")
-    return _fused_scores(grid, handle, lidar, poses, get_backend(backend))
+    b = get_backend(backend)
+    local = poses.copy()
+    local[..., :3] = grid.to_local(poses[..., :3])
+    handles = [h for pair in pairs for h in pair if h is not None]
+    res = iter(b.score_placements_many(handles, lidar.elevations, lidar.azimuths, lidar.max_range, local))
+    out = []
+    for _, indicator in pairs:
+        sums, counts = next(res)
+        out.append(_score(sums, counts if indicator is None else next(res)[0]))
+    return out
 
 
 def _grid_lidar_poses(grid, lidar: LidarModel, poses, caller: str) -> np.ndarray:

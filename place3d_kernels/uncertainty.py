@@ -505,6 +505,7 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     """{task: Jackknife} of ``placements`` leaving each record (subset or drive) out in turn: n rescorings,
     one ``msog_batch`` call over all placements per left-out unit and task (``body``: the ego
     ``VehicleBody`` the rigs are scored on, as ``msog_batch``; ``reference``: as ``bootstrap_records``).
+    ``records``: the ``DriveRecord``s, or their ``PooledPSOG`` on ``grid`` (its summed counts reused).
 
     ``pool_key``: the records' content identity (``subset_records.keyed_subset_records``), or None. With
     one, the prepared left-out grids and the reference's identity check are kept in the process
@@ -514,12 +515,14 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     ``route_df``)."""
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
-    from place3d_kernels.metrics import msog_batch
+    from place3d_kernels.metrics import msog_batch, msog_tasks
 
     L = LidarModel.load(lidar) if isinstance(lidar, str) else lidar
     b = get_backend(backend)
     names, poses = _poses(placements)
-    pooled = PooledPSOG(grid, records)
+    # a PooledPSOG passed as it is keeps its summed counts (a pooled command has them from its P-SOG)
+    pooled = records if isinstance(records, PooledPSOG) and records.grid == grid else PooledPSOG(
+        grid, getattr(records, "records", records))
     n = len(pooled)
     if n < 2:
         raise ValueError(f"the jackknife needs at least 2 units, got {n}")
@@ -529,10 +532,8 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
 
     with section("jackknife: point"):
         full = None if point is not None else HANDLES.plain_psog(pooled, reference, pool_key)
-        for t in tasks:
-            if point is None:
-                point_scores[t] = msog_batch(full, L, poses, occlusion, t, b, normalisation=normalisation,
-                                             body=body)
+        if point is None:
+            point_scores = msog_tasks(full, L, poses, occlusion, tasks, b, normalisation, body)
         del full
     scores = {t: np.empty((n, len(names))) for t in tasks}
     it = range(n)
@@ -546,17 +547,25 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
         # msog_batch's fused path: each left-out grid patched from the full pool (left_out.py, several times
         # faster) and prepared once; with a pool_key the prepared grids are kept for the next jackknife on these
         # records (or were prepared during the search: prepare_in_background)
-        from place3d_kernels.metrics import msog_on_handle
+        from place3d_kernels.left_out import LeftOutRows
+        from place3d_kernels.metrics import msog_on_handles
 
-        # an iterator per task: kept handles, or (not kept) each grid prepared just before its scoring
+        # an iterator per task: kept handles, or (not kept) each grid prepared just before its scoring, in one
+        # working grid per task where the backend writes grids in place; the tasks share each record's rows
+        reuse = not HANDLES.will_keep(pool_key)
+        with section("jackknife: left-out grid"):
+            rows = LeftOutRows(pooled)
         handles = {t: iter(HANDLES.get(pool_key, pooled.grid, t, occlusion, b,
-                                       lambda t=t: prepared_grids(pooled, t, occlusion, b)))
+                                       lambda t=t: prepared_grids(pooled, t, occlusion, b, normalisation, reuse, rows),
+                                       normalisation=normalisation))
                    for t in tasks}
         for i in it:
-            for t in tasks:
-                h = next(handles[t])
-                with section("jackknife: scoring"):
-                    scores[t][i] = msog_on_handle(pooled.grid, h, L, poses, b)
+            got = [next(handles[t]) for t in tasks]
+            with section("jackknife: scoring"):
+                # one call for every task: the tasks' grids share the stop mask, so the rays may be walked once
+                pairs = [h if isinstance(h, tuple) else (h, None) for h in got]
+                for t, s in zip(tasks, msog_on_handles(pooled.grid, pairs, L, poses, b)):
+                    scores[t][i] = s
     else:
         left_out = _left_out_psogs(pooled, tasks)
         for i in it:

@@ -175,3 +175,257 @@ def test_patched_grid_on_partial_bricks_and_its_checks(name):
         assert got[2].tobytes() == flat_brick_masks(spec.shape, w2 != 0, None).tobytes()
     with pytest.raises(ValueError, match="one weight and one stop value per voxel"):
         b.patched_grid(base, np.array([1, 2], dtype=np.int64), np.array([5]), np.array([True, False]))
+
+
+def _small_lidar():
+    # few rays: the reference backend walks each one in Python
+    return LidarModel(np.radians([-20.0, -8.0, -2.0, 4.0]), np.radians(np.arange(0.0, 360.0, 15.0)), 30.0, "small")
+
+
+@pytest.mark.parametrize("normalisation", ["paper", "evidence", "uncertain"])
+@pytest.mark.parametrize("occlusion", ["sog", "none"])
+def test_jackknife_of_every_normalisation_is_msog_batch_on_rebuilt_pools(drives, backend, normalisation, occlusion):
+    """The fused jackknife (each backend's way: written in place on reference and OpenCL, a host copy on Warp's
+    CPU) gives every normalisation's scores msog_batch gives on the rebuilt left-out pools, bit for bit; two
+    T's (6 and 8 subsets) need two working grids."""
+    from place3d_kernels.left_out import fused_path
+
+    lidar = _small_lidar()
+    assert fused_path(lidar, occlusion, normalisation)
+    rigs = {n: Placement.load(n).poses for n in ("center", "line", "pyramid")}
+    poses = np.stack(list(rigs.values()))
+    got = jackknife_records(drives, drives.grid, lidar, rigs, ("seg", "det"), occlusion, backend,
+                            normalisation=normalisation)
+    n = len(drives)
+    for t in ("seg", "det"):
+        want = msog_batch(drives.psog(), lidar, poses, occlusion, t, backend, normalisation=normalisation)
+        assert got[t].point.tobytes() == want.tobytes(), t
+        for i in [*range(n)]:
+            m = np.ones(n, dtype=np.int64)
+            m[i] = 0
+            want = msog_batch(drives.psog(m), lidar, poses, occlusion, t, backend, normalisation=normalisation)
+            assert got[t].samples[i].tobytes() == want.tobytes(), (t, i)
+
+
+def _in_place_backends():
+    import place3d_kernels as p3k
+    from place3d_kernels.backends.registry import get_backend
+
+    names = [n for n in ["reference", *p3k.available_backends()] if get_backend(n).writes_grids]
+    return list(dict.fromkeys(names)) + (["opencl:pocl/atomic"] if "opencl:pocl" in names else [])
+
+
+def _in_place_backend(name):
+    from place3d_kernels.backends.registry import get_backend
+
+    if name.endswith("/atomic"):          # the GPU's score strategy (brick pairs, flat masks), on the CPU device
+        from place3d_kernels.backends.opencl.host import OpenCLBackend
+
+        return OpenCLBackend(name.split(":")[1].split("/")[0], score_strategy="atomic")
+    return get_backend(name)
+
+
+def _grid_arrays(b, h):
+    """The arrays a handle holds, by backend: what score_placements reads."""
+    if b.name == "reference":
+        return [h.weights, h.stop]
+    n = h.spec.n_voxels
+    out = [b._read(h.weights, np.int64, n)]
+    if h.masks is not None and b.score_strategy == "atomic":
+        out.append(b._read(h.masks, np.uint32, h.masks.size // 4))
+        out.append(None if h.flat is None else b._read(h.flat, np.uint64, h.flat.size // 8))
+    else:
+        words = h.nonzero.size // 4
+        out.append(b._read(h.nonzero, np.uint32, words))
+        if h.use_stop:
+            out += [b._read(h.stop, np.uint8, n), b._read(h.stop_bits, np.uint32, words)]
+    return out
+
+
+@pytest.mark.parametrize("name", _in_place_backends())
+@pytest.mark.parametrize("with_stop", [True, False])
+def test_voxels_written_in_place_are_the_uploaded_grid(name, with_stop):
+    """working_grid and write_voxels on random grids whose shape leaves partial bricks and words: after each
+    write (nothing, a few voxels, all of them, set and cleared) the handle holds what prepare_grid makes of
+    the dense arrays so changed; rows of mismatched length are refused with a message."""
+    from place3d_kernels.backends.base import GridSpec
+
+    b = _in_place_backend(name)
+    rng = np.random.default_rng(5)
+    spec = GridSpec(voxel_size=0.5, shape=(9, 6, 5))
+    n = 9 * 6 * 5
+    at = np.sort(rng.choice(n, 40, replace=False)).astype(np.int64)
+    w = np.zeros(n, dtype=np.int64)
+    stop = np.zeros(n, dtype=bool)
+    w[at] = rng.integers(0, 10**6, len(at))
+    stop[at] = rng.random(len(at)) < 0.5
+    sv = (lambda s: s) if with_stop else (lambda s: None)
+    h = b.working_grid(spec, at, w[at], sv(stop[at]))
+    for k in (0, 1, 17, n, 3):
+        if b.name != "reference" and b.score_strategy == "atomic" and k == 17:
+            b._flat_masks(h)               # made once scored: later writes must make it again
+        ids = np.sort(rng.choice(n, k, replace=False)).astype(np.int64)
+        wr = np.where(rng.random(k) < 0.5, rng.integers(1, 10**6, k), 0).astype(np.int64)
+        sr = rng.random(k) < 0.5
+        w[ids], stop[ids] = wr, sr
+        b.write_voxels(h, ids, wr, sv(sr))
+        want = b.prepare_grid(spec, w, sv(stop))
+        if b.name != "reference" and b.score_strategy == "atomic" and h.flat is not None:
+            b._flat_masks(want)
+        got_a, want_a = _grid_arrays(b, h), _grid_arrays(b, want)
+        assert len(got_a) == len(want_a)
+        for g, x in zip(got_a, want_a):
+            assert (g is None) == (x is None) and (g is None or g.tobytes() == x.tobytes()), k
+    with pytest.raises(ValueError, match="one weight and one stop value per voxel"):
+        b.write_voxels(h, np.array([1, 2], dtype=np.int64), np.array([5]), np.array([True, False]))
+    with pytest.raises(ValueError, match=r"voxel indices must lie in \[0, 270\)"):
+        b.write_voxels(h, np.array([n], dtype=np.int64), np.array([5]), np.array([True]))
+    if b.name != "reference":
+        with pytest.raises(TypeError, match="working_grid"):
+            b.write_voxels(b.prepare_grid(spec, w, sv(stop)), at[:1], w[at[:1]], sv(stop[at[:1]]))
+
+
+@pytest.mark.parametrize("name", [*dict.fromkeys(["reference", *__import__("place3d_kernels").available_backends()]),
+                                  "opencl:pocl/atomic"])
+def test_grids_of_one_stop_mask_score_together_as_alone(name):
+    """score_placements_many (OpenCL's private strategy walks the rays once for all grids) gives each grid
+    what score_placements gives it alone: random weights, one shared stop mask, and an indicator grid."""
+    import place3d_kernels as p3k
+    from place3d_kernels.backends.base import GridSpec
+
+    if name.startswith("opencl:") and "opencl:pocl" not in p3k.available_backends():
+        pytest.skip("no opencl:pocl here")
+    b = _in_place_backend(name)
+    rng = np.random.default_rng(11)
+    spec = GridSpec(voxel_size=0.5, shape=(21, 19, 7))
+    n = 21 * 19 * 7
+    stop = rng.random(n) < 0.03
+    grids = [np.where(rng.random(n) < 0.4, rng.integers(1, 10**9, n), 0).astype(np.int64) for _ in range(2)]
+    grids.append((grids[0] > 0).astype(np.int64))
+    lidar = _small_lidar()
+    poses = np.zeros((3, 2, 6))
+    poses[..., :3] = rng.uniform(1.0, 3.0, (3, 2, 3))
+    poses[..., 3:] = rng.uniform(-0.3, 0.3, (3, 2, 3))
+    for s in (stop, None):
+        handles = [b.prepare_grid(spec, w, s) for w in grids]
+        got = b.score_placements_many(handles, lidar.elevations, lidar.azimuths, 6.0, poses)
+        assert len(got) == len(handles)
+        for h, (sums, counts) in zip(handles, got):
+            want = b.score_placements(h, lidar.elevations, lidar.azimuths, 6.0, poses)
+            assert sums.tobytes() == want[0].tobytes() and counts.tobytes() == want[1].tobytes()
+        assert got[0][1].tobytes() == got[1][1].tobytes()          # one walk: the same voxels counted
+
+
+def test_records_in_any_entry_order_give_the_same_left_out_grids(drives):
+    """A record's entries are found in the pool by voxel; entries out of voxel order (not what from_psog
+    writes, but allowed) take the sorting path and give the same grids."""
+    recs = list(drives.records)
+    r = recs[1]
+    order = np.random.default_rng(2).permutation(len(r.voxels))
+    recs[1] = DriveRecord(r.label, r.n_subsets, r.voxels[order], r.classes[order], r.counts[order])
+    shuffled = PooledPSOG(drives.grid, recs)
+    for task in ("seg", "det"):
+        a, b = LeftOutGrids(drives, task), LeftOutGrids(shuffled, task)
+        for i in range(len(recs)):
+            wa, sa = (x.copy() for x in a.fields(i))
+            wb, sb = b.fields(i)
+            assert wa.tobytes() == wb.tobytes() and sa.tobytes() == sb.tobytes(), (task, i)
+
+
+@pytest.mark.parametrize("task", ["seg", "det"])
+@pytest.mark.parametrize("T", [1, 2, 3, 7, 30, 81])
+def test_field_tables_are_left_out_fields(task, T):
+    """FieldTables (look-ups of each c / T's entropy term) gives left_out_fields' weights and stop masks bit
+    for bit: every split of T subsets among empty, vehicle and one other class, and random rows over all
+    22 channels."""
+    from place3d_kernels.classes import N_CLASSES, VEHICLE
+    from place3d_kernels.left_out import FieldTables, left_out_fields
+
+    rows = []
+    for e in range(T + 1):                                  # empty, vehicle, one more class: every split
+        for v in range(T + 1 - e):
+            r = np.zeros(N_CLASSES, dtype=np.int64)
+            r[0], r[VEHICLE], r[1 if VEHICLE != 1 else 2] = e, v, T - e - v
+            rows.append(r)
+    rng = np.random.default_rng(T)
+    for _ in range(2000):                                   # T subsets spread over random classes
+        r = np.bincount(rng.integers(0, N_CLASSES, T), minlength=N_CLASSES).astype(np.int64)
+        rows.append(r)
+    counts = np.array(rows)
+    want = left_out_fields(counts, T, task)
+    got = FieldTables(T, task)(counts)
+    assert got[0].dtype == want[0].dtype and got[0].tobytes() == want[0].tobytes()
+    assert got[1].dtype == want[1].dtype and got[1].tobytes() == want[1].tobytes()
+
+
+@pytest.mark.parametrize("name", _patching_backends())
+@pytest.mark.parametrize("task", ["seg", "det"])
+@pytest.mark.parametrize("pool", ["subsets", "drives"])
+def test_left_out_rows_made_on_the_device_are_the_hosts(request, monkeypatch, pool, task, name):
+    """left_out.device_fields (every record's rows in one Warp launch, tables from the host, NumPy's order of
+    addition) gives each record's weights and stop flags bit for bit as LeftOutGrids.rows; patched_on_backend
+    takes that way where the backend says so (on CUDA), and its grids are then the uploaded ones."""
+    from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.left_out import device_fields, patched_on_backend
+
+    pooled = request.getfixturevalue(pool)
+    b = get_backend(name)
+    host = LeftOutGrids(pooled, task)
+    batch = device_fields(pooled, task, b)
+    for i, (T, at, w, s) in enumerate(batch):
+        hT, _, hat, hw, hs, _ = host.rows(i)
+        assert T == hT and at.tobytes() == hat.tobytes(), i
+        assert w.numpy().tobytes() == hw.tobytes(), f"weights, record {i}"
+        assert s.numpy().tobytes() == hs.astype(np.uint8).tobytes(), f"stop, record {i}"
+    monkeypatch.setattr(type(b), "fields_on_device", property(lambda self: True))
+    dense = LeftOutGrids(pooled, task)
+    for i, h in enumerate(patched_on_backend(pooled, task, "sog", b)):
+        w, stop = dense.fields(i)
+        want = b.prepare_grid(pooled.grid.spec, w, stop)
+        assert h.weights.numpy().tobytes() == want.weights.numpy().tobytes(), f"weights, record {i}"
+        assert h.masks.numpy().tobytes() == want.masks.numpy().tobytes(), f"masks, record {i}"
+
+
+@pytest.mark.parametrize("name", _patching_backends())
+@pytest.mark.parametrize("task", ["seg", "det"])
+def test_device_fields_add_terms_in_numpys_order(name, task):
+    """Backend.left_out_fields on rows whose T = 81 subsets spread over all 22 channels (many terms per row,
+    where the order of addition shows) and one entry taken out of each: FieldTables' weights bit for bit."""
+    from place3d_kernels.backends.base import ENTROPY_SCALE
+    from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.classes import N_CLASSES, VEHICLE
+    from place3d_kernels.left_out import FieldTables
+
+    b = get_backend(name)
+    rng = np.random.default_rng(4)
+    T, R = 81, 5000
+    counts = np.stack([np.bincount(rng.integers(0, N_CLASSES, T + 3), minlength=N_CLASSES) for _ in range(R)])
+    cls = np.array([1 + int(np.flatnonzero(r[1:])[0]) for r in counts])       # one occupied class per row
+    cnt = np.minimum(counts[np.arange(R), cls], rng.integers(1, 4, R))
+    want_rows = counts.copy()
+    want_rows[np.arange(R), cls] -= cnt
+    keep = want_rows[:, 1:].sum(axis=1) <= T                                  # rows that fit T subsets
+    counts, cls, cnt, want_rows = counts[keep], cls[keep], cnt[keep], want_rows[keep]
+    want_rows[:, 0] = T - want_rows[:, 1:].sum(axis=1)
+    tb = FieldTables(T, task)
+    ww, ws = tb(want_rows)
+    n = len(counts)
+    assert n > 1000
+    w, s = b.left_out_fields(counts.astype(np.int32), np.arange(n), np.arange(n + 1), cls, cnt,
+                             np.zeros(n, dtype=np.int32), np.array([T]), tb.term[None], tb.stop[None].astype(np.uint8),
+                             tb.other[None] if task == "det" else np.zeros((1, 1, 1)), task == "det", VEHICLE,
+                             float(ENTROPY_SCALE))
+    assert w.numpy().tobytes() == ww.tobytes() and s.numpy().tobytes() == ws.astype(np.uint8).tobytes()
+    # at ENTROPY_SCALE the rounding hides most last-bit differences of H; at 2**60 every bit of H shows
+    # (H <= ln 22 < 8, so H * 2**60 fits an int64)
+    if task == "seg":
+        terms = tb.term[want_rows]
+    else:
+        c0, cv = want_rows[:, 0], want_rows[:, VEHICLE]
+        terms = np.stack([tb.term[c0], tb.term[cv], tb.other[c0, cv]], axis=1)
+    exact = np.rint(terms.sum(axis=-1) * 2.0**60).astype(np.int64)
+    w60, _ = b.left_out_fields(counts.astype(np.int32), np.arange(n), np.arange(n + 1), cls, cnt,
+                               np.zeros(n, dtype=np.int32), np.array([T]), tb.term[None],
+                               tb.stop[None].astype(np.uint8), tb.other[None] if task == "det" else np.zeros((1, 1, 1)),
+                               task == "det", VEHICLE, 2.0**60)
+    assert w60.numpy().tobytes() == exact.tobytes()

@@ -19,11 +19,8 @@ PLOT_SUFFIXES = (".png", ".svg", ".pdf")
 
 
 def cmd_evaluate(args) -> int:
-    from tqdm import tqdm
-
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
-    from place3d_kernels.metrics import msog_batch
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
     from place3d_kernels.spec import specs_from_args
     from place3d_kernels.uncertainty import MIN_SUBSETS, too_few_subsets
@@ -34,17 +31,18 @@ def cmd_evaluate(args) -> int:
     if args.plot and (args.interval == "none" or (args.interval == "bootstrap" and not args.resamples)):
         raise ValueError(f"--plot draws the scores with their intervals; --interval {args.interval}"
                          f"{' with --resamples 0' if args.interval == 'bootstrap' else ''} has none to draw")
-    spec = specs_from_args(args)
-    start_for_spec(spec, cache=not args.no_cache)    # the scene is built on another core during the probe
-    b = get_backend(args.backend)
-    lidar = LidarModel.load(args.lidar)
-    names = args.placements or list(PAPER_PLACEMENTS)
-    placements = [Placement.load(n) for n in names]
-    check_rigs_in_roi(spec.grid.grid(), {n: pl.poses for n, pl in zip(names, placements)})
-    body = spec.vehicle_body()
-    from place3d_app.commands.routes import build_missing, drive_specs, pooled_psog
+    with section("setup: specs, backend, placements"):
+        spec = specs_from_args(args)
+        start_for_spec(spec, cache=not args.no_cache)    # the scene is built on another core during the probe
+        b = get_backend(args.backend)
+        lidar = LidarModel.load(args.lidar)
+        names = args.placements or list(PAPER_PLACEMENTS)
+        placements = [Placement.load(n) for n in names]
+        check_rigs_in_roi(spec.grid.grid(), {n: pl.poses for n, pl in zip(names, placements)})
+        body = spec.vehicle_body()
+        from place3d_app.commands.routes import build_missing, drive_specs, pooled_psog
 
-    drives = drive_specs(args, spec)
+        drives = drive_specs(args, spec)
     if len(drives) > 1 and args.interval == "bootstrap":
         raise ValueError("--interval bootstrap resamples the subsets of a single drive (--routes 1); over routes "
                          "its resamples repeat drives and score high, so a pooled P-SOG takes the jackknife")
@@ -55,12 +53,9 @@ def cmd_evaluate(args) -> int:
     else:
         psog = pool[2]
     rows = []
-    for name, pl in tqdm(list(zip(names, placements)), desc="evaluate", unit="placement", disable=args.quiet,
-                         leave=False):
-        seg = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "seg", b, normalisation=args.normalisation,
-                               body=body)[0])
-        det = float(msog_batch(psog, lidar, pl.poses[None], args.occlusion, "det", b, normalisation=args.normalisation,
-                               body=body)[0])
+    with section("scoring: placements"):
+        scores = _placement_scores(psog, lidar, placements, args.occlusion, b, args.normalisation, body, args.quiet)
+    for name, pl, (seg, det) in zip(names, placements, scores):
         rows.append({"placement": pl.name or name, "msog_seg": seg, "msog_det": det})
     rows.sort(key=lambda r: -r["msog_seg"])
     interval_note = None
@@ -95,7 +90,8 @@ def cmd_evaluate(args) -> int:
             print(f"{i + 1:>4}  {r['placement']:14s} {r['msog_seg']:12.6f} {r['msog_det']:12.6f}"
                   f"   (det rank {det_rank[r['placement']]})")
     else:
-        _print_intervals(rows, boots, det_rank)
+        with section("intervals: table"):
+            _print_intervals(rows, boots, det_rank)
     print(f"{seconds:.1f} s")
     if args.output:
         from place3d_app.commands.reproduce import machine_info
@@ -132,6 +128,27 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def _placement_scores(psog, lidar, placements, occlusion, b, normalisation, body, quiet) -> list[tuple[float, float]]:
+    """(seg, det) M-SOG of each placement: one ``msog_tasks`` call (both tasks) for the placements of each LiDAR
+    count (a rig's score does not depend on the others scored beside it), instead of one per placement."""
+    import numpy as np
+    from tqdm import tqdm
+
+    from place3d_kernels.metrics import msog_tasks
+
+    out = [None] * len(placements)
+    groups: dict = {}
+    for i, pl in enumerate(placements):
+        groups.setdefault(pl.poses.shape, []).append(i)
+    for idx in tqdm(list(groups.values()), desc="evaluate", unit="group", disable=quiet, leave=False):
+        poses = np.stack([placements[i].poses for i in idx])
+        got = msog_tasks(psog, lidar, poses, occlusion, ("seg", "det"), b, normalisation, body)
+        seg, det = got["seg"], got["det"]
+        for k, i in enumerate(idx):
+            out[i] = (float(seg[k]), float(det[k]))
+    return out
+
+
 def _seed_text(drives) -> str:
     seeds = sorted({d.scene.seed for d in drives})
     if seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 2:
@@ -155,13 +172,14 @@ def _route_intervals(args, pool, psog, backend, lidar, names, placements, rows, 
     by_name = {(pl.name or n): pl for n, pl in zip(names, placements)}
     point = {t: [r[f"msog_{t}"] for r in rows] for t in ("seg", "det")}
     with section("jackknife over routes: rescoring"):
-        boots = jackknife_records(pooled.records, pooled.grid, lidar, {n: by_name[n] for n in order}, ("seg", "det"),
+        boots = jackknife_records(pooled, pooled.grid, lidar, {n: by_name[n] for n in order}, ("seg", "det"),
                                   args.occlusion, backend, point=point, unit="drives", progress=not args.quiet,
                                   normalisation=args.normalisation, body=body, reference=psog, strata=strata, df=df)
-    pw = {t: pairwise(bt) for t, bt in boots.items()}
-    for i, r in enumerate(rows):
-        r["ci"] = {t: boots[t].ci[i].tolist() for t in boots}
-        r["pairwise"] = {t: pw[t][r["placement"]] for t in boots}
+    with section("intervals: bounds and pairwise order"):      # SciPy's t distribution is imported here
+        pw = {t: pairwise(bt) for t, bt in boots.items()}
+        for i, r in enumerate(rows):
+            r["ci"] = {t: boots[t].ci[i].tolist() for t in boots}
+            r["pairwise"] = {t: pw[t][r["placement"]] for t in boots}
     return boots
 
 

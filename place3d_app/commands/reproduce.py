@@ -157,7 +157,7 @@ def jackknife_placements(pooled: PooledPSOG, lidar, occlusion: str, backend, rol
                                 strata=strata)
     poses = placement_poses(roll_units, extra)
     df = route_df(len(pooled), strata)
-    parts = [jackknife_records(pooled.records, pooled.grid, lidar, {f"{t}{i}": p for i, p in enumerate(poses[t])},
+    parts = [jackknife_records(pooled, pooled.grid, lidar, {f"{t}{i}": p for i, p in enumerate(poses[t])},
                                (t,), occlusion, backend, unit="drives", strata=strata, df=df)[t] for t in TASKS]
     return Jackknife([f"s{i}" for i in range(sum(len(j.names) for j in parts))],
                      np.concatenate([j.point for j in parts]), np.column_stack([j.samples for j in parts]),

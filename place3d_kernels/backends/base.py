@@ -240,6 +240,32 @@ class Backend(abc.ABC):
         raise NotImplementedError(f"backend {self.name} does not patch grids; patch the dense arrays on the host "
                                   f"and call prepare_grid")
 
+    #: True where ``working_grid`` and ``write_voxels`` keep one grid handle and change it in place: the
+    #: jackknife's left-out grids, scored one after the other, then cost a write of the voxels that changed
+    #: instead of a dense copy and a whole upload each (``left_out.patched_in_place``).
+    writes_grids: bool = False
+
+    def working_grid(self, grid: GridSpec, voxels: np.ndarray, weights: np.ndarray,
+                     stop: np.ndarray | None) -> object:
+        """A handle for ``score_placements`` that ``write_voxels`` may change: weight 0 and no stop at every
+        voxel but ``voxels`` (distinct flat indices), which get ``weights`` (int64) and ``stop`` (bool; None:
+        no stop mask at all, occlusion "none").
+
+        Raises:
+            NotImplementedError: this backend does not write grids in place.
+        """
+        raise NotImplementedError(f"backend {self.name} does not write grids in place; use prepare_grid")
+
+    def write_voxels(self, handle: object, voxels: np.ndarray, weights: np.ndarray, stop: np.ndarray | None) -> None:
+        """Set voxels ``voxels`` (distinct flat indices) of a ``working_grid`` handle to ``weights`` and ``stop``
+        (``stop`` unused where the handle has no stop mask), in place: scores on the handle from then on are
+        those of ``prepare_grid`` on the dense arrays so changed.
+
+        Raises:
+            NotImplementedError: this backend does not write grids in place.
+        """
+        raise NotImplementedError(f"backend {self.name} does not write grids in place; use prepare_grid")
+
     @abc.abstractmethod
     def score_placements(self, handle: object, elevations: np.ndarray, azimuths: np.ndarray,
                          t_max: float, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -254,6 +280,18 @@ class Backend(abc.ABC):
         Returns:
             sums (P,) int64 of weights over each candidate's covered voxels, counts (P,) int64 of them.
         """
+
+    def score_placements_many(self, handles, elevations: np.ndarray, azimuths: np.ndarray, t_max: float,
+                              poses: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """``score_placements`` of the same rigs on several grids that share one stop mask (or none), such
+        as the seg and det views of one P-SOG and their indicator grids: the covered voxels are the same on
+        each, so a backend may walk the rays once and sum each grid's weights over them. Here, one call per
+        grid.
+
+        Returns:
+            one (sums, counts) pair per handle, what ``score_placements`` gives for it.
+        """
+        return [self.score_placements(h, elevations, azimuths, t_max, poses) for h in handles]
 
     @abc.abstractmethod
     def score_rays(self, handle: object, origins: np.ndarray, directions: np.ndarray, t_end: np.ndarray,
@@ -414,3 +452,25 @@ def check_ray_batch(origins, directions, t_end, ray_offsets) -> tuple[np.ndarray
         raise ValueError(f"score_rays: ray_offsets must be non-decreasing CSR offsets from 0 to the ray count "
                          f"{n}; got {len(off)} offsets from {off[:1].tolist()} to {off[-1:].tolist()}")
     return o, d, te, off
+
+
+def check_voxel_rows(voxels, weights, stop, n_voxels: int, has_stop: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(voxels int64, weights int64, stop uint8 0/1) of a ``working_grid`` or ``write_voxels`` call, flat and
+    contiguous (stop all 0 where the grid has no stop mask).
+
+    Raises:
+        ValueError: rows of mismatched lengths, a missing stop where the grid has a mask, or a voxel outside
+            the grid's ``n_voxels``.
+    """
+    ids = np.ascontiguousarray(voxels, dtype=np.int64).reshape(-1)
+    w = np.ascontiguousarray(weights, dtype=np.int64).reshape(-1)
+    if has_stop and stop is None:
+        raise ValueError("a grid with a stop mask needs a stop value per written voxel")
+    s = (np.zeros(len(ids), dtype=np.uint8) if not has_stop
+         else (np.asarray(stop).reshape(-1) != 0).view(np.uint8))
+    if w.shape != ids.shape or s.shape != ids.shape:
+        raise ValueError(f"writing {len(ids)} voxels needs one weight and one stop value per voxel, got "
+                         f"{w.shape[0]} and {s.shape[0]}")
+    if len(ids) and (int(ids.min()) < 0 or int(ids.max()) >= n_voxels):
+        raise ValueError(f"voxel indices must lie in [0, {n_voxels}), got [{int(ids.min())}, {int(ids.max())}]")
+    return ids, w, s

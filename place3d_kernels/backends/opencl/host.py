@@ -8,8 +8,8 @@ import threading
 import numpy as np
 import pyopencl as cl
 
-from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, GridSpec, mesh_face_tables,
-                                           rotation_matrices, sensor_directions)
+from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, GridSpec, check_voxel_rows,
+                                           mesh_face_tables, rotation_matrices, sensor_directions)
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 from place3d_kernels.backends.geometry import brute_force_raycast
 from place3d_kernels.backends.opencl import _runtime as rt
@@ -102,6 +102,27 @@ class CLGrid:
             m = brick_masks(spec.shape, w != 0, sm)
             self.masks = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=m)
         self.flat = None      # score_rays_flat's masks (bricks.flat_brick_masks), made from masks on first use
+        self.writable = False  # read-only buffers: write_voxels takes working grids only
+
+    @classmethod
+    def working(cls, backend: "OpenCLBackend", spec: GridSpec, use_stop: bool) -> "CLGrid":
+        """A grid of zero weights and no stop, its buffers writable (``OpenCLBackend.working_grid``), in the
+        form of the backend's score strategy; filled on the device, nothing uploaded."""
+        self = cls.__new__(cls)
+        self.spec, self.use_stop, self.writable = spec, bool(use_stop), True
+        n = spec.n_voxels
+        words = max((n + 31) // 32, 1)
+        zeros = backend._zeroed
+        self.weights = zeros(n * 8)
+        self.stop = self.masks = self.flat = None
+        if backend.score_strategy == "private":
+            self.nonzero = zeros(words * 4)
+            self.stop = zeros(n) if use_stop else backend._dummy
+            self.stop_bits = zeros(words * 4) if use_stop else backend._dummy
+        else:
+            bx, by, bz = brick_shape(spec.shape)
+            self.masks = zeros(2 * bx * by * bz * 4)
+        return self
 
 
 class OpenCLBackend(Backend, OpenCLConditions):
@@ -210,6 +231,8 @@ class OpenCLBackend(Backend, OpenCLConditions):
                 files, opts = ("common.cl", "raycast.cl"), self._options() + (f"-DSTACK_SIZE={self.stack_size}",)
             elif name.startswith("vote_"):
                 files, opts = ("common.cl", "vote.cl"), self._options()
+            elif name.startswith("patch_"):
+                files, opts = ("patch.cl",), ()
             elif self.walk_lanes:   # walk_lanes.cl: the CPU walk, 32-bit voxel indices (see score_placements)
                 files, opts = ("common.cl", "grid.cl", "walk_lanes.cl"), self._options() + ("-DFLAT32",)
             else:
@@ -594,49 +617,113 @@ class OpenCLBackend(Backend, OpenCLConditions):
     def prepare_grid(self, grid, weights, stop):
         return CLGrid(self, grid, weights, stop)
 
+    writes_grids = True
+
+    def working_grid(self, grid, voxels, weights, stop):
+        h = CLGrid.working(self, grid, stop is not None)
+        self.write_voxels(h, voxels, weights, stop)
+        return h
+
+    def write_voxels(self, handle, voxels, weights, stop):
+        if not isinstance(handle, CLGrid) or not handle.writable:
+            raise TypeError(f"write_voxels needs a handle from {self.name}.working_grid, got {type(handle).__name__}")
+        spec = handle.spec
+        ids, w, s = check_voxel_rows(voxels, weights, stop, spec.n_voxels, handle.use_stop)
+        n = len(ids)
+        if n:
+            rows = (self._in(ids), self._in(w), self._in(s), np.int64(n), handle.weights)
+            if self.score_strategy == "private":
+                self._launch("patch_private", n, *rows, handle.nonzero, np.int32(handle.use_stop), handle.stop,
+                             handle.stop_bits)
+                handle.masks = None                  # score_rays derives them again from the new buffers
+            else:
+                _, by, bz = brick_shape(spec.shape)
+                self._launch("patch_bricked", n, *rows, handle.masks, np.int32(handle.use_stop),
+                             *(np.int32(v) for v in (spec.shape[1], spec.shape[2], by, bz)))
+                if handle.flat is not None:          # the score kernel's bricks, made again from the pairs
+                    self._fill_flat(handle)
+        self.queue.finish()         # the rows' host memory (_in uses it in place on CPUs) is free after this
+
+    def _zeroed(self, nbytes: int) -> cl.Buffer:
+        buf = self._out(nbytes)
+        cl.enqueue_fill_buffer(self.queue, buf, np.uint8(0), 0, buf.size)
+        return buf
+
     def score_placements(self, handle, elevations, azimuths, t_max, poses):
-        if not isinstance(handle, CLGrid):
-            raise TypeError(f"score_placements needs the handle from {self.name}.prepare_grid, "
-                            f"got {type(handle).__name__}")
+        return self.score_placements_many([handle], elevations, azimuths, t_max, poses)[0]
+
+    def score_placements_many(self, handles, elevations, azimuths, t_max, poses):
+        """``Backend.score_placements_many``: with the private strategy the rays are walked once (on the first
+        handle's stop mask) and each grid's weights reduced over the same bitsets; the atomic strategy sums
+        weights during its walk, so it walks once per grid."""
+        handles = list(handles)
+        for handle in handles:
+            if not isinstance(handle, CLGrid):
+                raise TypeError(f"score_placements needs the handle from {self.name}.prepare_grid, "
+                                f"got {type(handle).__name__}")
+        if self.score_strategy != "private" or len(handles) < 2:
+            return [self._score_placements(h, elevations, azimuths, t_max, poses) for h in handles]
+        return self._score_private(handles, elevations, azimuths, t_max, poses)
+
+    def _score_inputs(self, poses, elevations, azimuths):
+        """(P, L, rig pose rows, direction table buffer, rays per LiDAR) of a score call."""
         poses = np.asarray(poses, dtype=np.float64)
         if poses.ndim != 3 or poses.shape[2] != 6:
             raise ValueError(f"poses must have shape (P, L, 6), got {poses.shape}")
         P, L = poses.shape[:2]
-        sums = np.zeros(P, dtype=np.int64)
-        counts = np.zeros(P, dtype=np.int64)
         rig = self._rig_poses(poses.reshape(-1, 6))
         local, sdir_b = self._directions.get(elevations, azimuths)      # host table and its kept buffer
-        CA = len(local)
+        return P, L, rig, sdir_b, len(local)
+
+    def _score_private(self, handles, elevations, azimuths, t_max, poses):
+        """The private strategy: per chunk of candidates the rays walked once, on the first handle's stop mask
+        (the caller's promise: every handle has the same), then each handle's weights summed over the bits."""
+        P, L, rig, sdir_b, CA = self._score_inputs(poses, elevations, azimuths)
+        out = [(np.zeros(P, dtype=np.int64), np.zeros(P, dtype=np.int64)) for _ in handles]
+        n_rays = L * CA
+        if P == 0 or n_rays == 0:
+            return out
+        handle = handles[0]
+        spec = handle.spec
+        if any(h.spec.shape != spec.shape for h in handles):
+            raise ValueError("score_placements_many needs grids of one shape")
+        words = (spec.n_voxels + 31) // 32
+        ga = self._grid_args(spec, handle.stop, handle.use_stop)
+        # few threads: a private bitset per work-item, no atomics, then an OR-reduction per candidate
+        G = int(max(1, min(64, -(-4 * self.device.max_compute_units // P),
+                           _BITSET_BYTES // max(words * 4, 1))))
+        chunk = int(max(1, min(P, _BITSET_BYTES // max(words * 4 * G, 1))))
+        per = 4096
+        n_chunks = (words + per - 1) // per
+        # rays in vector lanes (walk_lanes.cl), where voxel indices fit its 32 bits
+        walk = "score_walk_lanes" if self.walk_lanes and spec.n_voxels < 2**31 else "score_walk"
+        bits = self._out(chunk * G * words * 4)
+        ps, pc = self._out(chunk * n_chunks * 8), self._out(chunk * n_chunks * 8)
+        for p0 in range(0, P, chunk):
+            pn = min(chunk, P - p0)
+            cl.enqueue_fill_buffer(self.queue, bits, np.uint32(0), 0, pn * G * words * 4)
+            rig_b = self._in(rig[p0 * L:(p0 + pn) * L])
+            # the lane walk takes the stop mask as bits (walk_lanes.cl), score_walk as bytes
+            grid_args = (*ga[:4], handle.stop_bits, ga[5]) if walk == "score_walk_lanes" else ga
+            self._launch(walk, (G, pn), rig_b, sdir_b, np.int32(L), np.int32(CA), self.real(t_max),
+                         *grid_args, bits, np.int64(words), np.int32(G))
+            for h, (sums, counts) in zip(handles, out):
+                self._launch("score_reduce", (n_chunks, pn), bits, np.int64(words), np.int32(G), np.int32(per),
+                             np.int32(n_chunks), h.weights, h.nonzero, np.int64(spec.n_voxels), ps, pc)
+                sums[p0:p0 + pn] = self._read(ps, np.int64, pn * n_chunks).reshape(pn, -1).sum(1, dtype=np.int64)
+                counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(1, dtype=np.int64)
+        return out
+
+    def _score_placements(self, handle, elevations, azimuths, t_max, poses):
+        if self.score_strategy == "private":
+            return self._score_private([handle], elevations, azimuths, t_max, poses)[0]
+        P, L, rig, sdir_b, CA = self._score_inputs(poses, elevations, azimuths)
+        sums = np.zeros(P, dtype=np.int64)
+        counts = np.zeros(P, dtype=np.int64)
         n_rays = L * CA
         if P == 0 or n_rays == 0:
             return sums, counts
         spec = handle.spec
-        words = (spec.n_voxels + 31) // 32
-        if self.score_strategy == "private":
-            ga = self._grid_args(spec, handle.stop, handle.use_stop)
-            # few threads: a private bitset per work-item, no atomics, then an OR-reduction per candidate
-            G = int(max(1, min(64, -(-4 * self.device.max_compute_units // P),
-                               _BITSET_BYTES // max(words * 4, 1))))
-            chunk = int(max(1, min(P, _BITSET_BYTES // max(words * 4 * G, 1))))
-            per = 4096
-            n_chunks = (words + per - 1) // per
-            # rays in vector lanes (walk_lanes.cl), where voxel indices fit its 32 bits
-            walk = "score_walk_lanes" if self.walk_lanes and spec.n_voxels < 2**31 else "score_walk"
-            bits = self._out(chunk * G * words * 4)
-            ps, pc = self._out(chunk * n_chunks * 8), self._out(chunk * n_chunks * 8)
-            for p0 in range(0, P, chunk):
-                pn = min(chunk, P - p0)
-                cl.enqueue_fill_buffer(self.queue, bits, np.uint32(0), 0, pn * G * words * 4)
-                rig_b = self._in(rig[p0 * L:(p0 + pn) * L])
-                # the lane walk takes the stop mask as bits (walk_lanes.cl), score_walk as bytes
-                grid_args = (*ga[:4], handle.stop_bits, ga[5]) if walk == "score_walk_lanes" else ga
-                self._launch(walk, (G, pn), rig_b, sdir_b, np.int32(L), np.int32(CA), self.real(t_max),
-                             *grid_args, bits, np.int64(words), np.int32(G))
-                self._launch("score_reduce", (n_chunks, pn), bits, np.int64(words), np.int32(G), np.int32(per),
-                             np.int32(n_chunks), handle.weights, handle.nonzero, np.int64(spec.n_voxels), ps, pc)
-                sums[p0:p0 + pn] = self._read(ps, np.int64, pn * n_chunks).reshape(pn, -1).sum(1, dtype=np.int64)
-                counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(1, dtype=np.int64)
-            return sums, counts
         per = self.rays_per_item
         items = (n_rays + per - 1) // per
         flat, (fx, fy, fz) = self._flat_masks(handle), flat_shape(spec.shape)
@@ -691,14 +778,18 @@ class OpenCLBackend(Backend, OpenCLConditions):
     def _flat_masks(self, handle):
         """score_rays_flat's masks for a grid (atomic strategy), made once on the device from its brick pairs."""
         if handle.flat is None:
-            spec = handle.spec
-            bx, by, bz = brick_shape(spec.shape)
-            fx, fy, fz = flat_shape(spec.shape)
-            n = fx * fy * fz
-            handle.flat = cl.Buffer(self.ctx, _MF.READ_WRITE, size=max(n, 1) * 8)
-            self._launch("flat_masks", n, handle.masks, np.int32(bx), np.int32(by), np.int32(bz), np.int32(fx),
-                         np.int32(fy), np.int64(n), handle.flat)
+            fx, fy, fz = flat_shape(handle.spec.shape)
+            handle.flat = cl.Buffer(self.ctx, _MF.READ_WRITE, size=max(fx * fy * fz, 1) * 8)
+            self._fill_flat(handle)
         return handle.flat
+
+    def _fill_flat(self, handle) -> None:
+        spec = handle.spec
+        bx, by, bz = brick_shape(spec.shape)
+        fx, fy, fz = flat_shape(spec.shape)
+        n = fx * fy * fz
+        self._launch("flat_masks", n, handle.masks, np.int32(bx), np.int32(by), np.int32(bz), np.int32(fx),
+                     np.int32(fy), np.int64(n), handle.flat)
 
     # ----------------------------------------------------------------- occupancy grids
     def voxel_keys(self, grid, points):

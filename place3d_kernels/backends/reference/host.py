@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from place3d_kernels.backends.base import Backend, GridSpec, check_ray_batch, rotation_matrices, sensor_directions
+from place3d_kernels.backends.base import (Backend, GridSpec, check_ray_batch, check_voxel_rows, rotation_matrices,
+                                          sensor_directions)
 from place3d_kernels.backends.geometry import closest_hits
 from place3d_kernels.backends.reference.conditions import ReferenceConditions
 
@@ -154,6 +155,20 @@ class ReferenceCore(Backend):
 
     def prepare_grid(self, grid, weights, stop):
         return _RefGrid(grid, weights, stop)
+
+    writes_grids = True
+
+    def working_grid(self, grid, voxels, weights, stop):
+        h = _RefGrid(grid, np.zeros(grid.n_voxels, dtype=np.int64),
+                     None if stop is None else np.zeros(grid.n_voxels, dtype=np.uint8))
+        self.write_voxels(h, voxels, weights, stop)
+        return h
+
+    def write_voxels(self, handle, voxels, weights, stop):
+        ids, w, s = check_voxel_rows(voxels, weights, stop, handle.spec.n_voxels, handle.stop is not None)
+        handle.weights[ids] = w
+        if handle.stop is not None:
+            handle.stop[ids] = s
 
     def score_placements(self, handle, elevations, azimuths, t_max, poses):
         poses = np.asarray(poses, dtype=np.float64)

@@ -589,6 +589,32 @@ class WarpCore(Backend):
             s = wp.array((np.asarray(stop).reshape(-1) != 0).view(np.uint8), dtype=wp.uint8, device=self.device)
         return _WarpGridBase(grid, w, s)
 
+    @property
+    def fields_on_device(self) -> bool:
+        """Whether the jackknife computes its left-out rows here in one batch (``left_out_fields``; on CUDA,
+        where the host's rows were most of a left-out grid's time)."""
+        return self.device.is_cuda
+
+    def left_out_fields(self, counts, rows, estart, ecls, ecnt, row_t, Ts, term, stop_t, other, det, veh, scale):
+        """Weights and stop flags of left-out count rows, one device batch (``left_out_kernels``): row r is
+        ``counts[rows[r]]`` less the entries ``estart[r]:estart[r + 1]`` of ``(ecls, ecnt)``, over
+        ``Ts[row_t[r]]`` subsets, its terms from the host's tables. Returns two device arrays, (R,) int64 and
+        (R,) uint8, for ``patched_grid``."""
+        from place3d_kernels.backends.warp import left_out_kernels
+
+        dev = self.device
+        R = len(rows)
+        w = wp.empty(max(R, 1), dtype=wp.int64, device=dev)
+        s = wp.empty(max(R, 1), dtype=wp.uint8, device=dev)
+        if R:
+            a = lambda x, t: wp.array(np.ascontiguousarray(x, dtype=t), device=dev)   # noqa: E731
+            wp.launch(left_out_kernels.left_out_fields_kernel, dim=R, device=dev,
+                      inputs=[counts if isinstance(counts, wp.array) else a(counts, np.int32), a(rows, np.int64),
+                              a(estart, np.int32), a(ecls, np.int32), a(ecnt, np.int32), a(row_t, np.int32),
+                              a(Ts, np.int32), a(term, np.float64), a(stop_t, np.uint8), a(other, np.float64),
+                              int(det), int(veh), float(scale), w, s])
+        return w[:R], s[:R]
+
     def patched_grid(self, base, voxels, weights, stop):
         # the base copied on the device, the changed voxels written over it, and the brick masks made from the
         # result by a kernel (the bits bricks.brick_masks gives the same arrays on the host)
@@ -602,16 +628,22 @@ class WarpCore(Backend):
         s_arg = s if s is not None else wp.zeros(1, dtype=wp.uint8, device=self.device)
         ids = np.ascontiguousarray(voxels, dtype=np.int64).reshape(-1)
         if len(ids):
-            w_rows = np.ascontiguousarray(weights, dtype=np.int64).reshape(-1)
-            s_rows = (np.zeros(len(ids), dtype=np.uint8) if s is None
-                      else (np.asarray(stop).reshape(-1) != 0).view(np.uint8))
+            # rows given on the device (left_out_fields: int64 weights, uint8 stop) are used where they are
+            on_dev = isinstance(weights, wp.array)
+            w_rows = weights if on_dev else np.ascontiguousarray(weights, dtype=np.int64).reshape(-1)
+            if on_dev:
+                s_rows = stop if s is not None else wp.zeros(len(ids), dtype=wp.uint8, device=self.device)
+            else:
+                s_rows = (np.zeros(len(ids), dtype=np.uint8) if s is None
+                          else (np.asarray(stop).reshape(-1) != 0).view(np.uint8))
             if w_rows.shape != ids.shape or s_rows.shape != ids.shape:
                 raise ValueError(f"patched_grid needs one weight and one stop value per voxel ({len(ids)}), got "
                                  f"{w_rows.shape[0]} and {s_rows.shape[0]}")
+            if not on_dev:
+                w_rows = wp.array(w_rows, dtype=wp.int64, device=self.device)
+                s_rows = wp.array(s_rows, dtype=wp.uint8, device=self.device)
             wp.launch(self.k.scatter_rows_kernel, dim=len(ids), device=self.device,
-                      inputs=[wp.array(ids, dtype=wp.int64, device=self.device),
-                              wp.array(w_rows, dtype=wp.int64, device=self.device),
-                              wp.array(s_rows, dtype=wp.uint8, device=self.device), has_stop, w, s_arg])
+                      inputs=[wp.array(ids, dtype=wp.int64, device=self.device), w_rows, s_rows, has_stop, w, s_arg])
         bx, by, bz = brick_shape(spec.shape)
         n_bricks = bx * by * bz
         args = [w, s_arg, has_stop, int(nx), int(ny), int(nz), int(by), int(bz)]
