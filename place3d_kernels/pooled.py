@@ -29,7 +29,7 @@ from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.sog import PSOG
 
 __all__ = ["Drive", "PoolSettings", "DriveRecord", "PooledPSOG", "build_pooled", "drive_record",
-           "subset_records", "backend_name", "parse_route_seeds", "pool_specs", "DEFAULT_ROUTES"]
+           "subset_records", "backend_name", "parse_route_seeds", "pool_specs", "scene_groups", "DEFAULT_ROUTES"]
 
 #: Routes per scene of the commands' default pooled P-SOG: the smallest count at which the order of the
 #: paper's placements no longer moved when the routes were doubled (bench/route_convergence.py; the
@@ -318,9 +318,33 @@ def _record_task(t) -> DriveRecord:
     return drive_record(drive, settings)
 
 
+def _records_task(t) -> list[DriveRecord]:
+    drives, settings = t
+    return [drive_record(d, settings) for d in drives]
+
+
+def scene_groups(drives: Sequence[Drive], n: int) -> list[list[int]]:
+    """The drives' indices in ``n`` groups (fewer for fewer drives) of sizes that differ by at most one,
+    each made of consecutive drives in (scene, position) order: a worker given a group builds its drives'
+    scenes one town after the other, so it makes each town's roads and ground (``opendrive._town_base``,
+    kept per process) once, not once per route."""
+    order = sorted(range(len(drives)), key=lambda i: (drives[i].scene, i))
+    n = max(1, min(int(n), len(order)))
+    q, r = divmod(len(order), n)
+    out, a = [], 0
+    for k in range(n):
+        b = a + q + (k < r)
+        out.append(order[a:b])
+        a = b
+    return out
+
+
 def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(), executor=None,
                  progress: bool = False) -> PooledPSOG:
-    """Pool the P-SOGs of ``drives`` (one executor task per drive; records come back in drive order).
+    """Pool the P-SOGs of ``drives`` (records come back in drive order).
+
+    An executor with ``workers`` (the process executor) gets one task per worker, a group of drives of as
+    few towns as the split allows (``scene_groups``); any other gets one task per drive.
 
     Args:
         drives: the drives (routes x scenes).
@@ -355,12 +379,22 @@ def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(
     import time
 
     t0 = time.perf_counter()
-    for rec in executor.map(_record_task, [(d, settings) for d in drives]):
+    workers = getattr(executor, "workers", None)
+    if workers:
+        # worker processes of this machine: one task per worker, a group of drives of few towns each
+        groups = scene_groups(drives, workers)
+        got = executor.map(_records_task, [([drives[i] for i in g], settings) for g in groups])
+        records: list = [None] * len(drives)
+        for g, recs in zip(groups, got):
+            for i, rec in zip(g, recs):
+                records[i] = rec
+    else:
+        records = executor.map(_record_task, [(d, settings) for d in drives])
+    for rec in records:                     # in drive order, whoever built them
         pooled.add(rec)
     if progress:
         import sys
 
-        workers = getattr(executor, "workers", None)
         print(f"  {len(drives)} drives on the {getattr(executor, 'kind', 'given')} executor"
               + (f" ({workers} workers)" if workers else "") + f": {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return pooled

@@ -221,3 +221,15 @@ def test_reproduce_jackknife_on_patched_grids_equals_rebuilt_pools(device_backen
     # the rebuilt path stays where the fast one does not apply (another detection view)
     other = jackknife_placements(pooled, lidar, "sog", backend, "rad", "vehicle+pedestrian", extra, strata=strata)
     assert not np.array_equal(other.point[9:], fast.point[9:])
+
+
+def test_scene_groups_keep_each_town_to_few_workers():
+    from place3d_kernels.pooled import scene_groups
+
+    drives = [Drive(s, seed=r) for r in range(4) for s in ("A", "B", "C", "D")]      # route-major, as reproduce
+    groups = scene_groups(drives, 8)
+    assert sorted(i for g in groups for i in g) == list(range(16))
+    assert [len(g) for g in groups] == [2] * 8
+    assert all(len({drives[i].scene for i in g}) == 1 for g in groups)             # one town per worker
+    assert [len(g) for g in scene_groups(drives, 3)] == [6, 5, 5]
+    assert scene_groups(drives[:2], 8) == [[0], [1]]                               # no empty group
