@@ -43,7 +43,8 @@ from place3d_kernels.profiling import section
 from place3d_kernels.uncertainty import Jackknife, jackknife_pooled, kendall_tau, plot_scores
 
 __all__ = ["reproduce", "convergence", "convergence_ranges", "range_pool", "submit_ranges", "paper_poses",
-           "placement_poses", "placement_scorer", "pool_scorer", "jackknife_placements", "det_view", "resolve_town", "DEFAULT_TOWNS", "DET_VARIANTS", "add_arguments", "run", "machine_info"]
+           "placement_poses", "placement_scorer", "pool_scorer", "jackknife_placements", "det_view", "resolve_town",
+           "DEFAULT_TOWNS", "DET_VARIANTS", "add_arguments", "run", "machine_info"]
 
 #: The paper's maps (Sec. 4 "Data Generation": Towns 1, 3, 4 and 6 of CARLA 0.9.10).
 DEFAULT_TOWNS = ("Town01", "Town03", "Town04", "Town06")
