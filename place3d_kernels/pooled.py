@@ -323,19 +323,22 @@ def _records_task(t) -> list[DriveRecord]:
     return [drive_record(d, settings) for d in drives]
 
 
-def scene_groups(drives: Sequence[Drive], n: int) -> list[list[int]]:
-    """The drives' indices in ``n`` groups (fewer for fewer drives) of sizes that differ by at most one,
-    each made of consecutive drives in (scene, position) order: a worker given a group builds its drives'
-    scenes one town after the other, so it makes each town's roads and ground (``opendrive._town_base``,
-    kept per process) once, not once per route."""
-    order = sorted(range(len(drives)), key=lambda i: (drives[i].scene, i))
-    n = max(1, min(int(n), len(order)))
-    q, r = divmod(len(order), n)
-    out, a = [], 0
-    for k in range(n):
-        b = a + q + (k < r)
-        out.append(order[a:b])
-        a = b
+def scene_groups(drives: Sequence[Drive], workers: int) -> list[list[int]]:
+    """The drives' indices as tasks for ``workers`` worker processes: two routes of one town a task (one
+    route each when there are no more drives than workers), town after town, in drive order within a town.
+
+    A worker makes a town's roads and ground once per process (``opendrive._town_base``, about 0.6 s a
+    town on the dev VM), so a second route of the same town in the same task costs only its own scene.
+    Tasks no larger than two drives leave the executor free to balance the towns' unequal drives among
+    the workers (Town01's drives are the cheapest); a task never mixes towns."""
+    n = max(1, int(workers))
+    size = max(1, min(2, -(-len(drives) // n)))
+    by_scene: dict = {}
+    for i, d in enumerate(drives):
+        by_scene.setdefault(d.scene, []).append(i)
+    out = []
+    for idx in by_scene.values():
+        out += [idx[a:a + size] for a in range(0, len(idx), size)]
     return out
 
 
@@ -343,8 +346,8 @@ def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(
                  progress: bool = False) -> PooledPSOG:
     """Pool the P-SOGs of ``drives`` (records come back in drive order).
 
-    An executor with ``workers`` (the process executor) gets one task per worker, a group of drives of as
-    few towns as the split allows (``scene_groups``); any other gets one task per drive.
+    An executor with ``workers`` (the process executor) gets tasks of two routes of one town
+    (``scene_groups``); any other gets one task per drive.
 
     Args:
         drives: the drives (routes x scenes).
@@ -381,7 +384,7 @@ def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(
     t0 = time.perf_counter()
     workers = getattr(executor, "workers", None)
     if workers:
-        # worker processes of this machine: one task per worker, a group of drives of few towns each
+        # worker processes of this machine: a task is two routes of one town, so the town's roads are made once
         groups = scene_groups(drives, workers)
         got = executor.map(_records_task, [([drives[i] for i in g], settings) for g in groups])
         records: list = [None] * len(drives)

@@ -277,13 +277,14 @@ def test_convergence_rows_equal_a_direct_recomputation(device_backend, occlusion
     np.testing.assert_array_equal(jk.point, direct(0, 4))
 
 
-def test_scene_groups_keep_each_town_to_few_workers():
+def test_scene_groups_pair_the_routes_of_one_town():
     from place3d_kernels.pooled import scene_groups
 
     drives = [Drive(s, seed=r) for r in range(4) for s in ("A", "B", "C", "D")]      # route-major, as reproduce
-    groups = scene_groups(drives, 8)
-    assert sorted(i for g in groups for i in g) == list(range(16))
-    assert [len(g) for g in groups] == [2] * 8
-    assert all(len({drives[i].scene for i in g}) == 1 for g in groups)             # one town per worker
-    assert [len(g) for g in scene_groups(drives, 3)] == [6, 5, 5]
-    assert scene_groups(drives[:2], 8) == [[0], [1]]                               # no empty group
+    for workers in (2, 3, 8):
+        groups = scene_groups(drives, workers)
+        assert sorted(i for g in groups for i in g) == list(range(16))
+        assert [len(g) for g in groups] == [2] * 8
+        assert all(len({drives[i].scene for i in g}) == 1 for g in groups)         # a task never mixes towns
+    assert scene_groups(drives, 16) == [[i] for i in (0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15)]
+    assert scene_groups(drives[:5], 2) == [[0, 4], [1], [2], [3]]

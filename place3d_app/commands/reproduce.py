@@ -10,7 +10,7 @@ order of the paper's eight against the paper's Table 1 M-SOG and against the pap
 P-SOG of N routes per town and that of 2N routes.
 
 Where the time goes (``place3d --profile reproduce``): with the process executor (``--executor auto`` on a
-machine of several cores) the workers build the drives, a group of one or two towns each
+machine of several cores) the workers build the drives, two routes of one town a task
 (``pooled.scene_groups``), then score the convergence table's pools while this process runs the jackknife;
 the whole pool's scores are the jackknife's point, not scored again.
 
