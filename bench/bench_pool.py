@@ -10,7 +10,8 @@ subprocess with the tree first on ``PYTHONPATH``, timed from start to exit, with
 (``PLACE3D_CACHE``), so every drive is simulated and pooled, and a Warp kernel cache shared by the runs of a
 tree, filled by one untimed small run first (issue 36's goal is stated with a warm kernel cache). Runs of
 the variants (each tree, with each of ``--executors``) alternate. The command's own split (``seconds``: pool, jackknife, total) comes from its
-``reproduce.json``; every run's study numbers (``tasks``, ``convergence``: scores, intervals, taus) must be
+``reproduce.json`` (and ``convergence``, what the command still spent on that table after the jackknife, where the
+checkout records it); every run's study numbers (``tasks``, ``convergence``: scores, intervals, taus) must be
 the same to the last digit across runs and variants (``same_results``).
 
 Writes ``bench/results/reproduce-pool-<machine>-<date>.json`` (or ``$OUT`` / ``--out``), rewritten after every
@@ -84,8 +85,8 @@ def main(argv=None) -> int:
     def vname(t, e):
         return str(t) + ("" if e is None else f" --executor {e}")
 
-    per: dict[str, dict] = {vname(t, e): {"wall_s": [], "pool_s": [], "jackknife_s": [], "total_s": [],
-                                          "executor": None} for t, e in variants}
+    per: dict[str, dict] = {vname(t, e): {"wall_s": [], "pool_s": [], "jackknife_s": [], "convergence_s": [],
+                                          "total_s": [], "executor": None} for t, e in variants}
     studies: list[dict] = []
     with tempfile.TemporaryDirectory() as scratch:
         warp = {t: Path(scratch, f"warp{i}") for i, t in enumerate(trees)}
@@ -100,8 +101,9 @@ def main(argv=None) -> int:
                                          a.timeout)
                 r = per[vname(t, e)]
                 r["wall_s"].append(round(wall, 3))
-                for k in ("pool", "jackknife", "total"):
-                    r[f"{k}_s"].append(res["seconds"][k])
+                for k in ("pool", "jackknife", "convergence", "total"):
+                    if k in res["seconds"]:         # convergence: checkouts from issue 36 on
+                        r[f"{k}_s"].append(res["seconds"][k])
                 r["executor"] = res["settings"].get("executor")
                 studies.append({"tasks": {k: {f: v for f, v in d.items()} for k, d in res["tasks"].items()},
                                 "convergence": res["convergence"]})
@@ -110,7 +112,7 @@ def main(argv=None) -> int:
                 record = {"command": "place3d reproduce " + " ".join(cmd) + " --quiet --output DIR",
                           "settings": res["settings"], "variants": {k: {**v, **{f"{m}_stats": stats(v[f"{m}_s"])
                                                                           for m in ("wall", "pool", "jackknife",
-                                                                                    "total")}}
+                                                                                    "convergence", "total")}}
                                                                for k, v in per.items()},
                           "same_results": all(s == studies[0] for s in studies), "runs_done": i + 1,
                           "note": "empty P-SOG cache per run, warm kernel cache; variants alternate"}

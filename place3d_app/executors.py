@@ -229,9 +229,18 @@ class ProcessExecutor(Executor):
                 f.cancel()
             raise
 
-    def shutdown(self) -> None:
+    def submit(self, fn, task):
+        """``fn(task)`` on a worker, without waiting: a ``concurrent.futures.Future`` of its result."""
+        self.submitted += 1
+        pool = self._ensure(1)
+        with _worker_environment():
+            return pool.submit(fn, task)
+
+    def shutdown(self, wait: bool = True) -> None:
+        """Stop the workers; ``wait=False`` returns at once while they exit (the interpreter joins them at
+        its exit). A later ``map`` starts new ones."""
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool.shutdown(wait=wait, cancel_futures=True)
         self._pool = None
         self._started = 0
 

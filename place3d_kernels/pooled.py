@@ -29,7 +29,7 @@ from place3d_kernels.grid import Grid, roi_grid
 from place3d_kernels.sog import PSOG
 
 __all__ = ["Drive", "PoolSettings", "DriveRecord", "PooledPSOG", "build_pooled", "drive_record",
-           "subset_records", "backend_name", "parse_route_seeds", "pool_specs", "DEFAULT_ROUTES"]
+           "subset_records", "backend_name", "parse_route_seeds", "pool_specs", "scene_groups", "DEFAULT_ROUTES"]
 
 #: Routes per scene of the commands' default pooled P-SOG: the smallest count at which the order of the
 #: paper's placements no longer moved when the routes were doubled (bench/route_convergence.py; the
@@ -323,9 +323,36 @@ def _record_task(t) -> DriveRecord:
     return drive_record(drive, settings)
 
 
+def _records_task(t) -> list[DriveRecord]:
+    drives, settings = t
+    return [drive_record(d, settings) for d in drives]
+
+
+def scene_groups(drives: Sequence[Drive], workers: int) -> list[list[int]]:
+    """The drives' indices as tasks for ``workers`` worker processes: two routes of one town a task (one
+    route each when there are no more drives than workers), town after town, in drive order within a town.
+
+    A worker makes a town's roads and ground once per process (``opendrive._town_base``, about 0.6 s a
+    town on the dev VM), so a second route of the same town in the same task costs only its own scene.
+    Tasks no larger than two drives leave the executor free to balance the towns' unequal drives among
+    the workers (Town01's drives are the cheapest); a task never mixes towns."""
+    n = max(1, int(workers))
+    size = max(1, min(2, -(-len(drives) // n)))
+    by_scene: dict = {}
+    for i, d in enumerate(drives):
+        by_scene.setdefault(d.scene, []).append(i)
+    out = []
+    for idx in by_scene.values():
+        out += [idx[a:a + size] for a in range(0, len(idx), size)]
+    return out
+
+
 def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(), executor=None,
                  progress: bool = False) -> PooledPSOG:
-    """Pool the P-SOGs of ``drives`` (one executor task per drive; records come back in drive order).
+    """Pool the P-SOGs of ``drives`` (records come back in drive order).
+
+    An executor with ``workers`` (the process executor) gets tasks of two routes of one town
+    (``scene_groups``); any other gets one task per drive.
 
     Args:
         drives: the drives (routes x scenes).
@@ -360,12 +387,22 @@ def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(
     import time
 
     t0 = time.perf_counter()
-    for rec in executor.map(_record_task, [(d, settings) for d in drives]):
+    workers = getattr(executor, "workers", None)
+    if workers:
+        # worker processes of this machine: a task is two routes of one town, so the town's roads are made once
+        groups = scene_groups(drives, workers)
+        got = executor.map(_records_task, [([drives[i] for i in g], settings) for g in groups])
+        records: list = [None] * len(drives)
+        for g, recs in zip(groups, got):
+            for i, rec in zip(g, recs):
+                records[i] = rec
+    else:
+        records = executor.map(_record_task, [(d, settings) for d in drives])
+    for rec in records:                     # in drive order, whoever built them
         pooled.add(rec)
     if progress:
         import sys
 
-        workers = getattr(executor, "workers", None)
         print(f"  {len(drives)} drives on the {getattr(executor, 'kind', 'given')} executor"
               + (f" ({workers} workers)" if workers else "") + f": {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return pooled

@@ -189,6 +189,23 @@ def test_reproduce_tiny_end_to_end(tmp_path):
     assert (out / "reproduce.png").stat().st_size > 10_000
 
 
+def test_reproduce_same_study_in_process_and_on_workers(tmp_path):
+    # the process executor builds the drives and scores the convergence table's pools on its workers (while
+    # the jackknife runs here); the local one does both here: the same study to the last digit
+    from place3d_app.cli import main
+
+    res = {}
+    for ex in ("local", "process"):
+        out = tmp_path / ex
+        assert main(["reproduce", "--towns", "town", "--route-seeds", "5,6,7,8", "--frames", "4", "--voxel-size",
+                     "0.4", "--frames-per-subset", "2", "--executor", ex, "--output", str(out), "--quiet"]) == 0
+        res[ex] = json.loads((out / "reproduce.json").read_text())
+    assert res["process"]["settings"]["executor"] == "process"
+    assert len(res["local"]["convergence"]) == 2                 # N = 1 and N = 2: five route ranges
+    for k in ("tasks", "convergence", "drives"):
+        assert json.dumps(res["local"][k]) == json.dumps(res["process"][k]), k
+
+
 @functools.lru_cache(maxsize=1)
 def _four_drive_pool():
     """Four short drives of the embedded town, two "scenes" of two routes (one with more subsets), built
@@ -221,3 +238,53 @@ def test_reproduce_jackknife_on_patched_grids_equals_rebuilt_pools(device_backen
     # the rebuilt path stays where the fast one does not apply (another detection view)
     other = jackknife_placements(pooled, lidar, "sog", backend, "rad", "vehicle+pedestrian", extra, strata=strata)
     assert not np.array_equal(other.point[9:], fast.point[9:])
+
+
+@pytest.mark.parametrize("occlusion", ["sog", "none"])
+def test_convergence_rows_equal_a_direct_recomputation(device_backend, occlusion):
+    # reproduce's convergence table (each route range's grid from its counts, pool_scorer; the whole pool's
+    # scores taken from the jackknife's point) against the plain recipe: the records of the routes in range
+    # pooled from scratch, the P-SOG scored by msog_batch, tau by kendall_tau; equal to the last digit
+    from place3d_app.commands.reproduce import (convergence, jackknife_placements, placement_scorer,
+                                                pool_scorer)
+    from place3d_kernels import paper_results as paper
+    from place3d_kernels.uncertainty import kendall_tau
+
+    pooled = _four_drive_pool()
+    lidar = LidarModel.load("place3d_16ch")
+    routes_of = [0, 1, 2, 3]            # one scene, four routes: rows N = 1 (1 vs 2) and N = 2 (2 vs 4)
+    jk = jackknife_placements(pooled, lidar, occlusion, device_backend, "rad", "vehicle")
+    rows = convergence(pooled, routes_of, known={(0, 4): jk.point},
+                       score_pool=pool_scorer(lidar, occlusion, device_backend, "rad", "vehicle"))
+    score = placement_scorer(lidar, occlusion, device_backend, "rad", "vehicle")
+
+    def direct(lo, hi):
+        recs = [r for r, route in zip(pooled.records, routes_of) if lo <= route < hi]
+        return score(PooledPSOG(pooled.grid, recs).psog())
+
+    want = []
+    for n in (1, 2):
+        a, b, c = direct(0, n), direct(0, 2 * n), direct(n, 2 * n)
+        want.append({"n": n, "two_n": 2 * n,
+                     "tau_seg": kendall_tau(a[:8], b[:8]), "tau_det": kendall_tau(a[8:], b[8:]),
+                     "tau_seg_disjoint": kendall_tau(a[:8], c[:8]), "tau_det_disjoint": kendall_tau(a[8:], c[8:]),
+                     "tau_seg_paper": kendall_tau(b[:8], paper.paper_msog("seg")),
+                     "tau_det_paper": kendall_tau(b[8:], paper.paper_msog("det"))})
+    assert json.dumps(rows) == json.dumps(want)          # NaN-safe, every digit
+    # the scores behind the taus, bit for bit, for a part of the pool and the whole
+    sp = pool_scorer(lidar, occlusion, device_backend, "rad", "vehicle")
+    np.testing.assert_array_equal(sp(pooled.subset([1, 2])), direct(1, 3))
+    np.testing.assert_array_equal(jk.point, direct(0, 4))
+
+
+def test_scene_groups_pair_the_routes_of_one_town():
+    from place3d_kernels.pooled import scene_groups
+
+    drives = [Drive(s, seed=r) for r in range(4) for s in ("A", "B", "C", "D")]      # route-major, as reproduce
+    for workers in (2, 3, 8):
+        groups = scene_groups(drives, workers)
+        assert sorted(i for g in groups for i in g) == list(range(16))
+        assert [len(g) for g in groups] == [2] * 8
+        assert all(len({drives[i].scene for i in g}) == 1 for g in groups)         # a task never mixes towns
+    assert scene_groups(drives, 16) == [[i] for i in (0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15)]
+    assert scene_groups(drives[:5], 2) == [[0, 4], [1], [2], [3]]

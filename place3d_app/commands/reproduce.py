@@ -9,8 +9,14 @@ order of the paper's eight against the paper's Table 1 M-SOG and against the pap
 (``paper_results``). ``convergence`` shows whether the order still moves with more routes: tau between the
 P-SOG of N routes per town and that of 2N routes.
 
+Where the time goes (``place3d --profile reproduce``): with the process executor (``--executor auto`` on a
+machine of several cores) the workers build the drives, two routes of one town a task
+(``pooled.scene_groups``), then score the convergence table's pools while this process runs the jackknife;
+the whole pool's scores are the jackknife's point, not scored again.
+
 Output (``--output``, default ``bench/results/reproduce-<date>/``): ``reproduce.json`` (keys:
-``settings``, ``machine``, ``time_utc``, ``seconds``, ``drives``, ``tasks`` -> seg/det -> placements,
+``settings``, ``machine``, ``time_utc``, ``seconds`` (pool, jackknife, convergence: what this process
+still spent on it after the jackknife, total), ``drives``, ``tasks`` -> seg/det -> placements,
 msog, ci_low, ci_high, se, bias, df, rank, paper_msog, paper_rank, downstream, tau_paper,
 tau_paper_loo_range, tau_downstream, tau_downstream_loo_range, order_freq, within_noise, samples (the
 leave-one-route-out scores); ``convergence``) and ``reproduce.png``.
@@ -24,6 +30,7 @@ import math
 import os
 import platform
 import sys
+import threading
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -32,10 +39,12 @@ import numpy as np
 
 from place3d_kernels import paper_results as paper
 from place3d_kernels.pooled import Drive, PooledPSOG, PoolSettings, build_pooled
+from place3d_kernels.profiling import section
 from place3d_kernels.uncertainty import Jackknife, jackknife_pooled, kendall_tau, plot_scores
 
-__all__ = ["reproduce", "convergence", "paper_poses", "placement_poses", "placement_scorer", "jackknife_placements",
-           "det_view", "resolve_town", "DEFAULT_TOWNS", "DET_VARIANTS", "add_arguments", "run", "machine_info"]
+__all__ = ["reproduce", "convergence", "convergence_ranges", "range_pool", "submit_ranges", "paper_poses",
+           "placement_poses", "placement_scorer", "pool_scorer", "jackknife_placements", "det_view", "resolve_town",
+           "DEFAULT_TOWNS", "DET_VARIANTS", "add_arguments", "run", "machine_info"]
 
 #: The paper's maps (Sec. 4 "Data Generation": Towns 1, 3, 4 and 6 of CARLA 0.9.10).
 DEFAULT_TOWNS = ("Town01", "Town03", "Town04", "Town06")
@@ -140,6 +149,35 @@ def placement_scorer(lidar, occlusion: str, backend, roll_units: str, det_varian
     return score
 
 
+def pool_scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: str, extra=None):
+    """score(pool) -> (2 P,): what ``placement_scorer(...)(pool.psog())`` gives for a ``PooledPSOG``.
+
+    Where the metric allows it (``left_out.fused_path`` and the package's own detection view), each task's
+    weights and stop mask come from the pool's count rows in blocks (``left_out.LeftOutGrids.dense_base`` at
+    the pool's own T) and only the rigs are launched on them (``metrics.msog_on_grid``): no (M, K)
+    probabilities, detection view or entropies of the whole pool at once. The scores are the same to the
+    last bit (tests/test_pooled.py)."""
+    from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.left_out import LeftOutGrids, fused_path
+    from place3d_kernels.metrics import msog_on_grid
+
+    if det_variant != "vehicle" or not fused_path(lidar, occlusion):
+        score = placement_scorer(lidar, occlusion, backend, roll_units, det_variant, extra)
+        return lambda pool: score(pool.psog())
+    b = get_backend(backend)
+    poses = placement_poses(roll_units, extra)
+
+    def score_pool(pool):
+        out = []
+        for t in TASKS:
+            grids = LeftOutGrids(pool, t)          # the pool's counts, summed once for both tasks
+            w, stop = grids.dense_base(grids.T)
+            out.append(msog_on_grid(pool.grid, w, stop if occlusion == "sog" else None, lidar, poses[t], b))
+        return np.concatenate(out)
+
+    return score_pool
+
+
 def jackknife_placements(pooled: PooledPSOG, lidar, occlusion: str, backend, roll_units: str, det_variant: str,
                          extra=None, strata=None) -> Jackknife:
     """Each drive left out once: what ``jackknife_pooled(pooled, placement_scorer(...), strata)`` gives,
@@ -217,37 +255,65 @@ def _task_table(task: str, boot: Jackknife) -> dict:
             "samples": boot.samples.tolist()}        # (drives, P) leave-one-route-out scores
 
 
-def convergence(pooled: PooledPSOG, routes_of: list[int], score, ns=None) -> list[dict]:
+def _ns(R: int, ns=None) -> list[int]:
+    if ns is None:
+        ns, n = [], 1
+        while 2 * n <= R:
+            ns.append(n)
+            n *= 2
+    for n in ns:
+        if 2 * n > R:
+            raise ValueError(f"convergence N={n} needs {2 * n} routes per town, only {R} were built")
+    return list(ns)
+
+
+def convergence_ranges(routes_of: list[int], ns=None) -> list[tuple[int, int]]:
+    """The route ranges [lo, hi) whose pools ``convergence`` scores, each once, the whole pool (0, R) last."""
+    R = max(routes_of) + 1
+    out: list = []
+    for n in _ns(R, ns):
+        out += [r for r in ((0, n), (n, 2 * n), (0, 2 * n)) if r not in out]
+    return sorted(out, key=lambda r: r == (0, R))
+
+
+def range_pool(pooled: PooledPSOG, routes_of: list[int], lo: int, hi: int) -> PooledPSOG:
+    """The pool of the records whose route index is in [lo, hi), in record order."""
+    r = np.asarray(routes_of)
+    return pooled.subset(np.flatnonzero((r >= lo) & (r < hi)))
+
+
+def convergence(pooled: PooledPSOG, routes_of: list[int], score=None, ns=None, known=None,
+                score_pool=None) -> list[dict]:
     """Kendall tau between the orders from N and 2N routes per town, as N doubles.
 
     Args:
         pooled: records of all drives; ``routes_of[i]`` is the route index (seed) of record i.
-        score: ``score(psog) -> (16,)`` (seg then det scores, as in ``reproduce``).
+        score: ``score(psog) -> (2 P,)`` (seg then det scores, as in ``reproduce``).
         ns: the N to try (default 1, 2, 4, ... while 2N <= routes).
+        known: {(lo, hi): (2 P,) scores} of route ranges scored already by the same scorer (the jackknife's
+            point is the whole pool's, (0, R); ``reproduce`` scores the others in its worker processes while
+            the jackknife runs); the others are scored here.
+        score_pool: ``score_pool(PooledPSOG) -> (2 P,)`` instead of ``score(pool.psog())`` (``pool_scorer``).
 
     Returns:
         rows {n, tau_seg, tau_det (N vs 2N, nested: the 2N pool contains the N pool), tau_seg_disjoint,
         tau_det_disjoint (routes [0, N) vs [N, 2N)), tau_seg_paper and tau_det_paper of the 2N pool}.
     """
     R = max(routes_of) + 1          # routes_of: the route's index (0 .. R-1) in the run's seed list
-    if ns is None:
-        ns, n = [], 1
-        while 2 * n <= R:
-            ns.append(n)
-            n *= 2
-    routes_of = np.asarray(routes_of)
-    cache: dict = {}
+    ns = _ns(R, ns)
+    if score_pool is None:
+        if score is None:
+            raise ValueError("convergence needs score or score_pool")
+        score_pool = lambda pool: score(pool.psog())      # noqa: E731
+    cache = {k: np.asarray(v) for k, v in (known or {}).items()}
 
     def scores(lo, hi):
         if (lo, hi) not in cache:
-            idx = np.flatnonzero((routes_of >= lo) & (routes_of < hi))
-            cache[(lo, hi)] = np.asarray(score(pooled.subset(idx).psog()))
+            cache[(lo, hi)] = np.asarray(score_pool(range_pool(pooled, routes_of, lo, hi)))
         return cache[(lo, hi)]
 
     rows = []
     for n in ns:
-        if 2 * n > R:
-            raise ValueError(f"convergence N={n} needs {2 * n} routes per town, only {R} were built")
         a, b, c = scores(0, n), scores(0, 2 * n), scores(n, 2 * n)
         P = len(a) // 2
         rows.append({"n": n, "two_n": 2 * n,
@@ -256,6 +322,38 @@ def convergence(pooled: PooledPSOG, routes_of: list[int], score, ns=None) -> lis
                      "tau_seg_paper": kendall_tau(b[:8], paper.paper_msog("seg")),
                      "tau_det_paper": kendall_tau(b[P:P + 8], paper.paper_msog("det"))})
     return rows
+
+
+def _import_later_modules() -> None:
+    # SciPy's stats (Kendall's tau) and Matplotlib take a second or more to import on a busy machine; the
+    # import lock makes the tables and the plot wait for an import still under way instead of repeating it
+    try:
+        import scipy.stats  # noqa: F401
+
+        import matplotlib
+
+        matplotlib.use("Agg")       # as uncertainty.plot_scores does, before pyplot
+        import matplotlib.pyplot  # noqa: F401
+    except Exception:  # noqa: BLE001 - a missing or broken module fails where it is used, with its message
+        pass
+
+
+def _range_scores(t) -> np.ndarray:
+    """A worker's task: the scores of one route range's pool (``pool_scorer``)."""
+    records, grid, lidar, occlusion, backend, roll_units, det_variant, extra = t
+    pool = PooledPSOG(grid, records)
+    return pool_scorer(lidar, occlusion, backend, roll_units, det_variant, extra)(pool)
+
+
+def submit_ranges(executor, pooled: PooledPSOG, routes_of: list[int], lidar, occlusion: str, backend: str,
+                  roll_units: str, det_variant: str, extra=None) -> dict:
+    """{(lo, hi): Future of its scores} for every range of ``convergence_ranges`` but the whole pool (the
+    jackknife's point), each scored by ``pool_scorer`` on a worker of ``executor`` (one with ``submit``: the
+    process executor) while this process goes on."""
+    R = max(routes_of) + 1
+    return {(lo, hi): executor.submit(_range_scores, (range_pool(pooled, routes_of, lo, hi).records, pooled.grid,
+                                                      lidar, occlusion, backend, roll_units, det_variant, extra))
+            for lo, hi in convergence_ranges(routes_of) if (lo, hi) != (0, R)}
 
 
 def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size: float | None = None,
@@ -285,7 +383,8 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
         raise ValueError(f"--placements: names must differ from each other and from the paper's {list(paper.PLACEMENTS)}")
     if det_variant not in DET_VARIANTS:
         raise ValueError(f"det_variant must be one of {DET_VARIANTS}, got {det_variant!r}")
-    b = get_backend(backend)
+    with section("setup: backend"):
+        b = get_backend(backend)
     scenes = [resolve_town(t, opendrive_dir) for t in towns]
     drives, routes_of, town_of = [], [], []
     for r, seed_r in enumerate(seeds):         # route-major, so a partial pool still spans every town
@@ -299,11 +398,22 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
     check_pool_roi(roi, voxel_size, {f"{t} placements": p for t, p in
                                      placement_poses("rad", [pl.poses for pl in extra] or None).items()})
     t1 = time.perf_counter()
-    pooled = build_pooled(drives, settings, executor=executor, progress=progress)
+    with section("pool: drives"):
+        # this process waits for the drives; meanwhile it imports what the tables and the plot need
+        threading.Thread(target=_import_later_modules, daemon=True, name="place3d-imports").start()
+        pooled = build_pooled(drives, settings, executor=executor, progress=progress)
     t_pool = time.perf_counter() - t1
     lidar = LidarModel.load(rig_lidar)
     extra_poses = np.stack([pl.poses for pl in extra]) if extra else None
-    score = placement_scorer(lidar, occlusion, b, roll_units, det_variant, extra_poses)
+    pending = {}
+    if with_convergence and getattr(executor, "kind", None) == "process":
+        # the workers, their backend ready, score the convergence table's pools while this process runs the
+        # jackknife (the two share nothing but the records)
+        with section("convergence: submit"):
+            pending = submit_ranges(executor, pooled, routes_of, lidar, occlusion, b.name, roll_units,
+                                    det_variant, extra_poses)
+    elif getattr(executor, "kind", None) == "process":
+        executor.shutdown(wait=False)       # every drive is built: the workers exit while the jackknife runs
     t1 = time.perf_counter()
     # each route left out once, stratified by town: the four towns are the study's design, the routes its
     # sample (uncertainty.jackknife_pooled: the bootstrap's resamples repeat routes and score high)
@@ -312,7 +422,18 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
     P = len(names)
     boots = {task: dataclasses.replace(jk, names=names, point=jk.point[i * P:(i + 1) * P],
                                        samples=jk.samples[:, i * P:(i + 1) * P]) for i, task in enumerate(TASKS)}
-    conv = convergence(pooled, routes_of, score) if with_convergence else []
+    t1 = time.perf_counter()
+    with section("convergence"):
+        conv = []
+        if with_convergence:
+            with section("convergence: wait"):
+                known = {r: f.result() for r, f in pending.items()}
+            if pending:
+                executor.shutdown(wait=False)
+            known[(0, max(routes_of) + 1)] = jk.point      # the whole pool: the jackknife scored it
+            conv = convergence(pooled, routes_of, known=known,
+                               score_pool=pool_scorer(lidar, occlusion, b, roll_units, det_variant, extra_poses))
+    t_conv = time.perf_counter() - t1
     settings_d = {"towns": list(towns), "routes": routes, "route_seeds": seeds, "frames": frames,
                   **settings.to_dict(), "grid": settings.grid.to_dict(), "occlusion": occlusion,
                   "rig_lidar": rig_lidar, "roll_units": roll_units, "det_variant": det_variant,
@@ -320,11 +441,14 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
                   "interval": "jackknife over routes, each left out once, stratified by town; point +- t se "
                               f"({jk.df} df)",
                   "executor": getattr(executor, "kind", "local"), "n_subsets_total": pooled.n_subsets}
-    return {"settings": settings_d, "machine": machine_info(b.name),
+    with section("tables"):
+        tables = {t: _task_table(t, boots[t]) for t in TASKS}
+        machine = machine_info(b.name)
+    return {"settings": settings_d, "machine": machine,
             "time_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "seconds": {"pool": round(t_pool, 2), "jackknife": round(t_boot, 2),
+            "seconds": {"pool": round(t_pool, 2), "jackknife": round(t_boot, 2), "convergence": round(t_conv, 2),
                         "total": round(time.perf_counter() - t0, 2)},
-            "drives": pooled.labels, "tasks": {t: _task_table(t, boots[t]) for t in TASKS},
+            "drives": pooled.labels, "tasks": tables,
             "convergence": conv, "_boots": boots}
 
 
@@ -385,7 +509,8 @@ def write_outputs(res: dict, out) -> dict:
     js = out / "reproduce.json"
     from place3d_kernels.atomic import atomic_write_text
 
-    atomic_write_text(js, json.dumps({k: v for k, v in res.items() if not k.startswith("_")}, indent=1))
+    with section("output: json"):
+        atomic_write_text(js, json.dumps({k: v for k, v in res.items() if not k.startswith("_")}, indent=1))
     png = out / "reproduce.png"
     boots = res["_boots"]
     panels = {f"{t} ({'ours = ' + paper.OURS[t]})": boots[t] for t in TASKS}
@@ -393,9 +518,10 @@ def write_outputs(res: dict, out) -> dict:
     ref = {f"{t} ({'ours = ' + paper.OURS[t]})": list(paper.paper_msog(t)) + [np.nan] * (len(boots[t].names) - 8)
            for t in TASKS}
     s = res["settings"]
-    plot_scores(panels, png, title=f"Pooled M-SOG, {len(res['drives'])} drives ({len(s['towns'])} towns x "
-                f"{s['routes']} routes), {s['voxel_size']} m voxels", reference=ref,
-                reference_label="paper Table 1 M-SOG [x 1e-6 nats/voxel]")
+    with section("output: plot"):
+        plot_scores(panels, png, title=f"Pooled M-SOG, {len(res['drives'])} drives ({len(s['towns'])} towns x "
+                    f"{s['routes']} routes), {s['voxel_size']} m voxels", reference=ref,
+                    reference_label="paper Table 1 M-SOG [x 1e-6 nats/voxel]")
     return {"json": str(js), "png": str(png)}
 
 
@@ -438,16 +564,19 @@ def run(args) -> int:
 
     seeds = None if args.route_seeds is None else parse_route_seeds(args.route_seeds)
     n_routes = args.routes if seeds is None else len(seeds)
-    ex = executor_from_args(args, tasks=n_routes * len(args.towns), backend=args.backend)
+    with section("executor start"):
+        ex = executor_from_args(args, tasks=n_routes * len(args.towns), backend=args.backend)
     try:
         res = reproduce(args.towns, args.routes, args.frames, args.voxel_size, args.frames_per_subset, args.occlusion,
                         args.lidar, args.collection_lidar, args.roll_units, args.det_variant, args.backend, ex,
                         args.opendrive_dir, not args.no_convergence, progress=not args.quiet, route_seeds=seeds,
                         placements=args.placements, roi=args.roi)
     finally:
-        ex.shutdown()
+        with section("executor shutdown"):
+            ex.shutdown()
     out = args.output or f"bench/results/reproduce-{datetime.now(timezone.utc).date().isoformat()}"
     paths = write_outputs(res, out)
-    print(format_report(res))
+    with section("output: report"):
+        print(format_report(res))
     print(f"wrote {paths['json']} and {paths['png']}", file=sys.stderr)
     return 0
