@@ -12,8 +12,6 @@ their voxels with a second exact integer score call (indicator weights), so they
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 
 from place3d_kernels.backends.registry import get_backend
@@ -21,21 +19,14 @@ from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.ops import coverage, raycast
+from place3d_kernels.indicators import (INDICATORS, NORMALISATIONS, check_normalisation, indicator_handle,
+                                        indicator_weights)
 from place3d_kernels.sog import PSOG
 
 __all__ = ["msog", "msog_batch", "msog_tasks", "msog_on_grid", "msog_on_handle", "msog_on_handles", "covered_voxels",
            "msog_from_voxels", "coverage_counts", "OCCLUSION_MODES", "NORMALISATIONS"]
 
 OCCLUSION_MODES = ("none", "sog", "mesh")
-#: Denominators of M-SOG: the paper's N_L, and two that do not reward rays through never-occupied air.
-NORMALISATIONS = ("paper", "evidence", "uncertain")
-#: Indicator kinds counted by ``coverage_counts``: stored (ever occupied) voxels, voxels with H > 0.
-INDICATORS = ("evidence", "uncertain")
-
-# per P-SOG (task variant): {(indicator, backend, occlusion): grid handle}; dies with the P-SOG
-_indicator_handles: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-
-
 def _poses(placement) -> np.ndarray:
     p = placement.poses if hasattr(placement, "poses") else np.asarray(placement, dtype=np.float64)
     return np.asarray(p, dtype=np.float64)
@@ -66,38 +57,6 @@ def _score(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
     counts = np.asarray(counts, dtype=np.int64)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(counts > 0, -(sums.astype(np.float64) / ENTROPY_SCALE) / np.maximum(counts, 1), np.nan)
-
-
-def check_normalisation(normalisation: str) -> str:
-    """Return ``normalisation`` or raise ValueError naming the choices."""
-    if normalisation not in NORMALISATIONS:
-        raise ValueError(f"normalisation must be one of {NORMALISATIONS} (docs/metric-normalisation.md), "
-                         f"got {normalisation!r}")
-    return normalisation
-
-
-def indicator_weights(p: PSOG, kind: str) -> np.ndarray:
-    """(n_voxels,) int64 0/1 weights: stored voxels (``"evidence"``) or voxels with H > 0 (``"uncertain"``).
-
-    Summed by the same integer kernels as the entropy weights, they count covered voxels exactly.
-    """
-    if kind == "evidence":
-        w = np.zeros(p.grid.n_voxels, dtype=np.int64)
-        w[p.voxels] = 1
-        return w
-    if kind == "uncertain":
-        # H > 0 in the fixed-point weights the kernels sum: a voxel whose entropy rounds to 0 adds nothing
-        return (p.weights > 0).astype(np.int64)
-    raise ValueError(f"indicator must be one of {INDICATORS}, got {kind!r}")
-
-
-def _indicator_handle(p: PSOG, kind: str, b, occlusion: str):
-    cache = _indicator_handles.setdefault(p, {})
-    key = (kind, b, occlusion)
-    if key not in cache:
-        stop = p.stop_mask if occlusion == "sog" else None
-        cache[key] = b.prepare_grid(p.grid.spec, indicator_weights(p, kind), stop)
-    return cache[key]
 
 
 def coverage_counts(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", task: str = "seg",
@@ -141,7 +100,7 @@ def coverage_counts(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog"
     sums, counts = b.score_placements(p.handle(b, occlusion), el, az, r, local)
     out["sum"], out["n_covered"] = np.asarray(sums, np.int64), np.asarray(counts, np.int64)
     for k in kinds:
-        n, _ = b.score_placements(_indicator_handle(p, k, b, occlusion), el, az, r, local)
+        n, _ = b.score_placements(indicator_handle(p, k, b, occlusion), el, az, r, local)
         out[f"n_{k}"] = np.asarray(n, np.int64)
     return out
 
@@ -160,7 +119,7 @@ def _ray_counts(p: PSOG, lidar: LidarModel, poses: np.ndarray, occlusion: str, b
     sums, counts = b.score_rays(p.handle(b, occ), local, d, te, off)
     out = {"sum": np.asarray(sums, np.int64), "n_covered": np.asarray(counts, np.int64)}
     for k in kinds:
-        n, _ = b.score_rays(_indicator_handle(p, k, b, occ), local, d, te, off)
+        n, _ = b.score_rays(indicator_handle(p, k, b, occ), local, d, te, off)
         out[f"n_{k}"] = np.asarray(n, np.int64)
     return out
 
@@ -253,7 +212,7 @@ def msog_tasks(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
     for t in tasks:
         p = psog.for_task(t)
         pairs.append((p.handle(b, occlusion),
-                      None if normalisation == "paper" else _indicator_handle(p, normalisation, b, occlusion)))
+                      None if normalisation == "paper" else indicator_handle(p, normalisation, b, occlusion)))
     return dict(zip(tasks, msog_on_handles(psog.grid, pairs, lidar, poses, b)))
 
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from place3d_kernels.backends.base import ENTROPY_SCALE, rotation_matrices, sensor_directions
 from place3d_kernels.backends.registry import get_backend
+from place3d_kernels.indicators import check_normalisation, indicator_handle
 from place3d_kernels.ops import raycast
 from place3d_kernels.sog import PSOG
 from place3d_kernels.vehicle import VehicleBody
@@ -261,8 +262,6 @@ def msog_rigs(psog: PSOG, rigs, body: VehicleBody | None = None, task: str = "se
     (``metrics.indicator_weights``), whose exact integer sums count the covered voxels that belong in the
     denominator; ``counts`` stays N_L.
     """
-    from place3d_kernels.metrics import _indicator_handle, check_normalisation
-
     check_normalisation(normalisation)
     b = get_backend(backend)
     o, d, te, off, reasons = rigs_rays(rigs, body, b, mesh)
@@ -271,5 +270,5 @@ def msog_rigs(psog: PSOG, rigs, body: VehicleBody | None = None, task: str = "se
     den = counts
     if normalisation != "paper":
         p = psog.for_task(task)
-        den, _ = b.score_rays(_indicator_handle(p, normalisation, b, occlusion), p.grid.to_local(o), d, te, off)
+        den, _ = b.score_rays(indicator_handle(p, normalisation, b, occlusion), p.grid.to_local(o), d, te, off)
     return BatchScores(np.where(feasible, msog_from_sums(sums, den), np.nan), feasible, reasons, sums, counts)

@@ -177,7 +177,7 @@ def test_process_executor_scores_with_the_normalisation():
 def test_uncertain_on_two_subsets_is_flat_and_the_command_says_so(capsys):
     """With T = 2 subsets every voxel with entropy has H = ln 2: uncertain scores every rig alike, so the
     search has nothing to follow; the command warns (the tiny drives of the tests above are such P-SOGs)."""
-    from place3d_app.commands.optimize import flat_objective, warn_flat_objective
+    from place3d_app.commands.common import flat_objective, warn_flat_objective
     from place3d_kernels.optimize import SearchSpace
     from place3d_kernels.spec import PSOGSpec, RoiSpec, SceneSpec
 

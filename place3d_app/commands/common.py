@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from concurrent.futures import Future
 import time
@@ -147,3 +148,23 @@ def psog_for_spec(spec, args, backend, with_scene: bool = True):
 
 
 # ---------------------------------------------------------------------------------------- commands
+
+
+def flat_objective(psog, normalisation: str) -> str | None:
+    """Why ``normalisation`` scores every rig alike on ``psog``, or None. With T = 2 subsets a voxel's class
+    frequencies are 1 or 1/2 + 1/2, so every voxel with H > 0 has H = ln 2 and the uncertain M-SOG is -ln 2
+    for any rig that covers one: the search has nothing to follow."""
+    if normalisation == "uncertain" and psog.n_subsets == 2:
+        return (f"--normalisation uncertain on a P-SOG of T = 2 subsets scores every rig -ln 2 = {-math.log(2):.6f} "
+                f"(each voxel with entropy has H = ln 2): pool more routes (--routes), use more --frames (T >= 3), "
+                f"or --normalisation paper")
+    return None
+
+
+def warn_flat_objective(psog, normalisation: str) -> None:
+    """Print ``flat_objective``'s reason as a warning on stderr (the search still runs, as asked)."""
+    import sys
+
+    why = flat_objective(psog, normalisation)
+    if why:
+        print(f"place3d: warning: {why}", file=sys.stderr)

@@ -190,26 +190,6 @@ def refuse_other_normalisation(args) -> None:
                              f"with {args.normalisation}{was}: {fix}")
 
 
-def flat_objective(psog, normalisation: str) -> str | None:
-    """Why ``normalisation`` scores every rig alike on ``psog``, or None. With T = 2 subsets a voxel's class
-    frequencies are 1 or 1/2 + 1/2, so every voxel with H > 0 has H = ln 2 and the uncertain M-SOG is -ln 2
-    for any rig that covers one: the search has nothing to follow."""
-    if normalisation == "uncertain" and psog.n_subsets == 2:
-        return (f"--normalisation uncertain on a P-SOG of T = 2 subsets scores every rig -ln 2 = {-np.log(2):.6f} "
-                f"(each voxel with entropy has H = ln 2): pool more routes (--routes), use more --frames (T >= 3), "
-                f"or --normalisation paper")
-    return None
-
-
-def warn_flat_objective(psog, normalisation: str) -> None:
-    """Print ``flat_objective``'s reason as a warning on stderr (the search still runs, as asked)."""
-    import sys
-
-    why = flat_objective(psog, normalisation)
-    if why:
-        print(f"place3d: warning: {why}", file=sys.stderr)
-
-
 def check_search_options(args) -> None:
     """The search's options, named as the command line names them, before any work.
 
@@ -323,6 +303,8 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
             b = probe.result()
     finally:
         bg.shutdown(wait=False)
+    from place3d_app.commands.common import warn_flat_objective
+
     warn_flat_objective(psog, args.normalisation)
     if plotter is not None and plotter.processes:
         plotter.keep_panel(*entropy_view(psog))     # coverage.png's left panel, drawn during the search

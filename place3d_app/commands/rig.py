@@ -151,7 +151,7 @@ def run_rig(args, spec, psog_for) -> int:
     seed = args.opt_seed if args.opt_seed is not None else args.seed
     b = get_backend(args.backend)
     _, psog = psog_for(b)
-    from place3d_app.commands.optimize import warn_flat_objective
+    from place3d_app.commands.common import warn_flat_objective
 
     warn_flat_objective(psog, args.normalisation)
     prob = RigProblem(psog, a["sensors"], a["surfaces"], a["n"], a["dofs"], a["body"], args.task, args.occlusion, b,
