@@ -251,10 +251,10 @@ def prepare_in_background(spec, reference, lidar, task: str, occlusion: str, bac
         try:
             with section("jackknife grids (thread)"):
                 records, pool_key = keyed_subset_records(spec, backend)
-                if pool_key is None:
+                pooled = PooledPSOG(spec.grid.grid(), records)
+                if pool_key is None or not HANDLES.fits(pooled.grid, len(pooled)):
                     done.set_result(None)
                     return
-                pooled = PooledPSOG(spec.grid.grid(), records)
                 HANDLES.plain_psog(pooled, reference, pool_key)     # the counts from the reference, checked once
                 done.set_result(HANDLES.get(pool_key, pooled.grid, task, occlusion, backend,
                                             lambda: prepared_grids(pooled, task, occlusion, backend, normalisation),

@@ -552,6 +552,8 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
 
         # an iterator per task: kept handles, or (not kept) each grid prepared just before its scoring, in one
         # working grid per task where the backend writes grids in place; the tasks share each record's rows
+        if not HANDLES.fits(pooled.grid, n):
+            pool_key = None                 # too large to keep: one working grid per task, patched in place
         reuse = not HANDLES.will_keep(pool_key)
         with section("jackknife: left-out grid"):
             rows = LeftOutRows(pooled)

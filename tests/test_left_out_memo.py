@@ -320,3 +320,23 @@ def test_a_set_being_prepared_is_waited_for_not_prepared_twice():
     t.join(10), waiter.join(10)
     assert len(errors) == 1 and got["after"] == ["ok"]
     assert memo.get("k2", grid, "seg", "sog", None, lambda: iter(["never"])) == ["ok"]   # kept
+
+
+@pytest.mark.parametrize("spec", ["opencl:pocl"], indirect=True)
+def test_a_set_over_the_byte_budget_is_not_kept(spec, prepared, monkeypatch):
+    """A set of left-out grids larger than KEEP_SET_BYTES (a 0.1 m grid's: 2.9 GB for 10 subsets) is not kept:
+    the jackknife patches one working grid per task instead, with the same intervals."""
+    import place3d_kernels.left_out_memo as memo
+
+    b = get_backend(spec.backend)
+    scene = spec.build(cache=spec.cache)
+    records, key = keyed_subset_records(spec, b)
+    grid = spec.grid.grid()
+    rigs = _rigs()
+    computed = jackknife_records(records, grid, LIDAR, rigs, ("seg", "det"), "sog", b)
+    assert HANDLES.fits(grid, len(records))
+    monkeypatch.setattr(memo, "KEEP_SET_BYTES", 9 * grid.n_voxels * len(records) - 1)
+    assert not HANDLES.fits(grid, len(records))
+    got = jackknife_records(records, grid, LIDAR, rigs, ("seg", "det"), "sog", b, reference=scene, pool_key=key)
+    assert len(HANDLES) == 0
+    _same(got, computed)
