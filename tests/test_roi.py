@@ -43,6 +43,8 @@ def test_the_default_grid_is_bit_for_bit_what_it_was():
     # the old 0.2 m default, to the bit, under --voxel-size 0.2 (json: floats as the cache key writes them)
     for old in (RoiSpec(0.2).grid(), PoolSettings(0.2).grid, roi_grid(None, 0.2)):
         assert json.dumps(old.to_dict()) == json.dumps(OLD_DEFAULT_DICT)
+    # and --voxel-size 0.1 is the new default to the bit: P-SOGs cached with it before are the default's now
+    assert json.dumps(RoiSpec(0.1).grid().to_dict()) == json.dumps(DEFAULT_GRID.to_dict())
     assert RoiSpec().to_dict() == {"voxel_size": None}         # no "roi" key: old manifests still match
     # --roi 80 80 5 is the default box, to the bit, at every voxel size that divides it
     for v in (0.2, 0.1, 0.05, 0.4):
