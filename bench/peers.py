@@ -13,7 +13,7 @@ Traversal ("the same traversal"). The baseline ``smig_python_traverse`` walks ea
 Python loop (Amanatides-Woo with tMax accumulated by repeated addition, as S-MIG's code does) and returns
 the UNION of visited voxels. Our equivalent is ``p3k.coverage`` (a union bitmask, one kernel launch); the
 ``traverse`` rows (``p3k.traverse``: per-ray CSR visit lists, bound by copying 8 B per step to the host)
-are kept next to them. Baseline and ours run on the same grid (``DEFAULT_GRID``, 400 x 400 x 25 at 0.2 m)
+are kept next to them. Baseline and ours run on the same grid (``DEFAULT_GRID``'s box, 400 x 400 x 25 at 0.2 m)
 and, for the ``ray_set: "python"`` rows, on exactly the same rays: every k-th ray of the dense rig with k
 odd (``--python-rays``, default 16,384 -> k = 33, 15,888 rays), so that the subset cycles through all
 azimuths instead of sampling a few (an even k would over-sample the 45-degree azimuths, see below). The
@@ -66,7 +66,7 @@ from pathlib import Path
 import numpy as np
 
 import place3d_kernels as p3k
-from place3d_kernels.grid import DEFAULT_GRID
+from place3d_kernels.grid import DEFAULT_GRID, Grid
 from place3d_kernels.scene.city import box_city
 
 AGREE_M = 1e-4
@@ -413,8 +413,9 @@ def main(argv=None):
         if "error" not in r:
             r["vs_reference_64_rays"] = agreement(hits[r["name"]][ref_idx], ref_t)
 
-    # ---- traversal: ours vs pure Python, on DEFAULT_GRID (80 m x 80 m x 5 m, 0.2 m voxels)
-    grid = DEFAULT_GRID
+    # ---- traversal: ours vs pure Python, on DEFAULT_GRID's box at 0.2 m (the default when the results were
+    # published; the rays-on-edges note above is about this grid)
+    grid = Grid(DEFAULT_GRID.lower, DEFAULT_GRID.upper, 0.2)
     trav = []
     ts = max(1, n_all // args.traverse_rays) if args.traverse_rays else 1
     o_t, d_t = o[::ts], d[::ts]
@@ -523,7 +524,8 @@ def main(argv=None):
               f"{100 * (a.get('agree_1e-4') or 0):>11.3f}%{a.get('max_abs_diff_m') or 0:>12.2e}"
               f"{a.get('hit_miss_disagree', 0):>9}")
     print(f"(speed and agreement relative to {base})")
-    print(f"\ntraversal on DEFAULT_GRID {grid.shape}, t_end {t_max} m (speedup: voxel steps/s vs the baseline)")
+    print(f"\ntraversal on DEFAULT_GRID's box {grid.shape} @ {grid.voxel_size} m, t_end {t_max} m "
+          f"(speedup: voxel steps/s vs the baseline)")
     print(f"{'traversal':<34}{'op':>10}{'rays':>9}{'steps':>11}{'s':>9}{'M steps/s':>11}{'x python':>10}"
           f"{'union==python':>14}")
     for r in trav:

@@ -52,8 +52,8 @@ __all__ = ["add_arguments", "serve", "Server", "client_wire", "is_listening", "c
 
 #: Seconds without a command after which the server exits.
 DEFAULT_IDLE_TIMEOUT_S = 900.0
-#: P-SOGs kept in memory between commands (``sog.keep_loaded``); the dense 0.2 m town grid with its
-#: prepared backend copy is a few hundred MB at most.
+#: P-SOGs kept in memory between commands (``sog.keep_loaded``); one on the default 0.1 m grid keeps dense
+#: fields of about 0.3 GB (``grid.DENSE_BYTES_PER_VOXEL``) and as much again in its prepared backend copy.
 KEEP_PSOGS = 4
 #: The most bytes of a Unix socket path (``sun_path`` holds 108 with its terminating NUL).
 MAX_SOCKET_PATH = 107

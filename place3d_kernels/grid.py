@@ -128,10 +128,11 @@ class Grid:
         return cls(tuple(d["lower"]), tuple(d["upper"]), float(d["voxel_size"]))
 
 
-#: The default ROI: 80 m x 80 m x 5 m around the ego vehicle, 0.2 m voxels (4.0 M voxels). It is offset
-#: by a quarter voxel so that LiDAR positions on the paper's 0.1 m grid never sit on a voxel face, and so
-#: that the ground plane z = 0 lies inside a voxel layer rather than on its boundary.
-DEFAULT_GRID = Grid(lower=(-40.05, -40.05, -0.45), upper=(39.95, 39.95, 4.55), voxel_size=0.2)
+#: The default ROI: 80 m x 80 m x 5 m around the ego vehicle, 0.1 m voxels (800 x 800 x 50, 32 M voxels;
+#: why 0.1 m: docs/assumptions.md, section 1). It is offset by half a voxel so that LiDAR positions on the
+#: paper's 0.1 m grid never sit on a voxel face, and so that the ground plane z = 0 lies inside a voxel
+#: layer rather than on its boundary.
+DEFAULT_GRID = Grid(lower=(-40.05, -40.05, -0.45), upper=(39.95, 39.95, 4.55), voxel_size=0.1)
 
 
 # ---------------------------------------------------------------------------------------- user ROIs
@@ -167,9 +168,9 @@ def roi_bounds(roi, voxel_size: float | None = None) -> tuple[tuple, tuple]:
             half rounded up to whole voxels, and z from BELOW_GROUND under the ground (down to a face) up by
             LZ; or 6 corners (X0, Y0, Z0, X1, Y1, Z1) in the ego frame (x forward, y left, z up), each moved
             outward to the next face.
-        voxel_size: the voxel edge (None: DEFAULT_GRID's 0.2 m).
+        voxel_size: the voxel edge (None: DEFAULT_GRID's 0.1 m).
 
-    ``roi_bounds((80, 80, 5), 0.2)`` is DEFAULT_GRID's box, so ``--roi 80 80 5`` is the default.
+    ``roi_bounds((80, 80, 5), 0.1)`` is DEFAULT_GRID's box, so ``--roi 80 80 5`` is the default.
     """
     v = DEFAULT_GRID.voxel_size if voxel_size is None else float(voxel_size)
     if roi is None:

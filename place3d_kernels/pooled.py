@@ -65,7 +65,7 @@ class PoolSettings:
     """Everything besides the drive that decides a per-drive P-SOG (the inputs of ``scene_psog``).
 
     Args:
-        voxel_size: ROI voxel edge in metres (None: ``DEFAULT_GRID``'s 0.2 m).
+        voxel_size: ROI voxel edge in metres (None: ``DEFAULT_GRID``'s 0.1 m).
         lidar: the collection LiDAR (name or TOML path) that records the drives.
         frames_per_subset: k frames merged per SOG (None: ``pipeline.DEFAULT_FRAMES_PER_SUBSET``).
         backend: backend name (None: ``$PLACE3D_BACKEND`` or auto, resolved once in the driver).

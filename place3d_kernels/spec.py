@@ -261,7 +261,7 @@ def make_scene(spec: SceneSpec):
 @dataclass(frozen=True)
 class RoiSpec:
     """The ROI grid: a box (``roi``: None for the default 80 x 80 x 5 m, 3 sizes or 6 corners in metres,
-    ``grid.roi_bounds``) at ``voxel_size`` metres (None: 0.2 m). Both None: the default grid itself."""
+    ``grid.roi_bounds``) at ``voxel_size`` metres (None: 0.1 m). Both None: the default grid itself."""
 
     voxel_size: float | None = None
     roi: tuple | None = None

@@ -62,7 +62,7 @@ def spec():
     if missing:
         pytest.skip(f"backends {missing} are not available here")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    s = PSOGSpec(SCENE, "warp:cpu", frames_per_subset=2).resolved()
+    s = PSOGSpec(SCENE, "warp:cpu", 0.2, frames_per_subset=2).resolved()      # 0.2 m: the old default, 8x smaller
     s.load()                                 # the driver fills the cache; actors read it
     yield s
     ray.shutdown()

@@ -108,7 +108,7 @@ def test_ray_optimize_same_as_local(tmp_path, ray_executor, normalisation):
     from place3d_kernels.optimize import MinDistance, SearchSpace, optimize
 
     # k = 1: T = 4 subsets (on T = 2 uncertain scores every rig -ln 2 and would hide an order error)
-    spec = PSOGSpec(SCENE, BACKEND, frames_per_subset=1).resolved()
+    spec = PSOGSpec(SCENE, BACKEND, 0.2, frames_per_subset=1).resolved()      # 0.2 m: the old default, 8x smaller
     psog = spec.load()                                      # driver builds the cache; workers load it
     space = SearchSpace(n_lidars=2)
     lidar = "place3d_16ch"
@@ -137,7 +137,7 @@ def test_ray_study_rerun_does_no_work(tmp_path, ray_executor):
     from place3d_app.commands.study import run_study
 
     cfg = tmp_path / "s.toml"
-    cfg.write_text('[study]\nname = "t"\nplacements = ["center", "line"]\nframes_per_subset = 2\n'
+    cfg.write_text('[study]\nname = "t"\nplacements = ["center", "line"]\nframes_per_subset = 2\nvoxel_size = 0.2\n'
                    '[[scenes]]\nname = "town"\nseed = 0\nframes = 4\n'
                    '[[conditions]]\nname = "clean"\n[[conditions]]\nname = "fog"\nseed = 2\n')
     first = run_study(cfg, tmp_path / "ray", ray_executor, BACKEND)

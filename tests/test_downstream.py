@@ -104,7 +104,7 @@ def test_worker_processes_write_the_same_sequences_and_records(tmp_path, tiny_li
 
     rig = _rig(tiny_lidar)
     splits = Splits(("town",), (0,), (4,), 1)
-    settings = PoolSettings(frames_per_subset=1, backend=BACKEND, cache=str(tmp_path / "cache"))
+    settings = PoolSettings(0.2, frames_per_subset=1, backend=BACKEND, cache=str(tmp_path / "cache"))
     _, here = build_datasets(tmp_path / "a", [rig], splits, BACKEND, psog=settings)
     _, there = build_datasets(tmp_path / "b", [rig], splits, BACKEND, psog=settings, workers=2)
     assert [r.label for r in here] == [r.label for r in there] == [splits.drives("train")[0].label]

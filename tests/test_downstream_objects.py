@@ -206,7 +206,7 @@ def test_ray_tasks_write_the_files_of_the_local_path_and_resume(tmp_path, tiny_l
 
     rig = _rig(tiny_lidar)
     splits = Splits(("town",), (0,), (4,), 2)
-    settings = PoolSettings(frames_per_subset=1, backend=BACKEND, cache=str(tmp_path / "cache"))
+    settings = PoolSettings(0.2, frames_per_subset=1, backend=BACKEND, cache=str(tmp_path / "cache"))
     _, here = build_datasets(tmp_path / "a", [rig], splits, BACKEND, psog=settings)
     with RayExecutor(num_cpus=1) as ex:
         tot, there = build_datasets(tmp_path / "b", [rig], splits, BACKEND, psog=settings, executor=ex)

@@ -72,7 +72,9 @@ def test_leave_one_out_counts_equal_counts_from_scratch():
 
 
 def test_covered_voxels_equal_the_unique_traversal():
-    psog = p3k.scene_psog(p3k.scene.town(seed=0), backend="warp:cpu")
+    # the 0.2 m box (the old default: its P-SOG may be cached already); the check needs no particular grid
+    grid = p3k.Grid(p3k.DEFAULT_GRID.lower, p3k.DEFAULT_GRID.upper, 0.2)
+    psog = p3k.scene_psog(p3k.scene.town(seed=0), grid, backend="warp:cpu")
     lidar = p3k.LidarModel.load("place3d_16ch")
     poses = p3k.Placement.load("pyramid").poses
     b = p3k.get_backend("warp:cpu")
@@ -103,7 +105,7 @@ def test_scene_keys_are_remembered_and_a_new_identity_builds_again(tmp_path, mon
 def test_a_cached_psog_is_read_without_building_the_scene(tmp_path, monkeypatch):
     from place3d_kernels.spec import PSOGSpec
 
-    spec = PSOGSpec(SceneSpec("town", seed=0, frames=8), backend="warp:cpu", cache=str(tmp_path))
+    spec = PSOGSpec(SceneSpec("town", seed=0, frames=8), backend="warp:cpu", grid=0.8, cache=str(tmp_path))
     built = spec.build(cache=str(tmp_path))
     spec.scene.for_cache(tmp_path)                       # the first build remembered the key already
 

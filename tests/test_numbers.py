@@ -150,7 +150,8 @@ def test_grid_parameters_give_named_errors(lower, upper, vs, match):
 
 
 def test_grid_shapes_are_unchanged():
-    assert p3k.DEFAULT_GRID.shape == (400, 400, 25)
+    assert p3k.DEFAULT_GRID.shape == (800, 800, 50)                     # 0.1 m since issue 34, item 2
+    assert p3k.Grid(p3k.DEFAULT_GRID.lower, p3k.DEFAULT_GRID.upper, 0.2).shape == (400, 400, 25)   # the old one
     assert p3k.Grid((0, 0, 0), (1, 1, 1), 0.1).shape == (10, 10, 10)
     assert p3k.Grid((1e6, -1e6, 0), (1e6 + 2, -1e6 + 2, 1), 0.5).shape == (4, 4, 2)
 

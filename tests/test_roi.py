@@ -1,6 +1,6 @@
 """The ROI box as a choice (issue 34, item 2): ``--roi`` parses and is checked, the box lands on the default
-grid's face lattice, the default stays bit for bit what it was, a P-SOG of one ROI is never read for
-another, and the ROI study's summary is read from reproduce.json."""
+grid's face lattice, the default (0.1 m) and the old 0.2 m default stay bit for bit what they were, a P-SOG
+of one ROI is never read for another, and the ROI study's summary is read from reproduce.json."""
 
 from __future__ import annotations
 
@@ -23,8 +23,11 @@ from place3d_kernels.spec import PSOGSpec, RoiSpec, SceneSpec, specs_from_args
 BACKEND = "warp:cpu"
 TINY = LidarModel.uniform(8, fov_deg=(-25.0, 2.0), azimuth_steps=96, max_range=60.0, name="tiny8")
 NUSCENES = (-54.0, -54.0, -3.2, 54.0, 54.0, 4.8)
-DEFAULT_DICT = {"lower": [-40.05, -40.05, -0.45], "upper": [39.95, 39.95, 4.55], "voxel_size": 0.2,
-                "shape": [400, 400, 25]}
+DEFAULT_DICT = {"lower": [-40.05, -40.05, -0.45], "upper": [39.95, 39.95, 4.55], "voxel_size": 0.1,
+                "shape": [800, 800, 50]}
+#: The default before 0.1 m (issue 34, item 2): --voxel-size 0.2 must still find the caches made with it
+OLD_DEFAULT_DICT = {"lower": [-40.05, -40.05, -0.45], "upper": [39.95, 39.95, 4.55], "voxel_size": 0.2,
+                    "shape": [400, 400, 25]}
 
 
 def _err(capsys) -> str:
@@ -33,10 +36,15 @@ def _err(capsys) -> str:
     return lines[0]
 
 
-# ------------------------------------------------------------------------------ the default, unchanged
+# ------------------------------------------------------------------------------ the default
 def test_the_default_grid_is_bit_for_bit_what_it_was():
     assert RoiSpec().grid() is DEFAULT_GRID and PoolSettings().grid is DEFAULT_GRID
     assert DEFAULT_GRID.to_dict() == DEFAULT_DICT              # the dict every P-SOG cache key is made of
+    # the old 0.2 m default, to the bit, under --voxel-size 0.2 (json: floats as the cache key writes them)
+    for old in (RoiSpec(0.2).grid(), PoolSettings(0.2).grid, roi_grid(None, 0.2)):
+        assert json.dumps(old.to_dict()) == json.dumps(OLD_DEFAULT_DICT)
+    # and --voxel-size 0.1 is the new default to the bit: P-SOGs cached with it before are the default's now
+    assert json.dumps(RoiSpec(0.1).grid().to_dict()) == json.dumps(DEFAULT_GRID.to_dict())
     assert RoiSpec().to_dict() == {"voxel_size": None}         # no "roi" key: old manifests still match
     # --roi 80 80 5 is the default box, to the bit, at every voxel size that divides it
     for v in (0.2, 0.1, 0.05, 0.4):
@@ -185,6 +193,8 @@ def test_reproduce_optimize_and_study_check_their_rigs_against_the_roi(capsys, t
     from place3d_app.commands.study import study_settings
 
     assert "roi" not in study_settings({"voxel_size": 0.8})   # the cells of earlier studies keep their names
+    # the default's size, not None: cells made when the default was 0.2 m are not read as 0.1 m ones
+    assert study_settings({})["voxel_size"] == DEFAULT_GRID.voxel_size == 0.1
     assert study_settings({"roi": [40, 40, 5]})["roi"] == [40.0, 40.0, 5.0]
 
 
@@ -224,3 +234,14 @@ def test_the_study_summary_reads_reproduce_json_fields():
     assert seg["tau_paper"] == 0.5 and seg["tau_downstream_loo_range"] == [0.6, 0.8]    # copied, not recomputed
     assert row["det"]["tau_paper"] == -0.2
     assert json.loads(json.dumps(s)) == s
+
+
+def test_an_optimize_checkpoint_records_the_default_voxel_size():
+    from place3d_app.commands.optimize import run_setup
+
+    # the default's size, not None: a checkpoint made when the default was 0.2 m does not resume at 0.1 m
+    args = build_parser().parse_args(["optimize"])
+    assert run_setup(args, specs_from_args(args, frames_lidar=None))["psog"]["grid"] == {"voxel_size": 0.1}
+    args = build_parser().parse_args(["optimize", "--voxel-size", "0.2", "--roi", "40", "40", "5"])
+    assert run_setup(args, specs_from_args(args, frames_lidar=None))["psog"]["grid"] == \
+        {"voxel_size": 0.2, "roi": [40.0, 40.0, 5.0]}

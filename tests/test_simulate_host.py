@@ -183,7 +183,7 @@ def test_sweeps_cast_together_on_every_backend(monkeypatch):
 def test_frames_without_intensities_are_the_same_returns(town):
     """simulate(intensity=False), what a P-SOG without a condition asks for: the same points, labels and
     origins bit for bit, intensities zero; a P-SOG built from either is the same."""
-    from place3d_kernels.grid import DEFAULT_GRID
+    from place3d_kernels.grid import DEFAULT_GRID, Grid
     from place3d_kernels.simulate import simulate
     from place3d_kernels.sog import PSOG
 
@@ -196,6 +196,6 @@ def test_frames_without_intensities_are_the_same_returns(town):
         assert x.points.tobytes() == y.points.tobytes() and x.labels.tobytes() == y.labels.tobytes()
         assert x.origins.tobytes() == y.origins.tobytes() and x.sweep_origin.tobytes() == y.sweep_origin.tobytes()
         assert y.intensity.dtype == np.float32 and not y.intensity.any() and x.intensity.any()
-    grid = DEFAULT_GRID
+    grid = Grid(DEFAULT_GRID.lower, DEFAULT_GRID.upper, 0.2)      # the old default's 0.2 m: 8x fewer voxels
     a, c = PSOG.from_frames(full, grid, 3, backend=b), PSOG.from_frames(bare, grid, 3, backend=b)
     assert a.voxels.tobytes() == c.voxels.tobytes() and a.probs.tobytes() == c.probs.tobytes()

@@ -29,7 +29,7 @@ def rays():
 def test_split_traversal_and_coverage_equal_unsplit(pair, rays):
     one, many = pair
     o, d = rays
-    grid = p3k.DEFAULT_GRID
+    grid = p3k.Grid(p3k.DEFAULT_GRID.lower, p3k.DEFAULT_GRID.upper, 0.2)     # the old default, as these counts
     a = p3k.traverse(grid, o, d, 100.0, backend=one)
     b = p3k.traverse(grid, o, d, 100.0, backend=many)
     assert len(a.voxels) > 1_000_000

@@ -77,7 +77,7 @@ def add_common(p: argparse.ArgumentParser, several_scenes: bool = False) -> None
                    help="mesh scenes: ego poses, one per line: 'x y z roll pitch yaw' or 'x y yaw' (m, rad)")
     p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     p.add_argument("--frames", type=int, default=40, help="frames along the ego route (default 40, as the paper)")
-    p.add_argument("--voxel-size", type=float, default=None, help="ROI voxel size in metres (default 0.2)")
+    p.add_argument("--voxel-size", type=float, default=None, help="ROI voxel size in metres (default 0.1)")
     add_roi_argument(p)
     p.add_argument("--no-cache", action="store_true", help="rebuild the P-SOG even if a cached one exists")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

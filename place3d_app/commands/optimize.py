@@ -85,6 +85,9 @@ def run_setup(args, spec) -> dict:
     psog = spec.to_dict()
     psog.pop("backend", None)           # the backends agree bit for bit
     psog.pop("cache", None)
+    if psog["grid"].get("voxel_size") is None:
+        # the default's size, not None: a checkpoint made when the default was 0.2 m must not resume at 0.1 m
+        psog["grid"] = {**psog["grid"], "voxel_size": spec.grid.grid().voxel_size}
     return {"task": args.task, "psog": psog, "lidar": args.lidar, "lidars": args.lidars,
             "fixed_height": args.fixed_height, "min_distance": args.min_distance, "popsize": args.popsize,
             "sigma0": args.sigma0, "x0": args.x0, "restarts": args.restarts, "delta": args.delta,

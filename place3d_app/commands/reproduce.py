@@ -539,7 +539,7 @@ def add_arguments(p) -> None:
     p.add_argument("--placements", nargs="+", default=[], metavar="NAME|PATH",
                    help="also score these placements (names or TOML files, 4 LiDARs), ranked beside the paper's eight")
     p.add_argument("--frames", type=int, default=40, help="frames per route (default 40, as the paper)")
-    p.add_argument("--voxel-size", type=float, default=None, help="voxel size in metres (default 0.2)")
+    p.add_argument("--voxel-size", type=float, default=None, help="voxel size in metres (default 0.1)")
     from place3d_app.commands.common import add_roi_argument
 
     add_roi_argument(p)

@@ -6,7 +6,7 @@ The config (``place3d_kernels/configs/study/example.toml``)::
     name = "example"
     lidar = "place3d_16ch"          # the rig's LiDAR model
     occlusion = "sog"
-    voxel_size = 0.2                 # optional; default grid otherwise
+    voxel_size = 0.2                 # optional; default grid (0.1 m) otherwise
     roi = [80, 80, 5]                # optional ROI box: 3 sizes or 6 corners, metres (or --roi)
     frames_per_subset = 4            # optional
     placements = ["center", "line", "pyramid"]     # names or TOML paths
@@ -158,11 +158,15 @@ def few_subsets(cfg: dict, k: int) -> str | None:
 def study_settings(cfg: dict) -> dict:
     """The settings every cell depends on besides its own scene, condition and placement (the study
     folder's manifest; the backend is left out: the three backends agree bit for bit)."""
+    from place3d_kernels.grid import DEFAULT_GRID
     from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
 
+    # the default's size, not None: a study made when the default was 0.2 m must not match a 0.1 m one
+    voxel = cfg.get("voxel_size")
     return {"lidar": cfg.get("lidar", "place3d_16ch"), "occlusion": cfg.get("occlusion", "sog"),
-            "voxel_size": cfg.get("voxel_size"), "frames_per_subset": cfg.get("frames_per_subset")
-            or DEFAULT_FRAMES_PER_SUBSET, "collection_lidar": cfg.get("collection_lidar", "collection_64ch"),
+            "voxel_size": DEFAULT_GRID.voxel_size if voxel is None else voxel,
+            "frames_per_subset": cfg.get("frames_per_subset") or DEFAULT_FRAMES_PER_SUBSET,
+            "collection_lidar": cfg.get("collection_lidar", "collection_64ch"),
             "resamples": int(cfg.get("resamples", DEFAULT_RESAMPLES)),
             "resample_seed": int(cfg.get("resample_seed", 0)),
             # only when chosen, so the cells and manifests of studies made before ROIs could be chosen still match

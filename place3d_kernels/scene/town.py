@@ -64,7 +64,7 @@ def town(seed: int = 0, n_frames: int = 40, **options) -> Scene:
             ``blocks`` (3) city blocks per side; ``block_size`` (90.0) m between road centrelines;
             ``lane_width`` (3.5) m, one lane per direction; ``parking_width`` (2.5) m parking strip by each
             curb; ``sidewalk_width`` (3.5) m; ``curb_height`` (0.14) m, the sidewalk/block top (0.15 m, a usual curb, is a
-            voxel face of the default 0.2 m grid, whose z faces lie at -0.05 + 0.2 k: every sidewalk point
+            voxel face of the default 0.1 m grid (and of 0.2 m), whose z faces lie at -0.05 + 0.1 k: every sidewalk point
             would sit exactly on it and fall in one voxel or the other by float rounding);
             ``margin`` (45.0) m of terrain around the network; ``ego_speed`` (None: uniform in
             [6.5, 8.5] m/s) constant ego speed along the lane centre; ``n_traffic`` (10) vehicles on random
