@@ -216,7 +216,8 @@ def run_study(cfg: StudyConfig, output, backend=None, device=None, progress: boo
         del banks
     timing["cells_seconds"] = time.perf_counter() - t0
     res = summarise(cfg, rigs, cells, msog)
-    res.update(settings={"config": _config_dict(cfg), "backend": backend, "device": str(dev)},
+    res.update(settings={"config": _config_dict(cfg), "backend": backend, "device": str(dev),
+                         "voxel_size": settings.grid.voxel_size},        # the M-SOG grid, the default resolved
                datasets={**ds, "root": str(root),
                          "executor": getattr(executor, "kind", "process" if workers else "local"),
                          "route_overlap_10m": {s: route_overlap(root, rigs[0], cfg.splits.drives("train"),
