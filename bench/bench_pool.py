@@ -61,6 +61,7 @@ def main(argv=None) -> int:
     ap.add_argument("--routes", type=int, default=2)
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--resamples", type=int, default=None, help="only for checkouts whose reproduce still bootstraps")
+    ap.add_argument("--voxel-size", type=float, default=None, help="the command's --voxel-size (default: its own)")
     ap.add_argument("--no-convergence", action="store_true")
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--executors", nargs="+", default=[None],
@@ -75,6 +76,8 @@ def main(argv=None) -> int:
     cmd = ["--towns", *a.towns, "--routes", str(a.routes), "--frames", str(a.frames), "--backend", a.backend]
     if a.resamples is not None:
         cmd += ["--resamples", str(a.resamples)]
+    if a.voxel_size is not None:
+        cmd += ["--voxel-size", str(a.voxel_size)]
     if a.no_convergence:
         cmd.append("--no-convergence")
     info = run_info(a.machine)

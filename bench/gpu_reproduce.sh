@@ -4,7 +4,7 @@
 # Warp kernel cache (bench/bench_pool.py: an empty P-SOG cache per run, one untimed small run first).
 # Run after the .gpu parts are staged (../shared/gpu/README.md):
 #   source /tmp/gpu-env.sh && bash bench/gpu_reproduce.sh
-# Environment: ROUTES (default 8), RUNS (default 3), BASELINE=1 to alternate `--executor local` (the drives
+# Environment: ROUTES (default 8), RUNS (default 3), VOXEL (the command's --voxel-size; default its own), BASELINE=1 to alternate `--executor local` (the drives
 # one after the other, as before issue 36) with the default (auto: one worker process per core), OLD=DIR to
 # alternate another checkout (its place3d_kernels and place3d_app) with this one, PROFILE=1 to add one
 # `place3d --profile reproduce` run (empty P-SOG cache, kernel cache warmed first) whose table lands in
@@ -22,6 +22,7 @@ log="$out/reproduce-pool-gpu-$(date -u +%F).log"
 { nvidia-smi --query-gpu=name,driver_version --format=csv,noheader | head -1; nproc;
   python3 -c "import place3d_kernels as p; print(p.available_backends())"; } | tee "$log"
 args=(--routes "$routes" --runs "$runs" --backend warp:cuda:0 --out "$out" --label gpu)
+[ -n "${VOXEL:-}" ] && args+=(--voxel-size "$VOXEL")
 [ -n "${OLD:-}" ] && args+=(--tree "$OLD" --tree .)
 # BASELINE=1: the local executor (the drives one after the other, as before issue 36) alternates with the
 # default on the same machine
