@@ -78,6 +78,12 @@ class Executor:
         self.submitted = 0
 
     def map(self, fn: Callable[[Any], Any], tasks: Sequence[Any], *, num_gpus: float | None = None) -> list:
+        tasks = list(tasks)
+        self.submitted += len(tasks)
+        return self._map(fn, tasks, num_gpus) if tasks else []
+
+    def _map(self, fn: Callable[[Any], Any], tasks: list, num_gpus: float | None) -> list:
+        """``map``'s work for a non-empty task list (counted already), in task order."""
         raise NotImplementedError
 
     def shutdown(self) -> None:
@@ -95,9 +101,7 @@ class LocalExecutor(Executor):
 
     kind = "local"
 
-    def map(self, fn, tasks, *, num_gpus=None) -> list:
-        tasks = list(tasks)
-        self.submitted += len(tasks)
+    def _map(self, fn, tasks, num_gpus) -> list:
         return [fn(t) for t in tasks]
 
 
@@ -214,11 +218,7 @@ class ProcessExecutor(Executor):
             self._started = want
         return self._pool
 
-    def map(self, fn, tasks, *, num_gpus=None) -> list:
-        tasks = list(tasks)
-        self.submitted += len(tasks)
-        if not tasks:
-            return []
+    def _map(self, fn, tasks, num_gpus) -> list:
         pool = self._ensure(len(tasks))
         with _worker_environment():
             futures = [pool.submit(fn, t) for t in tasks]
@@ -309,11 +309,7 @@ class RayExecutor(Executor):
                                     cpu_backends=self.cpu_backends)
         return self.pool
 
-    def map(self, fn, tasks, *, num_gpus=None) -> list:
-        tasks = list(tasks)
-        self.submitted += len(tasks)
-        if not tasks:
-            return []
+    def _map(self, fn, tasks, num_gpus) -> list:
         gpus = self.num_gpus_per_task if num_gpus is None else float(num_gpus)
         remote = self._ray.remote(num_cpus=self.cpus_per_task, num_gpus=gpus, max_retries=self.max_retries)(fn)
         return self._ray.get([remote.remote(t) for t in tasks])

@@ -166,6 +166,7 @@ class Server:
         self._client_interrupt = False
         self._run_id = 0                       # which command runs: a late watcher of an earlier one stays quiet
         self._jobs: queue.Queue = queue.Queue()
+        self._sigterm = threading.Event()      # set by the SIGTERM handler (_on_sigterm)
         self._handshakes = threading.BoundedSemaphore(MAX_HANDSHAKES)
         self._closing = False
         self._bound = None                     # (st_dev, st_ino) of the socket this server made
@@ -209,6 +210,7 @@ class Server:
         listener = self._bind()
         old_int = signal.signal(signal.SIGINT, self._on_sigint)
         old_term = signal.signal(signal.SIGTERM, self._on_sigterm)
+        threading.Thread(target=self._wake_on_sigterm, name="place3d-serve-term", daemon=True).start()
         threading.Thread(target=self._accept_loop, args=(listener,), name="place3d-serve-accept",
                          daemon=True).start()
         self.say(f"listening on {self.path}" + (f" (exits after {self.idle_timeout:g} s idle)"
@@ -240,7 +242,8 @@ class Server:
                     job.close()
                 settle_memory()                 # after the client has its exit code
             else:
-                why = "a client runs newer code; exiting (start the server again to serve it)"
+                why = ("terminated, exiting" if self._sigterm.is_set()
+                       else "a client runs newer code; exiting (start the server again to serve it)")
         except KeyboardInterrupt:
             why = "interrupted, exiting"
         except _Stop:
@@ -300,7 +303,16 @@ class Server:
         raise KeyboardInterrupt                # Ctrl-C in the server's own terminal while idle: stop serving
 
     def _on_sigterm(self, signum, frame) -> None:
+        # The flag and the waker end the loop even where this exception is lost: Python drops an exception
+        # raised in a weakref callback or __del__, where a signal may land. The queue is put to by a thread,
+        # not here: the main thread may hold the queue's lock at this very moment.
+        self.stopping = True
+        self._sigterm.set()
         raise _Stop()
+
+    def _wake_on_sigterm(self) -> None:
+        self._sigterm.wait()
+        self._jobs.put(None)                    # wakes the main thread's wait for a job, which then stops
 
     # ------------------------------------------------------------------ connections (their own threads)
     def _accept_loop(self, listener: socket.socket) -> None:
