@@ -195,17 +195,11 @@ def jackknife_placements(pooled: PooledPSOG, lidar, occlusion: str, backend, rol
                                 strata=strata)
     poses = placement_poses(roll_units, extra)
     df = route_df(len(pooled), strata)
-    # one jackknife for both tasks (each record's left-out rows made once, the tasks' grids scored together),
-    # over the union of their rigs; each task keeps its own rigs' columns (a rig's score does not depend on
-    # the others scored beside it)
-    rigs = {f"{t}{i}": p for t in TASKS for i, p in enumerate(poses[t])}
-    both = jackknife_records(pooled, pooled.grid, lidar, rigs, TASKS, occlusion, backend, unit="drives",
-                             strata=strata, df=df)
-    cols = {t: [both[t].names.index(f"{t}{i}") for i in range(len(poses[t]))] for t in TASKS}
-    return Jackknife([f"s{i}" for i in range(sum(len(c) for c in cols.values()))],
-                     np.concatenate([both[t].point[cols[t]] for t in TASKS]),
-                     np.column_stack([both[t].samples[:, cols[t]] for t in TASKS]),
-                     both[TASKS[0]].level, "drives", len(pooled),
+    parts = [jackknife_records(pooled, pooled.grid, lidar, {f"{t}{i}": p for i, p in enumerate(poses[t])},
+                               (t,), occlusion, backend, unit="drives", strata=strata, df=df)[t] for t in TASKS]
+    return Jackknife([f"s{i}" for i in range(sum(len(j.names) for j in parts))],
+                     np.concatenate([j.point for j in parts]), np.column_stack([j.samples for j in parts]),
+                     parts[0].level, "drives", len(pooled),
                      strata=None if strata is None else tuple(np.asarray(strata).tolist()), df=df)
 
 
