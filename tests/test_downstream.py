@@ -15,19 +15,8 @@ from place3d_kernels.downstream import metrics as dm  # noqa: E402
 from place3d_kernels.downstream.dataset import (Rig, Splits, build_datasets, read_frames, sequence_folder,  # noqa: E402
                                                 simulate_rig, write_drive)
 
-# the reference backend casts one frame of the embedded town in minutes; any device backend does it at once
-BACKEND = next((b for b in p3k.available_backends() if b != "reference"), None)
-needs_backend = pytest.mark.skipif(BACKEND is None, reason="no device backend (warp/opencl) for the simulation")
+from downstream_common import BACKEND, _one_thread, _rig, needs_backend  # noqa: E402,F401
 TINY_MODEL = {"bev_cells": 16, "range_shape": (8, 32), "width": 4, "depth": 2, "point_width": 8}
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # the CI and dev machines are small and shared: two PyTorch threads there run many times slower than one
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture
@@ -36,10 +25,6 @@ def tiny_lidar(tmp_path):
     path.write_text('name = "tiny"\nchannels = 4\nvertical_fov_deg = [-20.0, 0.0]\nhorizontal_fov_deg = 360.0\n'
                     'azimuth_steps = 64\nmax_range_m = 60.0\n')
     return str(path)
-
-
-def _rig(lidar, name="two"):
-    return Rig(name, ((0.5, 0.3, 2.0, 0.0, 0.0, 0.0), (-0.5, -0.3, 1.8, 0.2, 0.0, 0.0)), lidar)
 
 
 # ------------------------------------------------------------------------------------------ dataset

@@ -12,24 +12,15 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-import place3d_kernels as p3k  # noqa: E402
 from place3d_kernels.classes import CLASS_ID, VEHICLE  # noqa: E402
 from place3d_kernels.downstream import metrics as dm  # noqa: E402
-from place3d_kernels.downstream.dataset import (Rig, Splits, build_datasets, instance_tables,  # noqa: E402
-                                                pack_labels, read_frames, sequence_folder, sequence_spec,
+from place3d_kernels.downstream.dataset import (Splits, build_datasets, instance_tables, pack_labels,  # noqa: E402
+                                                read_frames, sequence_folder, sequence_spec,
                                                 unpack_labels, write_drive)
 
-BACKEND = next((b for b in p3k.available_backends() if b != "reference"), None)
-needs_backend = pytest.mark.skipif(BACKEND is None, reason="no device backend (warp/opencl) for the simulation")
+from downstream_common import BACKEND, _one_thread, _rig, needs_backend  # noqa: E402,F401
+
 PEDESTRIAN = CLASS_ID["pedestrian"]
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture
@@ -38,10 +29,6 @@ def tiny_lidar(tmp_path):
     path.write_text('name = "tiny"\nchannels = 8\nvertical_fov_deg = [-25.0, 2.0]\nhorizontal_fov_deg = 360.0\n'
                     'azimuth_steps = 256\nmax_range_m = 60.0\n')
     return str(path)
-
-
-def _rig(lidar, name="two"):
-    return Rig(name, ((0.5, 0.3, 2.0, 0.0, 0.0, 0.0), (-0.5, -0.3, 1.8, 0.2, 0.0, 0.0)), lidar)
 
 
 # ------------------------------------------------------------------------------------ instance ids

@@ -145,6 +145,18 @@ def kendall_tau(a, b) -> float:
     return float(kendalltau(a, b).statistic)
 
 
+def _tau_interval(scores, point: float, samples, level: float) -> dict:
+    """{"tau": point, "lo", "hi": percentile interval of the taus of ``scores`` against each resampled
+    statistic in ``samples``, "p_positive": share of them > 0}; NaN where no resample gives a finite tau."""
+    taus = np.array([kendall_tau(scores, s) for s in samples])
+    taus = taus[np.isfinite(taus)]
+    a = (1 - level) / 2
+    if taus.size == 0:
+        return {"tau": point, "lo": float("nan"), "hi": float("nan"), "p_positive": float("nan")}
+    return {"tau": point, "lo": float(np.quantile(taus, a)), "hi": float(np.quantile(taus, 1 - a)),
+            "p_positive": float(np.mean(taus > 0))}
+
+
 def bootstrap_tau(scores, confs, classes, resamples: int = 1000, seed: int = 0, level: float = 0.95) -> dict:
     """Kendall tau between ``scores`` (R,) (M-SOG of the rigs) and the rigs' mean-over-seeds mIoU, with a
     percentile interval over resampled seeds and test drives (``confs``: (R, S, D, C, C)).
@@ -154,13 +166,7 @@ def bootstrap_tau(scores, confs, classes, resamples: int = 1000, seed: int = 0, 
     confs = np.asarray(confs)
     point = kendall_tau(scores, miou(confs.sum(axis=2), classes).mean(axis=1))
     samples = _resampled_stat(confs, classes, np.random.default_rng(seed), resamples)
-    taus = np.array([kendall_tau(scores, s) for s in samples])
-    taus = taus[np.isfinite(taus)]
-    a = (1 - level) / 2
-    if taus.size == 0:
-        return {"tau": point, "lo": float("nan"), "hi": float("nan"), "p_positive": float("nan")}
-    return {"tau": point, "lo": float(np.quantile(taus, a)), "hi": float(np.quantile(taus, 1 - a)),
-            "p_positive": float(np.mean(taus > 0))}
+    return _tau_interval(scores, point, samples, level)
 
 
 def detection_counts(tables, n_drives: int, cls: int, min_points: int = OBJECT_MIN_POINTS,
@@ -242,10 +248,4 @@ def bootstrap_recall_tau(scores, found, objects, resamples: int = 1000, seed: in
     total = float(np.sum(objects))
     point = kendall_tau(scores, found.sum(axis=2).mean(axis=1) / total) if total > 0 else float("nan")
     samples = _resampled_recall(found, objects, np.random.default_rng(seed), resamples)
-    taus = np.array([kendall_tau(scores, s) for s in samples])
-    taus = taus[np.isfinite(taus)]
-    a = (1 - level) / 2
-    if taus.size == 0:
-        return {"tau": point, "lo": float("nan"), "hi": float("nan"), "p_positive": float("nan")}
-    return {"tau": point, "lo": float(np.quantile(taus, a)), "hi": float(np.quantile(taus, 1 - a)),
-            "p_positive": float(np.mean(taus > 0))}
+    return _tau_interval(scores, point, samples, level)
