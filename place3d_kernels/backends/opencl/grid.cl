@@ -363,6 +363,35 @@ ALWAYS_INLINE long flush_flat(__global volatile uint* mine, const int w, const u
     return sum;
 }
 
+/* One step's flat-brick bookkeeping (score_rays_flat, score_rays_gpu in score_gpu.cl; as the Warp CUDA score
+ * kernel's): the brick's masks and the candidate's word are read on every step and kept on entering a brick,
+ * the bits a ray sets in a brick are sent with one atomic_or when it leaves (flush_flat, whose sum goes to
+ * *sum). Returns whether the walk's voxel stops the ray. The word is read through a plain pointer: bits only
+ * get set, so a stale copy only filters what this ray sends (and NVIDIA's volatile loads skip L1). */
+typedef struct {
+    int cur;                  /* the brick's word, -1 before the first */
+    uint seen, pending, nz_w; /* bits known set, bits this ray set and has not sent, the brick's nonzero bits */
+} flat_marks_t;
+
+ALWAYS_INLINE bool mark_flat(flat_marks_t* fm, const dda_t* st, __global uint* mine, __global const ulong* flat,
+                             const int nbx, const int nby, const int ny, const int nz, __global const long* weights,
+                             long* sum)
+{
+    int w = (st->iz * nbx + (st->ix >> 3)) * nby + (st->iy >> 2);
+    bool change = w != fm->cur;
+    if (change && fm->pending) *sum += flush_flat(mine, fm->cur, fm->pending, fm->nz_w, nbx, nby, ny, nz, weights);
+    ulong m = flat[w];
+    uint fresh = mine[w];
+    fm->nz_w = (uint)(m >> 32);
+    fm->seen = change ? fresh : fm->seen;
+    fm->pending = change ? 0u : fm->pending;
+    fm->cur = w;
+    uint bit = 1u << (uint)((st->ix & 7) | ((st->iy & 3) << 3));
+    fm->pending |= bit & ~fm->seen;
+    fm->seen |= bit;
+    return ((uint)m & bit) != 0u;
+}
+
 /* score_rays_flat (the GPU path, atomic strategy): the walk of mark_walk_bricked (dda_step, the same voxels)
  * with the Warp CUDA score kernel's bookkeeping (backends/warp/score_gpu.py): flat bricks of 8 x 4 x 1 voxels
  * (flat: the brick's occlusion bits low, nonzero-weight bits high), the brick's masks and the candidate's
@@ -381,7 +410,7 @@ __kernel void score_rays_flat(__global const real* rig, __global const real* sdi
     long n_rays = (long)L * CA;
     long r0 = (long)item * per_item;
     long r1 = r0 + per_item < n_rays ? r0 + per_item : n_rays;
-    __global volatile uint* mine = bits + p * words;
+    __global uint* mine = bits + p * words;
     long sum = 0;
     for (long r = r0; r < r1; ++r) {
         real o[3], d[3];
@@ -389,28 +418,12 @@ __kernel void score_rays_flat(__global const real* rig, __global const real* sdi
         dda_t st;
         if (!dda_init(&st, o[0], o[1], o[2], d[0], d[1], d[2], t_max, s, nx, ny, nz)) continue;
         int guard = nx + ny + nz;
-        int cur = -1;
-        uint seen = 0u, pending = 0u, nz_w = 0u;
+        flat_marks_t fm = {-1, 0u, 0u, 0u};
         for (;;) {
-            int w = (st.iz * nbx + (st.ix >> 3)) * nby + (st.iy >> 2);
-            bool change = w != cur;
-            if (change && pending) sum += flush_flat(mine, cur, pending, nz_w, nbx, nby, ny, nz, weights);
-            ulong m = flat[w];
-            uint fresh = mine[w];
-            uint stop_w = (uint)m;
-            nz_w = (uint)(m >> 32);
-            /* the bitset word as read on entering the brick: bits only get set, so a stale copy only
-             * filters what this ray sends */
-            seen = change ? fresh : seen;
-            pending = change ? 0u : pending;
-            cur = w;
-            uint bit = 1u << (uint)((st.ix & 7) | ((st.iy & 3) << 3));
-            pending |= bit & ~seen;
-            seen |= bit;
-            if (stop_w & bit) break;
+            if (mark_flat(&fm, &st, mine, flat, nbx, nby, ny, nz, weights, &sum)) break;
             if (--guard <= 0 || !dda_step(&st)) break;
         }
-        if (pending) sum += flush_flat(mine, cur, pending, nz_w, nbx, nby, ny, nz, weights);
+        if (fm.pending) sum += flush_flat(mine, fm.cur, fm.pending, fm.nz_w, nbx, nby, ny, nz, weights);
     }
     part_sum[p * items + item] = sum;
 }

@@ -1,5 +1,5 @@
 /* score_rays_gpu: the batched placement score on GPUs (atomic strategy). Needs common.cl and grid.cl in
- * front (dda_init, dda_step_slow, flush_flat, rig_ray), and 64-bit atomics for the per-candidate sums.
+ * front (dda_init, dda_step_slow, mark_flat, flush_flat, rig_ray), and 64-bit atomics for the per-candidate sums.
  *
  * The same walk, voxels, bitsets and sums as score_rays_flat, laid out as the Warp CUDA score kernel
  * (backends/warp/score_gpu.py), which is several times faster on the same GPU:
@@ -57,31 +57,13 @@ void score_rays_gpu(__global const real* rig, __global const real* sdir, const i
     rig_ray(rig, sdir, p, r, L, CA, o, d);
     dda_t st;
     if (!dda_init(&st, o[0], o[1], o[2], d[0], d[1], d[2], t_max, s, nx, ny, nz)) return;
-    /* not volatile: a stale word only filters what this ray sends (below), and NVIDIA's compiler turns
-     * volatile loads into ones that skip the L1 cache, which cost 4 % on the dense rig */
     __global uint* mine = bits + (long)p * words;
     long sum = 0;
-    int cur = -1;
-    uint seen = 0u, pending = 0u, nz_w = 0u;
+    flat_marks_t fm = {-1, 0u, 0u, 0u};
     for (;;) {
-        int w = (st.iz * nbx + (st.ix >> 3)) * nby + (st.iy >> 2);
-        bool change = w != cur;
-        if (change && pending) sum += flush_flat(mine, cur, pending, nz_w, nbx, nby, ny, nz, weights);
-        ulong m = flat[w];
-        uint fresh = mine[w];
-        uint stop_w = (uint)m;
-        nz_w = (uint)(m >> 32);
-        /* the bitset word as read on entering the brick: bits only get set, so a stale copy only filters
-         * what this ray sends */
-        seen = change ? fresh : seen;
-        pending = change ? 0u : pending;
-        cur = w;
-        uint bit = 1u << (uint)((st.ix & 7) | ((st.iy & 3) << 3));
-        pending |= bit & ~seen;
-        seen |= bit;
-        if (stop_w & bit) break;
+        if (mark_flat(&fm, &st, mine, flat, nbx, nby, ny, nz, weights, &sum)) break;
         if (!dda_step_gpu(&st)) break;
     }
-    if (pending) sum += flush_flat(mine, cur, pending, nz_w, nbx, nby, ny, nz, weights);
+    if (fm.pending) sum += flush_flat(mine, fm.cur, fm.pending, fm.nz_w, nbx, nby, ny, nz, weights);
     if (sum) atom_add(&sums[p], sum);
 }
