@@ -17,12 +17,14 @@ from collections import OrderedDict
 from concurrent.futures import Future
 from typing import Callable, Iterable
 
+from place3d_kernels.grid import DENSE_BYTES_PER_VOXEL
+
 __all__ = ["PreparedLeftOut", "HANDLES", "KEEP_LEFT_OUT", "KEEP_SET_BYTES"]
 
 
 #: Sets of prepared left-out grids (one set: the n grids of one pool, task, occlusion and backend) that
-#: ``HANDLES`` keeps; 2 holds both tasks of one pool. One grid is its int64 weights plus masks, about
-#: 9 bytes a voxel: 36 MB on a 0.2 m grid, 290 MB on the default 0.1 m one.
+#: ``HANDLES`` keeps; 2 holds both tasks of one pool. One grid is its int64 weights plus masks
+#: (``grid.DENSE_BYTES_PER_VOXEL``): 36 MB on a 0.2 m grid, 290 MB on the default 0.1 m one.
 KEEP_LEFT_OUT = 2
 #: Largest set kept, in bytes of device (or, on a CPU backend, host) memory: a set of 10 subsets on a 0.2 m
 #: grid (360 MB) is kept, one on the default 0.1 m grid (2.9 GB) is not, and its jackknife patches one working
@@ -92,7 +94,7 @@ class PreparedLeftOut:
     def fits(grid, n: int) -> bool:
         """Whether a set of ``n`` left-out grids of ``grid`` is small enough to keep (``KEEP_SET_BYTES``);
         callers pass no pool key for one that is not."""
-        return 9 * int(grid.n_voxels) * int(n) <= KEEP_SET_BYTES
+        return DENSE_BYTES_PER_VOXEL * int(grid.n_voxels) * int(n) <= KEEP_SET_BYTES
 
     def will_keep(self, pool_key) -> bool:
         """Whether ``get`` keeps (or serves kept) grids for ``pool_key``: else it hands back ``prepare()`` as it

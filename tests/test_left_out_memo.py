@@ -335,7 +335,9 @@ def test_a_set_over_the_byte_budget_is_not_kept(spec, prepared, monkeypatch):
     rigs = _rigs()
     computed = jackknife_records(records, grid, LIDAR, rigs, ("seg", "det"), "sog", b)
     assert HANDLES.fits(grid, len(records))
-    monkeypatch.setattr(memo, "KEEP_SET_BYTES", 9 * grid.n_voxels * len(records) - 1)
+    from place3d_kernels.grid import DENSE_BYTES_PER_VOXEL
+
+    monkeypatch.setattr(memo, "KEEP_SET_BYTES", DENSE_BYTES_PER_VOXEL * grid.n_voxels * len(records) - 1)
     assert not HANDLES.fits(grid, len(records))
     got = jackknife_records(records, grid, LIDAR, rigs, ("seg", "det"), "sog", b, reference=scene, pool_key=key)
     assert len(HANDLES) == 0
