@@ -200,7 +200,7 @@ class LeftOutGrids:
 
 def fused_path(lidar, occlusion: str, normalisation: str = "paper", body=None) -> bool:
     """Whether ``uncertainty.jackknife_records`` scores these settings on patched left-out grids (the path
-    of ``metrics.msog_on_handle``: any normalisation, no ego body, a grid LiDAR from range 0, occlusion by
+    of ``metrics.msog_on_handles``: any normalisation, no ego body, a grid LiDAR from range 0, occlusion by
     the SOG or none) rather than on whole left-out P-SOGs."""
     from place3d_kernels.metrics import NORMALISATIONS
 

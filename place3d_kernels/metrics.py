@@ -23,7 +23,7 @@ from place3d_kernels.indicators import (INDICATORS, NORMALISATIONS, check_normal
                                         indicator_weights)
 from place3d_kernels.sog import PSOG
 
-__all__ = ["msog", "msog_batch", "msog_tasks", "msog_on_grid", "msog_on_handle", "msog_on_handles", "covered_voxels",
+__all__ = ["msog", "msog_batch", "msog_tasks", "msog_on_grid", "msog_on_handles", "covered_voxels",
            "msog_from_voxels", "coverage_counts", "OCCLUSION_MODES", "NORMALISATIONS"]
 
 OCCLUSION_MODES = ("none", "sog", "mesh")
@@ -235,21 +235,16 @@ def msog_on_grid(grid, weights: np.ndarray, stop: np.ndarray | None, lidar: Lida
     return _fused_scores(grid, b.prepare_grid(grid.spec, weights, stop), lidar, poses, b)
 
 
-def msog_on_handle(grid, handle, lidar: LidarModel, poses, backend, indicator=None) -> np.ndarray:
-    """``msog_on_grid`` on a grid already prepared by ``backend.prepare_grid(grid.spec, weights, stop)``
-    (``handle``; ``backend`` the same instance): the same checks and scores, without the upload. The
-    jackknife keeps its left-out grids prepared so (``left_out.PreparedLeftOut``).
+def msog_on_handles(grid, pairs, lidar: LidarModel, poses, backend) -> list[np.ndarray]:
+    """``msog_on_grid`` for each (handle, indicator or None) of ``pairs``: grids already prepared by
+    ``backend.prepare_grid(grid.spec, weights, stop)`` (``backend`` the same instance) that share one stop
+    mask (the seg and det views of one P-SOG do: both stop where p(empty) <= 0.5); the same checks and
+    scores, without the upload, in one ``Backend.score_placements_many`` call, which may walk the rays once
+    for all of them. The jackknife keeps its left-out grids prepared so (``left_out_memo.PreparedLeftOut``).
 
     ``indicator``: for the ``evidence`` and ``uncertain`` normalisations, the handle of the grid's 0/1
     ``indicator_weights`` with the same stop mask; its sums are the denominators (``coverage_counts``)."""
-    return msog_on_handles(grid, [(handle, indicator)], lidar, poses, backend)[0]
-
-
-def msog_on_handles(grid, pairs, lidar: LidarModel, poses, backend) -> list[np.ndarray]:
-    """``msog_on_handle`` for each (handle, indicator or None) of ``pairs``, grids that share one stop mask
-    (the seg and det views of one P-SOG do: both stop where p(empty) <= 0.5): one
-    ``Backend.score_placements_many`` call, which may walk the rays once for all of them."""
-    poses = _grid_lidar_poses(grid, lidar, poses, "msog_on_handle")
+    poses = _grid_lidar_poses(grid, lidar, poses, "msog_on_handles")
     b = get_backend(backend)
     local = poses.copy()
     local[..., :3] = grid.to_local(poses[..., :3])
