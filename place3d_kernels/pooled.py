@@ -26,6 +26,7 @@ import numpy as np
 
 from place3d_kernels.classes import N_CLASSES
 from place3d_kernels.grid import Grid, roi_grid
+from place3d_kernels.numeric import unique_ints
 from place3d_kernels.sog import PSOG
 
 __all__ = ["Drive", "PoolSettings", "DriveRecord", "PooledPSOG", "build_pooled", "drive_record",
@@ -224,6 +225,8 @@ class PooledPSOG:
             self._plain_counts = (vox, out, int(ps.n_subsets))
         if multiplicity is None and self._plain_counts is not None:
             return self._plain_counts
+        if multiplicity is None and self._union is None:
+            return self._sum_plain()
         cls_, inv, counts, owner, uvox, vinv = self._prepare()
         D = len(self.records)
         T_each = np.array([r.n_subsets for r in self.records], dtype=np.int64)
@@ -269,6 +272,33 @@ class PooledPSOG:
             self._plain_counts = (vox, out, T)
         return vox, out, T
 
+    def _sum_plain(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """``counts()`` of the plain pool (every record once) summed record by record into the rows of the
+        union of their voxels, without the (voxel, class) union that resampling needs (``_prepare``, a sort of
+        every entry): the same integer sums, so the same arrays."""
+        if not self.records:
+            raise ValueError("PooledPSOG has no drives; add DriveRecords or use build_pooled(drives)")
+        vox = unique_ints(np.concatenate([r.voxels for r in self.records]))
+        out = np.zeros((len(vox), self.n_classes), dtype=np.int64)
+        K = self.n_classes
+        for r in self.records:
+            at = (np.searchsorted(vox, r.voxels), r.classes.astype(np.intp))
+            key = r.voxels * K + at[1]
+            if np.all(key[1:] > key[:-1]):          # each (voxel, class) once, as from_psog makes them: no repeats
+                out[at] += r.counts
+            else:
+                np.add.at(out, at, r.counts)
+        occ = out[:, 1:].sum(axis=1)
+        rows = np.flatnonzero(occ > 0)
+        if len(rows) < len(vox):                    # entries of count 0 only: not stored, as counts() leaves them
+            out, vox, occ = out.take(rows, axis=0), vox[rows], occ[rows]
+        T = self.n_subsets
+        out[:, 0] = T - occ
+        vox.setflags(write=False)
+        out.setflags(write=False)
+        self._plain_counts = (vox, out, T)
+        return self._plain_counts
+
     def known_plain(self, psog: PSOG) -> None:
         """Take ``psog`` as exactly this pool's P-SOG (every record once: the same voxels, counts, T and
         float64 probabilities), as ``left_out.HANDLES`` knows it for records it has seen pooled: ``counts()``
@@ -285,7 +315,7 @@ class PooledPSOG:
                 and np.array_equal(reference.voxels, vox) and np.array_equal(reference.counts, c)
                 and reference.probs_are_counts()):      # its counts are c and its T is T: probs == c / T
             return reference
-        return PSOG(self.grid, vox, c / float(T), n_subsets=T, counts=c.astype(np.int32))
+        return PSOG.from_counts(self.grid, vox, c, T)
 
     def psog(self, multiplicity=None) -> PSOG:
         """The pooled P-SOG: ``p(v = c) = count / T_total`` (see ``counts`` for ``multiplicity``).
@@ -293,7 +323,7 @@ class PooledPSOG:
         With one record this is that drive's P-SOG exactly (same voxels, counts and float64 probs).
         """
         vox, c, T = self.counts(multiplicity)
-        return PSOG(self.grid, vox, c / float(T), n_subsets=T, counts=c.astype(np.int32))
+        return PSOG.from_counts(self.grid, vox, c, T)
 
 
 # ====================================================================== building

@@ -52,6 +52,7 @@ from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.grid import Grid
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.mesh import Mesh
+from place3d_kernels.numeric import unique_ints
 from place3d_kernels.pose import invert, pose_matrix
 from place3d_kernels.sog import PSOG
 
@@ -111,7 +112,7 @@ def _box_voxels(grid: Grid, boxes: np.ndarray) -> np.ndarray:
         tol = 1e-9
         inside = (np.abs(u) <= l / 2 + tol) & (np.abs(v) <= w / 2 + tol) & (np.abs(cz) <= h / 2 + tol)
         out.append(((I[inside] * ny + J[inside]) * nz + K[inside]).astype(np.int64))
-    return np.unique(np.concatenate(out)) if out else np.zeros(0, np.int64)
+    return unique_ints(np.concatenate(out)) if out else np.zeros(0, np.int64)
 
 
 class BernoulliGrid:

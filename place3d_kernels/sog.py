@@ -163,20 +163,54 @@ class PSOG:
         probs: (M, K) float64 class probabilities of those voxels; channel 0 = empty.
         channels: names of the K channels.
         n_subsets: T, the number of SOGs aggregated (None when built from probabilities).
+        counts: (M, K) integer subset counts, or None (built from probabilities).
+
+    ``probs=None`` with ``counts`` and ``n_subsets`` makes ``probs`` ``counts / T``, computed on first use:
+    a P-SOG made from counts (a pooled one, one read from the cache) then derives its weights and stop mask
+    from the integer counts by table look-ups (``left_out_tables.FieldTables``, the same bits as from the
+    probabilities) and never builds the (M, K) float64 array unless something reads it.
     """
 
-    def __init__(self, grid: Grid, voxels: np.ndarray, probs: np.ndarray, channels=None, n_subsets=None,
+    def __init__(self, grid: Grid, voxels: np.ndarray, probs: np.ndarray | None, channels=None, n_subsets=None,
                  counts: np.ndarray | None = None):
         self.grid = grid
         self.voxels = np.asarray(voxels, dtype=np.int64)
-        self.probs = np.asarray(probs, dtype=np.float64)
         self.channels = tuple(channels) if channels is not None else ("empty",) + CLASSES[1:]
         self.n_subsets = n_subsets
         self.counts = counts
-        if self.probs.shape != (len(self.voxels), len(self.channels)):
-            raise ValueError(f"PSOG probs must be (M={len(self.voxels)}, K={len(self.channels)}), got {self.probs.shape}")
         self._cache: dict = {}
+        shape = (len(self.voxels), len(self.channels))
+        if probs is None:
+            if counts is None or not n_subsets:
+                raise ValueError("PSOG needs probs, or integer counts and n_subsets >= 1 to derive them")
+            if np.shape(counts) != shape:
+                raise ValueError(f"PSOG counts must be (M={shape[0]}, K={shape[1]}), got {np.shape(counts)}")
+            self._probs = None
+            self._cache["probs_from_counts"] = True
+        else:
+            self._probs = np.asarray(probs, dtype=np.float64)
+            if self._probs.shape != shape:
+                raise ValueError(f"PSOG probs must be (M={shape[0]}, K={shape[1]}), got {self._probs.shape}")
+        # (rows, T, task): integer count rows whose table fields (``_fields``) are this P-SOG's weights and stop
+        # mask, row for row; set where the probabilities are known to be counts / T (``_count_source``)
+        self._rows_of = None
         self.sha256: str | None = None      # of the file last written by ``save``
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        if "probs_of" in self._cache:               # a closure does not pickle: its probabilities do
+            state["_probs"], state["_cache"] = self.probs, dict(self._cache)
+        return state
+
+    @property
+    def probs(self) -> np.ndarray:
+        """(M, K) float64 class probabilities (``counts / T`` on first use where made from counts)."""
+        if self._probs is None:
+            if "probs_of" in self._cache:                 # a variant derived from another P-SOG's probs
+                self._probs = self._cache.pop("probs_of")()
+            else:
+                self._probs = self.counts / float(self.n_subsets)
+        return self._probs
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -220,10 +254,8 @@ class PSOG:
         if c.ndim != 2 or not np.issubdtype(c.dtype, np.integer) or T < 1:
             raise ValueError(f"counts must be an (M, K) integer array over n_subsets >= 1 subsets, got "
                              f"{c.dtype} {c.shape} over {n_subsets}")
-        c = c.astype(np.int32, copy=False)
-        psog = cls(grid, voxels, c / float(T), n_subsets=T, counts=c)
-        psog._cache["probs_from_counts"] = True     # probs are counts / T to the bit: save skips its check
-        return psog
+        # probs are counts / T to the bit, derived on first use (save then skips its check)
+        return cls(grid, voxels, None, n_subsets=T, counts=c.astype(np.int32, copy=False))
 
     # ------------------------------------------------------------------ variants
     def detection(self) -> "PSOG":
@@ -231,12 +263,48 @@ class PSOG:
         if len(self.channels) == 3:
             return self
         if "det" not in self._cache:
-            p = self.probs
-            veh = p[:, VEHICLE] if p.shape[1] > VEHICLE else np.zeros(len(p))
-            other = 1.0 - p[:, 0] - veh
-            det = np.stack([p[:, 0], veh, np.clip(other, 0.0, 1.0)], axis=1)
-            self._cache["det"] = PSOG(self.grid, self.voxels, det, ("empty", "vehicle", "other"), self.n_subsets)
+            def probs():
+                p = self.probs
+                veh = p[:, VEHICLE] if p.shape[1] > VEHICLE else np.zeros(len(p))
+                other = 1.0 - p[:, 0] - veh
+                return np.stack([p[:, 0], veh, np.clip(other, 0.0, 1.0)], axis=1)
+
+            src = self._count_source("det")
+            if src is None:
+                det = PSOG(self.grid, self.voxels, probs(), ("empty", "vehicle", "other"), self.n_subsets)
+            else:
+                # from counts: its fields come from the same count rows by the det tables, and its probabilities
+                # are made only if read
+                det = PSOG.__new__(PSOG)
+                det.grid, det.voxels, det.channels, det.n_subsets, det.counts = (
+                    self.grid, self.voxels, ("empty", "vehicle", "other"), self.n_subsets, None)
+                det._probs, det._cache, det.sha256, det._rows_of = None, {"probs_of": probs}, None, src
+            self._cache["det"] = det
         return self._cache["det"]
+
+    def _count_source(self, task: str):
+        """(count rows, T, task) when this P-SOG's probabilities are its counts / T (known, never checked
+        here), else None: the rows ``_fields`` turns into the ``task`` variant's weights and stop mask."""
+        if self._rows_of is not None:
+            return self._rows_of if task == self._rows_of[2] else None
+        if self.counts is None or not self._cache.get("probs_from_counts") or len(self.channels) != N_CLASSES:
+            return None
+        return self.counts, int(self.n_subsets), task
+
+    def _fields(self, which: int) -> np.ndarray | None:
+        """Weights (``which`` 0, int64) or stop flags (1, bool) of the stored voxels from their count rows
+        (``_count_source``), in blocks of ``ENTROPY_BLOCK`` rows; None without count rows."""
+        src = self._count_source("seg" if len(self.channels) == N_CLASSES else "det")
+        if src is None:
+            return None
+        from place3d_kernels.left_out_tables import fields_of
+
+        rows, T, task = src
+        f = fields_of(T, task)
+        out = np.empty(len(rows), dtype=np.int64 if which == 0 else bool)
+        for a in range(0, len(rows), ENTROPY_BLOCK):
+            out[a:a + ENTROPY_BLOCK] = f(rows[a:a + ENTROPY_BLOCK])[which]
+        return out
 
     def for_task(self, task: str) -> "PSOG":
         if task == "seg":
@@ -260,7 +328,8 @@ class PSOG:
         """(n_voxels,) int64 fixed-point entropy, round(H * 2**32): what kernels sum exactly."""
         if "weights" not in self._cache:
             w = np.zeros(self.grid.n_voxels, dtype=np.int64)
-            w[self.voxels] = np.rint(entropy(self.probs) * ENTROPY_SCALE).astype(np.int64)
+            rows = self._fields(0)
+            w[self.voxels] = np.rint(entropy(self.probs) * ENTROPY_SCALE).astype(np.int64) if rows is None else rows
             self._cache["weights"] = w
         return self._cache["weights"]
 
@@ -276,7 +345,8 @@ class PSOG:
         """(n_voxels,) uint8: 1 where the voxel is occupied with probability >= 0.5 (stops rays)."""
         if "stop" not in self._cache:
             m = np.zeros(self.grid.n_voxels, dtype=np.uint8)
-            m[self.voxels] = (1.0 - self.probs[:, 0]) >= 0.5 - 1e-12
+            rows = self._fields(1)
+            m[self.voxels] = (1.0 - self.probs[:, 0]) >= 0.5 - 1e-12 if rows is None else rows
             self._cache["stop"] = m
         return self._cache["stop"]
 
@@ -357,13 +427,10 @@ class PSOG:
         with np.load(src, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
             counts = z["counts"] if z["counts"].size else None
-            # files without probs stored them as counts / T (save checked that this gives the same bits)
-            derived = "probs" not in z.files
-            probs = counts / float(meta["n_subsets"]) if derived else z["probs"]
-            psog = cls(Grid.from_dict(meta["grid"]), z["voxels"], probs, meta["channels"], meta["n_subsets"], counts)
-            if derived:
-                psog._cache["probs_from_counts"] = True
-            return psog
+            # files without probs stored them as counts / T (save checked that this gives the same bits): the
+            # P-SOG derives them from the counts when read
+            probs = None if "probs" not in z.files else z["probs"]
+            return cls(Grid.from_dict(meta["grid"]), z["voxels"], probs, meta["channels"], meta["n_subsets"], counts)
 
     def __repr__(self) -> str:
         return (f"PSOG(grid {self.grid.shape} @ {self.grid.voxel_size} m, {len(self.voxels):,} occupied voxels, "

@@ -13,6 +13,7 @@ from place3d_kernels.backends.base import (Backend, GridSpec, check_ray_batch, c
                                           sensor_directions)
 from place3d_kernels.backends.geometry import closest_hits
 from place3d_kernels.backends.reference.conditions import ReferenceConditions
+from place3d_kernels.numeric import unique_ints
 
 __all__ = ["ReferenceBackend", "ReferenceCore", "traverse_ray"]
 
@@ -177,7 +178,7 @@ class ReferenceCore(Backend):
         for p, rig in enumerate(poses):
             o, d = self.lidar_rays(elevations, azimuths, rig)
             _, voxels = self.traverse(handle.spec, o, d, np.full(len(o), float(t_max)), handle.stop)
-            u = np.unique(voxels)
+            u = unique_ints(voxels)
             sums[p] = int(handle.weights[u].sum(dtype=np.int64))
             counts[p] = len(u)
         return sums, counts
@@ -190,7 +191,7 @@ class ReferenceCore(Backend):
         for p in range(P):
             a, b = int(off[p]), int(off[p + 1])
             _, voxels = self.traverse(handle.spec, o[a:b], d[a:b], te[a:b], handle.stop)
-            u = np.unique(voxels)
+            u = unique_ints(voxels)
             sums[p] = int(handle.weights[u].sum(dtype=np.int64))
             counts[p] = len(u)
         return sums, counts

@@ -1,0 +1,100 @@
+"""P-SOGs made from counts: probabilities made on first read, weights and stop masks from the count tables,
+the plain pool summed record by record, and ``numeric.unique_ints``: every value the same as before."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+from place3d_kernels.classes import N_CLASSES
+from place3d_kernels.grid import Grid
+from place3d_kernels.left_out_tables import FieldTables
+from place3d_kernels.numeric import unique_ints
+from place3d_kernels.pooled import DriveRecord, PooledPSOG
+from place3d_kernels.sog import PSOG
+
+GRID = Grid((0.0, 0.0, 0.0), (4.0, 4.0, 2.0), 0.25)     # 16 x 16 x 8 voxels
+
+
+def _random_counts(T, M, seed):
+    """(voxels, counts (M, K) int32) whose rows sum to T: a few classes per voxel, as real P-SOGs have."""
+    rng = np.random.default_rng(seed)
+    vox = np.sort(rng.choice(GRID.n_voxels, M, replace=False)).astype(np.int64)
+    c = np.zeros((M, N_CLASSES), dtype=np.int64)
+    for i in range(M):
+        cls = rng.choice(np.arange(1, N_CLASSES), rng.integers(1, 4), replace=False)
+        left = T
+        for k in cls:
+            n = int(rng.integers(0, left + 1))
+            c[i, k], left = n, left - n
+        c[i, 0] = left
+    c[rng.random(M) < 0.1, 0] = 0        # some voxels occupied in every subset
+    c[:, 0] = T - c[:, 1:].sum(axis=1)
+    keep = c[:, 1:].sum(axis=1) > 0
+    return vox[keep], c[keep].astype(np.int32)
+
+
+@pytest.mark.parametrize("T", [7, 40, FieldTables.MAX_T + 3])     # the last: left_out_fields, not the tables
+def test_fields_from_counts_equal_those_from_probabilities(T):
+    vox, c = _random_counts(T, 300, seed=T)
+    lazy = PSOG.from_counts(GRID, vox, c, T)
+    eager = PSOG(GRID, vox, c / float(T), n_subsets=T)          # no counts: the probabilities' path
+    assert lazy._probs is None                                  # not made by the constructor
+    for task in ("seg", "det"):
+        a, b = lazy.for_task(task), eager.for_task(task)
+        assert a._probs is None
+        assert np.array_equal(a.weights, b.weights) and a.weights.dtype == b.weights.dtype
+        assert np.array_equal(a.stop_mask, b.stop_mask) and a.stop_mask.dtype == b.stop_mask.dtype
+        assert a.weights.any()
+        assert np.array_equal(a.probs, b.probs)                 # made when read, the same bits
+        assert np.array_equal(a.entropy, b.entropy)
+
+
+def test_a_pickled_lazy_detection_variant_keeps_its_values():
+    vox, c = _random_counts(12, 200, seed=3)
+    det = PSOG.from_counts(GRID, vox, c, 12).detection()
+    again = pickle.loads(pickle.dumps(det))
+    assert np.array_equal(again.weights, det.weights) and np.array_equal(again.probs, det.probs)
+
+
+def test_counts_without_n_subsets_or_of_the_wrong_shape_are_refused():
+    vox, c = _random_counts(5, 20, seed=4)
+    with pytest.raises(ValueError, match="counts and n_subsets"):
+        PSOG(GRID, vox, None, counts=c)
+    with pytest.raises(ValueError, match="counts must be"):
+        PSOG(GRID, vox, None, n_subsets=5, counts=c[:, :3])
+
+
+def _records(seed, D=4, repeats=False):
+    rng = np.random.default_rng(seed)
+    out = []
+    for d in range(D):
+        T = int(rng.integers(3, 9))
+        vox, c = _random_counts(T, 150, seed=seed * 10 + d)
+        v, k = np.nonzero(c[:, 1:])
+        r = DriveRecord(f"d{d}", T, vox[v], (k + 1).astype(np.int16), c[v, k + 1].astype(np.int32))
+        if repeats:       # the first (voxel, class) entry twice: both counted
+            r = DriveRecord(r.label, 2 * T, np.r_[r.voxels[:1], r.voxels], np.r_[r.classes[:1], r.classes],
+                            np.r_[r.counts[:1], r.counts])
+        out.append(r)
+    return out
+
+
+@pytest.mark.parametrize("repeats", [False, True])
+def test_plain_pool_summed_record_by_record_equals_the_resampling_sums(repeats):
+    recs = _records(5, repeats=repeats)
+    plain = PooledPSOG(GRID, recs).counts()                       # _sum_plain
+    ones = PooledPSOG(GRID, recs).counts(np.ones(len(recs)))      # the (voxel, class) union's path
+    for a, b in zip(plain, ones):
+        assert np.array_equal(a, b)
+    assert plain[1].dtype == np.int64 and plain[0].dtype == np.int64
+
+
+def test_unique_ints_equals_numpy_unique():
+    rng = np.random.default_rng(0)
+    for a in (rng.integers(0, 1000, 5000), rng.integers(-5, 5, 7), np.array([3]), np.zeros(0, np.int64),
+              np.arange(10)[::-1]):
+        u = unique_ints(a)
+        assert np.array_equal(u, np.unique(a)) and u.dtype == np.unique(a).dtype
