@@ -35,7 +35,7 @@ from typing import Callable, Hashable
 from place3d_kernels.profiling import record, section
 
 __all__ = ["start", "take", "enabled", "ENV", "usable_cores", "start_for_spec", "backend_after_actors",
-           "PREFETCH_ENV", "prefetch_wanted", "prepare_in_background"]
+           "PREFETCH_ENV", "prefetch_wanted", "prepare_in_background", "import_in_background", "LATE_IMPORTS"]
 
 #: Environment variable: "0" turns the forked scene build off (the scene is built in this process).
 ENV = "PLACE3D_SCENE_PREFETCH"
@@ -301,3 +301,32 @@ def _discard() -> None:
             pass
         os.close(r)
         _reap(pid)
+
+
+#: What a command imports only at its end: SciPy's t distribution for the intervals, and matplotlib (without
+#: pyplot, which the plotting code imports after choosing the Agg backend) for the plot.
+LATE_IMPORTS = {"intervals": ("scipy.special",),
+                "plot": ("matplotlib", "matplotlib.figure", "matplotlib.backends.backend_agg")}
+
+
+def import_in_background(*modules: str) -> threading.Thread | None:
+    """Import ``modules`` on a daemon thread, so a command's late imports (``LATE_IMPORTS``) load while it
+    waits on the GPU, the disk or NumPy calls that release the interpreter lock, instead of after them.
+    Python's per-module import locks make the command's own import of the same module wait for this one
+    or find it done. Start it after :func:`start` (a fork needs a single thread). A module that fails to
+    import is left to the command's own import, which reports it."""
+    if not modules:
+        return None
+
+    def run():
+        import importlib
+
+        for m in modules:
+            try:
+                importlib.import_module(m)
+            except Exception:           # noqa: BLE001 - the command's own import raises it where it matters
+                return
+
+    t = threading.Thread(target=run, name="place3d-late-imports", daemon=True)
+    t.start()
+    return t

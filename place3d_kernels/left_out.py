@@ -272,11 +272,12 @@ def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: st
                 T, _, at, w, stop, ind = grids.rows(i)
         with section("jackknife: grid upload"):
             if T not in bases:
+                # from the pool's M voxels: the backend fills its dense copy (no dense host array)
                 wb, sb, ib = grids._base_fields(T)
-                sd = grids._dense(sb, np.uint8) if sog else None
-                bases[T] = [backend.grid_base(pooled.grid.spec, grids._dense(wb), sd)]
+                sv = sb if sog else None
+                bases[T] = [backend.grid_base_from_rows(pooled.grid.spec, grids.voxels, wb, sv)]
                 if ib is not None:
-                    bases[T].append(backend.grid_base(pooled.grid.spec, grids._dense(ib), sd))
+                    bases[T].append(backend.grid_base_from_rows(pooled.grid.spec, grids.voxels, ib, sv))
             h = backend.patched_grid(bases[T][0], at, w, stop if sog else None)
             if ind is not None:
                 h = (h, backend.patched_grid(bases[T][1], at, ind, stop if sog else None))

@@ -13,7 +13,7 @@ import numpy as np
 
 from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.classes import VEHICLE
-from place3d_kernels.sog import entropy
+from place3d_kernels.entropy import entropy
 
 __all__ = ["left_out_fields", "FieldTables", "fields_of", "indicator_rows"]
 

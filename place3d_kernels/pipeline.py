@@ -172,7 +172,7 @@ def wait_for_saves() -> None:
 def check_entropy(psog: PSOG, frames_per_subset: int | None = None) -> PSOG:
     """``psog`` itself, or ``ValueError`` when no voxel has entropy (every stored voxel holds a single
     class in every subset, e.g. T < 2 subsets): M-SOG would be 0 for every rig."""
-    if not psog.weights.any():
+    if not psog.weight_rows.any():
         k = frames_per_subset or DEFAULT_FRAMES_PER_SUBSET
         raise ValueError(f"P-SOG has no entropy: T = {psog.n_subsets} subsets of k = {k} frames, every voxel a "
                          f"single class, so every rig would score 0; use at least {2 * k} frames (--frames, or a --route of "

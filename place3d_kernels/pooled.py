@@ -26,7 +26,7 @@ import numpy as np
 
 from place3d_kernels.classes import N_CLASSES
 from place3d_kernels.grid import Grid, roi_grid
-from place3d_kernels.numeric import unique_ints
+from place3d_kernels.backends.base import unique_ints
 from place3d_kernels.sog import PSOG
 
 __all__ = ["Drive", "PoolSettings", "DriveRecord", "PooledPSOG", "build_pooled", "drive_record",
@@ -125,7 +125,12 @@ class DriveRecord:
         if psog.counts is None or psog.n_subsets is None:
             raise ValueError(f"{label}: the P-SOG has no subset counts (built from probabilities?); pooling "
                              f"needs a P-SOG from PSOG.from_frames / scene_psog")
-        c = np.asarray(psog.counts, dtype=np.int64)[:, 1:]
+        occupied = psog._cache.get("occupied")               # a P-SOG read from the cache: its entries as stored
+        if occupied is not None:
+            at, cnt = occupied
+            v, k = np.divmod(at.astype(np.int64), psog.counts.shape[1] - 1)
+            return cls(label, int(psog.n_subsets), psog.voxels[v], (k + 1).astype(np.int16), cnt.astype(np.int32))
+        c = np.asarray(psog.counts)[:, 1:]
         v, k = np.nonzero(c)                                  # row-major: voxels stay ascending
         return cls(label, int(psog.n_subsets), psog.voxels[v].astype(np.int64), (k + 1).astype(np.int16),
                    c[v, k].astype(np.int32))
@@ -489,9 +494,10 @@ def parse_route_seeds(text) -> list[int]:
     return seeds
 
 
-def pool_specs(specs, backend=None, cache=True, progress: bool = False) -> PooledPSOG:
+def pool_specs(specs, backend=None, cache=True, progress: bool = False, known: dict | None = None) -> PooledPSOG:
     """The pooled P-SOG of several ``spec.PSOGSpec`` (one per drive: scene x route seed, each with the run's
-    condition, vehicle and collection LiDAR), each built or read from the on-disk cache by ``spec.build``.
+    condition, vehicle and collection LiDAR), each built or read from the on-disk cache by ``spec.build``, or
+    taken from ``known`` ({spec: DriveRecord}: records already made, e.g. by the worker that built the drive).
 
     ``build_pooled`` pools ``Drive``s (scene, seed, frames); this pools full specs, so a command's adverse
     condition and vehicle body apply to every drive. Records come back in spec order, labelled by the
@@ -509,7 +515,8 @@ def pool_specs(specs, backend=None, cache=True, progress: bool = False) -> Poole
     pooled = PooledPSOG(specs[0].grid.grid())
     for i, s in enumerate(specs):
         t0 = time.perf_counter()
-        pooled.add(DriveRecord.from_psog(s.build(backend=backend, cache=cache), s.scene.label))
+        rec = known.get(s) if known else None
+        pooled.add(rec if rec is not None else DriveRecord.from_psog(s.build(backend=backend, cache=cache), s.scene.label))
         if progress:
             print(f"  drive {i + 1}/{len(specs)} {s.scene.label}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return pooled

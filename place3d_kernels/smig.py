@@ -52,7 +52,7 @@ from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.grid import Grid
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.mesh import Mesh
-from place3d_kernels.numeric import unique_ints
+from place3d_kernels.backends.base import unique_ints
 from place3d_kernels.pose import invert, pose_matrix
 from place3d_kernels.sog import PSOG
 

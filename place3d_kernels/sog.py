@@ -19,6 +19,7 @@ import numpy as np
 from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.backends.base import ENTROPY_SCALE, cache_dir
 from place3d_kernels.classes import CLASSES, N_CLASSES, VEHICLE
+from place3d_kernels.entropy import ENTROPY_BLOCK, entropy
 from place3d_kernels.grid import Grid
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import invert, pose_matrix, transform_points
@@ -26,8 +27,9 @@ from place3d_kernels.pose import invert, pose_matrix, transform_points
 __all__ = ["PSOG", "entropy", "cache_dir", "cache_key", "keep_loaded", "subset_groups", "subset_votes",
            "pool_votes"]
 
-_FORMAT = 3  # bump when the on-disk layout or the build changes (2: float64 voxel binning; 3: ray-mesh
-             # distances from the reference formula on every backend, so P-SOGs agree across backends)
+_FORMAT = 4  # bump when the on-disk layout or the build changes (2: float64 voxel binning; 3: ray-mesh
+             # distances from the reference formula on every backend, so P-SOGs agree across backends;
+             # 4: subset counts stored as their occupied entries, ``save``)
 
 
 #: P-SOGs read by ``PSOG.load``, kept by file identity while ``keep_loaded(n)`` allows (``place3d serve``)
@@ -53,34 +55,6 @@ def keep_loaded(n: int) -> None:
         _keep = int(n)
         while len(_loaded) > _keep:
             _loaded.popitem(last=False)
-
-
-#: Rows per block in ``entropy``: 8192 rows of 22 float64 channels are 1.4 MB, so a block's temporaries
-#: stay in the cache and are reused, where whole-array ones (40 MB on the default town) are fresh memory
-#: that every cold process first has to fault in.
-ENTROPY_BLOCK = 8192
-
-
-def entropy(probs: np.ndarray) -> np.ndarray:
-    """Shannon entropy (natural log, 0 log 0 = 0) over the last axis, float64."""
-    p = np.asarray(probs, dtype=np.float64)
-    if p.ndim < 2 or len(p) <= ENTROPY_BLOCK:
-        return _entropy_rows(p)
-    # each row's entropy depends on that row alone: blocks of rows give the same sums
-    out = np.empty(p.shape[:-1], dtype=np.float64)
-    for a in range(0, len(p), ENTROPY_BLOCK):
-        out[a:a + ENTROPY_BLOCK] = _entropy_rows(p[a:a + ENTROPY_BLOCK])
-    return out
-
-
-def _entropy_rows(p: np.ndarray) -> np.ndarray:
-    # logs of the nonzero probabilities only (a small share of a P-SOG's entries): many times faster than
-    # a log of every entry, and the same terms in the same places, so the row sums are bit-identical
-    nz = p > 0
-    terms = np.zeros(p.shape, dtype=np.float64)
-    v = p[nz]
-    terms[nz] = -v * np.log(v)
-    return terms.sum(axis=-1)
 
 
 def subset_groups(frames: list, k: int) -> list[list]:
@@ -324,12 +298,28 @@ class PSOG:
         return self._cache["entropy"]
 
     @property
+    def weight_rows(self) -> np.ndarray:
+        """(M,) int64: ``weights`` at the stored voxels (every other voxel's weight is 0)."""
+        if "weight rows" not in self._cache:
+            rows = self._fields(0)
+            self._cache["weight rows"] = (np.rint(entropy(self.probs) * ENTROPY_SCALE).astype(np.int64)
+                                          if rows is None else rows)
+        return self._cache["weight rows"]
+
+    @property
+    def stop_rows(self) -> np.ndarray:
+        """(M,) bool: ``stop_mask`` at the stored voxels (every other voxel is empty and stops no ray)."""
+        if "stop rows" not in self._cache:
+            rows = self._fields(1)
+            self._cache["stop rows"] = (1.0 - self.probs[:, 0]) >= 0.5 - 1e-12 if rows is None else rows
+        return self._cache["stop rows"]
+
+    @property
     def weights(self) -> np.ndarray:
         """(n_voxels,) int64 fixed-point entropy, round(H * 2**32): what kernels sum exactly."""
         if "weights" not in self._cache:
             w = np.zeros(self.grid.n_voxels, dtype=np.int64)
-            rows = self._fields(0)
-            w[self.voxels] = np.rint(entropy(self.probs) * ENTROPY_SCALE).astype(np.int64) if rows is None else rows
+            w[self.voxels] = self.weight_rows
             self._cache["weights"] = w
         return self._cache["weights"]
 
@@ -345,8 +335,7 @@ class PSOG:
         """(n_voxels,) uint8: 1 where the voxel is occupied with probability >= 0.5 (stops rays)."""
         if "stop" not in self._cache:
             m = np.zeros(self.grid.n_voxels, dtype=np.uint8)
-            rows = self._fields(1)
-            m[self.voxels] = (1.0 - self.probs[:, 0]) >= 0.5 - 1e-12 if rows is None else rows
+            m[self.voxels] = self.stop_rows
             self._cache["stop"] = m
         return self._cache["stop"]
 
@@ -358,11 +347,13 @@ class PSOG:
         return out.reshape(self.grid.shape + (len(self.channels),))
 
     def handle(self, backend, occlusion: str):
-        """Backend grid handle (weights + stop mask uploaded once) for one occlusion mode."""
+        """Backend grid handle (weights + stop mask uploaded once) for one occlusion mode: made from the
+        stored voxels' rows (``Backend.grid_from_rows``), so no dense host array is needed where the backend
+        fills the grid itself."""
         key = ("handle", backend, occlusion)   # the object: same-named instances may differ in context
         if key not in self._cache:
-            stop = self.stop_mask if occlusion == "sog" else None
-            self._cache[key] = backend.prepare_grid(self.grid.spec, self.weights, stop)
+            stop = self.stop_rows if occlusion == "sog" else None
+            self._cache[key] = backend.grid_from_rows(self.grid.spec, self.voxels, self.weight_rows, stop)
         return self._cache[key]
 
     # ------------------------------------------------------------------ persistence
@@ -372,9 +363,9 @@ class PSOG:
         from place3d_kernels.atomic import atomic_write
         from place3d_kernels.manifest import content_hash
 
-        arrays = dict(voxels=self.voxels, counts=self.counts if self.counts is not None else np.zeros(0),
-                      meta=json.dumps({"grid": self.grid.to_dict(), "channels": list(self.channels),
-                                       "n_subsets": self.n_subsets, "format": _FORMAT}))
+        arrays = dict(voxels=self.voxels, meta=json.dumps({"grid": self.grid.to_dict(), "channels": list(self.channels),
+                                                           "n_subsets": self.n_subsets, "format": _FORMAT}))
+        arrays.update(_counts_members(self.counts, self.n_subsets))
         # probs left out when they are counts / T to the bit (P-SOGs from frames): a third of the bytes to
         # decompress on every cached load, a visible part of a warm optimise (more beside other work)
         if not self.probs_are_counts():
@@ -426,11 +417,20 @@ class PSOG:
         src = path if check is None else io.BytesIO(check())
         with np.load(src, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
-            counts = z["counts"] if z["counts"].size else None
+            voxels, T = z["voxels"], meta["n_subsets"]
+            occupied = None
+            if "occupied_index" in z.files:         # _counts_members' sparse layout: the dense counts rebuilt
+                occupied = (z["occupied_index"], z["occupied_counts"])
+                counts = _dense_counts(*occupied, len(voxels), len(meta["channels"]), T)
+            else:
+                counts = z["counts"] if z["counts"].size else None
             # files without probs stored them as counts / T (save checked that this gives the same bits): the
             # P-SOG derives them from the counts when read
             probs = None if "probs" not in z.files else z["probs"]
-            return cls(Grid.from_dict(meta["grid"]), z["voxels"], probs, meta["channels"], meta["n_subsets"], counts)
+            psog = cls(Grid.from_dict(meta["grid"]), voxels, probs, meta["channels"], T, counts)
+            if occupied is not None:
+                psog._cache["occupied"] = occupied  # DriveRecord.from_psog's entries, as stored
+            return psog
 
     def __repr__(self) -> str:
         return (f"PSOG(grid {self.grid.shape} @ {self.grid.voxel_size} m, {len(self.voxels):,} occupied voxels, "
@@ -438,10 +438,38 @@ class PSOG:
 
 
 #: zlib level per member of a saved P-SOG (others: zlib's default, 6, as ``np.savez_compressed`` uses).
-#: The ascending voxel ids compress at level 1 to within a few percent of level 6's size in a fraction of
-#: its time, and inflate as fast; the counts keep level 6, which halves their size and
-#: makes every cached load inflate them faster than a level-1 file would.
-_ZLIB_LEVEL = {"voxels": 1}
+#: The ascending voxel ids and occupied-entry indices compress at level 1 to within a few percent of level
+#: 6's size in a fraction of its time, and inflate as fast; so do the occupied entries' counts (small
+#: integers). A dense counts table (P-SOGs not made from frames) keeps level 6, which halves its size.
+_ZLIB_LEVEL = {"voxels": 1, "occupied_index": 1, "occupied_counts": 1}
+
+
+def _counts_members(counts, T) -> dict:
+    """The subset counts as saved: where column 0 (empty) is T minus the others, as in every P-SOG made from
+    frames or records, only the occupied entries (``occupied_index``, row-major flat indices into
+    ``counts[:, 1:]``, and ``occupied_counts``): a voxel has one or two of its classes, so these are a small
+    share of the dense (M, K) int32 table that each save deflated and each load inflated whole. Otherwise
+    the dense table (``counts``; empty where there are none)."""
+    if counts is None:
+        return {"counts": np.zeros(0)}
+    c = np.asarray(counts)
+    if c.ndim == 2 and c.shape[1] > 1 and T and np.array_equal(c[:, 0], int(T) - c[:, 1:].sum(axis=1)):
+        occ = c[:, 1:]
+        v, k = np.nonzero(occ)                              # row-major, on the view (no copy of the table)
+        at = v.astype(np.int32 if occ.size < 2**31 else np.int64) * (c.shape[1] - 1) + k
+        return {"occupied_index": at, "occupied_counts": occ[v, k].astype(np.int32)}
+    return {"counts": c}
+
+
+def _dense_counts(index, values, M: int, K: int, T: int) -> np.ndarray:
+    """(M, K) int32 counts from ``_counts_members``' occupied entries: column 0 = T minus the others."""
+    occ = np.zeros(M * (K - 1), dtype=np.int32)
+    occ[index] = values
+    occ = occ.reshape(M, K - 1)
+    c = np.empty((M, K), dtype=np.int32)
+    c[:, 1:] = occ
+    c[:, 0] = int(T) - occ.sum(axis=1)
+    return c
 
 
 def _npz_bytes(arrays: dict) -> bytes:

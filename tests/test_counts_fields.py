@@ -1,5 +1,5 @@
 """P-SOGs made from counts: probabilities made on first read, weights and stop masks from the count tables,
-the plain pool summed record by record, and ``numeric.unique_ints``: every value the same as before."""
+the plain pool summed record by record, and ``backends.base.unique_ints``: every value the same as before."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from place3d_kernels.classes import N_CLASSES
 from place3d_kernels.grid import Grid
 from place3d_kernels.left_out_tables import FieldTables
-from place3d_kernels.numeric import unique_ints
+from place3d_kernels.backends.base import unique_ints
 from place3d_kernels.pooled import DriveRecord, PooledPSOG
 from place3d_kernels.sog import PSOG
 

@@ -150,6 +150,14 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
     assert all(s.cache_file() is not None and s.cache_file().exists() for s in specs)
     assert build_missing(opts, specs, "warp:cpu") == 0               # warm: nothing missing, no workers
     a = pool_specs(specs, backend="warp:cpu").psog()
+    # the workers' records, pooled without reading the files, are the records read back
+    assert set(opts.built) == set(specs)
+    sent = pool_specs(specs, backend="broken-if-used", known=opts.built)
+    read = pool_specs(specs, backend="warp:cpu")
+    for x, y in zip(sent.records, read.records):
+        assert x.label == y.label and x.n_subsets == y.n_subsets
+        for f in ("voxels", "classes", "counts"):
+            assert getattr(x, f).dtype == getattr(y, f).dtype and np.array_equal(getattr(x, f), getattr(y, f))
     monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "here"))
     b = pool_specs(specs, backend="warp:cpu").psog()
     assert np.array_equal(a.voxels, b.voxels) and np.array_equal(a.counts, b.counts) and a.n_subsets == b.n_subsets

@@ -108,15 +108,21 @@ def test_saved_psog_loads_identically(town_frames, tmp_path):
     ps = PSOG.from_frames(town_frames, GRID, 3, backend="reference")
     loaded = PSOG.load(ps.save(tmp_path / "p.npz"))
     _same_psog(loaded, ps)
-    # the file np.savez_compressed wrote before (its members per zlib level now): the same arrays
+    # the counts are stored as their occupied entries (column 0 is T minus the rest)
     with np.load(tmp_path / "p.npz") as z:
         meta = str(z["meta"])
+        assert sorted(z.files) == ["meta", "occupied_counts", "occupied_index", "voxels"]
+        assert len(z["occupied_counts"]) == np.count_nonzero(ps.counts[:, 1:]) > 0
     assert json.loads(meta)["n_subsets"] == ps.n_subsets
+    # a file with the dense table, as np.savez_compressed wrote before, reads as the same P-SOG
     np.savez_compressed(tmp_path / "old.npz", voxels=ps.voxels, counts=ps.counts, meta=meta)
-    with np.load(tmp_path / "p.npz") as new, np.load(tmp_path / "old.npz") as old:
-        assert new.files == old.files
-        for k in old.files:
-            assert new[k].dtype == old[k].dtype and new[k].tobytes() == old[k].tobytes()
+    _same_psog(PSOG.load(tmp_path / "old.npz"), ps)
+    # counts whose column 0 is not T minus the rest keep the dense table
+    other = ps.counts.copy()
+    other[0, 0] += 1
+    kept = PSOG(GRID, ps.voxels, ps.probs, n_subsets=ps.n_subsets, counts=other)
+    with np.load(kept.save(tmp_path / "kept.npz")) as z:
+        assert "counts" in z.files and z["counts"].tobytes() == other.tobytes()
     # a P-SOG whose probs are not counts / T keeps them in the file
     odd = PSOG(GRID, ps.voxels, ps.probs * 0.5 + 0.5 * np.eye(ps.probs.shape[1])[0], n_subsets=ps.n_subsets,
                counts=ps.counts)

@@ -10,7 +10,7 @@ from pathlib import Path
 from place3d_kernels.profiling import section
 
 from place3d_app.commands.common import check_output_file, check_rigs_in_roi, psog_for_spec
-from place3d_app.prefetch import start_for_spec
+from place3d_app.prefetch import LATE_IMPORTS, import_in_background, start_for_spec
 
 __all__ = ["cmd_evaluate", "PLOT_SUFFIXES"]
 
@@ -43,6 +43,9 @@ def cmd_evaluate(args) -> int:
         from place3d_app.commands.routes import build_missing, drive_specs, pooled_psog
 
         drives = drive_specs(args, spec)
+    # the intervals' and the plot's imports load while the P-SOG is read or built (after the scene's fork)
+    import_in_background(*(LATE_IMPORTS["intervals"] if args.interval != "none" else ()),
+                         *(LATE_IMPORTS["plot"] if (args.plot or args.output) and args.interval != "none" else ()))
     if len(drives) > 1 and args.interval == "bootstrap":
         raise ValueError("--interval bootstrap resamples the subsets of a single drive (--routes 1); over routes "
                          "its resamples repeat drives and score high, so a pooled P-SOG takes the jackknife")

@@ -552,7 +552,7 @@ def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
                 if len(drives) == 1:
                     p = drives[0].build(backend=b, cache=not args.no_cache, progress=not args.quiet)
                 else:
-                    p = pool_specs(drives, backend=b, cache=not args.no_cache).psog()
+                    p = pool_specs(drives, backend=b, cache=not args.no_cache, known=getattr(args, "built", None)).psog()
             check_entropy(p, spec.frames_per_subset)
             yield name, seeds, p
 

@@ -91,7 +91,8 @@ def pooled_psog(args, spec, backend, specs=None):
         backend = backend.result()      # optimize's probe thread: the library takes a resolved backend
     t = time.perf_counter()
     with section("P-SOG (pooled drives)"):
-        pooled = pool_specs(specs, backend=backend, cache=not args.no_cache, progress=not args.quiet)
+        pooled = pool_specs(specs, backend=backend, cache=not args.no_cache, progress=not args.quiet,
+                            known=getattr(args, "built", None))
         psog = pooled.psog()
     check_entropy(psog, spec.frames_per_subset)
     strata = [s.scene.name for s in specs]
@@ -100,13 +101,19 @@ def pooled_psog(args, spec, backend, specs=None):
     return pooled, strata, psog
 
 
-def _build_spec(spec) -> None:
-    spec.build(cache=True)          # a worker's task: the P-SOG lands in the cache, the command reads it there
+def _build_spec(spec):
+    """A worker's task: the drive's P-SOG built into the cache, and its record sent back, so the command pools
+    it without reading the file again."""
+    from place3d_kernels.pooled import DriveRecord
+
+    return DriveRecord.from_psog(spec.build(cache=True), spec.scene.label)
 
 
 def build_missing(args, specs, backend) -> int:
     """Build the drives of ``specs`` that the cache lacks in worker processes, one per usable core (at most
-    one per drive), so the command then reads every drive from the cache; returns how many were built.
+    one per drive); returns how many were built. Each lands in the cache, and its ``DriveRecord`` is kept in
+    ``args.built`` ({spec: record}), which ``pooled_psog`` and ``pool_specs(known=...)`` take instead of
+    reading the file.
 
     A drive counts as cached when its cache file exists (``PSOGSpec.cache_file``: found without building
     its scene; one whose scene key was never remembered counts as missing). Nothing is started for fewer
@@ -134,9 +141,10 @@ def build_missing(args, specs, backend) -> int:
     t = time.perf_counter()
     ex = ProcessExecutor(n, backend=name)
     try:
-        ex.map(_build_spec, [dataclasses.replace(s, backend=name) for s in missing])
+        records = ex.map(_build_spec, [dataclasses.replace(s, backend=name) for s in missing])
     finally:
         ex.shutdown()
+    args.built = {**(getattr(args, "built", None) or {}), **dict(zip(missing, records))}
     if not getattr(args, "quiet", False):
         print(f"built {len(missing)} drives in {n} worker processes in {time.perf_counter() - t:.1f} s",
               file=sys.stderr)

@@ -13,7 +13,7 @@ from place3d_kernels.backends.base import (Backend, GridSpec, check_ray_batch, c
                                           sensor_directions)
 from place3d_kernels.backends.geometry import closest_hits
 from place3d_kernels.backends.reference.conditions import ReferenceConditions
-from place3d_kernels.numeric import unique_ints
+from place3d_kernels.backends.base import unique_ints
 
 __all__ = ["ReferenceBackend", "ReferenceCore", "traverse_ray"]
 

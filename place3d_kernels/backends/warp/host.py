@@ -19,8 +19,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, mesh_face_tables,
-                                           rotation_matrices, sensor_directions)
+from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, check_voxel_rows,
+                                           mesh_face_tables, rotation_matrices, sensor_directions)
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 
 try:
@@ -589,6 +589,33 @@ class WarpCore(Backend):
             s = wp.array((np.asarray(stop).reshape(-1) != 0).view(np.uint8), dtype=wp.uint8, device=self.device)
         return _WarpGridBase(grid, w, s)
 
+    def grid_from_rows(self, grid, voxels, weights, stop):
+        if not self.device.is_cuda:             # the host's dense arrays (as prepare_grid's callers make them)
+            return super().grid_from_rows(grid, voxels, weights, stop)
+        # zeros on the device, the rows scattered there and the brick masks made by a kernel: patched_grid on a
+        # zero base, so no dense host array and no upload of the whole grid
+        ids, w_rows, s_rows = check_voxel_rows(voxels, weights, stop, grid.n_voxels, stop is not None)
+        base = self._zero_base(grid, stop is not None)
+        return self._patched(grid, base.weights, base.stop, ids, w_rows, None if stop is None else s_rows)
+
+    def grid_base_from_rows(self, grid, voxels, weights, stop):
+        if not self.device.is_cuda:
+            return super().grid_base_from_rows(grid, voxels, weights, stop)
+        base = self._zero_base(grid, stop is not None)
+        ids, w_rows, s_rows = check_voxel_rows(voxels, weights, stop, grid.n_voxels, stop is not None)
+        if len(ids):
+            dev = self.device
+            s_arg = base.stop if base.stop is not None else wp.zeros(1, dtype=wp.uint8, device=dev)
+            wp.launch(self.k.scatter_rows_kernel, dim=len(ids), device=dev,
+                      inputs=[wp.array(ids, dtype=wp.int64, device=dev), wp.array(w_rows, dtype=wp.int64, device=dev),
+                              wp.array(s_rows, dtype=wp.uint8, device=dev), int(stop is not None), base.weights, s_arg])
+        return base
+
+    def _zero_base(self, grid, has_stop: bool) -> _WarpGridBase:
+        dev = self.device
+        return _WarpGridBase(grid, wp.zeros(grid.n_voxels, dtype=wp.int64, device=dev),
+                             wp.zeros(grid.n_voxels, dtype=wp.uint8, device=dev) if has_stop else None)
+
     @property
     def fields_on_device(self) -> bool:
         """Whether the jackknife computes its left-out rows here in one batch (``left_out_fields``; on CUDA,
@@ -618,12 +645,14 @@ class WarpCore(Backend):
     def patched_grid(self, base, voxels, weights, stop):
         # the base copied on the device, the changed voxels written over it, and the brick masks made from the
         # result by a kernel (the bits bricks.brick_masks gives the same arrays on the host)
-        spec = base.spec
-        nx, ny, nz = spec.shape
-        w = wp.clone(base.weights)
         if base.stop is not None and stop is None:
             raise ValueError("patched_grid needs a stop value per voxel for a base with a stop mask")
-        s = None if base.stop is None else wp.clone(base.stop)
+        return self._patched(base.spec, wp.clone(base.weights), None if base.stop is None else wp.clone(base.stop),
+                             voxels, weights, stop)
+
+    def _patched(self, spec, w, s, voxels, weights, stop):
+        # patched_grid on device arrays of its own (w, s), written in place
+        nx, ny, nz = spec.shape
         has_stop = int(s is not None)
         s_arg = s if s is not None else wp.zeros(1, dtype=wp.uint8, device=self.device)
         ids = np.ascontiguousarray(voxels, dtype=np.int64).reshape(-1)
