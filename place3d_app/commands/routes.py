@@ -140,8 +140,11 @@ def build_missing(args, specs, backend) -> int:
     name = backend_name(backend)
     t = time.perf_counter()
     ex = ProcessExecutor(n, backend=name)
+    from place3d_kernels.profiling import section
+
     try:
-        records = ex.map(_build_spec, [dataclasses.replace(s, backend=name) for s in missing])
+        with section("drives: worker processes (start, build, send)"):
+            records = ex.map(_build_spec, [dataclasses.replace(s, backend=name) for s in missing])
     finally:
         ex.shutdown()
     args.built = {**(getattr(args, "built", None) or {}), **dict(zip(missing, records))}

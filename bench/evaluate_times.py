@@ -1,0 +1,88 @@
+#!/usr/bin/env python3
+"""Issue 36, goal 2: wall seconds of the console command ``place3d evaluate`` (defaults: the embedded town, four
+routes pooled, the eleven placements, jackknife intervals), cold (an empty P-SOG cache) and warm (the same
+command again), per tree, the trees alternating so that an A/B shares one machine's mood. The Warp kernel
+cache is warmed by one untimed small run first; bytecode is compiled for the trees first (``compileall``),
+as ``pip install`` does for a user.
+
+    python3 bench/evaluate_times.py --runs 3 --tree .old --tree . [--args "--voxel-size 0.2"] --out $OUT
+
+Writes ``evaluate-times-<machine>-<date>.json``: per tree the cold and warm walls (median, min, max, runs) and
+a digest of each run's table (the scores must agree between trees and runs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import shlex
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from results_io import write_result
+
+
+def _run(tree: Path, cache: str, extra: list[str]) -> tuple[float, str]:
+    # the tree first, then what the host needs on the path (the lent GPU host keeps Warp in /tmp/site there)
+    path = os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH", "")) if p)
+    env = {**os.environ, "PYTHONPATH": path, "PLACE3D_CACHE": cache}
+    env.pop("PLACE3D_SERVER", None)
+    with tempfile.TemporaryFile("w+") as so, tempfile.TemporaryFile("w+") as se:
+        t = time.perf_counter()
+        rc = subprocess.run([sys.executable, "-m", "place3d_app", "evaluate", "--quiet", *extra], env=env,
+                            stdout=so, stderr=se, timeout=120).returncode
+        wall = time.perf_counter() - t
+        so.seek(0)
+        se.seek(0)
+        stdout, stderr = so.read(), se.read()
+    if rc:
+        raise SystemExit(f"{tree}: evaluate failed ({rc}):\n{stderr[-2000:]}")
+    # the table without its timing line
+    table = "\n".join(line for line in stdout.splitlines() if not line.rstrip().endswith(" s"))
+    return wall, hashlib.sha256(table.encode()).hexdigest()[:12]
+
+
+def _stats(v: list[float]) -> dict:
+    return {"median": statistics.median(v), "min": min(v), "max": max(v), "runs": v}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--tree", action="append", default=None, help="checkout to run (repeat for an A/B)")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--args", default="", help="more options of the command, e.g. '--voxel-size 0.2'")
+    ap.add_argument("--no-warmup", action="store_true", help="the kernel cache is warm already")
+    ap.add_argument("--machine", default=None)
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args()
+    trees = [Path(t).resolve() for t in (a.tree or ["."])]
+    extra = shlex.split(a.args)
+    for t in trees:
+        subprocess.run([sys.executable, "-m", "compileall", "-q", str(t / "place3d_kernels"), str(t / "place3d_app")],
+                       check=False, capture_output=True)
+    if not a.no_warmup:
+        with tempfile.TemporaryDirectory() as c:      # Warp's kernels compiled once, untimed
+            _run(trees[-1], c, [*extra, "--routes", "2", "--frames", "8"])
+    walls = {str(t): {"cold": [], "warm": []} for t in trees}
+    digests = {str(t): [] for t in trees}
+    for r in range(a.runs):
+        for t in trees:
+            with tempfile.TemporaryDirectory() as c:
+                for kind in ("cold", "warm"):
+                    w, d = _run(t, c, extra)
+                    walls[str(t)][kind].append(round(w, 3))
+                    digests[str(t)].append(d)
+                    print(f"run {r + 1} {t.name or t}: {kind} {w:.2f} s  table {d}", flush=True)
+    figures = {"command": "place3d evaluate " + " ".join(extra), "trees": {
+        k: {kind: _stats(v) for kind, v in w.items()} for k, w in walls.items()}, "table_digests": digests,
+        "same_tables": len({d for v in digests.values() for d in v}) == 1}
+    print(write_result("evaluate-times", figures, machine=a.machine, out=a.out or os.environ.get("OUT")))
+
+
+if __name__ == "__main__":
+    main()
