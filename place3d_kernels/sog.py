@@ -173,17 +173,17 @@ class PSOG:
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
         if "probs_of" in self._cache:               # a closure does not pickle: its probabilities do
-            state["_probs"], state["_cache"] = self.probs, dict(self._cache)
+            state["_probs"] = self.probs
+            state["_cache"] = {k: v for k, v in self._cache.items() if k != "probs_of"}
         return state
 
     @property
     def probs(self) -> np.ndarray:
         """(M, K) float64 class probabilities (``counts / T`` on first use where made from counts)."""
         if self._probs is None:
-            if "probs_of" in self._cache:                 # a variant derived from another P-SOG's probs
-                self._probs = self._cache.pop("probs_of")()
-            else:
-                self._probs = self.counts / float(self.n_subsets)
+            # two threads may both make them (a background preparation and the command): the same values
+            make = self._cache.get("probs_of")             # a variant derived from another P-SOG's probs
+            self._probs = make() if make is not None else self.counts / float(self.n_subsets)
         return self._probs
 
     # ------------------------------------------------------------------ constructors

@@ -55,7 +55,9 @@ def test_fields_from_counts_equal_those_from_probabilities(T):
 def test_a_pickled_lazy_detection_variant_keeps_its_values():
     vox, c = _random_counts(12, 200, seed=3)
     det = PSOG.from_counts(GRID, vox, c, 12).detection()
-    again = pickle.loads(pickle.dumps(det))
+    assert det._probs is None
+    again = pickle.loads(pickle.dumps(det))         # before its probabilities were read: they travel made
+    assert "probs_of" not in again._cache and again._probs is not None
     assert np.array_equal(again.weights, det.weights) and np.array_equal(again.probs, det.probs)
 
 
