@@ -68,9 +68,9 @@ def test_split_population_scores_equal_unsplit(pair):
 @pytest.mark.parametrize("occlusion", ["sog", "none"])
 def test_split_single_rig_equals_unsplit(pair, occlusion, monkeypatch):
     # one rig's rays over the threads (per-thread bitsets OR-ed, sum from the union) against one launch
-    from place3d_kernels.backends.warp import host
+    from place3d_kernels.backends.warp import scoring
 
-    monkeypatch.setattr(host, "SPLIT_SINGLE_RIG", True)
+    monkeypatch.setattr(scoring, "SPLIT_SINGLE_RIG", True)
     one, many = pair
     grid = p3k.Grid(p3k.DEFAULT_GRID.lower, p3k.DEFAULT_GRID.upper, 0.4)
     psog = p3k.scene_psog(p3k.scene.town(seed=0), grid=grid, backend=one)
@@ -101,12 +101,12 @@ def test_split_single_rig_path_runs_and_matches_one_launch(pair, monkeypatch):
     lidar = p3k.LidarModel.load("place3d_16ch")
     poses = p3k.Placement.load("pyramid").poses[None]
     args = (handle, lidar.elevations, lidar.azimuths, 60.0, poses)
-    from place3d_kernels.backends.warp import host
+    from place3d_kernels.backends.warp import scoring
 
-    monkeypatch.setattr(host, "SPLIT_SINGLE_RIG", True)
+    monkeypatch.setattr(scoring, "SPLIT_SINGLE_RIG", True)
     s1, c1 = many.score_placements(*args)
     assert calls, "the single-rig split path did not run"
-    monkeypatch.setattr(host, "SPLIT_SINGLE_RIG", False)
+    monkeypatch.setattr(scoring, "SPLIT_SINGLE_RIG", False)
     n = len(calls)
     s2, c2 = many.score_placements(*args)
     assert len(calls) == n
@@ -130,12 +130,12 @@ def test_thread_count_variable_is_used(monkeypatch):
 
 def test_single_rig_split_rule(monkeypatch):
     """By default a single rig is split only when it is large and a core is idle beside this process."""
-    from place3d_kernels.backends.warp import host
+    from place3d_kernels.backends.warp import scoring
 
-    monkeypatch.setattr(host, "SPLIT_SINGLE_RIG", None)
-    monkeypatch.setattr(host.os, "getloadavg", lambda: (0.6, 0.6, 0.6))
-    assert host._split_pays(262144, 2) and not host._split_pays(16000, 2) and not host._split_pays(262144, 1)
-    monkeypatch.setattr(host.os, "getloadavg", lambda: (1.9, 1.9, 1.9))      # another job on the other core
-    assert not host._split_pays(262144, 2)
-    monkeypatch.setattr(host, "SPLIT_SINGLE_RIG", True)
-    assert host._split_pays(16000, 2)
+    monkeypatch.setattr(scoring, "SPLIT_SINGLE_RIG", None)
+    monkeypatch.setattr(scoring.os, "getloadavg", lambda: (0.6, 0.6, 0.6))
+    assert scoring._split_pays(262144, 2) and not scoring._split_pays(16000, 2) and not scoring._split_pays(262144, 1)
+    monkeypatch.setattr(scoring.os, "getloadavg", lambda: (1.9, 1.9, 1.9))      # another job on the other core
+    assert not scoring._split_pays(262144, 2)
+    monkeypatch.setattr(scoring, "SPLIT_SINGLE_RIG", True)
+    assert scoring._split_pays(16000, 2)

@@ -1,4 +1,5 @@
-"""Warp backend: the kernels of ``kernels.py`` on Warp's CPU device or a CUDA GPU (host code: ``host.py``).
+"""Warp backend: the kernels of ``kernels.py`` on Warp's CPU device or a CUDA GPU (host code: ``host.py``; its
+prepared grids and M-SOG scores: ``scoring.py``; its CPU thread split: ``cpu_split.py``).
 
 Importing this package raises ImportError when warp-lang is not installed.
 """
