@@ -71,7 +71,7 @@ class LeftOutRows:
         T = self.T - int(r.n_subsets)
         if T <= 0:
             raise ValueError(f"leaving record {i} out leaves no subsets (T = {T})")
-        at = np.searchsorted(self.voxels, r.voxels)            # each entry's row in the plain pool
+        at = self.pooled.rows_of(r.voxels)                    # each entry's row in the plain pool
         cls, cnt = r.classes.astype(np.intp), r.counts
         if np.any(at[1:] < at[:-1]):                          # a record's voxels ascend; else sort them so
             order = np.argsort(at, kind="stable")
@@ -305,7 +305,7 @@ def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):
     estart = np.concatenate([np.flatnonzero(f) + e_off[k] for k, (_, _, f, _, _) in enumerate(idx)] + [e_off[-1:]])
     row_t = np.repeat(np.array([Ts.index(t) for t, *_ in idx], dtype=np.int32), R)
     all_rows = np.concatenate([r for _, r, *_ in idx])
-    w, s = backend.left_out_fields(src.counts.astype(np.int32), all_rows, estart,
+    w, s = backend.left_out_fields(src.counts, all_rows, estart,
                                    np.concatenate([c for *_, c, _ in idx]), np.concatenate([c for *_, c in idx]),
                                    row_t, np.array(Ts), term, stop_t, other, task == "det", VEHICLE,
                                    float(ENTROPY_SCALE))

@@ -37,6 +37,10 @@ __all__ = ["Drive", "PoolSettings", "DriveRecord", "PooledPSOG", "build_pooled",
 #: measurement is in docs/guide.md, "How many routes").
 DEFAULT_ROUTES = 4
 
+#: Grids up to this many voxels pool through a flag and a row per grid voxel (``PooledPSOG.counts``, 1 + 4 bytes
+#: a voxel: 160 MB on the default 0.1 m grid); larger ones sort and binary-search the records' voxels instead.
+RANK_VOXELS = 2**26
+
 
 @dataclass(frozen=True)
 class Drive:
@@ -153,7 +157,7 @@ class PooledPSOG:
         self.grid = grid
         self.n_classes = int(n_classes)
         self.records: list[DriveRecord] = []
-        self._union = self._plain = self._spans = self._plain_counts = None
+        self._union = self._plain = self._spans = self._plain_counts = self._rank = None
         self._plain_psog = None      # a P-SOG known to be exactly the plain pool (``known_plain``)
         for r in records:
             self.add(r)
@@ -162,7 +166,7 @@ class PooledPSOG:
         if record.classes.size and int(record.classes.max()) >= self.n_classes:
             raise ValueError(f"{record.label}: class {int(record.classes.max())} outside the {self.n_classes} channels")
         self.records.append(record)
-        self._union = self._plain = self._spans = self._plain_counts = self._plain_psog = None
+        self._union = self._plain = self._spans = self._plain_counts = self._plain_psog = self._rank = None
 
     @property
     def labels(self) -> list[str]:
@@ -217,14 +221,15 @@ class PooledPSOG:
                 (a bootstrap resample); None = each once.
 
         Returns:
-            voxels (M,) int64 ascending, counts (M, K) int64 (column 0 = empty), T_total; voxels never
+            voxels (M,) int64 ascending, counts (M, K) int32 (int64 if T_total reaches 2**31; column 0 = empty),
+            T_total; voxels never
             occupied in the weighted pool are left out, as ``PSOG.from_frames`` leaves them out. For
             ``multiplicity=None`` the same read-only arrays on every call.
         """
         if multiplicity is None and self._plain_counts is None and self._plain_psog is not None:
             # the pool's own P-SOG (known_plain): its voxels and counts are these sums, without summing
             ps = self._plain_psog
-            vox, out = ps.voxels.copy(), ps.counts.astype(np.int64)
+            vox, out = ps.voxels.copy(), ps.counts.astype(_count_dtype(ps.n_subsets))
             vox.setflags(write=False)
             out.setflags(write=False)
             self._plain_counts = (vox, out, int(ps.n_subsets))
@@ -258,7 +263,7 @@ class PooledPSOG:
             w = counts * m[owner]
             # integer sums: bincount with float weights is exact below 2**53, far above any subset count
             summed = np.rint(np.bincount(inv, weights=w.astype(np.float64), minlength=len(cls_))).astype(np.int64)
-        out = np.zeros((len(uvox), self.n_classes), dtype=np.int64)
+        out = np.zeros((len(uvox), self.n_classes), dtype=_count_dtype(T))
         out[vinv, cls_] = summed
         occ = out[:, 1:].sum(axis=1)
         keep = occ > 0
@@ -283,11 +288,24 @@ class PooledPSOG:
         every entry): the same integer sums, so the same arrays."""
         if not self.records:
             raise ValueError("PooledPSOG has no drives; add DriveRecords or use build_pooled(drives)")
-        vox = unique_ints(np.concatenate([r.voxels for r in self.records]))
-        out = np.zeros((len(vox), self.n_classes), dtype=np.int64)
+        n = self.grid.n_voxels
+        rank = None
+        if n <= RANK_VOXELS:
+            # a flag per grid voxel and each stored voxel's row by position: no sort of every record's voxels
+            # and no binary search per entry (the pool of 32 drives at 0.1 m: some 18 M entries)
+            seen = np.zeros(n, dtype=bool)
+            for r in self.records:
+                seen[r.voxels] = True
+            vox = np.flatnonzero(seen)
+            del seen
+            rank = np.empty(n, dtype=np.int64 if len(vox) >= 2**31 else np.int32)   # read at stored voxels only
+            rank[vox] = np.arange(len(vox), dtype=rank.dtype)
+        else:
+            vox = unique_ints(np.concatenate([r.voxels for r in self.records]))
+        out = np.zeros((len(vox), self.n_classes), dtype=_count_dtype(self.n_subsets))
         K = self.n_classes
         for r in self.records:
-            at = (np.searchsorted(vox, r.voxels), r.classes.astype(np.intp))
+            at = (np.searchsorted(vox, r.voxels) if rank is None else rank[r.voxels], r.classes.astype(np.intp))
             key = r.voxels * K + at[1]
             if np.all(key[1:] > key[:-1]):          # each (voxel, class) once, as from_psog makes them: no repeats
                 out[at] += r.counts
@@ -297,12 +315,21 @@ class PooledPSOG:
         rows = np.flatnonzero(occ > 0)
         if len(rows) < len(vox):                    # entries of count 0 only: not stored, as counts() leaves them
             out, vox, occ = out.take(rows, axis=0), vox[rows], occ[rows]
+            rank = None
         T = self.n_subsets
         out[:, 0] = T - occ
         vox.setflags(write=False)
         out.setflags(write=False)
         self._plain_counts = (vox, out, T)
+        self._rank = rank
         return self._plain_counts
+
+    def rows_of(self, voxels: np.ndarray) -> np.ndarray:
+        """The row of each of ``voxels`` (voxels the plain pool stores) in ``counts()``'s arrays: by the rank
+        array ``counts()`` kept where the grid allows (``RANK_VOXELS``), else by binary search."""
+        vox = self.counts()[0]
+        rank = getattr(self, "_rank", None)
+        return np.searchsorted(vox, voxels) if rank is None else rank[voxels].astype(np.intp, copy=False)
 
     def known_plain(self, psog: PSOG) -> None:
         """Take ``psog`` as exactly this pool's P-SOG (every record once: the same voxels, counts, T and
@@ -329,6 +356,12 @@ class PooledPSOG:
         """
         vox, c, T = self.counts(multiplicity)
         return PSOG.from_counts(self.grid, vox, c, T)
+
+
+def _count_dtype(T: int):
+    """The pooled counts' integer type: int32 (half the memory of int64, and the type a P-SOG keeps) while every
+    count, at most T, fits."""
+    return np.int32 if int(T) < 2**31 else np.int64
 
 
 # ====================================================================== building

@@ -84,14 +84,20 @@ def _records(seed, D=4, repeats=False):
     return out
 
 
+@pytest.mark.parametrize("rank", [True, False])           # a row per grid voxel, or sorted voxels searched
 @pytest.mark.parametrize("repeats", [False, True])
-def test_plain_pool_summed_record_by_record_equals_the_resampling_sums(repeats):
+def test_plain_pool_summed_record_by_record_equals_the_resampling_sums(repeats, rank, monkeypatch):
+    monkeypatch.setattr("place3d_kernels.pooled.RANK_VOXELS", GRID.n_voxels if rank else GRID.n_voxels - 1)
     recs = _records(5, repeats=repeats)
-    plain = PooledPSOG(GRID, recs).counts()                       # _sum_plain
+    pool = PooledPSOG(GRID, recs)
+    plain = pool.counts()                                         # _sum_plain
     ones = PooledPSOG(GRID, recs).counts(np.ones(len(recs)))      # the (voxel, class) union's path
     for a, b in zip(plain, ones):
         assert np.array_equal(a, b)
-    assert plain[1].dtype == np.int64 and plain[0].dtype == np.int64
+    assert plain[1].dtype == np.int32 and plain[0].dtype == np.int64
+    assert (pool._rank is not None) == rank
+    for r in recs:                                                # each entry's row, as a search finds it
+        assert np.array_equal(pool.rows_of(r.voxels), np.searchsorted(plain[0], r.voxels))
 
 
 def test_unique_ints_equals_numpy_unique():
