@@ -331,11 +331,11 @@ def test_a_late_watcher_does_not_interrupt_the_next_command(tmp_path, monkeypatc
     """A command's watcher that sees its client leave only after the next command started (a loaded
     machine: a CI run once saw the next client's command end with exit 1) stays quiet; the watcher of the
     running command still passes its client's leaving on."""
-    from place3d_app import serve
+    from place3d_app import serve_loop
 
-    srv = serve.Server(tmp_path / "s.sock", command=lambda argv: 0)
+    srv = serve_loop.Server(tmp_path / "s.sock", command=lambda argv: 0)
     sent = []
-    monkeypatch.setattr(serve.signal, "pthread_kill", lambda *a: sent.append(a))
+    monkeypatch.setattr(serve_loop.signal, "pthread_kill", lambda *a: sent.append(a))
     srv._busy, srv._run_id, srv._client_interrupt = True, 2, False
     old, gone = socket.socketpair()
     gone.close()

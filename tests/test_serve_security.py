@@ -74,7 +74,7 @@ def _rmtree(folder: Path) -> None:
 
 #: A server started with a short handshake timeout; ``argv[1]``: the socket; ``argv[2]``: Python run first
 #: (a replaced credential read).
-SERVER = ("import sys; exec(sys.argv[2]); from place3d_app import serve; serve.HANDSHAKE_TIMEOUT_S = "
+SERVER = ("import sys; exec(sys.argv[2]); from place3d_app import serve_loop; serve_loop.HANDSHAKE_TIMEOUT_S = "
           f"{HANDSHAKE_S}; from place3d_app import main; "
           "sys.exit(main(['serve', '--socket', sys.argv[1], '--backend', 'reference', '--idle-timeout', '0']))")
 
@@ -283,7 +283,7 @@ def test_a_server_that_answers_with_an_error_is_said():
     """A greeting that is not 'ready' (here: the server turns the client away) is said, and run here."""
     folder = _folder()
     path = folder / "s.sock"
-    proc = _start_server(path, prelude="from place3d_app import serve; serve.MAX_HANDSHAKES = 0")
+    proc = _start_server(path, prelude="from place3d_app import serve_loop; serve_loop.MAX_HANDSHAKES = 0")
     try:
         r = _client_with_peer(path)
         _ran_here(r, r"turned this client away: 0 connections are being set up")
