@@ -38,7 +38,7 @@ def test_quiet_study_shows_none(config, capsys):
 
 
 def test_a_study_of_too_few_subsets_has_no_intervals_and_says_why_once(config, capsys):
-    # 8 frames at k = 4 are 2 subsets: an interval over them would have zero width (uncertainty.MIN_SUBSETS)
+    # 8 frames at k = 4 are 2 subsets: an interval over them would have zero width (intervals.MIN_SUBSETS)
     assert main(["study", str(config), "--output", "st", "--backend", "warp:cpu", "--quiet", "--resamples", "50"]) == 0
     cap = capsys.readouterr()
     warnings = [ln for ln in cap.err.splitlines() if "no intervals" in ln]

@@ -250,7 +250,7 @@ def _print_intervals(rows, boots, det_rank) -> None:
     outside = sum(int(not lo <= x <= hi) for x, (lo, hi) in zip(seg.point, seg.ci))
     if outside:
         # entropy is concave: a resample repeats subsets, pools fewer distinct ones and scores higher, so the
-        # percentile interval can sit above the full drive's score (uncertainty.Bootstrap.bias)
+        # percentile interval can sit above the full drive's score (intervals.Bootstrap.bias)
         print(f"note: {outside} of {len(rows)} seg scores lie outside their interval (bootstrap bias, mean "
               f"{float(np.nanmean(seg.bias)):+.6f}: resamples repeat subsets and pool fewer distinct ones); read "
               f"the intervals as spread and the pairwise orders as the ranking's stability")

@@ -332,7 +332,7 @@ def _import_later_modules() -> None:
 
         import matplotlib
 
-        matplotlib.use("Agg")       # as uncertainty.plot_scores does, before pyplot
+        matplotlib.use("Agg")       # as intervals.plot_scores does, before pyplot
         import matplotlib.pyplot  # noqa: F401
     except Exception:  # noqa: BLE001 - a missing or broken module fails where it is used, with its message
         pass

@@ -141,7 +141,7 @@ def _cell_task(t) -> dict:
 
 def few_subsets(cfg: dict, k: int) -> str | None:
     """Why the study's cells get no interval over their drive's subsets (a scene too short for
-    ``uncertainty.MIN_SUBSETS`` subsets of ``k`` frames), or None."""
+    ``intervals.MIN_SUBSETS`` subsets of ``k`` frames), or None."""
     from place3d_kernels.sog import subset_groups
     from place3d_kernels.spec import SceneSpec
     from place3d_kernels.uncertainty import MIN_SUBSETS, too_few_subsets
@@ -230,7 +230,7 @@ def run_study(config, output=None, executor=None, backend=None, progress: bool =
         raise ValueError(f"study resamples must be >= 0 (0: no intervals), got {settings['resamples']}")
     short = few_subsets(cfg, settings["frames_per_subset"])
     if settings["resamples"] and short:
-        # an interval over 1-2 subsets has zero width (uncertainty.MIN_SUBSETS): none, said once, not per cell
+        # an interval over 1-2 subsets has zero width (intervals.MIN_SUBSETS): none, said once, not per cell
         print(f"place3d: warning: no intervals: {short}", file=sys.stderr)
         settings["resamples"] = 0
     boot = {"resamples": settings["resamples"], "seed": settings["resample_seed"]}
