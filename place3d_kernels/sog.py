@@ -142,10 +142,11 @@ class PSOG:
     ``probs=None`` with ``counts`` and ``n_subsets`` makes ``probs`` ``counts / T``, computed on first use:
     a P-SOG made from counts (a pooled one, one read from the cache) then derives its weights and stop mask
     from the integer counts by table look-ups (``left_out_tables.FieldTables``, the same bits as from the
-    probabilities) and never builds the (M, K) float64 array unless something reads it.
+    probabilities) and never builds the (M, K) float64 array unless something reads it. ``probs`` may also
+    be a callable giving them, called on first use (``detection``'s variant of such a P-SOG).
     """
 
-    def __init__(self, grid: Grid, voxels: np.ndarray, probs: np.ndarray | None, channels=None, n_subsets=None,
+    def __init__(self, grid: Grid, voxels: np.ndarray, probs, channels=None, n_subsets=None,
                  counts: np.ndarray | None = None):
         self.grid = grid
         self.voxels = np.asarray(voxels, dtype=np.int64)
@@ -161,6 +162,9 @@ class PSOG:
                 raise ValueError(f"PSOG counts must be (M={shape[0]}, K={shape[1]}), got {np.shape(counts)}")
             self._probs = None
             self._cache["probs_from_counts"] = True
+        elif callable(probs):
+            self._probs = None
+            self._cache["probs_of"] = probs
         else:
             self._probs = np.asarray(probs, dtype=np.float64)
             if self._probs.shape != shape:
@@ -244,15 +248,11 @@ class PSOG:
                 return np.stack([p[:, 0], veh, np.clip(other, 0.0, 1.0)], axis=1)
 
             src = self._count_source("det")
-            if src is None:
-                det = PSOG(self.grid, self.voxels, probs(), ("empty", "vehicle", "other"), self.n_subsets)
-            else:
-                # from counts: its fields come from the same count rows by the det tables, and its probabilities
-                # are made only if read
-                det = PSOG.__new__(PSOG)
-                det.grid, det.voxels, det.channels, det.n_subsets, det.counts = (
-                    self.grid, self.voxels, ("empty", "vehicle", "other"), self.n_subsets, None)
-                det._probs, det._cache, det.sha256, det._rows_of = None, {"probs_of": probs}, None, src
+            # from counts: its fields come from the same count rows by the det tables, and its probabilities
+            # are made only if read
+            det = PSOG(self.grid, self.voxels, probs() if src is None else probs, ("empty", "vehicle", "other"),
+                       self.n_subsets)
+            det._rows_of = src
             self._cache["det"] = det
         return self._cache["det"]
 
