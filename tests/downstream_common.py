@@ -25,3 +25,11 @@ def _one_thread():
 
 def _rig(lidar, name="two"):
     return Rig(name, ((0.5, 0.3, 2.0, 0.0, 0.0, 0.0), (-0.5, -0.3, 1.8, 0.2, 0.0, 0.0)), lidar)
+
+
+def tiny_lidar_file(folder, channels: int, fov_deg: tuple, azimuth_steps: int) -> str:
+    """A small spinning LiDAR's TOML file in ``folder`` (60 m range, 360 degrees): the tests' sensors."""
+    path = folder / "tiny.toml"
+    path.write_text(f'name = "tiny"\nchannels = {channels}\nvertical_fov_deg = [{fov_deg[0]}, {fov_deg[1]}]\n'
+                    f'horizontal_fov_deg = 360.0\nazimuth_steps = {azimuth_steps}\nmax_range_m = 60.0\n')
+    return str(path)

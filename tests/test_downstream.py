@@ -15,16 +15,13 @@ from place3d_kernels.downstream import metrics as dm  # noqa: E402
 from place3d_kernels.downstream.dataset import (Rig, Splits, build_datasets, read_frames, sequence_folder,  # noqa: E402
                                                 simulate_rig, write_drive)
 
-from downstream_common import BACKEND, _one_thread, _rig, needs_backend  # noqa: E402,F401
+from downstream_common import BACKEND, _one_thread, _rig, needs_backend, tiny_lidar_file  # noqa: E402,F401
 TINY_MODEL = {"bev_cells": 16, "range_shape": (8, 32), "width": 4, "depth": 2, "point_width": 8}
 
 
 @pytest.fixture
 def tiny_lidar(tmp_path):
-    path = tmp_path / "tiny.toml"
-    path.write_text('name = "tiny"\nchannels = 4\nvertical_fov_deg = [-20.0, 0.0]\nhorizontal_fov_deg = 360.0\n'
-                    'azimuth_steps = 64\nmax_range_m = 60.0\n')
-    return str(path)
+    return tiny_lidar_file(tmp_path, 4, (-20.0, 0.0), 64)
 
 
 # ------------------------------------------------------------------------------------------ dataset

@@ -18,17 +18,14 @@ from place3d_kernels.downstream.dataset import (Splits, build_datasets, instance
                                                 read_frames, sequence_folder, sequence_spec,
                                                 unpack_labels, write_drive)
 
-from downstream_common import BACKEND, _one_thread, _rig, needs_backend  # noqa: E402,F401
+from downstream_common import BACKEND, _one_thread, _rig, needs_backend, tiny_lidar_file  # noqa: E402,F401
 
 PEDESTRIAN = CLASS_ID["pedestrian"]
 
 
 @pytest.fixture
 def tiny_lidar(tmp_path):
-    path = tmp_path / "tiny.toml"
-    path.write_text('name = "tiny"\nchannels = 8\nvertical_fov_deg = [-25.0, 2.0]\nhorizontal_fov_deg = 360.0\n'
-                    'azimuth_steps = 256\nmax_range_m = 60.0\n')
-    return str(path)
+    return tiny_lidar_file(tmp_path, 8, (-25.0, 2.0), 256)
 
 
 # ------------------------------------------------------------------------------------ instance ids
