@@ -162,3 +162,33 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
     b = pool_specs(specs, backend="warp:cpu").psog()
     assert np.array_equal(a.voxels, b.voxels) and np.array_equal(a.counts, b.counts) and a.n_subsets == b.n_subsets
     assert build_missing(argparse.Namespace(no_cache=True, quiet=True), specs, "warp:cpu") == 0
+
+
+def test_evaluate_with_a_backend_that_does_not_resolve_says_so_once_when_workers_started_early(tmp_path):
+    # the drive workers start before this process has probed its backend; a name that does not resolve
+    # fails their tasks, and the command reports the probe's own message (no worker traceback), exit 2
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PLACE3D_CACHE": str(tmp_path / "c"), "PLACE3D_WORKERS": "2"}
+    r = subprocess.run([sys.executable, "-m", "place3d_app", "evaluate", *TINY, "--routes", "2",
+                        "--backend", "nosuch"], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    assert r.stderr.count("Unknown or unavailable backend 'nosuch'") == 1
+
+
+def test_evaluate_reads_the_cached_drives_while_the_backend_is_probed_with_the_same_table(tmp_path, capsys,
+                                                                                           monkeypatch):
+    # cold (workers build the drives), then warm (the records read on threads beside the probe), then the
+    # drives one after the other in this process: one table
+    monkeypatch.setattr("place3d_app.executors.usable_cores", lambda: 2)
+    argv = ["evaluate", *TINY, "--routes", "2", "--backend", "warp:cpu", "--interval", "none"]
+    tables = []
+    for cache, workers in (("c", "2"), ("c", "2"), ("here", "1")):
+        monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / cache))
+        monkeypatch.setenv("PLACE3D_WORKERS", workers)
+        assert main(argv) == 0
+        tables.append([line for line in capsys.readouterr().out.splitlines() if not line.endswith(" s")])
+    assert tables[0] == tables[1] == tables[2] and len(tables[0]) > 5
