@@ -171,12 +171,10 @@ def start_missing(args, specs, backend):
     """``build_missing`` started on a thread: a Future of how many drives it built (None: nothing to build).
     ``finish_missing`` waits for it. ``backend`` is a name (None or 'auto': each worker resolves the backend
     itself, so the workers start before this process has probed its own), an instance, or a Future of one."""
-    from concurrent.futures import Future, ThreadPoolExecutor
+    from concurrent.futures import ThreadPoolExecutor
 
     if not missing_drives(args, specs):
         return None
-    if isinstance(backend, Future):
-        backend = backend.result() if backend.done() else getattr(args, "backend", None)
     ex = ThreadPoolExecutor(1, thread_name_prefix="place3d-drives")
     try:
         return ex.submit(build_missing, args, specs, backend)
@@ -198,8 +196,9 @@ def build_missing(args, specs, backend) -> int:
     """Build the drives of ``specs`` that the cache lacks (``missing_drives``) in worker processes, one per
     usable core (at most one per drive); returns how many were built. Each lands in the cache, and its
     ``DriveRecord`` is kept in ``args.built`` ({spec: record}), which ``pooled_psog`` and
-    ``pool_specs(known=...)`` take instead of reading the file. ``backend`` may be a Future (optimize's
-    probe), waited for only here; a name of None or 'auto' is resolved by each worker."""
+    ``pool_specs(known=...)`` take instead of reading the file. ``backend`` may be a Future (a probe on a
+    thread): never waited for, the workers resolve the command's ``--backend`` themselves while it runs, as
+    they do a name of None or 'auto'."""
     from concurrent.futures import Future
 
     from place3d_app.executors import ProcessExecutor, default_workers
@@ -209,7 +208,8 @@ def build_missing(args, specs, backend) -> int:
         return 0
     n = min(default_workers(), len(missing))
     if isinstance(backend, Future):
-        backend = backend.result()
+        # a probe still running is not waited for: the workers resolve the name the command was given
+        backend = backend.result() if backend.done() else getattr(args, "backend", None)
     name = None if backend in (None, "auto") else getattr(backend, "name", backend)
     t = time.perf_counter()
     # each worker resolves the backend in its first task: a name that does not resolve (an early start, before
