@@ -165,8 +165,8 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
 
 
 def test_evaluate_with_a_backend_that_does_not_resolve_says_so_once_when_workers_started_early(tmp_path):
-    # the drive workers start before this process has probed its backend; a name that does not resolve
-    # fails their tasks, and the command reports the probe's own message (no worker traceback), exit 2
+    # with drives to build in worker processes, a backend name that does not resolve is reported once, in
+    # the probe's own words (no worker traceback), exit 2
     import os
     import subprocess
     import sys
@@ -179,10 +179,9 @@ def test_evaluate_with_a_backend_that_does_not_resolve_says_so_once_when_workers
     assert r.stderr.count("Unknown or unavailable backend 'nosuch'") == 1
 
 
-def test_evaluate_reads_the_cached_drives_while_the_backend_is_probed_with_the_same_table(tmp_path, capsys,
-                                                                                           monkeypatch):
-    # cold (workers build the drives), then warm (the records read on threads beside the probe), then the
-    # drives one after the other in this process: one table
+def test_evaluate_cold_warm_and_in_process_give_one_table(tmp_path, capsys, monkeypatch):
+    # cold (worker processes build the drives), then warm (read from the cache), then the drives one after
+    # the other in this process: one table
     monkeypatch.setattr("place3d_app.executors.usable_cores", lambda: 2)
     argv = ["evaluate", *TINY, "--routes", "2", "--backend", "warp:cpu", "--interval", "none"]
     tables = []

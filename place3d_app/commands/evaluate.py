@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from place3d_kernels.profiling import section
@@ -19,14 +18,8 @@ __all__ = ["cmd_evaluate", "PLOT_SUFFIXES"]
 PLOT_SUFFIXES = (".png", ".svg", ".pdf")
 
 
-def _probe(name):
-    from place3d_kernels.backends.registry import get_backend
-
-    with section("backend probe (thread)"):
-        return get_backend(name)
-
-
 def cmd_evaluate(args) -> int:
+    from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
     from place3d_kernels.spec import specs_from_args
@@ -38,43 +31,26 @@ def cmd_evaluate(args) -> int:
     if args.plot and (args.interval == "none" or (args.interval == "bootstrap" and not args.resamples)):
         raise ValueError(f"--plot draws the scores with their intervals; --interval {args.interval}"
                          f"{' with --resamples 0' if args.interval == 'bootstrap' else ''} has none to draw")
-    from place3d_app.commands.routes import drive_specs, finish_missing, missing_drives, pooled_psog, start_missing
-
     with section("setup: specs, backend, placements"):
         spec = specs_from_args(args)
-        drives = drive_specs(args, spec)
-        if len(drives) > 1 and args.interval == "bootstrap":
-            raise ValueError("--interval bootstrap resamples the subsets of a single drive (--routes 1); over "
-                             "routes its resamples repeat drives and score high, so a pooled P-SOG takes the "
-                             "jackknife")
-        in_workers = bool(missing_drives(args, drives)) if len(drives) > 1 else False
-        if not in_workers:
-            # a P-SOG this process may build: its scene is built on another core during the probe (a fork,
-            # before any thread is started)
-            start_for_spec(spec, cache=not args.no_cache)
-        # The backend probe (importing Warp, starting CUDA) runs on a thread: the worker processes that build
-        # the drives the cache lacks start at once (each resolves the backend itself), and the cached drives
-        # are read meanwhile (pooled_psog waits for the probe only after them)
-        probe = ThreadPoolExecutor(1, thread_name_prefix="place3d-probe")
-        b = probe.submit(_probe, args.backend)
-        probe.shutdown(wait=False)
-        building = start_missing(args, drives, args.backend) if in_workers else None
+        start_for_spec(spec, cache=not args.no_cache)    # the scene is built on another core during the probe
+        b = get_backend(args.backend)
         lidar = LidarModel.load(args.lidar)
         names = args.placements or list(PAPER_PLACEMENTS)
         placements = [Placement.load(n) for n in names]
         check_rigs_in_roi(spec.grid.grid(), {n: pl.poses for n, pl in zip(names, placements)})
         body = spec.vehicle_body()
+        from place3d_app.commands.routes import build_missing, drive_specs, pooled_psog
+
+        drives = drive_specs(args, spec)
     # the intervals' and the plot's imports load while the P-SOG is read or built (after the scene's fork)
     import_in_background(*(LATE_IMPORTS["intervals"] if args.interval != "none" else ()),
                          *(LATE_IMPORTS["plot"] if (args.plot or args.output) and args.interval != "none" else ()))
-    try:
-        finish_missing(building)                 # drives the cache lacked, built in worker processes
-    except Exception:
-        b.result()                               # a backend that does not resolve: its own message first
-        raise
+    if len(drives) > 1 and args.interval == "bootstrap":
+        raise ValueError("--interval bootstrap resamples the subsets of a single drive (--routes 1); over routes "
+                         "its resamples repeat drives and score high, so a pooled P-SOG takes the jackknife")
+    build_missing(args, drives, b)                   # drives the cache lacks, in worker processes
     pool = pooled_psog(args, spec, b, drives)
-    with section("backend probe (wait)"):
-        b = b.result()
     if pool is None:
         _, psog = psog_for_spec(spec, args, b)
     else:

@@ -356,13 +356,6 @@ def submit_ranges(executor, pooled: PooledPSOG, routes_of: list[int], lidar, occ
             for lo, hi in convergence_ranges(routes_of) if (lo, hi) != (0, R)}
 
 
-def _probe(name):
-    from place3d_kernels.backends.registry import get_backend
-
-    with section("setup: backend (thread)"):
-        return get_backend(name)
-
-
 def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size: float | None = None,
               frames_per_subset: int | None = None, occlusion: str = "sog", rig_lidar: str = "place3d_16ch",
               collection_lidar: str = "collection_64ch", roll_units: str = "rad", det_variant: str = "vehicle",
@@ -390,19 +383,8 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
         raise ValueError(f"--placements: names must differ from each other and from the paper's {list(paper.PLACEMENTS)}")
     if det_variant not in DET_VARIANTS:
         raise ValueError(f"det_variant must be one of {DET_VARIANTS}, got {det_variant!r}")
-    probe = None
-    if getattr(executor, "kind", None) == "process":
-        # the workers resolve the backend themselves: this process probes its own on a thread while they
-        # build the drives (a Warp import and a CUDA start beside 16 starting workers: 1.9 s on the H100 host)
-        from concurrent.futures import ThreadPoolExecutor
-
-        bg = ThreadPoolExecutor(1, thread_name_prefix="place3d-probe")
-        probe = bg.submit(_probe, backend)
-        bg.shutdown(wait=False)
-        b = None
-    else:
-        with section("setup: backend"):
-            b = get_backend(backend)
+    with section("setup: backend"):
+        b = get_backend(backend)
     scenes = [resolve_town(t, opendrive_dir) for t in towns]
     drives, routes_of, town_of = [], [], []
     for r, seed_r in enumerate(seeds):         # route-major, so a partial pool still spans every town
@@ -410,8 +392,7 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
             drives.append(Drive(s, seed=seed_r, frames=frames))
             routes_of.append(r)
             town_of.append(i)
-    settings = PoolSettings(voxel_size, collection_lidar, frames_per_subset, backend if b is None else b.name,
-                            cache, roi)
+    settings = PoolSettings(voxel_size, collection_lidar, frames_per_subset, b.name, cache, roi)
     from place3d_app.commands.common import check_pool_roi
 
     check_pool_roi(roi, voxel_size, {f"{t} placements": p for t, p in
@@ -420,17 +401,8 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
     with section("pool: drives"):
         # this process waits for the drives; meanwhile it imports what the tables and the plot need
         threading.Thread(target=_import_later_modules, daemon=True, name="place3d-imports").start()
-        try:
-            pooled = build_pooled(drives, settings, executor=executor, progress=progress)
-        except Exception:
-            if probe is not None:
-                probe.result()          # a backend that does not resolve: the probe's own message first
-            raise
+        pooled = build_pooled(drives, settings, executor=executor, progress=progress)
     t_pool = time.perf_counter() - t1
-    if probe is not None:
-        with section("setup: backend (wait)"):
-            b = probe.result()
-        settings = dataclasses.replace(settings, backend=b.name)
     lidar = LidarModel.load(rig_lidar)
     extra_poses = np.stack([pl.poses for pl in extra]) if extra else None
     pending = {}

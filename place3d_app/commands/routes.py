@@ -12,8 +12,8 @@ import dataclasses
 import sys
 import time
 
-__all__ = ["add_route_arguments", "route_seeds", "drive_specs", "pooled_psog", "psog_for_routes", "cached_records",
-           "missing_drives", "start_missing", "finish_missing", "build_missing", "SINGLE_ROUTE_WARNING"]
+__all__ = ["add_route_arguments", "route_seeds", "drive_specs", "pooled_psog", "psog_for_routes",
+           "build_missing", "SINGLE_ROUTE_WARNING"]
 
 SINGLE_ROUTE_WARNING = ("place3d: warning: one route: the order of the placements is not converged on a single "
                         "drive (docs/guide.md, 'How many routes'); pool several with --routes N")
@@ -72,10 +72,7 @@ def drive_specs(args, spec) -> list:
 
 def pooled_psog(args, spec, backend, specs=None):
     """(PooledPSOG, strata, its P-SOG) for the run's drives, or None for a single drive (then the caller
-    keeps the single-drive path and this prints the warning).
-
-    ``backend`` may be a Future (a probe on a thread): the drives the cache holds are read first, on a few
-    threads, and the Future is waited for only after them (a drive still missing needs it)."""
+    keeps the single-drive path and this prints the warning)."""
     from place3d_kernels.pipeline import check_entropy
     from place3d_kernels.pooled import pool_specs
     from place3d_kernels.profiling import section
@@ -90,51 +87,18 @@ def pooled_psog(args, spec, backend, specs=None):
 
     from concurrent.futures import Future
 
+    if isinstance(backend, Future):
+        backend = backend.result()      # optimize's probe thread: the library takes a resolved backend
     t = time.perf_counter()
     with section("P-SOG (pooled drives)"):
-        known = getattr(args, "built", None) or {}
-        if isinstance(backend, Future):
-            known = {**cached_records(args, [s for s in specs if s not in known]), **known}
-            with section("backend probe (wait)"):
-                backend = backend.result()      # the library takes a resolved backend
-        pooled = pool_specs(specs, backend=backend, cache=not args.no_cache, progress=not args.quiet, known=known)
+        pooled = pool_specs(specs, backend=backend, cache=not args.no_cache, progress=not args.quiet,
+                            known=getattr(args, "built", None))
         psog = pooled.psog()
     check_entropy(psog, spec.frames_per_subset)
     strata = [s.scene.name for s in specs]
     if not args.quiet:
         print(f"pooled P-SOG of {len(specs)} drives ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
     return pooled, strata, psog
-
-
-#: Threads that read a pool's cached drives at once (decompression, hashing and NumPy copies release the
-#: interpreter lock).
-READ_THREADS = 4
-
-
-def cached_records(args, specs) -> dict:
-    """{spec: DriveRecord} of the ``specs`` whose P-SOG the cache holds (found by ``PSOGSpec.cache_file``, so
-    no scene is built), read on ``READ_THREADS`` threads without a backend; the others are left out."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from place3d_kernels.pooled import DriveRecord
-
-    if getattr(args, "no_cache", False):
-        return {}
-    found = []
-    for s in specs:
-        f = s.cache_file()
-        if f is not None and f.exists():
-            found.append(s)
-
-    def read(s):
-        ps = s.cached()
-        return None if ps is None else DriveRecord.from_psog(ps, s.scene.label)
-
-    if not found:
-        return {}
-    with ThreadPoolExecutor(min(READ_THREADS, len(found)), thread_name_prefix="place3d-read") as ex:
-        records = list(ex.map(read, found))
-    return {s: r for s, r in zip(found, records) if r is not None}
 
 
 def _build_spec(spec):
@@ -145,81 +109,42 @@ def _build_spec(spec):
     return DriveRecord.from_psog(spec.build(cache=True), spec.scene.label)
 
 
-def missing_drives(args, specs) -> list:
-    """The drives of ``specs`` that ``build_missing`` would build in worker processes (empty: none are started).
+def build_missing(args, specs, backend) -> int:
+    """Build the drives of ``specs`` that the cache lacks in worker processes, one per usable core (at most
+    one per drive); returns how many were built. Each lands in the cache, and its ``DriveRecord`` is kept in
+    ``args.built`` ({spec: record}), which ``pooled_psog`` and ``pool_specs(known=...)`` take instead of
+    reading the file.
 
     A drive counts as cached when its cache file exists (``PSOGSpec.cache_file``: found without building
     its scene; one whose scene key was never remembered counts as missing). Nothing is started for fewer
     than two missing drives, one usable core, ``--no-cache``, or an executor other than the local one
-    (Ray runs place their own work)."""
-    from place3d_app.executors import default_workers
+    (Ray runs place their own work). ``backend`` may be a Future (optimize's probe), waited for only here."""
+    from concurrent.futures import Future
+
+    from place3d_app.executors import ProcessExecutor, default_workers
+    from place3d_kernels.spec import backend_name
 
     if getattr(args, "no_cache", False) or getattr(args, "ray_address", None) \
             or getattr(args, "executor", "local") not in ("local", "auto", None):
-        return []
+        return 0
     missing = []
     for s in specs:
         f = s.cache_file()
         if s.scene.kind in ("town", "opendrive") and (f is None or not f.exists()):
             missing.append(s)
-    if len(missing) < 2 or min(default_workers(), len(missing)) < 2:
-        return []
-    return missing
-
-
-def start_missing(args, specs, backend):
-    """``build_missing`` started on a thread: a Future of how many drives it built (None: nothing to build).
-    ``finish_missing`` waits for it. ``backend`` is a name (None or 'auto': each worker resolves the backend
-    itself, so the workers start before this process has probed its own), an instance, or a Future of one."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    if not missing_drives(args, specs):
-        return None
-    ex = ThreadPoolExecutor(1, thread_name_prefix="place3d-drives")
-    try:
-        return ex.submit(build_missing, args, specs, backend)
-    finally:
-        ex.shutdown(wait=False)
-
-
-def finish_missing(started) -> int:
-    """Wait for ``start_missing``'s Future (None: nothing was started); returns how many drives were built."""
-    if started is None:
-        return 0
-    from place3d_kernels.profiling import section
-
-    with section("drives: worker processes (wait)"):
-        return started.result()
-
-
-def build_missing(args, specs, backend) -> int:
-    """Build the drives of ``specs`` that the cache lacks (``missing_drives``) in worker processes, one per
-    usable core (at most one per drive); returns how many were built. Each lands in the cache, and its
-    ``DriveRecord`` is kept in ``args.built`` ({spec: record}), which ``pooled_psog`` and
-    ``pool_specs(known=...)`` take instead of reading the file. ``backend`` may be a Future (a probe on a
-    thread): never waited for, the workers resolve the command's ``--backend`` themselves while it runs, as
-    they do a name of None or 'auto'."""
-    from concurrent.futures import Future
-
-    from place3d_app.executors import ProcessExecutor, default_workers
-
-    missing = missing_drives(args, specs)
-    if not missing:
-        return 0
     n = min(default_workers(), len(missing))
+    if len(missing) < 2 or n < 2:
+        return 0
     if isinstance(backend, Future):
-        # a probe still running is not waited for: the workers resolve the name the command was given
-        backend = backend.result() if backend.done() else getattr(args, "backend", None)
-    name = None if backend in (None, "auto") else getattr(backend, "name", backend)
+        backend = backend.result()
+    name = backend_name(backend)
     t = time.perf_counter()
-    # each worker resolves the backend in its first task: a name that does not resolve (an early start, before
-    # this process probed it) fails the task, whose error comes back here, not in the pool's initializer
-    ex = ProcessExecutor(n)
+    ex = ProcessExecutor(n, backend=name)
     from place3d_kernels.profiling import section
 
     try:
         with section("drives: worker processes (start, build, send)"):
-            records = ex.map(_build_spec, [dataclasses.replace(s, backend=name or s.backend) for s in missing])
+            records = ex.map(_build_spec, [dataclasses.replace(s, backend=name) for s in missing])
     finally:
         ex.shutdown()
     args.built = {**(getattr(args, "built", None) or {}), **dict(zip(missing, records))}
