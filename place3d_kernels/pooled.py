@@ -126,13 +126,13 @@ class DriveRecord:
     @classmethod
     def from_psog(cls, psog: PSOG, label: str) -> "DriveRecord":
         """From a P-SOG built by ``PSOG.from_frames`` (it carries integer counts)."""
-        if not psog.has_counts or psog.n_subsets is None:
+        if psog.counts is None or psog.n_subsets is None:
             raise ValueError(f"{label}: the P-SOG has no subset counts (built from probabilities?); pooling "
                              f"needs a P-SOG from PSOG.from_frames / scene_psog")
         occupied = psog._cache.get("occupied")               # a P-SOG read from the cache: its entries as stored
         if occupied is not None:
             at, cnt = occupied
-            v, k = np.divmod(at.astype(np.int64), len(psog.channels) - 1)
+            v, k = np.divmod(at.astype(np.int64), psog.counts.shape[1] - 1)
             return cls(label, int(psog.n_subsets), psog.voxels[v], (k + 1).astype(np.int16), cnt.astype(np.int32))
         c = np.asarray(psog.counts)[:, 1:]
         v, k = np.nonzero(c)                                  # row-major: voxels stay ascending

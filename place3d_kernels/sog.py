@@ -152,16 +152,13 @@ class PSOG:
         self.voxels = np.asarray(voxels, dtype=np.int64)
         self.channels = tuple(channels) if channels is not None else ("empty",) + CLASSES[1:]
         self.n_subsets = n_subsets
+        self.counts = counts
         self._cache: dict = {}
-        if callable(counts):                        # made on first use (``_read``: from the occupied entries)
-            self._counts, self._cache["counts_of"] = None, counts
-        else:
-            self._counts = counts
         shape = (len(self.voxels), len(self.channels))
         if probs is None:
             if counts is None or not n_subsets:
                 raise ValueError("PSOG needs probs, or integer counts and n_subsets >= 1 to derive them")
-            if not callable(counts) and np.shape(counts) != shape:
+            if np.shape(counts) != shape:
                 raise ValueError(f"PSOG counts must be (M={shape[0]}, K={shape[1]}), got {np.shape(counts)}")
             self._probs = None
             self._cache["probs_from_counts"] = True
@@ -179,32 +176,10 @@ class PSOG:
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        # a closure does not pickle: its probabilities and counts do
-        if "probs_of" in self._cache:
+        if "probs_of" in self._cache:               # a closure does not pickle: its probabilities do
             state["_probs"] = self.probs
-        if "counts_of" in self._cache:
-            state["_counts"] = self.counts
-        state["_cache"] = {k: v for k, v in self._cache.items() if k not in ("probs_of", "counts_of")}
+            state["_cache"] = {k: v for k, v in self._cache.items() if k != "probs_of"}
         return state
-
-    @property
-    def counts(self) -> np.ndarray | None:
-        """(M, K) integer subset counts, or None (built from probabilities). A P-SOG read from the cache makes
-        the dense table from its occupied entries on first use: pooling reads the entries alone."""
-        if self._counts is None and "counts_of" in self._cache:
-            # two threads may both make them: the same values
-            self._counts = self._cache["counts_of"]()
-        return self._counts
-
-    @counts.setter
-    def counts(self, value) -> None:
-        self._counts = value
-        self._cache.pop("counts_of", None)
-
-    @property
-    def has_counts(self) -> bool:
-        """Whether the P-SOG carries subset counts (without making a lazy table)."""
-        return self._counts is not None or "counts_of" in self._cache
 
     @property
     def probs(self) -> np.ndarray:
@@ -286,7 +261,7 @@ class PSOG:
         here), else None: the rows ``_fields`` turns into the ``task`` variant's weights and stop mask."""
         if self._rows_of is not None:
             return self._rows_of if task == self._rows_of[2] else None
-        if not self.has_counts or not self._cache.get("probs_from_counts") or len(self.channels) != N_CLASSES:
+        if self.counts is None or not self._cache.get("probs_from_counts") or len(self.channels) != N_CLASSES:
             return None
         return self.counts, int(self.n_subsets), task
 
@@ -446,9 +421,7 @@ class PSOG:
             occupied = None
             if "occupied_index" in z.files:         # _counts_members' sparse layout: the dense counts rebuilt
                 occupied = (z["occupied_index"], z["occupied_counts"])
-                M, K = len(voxels), len(meta["channels"])
-                # the dense (M, K) table only if something reads it (pooling takes the entries)
-                counts = lambda: _dense_counts(*occupied, M, K, T)      # noqa: E731
+                counts = _dense_counts(*occupied, len(voxels), len(meta["channels"]), T)
             else:
                 counts = z["counts"] if z["counts"].size else None
             # files without probs stored them as counts / T (save checked that this gives the same bits): the

@@ -106,19 +106,3 @@ def test_unique_ints_equals_numpy_unique():
               np.arange(10)[::-1]):
         u = unique_ints(a)
         assert np.array_equal(u, np.unique(a)) and u.dtype == np.unique(a).dtype
-
-
-def test_a_cached_psog_pools_from_its_entries_and_makes_the_dense_counts_only_when_read(tmp_path):
-    vox, c = _random_counts(10, 250, seed=5)
-    PSOG.from_counts(GRID, vox, c, 10).save(tmp_path / "p.npz")
-    read = PSOG.load(tmp_path / "p.npz")
-    assert read._counts is None and read.has_counts          # the (M, K) table not made by the read
-    rec = DriveRecord.from_psog(read, "d")
-    assert read._counts is None                               # nor by the record pooling takes
-    made = DriveRecord.from_psog(PSOG.from_counts(GRID, vox, c, 10), "d")
-    for f in ("voxels", "classes", "counts"):
-        assert np.array_equal(getattr(rec, f), getattr(made, f))
-    again = pickle.loads(pickle.dumps(read))                  # the maker does not pickle: the table travels
-    assert "counts_of" not in again._cache and np.array_equal(again.counts, c)
-    assert np.array_equal(read.counts, c) and read.counts.dtype == np.int32
-    assert np.array_equal(read.weights, PSOG.from_counts(GRID, vox, c, 10).weights)
