@@ -98,7 +98,7 @@ def main(argv=None) -> int:
                 run_once(t, ["--towns", "town", "--routes", "2", "--frames", "2",
                              "--no-convergence", "--backend", a.backend], Path(c), warp[t], a.timeout)
         for i in range(a.runs):
-            for t, e in variants:
+            for t, e in (variants if i % 2 == 0 else variants[::-1]):     # A B, B A, ...: no order bias
                 with tempfile.TemporaryDirectory() as c:
                     wall, res = run_once(t, cmd + ([] if e is None else ["--executor", e]), Path(c), warp[t],
                                          a.timeout)

@@ -141,7 +141,7 @@ def main() -> None:
     else:
         log.append(f"# bytecode as the host has it (PYTHONDONTWRITEBYTECODE={os.environ.get('PYTHONDONTWRITEBYTECODE', 'unset')})")
     for r in range(a.runs):
-        for label, t, env in trees:
+        for label, t, env in (trees if r % 2 == 0 else trees[::-1]):     # A B, B A, ...: no order bias
             w, last, table = cold_run(t, a.backend, a.max_evals, args=tuple(a.args.split()), extra_env=env)
             walls[label].append(w)
             log += [f"## {label} run {r + 1}: wall {w:.3f} s | {last}", table.rstrip(), ""]

@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Issue 36, goal 2: wall seconds of the console command ``place3d evaluate`` (defaults: the embedded town, four
 routes pooled, the eleven placements, jackknife intervals), cold (an empty P-SOG cache) and warm (the same
-command again), per tree, the trees alternating so that an A/B shares one machine's mood. The Warp kernel
+command again), per tree, the trees alternating so that an A/B shares one machine's mood (their order turned
+every run: A B, B A, ...). The Warp kernel
 cache is warmed by one untimed small run first; bytecode is compiled for the trees first (``compileall``),
 as ``pip install`` does for a user.
 
@@ -71,7 +72,9 @@ def main() -> None:
     walls = {str(t): {"cold": [], "warm": []} for t in trees}
     digests = {str(t): [] for t in trees}
     for r in range(a.runs):
-        for t in trees:
+        # the order turns every run (A B, B A, ...): two A/Bs on the H100 host each had the second tree's cold
+        # runs slower, a bias a fixed order cannot tell from an effect
+        for t in (trees if r % 2 == 0 else trees[::-1]):
             with tempfile.TemporaryDirectory() as c:
                 for kind in ("cold", "warm"):
                     w, d = _run(t, c, extra)
