@@ -34,7 +34,8 @@ import numpy as np
 from place3d_kernels.backends.base import ENTROPY_SCALE
 from place3d_kernels.classes import VEHICLE
 from place3d_kernels.left_out_memo import HANDLES, KEEP_LEFT_OUT, PreparedLeftOut
-from place3d_kernels.left_out_tables import FieldTables, fields_of, indicator_rows, left_out_fields
+from place3d_kernels.left_out_tables import (FieldTables, device_row_fields, device_tables, fields_of, indicator_rows,
+                                             left_out_fields)
 from place3d_kernels.profiling import section
 
 __all__ = ["LeftOutRows", "LeftOutGrids", "left_out_fields", "FieldTables", "PreparedLeftOut", "HANDLES",
@@ -271,7 +272,11 @@ def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: st
             else:
                 T, _, at, w, stop, ind = grids.rows(i)
         with section("jackknife: grid upload"):
-            if T not in bases:
+            if T not in bases and batch is not None:
+                # the base's fields made where the left-out rows were (no host pass over the pool's M rows)
+                wb, sb = device_base_fields(grids.source, T, task, backend)
+                bases[T] = [backend.grid_base_from_rows(pooled.grid.spec, grids.voxels, wb, sb if sog else None)]
+            elif T not in bases:
                 # from the pool's M voxels: the backend fills its dense copy (no dense host array)
                 wb, sb, ib = grids._base_fields(T)
                 sv = sb if sog else None
@@ -291,14 +296,7 @@ def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):
     src = rows if rows is not None else LeftOutRows(pooled)
     idx = [src.index(i) for i in range(len(pooled))]
     Ts = sorted({t for t, *_ in idx})
-    tables = [FieldTables(t, task) for t in Ts]
-    n = max(Ts) + 1
-    term, stop_t = np.zeros((len(Ts), n)), np.zeros((len(Ts), n), dtype=np.uint8)
-    other = np.zeros((len(Ts), n, n) if task == "det" else (1, 1, 1))
-    for j, tb in enumerate(tables):
-        term[j, :tb.T + 1], stop_t[j, :tb.T + 1] = tb.term, tb.stop
-        if task == "det":
-            other[j, :tb.T + 1, :tb.T + 1] = tb.other
+    term, stop_t, other = device_tables(Ts, task)
     R = np.array([len(r) for _, r, *_ in idx], dtype=np.int64)
     E = np.array([len(c) for *_, c in idx], dtype=np.int64)
     e_off = np.concatenate([[0], np.cumsum(E)])
@@ -312,6 +310,14 @@ def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):
     r_off = [0, *np.cumsum(R).tolist()]
     return [(t, src.voxels[r], w[r_off[k]:r_off[k + 1]], s[r_off[k]:r_off[k + 1]])
             for k, (t, r, *_) in enumerate(idx)]
+
+
+def device_base_fields(rows: LeftOutRows, T: int, task: str, backend):
+    """``LeftOutGrids._base_fields(T)``'s weights and stop flags (every row of the plain pool over T subsets,
+    each count clipped into [0, T]) made on the backend (``left_out_tables.device_row_fields``): two device
+    arrays, (M,) int64 and (M,) uint8, for ``grid_base_from_rows``. The same bits as the host's
+    (tests/test_left_out.py)."""
+    return device_row_fields(rows.counts, T, task, backend)
 
 
 def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str | None = None, rows=None):

@@ -66,6 +66,33 @@ class FieldTables:
         return w, self.stop[c0]
 
 
+def device_tables(Ts, task: str):
+    """``Backend.left_out_fields``' tables for the subset counts ``Ts``: (term (n, T+1), stop (n, T+1) uint8,
+    other (n, T+1, T+1) for det, else a (1, 1, 1) dummy), row j for ``Ts[j]``, zero-padded to the largest T."""
+    tables = [FieldTables(t, task) for t in Ts]
+    n = max(Ts) + 1
+    term, stop_t = np.zeros((len(Ts), n)), np.zeros((len(Ts), n), dtype=np.uint8)
+    other = np.zeros((len(Ts), n, n) if task == "det" else (1, 1, 1))
+    for j, tb in enumerate(tables):
+        term[j, :tb.T + 1], stop_t[j, :tb.T + 1] = tb.term, tb.stop
+        if task == "det":
+            other[j, :tb.T + 1, :tb.T + 1] = tb.other
+    return term, stop_t, other
+
+
+def device_row_fields(counts: np.ndarray, T: int, task: str, backend):
+    """``FieldTables(T, task)(counts)`` (each count clipped into [0, T] first, the empty count T minus the
+    occupied ones) made on a backend with ``fields_on_device`` (``Backend.left_out_fields`` with no entries
+    taken out): two device arrays, (M,) int64 weights and (M,) uint8 stop flags. ``counts``: (M, K) integer,
+    every value below 2**31; T at most ``FieldTables.MAX_T``."""
+    M = len(counts)
+    term, stop_t, other = device_tables([T], task)
+    return backend.left_out_fields(counts, np.arange(M, dtype=np.int64), np.zeros(M + 1, dtype=np.int32),
+                                   np.zeros(1, dtype=np.int32), np.zeros(1, dtype=np.int32),
+                                   np.zeros(M, dtype=np.int32), np.array([T]), term, stop_t, other, task == "det",
+                                   VEHICLE, float(ENTROPY_SCALE))
+
+
 def _terms(v: np.ndarray) -> np.ndarray:
     # sog._entropy_rows' terms: -p ln p where p > 0, else 0
     out = np.zeros(v.shape, dtype=np.float64)

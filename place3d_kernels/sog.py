@@ -352,8 +352,26 @@ class PSOG:
         fills the grid itself."""
         key = ("handle", backend, occlusion)   # the object: same-named instances may differ in context
         if key not in self._cache:
-            stop = self.stop_rows if occlusion == "sog" else None
-            self._cache[key] = backend.grid_from_rows(self.grid.spec, self.voxels, self.weight_rows, stop)
+            rows = self._device_rows(backend)
+            w, s = rows if rows is not None else (self.weight_rows, self.stop_rows)
+            self._cache[key] = backend.grid_from_rows(self.grid.spec, self.voxels, w, s if occlusion == "sog" else None)
+        return self._cache[key]
+
+    def _device_rows(self, backend):
+        """(weights, stop) of the stored voxels as device arrays, made on ``backend`` from the count rows
+        (``left_out_tables.device_row_fields``: the bits ``weight_rows`` and ``stop_rows`` hold), where the
+        backend computes fields (``fields_on_device``: Warp on CUDA), the P-SOG has count rows, T is at most
+        ``FieldTables.MAX_T`` and the host's rows were not made already; else None."""
+        if not getattr(backend, "fields_on_device", False) or "weight rows" in self._cache:
+            return None
+        src = self._count_source("seg" if len(self.channels) == N_CLASSES else "det")
+        from place3d_kernels.left_out_tables import FieldTables, device_row_fields
+
+        if src is None or src[1] > FieldTables.MAX_T or np.asarray(src[0]).dtype.itemsize > 4:
+            return None
+        key = ("device rows", backend)
+        if key not in self._cache:
+            self._cache[key] = device_row_fields(src[0], src[1], src[2], backend)
         return self._cache[key]
 
     # ------------------------------------------------------------------ persistence

@@ -106,3 +106,52 @@ def test_unique_ints_equals_numpy_unique():
               np.arange(10)[::-1]):
         u = unique_ints(a)
         assert np.array_equal(u, np.unique(a)) and u.dtype == np.unique(a).dtype
+
+
+def _warp_backends():
+    import place3d_kernels as p3k
+
+    return [b for b in p3k.available_backends() if b.startswith("warp:")]
+
+
+@pytest.mark.parametrize("name", _warp_backends())
+@pytest.mark.parametrize("task", ["seg", "det"])
+def test_a_grid_from_device_made_rows_is_the_hosts(task, name, monkeypatch):
+    # where the backend computes fields (Warp on CUDA; Warp's CPU device told so) a P-SOG from counts makes
+    # its handle from rows computed there, not from weight_rows: the same grid
+    from place3d_kernels.backends.registry import get_backend
+
+    b = get_backend(name)
+    vox, c = _random_counts(40, 400, seed=11)
+    want = PSOG.from_counts(GRID, vox, c, 40).for_task(task)
+    want.weight_rows, want.stop_rows        # noqa: B018 - the host's rows made first: its handle is made from them
+    host = want.handle(b, "sog")
+    assert ("device rows", b) not in want._cache
+    monkeypatch.setattr(type(b), "fields_on_device", property(lambda self: True))
+    got = PSOG.from_counts(GRID, vox, c, 40).for_task(task)
+    h = got.handle(b, "sog")
+    assert "weight rows" not in got._cache and ("device rows", b) in got._cache
+    assert h.weights.numpy().tobytes() == host.weights.numpy().tobytes()
+    assert h.masks.numpy().tobytes() == host.masks.numpy().tobytes()
+    w, s = got._cache[("device rows", b)]
+    assert w.numpy().tobytes() == want.weight_rows.tobytes()
+    assert s.numpy().tobytes() == want.stop_rows.astype(np.uint8).tobytes()
+
+
+@pytest.mark.parametrize("degenerate", [False, True])
+def test_check_entropy_from_counts_agrees_with_the_weights(degenerate):
+    from place3d_kernels.pipeline import check_entropy
+
+    vox, c = _random_counts(9, 300, seed=2)
+    if degenerate:                              # every voxel a single class in every subset
+        c = np.zeros_like(c)
+        c[np.arange(len(c)), 1 + np.arange(len(c)) % (N_CLASSES - 1)] = 9
+    lazy = PSOG.from_counts(GRID, vox, c, 9)
+    eager = PSOG(GRID, vox, c / 9.0, n_subsets=9)
+    assert bool(eager.weight_rows.any()) is (not degenerate)
+    if degenerate:
+        with pytest.raises(ValueError, match="no entropy"):
+            check_entropy(lazy)
+    else:
+        assert check_entropy(lazy) is lazy
+    assert "weight rows" not in lazy._cache          # decided from the counts

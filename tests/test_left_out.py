@@ -429,3 +429,32 @@ def test_device_fields_add_terms_in_numpys_order(name, task):
                                tb.stop[None].astype(np.uint8), tb.other[None] if task == "det" else np.zeros((1, 1, 1)),
                                task == "det", VEHICLE, 2.0**60)
     assert w60.numpy().tobytes() == exact.tobytes()
+
+
+@pytest.mark.parametrize("name", _patching_backends())
+@pytest.mark.parametrize("task", ["seg", "det"])
+@pytest.mark.parametrize("pool", ["subsets", "drives"])
+def test_bases_made_on_the_device_are_the_hosts(request, pool, task, name):
+    """left_out.device_base_fields (every row of the pool over a left-out T, counts clipped into [0, T], in
+    one Warp launch) gives LeftOutGrids._base_fields' weights and stop flags bit for bit, rows holding more
+    than T subsets included; a base grid filled from those device rows is the one filled from the host's."""
+    from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.left_out import device_base_fields
+
+    pooled = request.getfixturevalue(pool)
+    b = get_backend(name)
+    host = LeftOutGrids(pooled, task)
+    Ts = sorted({host.source.of(i)[0] for i in range(len(pooled))})
+    over = 0
+    for T in Ts:
+        hw, hs, _ = host._base_fields(T)
+        w, s = device_base_fields(host.source, T, task, b)
+        assert w.numpy().tobytes() == hw.tobytes(), f"weights, T={T}"
+        assert s.numpy().tobytes() == hs.astype(np.uint8).tobytes(), f"stop, T={T}"
+        over += int((host.counts[:, 1:].sum(axis=1) > T).sum())
+        spec = pooled.grid.spec
+        got = b.grid_base_from_rows(spec, host.voxels, w, s)
+        want = b.grid_base_from_rows(spec, host.voxels, hw, hs)
+        assert got.weights.numpy().tobytes() == want.weights.numpy().tobytes()
+        assert got.stop.numpy().tobytes() == want.stop.numpy().tobytes()
+    assert over > 0                                  # the clip was exercised
