@@ -3,8 +3,8 @@
 routes pooled, the eleven placements, jackknife intervals), cold (an empty P-SOG cache) and warm (the same
 command again), per tree, the trees alternating so that an A/B shares one machine's mood (their order turned
 every run: A B, B A, ...). The Warp kernel
-cache is warmed by one untimed small run first; bytecode is compiled for the trees first (``compileall``),
-as ``pip install`` does for a user.
+cache is warmed by one untimed small run first; bytecode is compiled first for the trees and the packages the
+command imports (``cold_profile.compile_bytecode``: Warp, NumPy, ...), as ``pip install`` does for a user.
 
     python3 bench/evaluate_times.py --runs 3 --tree .old --tree . [--args "--voxel-size 0.2"] --out $OUT
 
@@ -25,6 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from cold_profile import compile_bytecode
 from results_io import write_result
 
 
@@ -63,9 +64,11 @@ def main() -> None:
     a = ap.parse_args()
     trees = [Path(t).resolve() for t in (a.tree or ["."])]
     extra = shlex.split(a.args)
-    for t in trees:
-        subprocess.run([sys.executable, "-m", "compileall", "-q", str(t / "place3d_kernels"), str(t / "place3d_app")],
-                       check=False, capture_output=True)
+    # bytecode of the trees and of the packages the command imports (Warp among them), as pip install compiles
+    # it for a user: the lent GPU host sets PYTHONDONTWRITEBYTECODE=1, where Warp's import from source alone
+    # took most of a second of every run
+    for line in compile_bytecode(trees):
+        print(line, flush=True)
     if not a.no_warmup:
         with tempfile.TemporaryDirectory() as c:      # Warp's kernels compiled once, untimed
             _run(trees[-1], c, [*extra, "--routes", "2", "--frames", "8"])
