@@ -93,47 +93,41 @@ class WarpScoring:
         return _WarpGridBase(grid, w, s)
 
     def grid_from_rows(self, grid, voxels, weights, stop):
-        # weights (int64) and stop (uint8) may be device arrays (PSOG._device_rows): used where they are
-        on_dev = isinstance(weights, wp.array)
         if not self.device.is_cuda:             # the host's dense arrays (as prepare_grid's callers make them)
-            if on_dev:
-                weights, stop = weights.numpy(), None if stop is None else stop.numpy()
-            return super().grid_from_rows(grid, voxels, weights, stop)
+            return super().grid_from_rows(grid, voxels, *_on_host(weights, stop))
         # zeros on the device, the rows scattered there and the brick masks made by a kernel: patched_grid on a
         # zero base, so no dense host array and no upload of the whole grid
-        if on_dev:
-            ids = _check_ids(voxels, grid.n_voxels)
-            w_rows, s_rows = weights, stop
-        else:
-            ids, w_rows, s_rows = check_voxel_rows(voxels, weights, stop, grid.n_voxels, stop is not None)
+        ids, w_rows, s_rows = self._rows_here(voxels, weights, stop, grid.n_voxels)
         base = self._zero_base(grid, stop is not None)
         return self._patched(grid, base.weights, base.stop, ids, w_rows, None if stop is None else s_rows)
 
     def grid_base_from_rows(self, grid, voxels, weights, stop):
-        # weights (int64) and stop (uint8) may be device arrays (left_out.device_base_fields): used where they are
-        on_dev = isinstance(weights, wp.array)
         if not self.device.is_cuda:
-            if on_dev:
-                weights, stop = weights.numpy(), None if stop is None else stop.numpy()
-            return super().grid_base_from_rows(grid, voxels, weights, stop)
+            return super().grid_base_from_rows(grid, voxels, *_on_host(weights, stop))
         base = self._zero_base(grid, stop is not None)
-        dev = self.device
-        if on_dev:
-            ids = _check_ids(voxels, grid.n_voxels)
-            if weights.shape != ids.shape or (stop is not None and stop.shape != ids.shape):
-                raise ValueError(f"grid_base_from_rows needs one weight and one stop value per voxel ({len(ids)})")
-            w_rows = weights
-            s_rows = stop if stop is not None else wp.zeros(len(ids), dtype=wp.uint8, device=dev)
-        else:
-            ids, w_rows, s_rows = check_voxel_rows(voxels, weights, stop, grid.n_voxels, stop is not None)
-            w_rows = wp.array(w_rows, dtype=wp.int64, device=dev)
-            s_rows = wp.array(s_rows, dtype=wp.uint8, device=dev)
+        ids, w_rows, s_rows = self._rows_here(voxels, weights, stop, grid.n_voxels)
         if len(ids):
+            dev = self.device
             s_arg = base.stop if base.stop is not None else wp.zeros(1, dtype=wp.uint8, device=dev)
             wp.launch(self.k.scatter_rows_kernel, dim=len(ids), device=dev,
                       inputs=[wp.array(ids, dtype=wp.int64, device=dev), w_rows, s_rows, int(stop is not None),
                               base.weights, s_arg])
         return base
+
+    def _rows_here(self, voxels, weights, stop, n_voxels: int):
+        """(flat int64 voxel ids on the host, weights (R,) int64 and stop (R,) uint8 on this device) of a
+        ``grid_from_rows`` call, checked as ``check_voxel_rows`` checks them. Weights and stop already on the
+        device (``PSOG._device_rows``, ``left_out_tables.device_row_fields``) are used where they are."""
+        dev = self.device
+        if not isinstance(weights, wp.array):
+            ids, w, s = check_voxel_rows(voxels, weights, stop, n_voxels, stop is not None)
+            return ids, wp.array(w, dtype=wp.int64, device=dev), wp.array(s, dtype=wp.uint8, device=dev)
+        ids = np.ascontiguousarray(voxels, dtype=np.int64).reshape(-1)
+        if weights.shape != ids.shape or (stop is not None and stop.shape != ids.shape):
+            raise ValueError(f"writing {len(ids)} voxels needs one weight and one stop value per voxel")
+        if len(ids) and (int(ids.min()) < 0 or int(ids.max()) >= n_voxels):
+            raise ValueError(f"voxel indices must lie in [0, {n_voxels}), got [{int(ids.min())}, {int(ids.max())}]")
+        return ids, weights, stop if stop is not None else wp.zeros(len(ids), dtype=wp.uint8, device=dev)
 
     def _zero_base(self, grid, has_stop: bool) -> _WarpGridBase:
         dev = self.device
@@ -391,9 +385,9 @@ class WarpScoring:
         return sums.numpy()[:P], counts.numpy()[:P]
 
 
-def _check_ids(voxels, n_voxels: int) -> np.ndarray:
-    """Flat int64 voxel ids of rows given with device weights; ValueError for one outside the grid."""
-    ids = np.ascontiguousarray(voxels, dtype=np.int64).reshape(-1)
-    if len(ids) and (int(ids.min()) < 0 or int(ids.max()) >= n_voxels):
-        raise ValueError(f"voxel indices must lie in [0, {n_voxels}), got [{int(ids.min())}, {int(ids.max())}]")
-    return ids
+
+def _on_host(weights, stop):
+    """(weights, stop) as host arrays, copied back where they are device arrays."""
+    if isinstance(weights, wp.array):
+        return weights.numpy(), None if stop is None else stop.numpy()
+    return weights, stop
