@@ -273,8 +273,9 @@ def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: st
                 T, _, at, w, stop, ind = grids.rows(i)
         with section("jackknife: grid upload"):
             if T not in bases and batch is not None:
-                # the base's fields made where the left-out rows were (no host pass over the pool's M rows)
-                wb, sb = device_base_fields(grids.source, T, task, backend)
+                # _base_fields(T) made where the left-out rows were (no host pass over the pool's M rows): the
+                # same bits, each count clipped into [0, T] as there (tests/test_left_out.py)
+                wb, sb = device_row_fields(grids.counts, T, task, backend)
                 bases[T] = [backend.grid_base_from_rows(pooled.grid.spec, grids.voxels, wb, sb if sog else None)]
             elif T not in bases:
                 # from the pool's M voxels: the backend fills its dense copy (no dense host array)
@@ -310,14 +311,6 @@ def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):
     r_off = [0, *np.cumsum(R).tolist()]
     return [(t, src.voxels[r], w[r_off[k]:r_off[k + 1]], s[r_off[k]:r_off[k + 1]])
             for k, (t, r, *_) in enumerate(idx)]
-
-
-def device_base_fields(rows: LeftOutRows, T: int, task: str, backend):
-    """``LeftOutGrids._base_fields(T)``'s weights and stop flags (every row of the plain pool over T subsets,
-    each count clipped into [0, T]) made on the backend (``left_out_tables.device_row_fields``): two device
-    arrays, (M,) int64 and (M,) uint8, for ``grid_base_from_rows``. The same bits as the host's
-    (tests/test_left_out.py)."""
-    return device_row_fields(rows.counts, T, task, backend)
 
 
 def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str | None = None, rows=None):

@@ -435,11 +435,11 @@ def test_device_fields_add_terms_in_numpys_order(name, task):
 @pytest.mark.parametrize("task", ["seg", "det"])
 @pytest.mark.parametrize("pool", ["subsets", "drives"])
 def test_bases_made_on_the_device_are_the_hosts(request, pool, task, name):
-    """left_out.device_base_fields (every row of the pool over a left-out T, counts clipped into [0, T], in
-    one Warp launch) gives LeftOutGrids._base_fields' weights and stop flags bit for bit, rows holding more
+    """left_out_tables.device_row_fields on the pool's rows (every row over a left-out T, counts clipped into
+    [0, T], in one Warp launch), as patched_on_backend makes its bases, gives LeftOutGrids._base_fields' weights and stop flags bit for bit, rows holding more
     than T subsets included; a base grid filled from those device rows is the one filled from the host's."""
     from place3d_kernels.backends.registry import get_backend
-    from place3d_kernels.left_out import device_base_fields
+    from place3d_kernels.left_out_tables import device_row_fields
 
     pooled = request.getfixturevalue(pool)
     b = get_backend(name)
@@ -448,7 +448,7 @@ def test_bases_made_on_the_device_are_the_hosts(request, pool, task, name):
     over = 0
     for T in Ts:
         hw, hs, _ = host._base_fields(T)
-        w, s = device_base_fields(host.source, T, task, b)
+        w, s = device_row_fields(host.counts, T, task, b)
         assert w.numpy().tobytes() == hw.tobytes(), f"weights, T={T}"
         assert s.numpy().tobytes() == hs.astype(np.uint8).tobytes(), f"stop, T={T}"
         over += int((host.counts[:, 1:].sum(axis=1) > T).sum())
