@@ -172,16 +172,7 @@ def wait_for_saves() -> None:
 def check_entropy(psog: PSOG, frames_per_subset: int | None = None) -> PSOG:
     """``psog`` itself, or ``ValueError`` when no voxel has entropy (every stored voxel holds a single
     class in every subset, e.g. T < 2 subsets): M-SOG would be 0 for every rig."""
-    src = None if "weight rows" in psog._cache else psog._count_source("seg")
-    if src is not None:
-        # from the count rows, without the weights (which a backend computing fields makes on the device): a
-        # row has entropy exactly when no class holds all T subsets; its weight round(H * 2**32) is then > 0,
-        # since H >= (ln T + 1) / T - O(1/T^2) > 2**-33 for every T below 2**31
-        rows, T, _ = src
-        has = bool((np.asarray(rows).max(axis=1) < T).any()) if len(rows) else False
-    else:
-        has = bool(psog.weight_rows.any())
-    if not has:
+    if not psog.has_entropy():
         k = frames_per_subset or DEFAULT_FRAMES_PER_SUBSET
         raise ValueError(f"P-SOG has no entropy: T = {psog.n_subsets} subsets of k = {k} frames, every voxel a "
                          f"single class, so every rig would score 0; use at least {2 * k} frames (--frames, or a --route of "

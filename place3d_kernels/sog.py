@@ -314,6 +314,17 @@ class PSOG:
             self._cache["stop rows"] = (1.0 - self.probs[:, 0]) >= 0.5 - 1e-12 if rows is None else rows
         return self._cache["stop rows"]
 
+    def has_entropy(self) -> bool:
+        """Whether some stored voxel has a weight > 0 (``weight_rows.any()``). From the count rows where the
+        weights were not made (a backend computing fields makes them on the device): a row has entropy exactly
+        when no class holds all T subsets, and its weight round(H * 2**32) is then > 0, since
+        H >= (ln T + 1) / T - O(1/T^2) > 2**-33 for every T below 2**31."""
+        src = None if "weight rows" in self._cache else self._count_source("seg")
+        if src is None:
+            return bool(self.weight_rows.any())
+        rows, T, _ = src
+        return bool(len(rows)) and bool((np.asarray(rows).max(axis=1) < T).any())
+
     @property
     def weights(self) -> np.ndarray:
         """(n_voxels,) int64 fixed-point entropy, round(H * 2**32): what kernels sum exactly."""
