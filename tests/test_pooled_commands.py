@@ -164,7 +164,7 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
     assert build_missing(argparse.Namespace(no_cache=True, quiet=True), specs, "warp:cpu") == 0
 
 
-def test_evaluate_with_a_backend_that_does_not_resolve_says_so_once_when_workers_started_early(tmp_path):
+def test_evaluate_with_drives_to_build_and_a_backend_that_does_not_resolve_says_so_once(tmp_path):
     # with drives to build in worker processes, a backend name that does not resolve is reported once, in
     # the probe's own words (no worker traceback), exit 2
     import os
