@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -152,12 +153,21 @@ def _worker_environment():
 
 
 def _start_worker(backend: str | None) -> None:
-    # each worker resolves the run's backend once, at its start, so its first task finds it ready (kernels
-    # compiled or loaded) and every later task reuses it (get_backend keeps one instance per name)
+    # each worker resolves the run's backend once (get_backend keeps one instance per name), on a thread of
+    # its own, and takes its first task at once: a drive's scene (Python, the CPU) is built while the backend
+    # starts (on CUDA mostly the driver's context and module loads, foreign calls that let this thread run);
+    # the task's first get_backend waits for that thread's (the registry makes each backend once)
     if backend:
-        from place3d_kernels.backends.registry import get_backend
+        threading.Thread(target=_resolve_backend, args=(backend,), daemon=True, name="place3d-backend").start()
 
+
+def _resolve_backend(backend: str) -> None:
+    from place3d_kernels.backends.registry import get_backend
+
+    try:
         get_backend(backend)
+    except Exception:  # noqa: BLE001 - the task's own get_backend meets the same failure and reports it
+        pass
 
 
 def _no_task() -> None:

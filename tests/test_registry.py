@@ -75,3 +75,26 @@ def test_a_second_pocl_install_is_left_out_for_the_newest():
     assert _pocl_version(P("OpenCL 3.0 PoCL 3.1+debian  Linux")) > _pocl_version(P("OpenCL 3.0 PoCL 3.0-rc2  Linux"))
     assert _pocl_version(P("OpenCL 3.0 PoCL 5.0 Linux")) > _pocl_version(P("OpenCL 3.0 PoCL 3.1+debian"))
     assert _pocl_version(P("OpenCL 1.2 something else")) == (0, 0)
+
+
+def test_threads_asking_at_once_share_the_one_backend_being_made(fake_family, monkeypatch):
+    # a worker process makes its backend on a thread while its first task runs (place3d_app.executors): a task
+    # asking meanwhile must wait for that backend, not make a second one (a second CUDA context and module load)
+    import threading
+    import time
+
+    made = []
+
+    def slow(self, device):
+        made.append(device)
+        time.sleep(0.2)                       # long enough for every thread below to ask while it is made
+        self.name = f"fake:{device}"
+
+    monkeypatch.setattr(_FakeBackend, "__init__", slow)
+    got = []
+    threads = [threading.Thread(target=lambda: got.append(registry.get_backend(n))) for n in ("fake:a", "fake", "fake:a")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert made == ["a"] and len(got) == 3 and all(g is got[0] for g in got)

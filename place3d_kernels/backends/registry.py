@@ -18,6 +18,7 @@ import importlib
 import os
 import re
 import sys
+import threading
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -67,6 +68,10 @@ FAMILIES: dict[str, Family] = {
 
 _current: contextvars.ContextVar = contextvars.ContextVar("place3d_backend", default=None)
 _instances: dict[str, object] = {}
+#: Held while a backend is resolved and made: a thread asking for a backend another thread is making waits
+#: for that one instead of making a second (a worker process makes its backend on a thread while its first
+#: task builds a scene; ``place3d_app.executors``). Re-entrant: making a backend may resolve another.
+_making = threading.RLock()
 
 
 def _probe_family(fam: str, spec: Family) -> tuple[list[str], list[tuple[str, str]]]:
@@ -212,15 +217,19 @@ def get_backend(name: str | object | None = None):
         name = _current.get() or os.environ.get("PLACE3D_BACKEND") or "auto"
     if not isinstance(name, str):
         return name  # already a Backend
-    if name not in _instances and "warp" not in sys.modules:
-        # a cold start of a Warp CUDA backend: the driver starts on a thread while Warp is imported (cuda_early.py)
-        from place3d_kernels.backends import cuda_early
+    inst = _instances.get(name)
+    if inst is not None:
+        return inst
+    with _making:
+        if name not in _instances and "warp" not in sys.modules:
+            # a cold start of a Warp CUDA backend: the driver starts on a thread while Warp is imported (cuda_early.py)
+            from place3d_kernels.backends import cuda_early
 
-        cuda_early.start(name)
-    full = _canonical(name)
-    inst = _instances.get(full)
-    if inst is None:
-        inst = _instances[full] = _construct(full)
+            cuda_early.start(name)
+        full = _canonical(name)
+        inst = _instances.get(full)
+        if inst is None:
+            inst = _instances[full] = _construct(full)
     return inst
 
 
