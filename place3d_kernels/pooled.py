@@ -365,13 +365,15 @@ def _count_dtype(T: int):
 
 
 # ====================================================================== building
-def drive_record(drive: Drive, settings: PoolSettings = PoolSettings()) -> DriveRecord:
-    """The record of one drive: its P-SOG from ``scene_psog`` (on-disk cache per drive), sparsified."""
+def drive_record(drive: Drive, settings: PoolSettings = PoolSettings(), save_in_background: bool = False) -> DriveRecord:
+    """The record of one drive: its P-SOG from ``scene_psog`` (on-disk cache per drive), sparsified.
+    ``save_in_background``: a newly built P-SOG is written to the cache on a thread (``scene_psog``); the
+    caller waits for it with ``pipeline.wait_for_saves``."""
     from place3d_kernels.pipeline import scene_psog
 
     cache = True if settings.cache is None else settings.cache
     ps = scene_psog(drive.build(), grid=settings.grid, lidar=settings.lidar, frames_per_subset=settings.k,
-                    backend=settings.backend, cache=cache)
+                    backend=settings.backend, cache=cache, save_in_background=save_in_background)
     return DriveRecord.from_psog(ps, drive.label)
 
 
@@ -392,8 +394,16 @@ def _record_task(t) -> DriveRecord:
 
 
 def _records_task(t) -> list[DriveRecord]:
+    # a worker's drives: each P-SOG is compressed into the cache on a thread (zlib lets the next drive's scene
+    # build run meanwhile), and the task returns once every file is written (a worker process ends with
+    # os._exit, which would not wait for them)
+    from place3d_kernels.pipeline import wait_for_saves
+
     drives, settings = t
-    return [drive_record(d, settings) for d in drives]
+    try:
+        return [drive_record(d, settings, save_in_background=True) for d in drives]
+    finally:
+        wait_for_saves()
 
 
 def scene_groups(drives: Sequence[Drive], workers: int) -> list[list[int]]:

@@ -38,6 +38,22 @@ def test_process_pool_is_the_local_pool_bit_for_bit(device_backend):
     assert np.array_equal(procs.psog().probs, local.psog().probs)
 
 
+def test_the_workers_cache_files_are_written_when_the_pool_returns(device_backend, tmp_path, monkeypatch):
+    # the workers compress each drive's P-SOG into the cache on a thread while they build the next drive; the
+    # pool returns only once every file is whole, so a command run right after reads them all, simulating none
+    settings = PoolSettings(0.8, "collection_64ch", 4, device_backend, str(tmp_path))
+    drives = [Drive("town", seed=s, frames=f) for s, f in ((0, 8), (1, 4), (2, 8))]
+    with ProcessExecutor(2, backend=device_backend) as ex:
+        built = build_pooled(drives, settings, executor=ex)
+        assert len(list(tmp_path.glob("psog-*.json"))) == 3      # the manifests, each written after its file
+
+    def no_simulation(*a, **k):
+        raise AssertionError("a drive was simulated again: its cache file was missing or unreadable")
+
+    monkeypatch.setattr("place3d_kernels.pipeline.simulate", no_simulation)
+    _same_records(build_pooled(drives, settings, executor=LocalExecutor()), built)
+
+
 def test_process_executor_keeps_task_order_and_raises_the_task_error():
     with ProcessExecutor(2) as ex:
         assert ex.map(abs, [-5, 4, -3, 2, -1]) == [5, 4, 3, 2, 1]
