@@ -260,9 +260,11 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
     from place3d_kernels.left_out import HANDLES
 
     with section("jackknife: point"):
-        full = None if point is not None else HANDLES.plain_psog(pooled, reference, pool_key)
+        with section("pooled P-SOG"):
+            full = None if point is not None else HANDLES.plain_psog(pooled, reference, pool_key)
         if point is None:
-            point_scores = msog_tasks(full, L, poses, occlusion, tasks, b, normalisation, body)
+            with section("point scores"):
+                point_scores = msog_tasks(full, L, poses, occlusion, tasks, b, normalisation, body)
         del full
     scores = {t: np.empty((n, len(names))) for t in tasks}
     it = range(n)
