@@ -19,6 +19,7 @@ records and sums again, without simulating anything.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -294,8 +295,13 @@ class PooledPSOG:
             # a flag per grid voxel and each stored voxel's row by position: no sort of every record's voxels
             # and no binary search per entry (the pool of 32 drives at 0.1 m: some 18 M entries)
             seen = np.zeros(n, dtype=bool)
-            for r in self.records:
-                seen[r.voxels] = True
+            t = threads_for(sum(len(r.voxels) for r in self.records))
+
+            def mark(j: int) -> None:       # thread j marks every t-th record (each write stores the same True)
+                for r in self.records[j::t]:
+                    seen[r.voxels] = True
+
+            thread_map(mark, range(t), t)
             vox = np.flatnonzero(seen)
             del seen
             rank = np.empty(n, dtype=np.int64 if len(vox) >= 2**31 else np.int32)   # read at stored voxels only
@@ -303,14 +309,7 @@ class PooledPSOG:
         else:
             vox = unique_ints(np.concatenate([r.voxels for r in self.records]))
         out = np.zeros((len(vox), self.n_classes), dtype=_count_dtype(self.n_subsets))
-        K = self.n_classes
-        for r in self.records:
-            at = (np.searchsorted(vox, r.voxels) if rank is None else rank[r.voxels], r.classes.astype(np.intp))
-            key = r.voxels * K + at[1]
-            if np.all(key[1:] > key[:-1]):          # each (voxel, class) once, as from_psog makes them: no repeats
-                out[at] += r.counts
-            else:
-                np.add.at(out, at, r.counts)
+        _add_records(out, vox, rank, self.records)
         occ = out[:, 1:].sum(axis=1)
         rows = np.flatnonzero(occ > 0)
         if len(rows) < len(vox):                    # entries of count 0 only: not stored, as counts() leaves them
@@ -356,6 +355,65 @@ class PooledPSOG:
         """
         vox, c, T = self.counts(multiplicity)
         return PSOG.from_counts(self.grid, vox, c, T)
+
+
+#: Entries (all records together) from which the pool's per-record NumPy work runs on several threads
+#: (``threads_for``): the plain sum (``_add_records``) and the left-out rows' index (``left_out.device_fields``).
+THREADED_ENTRIES = 1 << 20
+#: At most this many threads (and no more than the usable cores).
+SUM_THREADS = 8
+
+
+def threads_for(entries: int) -> int:
+    """Threads for NumPy work over ``entries`` record entries: 1 below ``THREADED_ENTRIES``, else up to
+    ``SUM_THREADS`` and the usable cores. NumPy's indexing, comparisons and sums over large arrays let other
+    threads run, so a pool's records are worked on side by side."""
+    return min(SUM_THREADS, _usable_cores()) if entries >= THREADED_ENTRIES else 1
+
+
+def thread_map(fn, items, threads: int) -> list:
+    """``[fn(x) for x in items]``, on ``threads`` threads when more than one (results in item order)."""
+    if threads <= 1:
+        return [fn(x) for x in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(threads, thread_name_prefix="place3d-pool") as ex:
+        return list(ex.map(fn, items))
+
+
+def _add_records(out: np.ndarray, vox: np.ndarray, rank, records) -> None:
+    """Add every record's counts into ``out`` ((len(vox), K) counts, one row per voxel of ``vox``, ascending;
+    ``rank``: each grid voxel's row, or None to find rows by binary search).
+
+    A record's entries are in voxel order, so a block of rows is a slice of every record: on several threads
+    (``threads_for``) the rows are cut into one block per thread and each thread adds its block's slices (the
+    blocks never share a row). Integer sums, so the same table as record after record on one thread."""
+    n = threads_for(sum(len(r.voxels) for r in records))
+    K = out.shape[1]
+    flat = out.reshape(-1)
+    cuts = vox[np.linspace(0, len(vox), n + 1).astype(np.int64)[1:-1]]      # first voxel of each later block
+
+    def block(j: int) -> None:
+        for r in records:
+            at = np.searchsorted(r.voxels, cuts)
+            a = 0 if j == 0 else int(at[j - 1])
+            b = len(r.voxels) if j == n - 1 else int(at[j])
+            v, c = r.voxels[a:b], r.classes[a:b].astype(np.intp)
+            rows = np.searchsorted(vox, v) if rank is None else rank[v]
+            key = rows.astype(np.intp) * K + c
+            if np.all(key[1:] > key[:-1]):         # each (voxel, class) once, as from_psog makes them: no repeats
+                flat[key] += r.counts[a:b]
+            else:
+                np.add.at(flat, key, r.counts[a:b])
+
+    thread_map(block, range(n), n)
+
+
+def _usable_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
 
 
 def _count_dtype(T: int):

@@ -288,3 +288,35 @@ def test_scene_groups_pair_the_routes_of_one_town():
         assert all(len({drives[i].scene for i in g}) == 1 for g in groups)         # a task never mixes towns
     assert scene_groups(drives, 16) == [[i] for i in (0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15)]
     assert scene_groups(drives[:5], 2) == [[0, 4], [1], [2], [3]]
+
+
+@pytest.mark.parametrize("ranked", [True, False])
+def test_the_plain_pool_summed_on_threads_is_the_sum_on_one(monkeypatch, ranked):
+    # a large pool is summed on several threads, each over a block of rows (every record's slice of it): the
+    # same integer table as record after record on one thread, with rows found by rank or by binary search and
+    # a record whose (voxel, class) entries repeat (summed with np.add.at) among those that do not
+    import place3d_kernels.pooled as pooled_mod
+
+    rng = np.random.default_rng(3)
+    grid = Grid((0.0, 0.0, 0.0), (40.0, 40.0, 4.0), 0.1)              # 1.6 M voxels
+    recs = []
+    for i in range(6):
+        v = np.sort(rng.choice(grid.n_voxels, 20_000, replace=False)).astype(np.int64)
+        v = np.repeat(v, rng.integers(1, 3, len(v)))                   # a voxel holds one or two classes
+        cls = rng.integers(1, 22, len(v)).astype(np.int16)
+        if i != 2:                                                    # record 2 keeps repeated (voxel, class) entries
+            key, first = np.unique(v * 22 + cls, return_index=True)
+            v, cls = v[first], cls[first]
+        recs.append(DriveRecord(f"r{i}", 10 + i, v, cls, rng.integers(1, 10, len(v)).astype(np.int32)))
+    if not ranked:
+        monkeypatch.setattr(pooled_mod, "RANK_VOXELS", 0)
+    monkeypatch.setattr(pooled_mod, "THREADED_ENTRIES", 1 << 40)          # one thread
+    vox1, c1, t1 = PooledPSOG(grid, recs).counts()
+    monkeypatch.setattr(pooled_mod, "THREADED_ENTRIES", 1)
+    monkeypatch.setattr(pooled_mod, "SUM_THREADS", 5)
+    monkeypatch.setattr(pooled_mod, "_usable_cores", lambda: 5)           # five blocks even on a small machine
+    vox5, c5, t5 = PooledPSOG(grid, recs).counts()
+    assert t1 == t5 == sum(10 + i for i in range(6))
+    assert np.array_equal(vox1, vox5) and c1.dtype == c5.dtype and np.array_equal(c1, c5)
+    # and the table is the sum itself: every entry once (the repeated ones added up)
+    assert int(c1[:, 1:].sum()) == sum(int(r.counts.sum()) for r in recs)
