@@ -453,8 +453,8 @@ def _record_task(t) -> DriveRecord:
 
 def _records_task(t) -> list[DriveRecord]:
     # a worker's drives: each P-SOG is compressed into the cache on a thread (zlib lets the next drive's scene
-    # build run meanwhile), and the task returns once every file is written (a worker process ends with
-    # os._exit, which would not wait for them)
+    # build run meanwhile), and the task returns only once every file is written, so the cache is whole when
+    # the pool is (tests/test_executors.py)
     from place3d_kernels.pipeline import wait_for_saves
 
     drives, settings = t
