@@ -5,6 +5,7 @@ error, and a CMA-ES run through actors is the local run. A 2-CPU Ray cluster is 
 from __future__ import annotations
 
 import argparse
+import time
 
 import numpy as np
 import pytest
@@ -130,6 +131,15 @@ def test_failing_actor_names_itself_and_the_chunk(spec):
         ScoringPool(ray)
 
 
+def _process_gone(pid: int) -> bool:
+    """Whether process ``pid`` of this machine has ended (gone, or a zombie waiting to be reaped)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+
+
 def test_killed_actor_restarts_with_its_state_rebuilt(spec):
     from place3d_app.actors import ScoringPool
     from place3d_kernels.metrics import msog_batch
@@ -141,6 +151,12 @@ def test_killed_actor_restarts_with_its_state_rebuilt(spec):
         pid = pool.info()[0]["pid"]
         np.testing.assert_array_equal(pool.score(spec, TINY, poses), want)
         ray.kill(pool.actors[0], no_restart=False)           # the process dies; Ray restarts the actor
+        # the kill is delivered asynchronously: on a loaded machine a call made at once could still reach the old
+        # process, so the next score waits until that process is gone (then it meets the restarted actor)
+        deadline = time.monotonic() + 60
+        while not _process_gone(pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _process_gone(pid)
         np.testing.assert_array_equal(pool.score(spec, TINY, poses), want)
         assert ray.get(pool.actors[0].info.remote())["pid"] != pid
     finally:
