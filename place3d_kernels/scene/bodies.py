@@ -39,13 +39,18 @@ def template(name: str):
     return _TEMPLATES[name]
 
 
-def _wheel(v_unit, x, y, r, w):
-    """A wheel: unit prism (axis z) turned to axis y, radius r, width w, centred (x, y, r)."""
+def _wheels(v_unit, f_unit, xs, ys, r, w):
+    """Wheels at (xs[i], ys[i]): the unit prism (axis z) turned to axis y, radius r, width w, centred (x, y, r),
+    as one part: their vertices wheel after wheel and each wheel's faces offset to its vertices (what adding
+    them one by one to a ``MeshBuilder`` concatenates, element for element)."""
     v = v_unit.copy()
     v[:, :2] *= r
     v[:, 2] = (v[:, 2] - 0.5) * w
     # rotation about x by +90 deg: (x, y, z) -> (x, -z, y)
-    return np.stack([v[:, 0] + x, -v[:, 2] + y, v[:, 1] + r], 1)
+    xs, ys = np.asarray(xs, float)[:, None], np.asarray(ys, float)[:, None]
+    out = np.stack([v[None, :, 0] + xs, -v[None, :, 2] + ys, np.broadcast_to(v[None, :, 1] + r, (len(xs), len(v)))], 2)
+    faces = np.asarray(f_unit)[None] + len(v) * np.arange(len(xs))[:, None, None]
+    return out.reshape(-1, 3), faces.reshape(-1, 3)
 
 
 def vehicle_mesh(rng: np.random.Generator, kind: str | None = None) -> tuple[Mesh, str]:
@@ -76,9 +81,8 @@ def vehicle_mesh(rng: np.random.Generator, kind: str | None = None) -> tuple[Mes
         r, ax = 0.5, L / 2 - 2.2
     else:
         raise ValueError(f"unknown vehicle kind {kind!r}; use car, van, truck or bus")
-    for sx in (-ax, ax):
-        for sy in (-1, 1):
-            b.add(_wheel(wv, sx, sy * (W / 2 - 0.12), r, 0.24), wf, VEHICLE)
+    y = W / 2 - 0.12
+    b.add(*_wheels(wv, wf, (-ax, -ax, ax, ax), (-1 * y, 1 * y, -1 * y, 1 * y), r, 0.24), VEHICLE)
     return b.build(), str(kind)
 
 
