@@ -137,38 +137,39 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes)
             n = np.array([-t[1], t[0]]) if np.dot([-t[1], t[0]], nrm) > 0 else np.array([t[1], -t[0]])
             out_yaw = math.atan2(-n[1], -n[0])  # facing the road
             r = rng.random()
-            z0 = height_at(x, y)
+            # the ground height at the edge point, looked up only for an object that is placed
             if r < 0.18:  # lamp just off the edge
                 px, py = x + n[0] * 0.6, y + n[1] * 0.6
                 if raster.take(px, py, 0.4, 0.4, 0.0, 0.1):
-                    T.lamp(px, py, z0, out_yaw)
+                    T.lamp(px, py, height_at(x, y), out_yaw)
             elif r < 0.26:
                 px, py = x + n[0] * 0.5, y + n[1] * 0.5
                 if raster.take(px, py, 0.4, 0.4, 0.0, 0.1):
-                    T.sign(px, py, z0, math.atan2(-t[1], -t[0]))
+                    T.sign(px, py, height_at(x, y), math.atan2(-t[1], -t[0]))
             elif r < 0.30:
                 px, py = x + n[0] * 0.7, y + n[1] * 0.7
                 if raster.take(px, py, 0.5, 0.5, 0.0, 0.1):
-                    T.traffic_light(px, py, z0, (-n[0], -n[1]), rng.uniform(3.5, 5.0))
+                    T.traffic_light(px, py, height_at(x, y), (-n[0], -n[1]), rng.uniform(3.5, 5.0))
             elif r < 0.55:  # a tree or hedge a little further out
                 off = rng.uniform(2.5, 5.0)
                 px, py = x + n[0] * off, y + n[1] * off
                 if raster.take(px, py, 2.0, 2.0, 0.0, 0.5):
                     if rng.random() < 0.8:
-                        T.tree(px, py, z0, rng.uniform(0.8, 1.2))
+                        T.tree(px, py, height_at(x, y), rng.uniform(0.8, 1.2))
                     else:
-                        T.hedge(px, py, z0, rng.uniform(2.0, 4.0), 1.0, rng.uniform(0.8, 1.6), yaw)
+                        T.hedge(px, py, height_at(x, y), rng.uniform(2.0, 4.0), 1.0, rng.uniform(0.8, 1.6), yaw)
             elif r < 0.85:  # a building set back from the road
                 w, dd = rng.uniform(8.0, 20.0), rng.uniform(8.0, 16.0)
                 off = rng.uniform(4.0, 9.0) + dd / 2
                 px, py = x + n[0] * off, y + n[1] * off
                 if raster.take(px, py, w, dd, yaw, 1.0):
-                    T.building(px, py, z0, w, dd, rng.uniform(5.0, 22.0), yaw)
+                    T.building(px, py, height_at(x, y), w, dd, rng.uniform(5.0, 22.0), yaw)
                     u += w / 2
             elif r < 0.9 and parked < 400:  # a car parked beside the road
                 m, _ = vehicle_mesh(rng, "car")
                 px, py = x + n[0] * 2.2, y + n[1] * 2.2
                 if raster.take(px, py, 4.8, 2.0, yaw, 0.3):
+                    z0 = height_at(x, y)
                     T.b.add(transform(m.vertices, px, py, z0, yaw=yaw), m.faces, m.labels)
                     boxes.append(_box_of(m, px, py, z0, yaw))
                     parked += 1
