@@ -50,7 +50,8 @@ from place3d_kernels.classes import CLASS_ID
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.scene.base import Scene
 from place3d_kernels.scene.opendrive_mesh import DRIVING_TYPES, LANE_CLASS, Strips, mesh_road, orient_up
-from place3d_kernels.scene.opendrive_roadside import Raster, fill, road_area_points, roadside, route_parking
+from place3d_kernels.scene.opendrive_roadside import (Raster, edge_geometry, fill, road_area_points, roadside,
+                                                      route_parking)
 from place3d_kernels.scene.opendrive_traffic import ego_drive, traffic
 from place3d_kernels.scene.props import Props
 from place3d_kernels.scene.xodr import OpenDrive, Road, parse_opendrive
@@ -121,8 +122,9 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
         road_mask = base.road_occ
         edges = [e for e in info["edges"]]
         order = rng.permutation(len(edges))
+        geometry = [info["edge_geometry"][i] for i in order]          # made once per town (_town_base)
         n_parked = roadside(T, rng, raster, [edges[i] for i in order], info["lanes"], height_at, opt,
-                            static_boxes)
+                            static_boxes, geometry)
         if float(opt["fill"]) > 0:
             fill(T, rng, raster, road_mask, height_at, float(opt["fill"]))
     dt = float(opt["frame_interval"])
@@ -132,7 +134,7 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
         # cars parked beside the roads the ego drives along, so every map shows some (the route is the drive
         # plus at most one more lane)
         n_parked += route_parking(T, rng, raster, [edges[i] for i in order], ego_route.p[:, :2], height_at,
-                                  static_boxes)
+                                  static_boxes, geometry=geometry)
     if T.b._parts or T.b._box_c:
         rs = T.b.build()
         parts.append((rs.vertices, rs.faces, rs.labels))
@@ -218,6 +220,7 @@ def _town_base(path, opt) -> _TownBase:
         parts.append((lp[0], orient_up(lp[0], lp[1]), lp[2]))
 
     ref = np.concatenate(info["ref"])
+    info["edge_geometry"] = [edge_geometry(e) for e in info["edges"]]    # what the routes' roadside passes share
     lo, hi = v[:, :2].min(axis=0), v[:, :2].max(axis=0)
     from scipy.spatial import cKDTree
 

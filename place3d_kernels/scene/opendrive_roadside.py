@@ -12,7 +12,7 @@ from place3d_kernels.scene.opendrive_routes import Route
 from place3d_kernels.scene.primitives import transform
 from place3d_kernels.scene.props import Props
 
-__all__ = ["Raster", "road_area_points", "roadside", "fill", "edge_frame", "route_parking"]
+__all__ = ["Raster", "road_area_points", "roadside", "fill", "edge_frame", "edge_geometry", "route_parking"]
 
 
 class Raster:
@@ -105,8 +105,9 @@ def _box_of(m: Mesh, x, y, z, yaw):
     return [x + cs * c[0] - sn * c[1], y + sn * c[0] + cs * c[1], z + c[2], *(hi - lo).tolist(), yaw]
 
 
-def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes):
-    """Street furniture, buildings, trees and parked cars next to the outer lane edges."""
+def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes, geometry=None):
+    """Street furniture, buildings, trees and parked cars next to the outer lane edges (``geometry``: each
+    edge's ``edge_geometry``, or None to make them here)."""
     parked = 0
     # parked cars on parking lanes
     for ltype, junc, pts, width, rid in lanes:
@@ -125,8 +126,8 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes)
                 u += L + rng.uniform(0.8, 2.5)
             else:
                 u += rng.uniform(4.0, 9.0)
-    for e in edges:
-        frame = edge_frame(e, raster)
+    for k, e in enumerate(edges):
+        frame = edge_frame(e, raster, _UNSET if geometry is None else geometry[k])
         if frame is None:
             continue
         s, pose, nrm = frame
@@ -177,14 +178,27 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes)
     return parked
 
 
-def edge_frame(e, raster: Raster):
-    """Arc lengths, a pose function u -> (x, y, unit tangent) and the outward normal of an outer lane edge;
-    None for an edge shorter than 6 m or an inner edge (road on both sides, per the raster)."""
+_UNSET = object()
+
+
+def edge_geometry(e):
+    """(segment vectors, their lengths, arc lengths) of an edge polyline, or None for fewer than 2 points: the
+    part of ``edge_frame`` that depends on the edge alone (a town's base makes it once for all its routes)."""
     if len(e) < 2:
         return None
     d = np.diff(e[:, :2], axis=0)
     seg = np.linalg.norm(d, axis=1)
-    s = np.r_[0.0, np.cumsum(seg)]
+    return d, seg, np.r_[0.0, np.cumsum(seg)]
+
+
+def edge_frame(e, raster: Raster, geometry=_UNSET):
+    """Arc lengths, a pose function u -> (x, y, unit tangent) and the outward normal of an outer lane edge;
+    None for an edge shorter than 6 m or an inner edge (road on both sides, per the raster). ``geometry``:
+    ``edge_geometry(e)`` made already (else made here)."""
+    g = edge_geometry(e) if geometry is _UNSET else geometry
+    if g is None:
+        return None
+    d, seg, s = g
     if s[-1] < 6.0:
         return None
 
@@ -209,12 +223,14 @@ def edge_frame(e, raster: Raster):
     return s, pose, (-nrm if occ[0] else nrm)
 
 
-def route_parking(T: Props, rng, raster: Raster, edges, route_xy, height_at, boxes, reach=60.0):
+def route_parking(T: Props, rng, raster: Raster, edges, route_xy, height_at, boxes, reach=60.0, geometry=None):
     """Cars parked beside the outer road edges within ``reach`` metres of the ego route.
 
     The roadside pass parks a car beside an edge rarely and anywhere on the map, so on a long map (Town06,
     7 km of road) the ego could drive past none; this pass parks one every 5-15 m along the route's
     stretch of each edge, where the raster is free (after buildings and trees took their places).
+
+    ``geometry``: each edge's ``edge_geometry``, or None to make them here.
 
     Returns:
         the number of cars parked.
@@ -223,8 +239,8 @@ def route_parking(T: Props, rng, raster: Raster, edges, route_xy, height_at, box
 
     tree = cKDTree(route_xy)
     parked = 0
-    for e in edges:
-        frame = edge_frame(e, raster)
+    for k, e in enumerate(edges):
+        frame = edge_frame(e, raster, _UNSET if geometry is None else geometry[k])
         if frame is None:
             continue
         s, pose, nrm = frame
