@@ -50,6 +50,7 @@ from place3d_kernels.io import (atomic_write, frame_paths, pose_row, prepare_seq
                                 sequence_spec, write_sequence_metadata)
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec, backend_name, resolve_lidar
+from place3d_kernels.threads import usable_cores
 
 __all__ = ["Executor", "LocalExecutor", "ProcessExecutor", "RayExecutor", "get_executor", "usable_cores",
            "default_workers", "WORKERS_ENV", "add_executor_arguments",
@@ -115,14 +116,6 @@ WORKERS_ENV = "PLACE3D_WORKERS"
 #: output, not its sums, so a product's values are the same with any number of them (the test of this
 #: executor compares its pooled counts with the local executor's bit for bit).
 WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
-def usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity where the platform tells it, else all)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
 
 
 def default_workers() -> int:

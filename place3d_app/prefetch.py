@@ -33,6 +33,7 @@ import time
 from typing import Callable, Hashable
 
 from place3d_kernels.profiling import record, section
+from place3d_kernels.threads import usable_cores
 
 __all__ = ["start", "take", "enabled", "ENV", "usable_cores", "start_for_spec", "backend_after_actors",
            "PREFETCH_ENV", "prefetch_wanted", "prepare_in_background", "import_in_background", "LATE_IMPORTS"]
@@ -41,14 +42,6 @@ __all__ = ["start", "take", "enabled", "ENV", "usable_cores", "start_for_spec", 
 ENV = "PLACE3D_SCENE_PREFETCH"
 
 _pending: dict[Hashable, tuple] = {}   # key -> (child pid, read end of its pipe, fork time, payload file or None)
-
-
-def usable_cores() -> int:
-    """The cores this process may run on (its affinity where the platform tells it, else all)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 def enabled() -> bool:

@@ -294,7 +294,7 @@ def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):
     """Every record's left-out rows computed on the backend in one batch (``Backend.left_out_fields``, Warp
     on CUDA): per record (T, its rows' flat voxel indices (host), weights and stop flags (device arrays,
     slices of the batch)). Only the index work (where each record's entries fall) stays on the host."""
-    from place3d_kernels.pooled import thread_map, threads_for
+    from place3d_kernels.threads import thread_map, threads_for
 
     src = rows if rows is not None else LeftOutRows(pooled)
     # each record's index is its own NumPy work over its entries: side by side on threads for a large pool

@@ -19,7 +19,6 @@ records and sums again, without simulating anything.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -29,6 +28,7 @@ from place3d_kernels.classes import N_CLASSES
 from place3d_kernels.grid import Grid, roi_grid
 from place3d_kernels.backends.base import unique_ints
 from place3d_kernels.sog import PSOG
+from place3d_kernels.threads import thread_map, threads_for
 
 __all__ = ["Drive", "PoolSettings", "DriveRecord", "PooledPSOG", "build_pooled", "drive_record",
            "subset_records", "backend_name", "parse_route_seeds", "pool_specs", "scene_groups", "DEFAULT_ROUTES"]
@@ -357,30 +357,6 @@ class PooledPSOG:
         return PSOG.from_counts(self.grid, vox, c, T)
 
 
-#: Entries (all records together) from which the pool's per-record NumPy work runs on several threads
-#: (``threads_for``): the plain sum (``_add_records``) and the left-out rows' index (``left_out.device_fields``).
-THREADED_ENTRIES = 1 << 20
-#: At most this many threads (and no more than the usable cores).
-SUM_THREADS = 8
-
-
-def threads_for(entries: int) -> int:
-    """Threads for NumPy work over ``entries`` record entries: 1 below ``THREADED_ENTRIES``, else up to
-    ``SUM_THREADS`` and the usable cores. NumPy's indexing, comparisons and sums over large arrays let other
-    threads run, so a pool's records are worked on side by side."""
-    return min(SUM_THREADS, _usable_cores()) if entries >= THREADED_ENTRIES else 1
-
-
-def thread_map(fn, items, threads: int) -> list:
-    """``[fn(x) for x in items]``, on ``threads`` threads when more than one (results in item order)."""
-    if threads <= 1:
-        return [fn(x) for x in items]
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(threads, thread_name_prefix="place3d-pool") as ex:
-        return list(ex.map(fn, items))
-
-
 def _add_records(out: np.ndarray, vox: np.ndarray, rank, records) -> None:
     """Add every record's counts into ``out`` ((len(vox), K) counts, one row per voxel of ``vox``, ascending;
     ``rank``: each grid voxel's row, or None to find rows by binary search).
@@ -407,13 +383,6 @@ def _add_records(out: np.ndarray, vox: np.ndarray, rank, records) -> None:
                 np.add.at(flat, key, r.counts[a:b])
 
     thread_map(block, range(n), n)
-
-
-def _usable_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 def _count_dtype(T: int):

@@ -367,11 +367,11 @@ def test_left_out_rows_made_on_the_device_are_the_hosts(request, monkeypatch, po
     addition; the records' indexes made on ``threads`` threads, as for a large pool) gives each record's weights
     and stop flags bit for bit as LeftOutGrids.rows; patched_on_backend takes that way where the backend says
     so (on CUDA), and its grids are then the uploaded ones."""
-    import place3d_kernels.pooled as pooled_mod
+    import place3d_kernels.threads as threads_mod
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.left_out import device_fields, patched_on_backend
 
-    monkeypatch.setattr(pooled_mod, "threads_for", lambda entries: threads)
+    monkeypatch.setattr(threads_mod, "threads_for", lambda entries: threads)
     pooled = request.getfixturevalue(pool)
     b = get_backend(name)
     host = LeftOutGrids(pooled, task)

@@ -296,6 +296,7 @@ def test_the_plain_pool_summed_on_threads_is_the_sum_on_one(monkeypatch, ranked)
     # same integer table as record after record on one thread, with rows found by rank or by binary search and
     # a record whose (voxel, class) entries repeat (summed with np.add.at) among those that do not
     import place3d_kernels.pooled as pooled_mod
+    import place3d_kernels.threads as threads_mod
 
     rng = np.random.default_rng(3)
     grid = Grid((0.0, 0.0, 0.0), (40.0, 40.0, 4.0), 0.1)              # 1.6 M voxels
@@ -310,11 +311,11 @@ def test_the_plain_pool_summed_on_threads_is_the_sum_on_one(monkeypatch, ranked)
         recs.append(DriveRecord(f"r{i}", 10 + i, v, cls, rng.integers(1, 10, len(v)).astype(np.int32)))
     if not ranked:
         monkeypatch.setattr(pooled_mod, "RANK_VOXELS", 0)
-    monkeypatch.setattr(pooled_mod, "THREADED_ENTRIES", 1 << 40)          # one thread
+    monkeypatch.setattr(threads_mod, "THREADED_ENTRIES", 1 << 40)         # one thread
     vox1, c1, t1 = PooledPSOG(grid, recs).counts()
-    monkeypatch.setattr(pooled_mod, "THREADED_ENTRIES", 1)
-    monkeypatch.setattr(pooled_mod, "SUM_THREADS", 5)
-    monkeypatch.setattr(pooled_mod, "_usable_cores", lambda: 5)           # five blocks even on a small machine
+    monkeypatch.setattr(threads_mod, "THREADED_ENTRIES", 1)
+    monkeypatch.setattr(threads_mod, "MAX_THREADS", 5)
+    monkeypatch.setattr(threads_mod, "usable_cores", lambda: 5)           # five blocks even on a small machine
     vox5, c5, t5 = PooledPSOG(grid, recs).counts()
     assert t1 == t5 == sum(10 + i for i in range(6))
     assert np.array_equal(vox1, vox5) and c1.dtype == c5.dtype and np.array_equal(c1, c5)

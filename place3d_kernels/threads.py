@@ -1,0 +1,43 @@
+"""How many threads NumPy work may use here, and a map over them.
+
+NumPy's indexing, comparisons and reductions over large arrays release the interpreter lock, so independent
+pieces of such work (a pool's records, blocks of its rows) run side by side on threads. The library's
+per-record pool work takes its thread count from :func:`threads_for`; the application's worker pools and
+forks ask :func:`usable_cores`.
+"""
+
+from __future__ import annotations
+
+import os
+
+__all__ = ["usable_cores", "threads_for", "thread_map", "THREADED_ENTRIES", "MAX_THREADS"]
+
+#: Record entries (all records together) from which a pool's per-record NumPy work runs on several threads
+#: (``pooled.PooledPSOG`` sums, ``left_out.device_fields`` indexes).
+THREADED_ENTRIES = 1 << 20
+#: At most this many threads (and no more than the usable cores).
+MAX_THREADS = 8
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the platform tells it, else all), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def threads_for(entries: int) -> int:
+    """Threads for NumPy work over ``entries`` record entries: 1 below ``THREADED_ENTRIES``, else up to
+    ``MAX_THREADS`` and the usable cores."""
+    return min(MAX_THREADS, usable_cores()) if entries >= THREADED_ENTRIES else 1
+
+
+def thread_map(fn, items, threads: int) -> list:
+    """``[fn(x) for x in items]``, on ``threads`` threads when more than one (results in item order)."""
+    if threads <= 1:
+        return [fn(x) for x in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(threads, thread_name_prefix="place3d-pool") as ex:
+        return list(ex.map(fn, items))
