@@ -82,7 +82,7 @@ def vehicle_mesh(rng: np.random.Generator, kind: str | None = None) -> tuple[Mes
     else:
         raise ValueError(f"unknown vehicle kind {kind!r}; use car, van, truck or bus")
     y = W / 2 - 0.12
-    b.add(*_wheels(wv, wf, (-ax, -ax, ax, ax), (-1 * y, 1 * y, -1 * y, 1 * y), r, 0.24), VEHICLE)
+    b.add(*_wheels(wv, wf, (-ax, -ax, ax, ax), (-y, y, -y, y), r, 0.24), VEHICLE)
     return b.build(), str(kind)
 
 

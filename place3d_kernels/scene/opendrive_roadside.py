@@ -127,7 +127,7 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes,
             else:
                 u += rng.uniform(4.0, 9.0)
     for k, e in enumerate(edges):
-        frame = edge_frame(e, raster, _UNSET if geometry is None else geometry[k])
+        frame = edge_frame(e, raster, None if geometry is None else geometry[k])
         if frame is None:
             continue
         s, pose, nrm = frame
@@ -178,9 +178,6 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes,
     return parked
 
 
-_UNSET = object()
-
-
 def edge_geometry(e):
     """(segment vectors, their lengths, arc lengths) of an edge polyline, or None for fewer than 2 points: the
     part of ``edge_frame`` that depends on the edge alone (a town's base makes it once for all its routes)."""
@@ -191,11 +188,11 @@ def edge_geometry(e):
     return d, seg, np.r_[0.0, np.cumsum(seg)]
 
 
-def edge_frame(e, raster: Raster, geometry=_UNSET):
+def edge_frame(e, raster: Raster, geometry=None):
     """Arc lengths, a pose function u -> (x, y, unit tangent) and the outward normal of an outer lane edge;
     None for an edge shorter than 6 m or an inner edge (road on both sides, per the raster). ``geometry``:
-    ``edge_geometry(e)`` made already (else made here)."""
-    g = edge_geometry(e) if geometry is _UNSET else geometry
+    ``edge_geometry(e)`` made already (None: made here)."""
+    g = edge_geometry(e) if geometry is None else geometry
     if g is None:
         return None
     d, seg, s = g
@@ -240,7 +237,7 @@ def route_parking(T: Props, rng, raster: Raster, edges, route_xy, height_at, box
     tree = cKDTree(route_xy)
     parked = 0
     for k, e in enumerate(edges):
-        frame = edge_frame(e, raster, _UNSET if geometry is None else geometry[k])
+        frame = edge_frame(e, raster, None if geometry is None else geometry[k])
         if frame is None:
             continue
         s, pose, nrm = frame
