@@ -368,12 +368,12 @@ def _add_records(out: np.ndarray, vox: np.ndarray, rank, records) -> None:
     K = out.shape[1]
     flat = out.reshape(-1)
     cuts = vox[np.linspace(0, len(vox), n + 1).astype(np.int64)[1:-1]]      # first voxel of each later block
+    # where each block starts and ends in each record
+    ends = [np.concatenate([[0], np.searchsorted(r.voxels, cuts), [len(r.voxels)]]) for r in records]
 
     def block(j: int) -> None:
-        for r in records:
-            at = np.searchsorted(r.voxels, cuts)
-            a = 0 if j == 0 else int(at[j - 1])
-            b = len(r.voxels) if j == n - 1 else int(at[j])
+        for r, at in zip(records, ends):
+            a, b = int(at[j]), int(at[j + 1])
             v, c = r.voxels[a:b], r.classes[a:b].astype(np.intp)
             rows = np.searchsorted(vox, v) if rank is None else rank[v]
             key = rows.astype(np.intp) * K + c
