@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -10,7 +11,7 @@ from place3d_kernels.classes import CLASS_ID
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.scene.primitives import MeshBuilder, icosphere, prism, transform
 
-__all__ = ["vehicle_mesh", "pedestrian_mesh", "template", "EGO_LENGTH", "EGO_WIDTH"]
+__all__ = ["vehicle_mesh", "vehicle_body", "Body", "pedestrian_mesh", "template", "EGO_LENGTH", "EGO_WIDTH"]
 
 VEHICLE, PEDESTRIAN = CLASS_ID["vehicle"], CLASS_ID["pedestrian"]
 
@@ -53,8 +54,28 @@ def _wheels(v_unit, f_unit, xs, ys, r, w):
     return out.reshape(-1, 3), faces.reshape(-1, 3)
 
 
+class Body(NamedTuple):
+    """A solid's arrays as a ``MeshBuilder`` makes them, not checked as a ``Mesh``: what a builder copies
+    into a larger mesh (parked cars are thousands of these a town; a ``Mesh`` each would check every one)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    labels: np.ndarray
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3): the lowest and highest vertex coordinates, as ``Mesh.bounds``."""
+        return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
+
+
 def vehicle_mesh(rng: np.random.Generator, kind: str | None = None) -> tuple[Mesh, str]:
     """A low-poly vehicle in its own frame (x forward, z up, origin on the ground under its centre)."""
+    body, kind = vehicle_body(rng, kind)
+    return Mesh(*body), kind
+
+
+def vehicle_body(rng: np.random.Generator, kind: str | None = None) -> tuple[Body, str]:
+    """``vehicle_mesh``'s vehicle as a ``Body`` (the same draws from ``rng``, the same arrays)."""
     if kind is None:
         kind = rng.choice(["car", "car", "car", "car", "car", "car", "van", "van", "truck", "bus"])
     b = MeshBuilder()
@@ -83,7 +104,7 @@ def vehicle_mesh(rng: np.random.Generator, kind: str | None = None) -> tuple[Mes
         raise ValueError(f"unknown vehicle kind {kind!r}; use car, van, truck or bus")
     y = W / 2 - 0.12
     b.add(*_wheels(wv, wf, (-ax, -ax, ax, ax), (-y, y, -y, y), r, 0.24), VEHICLE)
-    return b.build(), str(kind)
+    return Body(*b.arrays()), str(kind)
 
 
 def pedestrian_mesh(rng: np.random.Generator) -> Mesh:

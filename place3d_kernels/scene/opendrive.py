@@ -113,6 +113,15 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
         d, i = ref_tree.query([x, y], k=min(8, len(ref)))
         return float(np.min(ref[np.atleast_1d(i), 2]))
 
+    def heights_at(x, y):
+        """``height_at`` of many points in one query (a KD-tree query answers each point alone: the same
+        neighbours, so the same heights)."""
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        if len(x) == 0:
+            return np.zeros(0)
+        _, i = ref_tree.query(np.stack([x, y], 1), k=min(8, len(ref)))
+        return ref[i.reshape(len(x), -1), 2].min(axis=1)
+
     T = Props(rng, {})
     n_parked = 0
     static_boxes: list = []
@@ -126,7 +135,7 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
         n_parked = roadside(T, rng, raster, [edges[i] for i in order], info["lanes"], height_at, opt,
                             static_boxes, geometry)
         if float(opt["fill"]) > 0:
-            fill(T, rng, raster, road_mask, height_at, float(opt["fill"]))
+            fill(T, rng, raster, road_mask, heights_at, float(opt["fill"]))
     dt = float(opt["frame_interval"])
     t = np.arange(n_frames) * dt
     ego_route, ego_poses, ego_speed, graph, ego_s0 = ego_drive(rng, info["lanes"], opt, t, od.path)
@@ -136,8 +145,7 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
         n_parked += route_parking(T, rng, raster, [edges[i] for i in order], ego_route.p[:, :2], height_at,
                                   static_boxes, geometry=geometry)
     if T.b._parts or T.b._box_c:
-        rs = T.b.build()
-        parts.append((rs.vertices, rs.faces, rs.labels))
+        parts.append(T.b.arrays())       # checked once, as part of the static mesh below
     offs = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
     static = Mesh(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] + o for p, o in zip(parts, offs)]),
                   np.concatenate([p[2] for p in parts]))

@@ -6,8 +6,7 @@ import math
 
 import numpy as np
 
-from place3d_kernels.mesh import Mesh
-from place3d_kernels.scene.bodies import vehicle_mesh
+from place3d_kernels.scene.bodies import Body, vehicle_body
 from place3d_kernels.scene.opendrive_routes import Route
 from place3d_kernels.scene.primitives import transform
 from place3d_kernels.scene.props import Props
@@ -37,9 +36,17 @@ class Raster:
         """The cells (i, j) of the rectangle's sample points: a grid of half-cell steps over the padded
         rectangle and its far edges, rotated by ``yaw`` about (x, y). Computed as one broadcast pair of
         (u, v) arrays instead of stacked point arrays (a town tries thousands of rectangles): each point's
-        sums and products are the ones the stacked form made, so its cells are too."""
+        sums and products are the ones the stacked form made, so its cells are too. Index arrays (flat, or a
+        column and a row for an unrotated rectangle) for ``occ[i, j]``."""
         u = np.append(np.arange(-w / 2 - pad, w / 2 + pad + 1e-9, self.cell * 0.5), w / 2 + pad)[:, None]
         v = np.append(np.arange(-d / 2 - pad, d / 2 + pad + 1e-9, self.cell * 0.5), d / 2 + pad)[None, :]
+        if yaw == 0.0:
+            # cos 0 = 1 and sin 0 = 0 exactly, so x + u - 0 v and y + 0 u + v are x + u and y + v: a point's row
+            # depends on u alone and its column on v alone, and the cells are every (row, column) pair. They are
+            # returned as a column and a row that index the same cells by broadcasting.
+            i = np.floor((x + u - self.lo[0]) / self.cell).astype(np.int64)
+            j = np.floor((y + v - self.lo[1]) / self.cell).astype(np.int64)
+            return i, j
         c, s = math.cos(yaw), math.sin(yaw)
         px = (x + c * u) - s * v
         py = (y + s * u) + c * v
@@ -59,17 +66,14 @@ class Raster:
         lo0, lo1, cell = float(self.lo[0]), float(self.lo[1]), self.cell
         nx, ny = self.shape[0], self.shape[1]
         occ = self.occ
+        # (one pass: a point outside the raster or on a taken cell refuses the rectangle either way)
         for qx, qy in ((x, y), (x + c * a - s * b, y + s * a + c * b), (x - c * a - s * b, y - s * a + c * b),
                        (x + c * a + s * b, y + s * a - c * b), (x - c * a + s * b, y - s * a - c * b)):
             fi, fj = (qx - lo0) / cell, (qy - lo1) / cell
             if not (math.isfinite(fi) and math.isfinite(fj)):
                 return None
             qi, qj = math.floor(fi), math.floor(fj)
-            if qi < 0 or qj < 0 or qi >= nx or qj >= ny:
-                return None
-        for qx, qy in ((x, y), (x + c * a - s * b, y + s * a + c * b), (x - c * a - s * b, y - s * a + c * b),
-                       (x + c * a + s * b, y + s * a - c * b), (x - c * a + s * b, y - s * a - c * b)):
-            if occ[math.floor((qx - lo0) / cell), math.floor((qy - lo1) / cell)]:
+            if qi < 0 or qj < 0 or qi >= nx or qj >= ny or occ[qi, qj]:
                 return None
         i, j = self._rect_cells(x, y, w, d, yaw, pad)
         if not self._inside(i, j) or occ[i, j].any():
@@ -97,7 +101,7 @@ def road_area_points(static_parts, spacing=0.5):
     return np.concatenate(pts)
 
 
-def _box_of(m: Mesh, x, y, z, yaw):
+def _box_of(m: Body, x, y, z, yaw):
     """World (x, y, z, l, w, h, yaw) box of mesh ``m`` posed at (x, y, z, yaw); z = box centre."""
     lo, hi = m.bounds
     c = (lo + hi) / 2
@@ -117,7 +121,7 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes,
         u = rng.uniform(1.0, 5.0)
         while u < r.length - 5.0:
             if rng.random() < 0.6:
-                m, _ = vehicle_mesh(rng, "car" if rng.random() < 0.85 else "van")
+                m, _ = vehicle_body(rng, "car" if rng.random() < 0.85 else "van")
                 L = float(m.bounds[1, 0] - m.bounds[0, 0])
                 p = r.poses([u + L / 2])[0]
                 T.b.add(transform(m.vertices, p[0], p[1], p[2], yaw=p[5]), m.faces, m.labels)
@@ -167,7 +171,7 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes,
                     T.building(px, py, height_at(x, y), w, dd, rng.uniform(5.0, 22.0), yaw)
                     u += w / 2
             elif r < 0.9 and parked < 400:  # a car parked beside the road
-                m, _ = vehicle_mesh(rng, "car")
+                m, _ = vehicle_body(rng, "car")
                 px, py = x + n[0] * 2.2, y + n[1] * 2.2
                 if raster.take(px, py, 4.8, 2.0, yaw, 0.3):
                     z0 = height_at(x, y)
@@ -250,7 +254,7 @@ def route_parking(T: Props, rng, raster: Raster, edges, route_xy, height_at, box
             x, y, t = pose(u)
             yaw = math.atan2(t[1], t[0])
             n = np.array([-t[1], t[0]]) if np.dot([-t[1], t[0]], nrm) > 0 else np.array([t[1], -t[0]])
-            m, _ = vehicle_mesh(rng, "car" if rng.random() < 0.85 else "van")
+            m, _ = vehicle_body(rng, "car" if rng.random() < 0.85 else "van")
             lo, hi = m.bounds
             px, py = x + n[0] * 2.2, y + n[1] * 2.2
             if rng.random() < 0.7 and raster.take(px, py, hi[0] - lo[0], hi[1] - lo[1], yaw, 0.3):
@@ -262,8 +266,9 @@ def route_parking(T: Props, rng, raster: Raster, edges, route_xy, height_at, box
     return parked
 
 
-def fill(T: Props, rng, raster: Raster, road_mask: np.ndarray, height_at, density: float):
-    """Buildings and trees in the free space between the roads, facing the nearest road."""
+def fill(T: Props, rng, raster: Raster, road_mask: np.ndarray, heights_at, density: float):
+    """Buildings and trees in the free space between the roads, facing the nearest road (``heights_at(x, y)``:
+    the ground heights at arrays of points)."""
     from scipy import ndimage
 
     dist, (ni, nj) = ndimage.distance_transform_edt(~road_mask, return_indices=True)
@@ -271,14 +276,16 @@ def fill(T: Props, rng, raster: Raster, road_mask: np.ndarray, height_at, densit
     lo, cell = raster.lo, raster.cell
 
     def sample(dmin, dmax, n):
+        """Cells drawn in the band, their centres and the ground heights there (all looked up in one query)."""
         ii, jj = np.nonzero((dist >= dmin / cell) & (dist <= dmax / cell))
         if len(ii) == 0:
             return []
         k = rng.integers(0, len(ii), size=n)
-        return list(zip(ii[k], jj[k]))
+        ii, jj = ii[k], jj[k]
+        xs, ys = lo[0] + (ii + 0.5) * cell, lo[1] + (jj + 0.5) * cell
+        return list(zip(ii, jj, xs.tolist(), ys.tolist(), heights_at(xs, ys).tolist()))
 
-    for i, j in sample(5.0, 45.0, int(density * free_area / 250.0)):
-        x, y = lo[0] + (i + 0.5) * cell, lo[1] + (j + 0.5) * cell
+    for i, j, x, y, z0 in sample(5.0, 45.0, int(density * free_area / 250.0)):
         dx, dy = (ni[i, j] - i) * cell, (nj[i, j] - j) * cell
         yaw = math.atan2(dy, dx) + math.pi / 2  # the long side along the road
         w, dd = rng.uniform(10.0, 26.0), rng.uniform(8.0, 18.0)
@@ -286,11 +293,9 @@ def fill(T: Props, rng, raster: Raster, road_mask: np.ndarray, height_at, densit
             continue
         if raster.take(x, y, w, dd, yaw, 1.5):
             h = rng.uniform(4.0, 7.0) if rng.random() < 0.3 else rng.uniform(7.0, 30.0)
-            T.building(x, y, height_at(x, y), w, dd, h, yaw)
-    for i, j in sample(3.0, 80.0, int(density * free_area / 200.0)):
-        x, y = lo[0] + (i + 0.5) * cell, lo[1] + (j + 0.5) * cell
+            T.building(x, y, z0, w, dd, h, yaw)
+    for i, j, x, y, z0 in sample(3.0, 80.0, int(density * free_area / 200.0)):
         if raster.take(x, y, 2.0, 2.0, 0.0, 0.8):
-            z0 = height_at(x, y)
             if rng.random() < 0.85:
                 T.tree(x, y, z0, rng.uniform(0.8, 1.3))
             else:

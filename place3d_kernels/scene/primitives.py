@@ -243,14 +243,18 @@ class MeshBuilder:
         c = (p0 + p1) / 2
         self.add_box(c[0], c[1], z0, length, width, z1 - z0, float(np.arctan2(d[1], d[0])), label)
 
-    def build(self):
-        from place3d_kernels.mesh import Mesh
-
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(vertices, faces, labels) of everything added: the parts in order, then the boxes; not validated
+        (``build`` makes the checked ``Mesh`` of the same arrays)."""
         parts = list(self._parts)
         if self._box_c:
             v, f = boxes(np.array(self._box_c), np.array(self._box_s), np.array(self._box_y))
             parts.append((v, f, np.repeat(np.array(self._box_l, dtype=np.int32), BOX_TRIANGLES)))
         offs = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
-        return Mesh(np.concatenate([p[0] for p in parts]),
-                    np.concatenate([p[1] + o for p, o in zip(parts, offs)]),
-                    np.concatenate([p[2] for p in parts]))
+        return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] + o for p, o in zip(parts, offs)]),
+                np.concatenate([p[2] for p in parts]))
+
+    def build(self):
+        from place3d_kernels.mesh import Mesh
+
+        return Mesh(*self.arrays())

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from place3d_kernels.classes import CLASS_ID
-from place3d_kernels.scene.bodies import template, vehicle_mesh
+from place3d_kernels.scene.bodies import template, vehicle_body
 from place3d_kernels.scene.primitives import MeshBuilder, gable_roof, transform
 
 __all__ = ["Props"]
@@ -152,7 +152,7 @@ class Props:
             self.b.add_segment_box(a, c, 0.06, z0 + 0.42, z0 + 0.75, GUARD_RAIL)
 
     def vehicle(self, x, y, yaw, kind=None, z0=0.0):
-        m, _ = vehicle_mesh(self.rng, kind)
+        m, _ = vehicle_body(self.rng, kind)
         self.b.add(transform(m.vertices, x, y, z0, yaw=yaw), m.faces, m.labels)
 
     def building(self, x, y, z0, w, d, h, yaw=0.0, style=None):

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from place3d_kernels.classes import CLASS_ID
-from place3d_kernels.scene.bodies import vehicle_mesh
+from place3d_kernels.scene.bodies import vehicle_body
 from place3d_kernels.scene.primitives import plane_grid, slab_grid, transform
 from place3d_kernels.scene.props import Props
 from place3d_kernels.scene.town_blocks import BLOCK_KINDS, Occupancy
@@ -111,7 +111,7 @@ def _parking_strip(T: Props, pt, a0, a1, v, yaw_road, along):
     while u < a1 - 14.0:
         if rng.random() < 0.55:
             kind = "car" if rng.random() < 0.85 else "van"
-            m, _ = vehicle_mesh(rng, kind)
+            m, _ = vehicle_body(rng, kind)
             (lo, hi) = m.bounds[:, 0]
             length = hi - lo
             if u + length > a1 - 10.0:
