@@ -41,7 +41,7 @@ Modules: ``xodr_geometry`` and ``xodr`` (parsing), ``opendrive_mesh`` (lanes and
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path as _FsPath
 
 import numpy as np
@@ -50,8 +50,8 @@ from place3d_kernels.classes import CLASS_ID
 from place3d_kernels.mesh import Mesh
 from place3d_kernels.scene.base import Scene
 from place3d_kernels.scene.opendrive_mesh import DRIVING_TYPES, LANE_CLASS, Strips, mesh_road, orient_up
-from place3d_kernels.scene.opendrive_roadside import (Raster, edge_geometry, fill, road_area_points, roadside,
-                                                      route_parking)
+from place3d_kernels.scene.opendrive_roadside import (Raster, RoadDistance, edge_geometry, fill, road_area_points,
+                                                      roadside, route_parking)
 from place3d_kernels.scene.opendrive_traffic import ego_drive, traffic
 from place3d_kernels.scene.props import Props
 from place3d_kernels.scene.xodr import OpenDrive, Road, parse_opendrive
@@ -128,14 +128,13 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
     if opt["roadside"]:
         raster = Raster(lo - 40.0, hi + 40.0, 1.0)
         raster.occ = base.road_occ.copy()
-        road_mask = base.road_occ
         edges = [e for e in info["edges"]]
         order = rng.permutation(len(edges))
         geometry = [info["edge_geometry"][i] for i in order]          # made once per town (_town_base)
         n_parked = roadside(T, rng, raster, [edges[i] for i in order], info["lanes"], height_at, opt,
                             static_boxes, geometry)
         if float(opt["fill"]) > 0:
-            fill(T, rng, raster, road_mask, heights_at, float(opt["fill"]))
+            fill(T, rng, raster, base.road_distance(), heights_at, float(opt["fill"]))
     dt = float(opt["frame_interval"])
     t = np.arange(n_frames) * dt
     ego_route, ego_poses, ego_speed, graph, ego_s0 = ego_drive(rng, info["lanes"], opt, t, od.path)
@@ -180,8 +179,9 @@ _BASE_OPTIONS = ("step", "curb_height", "line_width", "ground", "ground_cell", "
 class _TownBase:
     """What a town's scene is made of before its seed is drawn, the same for every route: the parsed file,
     the meshed lanes, marks and ground (``parts``), the lanes and edges the roadside and traffic use
-    (``info``), the reference line samples and their tree (heights), and the road area on the 1 m raster.
-    Its arrays are read-only: every route's scene reads them and none may change them."""
+    (``info``), the reference line samples and their tree (heights), the road area on the 1 m raster, and
+    what is made from it on first use (``road_distance``). Its arrays are read-only: every route's scene reads
+    them and none may change them."""
 
     od: OpenDrive
     parts: tuple
@@ -191,6 +191,13 @@ class _TownBase:
     lo: np.ndarray
     hi: np.ndarray
     road_occ: np.ndarray
+    _made: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def road_distance(self) -> RoadDistance:
+        """The road raster's ``RoadDistance`` (the fill's), made on the first route that fills."""
+        if "road_distance" not in self._made:
+            self._made["road_distance"] = RoadDistance(self.road_occ)
+        return self._made["road_distance"]
 
 
 #: a few towns' bases, most recent last (the study's four towns fit)

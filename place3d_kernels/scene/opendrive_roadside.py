@@ -11,7 +11,7 @@ from place3d_kernels.scene.opendrive_routes import Route
 from place3d_kernels.scene.primitives import transform
 from place3d_kernels.scene.props import Props
 
-__all__ = ["Raster", "road_area_points", "roadside", "fill", "edge_frame", "edge_geometry", "route_parking"]
+__all__ = ["Raster", "RoadDistance", "road_area_points", "roadside", "fill", "edge_frame", "edge_geometry", "route_parking"]
 
 
 class Raster:
@@ -266,18 +266,41 @@ def route_parking(T: Props, rng, raster: Raster, edges, route_xy, height_at, box
     return parked
 
 
-def fill(T: Props, rng, raster: Raster, road_mask: np.ndarray, heights_at, density: float):
-    """Buildings and trees in the free space between the roads, facing the nearest road (``heights_at(x, y)``:
-    the ground heights at arrays of points)."""
-    from scipy import ndimage
+class RoadDistance:
+    """The distance (in cells) from every raster cell to the nearest road cell and that cell's index, and the
+    cells of distance bands: what ``fill`` draws from. A function of the road raster alone, so a town's base
+    makes it once for all its routes (``opendrive._TownBase.road_distance``); read-only."""
 
-    dist, (ni, nj) = ndimage.distance_transform_edt(~road_mask, return_indices=True)
+    def __init__(self, road_mask: np.ndarray):
+        from scipy import ndimage
+
+        self.dist, (self.ni, self.nj) = ndimage.distance_transform_edt(~road_mask, return_indices=True)
+        for a in (self.dist, self.ni, self.nj):
+            a.setflags(write=False)
+        self._bands: dict = {}
+
+    def band(self, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+        """The cells (i, j) whose distance lies in [lo, hi] cells, in row-major order."""
+        key = (lo, hi)
+        if key not in self._bands:
+            ii, jj = np.nonzero((self.dist >= lo) & (self.dist <= hi))
+            ii.setflags(write=False)
+            jj.setflags(write=False)
+            self._bands[key] = (ii, jj)
+        return self._bands[key]
+
+
+def fill(T: Props, rng, raster: Raster, road: np.ndarray | RoadDistance, heights_at, density: float):
+    """Buildings and trees in the free space between the roads, facing the nearest road (``road``: the road
+    raster, or its ``RoadDistance``; ``heights_at(x, y)``: the ground heights at arrays of points)."""
+    field = road if isinstance(road, RoadDistance) else RoadDistance(road)
+    dist, ni, nj = field.dist, field.ni, field.nj
     free_area = float((dist > 3.0).sum()) * raster.cell ** 2
     lo, cell = raster.lo, raster.cell
 
     def sample(dmin, dmax, n):
         """Cells drawn in the band, their centres and the ground heights there (all looked up in one query)."""
-        ii, jj = np.nonzero((dist >= dmin / cell) & (dist <= dmax / cell))
+        ii, jj = field.band(dmin / cell, dmax / cell)
         if len(ii) == 0:
             return []
         k = rng.integers(0, len(ii), size=n)
