@@ -167,11 +167,56 @@ def _no_task() -> None:
     return None
 
 
+#: what a ``forkserver`` imports once before it forks the workers (``ProcessExecutor(start_method="forkserver")``):
+#: the drive tasks' modules and the SciPy parts of the scene builders. Imports only: no backend, device, thread or
+#: file is made by importing them, so a forked copy is a clean worker.
+FORKSERVER_PRELOAD = ("place3d_kernels.pooled", "place3d_kernels.pipeline", "place3d_kernels.simulate",
+                      "place3d_kernels.scene.opendrive", "place3d_kernels.spec", "scipy.spatial", "scipy.ndimage")
+
+
+def _preload_for(backend: str | None) -> list[str]:
+    """``FORKSERVER_PRELOAD`` plus Warp (imported, not initialised) for a backend that runs on it."""
+    mods = list(FORKSERVER_PRELOAD)
+    name = (backend or "").strip().lower()
+    if name in ("auto", "warp") or name.startswith("warp:"):
+        import importlib.util
+
+        if importlib.util.find_spec("warp") is not None:
+            mods.append("place3d_kernels.backends.warp")
+    return mods
+
+
+#: Environment variable: how the commands' worker processes start, ``spawn`` or ``forkserver`` (default: a
+#: forkserver where the platform has one).
+START_METHOD_ENV = "PLACE3D_START_METHOD"
+
+
+def command_start_method() -> str:
+    """How the commands' worker processes start: ``$PLACE3D_START_METHOD``, else ``"forkserver"`` where this
+    platform has it (Linux, macOS), else ``"spawn"``.
+
+    Raises:
+        ValueError: ``$PLACE3D_START_METHOD`` names another method, or one this platform lacks.
+    """
+    import multiprocessing
+
+    have = multiprocessing.get_all_start_methods()
+    asked = os.environ.get(START_METHOD_ENV, "").strip().lower()
+    if asked:
+        if asked not in ("spawn", "forkserver") or asked not in have:
+            raise ValueError(f"{START_METHOD_ENV}={asked!r}: use spawn or forkserver (this platform has "
+                             f"{', '.join(m for m in have if m != 'fork')})")
+        return asked
+    return "forkserver" if "forkserver" in have else "spawn"
+
+
 class ProcessExecutor(Executor):
     """Worker processes on this machine (``concurrent.futures.ProcessPoolExecutor``), results in task order.
 
     Processes start with ``spawn`` (a fresh interpreter; ``forkserver`` by ``start_method``), never by a plain
-    fork: a forked copy of a process that has started CUDA or OpenCL cannot use them. Tasks and results
+    fork: a forked copy of a process that has started CUDA or OpenCL cannot use them. A ``forkserver`` imports
+    ``_preload_for(backend)`` once and forks every worker from that clean state, so the workers do not each
+    import NumPy, SciPy, Warp and the package (about a second of CPU each). Tasks and results
     cross a pickle boundary, so ``fn`` must be a module-level function and its tasks picklable, as for Ray.
     Several workers share one GPU (each has its own context; Warp and OpenCL allow it).
 
@@ -198,33 +243,68 @@ class ProcessExecutor(Executor):
         self.start_method = start_method
         self._pool = None
         self._started = 0
-        if prestart:
+        self._submitted_futures: list = []     # tasks' futures that may still run (shutdown)
+        self._lock = threading.Lock()           # _ensure and shutdown, which a prestart thread may be in
+        self._server_started = False
+        if prestart and start_method == "forkserver":
+            # the server imports its preload (a second or so) before it forks the first worker, and starting a
+            # worker waits for that fork: the workers are started on a thread, so this process goes on meanwhile
+            self._start_server()
+            threading.Thread(target=self._ensure, args=(self.workers,), daemon=True, name="place3d-workers").start()
+        elif prestart:
             self._ensure(self.workers)
+
+    def _start_server(self) -> None:
+        """Start the forkserver (if this process has none yet) with the workers' environment: every worker
+        forked from it has that environment. Called on the thread that made the executor."""
+        import multiprocessing.forkserver
+
+        self._context()
+        with _worker_environment():
+            multiprocessing.forkserver.ensure_running()
+        self._server_started = True
+
+    def _context(self):
+        import multiprocessing
+
+        ctx = multiprocessing.get_context(self.start_method)
+        if self.start_method == "forkserver":
+            # only read by a forkserver not yet running (one per process; a later executor shares it)
+            ctx.set_forkserver_preload(_preload_for(self.backend))
+        return ctx
+
+    def _environment(self):
+        """``_worker_environment`` where workers are spawned from this process; a forkserver's workers have the
+        server's environment, set when it started (and this process's environment is not changed from a
+        thread, which another thread's C code reading it could meet half-written)."""
+        return _worker_environment() if self.start_method == "spawn" else contextlib.nullcontext()
 
     def _ensure(self, n_tasks: int):
         """The pool, with at least min(n_tasks, workers) processes started."""
         import concurrent.futures
-        import multiprocessing
 
-        if self._pool is None:
-            ctx = multiprocessing.get_context(self.start_method)
-            self._pool = concurrent.futures.ProcessPoolExecutor(self.workers, mp_context=ctx,
-                                                                initializer=_start_worker,
-                                                                initargs=(self.backend,))
-        want = min(max(n_tasks, 1), self.workers)
-        if self._started < want:
-            with _worker_environment():
-                # one empty task per missing worker: a pool of spawned processes starts one per task while
-                # none is idle; each runs the initializer before anything else
-                for _ in range(want - self._started):
-                    self._pool.submit(_no_task)
-            self._started = want
-        return self._pool
+        with self._lock:
+            if self._pool is None:
+                if self.start_method == "forkserver" and not self._server_started:
+                    self._start_server()
+                self._pool = concurrent.futures.ProcessPoolExecutor(self.workers, mp_context=self._context(),
+                                                                    initializer=_start_worker,
+                                                                    initargs=(self.backend,))
+            want = min(max(n_tasks, 1), self.workers)
+            if self._started < want:
+                with self._environment():
+                    # one empty task per missing worker: a pool of spawned processes starts one per task while
+                    # none is idle; each runs the initializer before anything else
+                    for _ in range(want - self._started):
+                        self._pool.submit(_no_task)
+                self._started = want
+            return self._pool
 
     def _map(self, fn, tasks, num_gpus) -> list:
         pool = self._ensure(len(tasks))
-        with _worker_environment():
+        with self._environment():
             futures = [pool.submit(fn, t) for t in tasks]
+        self._track(futures)
         try:
             return [f.result() for f in futures]
         except BaseException:
@@ -236,16 +316,33 @@ class ProcessExecutor(Executor):
         """``fn(task)`` on a worker, without waiting: a ``concurrent.futures.Future`` of its result."""
         self.submitted += 1
         pool = self._ensure(1)
-        with _worker_environment():
-            return pool.submit(fn, task)
+        with self._environment():
+            future = pool.submit(fn, task)
+        self._track([future])
+        return future
+
+    def _track(self, futures) -> None:
+        self._submitted_futures = [f for f in self._submitted_futures if not f.done()] + list(futures)
 
     def shutdown(self, wait: bool = True) -> None:
-        """Stop the workers; ``wait=False`` returns at once while they exit (the interpreter joins them at
-        its exit). A later ``map`` starts new ones."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=wait, cancel_futures=True)
-        self._pool = None
-        self._started = 0
+        """Stop the workers. ``wait=False`` returns at once: workers with nothing left to do (every task
+        submitted here has returned) are ended at once, as nothing of theirs can be lost (a drive task returns
+        only once its cache files are written); otherwise they are asked to exit after their tasks (the
+        interpreter joins them at its exit). Ending them spares the command's exit their own: with a GPU
+        backend, 16 workers tearing down 16 device contexts. A later ``map`` starts new ones."""
+        with self._lock:
+            pool, self._pool, self._started = self._pool, None, 0
+        if pool is None:
+            return
+        idle = all(f.done() for f in self._submitted_futures)
+        self._submitted_futures = []
+        processes = list((getattr(pool, "_processes", None) or {}).values()) if not wait and idle else []
+        pool.shutdown(wait=wait, cancel_futures=True)
+        for proc in processes:
+            try:
+                proc.terminate()
+            except (ProcessLookupError, ValueError):    # gone already, or closed
+                pass
 
 
 def _import_ray():
@@ -395,7 +492,8 @@ def executor_from_args(args, tasks: int | None = None, backend=None) -> Executor
     if kind == "process":
         n = default_workers() if tasks is None else max(1, min(default_workers(), tasks))
         # started now: the workers import the package and resolve the backend while this process does too
-        return ProcessExecutor(n, backend=str(backend or "auto"), prestart=True)
+        return ProcessExecutor(n, backend=str(backend or "auto"), prestart=True,
+                               start_method=command_start_method())
     if kind == "ray":
         try:
             return get_executor("ray", getattr(args, "ray_address", None), getattr(args, "num_cpus", None),

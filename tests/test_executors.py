@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 
 import numpy as np
 import pytest
@@ -23,13 +24,15 @@ def _same_records(a, b) -> None:
             assert x.dtype == y.dtype and np.array_equal(x, y), (ra.label, field)
 
 
-def test_process_pool_is_the_local_pool_bit_for_bit(device_backend):
+@pytest.mark.parametrize("start_method", ["spawn", "forkserver"])
+def test_process_pool_is_the_local_pool_bit_for_bit(device_backend, start_method):
     # three routes of the embedded town, of different lengths, so that a pool put together in another order
-    # than the drives' would differ; a fresh build in every worker (no cache to read)
+    # than the drives' would differ; a fresh build in every worker (no cache to read); workers spawned, or forked
+    # from a server that imported the package, SciPy and Warp first (the commands' default on Linux)
     settings = PoolSettings(0.8, "collection_64ch", 4, device_backend, False)
     drives = [Drive("town", seed=s, frames=f) for s, f in ((0, 8), (1, 4), (2, 8))]
     local = build_pooled(drives, settings, executor=LocalExecutor())
-    with ProcessExecutor(2, backend=device_backend) as ex:
+    with ProcessExecutor(2, backend=device_backend, start_method=start_method) as ex:
         procs = build_pooled(drives, settings, executor=ex)
         assert ex.submitted == 2          # two routes of one town a task (scene_groups)
     _same_records(procs, local)
@@ -108,3 +111,49 @@ def test_reproduce_defaults_to_auto_and_takes_process():
     reproduce.add_arguments(p)
     assert p.parse_args([]).executor == "auto"
     assert p.parse_args(["--executor", "process"]).executor == "process"
+
+
+def test_commands_start_workers_from_a_forkserver_unless_told(monkeypatch, no_spawn):
+    monkeypatch.setattr(executors, "usable_cores", lambda: 4)
+    monkeypatch.delenv(executors.START_METHOD_ENV, raising=False)
+    assert executors.command_start_method() == "forkserver"          # Linux, where CI runs
+    assert executor_from_args(_args(), tasks=8, backend="warp:cpu").start_method == "forkserver"
+    monkeypatch.setenv(executors.START_METHOD_ENV, "spawn")
+    assert executor_from_args(_args(), tasks=8).start_method == "spawn"
+    for bad in ("fork", "threads"):                 # a plain fork copies a started CUDA or OpenCL: refused
+        monkeypatch.setenv(executors.START_METHOD_ENV, bad)
+        with pytest.raises(ValueError, match=executors.START_METHOD_ENV):
+            executor_from_args(_args(), tasks=8)
+
+
+def test_the_forkserver_preloads_warp_only_for_warp_backends():
+    assert "place3d_kernels.backends.warp" in executors._preload_for("warp:cuda:0")
+    assert "place3d_kernels.backends.warp" in executors._preload_for("auto")
+    for name in ("opencl:pocl", "reference", None):
+        mods = executors._preload_for(name)
+        assert "place3d_kernels.backends.warp" not in mods and "place3d_kernels.pooled" in mods
+
+
+def test_forkserver_workers_have_the_worker_environment_and_this_process_keeps_its_own(monkeypatch):
+    # the workers are started on a thread (prestart): the server, started before, holds their environment
+    for k in executors.WORKER_ENV:
+        monkeypatch.delenv(k, raising=False)
+    with ProcessExecutor(2, start_method="forkserver", prestart=True) as ex:
+        assert all(os.environ.get(k) is None for k in executors.WORKER_ENV)
+        assert ex.map(os.getenv, list(executors.WORKER_ENV)) == list(executors.WORKER_ENV.values())
+        assert all(os.environ.get(k) is None for k in executors.WORKER_ENV)
+
+
+def test_an_idle_pool_is_ended_at_once_and_a_busy_one_finishes(tmp_path):
+    import time
+
+    ex = ProcessExecutor(2, start_method="forkserver")
+    assert ex.map(abs, [-1, -2]) == [1, 2]
+    procs = list(ex._pool._processes.values())
+    ex.shutdown(wait=False)                             # nothing pending: the workers are ended
+    for p in procs:
+        p.join(timeout=10)
+    assert all(p.exitcode is not None and p.exitcode < 0 for p in procs)    # by a signal, not by exiting
+    f = ex.submit(time.sleep, 0.5)                      # a later submit starts new workers
+    ex.shutdown(wait=False)                             # a task still runs: it is let finish
+    assert f.result(timeout=30) is None
