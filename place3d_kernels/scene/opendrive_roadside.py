@@ -139,7 +139,7 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes,
         while u < s[-1] - 2.0:
             x, y, t = pose(u)
             yaw = math.atan2(t[1], t[0])
-            n = np.array([-t[1], t[0]]) if np.dot([-t[1], t[0]], nrm) > 0 else np.array([t[1], -t[0]])
+            n = (-t[1], t[0]) if np.dot([-t[1], t[0]], nrm) > 0 else (t[1], -t[0])
             out_yaw = math.atan2(-n[1], -n[0])  # facing the road
             r = rng.random()
             # the ground height at the edge point, looked up only for an object that is placed
@@ -203,13 +203,16 @@ def edge_frame(e, raster: Raster, geometry=None):
     if s[-1] < 6.0:
         return None
 
+    ex, ey = np.ascontiguousarray(e[:, 0]), np.ascontiguousarray(e[:, 1])     # np.interp copies a strided column
+
     def pose(u):
-        x = np.interp(u, s, e[:, 0])
-        y = np.interp(u, s, e[:, 1])
+        # Python floats out: the placement loops' scalar arithmetic on them is NumPy's on float64 scalars, faster
+        x = float(np.interp(u, s, ex))
+        y = float(np.interp(u, s, ey))
         k = min(int(np.searchsorted(s, u, side="right")) - 1, len(d) - 1)
         k = max(k, 0)
         t = d[k] / max(seg[k], 1e-9)
-        return x, y, t
+        return x, y, (float(t[0]), float(t[1]))
 
     # the outward side: edges are polylines of the outer lane border; the outward normal points
     # away from the road, found from the raster (the side that is free)
@@ -253,7 +256,7 @@ def route_parking(T: Props, rng, raster: Raster, edges, route_xy, height_at, box
         while u < u_end:
             x, y, t = pose(u)
             yaw = math.atan2(t[1], t[0])
-            n = np.array([-t[1], t[0]]) if np.dot([-t[1], t[0]], nrm) > 0 else np.array([t[1], -t[0]])
+            n = (-t[1], t[0]) if np.dot([-t[1], t[0]], nrm) > 0 else (t[1], -t[0])
             m, _ = vehicle_body(rng, "car" if rng.random() < 0.85 else "van")
             lo, hi = m.bounds
             px, py = x + n[0] * 2.2, y + n[1] * 2.2
