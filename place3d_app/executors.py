@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -187,13 +188,14 @@ def _preload_for(backend: str | None) -> list[str]:
 
 
 #: Environment variable: how the commands' worker processes start, ``spawn`` or ``forkserver`` (default: a
-#: forkserver where the platform has one).
+#: forkserver on Linux, see ``command_start_method``).
 START_METHOD_ENV = "PLACE3D_START_METHOD"
 
 
 def command_start_method() -> str:
-    """How the commands' worker processes start: ``$PLACE3D_START_METHOD``, else ``"forkserver"`` where this
-    platform has it (Linux, macOS), else ``"spawn"``.
+    """How the commands' worker processes start: ``$PLACE3D_START_METHOD``, else ``"forkserver"`` on Linux, else
+    ``"spawn"`` (macOS has a forkserver, but a process forked after Apple's system frameworks were loaded, as
+    NumPy's Accelerate build loads them, may crash: Python spawns there by default for that reason).
 
     Raises:
         ValueError: ``$PLACE3D_START_METHOD`` names another method, or one this platform lacks.
@@ -207,7 +209,7 @@ def command_start_method() -> str:
             raise ValueError(f"{START_METHOD_ENV}={asked!r}: use spawn or forkserver (this platform has "
                              f"{', '.join(m for m in have if m != 'fork')})")
         return asked
-    return "forkserver" if "forkserver" in have else "spawn"
+    return "forkserver" if sys.platform.startswith("linux") and "forkserver" in have else "spawn"
 
 
 class ProcessExecutor(Executor):
@@ -336,6 +338,10 @@ class ProcessExecutor(Executor):
             return
         idle = all(f.done() for f in self._submitted_futures)
         self._submitted_futures = []
+        if not wait and idle and hasattr(pool, "terminate_workers"):       # Python 3.14
+            pool.terminate_workers()
+            return
+        # before 3.14 the pool names its processes only in a private mapping (CPython's, since 3.2)
         processes = list((getattr(pool, "_processes", None) or {}).values()) if not wait and idle else []
         pool.shutdown(wait=wait, cancel_futures=True)
         for proc in processes:

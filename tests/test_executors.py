@@ -116,7 +116,11 @@ def test_reproduce_defaults_to_auto_and_takes_process():
 def test_commands_start_workers_from_a_forkserver_unless_told(monkeypatch, no_spawn):
     monkeypatch.setattr(executors, "usable_cores", lambda: 4)
     monkeypatch.delenv(executors.START_METHOD_ENV, raising=False)
-    assert executors.command_start_method() == "forkserver"          # Linux, where CI runs
+    monkeypatch.setattr(executors.sys, "platform", "linux")
+    assert executors.command_start_method() == "forkserver"
+    monkeypatch.setattr(executors.sys, "platform", "darwin")          # spawned where forks of frameworks crash
+    assert executors.command_start_method() == "spawn"
+    monkeypatch.setattr(executors.sys, "platform", "linux")
     assert executor_from_args(_args(), tasks=8, backend="warp:cpu").start_method == "forkserver"
     monkeypatch.setenv(executors.START_METHOD_ENV, "spawn")
     assert executor_from_args(_args(), tasks=8).start_method == "spawn"
