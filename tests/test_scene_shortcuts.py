@@ -81,7 +81,7 @@ def test_the_fills_batched_heights_are_the_one_point_queries():
         raster = Raster(base.lo - 40.0, base.hi + 40.0, 1.0)
         raster.occ = base.road_occ.copy()
         T = Props(rng, {})
-        fill(T, rng, raster, base.road_occ, heights, 0.3)
+        fill(T, rng, raster, base.road_distance(), heights, 0.3)
         out.append((T.b.arrays(), raster.occ))
     (a, occ_a), (b, occ_b) = out
     assert len(a[0]) > 1000

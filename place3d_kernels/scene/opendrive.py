@@ -109,18 +109,11 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
     rng = np.random.default_rng(seed)
     parts = list(base.parts)
 
-    def height_at(x, y):
-        d, i = ref_tree.query([x, y], k=min(8, len(ref)))
-        return float(np.min(ref[np.atleast_1d(i), 2]))
-
     def heights_at(x, y):
-        """``height_at`` of many points in one query (a KD-tree query answers each point alone: the same
-        neighbours, so the same heights)."""
-        x, y = np.asarray(x, float), np.asarray(y, float)
-        if len(x) == 0:
-            return np.zeros(0)
-        _, i = ref_tree.query(np.stack([x, y], 1), k=min(8, len(ref)))
-        return ref[i.reshape(len(x), -1), 2].min(axis=1)
+        return _lowest_ref_z(ref, ref_tree, np.stack([np.asarray(x, float), np.asarray(y, float)], 1))
+
+    def height_at(x, y):
+        return float(heights_at([x], [y])[0])
 
     T = Props(rng, {})
     n_parked = 0
@@ -264,6 +257,16 @@ def _arrays(*objs):
             yield from _arrays(*o.values())
 
 
+def _lowest_ref_z(ref, ref_tree, xy: np.ndarray) -> np.ndarray:
+    """The lowest height of the 8 reference-line samples nearest each of the (N, 2) points ``xy``: the ground
+    height of the town's terrain, roadside and fill. One KD-tree query for all (it answers each point alone,
+    so a point's height does not depend on the others asked with it)."""
+    if len(xy) == 0:
+        return np.zeros(0)
+    _, idx = ref_tree.query(xy, k=min(8, len(ref)))
+    return ref[idx.reshape(len(xy), -1), 2].min(axis=1)
+
+
 def _ground(ref, ref_tree, lo, hi, margin, cell):
     """A terrain height field over the map plus ``margin``, 0.03 m under the lowest of the 8 nearest
     reference-line samples (so it never covers a road)."""
@@ -271,9 +274,7 @@ def _ground(ref, ref_tree, lo, hi, margin, cell):
     ys = np.arange(lo[1] - margin, hi[1] + margin + cell, cell)
     X, Y = np.meshgrid(xs, ys, indexing="ij")
     q = np.stack([X.ravel(), Y.ravel()], 1)
-    k = min(8, len(ref))
-    _, idx = ref_tree.query(q, k=k)
-    zg = ref[idx.reshape(len(q), -1), 2].min(axis=1) - 0.03
+    zg = _lowest_ref_z(ref, ref_tree, q) - 0.03
     gv = np.stack([q[:, 0], q[:, 1], zg], 1)
     I, J = np.meshgrid(np.arange(len(xs) - 1), np.arange(len(ys) - 1), indexing="ij")
     I, J = I.ravel(), J.ravel()

@@ -293,10 +293,9 @@ class RoadDistance:
         return self._bands[key]
 
 
-def fill(T: Props, rng, raster: Raster, road: np.ndarray | RoadDistance, heights_at, density: float):
-    """Buildings and trees in the free space between the roads, facing the nearest road (``road``: the road
-    raster, or its ``RoadDistance``; ``heights_at(x, y)``: the ground heights at arrays of points)."""
-    field = road if isinstance(road, RoadDistance) else RoadDistance(road)
+def fill(T: Props, rng, raster: Raster, field: RoadDistance, heights_at, density: float):
+    """Buildings and trees in the free space between the roads, facing the nearest road (``field``: the road
+    raster's ``RoadDistance``; ``heights_at(x, y)``: the ground heights at arrays of points)."""
     dist, ni, nj = field.dist, field.ni, field.nj
     free_area = float((dist > 3.0).sum()) * raster.cell ** 2
     lo, cell = raster.lo, raster.cell
