@@ -12,7 +12,8 @@ tree, filled by one untimed small run first (issue 36's goal is stated with a wa
 the variants (each tree, with each of ``--executors``) alternate. The command's own split (``seconds``: pool, jackknife, total) comes from its
 ``reproduce.json`` (and ``convergence``, what the command still spent on that table after the jackknife, where the
 checkout records it); every run's study numbers (``tasks``, ``convergence``: scores, intervals, taus) must be
-the same to the last digit across runs and variants (``same_results``).
+the same to the last digit across runs and variants (``same_results``; an A/B that changes them on purpose reads
+``same_results_within_variant``).
 
 Writes ``bench/results/reproduce-pool-<machine>-<date>.json`` (or ``$OUT`` / ``--out``), rewritten after every
 run so a run cut short by a time limit keeps the runs before it.
@@ -91,6 +92,7 @@ def main(argv=None) -> int:
     per: dict[str, dict] = {vname(t, e): {"wall_s": [], "pool_s": [], "jackknife_s": [], "convergence_s": [],
                                           "total_s": [], "executor": None} for t, e in variants}
     studies: list[dict] = []
+    by_variant: dict[str, list[dict]] = {k: [] for k in per}     # each variant's studies, for A/Bs that change them
     with tempfile.TemporaryDirectory() as scratch:
         warp = {t: Path(scratch, f"warp{i}") for i, t in enumerate(trees)}
         for t in trees:         # kernels compiled into each tree's cache, untimed
@@ -110,6 +112,7 @@ def main(argv=None) -> int:
                 r["executor"] = res["settings"].get("executor")
                 studies.append({"tasks": {k: {f: v for f, v in d.items()} for k, d in res["tasks"].items()},
                                 "convergence": res["convergence"]})
+                by_variant[vname(t, e)].append(studies[-1])
                 print(f"run {i + 1} {vname(t, e)}: wall {wall:.1f} s, {res['seconds']} on {r['executor']}", file=sys.stderr,
                       flush=True)
                 record = {"command": "place3d reproduce " + " ".join(cmd) + " --quiet --output DIR",
@@ -117,7 +120,9 @@ def main(argv=None) -> int:
                                                                           for m in ("wall", "pool", "jackknife",
                                                                                     "convergence", "total")}}
                                                                for k, v in per.items()},
-                          "same_results": all(s == studies[0] for s in studies), "runs_done": i + 1,
+                          "same_results": all(s == studies[0] for s in studies),
+                          "same_results_within_variant": {k: all(s == v[0] for s in v) for k, v in by_variant.items()},
+                          "runs_done": i + 1,
                           "note": "empty P-SOG cache per run, warm kernel cache; variants alternate"}
                 write_result(name, record, a.machine, path=path)
     for k, v in per.items():

@@ -211,10 +211,9 @@ def raycast(mesh: Mesh, origins, directions, t_max=np.inf, backend=None) -> Hits
 
 class MeshGroups:
     """Meshes cast through one acceleration structure with a subtree per mesh (``cast``): one build for them
-    all, and one launch pair for the rays of several, instead of one of each per mesh. A ray meets only its
-    own mesh's triangles, with that mesh's shift, so its hit is that mesh's ``raycast`` hit, except that
-    among faces tied at the hit (shared edges and vertices) the tree may pick another, as two backends'
-    trees may (tests/test_raycast_groups.py).
+    all, and one launch for the rays of several, instead of one of each per mesh. A ray meets only its own
+    mesh's triangles, with that mesh's shift, so its hit is that mesh's ``raycast`` hit, bit for bit (float64
+    decides among tied faces, whatever the tree; tests/test_raycast_groups.py).
 
     ``available`` is False on backends without grouped casts (``upload_mesh_groups``); cast with
     ``raycast`` per mesh there.

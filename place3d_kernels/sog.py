@@ -27,9 +27,10 @@ from place3d_kernels.pose import invert, pose_matrix, transform_points
 __all__ = ["PSOG", "entropy", "cache_dir", "cache_key", "keep_loaded", "subset_groups", "subset_votes",
            "pool_votes"]
 
-_FORMAT = 4  # bump when the on-disk layout or the build changes (2: float64 voxel binning; 3: ray-mesh
+_FORMAT = 5  # bump when the on-disk layout or the build changes (2: float64 voxel binning; 3: ray-mesh
              # distances from the reference formula on every backend, so P-SOGs agree across backends;
-             # 4: subset counts stored as their occupied entries, ``save``)
+             # 4: subset counts stored as their occupied entries, ``save``; 5: float64 decides which
+             # triangle a ray hits, the reference's face on every backend)
 
 
 #: P-SOGs read by ``PSOG.load``, kept by file identity while ``keep_loaded(n)`` allows (``place3d serve``)

@@ -1,6 +1,6 @@
 """``ops.MeshGroups``: several meshes in one grouped tree, each block of rays confined to its own mesh, gives
-each block's ``raycast`` hits (tree order among tied faces aside); ``simulate`` through it gives the frames
-of the per-frame casts."""
+each block's ``raycast`` hits bit for bit (float64 decides among tied faces, so the tree's order does not
+matter); ``simulate`` through it gives the frames of the per-frame casts."""
 
 from __future__ import annotations
 
@@ -64,12 +64,10 @@ def test_blocks_get_their_own_meshes_hits(name, rng):
         assert t.dtype == want.t.dtype and f.dtype == want.face.dtype and lab.dtype == want.label.dtype
         np.testing.assert_array_equal(np.isfinite(t), want.hit)
         assert want.hit.sum() > 0.9 * r
-        same = f == want.face
-        # the same face: the same distance bits and label; another face: a tie at that distance
-        np.testing.assert_array_equal(t[same], want.t[same])
-        np.testing.assert_array_equal(lab[same], want.label[same])
-        np.testing.assert_allclose(t[~same], want.t[~same], rtol=1e-12, atol=0)
-        assert same.mean() > 0.8
+        # rays aimed at shared edges and vertices too: the same face, distance bits and label
+        np.testing.assert_array_equal(f, want.face)
+        np.testing.assert_array_equal(t, want.t)
+        np.testing.assert_array_equal(lab, want.label)
 
 
 @needs_grouped

@@ -1,18 +1,22 @@
 """OpenCL ray-mesh: the face reported does not depend on the BVH or on the order it is walked in.
 
 Rays aimed exactly at the shared vertices and edges of a terraced grid hit several triangles at the
-same float distance. The kernels' rule is the order-free one: smallest float32 distance, then lowest
-face id. Each BVH width walks the tree in its own order, so a culling step that is not conservative
-shows up as a difference between the widths or against a float32 emulation of the triangle test over
-every face (NumPy float32 arithmetic rounds each operation as the kernel does, which compiles with
-FP_CONTRACT OFF). Before the pop test got the box test's slack, 3 of these rays differed between the
-widths and 5 broke the rule.
+same distance. The kernels' rule is the order-free one: smallest distance, then lowest face id. With
+doubles (the default) the distance is the reference's float64 one, so both BVH widths must give the
+reference backend's hits bit for bit; on the float32 path (``fp64=False``) it is the float32 distance,
+checked against a float32 emulation of the triangle test over every face (NumPy float32 arithmetic rounds
+each operation as the kernel does, which compiles with FP_CONTRACT OFF). Each BVH width walks the tree in
+its own order, so a culling step that is not conservative shows up as a difference between the widths or
+against the rule. Before the pop test got the box test's slack, 3 of these rays differed between the
+widths and 5 broke the float32 rule; before float64 decided, the default path kept that float32 rule.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from place3d_kernels.backends.geometry import brute_force_raycast
 
 try:
     from place3d_kernels.backends.opencl import OpenCLBackend, opencl_devices
@@ -96,6 +100,13 @@ def test_shared_edge_hits_do_not_depend_on_the_tree(device, fp64):
         out[width] = b.raycast(b.upload_mesh(v, f), o, d, tm)
     assert np.array_equal(out[2][1], out[4][1]), np.flatnonzero(out[2][1] != out[4][1])[:10]
     assert np.array_equal(out[2][0], out[4][0])
+    if b.fp64:
+        # float64 decides: the reference's hits on every ray, on every device (double division and
+        # square root are correctly rounded in OpenCL C)
+        t, face = brute_force_raycast(v, f, o, d, tm)
+        assert np.array_equal(out[4][1], face), np.flatnonzero(out[4][1] != face)[:10]
+        assert np.array_equal(out[4][0], t)
+        return
     # The float32 oracle rounds a division as IEEE does; OpenCL lets a GPU's float division be off by
     # up to 2.5 ulp (unless built with -cl-fp32-correctly-rounded-divide-sqrt), so the distances of tied
     # triangles, and with them the winner, can differ there. The widths must agree everywhere.

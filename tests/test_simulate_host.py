@@ -158,8 +158,8 @@ def test_sweeps_cast_together_equal_one_sweep_per_call(town, monkeypatch, sweeps
     lidar = LidarModel.load("collection_64ch")
     b = get_backend(None)
     monkeypatch.setattr(SIM, "SWEEP_BATCH_RAYS", sweeps_per_call * 64 * 1024)
-    # each frame's actors in a tree of their own, as _per_frame casts them: a grouped tree (on CUDA another
-    # builder) may pick another of two tied faces (tests/test_raycast_groups.py holds it to that)
+    # each frame's actors in a tree of their own, as _per_frame casts them (tests/test_raycast_groups.py holds
+    # a grouped tree to the same hits)
     monkeypatch.setenv(SIM.ACTOR_GROUPS_ENV, "0")
     frames = [4, 0, 1, 3, 2]
     _same_frames(simulate(town, lidar, frames=frames, backend=b), _per_frame(town, lidar, frames, b), town, frames)

@@ -56,9 +56,10 @@ class CLMesh:
             raise ValueError(f"face ids must lie in [0, 2**31), got [{face_ids.min()}, {face_ids.max()}]")
         self.face_ids = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=face_ids.astype(np.int32))
         self.face_labels = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=labels)
-        if backend.fp64:  # float64 mesh for the final hit distance
+        if backend.fp64:  # the float64 mesh that decides the hits, and its reach (raycast.cl, ray_init)
             self.verts64 = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=vertices)
             self.faces32 = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=faces)
+            self.reach = float(np.abs(vertices).max()) if vertices.size else 0.0
 
     def __repr__(self) -> str:
         tree = self.bvh4 if self.width == 4 else self.bvh
@@ -369,7 +370,7 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
                 np.int32(t_step), *(self.real(x) for x in shift), tb, fb, lb, mesh.face_ids, mesh.face_labels,
                 np.int32(map_faces), flags, np.int32(len(d))]
         if self.fp64:
-            args += [mesh.verts64, mesh.faces32]
+            args += [mesh.verts64, mesh.faces32, np.float64(mesh.reach)]
         return args
 
     def raycast(self, mesh, origins, directions, t_max):

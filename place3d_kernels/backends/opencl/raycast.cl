@@ -13,6 +13,14 @@
  *   of the three 2D edge functions. An edge function that is exactly 0 in float is recomputed in double
  *   (products of floats are exact in double), so the two triangles sharing an edge agree on its side.
  * - Equal distances go to the lower original face id, so results do not depend on traversal order.
+ * - With doubles (HAVE_FP64) the float32 tree only proposes triangles and float64 decides: every box test
+ *   grows the box by a radius (``rad``, 4e-6 of the ray origin's and the mesh's coordinate reach) that
+ *   covers the float32 rounding of the origin, the direction and the boxes, so no box culls a triangle
+ *   the float64 ray meets; each proposed triangle gets the reference's float64 watertight test
+ *   (backends/geometry.py, watertight_intersect, operation for operation); the smallest float64 t wins,
+ *   ties to the lower face id. The hit and its face are then the reference's, bit for bit, whatever the
+ *   tree and the order it is walked in. Without doubles the float32 test decides (and a face at a
+ *   grazing angle or a near tie can differ from the reference's).
  * - A ray that would overflow the stack (impossible for trees of the builder; checked anyway) reports
  *   face -2 (and sets flag slot 3) and the host traces it again.
  * - With a face map (map_faces, ``raycast_checked``) faces are written as 64-bit integers, the API's dtype,
@@ -28,6 +36,14 @@ typedef struct {
     float ix, iy, iz;         /* 1 / direction (components below 1e-20 clamped, box test only) */
     int kx, ky, kz;           /* axis permutation: kz = dominant direction axis */
     float sx, sy, sz;         /* shear constants */
+    float lx, ly, lz;         /* origin + rad: subtracted from a box's low planes (the box grown by rad) */
+    float hx, hy, hz;         /* origin - rad: subtracted from its high planes */
+    float rad;                /* box growth (0 without doubles) */
+#ifdef HAVE_FP64
+    double dox, doy, doz;     /* the float64 ray: origin */
+    int dkx, dky, dkz;        /* its axis permutation */
+    double dsx, dsy, dsz;     /* its shear constants */
+#endif
 } ray_t;
 
 ALWAYS_INLINE float comp3(float x, float y, float z, int k) { return k == 0 ? x : (k == 1 ? y : z); }
@@ -35,9 +51,9 @@ ALWAYS_INLINE float comp3(float x, float y, float z, int k) { return k == 0 ? x 
 /* slab test of box lo/hi (6 floats at b) against [0, best]; tnear out */
 ALWAYS_INLINE bool slab(__global const float* b, const ray_t* r, float best, float* tnear)
 {
-    float tx0 = (b[0] - r->ox) * r->ix, tx1 = (b[3] - r->ox) * r->ix;
-    float ty0 = (b[1] - r->oy) * r->iy, ty1 = (b[4] - r->oy) * r->iy;
-    float tz0 = (b[2] - r->oz) * r->iz, tz1 = (b[5] - r->oz) * r->iz;
+    float tx0 = (b[0] - r->lx) * r->ix, tx1 = (b[3] - r->hx) * r->ix;
+    float ty0 = (b[1] - r->ly) * r->iy, ty1 = (b[4] - r->hy) * r->iy;
+    float tz0 = (b[2] - r->lz) * r->iz, tz1 = (b[5] - r->hz) * r->iz;
     float tn = MAXF(MAXF(MINF(tx0, tx1), MINF(ty0, ty1)), MAXF(MINF(tz0, tz1), 0.0f));
     float tf = MINF(MINF(MAXF(tx0, tx1), MAXF(ty0, ty1)), MINF(MAXF(tz0, tz1), best)) * 1.0000004f;
     *tnear = tn;
@@ -96,44 +112,41 @@ ALWAYS_INLINE bool tri_hit(__global const float* tri, const ray_t* r, float best
 #ifdef HAVE_FP64
 ALWAYS_INLINE double comp3d(double x, double y, double z, int k) { return k == 0 ? x : (k == 1 ? y : z); }
 
-/* Distance to the hit face in double, with the reference's formula (Woop et al. in float64). Components
- * are picked with selects, not private arrays indexed at run time (which CPUs keep in memory and GPUs
- * in local memory). */
-ALWAYS_INLINE double refine_t(__global const double* verts, __global const int* faces, int f, double3 o, double3 d,
-                       double t_float)
+/* Face f against the float64 ray with the reference's test and formula (Woop et al. in float64,
+ * backends/geometry.py watertight_intersect): its t in [0, tm], or INFINITY for a miss. Components are
+ * picked with selects, not private arrays indexed at run time (which CPUs keep in memory and GPUs in
+ * local memory). */
+ALWAYS_INLINE double tri_t64(__global const double* verts, __global const int* faces, int f, const ray_t* r,
+                             double tm)
 {
-    double ax = absd(d.x), ay = absd(d.y), az = absd(d.z);
-    int kz = 0;
-    if (ay > ax) kz = 1;
-    if (az > comp3d(ax, ay, az, kz)) kz = 2;
-    int kx = kz == 2 ? 0 : kz + 1, ky = kx == 2 ? 0 : kx + 1;
-    double dz = comp3d(d.x, d.y, d.z, kz);
-    if (dz < 0.0) { int tmp = kx; kx = ky; ky = tmp; }
-    double sx = comp3d(d.x, d.y, d.z, kx) / dz, sy = comp3d(d.x, d.y, d.z, ky) / dz, sz = 1.0 / dz;
-    double okx = comp3d(o.x, o.y, o.z, kx), oky = comp3d(o.x, o.y, o.z, ky), okz = comp3d(o.x, o.y, o.z, kz);
+    const int kx = r->dkx, ky = r->dky, kz = r->dkz;
     __global const int* fv = faces + 3 * (long)f;
     __global const double* v0 = verts + 3 * (long)fv[0];
     __global const double* v1 = verts + 3 * (long)fv[1];
     __global const double* v2 = verts + 3 * (long)fv[2];
+    double okx = comp3d(r->dox, r->doy, r->doz, kx), oky = comp3d(r->dox, r->doy, r->doz, ky);
+    double okz = comp3d(r->dox, r->doy, r->doz, kz);
     double rz0 = comp3d(v0[0], v0[1], v0[2], kz) - okz;
     double rz1 = comp3d(v1[0], v1[1], v1[2], kz) - okz;
     double rz2 = comp3d(v2[0], v2[1], v2[2], kz) - okz;
-    double px0 = (comp3d(v0[0], v0[1], v0[2], kx) - okx) - sx * rz0;
-    double py0 = (comp3d(v0[0], v0[1], v0[2], ky) - oky) - sy * rz0;
-    double px1 = (comp3d(v1[0], v1[1], v1[2], kx) - okx) - sx * rz1;
-    double py1 = (comp3d(v1[0], v1[1], v1[2], ky) - oky) - sy * rz1;
-    double px2 = (comp3d(v2[0], v2[1], v2[2], kx) - okx) - sx * rz2;
-    double py2 = (comp3d(v2[0], v2[1], v2[2], ky) - oky) - sy * rz2;
+    double px0 = (comp3d(v0[0], v0[1], v0[2], kx) - okx) - r->dsx * rz0;
+    double py0 = (comp3d(v0[0], v0[1], v0[2], ky) - oky) - r->dsy * rz0;
+    double px1 = (comp3d(v1[0], v1[1], v1[2], kx) - okx) - r->dsx * rz1;
+    double py1 = (comp3d(v1[0], v1[1], v1[2], ky) - oky) - r->dsy * rz1;
+    double px2 = (comp3d(v2[0], v2[1], v2[2], kx) - okx) - r->dsx * rz2;
+    double py2 = (comp3d(v2[0], v2[1], v2[2], ky) - oky) - r->dsy * rz2;
     double u = px2 * py1 - py2 * px1;
-    double w_ = px1 * py0 - py1 * px0;
     double v_ = px0 * py2 - py0 * px2;
+    double w_ = px1 * py0 - py1 * px0;
+    if ((u < 0.0 || v_ < 0.0 || w_ < 0.0) && (u > 0.0 || v_ > 0.0 || w_ > 0.0)) return INFINITY;
     double det = u + v_ + w_;
-    if (det == 0.0) return t_float;
-    return (u * (sz * rz0) + v_ * (sz * rz1) + w_ * (sz * rz2)) / det;
+    if (det == 0.0) return INFINITY;
+    double t = (u * (r->dsz * rz0) + v_ * (r->dsz * rz1) + w_ * (r->dsz * rz2)) / det;
+    return (t >= 0.0 && t <= tm) ? t : INFINITY;
 }
 #endif
 
-ALWAYS_INLINE void ray_init(ray_t* r, const real* od, const real* dd)
+ALWAYS_INLINE void ray_init(ray_t* r, const real* od, const real* dd, const real reach)
 {
     float dx = (float)dd[0], dy = (float)dd[1], dz = (float)dd[2];
     r->ox = (float)od[0]; r->oy = (float)od[1]; r->oz = (float)od[2];
@@ -151,7 +164,49 @@ ALWAYS_INLINE void ray_init(ray_t* r, const real* od, const real* dd)
     r->sx = comp3(dx, dy, dz, r->kx) / dk;
     r->sy = comp3(dx, dy, dz, r->ky) / dk;
     r->sz = 1.0f / dk;
+    r->rad = 0.0f;
+#ifdef HAVE_FP64
+    /* the float64 ray, and its permutation and shear as the reference makes them */
+    r->dox = od[0]; r->doy = od[1]; r->doz = od[2];
+    double ax = absd(dd[0]), ay = absd(dd[1]), az = absd(dd[2]);
+    int kz = 0;
+    if (ay > ax) kz = 1;
+    if (az > comp3d(ax, ay, az, kz)) kz = 2;
+    int kx = kz == 2 ? 0 : kz + 1, ky = kx == 2 ? 0 : kx + 1;
+    double ddz = comp3d(dd[0], dd[1], dd[2], kz);
+    if (ddz < 0.0) { int tmp = kx; kx = ky; ky = tmp; }
+    r->dkx = kx; r->dky = ky; r->dkz = kz;
+    r->dsx = comp3d(dd[0], dd[1], dd[2], kx) / ddz;
+    r->dsy = comp3d(dd[0], dd[1], dd[2], ky) / ddz;
+    r->dsz = 1.0 / ddz;
+    /* The float32 ray strays from the float64 one by a few float32 ulps of |origin| + t, and t <= about
+     * 2 (|origin| + reach) for any point of the mesh; boxes round by an ulp of reach. 4e-6 of those
+     * reaches (60 ulps) covers both with room for the slab test's own rounding. */
+    double om = MAXF(MAXF(absd(od[0]), absd(od[1])), absd(od[2]));
+    r->rad = (float)((om + reach + 1.0) * 4e-6);
+#endif
+    r->lx = r->ox + r->rad; r->ly = r->oy + r->rad; r->lz = r->oz + r->rad;
+    r->hx = r->ox - r->rad; r->hy = r->oy - r->rad; r->hz = r->oz - r->rad;
 }
+
+#ifdef HAVE_FP64
+/* closest float64 hit among the triangles of a leaf (equal distances to the lower original face id);
+ * `best` is then the float bound of the box tests: the best distance plus the box growth */
+ALWAYS_INLINE void leaf_hits64(__global const float* tris, int first, int count, const ray_t* r, double tm,
+                               double* best64, float* best, int* best_face, __global const double* verts,
+                               __global const int* faces)
+{
+    for (int j = first; j < first + count; ++j) {
+        int f = as_int(tris[12 * (long)j + 3]);
+        double t = tri_t64(verts, faces, f, r, tm);
+        if (t < *best64 || (t == *best64 && t != INFINITY && f < *best_face)) {
+            *best64 = t;
+            *best_face = f;
+            *best = (float)t + r->rad;
+        }
+    }
+}
+#endif
 
 /* closest hit among the triangles of a leaf; equal distances go to the lower original face id */
 ALWAYS_INLINE void leaf_hits(__global const float* tris, int first, int count, const ray_t* r, float* best,
@@ -171,33 +226,18 @@ ALWAYS_INLINE void leaf_hits(__global const float* tris, int first, int count, c
 #define PUT_FACE(i, v) do { if (map_faces) ((__global long*)out_face)[i] = (long)(v); else out_face[i] = (v); } \
     while (0)
 
-/* write the result: distance refined in double where available, t_max applied exactly; with a face map
- * (map_faces), the caller's face id and the face's label instead of the uploaded face id */
-ALWAYS_INLINE void store_hit(int i, bool overflow, float best, int best_face, real tmr, const real* o,
-                             const real* d, __global real* out_t, __global int* out_face,
-                             __global int* out_label, __global const int* face_ids,
-                             __global const int* face_labels, int map_faces
-#ifdef HAVE_FP64
-                             , __global const double* verts, __global const int* faces
-#endif
-                             )
+/* write the result (t_hit: the float64 distance with doubles, else the float one, which the host refines);
+ * with a face map (map_faces), the caller's face id and the face's label instead of the uploaded face id */
+ALWAYS_INLINE void store_hit(int i, bool overflow, real t_hit, int best_face, __global real* out_t,
+                             __global int* out_face, __global int* out_label, __global const int* face_ids,
+                             __global const int* face_labels, int map_faces)
 {
     if (overflow) {
         out_t[i] = (real)INFINITY;
         PUT_FACE(i, -2);
         return;
     }
-    real t_hit = (real)INFINITY;
-    if (best_face >= 0) {
-        t_hit = (real)best;
-#ifdef HAVE_FP64
-        t_hit = refine_t(verts, faces, best_face, (double3)(o[0], o[1], o[2]), (double3)(d[0], d[1], d[2]),
-                         (double)best);
-        if (t_hit < 0.0) t_hit = 0.0;
-        if (t_hit > tmr) { t_hit = INFINITY; best_face = -1; }
-#endif
-    }
-    out_t[i] = t_hit;
+    out_t[i] = best_face >= 0 ? t_hit : (real)INFINITY;
     if (map_faces) {
         PUT_FACE(i, best_face >= 0 ? face_ids[best_face] : -1);
         out_label[i] = best_face >= 0 ? face_labels[best_face] : -1;
@@ -261,26 +301,31 @@ ALWAYS_INLINE bool load_ray(int i, __global const void* orig, int o_step, __glob
         out_t[i] = (real)INFINITY; PUT_FACE(i, -1); if (map_faces) out_label[i] = -1; return; \
     } \
     ray_t r; \
-    ray_init(&r, ray_o, ray_d);
+    ray_init(&r, ray_o, ray_d, REACH);
 #define RAY_STORE if (overflow) flags[3] = 1; \
-    store_hit(i, overflow, best, best_face, tmr, ray_o, ray_d, out_t, out_face, out_label, face_ids, \
-                            face_labels, map_faces MESH_PASS)
+    store_hit(i, overflow, (real)T_HIT, best_face, out_t, out_face, out_label, face_ids, face_labels, map_faces)
 
+/* With doubles: the mesh in float64 (shifted vertices, faces) and its reach (largest |coordinate|); the
+ * best float64 distance, with `best` its float bound for the box tests (a hair above t_max at first). */
 #ifdef HAVE_FP64
-#define MESH_ARGS , __global const double* verts, __global const int* faces
-#define MESH_PASS , verts, faces
+#define MESH_ARGS , __global const double* verts, __global const int* faces, const double reach
+#define REACH reach
+#define BEST_INIT double best64 = INFINITY; float best = (float)tmr * 1.00000024f + r.rad; int best_face = -1;
+#define LEAF(simd) leaf_hits64(tris, ref, cnt, &r, tmr, &best64, &best, &best_face, verts, faces)
+#define T_HIT best64
 #else
 #define MESH_ARGS
-#define MESH_PASS
+#define REACH 0.0f
+#define BEST_INIT float best = (float)tmr * 1.00000024f; int best_face = -1;
+#define LEAF(simd) leaf_hits(tris, ref, cnt, &r, &best, &best_face, simd)
+#define T_HIT best
 #endif
 
 /* Binary BVH (bvh_width=2: the smaller stack). */
 __kernel void raycast(__global const float* nodes, __global const float* tris, RAY_ARGS MESH_ARGS)
 {
     RAY_LOAD
-    /* a hair above t_max in float; the exact bound is applied after the double refinement */
-    float best = (float)tmr * 1.00000024f;
-    int best_face = -1;
+    BEST_INIT
 
     int st_ref[STACK_SIZE], st_cnt[STACK_SIZE];
     float st_t[STACK_SIZE];
@@ -308,7 +353,7 @@ __kernel void raycast(__global const float* nodes, __global const float* tris, R
             if (h0) { ref = r0; cnt = c0; continue; }
             if (h1) { ref = r1; cnt = c1; continue; }
         } else {
-            leaf_hits(tris, ref, cnt, &r, &best, &best_face, false);
+            LEAF(false);
         }
         bool found = false;
         while (sp > 0) {
@@ -331,12 +376,14 @@ __kernel void raycast(__global const float* nodes, __global const float* tris, R
 __kernel void raycast4(__global const float4* nodes, __global const float* tris, RAY_ARGS MESH_ARGS)
 {
     RAY_LOAD
-    float best = (float)tmr * 1.00000024f;
-    int best_face = -1;
-    float4 ox = (float4)(r.ox), oy = (float4)(r.oy), oz = (float4)(r.oz);
+    BEST_INIT
     float4 ix = (float4)(r.ix), iy = (float4)(r.iy), iz = (float4)(r.iz);
     /* offsets of the near planes in a node (lo_x = 0, hi_x = 1, lo_y = 2, ...); far = near ^ 1 */
     const int nx = r.ix < 0.0f ? 1 : 0, ny = r.iy < 0.0f ? 3 : 2, nz = r.iz < 0.0f ? 5 : 4;
+    /* the origin subtracted from the near and the far planes: low planes take origin + rad, high ones
+     * origin - rad (the box grown by rad; both equal the origin without doubles) */
+    float4 nox = (float4)(nx ? r.hx : r.lx), noy = (float4)(ny & 1 ? r.hy : r.ly), noz = (float4)(nz & 1 ? r.hz : r.lz);
+    float4 fox = (float4)(nx ? r.lx : r.hx), foy = (float4)(ny & 1 ? r.ly : r.hy), foz = (float4)(nz & 1 ? r.lz : r.hz);
 
     int st_ref[3 * STACK_SIZE], st_cnt[3 * STACK_SIZE];
     float st_t[3 * STACK_SIZE];
@@ -348,9 +395,9 @@ __kernel void raycast4(__global const float4* nodes, __global const float* tris,
             __global const float4* nd = nodes + 8 * (long)ref;
             /* near and far planes picked by the direction's signs: (lo - o) * i <= (hi - o) * i when
              * i > 0 (rounding is monotone), so this equals the min/max form bit for bit */
-            float4 tn = VMAX(VMAX((nd[nx] - ox) * ix, (nd[ny] - oy) * iy), VMAX((nd[nz] - oz) * iz, (float4)(0.0f)));
-            float4 tf = VMIN(VMIN((nd[nx ^ 1] - ox) * ix, (nd[ny ^ 1] - oy) * iy),
-                             VMIN((nd[nz ^ 1] - oz) * iz, (float4)(best))) * (float4)(1.0000004f);
+            float4 tn = VMAX(VMAX((nd[nx] - nox) * ix, (nd[ny] - noy) * iy), VMAX((nd[nz] - noz) * iz, (float4)(0.0f)));
+            float4 tf = VMIN(VMIN((nd[nx ^ 1] - fox) * ix, (nd[ny ^ 1] - foy) * iy),
+                             VMIN((nd[nz ^ 1] - foz) * iz, (float4)(best))) * (float4)(1.0000004f);
             int4 rf = as_int4(nd[6]), ct = as_int4(nd[7]);
             int4 hit = (tn <= tf) & (ct >= (int4)(0));
             /* misses get an infinite entry distance (a hit's is finite: tn <= tf <= best), so sorting
@@ -381,7 +428,7 @@ __kernel void raycast4(__global const float4* nodes, __global const float* tris,
                 continue;
             }
         } else {
-            leaf_hits(tris, ref, cnt, &r, &best, &best_face, true);
+            LEAF(true);
         }
         bool found = false;
         while (sp > 0) {

@@ -11,7 +11,9 @@ a CPU launch is a ctypes call, which releases the GIL, and Warp 1.x passes the t
 shared one (coverage's byte mask), are split that way; Warp's CPU "atomics" are plain read-modify-writes,
 so the score kernel is split by candidate (each candidate owns its bitset and sum), never inside one.
 CUDA devices run each kernel as one launch on the GPU.
-Meshes use Warp's BVH (``wp.Mesh``; SAH build) and its watertight ``mesh_query_ray``.
+Meshes use Warp's BVH (``wp.Mesh``): its ``mesh_query_ray`` finds a float32 hit, and a capsule query over the
+same tree proposes every triangle that could be hit first to the reference's float64 test (kernels.py,
+``closest_hit``).
 """
 
 from __future__ import annotations
@@ -91,11 +93,12 @@ def startup_note() -> str:
 
 
 class _WarpMesh:
-    def __init__(self, mesh, points, indices, corners64, face_ids, face_labels):
+    def __init__(self, mesh, points, indices, corners64, reach, face_ids, face_labels):
         self.mesh = mesh          # keep the arrays alive with the BVH
         self.points = points
         self.indices = indices
         self.corners64 = corners64
+        self.reach = reach        # largest |coordinate| of a corner (kernels.py, closest_hit)
         self.face_ids = face_ids          # int64 caller's face id per uploaded face (raycast_checked)
         self.face_labels = face_labels    # int32 label per uploaded face (raycast_checked)
         self.t_const = None       # (n, t_max) and its (n,) device array, for repeated scalar bounds
@@ -235,8 +238,9 @@ class WarpCore(WarpScoring, Backend):
         # vertices on node boundaries slipped through (seen on boxes and cylinders). So the BVH is built
         # over padded triangle boxes: each triangle gets its own three points, first set to the corners
         # of its box grown by a few float32 ulps (the BVH takes its bounds from them), then overwritten
-        # in place with the true corners, without a refit. Queries then test true triangles
-        # (watertight) inside padded boxes. Face ids are unchanged (triangle f uses points 3f..3f+2).
+        # in place with the true corners, without a refit. The query's first pass then tests true
+        # triangles (watertight) inside padded boxes, its second pass walks the same boxes (kernels.py,
+        # closest_hit). Face ids are unchanged (triangle f uses points 3f..3f+2).
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces, dtype=np.int64)
         ids, lab = mesh_face_tables(len(f), face_ids, labels)
@@ -262,12 +266,13 @@ class WarpCore(WarpScoring, Backend):
         mesh = self._build_tree(pts, idx, gr, cons)
         corners = tri.reshape(-1, 3)
         pts.assign(self._vec3(corners))
-        return _WarpMesh(mesh, pts, idx, self._vec3d(corners), wp.array(ids, dtype=wp.int64, device=self.device),
+        reach = float(np.abs(m).max()) if len(tri) else 0.0
+        return _WarpMesh(mesh, pts, idx, self._vec3d(corners), reach, wp.array(ids, dtype=wp.int64, device=self.device),
                          wp.array(lab, dtype=wp.int32, device=self.device))
 
     # Grouped builds: cuBQL builds no grouped trees (Warp 1.19), so a grouped mesh gets Warp's LBVH on CUDA
-    # and SAH on the CPU; a ray confined to its group's subtree meets the triangles it would meet in that
-    # mesh's own tree, and only the order among tied faces (shared edges and vertices) can differ.
+    # and SAH on the CPU; a ray confined to its group's subtree is proposed the triangles of that mesh alone,
+    # and float64 decides among them as in that mesh's own tree, so the hits are the same bits.
     GROUP_BVH = {"cuda": "lbvh", "cpu": "sah"}
 
     def upload_mesh_groups(self, parts):
@@ -311,14 +316,12 @@ class WarpCore(WarpScoring, Backend):
         sh = self._vec3d(shifts)
         buf, (out_t, out_f, out_l, flags) = self._checked_outputs(n)
 
-        def rays(g0, g1):
+        def args(g0, g1):
             a, b = g0 * r, g1 * r
-            return [o[a:b], sh, d[a:b], tm, r, first + g0, out_t[a:b], out_f[a:b], out_l[a:b]]
+            return [mesh.mesh.id, mesh.corners64, mesh.reach, mesh.face_ids, mesh.face_labels, o[a:b], sh, d[a:b],
+                    tm, r, first + g0, self._first_pass(), out_t[a:b], out_f[a:b], out_l[a:b], flags]
 
-        self._launch_by_group(self.k.raycast_groups_kernel, groups, r,
-                              lambda g0, g1: [mesh.mesh.id, *rays(g0, g1), flags])
-        self._launch_by_group(self.k.raycast_groups_exact_kernel, groups, r,
-                              lambda g0, g1: [mesh.corners64, mesh.face_ids, mesh.face_labels, *rays(g0, g1)])
+        self._launch_by_group(self.k.raycast_groups_kernel, groups, r, args)
         return self._checked_results(buf, n)
 
     def _launch_by_group(self, kernel, groups: int, per_group: int, inputs) -> None:
@@ -343,6 +346,15 @@ class WarpCore(WarpScoring, Backend):
             self.bvh_built = f"sah (cubql: {type(e).__name__}: {e})"
         return mesh
 
+    #: whether the ray-mesh walk is bounded by a mesh_query_ray hit first (kernels.py, closest_hit); None: the
+    #: device's default, FIRST_PASS
+    first_pass = None
+    FIRST_PASS = {"cuda": True, "cpu": False}
+
+    def _first_pass(self) -> int:
+        fp = self.first_pass
+        return int(self.FIRST_PASS["cuda" if self.device.is_cuda else "cpu"] if fp is None else fp)
+
     raycast_takes_shift = True
 
     def raycast(self, mesh, origins, directions, t_max, shift=None):
@@ -351,22 +363,15 @@ class WarpCore(WarpScoring, Backend):
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
         o, d, tm = self._rays_in(origins), self._rays_in(directions), self._t_in(mesh, t_max, n)
         s = wp.vec3d(*(np.zeros(3) if shift is None else np.asarray(shift, dtype=np.float64).reshape(3)).tolist())
-        self._raycast_passes(mesh, o, s, d, tm, out_t, out_f)()
+        self._raycast_query(mesh, o, s, d, tm, out_t, out_f)()
         return out_t.numpy(), out_f.numpy()
 
-    def _raycast_passes(self, mesh, o, s, d, tm, out_t, out_f):
-        """The two passes of the ray-mesh query (kernels.py: the BVH walk, then the exact distance) on
-        device arrays, as one zero-argument launch."""
-        walk = self._prepare(self.k.raycast_query_kernel, len(out_t), lambda a, b: [
-            mesh.mesh.id, o[a:b], s, d[a:b], tm[a:b], out_t[a:b], out_f[a:b]])
-        exact = self._prepare(self.k.raycast_exact_kernel, len(out_t), lambda a, b: [
-            mesh.corners64, o[a:b], s, d[a:b], tm[a:b], out_t[a:b], out_f[a:b]])
-
-        def run() -> None:
-            walk()
-            exact()
-
-        return run
+    def _raycast_query(self, mesh, o, s, d, tm, out_t, out_f):
+        """The ray-mesh query (kernels.py, raycast_query_kernel) on device arrays, as one zero-argument
+        launch."""
+        return self._prepare(self.k.raycast_query_kernel, len(out_t), lambda a, b: [
+            mesh.mesh.id, mesh.corners64, mesh.reach, o[a:b], s, d[a:b], tm[a:b], self._first_pass(), out_t[a:b],
+            out_f[a:b]])
 
     raycast_checks_rays = True
 
@@ -380,14 +385,11 @@ class WarpCore(WarpScoring, Backend):
         tm = self._f64(t_max, n) if t_step else self._t_in(mesh, t_max, 1)
         buf, (out_t, out_f, out_l, flags) = self._checked_outputs(n)
         s = wp.vec3d(*np.asarray(shift, dtype=np.float64).reshape(3).tolist())
-        walk, exact = self.k.RAYCAST_CHECKED[vec]
-
-        def rays(a, b):
-            return [o[a:b] if o_step else o, o_step, s, d[a:b], tm[a:b] if t_step else tm, t_step]
-
-        self._launch(walk, n, lambda a, b: [mesh.mesh.id, *rays(a, b), out_t[a:b], out_f[a:b], out_l[a:b], flags])
-        self._launch(exact, n, lambda a, b: [mesh.corners64, mesh.face_ids, mesh.face_labels, *rays(a, b),
-                                             out_t[a:b], out_f[a:b], out_l[a:b]])
+        kernel = self.k.RAYCAST_CHECKED[vec]
+        self._launch(kernel, n, lambda a, b: [
+            mesh.mesh.id, mesh.corners64, mesh.reach, mesh.face_ids, mesh.face_labels,
+            o[a:b] if o_step else o, o_step, s, d[a:b], tm[a:b] if t_step else tm, t_step, self._first_pass(),
+            out_t[a:b], out_f[a:b], out_l[a:b], flags])
         return self._checked_results(buf, n)
 
     def _checked_outputs(self, n: int):
@@ -454,7 +456,7 @@ class WarpCore(WarpScoring, Backend):
         o, d, tm = self._vec3d(origins), self._vec3d(directions), self._f64(t_max, n)
         out_t = wp.empty(n, dtype=wp.float64, device=self.device)
         out_f = wp.empty(n, dtype=wp.int32, device=self.device)
-        return self._raycast_passes(mesh, o, wp.vec3d(0.0, 0.0, 0.0), d, tm, out_t, out_f)
+        return self._raycast_query(mesh, o, wp.vec3d(0.0, 0.0, 0.0), d, tm, out_t, out_f)
 
     def resident_traverse(self, grid, origins, directions, t_end, stop=None):
         """For benchmarks: launch the traversal count kernel on resident rays (see ``resident_raycast``)."""

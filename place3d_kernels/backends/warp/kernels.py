@@ -4,8 +4,8 @@ Grid kernels take grid-local coordinates (the host subtracted the grid's lower c
 walk voxels with the float64 reference's decisions (walk32_*: float32 where an error bound makes a step
 certain, float64 otherwise), so covered voxel sets, and therefore M-SOG, agree with the reference bit
 for bit (the contract asks for identical coverage across backends). Voxel boundary crossings are
-computed from integer plane indices, never accumulated. Ray-mesh intersection runs in float32 (hit
-distances recomputed in float64).
+computed from integer plane indices, never accumulated. Ray-mesh intersection: a float32 BVH proposes
+triangles, and the reference's float64 test decides which is hit and where (closest_hit).
 """
 
 from __future__ import annotations
@@ -55,10 +55,10 @@ def _comp(v: wp.vec3d, k: wp.int32):
 
 
 @wp.func
-def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fallback: wp.float64):
-    # Distance to triangle (a, b, c) with the reference's formula (Woop, Benthin & Wald's watertight test
-    # in float64, place3d_kernels/backends/reference/host.py), operation for operation and without FMA contraction, so
-    # backends that find the same face report the same t, bit for bit
+def tri_t64(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, tm: wp.float64):
+    # Triangle (a, b, c) against the float64 ray with the reference's test and formula (Woop, Benthin &
+    # Wald's watertight test in float64, backends/geometry.py watertight_intersect), operation for operation
+    # and without FMA contraction: its t in [0, tm], or MISS_T for a miss, the reference's bits
     ad = wp.vec3d(wp.abs(d[0]), wp.abs(d[1]), wp.abs(d[2]))
     kz = wp.int32(0)
     if ad[1] > ad[0]:
@@ -90,87 +90,93 @@ def woop_t(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, t_fa
     u = cx * by - cy * bx
     v = ax * cy - ay * cx
     w = bx * ay - by * ax
+    zero = wp.float64(0.0)
+    t = MISS_T
+    if (u < zero or v < zero or w < zero) and (u > zero or v > zero or w > zero):
+        return t
     det = u + v + w
-    t = t_fallback
-    if det != wp.float64(0.0):
-        t = (u * az + v * bz + w * cz) / det
+    if det == zero:
+        return t
+    tt = (u * az + v * bz + w * cz) / det
+    if tt >= zero and tt <= tm:
+        t = tt
     return t
 
 
-# The ray-mesh query runs in two passes. The first walks Warp's BVH in float32 and keeps the query's t
-# and face; the second computes the winning face's distance in float64. As one kernel of this module the
-# query ran markedly slower on CUDA than these two passes, with the same bits; the same one-kernel code
-# built in a module of its own did not, and why was not found (bench/README.md, "What the studies found",
-# ray-mesh, Warp (CUDA)).
 @wp.func
-def query_hit_in(mesh: wp.uint64, o64: wp.vec3d, d64: wp.vec3d, tm: wp.float64, root: wp.int32):
-    # Warp's ordered BVH query and watertight triangle test, on a mesh whose BVH boxes were built padded
-    # (see WarpCore.upload_mesh), so no box culls a triangle the ray touches; confined to the subtree at
-    # ``root`` (a group's, mesh_get_group_root), or the whole tree for -1. Returns the query's
-    # (t, uploaded face), or (MISS_T, -1).
+def _box_dir(x: wp.float32):
+    # a direction component for the box tests only: below 1e-20 in size it becomes +-1e-20, so that the
+    # slab test never multiplies 0 by an infinite reciprocal (the float64 triangle test sees the true one)
+    r = x
+    if wp.abs(x) < wp.float32(1.0e-20):
+        r = wp.float32(1.0e-20)
+        if x < wp.float32(0.0):
+            r = wp.float32(-1.0e-20)
+    return r
+
+
+# The ray-mesh query. float32 only proposes, float64 decides: the first pass is Warp's ordered BVH query and
+# float32 watertight test (mesh_query_ray, on a tree built over padded triangle boxes, WarpCore.upload_mesh);
+# its face's float64 distance (tri_t64) bounds the closest float64 hit. The second pass walks the same tree
+# (mesh_get_bvh) with a capsule query up to that bound and gives every triangle it proposes the reference's
+# test; the smallest t wins, ties to the lower face. The float32 ray strays from the float64 one by a few
+# float32 ulps of |origin| + t, t is at most about 2 (|origin| + reach) for any point of the mesh (reach: its
+# largest |coordinate|), and the boxes round by an ulp of reach; the capsule grows every box by 4e-6 of those
+# reaches (60 ulps), so no box culls a triangle the float64 ray meets before the bound. The hit and its face
+# are then the reference's, bit for bit, whatever the tree and its walk order (the OpenCL backend decides the
+# same way, raycast.cl). Without the first pass the capsule walk, which visits children in a fixed order,
+# starts from t_max and took 12x a plain query's time on an H200 (2026-11-29).
+@wp.func
+def closest_hit(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), reach: wp.float64, o64: wp.vec3d,
+                d64: wp.vec3d, tm: wp.float64, root: wp.int32, first_pass: wp.int32):
+    # the closest float64 hit of the ray (o64, d64) in [0, tm] among the triangles of the subtree at ``root``
+    # (a group's, mesh_get_group_root), or the whole tree for -1: (t, uploaded face), or (MISS_T, -1)
     o = wp.vec3(wp.float32(o64[0]), wp.float32(o64[1]), wp.float32(o64[2]))
     d = wp.vec3(wp.float32(d64[0]), wp.float32(d64[1]), wp.float32(d64[2]))
-    q = wp.mesh_query_ray(mesh, o, d, wp.float32(tm * wp.float64(1.000001) + wp.float64(1.0e-6)), root)
-    t = MISS_T
-    f = wp.int32(-1)
-    if q.result:
-        t = wp.float64(q.t)
-        f = q.face
-    return t, f
-
-
-@wp.func
-def query_hit(mesh: wp.uint64, o64: wp.vec3d, d64: wp.vec3d, tm: wp.float64):
-    # query_hit_in over the whole tree
-    return query_hit_in(mesh, o64, d64, tm, wp.int32(-1))
-
-
-@wp.func
-def exact_hit(corners64: wp.array(dtype=wp.vec3d), o64: wp.vec3d, d64: wp.vec3d, tm: wp.float64,
-              t_query: wp.float64, f: wp.int32):
-    # The second pass: the winning face's distance recomputed in float64 from float64 inputs with the
-    # reference's formula (woop_t; grazing rays otherwise inherit the float32 rounding of corners and
-    # origins: 0.3 mm at 13 m was seen). Returns (t, uploaded face) or (MISS_T, -1).
-    t_out = MISS_T
-    f_out = wp.int32(-1)
-    if f >= 0:
-        t64 = woop_t(corners64[3 * f], corners64[3 * f + 1], corners64[3 * f + 2], o64, d64, t_query)
-        t64 = wp.max(t64, wp.float64(0.0))
-        if t64 <= tm:
-            t_out = t64
-            f_out = f
-    return t_out, f_out
+    om = wp.max(wp.max(wp.abs(o64[0]), wp.abs(o64[1])), wp.abs(o64[2]))
+    rad = wp.float32((om + reach + wp.float64(1.0)) * wp.float64(4.0e-6))
+    bound = wp.float32(tm) * wp.float32(1.00000024) + rad
+    best = MISS_T
+    face = wp.int32(-1)
+    if first_pass != 0:
+        q = wp.mesh_query_ray(mesh, o, d, bound, root)
+        if q.result:
+            face = q.face
+            best = tri_t64(corners64[3 * face], corners64[3 * face + 1], corners64[3 * face + 2], o64, d64, tm)
+            if best < MISS_T:
+                bound = wp.float32(best) + rad
+            else:
+                face = wp.int32(-1)
+    first = face
+    db = wp.vec3(_box_dir(d[0]), _box_dir(d[1]), _box_dir(d[2]))
+    walk = wp.bvh_query_capsule(wp.mesh_get_bvh(mesh), o, db, rad, root)
+    i = wp.int32(0)
+    while wp.bvh_query_next(walk, i, bound):
+        if i != first:
+            t = tri_t64(corners64[3 * i], corners64[3 * i + 1], corners64[3 * i + 2], o64, d64, tm)
+            if t < best or (t == best and t < MISS_T and i < face):
+                best = t
+                face = i
+                bound = wp.float32(t) + rad
+    return best, face
 
 
 @wp.kernel
 def raycast_query_kernel(
     mesh: wp.uint64,
+    corners64: wp.array(dtype=wp.vec3d),    # (3F,) true triangle corners, float64
+    reach: wp.float64,
     origins: wp.array(dtype=wp.vec3d),
     shift: wp.vec3d,                        # subtracted from origins in float64 (zero: already shifted)
     dirs: wp.array(dtype=wp.vec3d),
     t_max: wp.array(dtype=wp.float64),
-    out_t: wp.array(dtype=wp.float64),      # the query's t, then raycast_exact_kernel's
+    first_pass: wp.int32,                   # 1: bound the walk by mesh_query_ray's hit first (closest_hit)
+    out_t: wp.array(dtype=wp.float64),
     out_face: wp.array(dtype=wp.int32),
 ):
     tid = wp.tid()
     # componentwise float64 subtraction: bit-identical to np.subtract(origins, shift) on the host
-    t, f = query_hit(mesh, origins[tid] - shift, dirs[tid], t_max[tid])
-    out_t[tid] = t
-    out_face[tid] = f
-
-
-@wp.kernel
-def raycast_exact_kernel(
-    corners64: wp.array(dtype=wp.vec3d),    # (3F,) true triangle corners, float64
-    origins: wp.array(dtype=wp.vec3d),
-    shift: wp.vec3d,
-    dirs: wp.array(dtype=wp.vec3d),
-    t_max: wp.array(dtype=wp.float64),
-    out_t: wp.array(dtype=wp.float64),      # in: raycast_query_kernel's; out: the hit distance
-    out_face: wp.array(dtype=wp.int32),
-):
-    tid = wp.tid()
-    t, f = exact_hit(corners64, origins[tid] - shift, dirs[tid], t_max[tid], out_t[tid], out_face[tid])
+    t, f = closest_hit(mesh, corners64, reach, origins[tid] - shift, dirs[tid], t_max[tid], wp.int32(-1), first_pass)
     out_t[tid] = t
     out_face[tid] = f
 
@@ -202,8 +208,7 @@ def unit_like_host(d: wp.vec3d):
 def checked_ray(origins: wp.array(dtype=Any), o_step: wp.int32, dirs: wp.array(dtype=Any),
                 t_max: wp.array(dtype=wp.float64), t_step: wp.int32, tid: wp.int32):
     # ray tid as ops.raycast's host path takes it: (world origin, unit direction, its norm, t_max); float32
-    # inputs widen to float64 exactly. Both passes of the checked ray caster derive the ray here, so
-    # they see the same bits.
+    # inputs widen to float64 exactly
     ow = wp.vec3d(origins[tid * o_step])
     dw = wp.vec3d(dirs[tid])
     d64, n = unit_like_host(dw)
@@ -228,22 +233,38 @@ def ray_ok(ow: wp.vec3d, dw: wp.vec3d, n: wp.float64, tm: wp.float64, flags: wp.
     return ok
 
 
+@wp.func
+def put_hit(t: wp.float64, f: wp.int32, face_ids: wp.array(dtype=wp.int64), face_labels: wp.array(dtype=wp.int32),
+            tid: wp.int32, out_t: wp.array(dtype=wp.float64), out_face: wp.array(dtype=wp.int64),
+            out_label: wp.array(dtype=wp.int32)):
+    # ray tid's hit written as the caller's face id and label
+    out_t[tid] = t
+    if f >= 0:
+        out_face[tid] = face_ids[f]
+        out_label[tid] = face_labels[f]
+
+
 @wp.kernel
 def raycast_checked_kernel(
     mesh: wp.uint64,
+    corners64: wp.array(dtype=wp.vec3d),    # (3F,) true triangle corners, float64
+    reach: wp.float64,
+    face_ids: wp.array(dtype=wp.int64),     # (F,) caller's face id of each uploaded face
+    face_labels: wp.array(dtype=wp.int32),  # (F,) label of each uploaded face
     origins: wp.array(dtype=Any),           # world frame, vec3f or vec3d as the caller gave them
     o_step: wp.int32,                       # 1, or 0 for one origin shared by every ray
     shift: wp.vec3d,                        # mesh shift, subtracted in float64
     dirs: wp.array(dtype=Any),              # same dtype as origins; any length, not validated
     t_max: wp.array(dtype=wp.float64),
     t_step: wp.int32,                       # 1, or 0 for one bound shared by every ray
-    out_t: wp.array(dtype=wp.float64),      # the query's t, then raycast_checked_exact_kernel's
-    out_face: wp.array(dtype=wp.int64),     # the uploaded face, then the caller's face id
+    first_pass: wp.int32,                   # 1: bound the walk by mesh_query_ray's hit first (closest_hit)
+    out_t: wp.array(dtype=wp.float64),
+    out_face: wp.array(dtype=wp.int64),
     out_label: wp.array(dtype=wp.int32),
     flags: wp.array(dtype=wp.int32),        # (N_FLAGS,) zeroed by the host
 ):
     # ops.raycast's checks on the device (ray_ok); where a ray fails one, the host redoes the call on its
-    # own path, which raises today's error. Then the first pass of the query (query_hit).
+    # own path, which raises today's error. Then the query (closest_hit).
     tid = wp.tid()
     ow, dw, d64, n, tm = checked_ray(origins, o_step, dirs, t_max, t_step, tid)
     out_t[tid] = MISS_T
@@ -251,61 +272,29 @@ def raycast_checked_kernel(
     out_label[tid] = -1
     if ray_ok(ow, dw, n, tm, flags):
         # as ops.raycast's host path: float32 kernels need a finite bound
-        t, f = query_hit(mesh, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)))
-        out_t[tid] = t
-        out_face[tid] = wp.int64(f)
-
-
-@wp.func
-def exact_out(corners64: wp.array(dtype=wp.vec3d), face_ids: wp.array(dtype=wp.int64),
-              face_labels: wp.array(dtype=wp.int32), o_local: wp.vec3d, d64: wp.vec3d, tm: wp.float64, f: wp.int32,
-              tid: wp.int32, out_t: wp.array(dtype=wp.float64), out_face: wp.array(dtype=wp.int64),
-              out_label: wp.array(dtype=wp.int32)):
-    # ray tid's second pass (exact_hit from its first pass's t and face f, the origin already shifted), its
-    # outputs written as the caller's face id and label
-    t, g = exact_hit(corners64, o_local, d64, wp.min(tm, wp.float64(1.0e30)), out_t[tid], f)
-    out_t[tid] = t
-    if g >= 0:
-        out_face[tid] = face_ids[g]
-        out_label[tid] = face_labels[g]
-    else:
-        out_face[tid] = wp.int64(-1)
-
-
-@wp.kernel
-def raycast_checked_exact_kernel(
-    corners64: wp.array(dtype=wp.vec3d),    # (3F,) true triangle corners, float64
-    face_ids: wp.array(dtype=wp.int64),     # (F,) caller's face id of each uploaded face
-    face_labels: wp.array(dtype=wp.int32),  # (F,) label of each uploaded face
-    origins: wp.array(dtype=Any), o_step: wp.int32, shift: wp.vec3d, dirs: wp.array(dtype=Any),
-    t_max: wp.array(dtype=wp.float64), t_step: wp.int32,
-    out_t: wp.array(dtype=wp.float64), out_face: wp.array(dtype=wp.int64), out_label: wp.array(dtype=wp.int32),
-):
-    # the second pass (exact_hit) for the rays the first one traced to a face
-    tid = wp.tid()
-    f = wp.int32(out_face[tid])
-    if f >= 0:
-        ow, dw, d64, n, tm = checked_ray(origins, o_step, dirs, t_max, t_step, tid)
-        exact_out(corners64, face_ids, face_labels, ow - shift, d64, tm, f, tid, out_t, out_face, out_label)
+        t, f = closest_hit(mesh, corners64, reach, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)), wp.int32(-1), first_pass)
+        put_hit(t, f, face_ids, face_labels, tid, out_t, out_face, out_label)
 
 
 @wp.kernel
 def raycast_groups_kernel(
     mesh: wp.uint64,                        # a grouped mesh: group g holds the triangles of mesh g
+    corners64: wp.array(dtype=wp.vec3d), reach: wp.float64,
+    face_ids: wp.array(dtype=wp.int64), face_labels: wp.array(dtype=wp.int32),   # face_ids: within its own mesh
     origins: wp.array(dtype=wp.vec3d),      # world frame; rays [(g - g0) R, (g - g0 + 1) R) are mesh g's
     shifts: wp.array(dtype=wp.vec3d),       # (G,) mesh g's shift, subtracted in float64
     dirs: wp.array(dtype=wp.vec3d),
     t_max: wp.array(dtype=wp.float64),      # (1,) one bound for every ray
     rays_per_group: wp.int32,               # R
     first_group: wp.int32,                  # g0: the group of these arrays' first ray
+    first_pass: wp.int32,                   # 1: bound the walk by mesh_query_ray's hit first (closest_hit)
     out_t: wp.array(dtype=wp.float64),
     out_face: wp.array(dtype=wp.int64),
     out_label: wp.array(dtype=wp.int32),
     flags: wp.array(dtype=wp.int32),
 ):
     # raycast_checked_kernel for one origin per ray and one t_max, each ray traced in its own mesh's
-    # subtree and frame: the steps and bits of that mesh's own checked cast (only the tree's order among
-    # tied faces can differ)
+    # subtree and frame: that mesh's own checked cast, bit for bit (reach: the largest of the meshes')
     tid = wp.tid()
     g = first_group + tid / rays_per_group
     ow, dw, d64, n, tm = checked_ray(origins, 1, dirs, t_max, 0, tid)
@@ -314,31 +303,13 @@ def raycast_groups_kernel(
     out_label[tid] = -1
     if ray_ok(ow, dw, n, tm, flags):
         root = wp.mesh_get_group_root(mesh, g)
-        t, f = query_hit_in(mesh, ow - shifts[g], d64, wp.min(tm, wp.float64(1.0e30)), root)
-        out_t[tid] = t
-        out_face[tid] = wp.int64(f)
-
-
-@wp.kernel
-def raycast_groups_exact_kernel(
-    corners64: wp.array(dtype=wp.vec3d), face_ids: wp.array(dtype=wp.int64), face_labels: wp.array(dtype=wp.int32),
-    origins: wp.array(dtype=wp.vec3d), shifts: wp.array(dtype=wp.vec3d), dirs: wp.array(dtype=wp.vec3d),
-    t_max: wp.array(dtype=wp.float64), rays_per_group: wp.int32, first_group: wp.int32,
-    out_t: wp.array(dtype=wp.float64), out_face: wp.array(dtype=wp.int64), out_label: wp.array(dtype=wp.int32),
-):
-    # raycast_checked_exact_kernel with mesh g's shift (face_ids: each face's id within its own mesh)
-    tid = wp.tid()
-    f = wp.int32(out_face[tid])
-    if f >= 0:
-        g = first_group + tid / rays_per_group
-        ow, dw, d64, n, tm = checked_ray(origins, 1, dirs, t_max, 0, tid)
-        exact_out(corners64, face_ids, face_labels, ow - shifts[g], d64, tm, f, tid, out_t, out_face, out_label)
+        t, f = closest_hit(mesh, corners64, reach, ow - shifts[g], d64, wp.min(tm, wp.float64(1.0e30)), root, first_pass)
+        put_hit(t, f, face_ids, face_labels, tid, out_t, out_face, out_label)
 
 
 #: the concrete kernels for float32 (vec3f) and float64 (vec3d) rays: launching these skips Warp's
 #: per-launch overload lookup from the argument values (tens of microseconds per CPU chunk)
-RAYCAST_CHECKED = {v: (wp.overload(raycast_checked_kernel, {"origins": wp.array(dtype=v), "dirs": wp.array(dtype=v)}),
-                       wp.overload(raycast_checked_exact_kernel, {"origins": wp.array(dtype=v), "dirs": wp.array(dtype=v)}))
+RAYCAST_CHECKED = {v: wp.overload(raycast_checked_kernel, {"origins": wp.array(dtype=v), "dirs": wp.array(dtype=v)})
                    for v in (wp.vec3f, wp.vec3d)}
 
 
