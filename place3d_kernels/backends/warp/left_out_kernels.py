@@ -7,8 +7,8 @@ base, every row of the pool with no entries), the empty count T - (occupied), ea
 the host's tables (NumPy's log on NumPy's c / T), and the terms of a row are added in the order NumPy
 adds a row of an (R, K) float64 array (``ndarray.sum(axis=-1)``: for K >= 8 eight running sums over
 blocks of eight, combined pairwise, then the rest one by one; below 8, one by one), with no fused
-multiply-add; tests/test_left_out.py compares with the host on every record. A module of its own: it
-compiles on first use (``aot.modules`` ships ``kernels.py`` and the score kernel).
+multiply-add; tests/test_left_out.py compares with the host on every record. A module of its own, shipped
+compiled for CUDA (``aot.modules``).
 """
 
 from __future__ import annotations
