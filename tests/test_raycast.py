@@ -213,3 +213,26 @@ def test_warp_trees_leak_nothing_and_match_the_reference(tree, first_pass, rng):
         want = p3k.raycast(mesh, o, tgt - o, 100.0, backend="reference")
         np.testing.assert_array_equal(got.face, want.face)
         np.testing.assert_array_equal(got.t, want.t)
+
+
+@pytest.mark.parametrize("first_pass", [0, 1], ids=["capsule", "two-pass"])
+def test_warp_hits_at_shared_edges_and_axis_rays_are_the_references(first_pass):
+    """The terraced grid of test_raycast_order (rays at every vertex and edge midpoint, and straight down:
+    direction components exactly 0, which Warp's capsule test takes as parallel to those slabs) on Warp's CPU
+    device, both walks: every ray's face and distance bits are the reference's."""
+    pytest.importorskip("warp")
+    if "warp:cpu" not in p3k.available_backends():
+        pytest.skip("no Warp CPU backend")
+    from place3d_kernels.backends.geometry import brute_force_raycast
+    from place3d_kernels.backends.warp.host import WarpBackend
+    from test_raycast_order import _scene
+
+    v, f, o, d = _scene()
+    assert (d == 0).any(axis=1).sum() > 1000
+    b = WarpBackend("cpu")
+    b.first_pass = first_pass
+    tm = np.full(len(o), 1e30)
+    t, face = b.raycast(b.upload_mesh(v, f), o, d, tm)
+    want_t, want_face = brute_force_raycast(v, f, o, d, tm)
+    np.testing.assert_array_equal(face, want_face)
+    np.testing.assert_array_equal(t, want_t)

@@ -68,15 +68,6 @@ def _oracle_face(tri: np.ndarray, o: np.ndarray, d: np.ndarray) -> int:
     x, y = p[:, :, kx] - sx * z, p[:, :, ky] - sy * z
     e = [x[:, 2] * y[:, 1] - y[:, 2] * x[:, 1], x[:, 0] * y[:, 2] - y[:, 0] * x[:, 2],
          x[:, 1] * y[:, 0] - y[:, 1] * x[:, 0]]
-    zero = (e[0] == 0) | (e[1] == 0) | (e[2] == 0)
-    if zero.any():   # the kernel redoes all three in double (exact products) when one is 0 in float
-        x64, y64, tiny = x.astype(np.float64), y.astype(np.float64), np.finfo(F32).tiny
-        e64 = [x64[:, 2] * y64[:, 1] - y64[:, 2] * x64[:, 1], x64[:, 0] * y64[:, 2] - y64[:, 0] * x64[:, 2],
-               x64[:, 1] * y64[:, 0] - y64[:, 1] * x64[:, 0]]
-        for k in range(3):
-            c = e64[k].astype(F32)
-            fixed = np.where(e64[k] == 0, F32(0), np.where(e64[k] > 0, np.maximum(c, tiny), np.minimum(c, -tiny)))
-            e[k] = np.where(zero, fixed, e[k]).astype(F32)
     u, v, w = e
     ok = ~(((u < 0) | (v < 0) | (w < 0)) & ((u > 0) | (v > 0) | (w > 0)))
     det = u + v + w

@@ -10,8 +10,7 @@
  *   Traversal") so that rounding never culls a box the ray touches.
  * - Triangle test: Woop, Benthin & Wald 2013, "Watertight Ray/Triangle Intersection" (JCGT 2(1)):
  *   translate to the ray origin, permute so the dominant direction axis is z, shear, and take the signs
- *   of the three 2D edge functions. An edge function that is exactly 0 in float is recomputed in double
- *   (products of floats are exact in double), so the two triangles sharing an edge agree on its side.
+ *   of the three 2D edge functions; in float32 without doubles (tri_hit), in float64 with them (tri_t64).
  * - Equal distances go to the lower original face id, so results do not depend on traversal order.
  * - With doubles (HAVE_FP64) the float32 tree only proposes triangles and float64 decides: every box test
  *   grows the box by a radius (``rad``, 4e-6 of the ray origin's and the mesh's coordinate reach) that
@@ -88,17 +87,6 @@ ALWAYS_INLINE bool tri_hit(__global const float* tri, const ray_t* r, float best
     float U = Cx * By - Cy * Bx;
     float V = Ax * Cy - Ay * Cx;
     float W = Bx * Ay - By * Ax;
-#ifdef HAVE_FP64
-    if (U == 0.0f || V == 0.0f || W == 0.0f) {
-        double du = (double)Cx * (double)By - (double)Cy * (double)Bx;
-        double dv = (double)Ax * (double)Cy - (double)Ay * (double)Cx;
-        double dw = (double)Bx * (double)Ay - (double)By * (double)Ax;
-        /* keep the sign where float would underflow */
-        U = du == 0.0 ? 0.0f : (du > 0.0 ? MAXF((float)du, FLT_MIN) : MINF((float)du, -FLT_MIN));
-        V = dv == 0.0 ? 0.0f : (dv > 0.0 ? MAXF((float)dv, FLT_MIN) : MINF((float)dv, -FLT_MIN));
-        W = dw == 0.0 ? 0.0f : (dw > 0.0 ? MAXF((float)dw, FLT_MIN) : MINF((float)dw, -FLT_MIN));
-    }
-#endif
     if ((U < 0.0f || V < 0.0f || W < 0.0f) && (U > 0.0f || V > 0.0f || W > 0.0f)) return false;
     float det = U + V + W;
     if (det == 0.0f) return false;

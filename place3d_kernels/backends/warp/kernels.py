@@ -103,18 +103,6 @@ def tri_t64(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, tm:
     return t
 
 
-@wp.func
-def _box_dir(x: wp.float32):
-    # a direction component for the box tests only: below 1e-20 in size it becomes +-1e-20, so that the
-    # slab test never multiplies 0 by an infinite reciprocal (the float64 triangle test sees the true one)
-    r = x
-    if wp.abs(x) < wp.float32(1.0e-20):
-        r = wp.float32(1.0e-20)
-        if x < wp.float32(0.0):
-            r = wp.float32(-1.0e-20)
-    return r
-
-
 # The ray-mesh query. float32 only proposes, float64 decides: the first pass is Warp's ordered BVH query and
 # float32 watertight test (mesh_query_ray, on a tree built over padded triangle boxes, WarpCore.upload_mesh);
 # its face's float64 distance (tri_t64) bounds the closest float64 hit. The second pass walks the same tree
@@ -148,8 +136,9 @@ def closest_hit(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), reach: wp.
             else:
                 face = wp.int32(-1)
     first = face
-    db = wp.vec3(_box_dir(d[0]), _box_dir(d[1]), _box_dir(d[2]))
-    walk = wp.bvh_query_capsule(wp.mesh_get_bvh(mesh), o, db, rad, root)
+    # Warp's capsule test takes a zero direction component as parallel to that axis's slabs (its robust slab
+    # test, intersect_ray_aabb_robust), so the direction goes in as it is
+    walk = wp.bvh_query_capsule(wp.mesh_get_bvh(mesh), o, d, rad, root)
     i = wp.int32(0)
     while wp.bvh_query_next(walk, i, bound):
         if i != first:
