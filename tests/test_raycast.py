@@ -183,13 +183,13 @@ def test_shift_on_device_is_bit_identical(device_backend, rng):
     assert t1.tobytes() == t2.tobytes() and np.array_equal(f1, f2)
 
 
-@pytest.mark.parametrize("first_pass", [0, 1], ids=["capsule", "two-pass"])
+@pytest.mark.parametrize("stack_limit", [64, 1], ids=["ordered", "capsule"])
 @pytest.mark.parametrize("tree", ["cubql", "sah"])
-def test_warp_trees_leak_nothing_and_match_the_reference(tree, first_pass, rng):
-    """The Warp backend's padded-box BVH (WarpCore.upload_mesh) built by each builder it uses (cuBQL on CUDA,
-    SAH on the CPU), walked both ways it walks them (the capsule query alone, the CPU's default, and bounded
-    by a mesh_query_ray hit first, CUDA's; kernels.py, closest_hit), run here on Warp's CPU device: rays
-    aimed at shared vertices and edges all hit, and the hits are the reference's, bit for bit (where faces
+def test_warp_trees_leak_nothing_and_match_the_reference(tree, stack_limit, rng):
+    """The Warp backend's BVH (WarpCore.upload_mesh) built by each builder it uses (cuBQL on CUDA, SAH on the
+    CPU), walked both ways it walks them (the ordered native walk, and Warp's capsule query, which takes every
+    ray whose walk needs more stack than stack_limit: 1 sends every ray whose walk forks there; kernels.py,
+    closest_hit), run here on Warp's CPU device: rays aimed at shared vertices and edges all hit, and the hits are the reference's, bit for bit (where faces
     tie, float64 picks the lower one, whatever the tree's order)."""
     pytest.importorskip("warp")
     if "warp:cpu" not in p3k.available_backends():
@@ -198,7 +198,7 @@ def test_warp_trees_leak_nothing_and_match_the_reference(tree, first_pass, rng):
 
     b = WarpBackend("cpu")
     b.bvh_constructor = tree
-    b.first_pass = first_pass
+    b.stack_limit = stack_limit
     for name, tm in closed_meshes().items():
         mesh = p3k.Mesh(tm.vertices + [3.0, -2.0, 1.0], tm.faces)
         v = mesh.vertices
@@ -215,11 +215,12 @@ def test_warp_trees_leak_nothing_and_match_the_reference(tree, first_pass, rng):
         np.testing.assert_array_equal(got.t, want.t)
 
 
-@pytest.mark.parametrize("first_pass", [0, 1], ids=["capsule", "two-pass"])
-def test_warp_hits_at_shared_edges_and_axis_rays_are_the_references(first_pass):
+@pytest.mark.parametrize("stack_limit", [64, 1], ids=["ordered", "capsule"])
+def test_warp_hits_at_shared_edges_and_axis_rays_are_the_references(stack_limit):
     """The terraced grid of test_raycast_order (rays at every vertex and edge midpoint, and straight down:
-    direction components exactly 0, which Warp's capsule test takes as parallel to those slabs) on Warp's CPU
-    device, both walks: every ray's face and distance bits are the reference's."""
+    direction components exactly 0, which the walks' node test takes as parallel to those slabs) on Warp's CPU
+    device, both walks (the ordered one, and the capsule query with stack_limit 1): every ray's face and
+    distance bits are the reference's."""
     pytest.importorskip("warp")
     if "warp:cpu" not in p3k.available_backends():
         pytest.skip("no Warp CPU backend")
@@ -230,7 +231,7 @@ def test_warp_hits_at_shared_edges_and_axis_rays_are_the_references(first_pass):
     v, f, o, d = _scene()
     assert (d == 0).any(axis=1).sum() > 1000
     b = WarpBackend("cpu")
-    b.first_pass = first_pass
+    b.stack_limit = stack_limit
     tm = np.full(len(o), 1e30)
     t, face = b.raycast(b.upload_mesh(v, f), o, d, tm)
     want_t, want_face = brute_force_raycast(v, f, o, d, tm)

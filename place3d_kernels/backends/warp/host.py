@@ -11,9 +11,8 @@ a CPU launch is a ctypes call, which releases the GIL, and Warp 1.x passes the t
 shared one (coverage's byte mask), are split that way; Warp's CPU "atomics" are plain read-modify-writes,
 so the score kernel is split by candidate (each candidate owns its bitset and sum), never inside one.
 CUDA devices run each kernel as one launch on the GPU.
-Meshes use Warp's BVH (``wp.Mesh``): its ``mesh_query_ray`` finds a float32 hit, and a capsule query over the
-same tree proposes every triangle that could be hit first to the reference's float64 test (kernels.py,
-``closest_hit``).
+Meshes use Warp's BVH (``wp.Mesh``): a walk of its tree in native code, nearest child first, gives every
+triangle that could be hit first to the reference's float64 test (kernels.py, ``closest_hit``).
 """
 
 from __future__ import annotations
@@ -234,13 +233,8 @@ class WarpCore(WarpScoring, Backend):
     bvh_built = None
 
     def upload_mesh(self, vertices, faces, face_ids=None, labels=None):
-        # Warp's mesh_query_ray culls BVH nodes with an unpadded float32 slab test, and rays aimed at
-        # vertices on node boundaries slipped through (seen on boxes and cylinders). So the BVH is built
-        # over padded triangle boxes: each triangle gets its own three points, first set to the corners
-        # of its box grown by a few float32 ulps (the BVH takes its bounds from them), then overwritten
-        # in place with the true corners, without a refit. The query's first pass then tests true
-        # triangles (watertight) inside padded boxes, its second pass walks the same boxes (kernels.py,
-        # closest_hit). Face ids are unchanged (triangle f uses points 3f..3f+2).
+        # each triangle gets its own three points (face f uses points 3f..3f+2), so the float64 corners of face f
+        # are corners64[3f..3f+2]; the tree's boxes are float32 and the walk grows them (kernels.py, closest_hit)
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces, dtype=np.int64)
         ids, lab = mesh_face_tables(len(f), face_ids, labels)
@@ -249,24 +243,12 @@ class WarpCore(WarpScoring, Backend):
     def _upload_triangles(self, tri, ids, lab, groups=None, cons=None):
         """``upload_mesh`` of (F, 3, 3) float64 triangles with their face tables (``groups``: (F,) int32
         group of each triangle, for ``upload_mesh_groups``)."""
-        # per triangle: its box (lo, hi), padded by pad, and its centre, as three points; elementwise
-        # minima and maxima over the corners instead of reductions along the middle axis (under half the
-        # time; the same values, since each is one of its operands)
-        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-        lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
-        m = np.maximum(np.abs(lo), np.abs(hi))
-        pad = (np.maximum(np.maximum(m[:, 0], m[:, 1]), m[:, 2])[:, None] + 1.0) * 1e-6
-        build = np.empty_like(tri)
-        np.subtract(lo, pad, out=build[:, 0])
-        np.add(hi, pad, out=build[:, 1])
-        np.multiply(np.add(lo, hi, out=build[:, 2]), 0.5, out=build[:, 2])
-        pts = self._vec3(build.reshape(-1, 3))
-        idx = wp.array(np.arange(3 * len(tri), dtype=np.int32), dtype=wp.int32, device=self.device)
+        corners = tri.reshape(-1, 3)
+        pts = self._vec3(corners)
+        idx = wp.array(np.arange(len(corners), dtype=np.int32), dtype=wp.int32, device=self.device)
         gr = None if groups is None else wp.array(groups, dtype=wp.int32, device=self.device)
         mesh = self._build_tree(pts, idx, gr, cons)
-        corners = tri.reshape(-1, 3)
-        pts.assign(self._vec3(corners))
-        reach = float(np.abs(m).max()) if len(tri) else 0.0
+        reach = float(np.abs(corners).max()) if len(tri) else 0.0
         return _WarpMesh(mesh, pts, idx, self._vec3d(corners), reach, wp.array(ids, dtype=wp.int64, device=self.device),
                          wp.array(lab, dtype=wp.int32, device=self.device))
 
@@ -319,7 +301,7 @@ class WarpCore(WarpScoring, Backend):
         def args(g0, g1):
             a, b = g0 * r, g1 * r
             return [mesh.mesh.id, mesh.corners64, mesh.reach, mesh.face_ids, mesh.face_labels, o[a:b], sh, d[a:b],
-                    tm, r, first + g0, self._first_pass(), out_t[a:b], out_f[a:b], out_l[a:b], flags]
+                    tm, r, first + g0, self._stack_limit(), out_t[a:b], out_f[a:b], out_l[a:b], flags]
 
         self._launch_by_group(self.k.raycast_groups_kernel, groups, r, args)
         return self._checked_results(buf, n)
@@ -346,14 +328,15 @@ class WarpCore(WarpScoring, Backend):
             self.bvh_built = f"sah (cubql: {type(e).__name__}: {e})"
         return mesh
 
-    #: whether the ray-mesh walk is bounded by a mesh_query_ray hit first (kernels.py, closest_hit); None: the
-    #: device's default, FIRST_PASS
-    first_pass = None
-    FIRST_PASS = {"cuda": True, "cpu": False}
+    #: stack entries the ray-mesh walk may use (1..64, kernels.py, closest_hit); a ray that needs more is walked
+    #: again by Warp's capsule query, with the same hit (tests set 1 to send every ray there)
+    stack_limit = 64
 
-    def _first_pass(self) -> int:
-        fp = self.first_pass
-        return int(self.FIRST_PASS["cuda" if self.device.is_cuda else "cpu"] if fp is None else fp)
+    def _stack_limit(self) -> int:
+        n = int(self.stack_limit)
+        if not 1 <= n <= 64:
+            raise ValueError(f"stack_limit must be 1..64 (the walk's stack), got {self.stack_limit!r}")
+        return n
 
     raycast_takes_shift = True
 
@@ -370,7 +353,7 @@ class WarpCore(WarpScoring, Backend):
         """The ray-mesh query (kernels.py, raycast_query_kernel) on device arrays, as one zero-argument
         launch."""
         return self._prepare(self.k.raycast_query_kernel, len(out_t), lambda a, b: [
-            mesh.mesh.id, mesh.corners64, mesh.reach, o[a:b], s, d[a:b], tm[a:b], self._first_pass(), out_t[a:b],
+            mesh.mesh.id, mesh.corners64, mesh.reach, o[a:b], s, d[a:b], tm[a:b], self._stack_limit(), out_t[a:b],
             out_f[a:b]])
 
     raycast_checks_rays = True
@@ -388,7 +371,7 @@ class WarpCore(WarpScoring, Backend):
         kernel = self.k.RAYCAST_CHECKED[vec]
         self._launch(kernel, n, lambda a, b: [
             mesh.mesh.id, mesh.corners64, mesh.reach, mesh.face_ids, mesh.face_labels,
-            o[a:b] if o_step else o, o_step, s, d[a:b], tm[a:b] if t_step else tm, t_step, self._first_pass(),
+            o[a:b] if o_step else o, o_step, s, d[a:b], tm[a:b] if t_step else tm, t_step, self._stack_limit(),
             out_t[a:b], out_f[a:b], out_l[a:b], flags])
         return self._checked_results(buf, n)
 

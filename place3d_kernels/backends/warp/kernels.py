@@ -103,22 +103,137 @@ def tri_t64(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, tm:
     return t
 
 
-# The ray-mesh query. float32 only proposes, float64 decides: the first pass is Warp's ordered BVH query and
-# float32 watertight test (mesh_query_ray, on a tree built over padded triangle boxes, WarpCore.upload_mesh);
-# its face's float64 distance (tri_t64) bounds the closest float64 hit. The second pass walks the same tree
-# (mesh_get_bvh) with a capsule query up to that bound and gives every triangle it proposes the reference's
-# test; the smallest t wins, ties to the lower face. The float32 ray strays from the float64 one by a few
-# float32 ulps of |origin| + t, t is at most about 2 (|origin| + reach) for any point of the mesh (reach: its
-# largest |coordinate|), and the boxes round by an ulp of reach; the capsule grows every box by 4e-6 of those
-# reaches (60 ulps), so no box culls a triangle the float64 ray meets before the bound. The hit and its face
-# are then the reference's, bit for bit, whatever the tree and its walk order (the OpenCL backend decides the
-# same way, raycast.cl). Without the first pass the capsule walk, which visits children in a fixed order,
-# starts from t_max and took 12x a plain query's time on an H200 (2026-11-29).
+# The ray-mesh query. float32 only proposes, float64 decides. The walk visits the mesh's own BVH (Warp's tree,
+# built over the triangles, WarpCore.upload_mesh) nearest child first, as Warp's mesh_query_ray does, but tests
+# every node's box grown by rad and gives every triangle of a leaf the reference's float64 test; the smallest t
+# wins, ties to the lower face, and each hit shrinks the float32 bound that prunes the rest. The float32 ray
+# strays from the float64 one by a few float32 ulps of |origin| + t, t is at most about 2 (|origin| + reach) for
+# any point of the mesh (reach: its largest |coordinate|), and the boxes round by an ulp of reach; growing every
+# box by 4e-6 of those reaches (60 ulps) covers them, so no box culls a triangle the float64 ray meets before the
+# bound. The hit and its face are then the reference's, bit for bit, whatever the tree and its walk order (the
+# OpenCL backend decides the same way, raycast.cl). The node test is the one of Warp's capsule query (its robust
+# slab test on the grown box, a direction component tested as zero when 1 / (1 / d) is).
+#
+# Warp has no ordered walk that takes a test of the caller's, so the walk is native code over Warp's node layout
+# (native/bvh.h: a node is two BVHPackedNodeHalf, lower and upper, whose i is the left and right child, or for a
+# leaf, flagged b, the range of primitive_indices). Its stack holds at most stack_limit (<= 64) nodes; a ray
+# that needs more is walked again by Warp's capsule query (closest_hit), which has no such limit and gives the
+# same hit. A plain loop with a vector as stack in Warp's kernel language took 4x the native walk on an H200,
+# and the capsule query alone, which visits children in a fixed order, 5-11x (2026-11-29).
+_ORDERED_WALK = r"""
+using namespace wp;
+const Mesh m = mesh_get(mesh);
+const BVHPackedNodeHalf* lows = m.bvh.node_lowers;
+const BVHPackedNodeHalf* ups = m.bvh.node_uppers;
+const int* prims = m.bvh.primitive_indices;
+const vec3 o(float(o64[0]), float(o64[1]), float(o64[2]));
+const vec3 d(float(d64[0]), float(d64[1]), float(d64[2]));
+const vec3 rcp(1.0f / d[0], 1.0f / d[1], 1.0f / d[2]);
+const vec3 dz(1.0f / rcp[0], 1.0f / rcp[1], 1.0f / rcp[2]);
+const double om = wp::max(wp::max(wp::abs(o64[0]), wp::abs(o64[1])), wp::abs(o64[2]));
+const float rad = float((om + reach + 1.0) * 4.0e-6);
+const vec3 grow(rad, rad, rad);
+float bound = float(tm) * 1.00000024f + rad;
+// the float64 ray's shear frame (backends/geometry.py, watertight_intersect), the same for every triangle
+const double adx = wp::abs(d64[0]), ady = wp::abs(d64[1]), adz = wp::abs(d64[2]);
+int kz = 0;
+if (ady > adx) kz = 1;
+if (adz > (kz == 0 ? adx : ady)) kz = 2;
+int kx = (kz + 1) % 3;
+int ky = (kx + 1) % 3;
+if (d64[kz] < 0.0) { const int swap = kx; kx = ky; ky = swap; }
+const double sx = d64[kx] / d64[kz];
+const double sy = d64[ky] / d64[kz];
+const double sz = 1.0 / d64[kz];
+double best = miss;
+int face = -1;
+int stack[64];
+float entry[64];
+int n = 0;
+const int top = root == -1 ? *m.bvh.root : root;
+float t0 = FLT_MAX;
+if (intersect_ray_aabb_robust(o, dz, rcp, vec3(lows[top].x, lows[top].y, lows[top].z) - grow,
+                              vec3(ups[top].x, ups[top].y, ups[top].z) + grow, t0) && !(t0 > bound)) {
+    stack[0] = top;
+    entry[0] = t0;
+    n = 1;
+}
+while (n > 0) {
+    --n;
+    if (entry[n] > bound) continue;
+    const BVHPackedNodeHalf lo = lows[stack[n]];
+    const BVHPackedNodeHalf hi = ups[stack[n]];
+    if (lo.b) {
+        for (int pc = int(lo.i); pc < int(hi.i); ++pc) {
+            // the reference's watertight test in float64, operation for operation (no FMA: fuse_fp is off)
+            const int i = prims[pc];
+            const vec3d ra = index(corners64, 3 * i) - o64;
+            const vec3d rb = index(corners64, 3 * i + 1) - o64;
+            const vec3d rc = index(corners64, 3 * i + 2) - o64;
+            const double ax = ra[kx] - sx * ra[kz];
+            const double ay = ra[ky] - sy * ra[kz];
+            const double az = sz * ra[kz];
+            const double bx = rb[kx] - sx * rb[kz];
+            const double by = rb[ky] - sy * rb[kz];
+            const double bz = sz * rb[kz];
+            const double cx = rc[kx] - sx * rc[kz];
+            const double cy = rc[ky] - sy * rc[kz];
+            const double cz = sz * rc[kz];
+            const double u = cx * by - cy * bx;
+            const double v = ax * cy - ay * cx;
+            const double w = bx * ay - by * ax;
+            if ((u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)) continue;
+            const double det = u + v + w;
+            if (det == 0.0) continue;
+            const double t = (u * az + v * bz + w * cz) / det;
+            if (!(t >= 0.0 && t <= tm)) continue;
+            if (t < best || (t == best && i < face)) {
+                best = t;
+                face = i;
+                bound = float(t) + rad;
+            }
+        }
+        continue;
+    }
+    const int a = int(lo.i);
+    const int b = int(hi.i);
+    const BVHPackedNodeHalf al = lows[a], ah = ups[a], bl = lows[b], bh = ups[b];
+    float ta = FLT_MAX, tb = FLT_MAX;
+    const bool ha = intersect_ray_aabb_robust(o, dz, rcp, vec3(al.x, al.y, al.z) - grow, vec3(ah.x, ah.y, ah.z) + grow, ta)
+                    && !(ta > bound);
+    const bool hb = intersect_ray_aabb_robust(o, dz, rcp, vec3(bl.x, bl.y, bl.z) - grow, vec3(bh.x, bh.y, bh.z) + grow, tb)
+                    && !(tb > bound);
+    if (ha && hb) {
+        if (n + 2 > stack_limit) return vec2d(miss, -2.0);    // the caller walks this ray again
+        const bool a_first = ta <= tb;
+        stack[n] = a_first ? b : a;
+        entry[n] = a_first ? tb : ta;
+        stack[n + 1] = a_first ? a : b;
+        entry[n + 1] = a_first ? ta : tb;
+        n += 2;
+    } else if (ha || hb) {
+        stack[n] = ha ? a : b;
+        entry[n] = ha ? ta : tb;
+        ++n;
+    }
+}
+return vec2d(best, double(face));
+"""
+
+
+@wp.func_native(_ORDERED_WALK)
+def ordered_walk(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), reach: wp.float64, o64: wp.vec3d,
+                 d64: wp.vec3d, tm: wp.float64, root: wp.int32, stack_limit: wp.int32, miss: wp.float64) -> wp.vec2d:
+    # (t, face) of the closest float64 hit, (miss, -1) for none, (miss, -2) when the walk needed more than
+    # stack_limit stack entries (at most 64)
+    ...
+
+
 @wp.func
-def closest_hit(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), reach: wp.float64, o64: wp.vec3d,
-                d64: wp.vec3d, tm: wp.float64, root: wp.int32, first_pass: wp.int32):
-    # the closest float64 hit of the ray (o64, d64) in [0, tm] among the triangles of the subtree at ``root``
-    # (a group's, mesh_get_group_root), or the whole tree for -1: (t, uploaded face), or (MISS_T, -1)
+def capsule_walk(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), reach: wp.float64, o64: wp.vec3d,
+                 d64: wp.vec3d, tm: wp.float64, root: wp.int32):
+    # the same hit as ordered_walk by Warp's capsule query on the same tree: every triangle whose grown box the
+    # float32 ray meets before the bound, in the tree's fixed order, without a stack limit
     o = wp.vec3(wp.float32(o64[0]), wp.float32(o64[1]), wp.float32(o64[2]))
     d = wp.vec3(wp.float32(d64[0]), wp.float32(d64[1]), wp.float32(d64[2]))
     om = wp.max(wp.max(wp.abs(o64[0]), wp.abs(o64[1])), wp.abs(o64[2]))
@@ -126,27 +241,27 @@ def closest_hit(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), reach: wp.
     bound = wp.float32(tm) * wp.float32(1.00000024) + rad
     best = MISS_T
     face = wp.int32(-1)
-    if first_pass != 0:
-        q = wp.mesh_query_ray(mesh, o, d, bound, root)
-        if q.result:
-            face = q.face
-            best = tri_t64(corners64[3 * face], corners64[3 * face + 1], corners64[3 * face + 2], o64, d64, tm)
-            if best < MISS_T:
-                bound = wp.float32(best) + rad
-            else:
-                face = wp.int32(-1)
-    first = face
-    # Warp's capsule test takes a zero direction component as parallel to that axis's slabs (its robust slab
-    # test, intersect_ray_aabb_robust), so the direction goes in as it is
     walk = wp.bvh_query_capsule(wp.mesh_get_bvh(mesh), o, d, rad, root)
     i = wp.int32(0)
     while wp.bvh_query_next(walk, i, bound):
-        if i != first:
-            t = tri_t64(corners64[3 * i], corners64[3 * i + 1], corners64[3 * i + 2], o64, d64, tm)
-            if t < best or (t == best and t < MISS_T and i < face):
-                best = t
-                face = i
-                bound = wp.float32(t) + rad
+        t = tri_t64(corners64[3 * i], corners64[3 * i + 1], corners64[3 * i + 2], o64, d64, tm)
+        if t < best or (t == best and t < MISS_T and i < face):
+            best = t
+            face = i
+            bound = wp.float32(t) + rad
+    return best, face
+
+
+@wp.func
+def closest_hit(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), reach: wp.float64, o64: wp.vec3d,
+                d64: wp.vec3d, tm: wp.float64, root: wp.int32, stack_limit: wp.int32):
+    # the closest float64 hit of the ray (o64, d64) in [0, tm] among the triangles of the subtree at ``root``
+    # (a group's, mesh_get_group_root), or the whole tree for -1: (t, uploaded face), or (MISS_T, -1)
+    r = ordered_walk(mesh, corners64, reach, o64, d64, tm, root, stack_limit, MISS_T)
+    best = r[0]
+    face = wp.int32(r[1])
+    if face == -2:
+        best, face = capsule_walk(mesh, corners64, reach, o64, d64, tm, root)
     return best, face
 
 
@@ -159,13 +274,13 @@ def raycast_query_kernel(
     shift: wp.vec3d,                        # subtracted from origins in float64 (zero: already shifted)
     dirs: wp.array(dtype=wp.vec3d),
     t_max: wp.array(dtype=wp.float64),
-    first_pass: wp.int32,                   # 1: bound the walk by mesh_query_ray's hit first (closest_hit)
+    stack_limit: wp.int32,                  # closest_hit's ordered walk: at most this many stack entries (<= 64)
     out_t: wp.array(dtype=wp.float64),
     out_face: wp.array(dtype=wp.int32),
 ):
     tid = wp.tid()
     # componentwise float64 subtraction: bit-identical to np.subtract(origins, shift) on the host
-    t, f = closest_hit(mesh, corners64, reach, origins[tid] - shift, dirs[tid], t_max[tid], wp.int32(-1), first_pass)
+    t, f = closest_hit(mesh, corners64, reach, origins[tid] - shift, dirs[tid], t_max[tid], wp.int32(-1), stack_limit)
     out_t[tid] = t
     out_face[tid] = f
 
@@ -246,7 +361,7 @@ def raycast_checked_kernel(
     dirs: wp.array(dtype=Any),              # same dtype as origins; any length, not validated
     t_max: wp.array(dtype=wp.float64),
     t_step: wp.int32,                       # 1, or 0 for one bound shared by every ray
-    first_pass: wp.int32,                   # 1: bound the walk by mesh_query_ray's hit first (closest_hit)
+    stack_limit: wp.int32,                  # closest_hit's ordered walk: at most this many stack entries (<= 64)
     out_t: wp.array(dtype=wp.float64),
     out_face: wp.array(dtype=wp.int64),
     out_label: wp.array(dtype=wp.int32),
@@ -261,7 +376,7 @@ def raycast_checked_kernel(
     out_label[tid] = -1
     if ray_ok(ow, dw, n, tm, flags):
         # as ops.raycast's host path: float32 kernels need a finite bound
-        t, f = closest_hit(mesh, corners64, reach, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)), wp.int32(-1), first_pass)
+        t, f = closest_hit(mesh, corners64, reach, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)), wp.int32(-1), stack_limit)
         put_hit(t, f, face_ids, face_labels, tid, out_t, out_face, out_label)
 
 
@@ -276,7 +391,7 @@ def raycast_groups_kernel(
     t_max: wp.array(dtype=wp.float64),      # (1,) one bound for every ray
     rays_per_group: wp.int32,               # R
     first_group: wp.int32,                  # g0: the group of these arrays' first ray
-    first_pass: wp.int32,                   # 1: bound the walk by mesh_query_ray's hit first (closest_hit)
+    stack_limit: wp.int32,                  # closest_hit's ordered walk: at most this many stack entries (<= 64)
     out_t: wp.array(dtype=wp.float64),
     out_face: wp.array(dtype=wp.int64),
     out_label: wp.array(dtype=wp.int32),
@@ -292,7 +407,7 @@ def raycast_groups_kernel(
     out_label[tid] = -1
     if ray_ok(ow, dw, n, tm, flags):
         root = wp.mesh_get_group_root(mesh, g)
-        t, f = closest_hit(mesh, corners64, reach, ow - shifts[g], d64, wp.min(tm, wp.float64(1.0e30)), root, first_pass)
+        t, f = closest_hit(mesh, corners64, reach, ow - shifts[g], d64, wp.min(tm, wp.float64(1.0e30)), root, stack_limit)
         put_hit(t, f, face_ids, face_labels, tid, out_t, out_face, out_label)
 
 
