@@ -229,12 +229,15 @@ class ProcessExecutor(Executor):
         start_method: ``"spawn"`` (default) or ``"forkserver"``.
         prestart: start the workers now instead of at the first ``map``, so that they import the package
             and resolve the backend while this process goes on.
+        preload: the backend name whose modules a ``forkserver`` imports (``_preload_for``; default
+            ``backend``), for a caller that starts the server (``start_server``) before it knows the backend;
+            ``backend`` may then be set until the first ``map``.
     """
 
     kind = "process"
 
     def __init__(self, workers: int | None = None, backend: str | None = None, start_method: str = "spawn",
-                 prestart: bool = False) -> None:
+                 prestart: bool = False, preload: str | None = None) -> None:
         super().__init__()
         if start_method not in ("spawn", "forkserver"):
             raise ValueError(f"start_method must be 'spawn' or 'forkserver', got {start_method!r}")
@@ -242,6 +245,7 @@ class ProcessExecutor(Executor):
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
         self.backend = backend
+        self.preload = backend if preload is None else preload
         self.start_method = start_method
         self._pool = None
         self._started = 0
@@ -255,6 +259,14 @@ class ProcessExecutor(Executor):
             threading.Thread(target=self._ensure, args=(self.workers,), daemon=True, name="place3d-workers").start()
         elif prestart:
             self._ensure(self.workers)
+
+    def start_server(self) -> None:
+        """Start the forkserver now (a no-op for spawned workers): it imports its preload while this process
+        goes on, and the first ``map`` forks the workers from it without waiting for those imports."""
+        if self.start_method == "forkserver":
+            with self._lock:
+                if not self._server_started:
+                    self._start_server()
 
     def _start_server(self) -> None:
         """Start the forkserver (if this process has none yet) with the workers' environment: every worker
@@ -272,7 +284,7 @@ class ProcessExecutor(Executor):
         ctx = multiprocessing.get_context(self.start_method)
         if self.start_method == "forkserver":
             # only read by a forkserver not yet running (one per process; a later executor shares it)
-            ctx.set_forkserver_preload(_preload_for(self.backend))
+            ctx.set_forkserver_preload(_preload_for(self.preload))
         return ctx
 
     def _environment(self):

@@ -132,22 +132,51 @@ def test_tiny_pooled_optimize_reports_intervals_over_routes(tmp_path):
 # ------------------------------------------------------------------------------ drives built in workers
 def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_path, monkeypatch):
     # the drives a cold cache lacks are built by worker processes; the pool read back from the cache is the
-    # pool built one drive after another in this process, bit for bit; a warm cache starts no worker
+    # pool built one drive after another in this process, bit for bit; a warm cache starts no worker. The
+    # workers come from the commands' server (a forkserver on Linux), started before the backend is known,
+    # and are ended once every drive has returned
     import argparse
+    from concurrent.futures import Future
 
+    from place3d_app import executors
     from place3d_app.commands.routes import build_missing
     from place3d_kernels.pooled import pool_specs
 
+    made = []
+
+    class Recorded(executors.ProcessExecutor):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            self.backend_when_started = "never"
+            made.append(self)
+
+        def start_server(self):
+            self.backend_when_started = self.backend
+            super().start_server()
+
+        def shutdown(self, wait=True):
+            self.waited = wait
+            super().shutdown(wait)
+
+    monkeypatch.setattr(executors, "ProcessExecutor", Recorded)
     monkeypatch.setenv("PLACE3D_WORKERS", "2")
     monkeypatch.setattr("place3d_app.executors.usable_cores", lambda: 2)
     args = build_parser().parse_args(["optimize", *TINY, "--route-seeds", "3,4", "--backend", "warp:cpu"])
     specs = drive_specs(args, specs_from_args(args))
     assert len(specs) == 2
+    # the workers' server started before this command's cache folder was set: the folder travels with the drives
+    executors.ProcessExecutor(1, start_method=executors.command_start_method()).start_server()
+    made.clear()
     monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "workers"))
     assert [s.cache_file() for s in specs] == [None, None]       # scene keys never remembered here
-    opts = argparse.Namespace(no_cache=False, quiet=True)
-    assert build_missing(opts, specs, "warp:cpu") == 2
+    opts = argparse.Namespace(no_cache=False, quiet=True, backend="warp:cpu")
+    probe = Future()                                                  # optimize's probe, answered later
+    probe.set_result("warp:cpu")
+    assert build_missing(opts, specs, probe) == 2
     assert all(s.cache_file() is not None and s.cache_file().exists() for s in specs)
+    (ex,) = made
+    assert ex.start_method == executors.command_start_method() and ex.preload == "warp:cpu"
+    assert ex.backend_when_started is None and ex.backend == "warp:cpu" and ex.waited is False
     assert build_missing(opts, specs, "warp:cpu") == 0               # warm: nothing missing, no workers
     a = pool_specs(specs, backend="warp:cpu").psog()
     # the workers' records, pooled without reading the files, are the records read back

@@ -106,7 +106,7 @@ def _build_spec(spec):
     it without reading the file again."""
     from place3d_kernels.pooled import DriveRecord
 
-    return DriveRecord.from_psog(spec.build(cache=True), spec.scene.label)
+    return DriveRecord.from_psog(spec.build(cache=spec.cache or True), spec.scene.label)
 
 
 def build_missing(args, specs, backend) -> int:
@@ -121,7 +121,8 @@ def build_missing(args, specs, backend) -> int:
     (Ray runs place their own work). ``backend`` may be a Future (optimize's probe), waited for only here."""
     from concurrent.futures import Future
 
-    from place3d_app.executors import ProcessExecutor, default_workers
+    from place3d_app.executors import ProcessExecutor, command_start_method, default_workers
+    from place3d_kernels.sog import cache_dir
     from place3d_kernels.spec import backend_name
 
     if getattr(args, "no_cache", False) or getattr(args, "ray_address", None) \
@@ -135,18 +136,28 @@ def build_missing(args, specs, backend) -> int:
     n = min(default_workers(), len(missing))
     if len(missing) < 2 or n < 2:
         return 0
-    if isinstance(backend, Future):
-        backend = backend.result()
-    name = backend_name(backend)
     t = time.perf_counter()
-    ex = ProcessExecutor(n, backend=name)
+    # the workers' server (a forkserver on Linux, command_start_method) imports NumPy, SciPy, Warp and the drive
+    # modules while this process waits for its backend probe; the workers are forked from it once the backend's
+    # name is known, and ended as soon as every drive has returned (each task returns after its file is written)
+    asked = backend if isinstance(backend, str) else getattr(backend, "name", None) or getattr(args, "backend", None)
+    ex = ProcessExecutor(n, start_method=command_start_method(), preload=str(asked or "auto"))
     from place3d_kernels.profiling import section
 
     try:
+        ex.start_server()
+        if isinstance(backend, Future):
+            backend = backend.result()
+        name = backend_name(backend)
+        ex.backend = name
         with section("drives: worker processes (start, build, send)"):
-            records = ex.map(_build_spec, [dataclasses.replace(s, backend=name) for s in missing])
+            # the cache folder resolved here: a forkserver's workers have the server's environment, which may
+            # be older than this command's ($PLACE3D_CACHE set since, or a served client's)
+            folder = str(cache_dir())
+            records = ex.map(_build_spec, [dataclasses.replace(s, backend=name, cache=s.cache or folder)
+                                           for s in missing])
     finally:
-        ex.shutdown()
+        ex.shutdown(wait=False)
     args.built = {**(getattr(args, "built", None) or {}), **dict(zip(missing, records))}
     if not getattr(args, "quiet", False):
         print(f"built {len(missing)} drives in {n} worker processes in {time.perf_counter() - t:.1f} s",
