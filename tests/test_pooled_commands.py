@@ -139,7 +139,7 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
     from concurrent.futures import Future
 
     from place3d_app import executors
-    from place3d_app.commands.routes import build_missing, start_drive_server
+    from place3d_app.commands.routes import build_missing
     from place3d_kernels.pooled import pool_specs
 
     made = []
@@ -170,9 +170,6 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
     monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "workers"))
     assert [s.cache_file() for s in specs] == [None, None]       # scene keys never remembered here
     opts = argparse.Namespace(no_cache=False, quiet=True, backend="warp:cpu")
-    forks = executors.command_start_method() == "forkserver"
-    assert start_drive_server(opts, specs, "warp:cpu") is forks     # evaluate's early start: drives to build
-    made.clear()
     probe = Future()                                                  # optimize's probe, answered later
     probe.set_result("warp:cpu")
     assert build_missing(opts, specs, probe) == 2
@@ -181,7 +178,6 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
     assert ex.start_method == executors.command_start_method() and ex.preload == "warp:cpu"
     assert ex.backend_when_started is None and ex.backend == "warp:cpu" and ex.waited is False
     assert build_missing(opts, specs, "warp:cpu") == 0               # warm: nothing missing, no workers
-    assert start_drive_server(opts, specs, "warp:cpu") is False       # and no server started for them
     a = pool_specs(specs, backend="warp:cpu").psog()
     # the workers' records, pooled without reading the files, are the records read back
     assert set(opts.built) == set(specs)

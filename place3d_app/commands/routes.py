@@ -109,34 +109,6 @@ def _build_spec(spec):
     return DriveRecord.from_psog(spec.build(cache=spec.cache or True), spec.scene.label)
 
 
-def _missing(args, specs) -> list:
-    """The drives of ``specs`` that ``build_missing`` builds in worker processes (empty when it starts none)."""
-    from place3d_app.executors import default_workers
-
-    if getattr(args, "no_cache", False) or getattr(args, "ray_address", None) \
-            or getattr(args, "executor", "local") not in ("local", "auto", None):
-        return []
-    missing = []
-    for s in specs:
-        f = s.cache_file()
-        if s.scene.kind in ("town", "opendrive") and (f is None or not f.exists()):
-            missing.append(s)
-    return missing if len(missing) >= 2 and min(default_workers(), len(missing)) >= 2 else []
-
-
-def start_drive_server(args, specs, backend: str | None) -> bool:
-    """Start the server ``build_missing`` forks its workers from (a forkserver on Linux), with the imports of
-    the asked ``backend`` name, when it will build drives: a command that probes its backend in line
-    (``evaluate``) calls this first, so the server's imports overlap the probe. Returns whether it started
-    one."""
-    from place3d_app.executors import ProcessExecutor, command_start_method
-
-    if not _missing(args, specs) or command_start_method() != "forkserver":
-        return False
-    ProcessExecutor(1, start_method="forkserver", preload=str(backend or "auto")).start_server()
-    return True
-
-
 def build_missing(args, specs, backend) -> int:
     """Build the drives of ``specs`` that the cache lacks in worker processes, one per usable core (at most
     one per drive); returns how many were built. Each lands in the cache, and its ``DriveRecord`` is kept in
@@ -153,10 +125,17 @@ def build_missing(args, specs, backend) -> int:
     from place3d_kernels.sog import cache_dir
     from place3d_kernels.spec import backend_name
 
-    missing = _missing(args, specs)
-    if not missing:
+    if getattr(args, "no_cache", False) or getattr(args, "ray_address", None) \
+            or getattr(args, "executor", "local") not in ("local", "auto", None):
         return 0
+    missing = []
+    for s in specs:
+        f = s.cache_file()
+        if s.scene.kind in ("town", "opendrive") and (f is None or not f.exists()):
+            missing.append(s)
     n = min(default_workers(), len(missing))
+    if len(missing) < 2 or n < 2:
+        return 0
     t = time.perf_counter()
     # the workers' server (a forkserver on Linux, command_start_method) imports NumPy, SciPy, Warp and the drive
     # modules while this process waits for its backend probe; the workers are forked from it once the backend's
