@@ -392,14 +392,17 @@ def _count_dtype(T: int):
 
 
 # ====================================================================== building
-def drive_record(drive: Drive, settings: PoolSettings = PoolSettings(), save_in_background: bool = False) -> DriveRecord:
+def drive_record(drive: Drive, settings: PoolSettings = PoolSettings(), save_in_background: bool = False,
+                 scene=None) -> DriveRecord:
     """The record of one drive: its P-SOG from ``scene_psog`` (on-disk cache per drive), sparsified.
     ``save_in_background``: a newly built P-SOG is written to the cache on a thread (``scene_psog``); the
-    caller waits for it with ``pipeline.wait_for_saves``."""
+    caller waits for it with ``pipeline.wait_for_saves``. ``scene``: the drive's scene when the caller built it
+    already (``drive.build()``)."""
     from place3d_kernels.pipeline import scene_psog
 
     cache = True if settings.cache is None else settings.cache
-    ps = scene_psog(drive.build(), grid=settings.grid, lidar=settings.lidar, frames_per_subset=settings.k,
+    ps = scene_psog(drive.build() if scene is None else scene, grid=settings.grid, lidar=settings.lidar,
+                    frames_per_subset=settings.k,
                     backend=settings.backend, cache=cache, save_in_background=save_in_background)
     return DriveRecord.from_psog(ps, drive.label)
 
@@ -421,14 +424,21 @@ def _record_task(t) -> DriveRecord:
 
 
 def _records_task(t) -> list[DriveRecord]:
-    # a worker's drives: each P-SOG is compressed into the cache on a thread (zlib lets the next drive's scene
-    # build run meanwhile), and the task returns only once every file is written, so the cache is whole when
-    # the pool is (tests/test_executors.py)
+    # a worker's drives: every scene first (Python on the CPU), while the worker's backend starts on its own thread
+    # (executors._start_worker): sixteen workers starting CUDA on one GPU at once took 2.3-2.8 s each on an H200
+    # host against 0.5 s for one (2026-11-29), longer than a big town's first scene, and the drive's simulation
+    # waited for it. Then each P-SOG, compressed into the cache on a thread (zlib lets the next drive's work run
+    # meanwhile); the task returns only once every file is written, so the cache is whole when the pool is
+    # (tests/test_executors.py)
     from place3d_kernels.pipeline import wait_for_saves
 
     drives, settings = t
     try:
-        return [drive_record(d, settings, save_in_background=True) for d in drives]
+        scenes = [d.build() for d in drives]
+        out = []
+        for d in drives:                    # each scene let go once its record is made
+            out.append(drive_record(d, settings, save_in_background=True, scene=scenes.pop(0)))
+        return out
     finally:
         wait_for_saves()
 
