@@ -183,14 +183,12 @@ def test_shift_on_device_is_bit_identical(device_backend, rng):
     assert t1.tobytes() == t2.tobytes() and np.array_equal(f1, f2)
 
 
-@pytest.mark.parametrize("stack_limit", [64, 1], ids=["ordered", "capsule"])
 @pytest.mark.parametrize("tree", ["cubql", "sah"])
-def test_warp_trees_leak_nothing_and_match_the_reference(tree, stack_limit, rng):
+def test_warp_trees_leak_nothing_and_match_the_reference(tree, rng):
     """The Warp backend's BVH (WarpCore.upload_mesh) built by each builder it uses (cuBQL on CUDA, SAH on the
-    CPU), walked both ways it walks them (the ordered native walk, and Warp's capsule query, which takes every
-    ray whose walk needs more stack than stack_limit: 1 sends every ray whose walk forks there; kernels.py,
-    closest_hit), run here on Warp's CPU device: rays aimed at shared vertices and edges all hit, and the hits are the reference's, bit for bit (where faces
-    tie, float64 picks the lower one, whatever the tree's order)."""
+    CPU), walked by its ordered native walk (kernels.py, closest_hit), run here on Warp's CPU device: rays aimed
+    at shared vertices and edges all hit, and the hits are the reference's, bit for bit (where faces tie,
+    float64 picks the lower one, whatever the tree's order)."""
     pytest.importorskip("warp")
     if "warp:cpu" not in p3k.available_backends():
         pytest.skip("no Warp CPU backend")
@@ -198,7 +196,6 @@ def test_warp_trees_leak_nothing_and_match_the_reference(tree, stack_limit, rng)
 
     b = WarpBackend("cpu")
     b.bvh_constructor = tree
-    b.stack_limit = stack_limit
     for name, tm in closed_meshes().items():
         mesh = p3k.Mesh(tm.vertices + [3.0, -2.0, 1.0], tm.faces)
         v = mesh.vertices
@@ -215,12 +212,10 @@ def test_warp_trees_leak_nothing_and_match_the_reference(tree, stack_limit, rng)
         np.testing.assert_array_equal(got.t, want.t)
 
 
-@pytest.mark.parametrize("stack_limit", [64, 1], ids=["ordered", "capsule"])
-def test_warp_hits_at_shared_edges_and_axis_rays_are_the_references(stack_limit):
+def test_warp_hits_at_shared_edges_and_axis_rays_are_the_references():
     """The terraced grid of test_raycast_order (rays at every vertex and edge midpoint, and straight down:
-    direction components exactly 0, which the walks' node test takes as parallel to those slabs) on Warp's CPU
-    device, both walks (the ordered one, and the capsule query with stack_limit 1): every ray's face and
-    distance bits are the reference's."""
+    direction components exactly 0, which the walk's node test takes as parallel to those slabs) on Warp's CPU
+    device: every ray's face and distance bits are the reference's."""
     pytest.importorskip("warp")
     if "warp:cpu" not in p3k.available_backends():
         pytest.skip("no Warp CPU backend")
@@ -231,9 +226,47 @@ def test_warp_hits_at_shared_edges_and_axis_rays_are_the_references(stack_limit)
     v, f, o, d = _scene()
     assert (d == 0).any(axis=1).sum() > 1000
     b = WarpBackend("cpu")
-    b.stack_limit = stack_limit
     tm = np.full(len(o), 1e30)
     t, face = b.raycast(b.upload_mesh(v, f), o, d, tm)
     want_t, want_face = brute_force_raycast(v, f, o, d, tm)
+    np.testing.assert_array_equal(face, want_face)
+    np.testing.assert_array_equal(t, want_t)
+
+
+@pytest.mark.parametrize("tree", ["cubql", "sah"])
+def test_warp_walk_on_trees_at_warps_depth_cap_is_the_references(tree, rng):
+    """A chain of triangles whose sizes grow geometrically, which cuBQL builds as deep as Warp lets any builder
+    go (a node at depth BVH_QUERY_STACK_SIZE - 1 becomes a leaf): the ordered walk's stack (kernels.py,
+    _ORDERED_WALK) is sized by that cap, and every hit, down through the deepest leaves, is the reference's, bit
+    for bit, on Warp's CPU device."""
+    pytest.importorskip("warp")
+    if "warp:cpu" not in p3k.available_backends():
+        pytest.skip("no Warp CPU backend")
+    from _warp_bvh_depth import depth_and_cap
+    from place3d_kernels.backends.geometry import brute_force_raycast
+    from place3d_kernels.backends.warp.host import WarpBackend
+
+    n = 400
+    x = 1.05 ** np.arange(n)
+    w = 0.3 * x
+    v = np.zeros((3 * n, 3))
+    v[0::3, 0], v[1::3, 0], v[2::3, 0], v[2::3, 1] = x, x + w, x, w
+    f = np.arange(3 * n).reshape(n, 3)
+    b = WarpBackend("cpu")
+    b.bvh_constructor = tree
+    m = b.upload_mesh(v, f)
+    depth, cap = depth_and_cap(m.mesh.id)
+    if tree == "cubql":
+        assert depth == cap - 1, (depth, cap)          # the deepest tree a Warp builder makes
+    # straight down onto every triangle's centroid and corners pulled inwards, and rays from random points
+    c = v.reshape(n, 3, 3).mean(axis=1)
+    tgt = np.concatenate([c, *(c + 0.9 * (v[k::3] - c) for k in range(3))])
+    o = np.concatenate([tgt + np.array([0.0, 0.0, 1.0]) * w.max(), rng.uniform(-1, 1, (500, 3)) * x.max()])
+    d = np.concatenate([np.tile([0.0, 0.0, -1.0], (len(tgt), 1)), tgt[rng.integers(0, len(tgt), 500)] - o[len(tgt):]])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    tm = np.full(len(o), 1e30)
+    t, face = b.raycast(m, o, d, tm)
+    want_t, want_face = brute_force_raycast(v, f, o, d, tm)
+    assert (want_face >= 0).sum() > len(tgt)
     np.testing.assert_array_equal(face, want_face)
     np.testing.assert_array_equal(t, want_t)

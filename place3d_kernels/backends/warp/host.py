@@ -301,7 +301,7 @@ class WarpCore(WarpScoring, Backend):
         def args(g0, g1):
             a, b = g0 * r, g1 * r
             return [mesh.mesh.id, mesh.corners64, mesh.reach, mesh.face_ids, mesh.face_labels, o[a:b], sh, d[a:b],
-                    tm, r, first + g0, self._stack_limit(), out_t[a:b], out_f[a:b], out_l[a:b], flags]
+                    tm, r, first + g0, out_t[a:b], out_f[a:b], out_l[a:b], flags]
 
         self._launch_by_group(self.k.raycast_groups_kernel, groups, r, args)
         return self._checked_results(buf, n)
@@ -328,16 +328,6 @@ class WarpCore(WarpScoring, Backend):
             self.bvh_built = f"sah (cubql: {type(e).__name__}: {e})"
         return mesh
 
-    #: stack entries the ray-mesh walk may use (1..64, kernels.py, closest_hit); a ray that needs more is walked
-    #: again by Warp's capsule query, with the same hit (tests set 1 to send every ray there)
-    stack_limit = 64
-
-    def _stack_limit(self) -> int:
-        n = int(self.stack_limit)
-        if not 1 <= n <= 64:
-            raise ValueError(f"stack_limit must be 1..64 (the walk's stack), got {self.stack_limit!r}")
-        return n
-
     raycast_takes_shift = True
 
     def raycast(self, mesh, origins, directions, t_max, shift=None):
@@ -353,7 +343,7 @@ class WarpCore(WarpScoring, Backend):
         """The ray-mesh query (kernels.py, raycast_query_kernel) on device arrays, as one zero-argument
         launch."""
         return self._prepare(self.k.raycast_query_kernel, len(out_t), lambda a, b: [
-            mesh.mesh.id, mesh.corners64, mesh.reach, o[a:b], s, d[a:b], tm[a:b], self._stack_limit(), out_t[a:b],
+            mesh.mesh.id, mesh.corners64, mesh.reach, o[a:b], s, d[a:b], tm[a:b], out_t[a:b],
             out_f[a:b]])
 
     raycast_checks_rays = True
@@ -371,7 +361,7 @@ class WarpCore(WarpScoring, Backend):
         kernel = self.k.RAYCAST_CHECKED[vec]
         self._launch(kernel, n, lambda a, b: [
             mesh.mesh.id, mesh.corners64, mesh.reach, mesh.face_ids, mesh.face_labels,
-            o[a:b] if o_step else o, o_step, s, d[a:b], tm[a:b] if t_step else tm, t_step, self._stack_limit(),
+            o[a:b] if o_step else o, o_step, s, d[a:b], tm[a:b] if t_step else tm, t_step,
             out_t[a:b], out_f[a:b], out_l[a:b], flags])
         return self._checked_results(buf, n)
 

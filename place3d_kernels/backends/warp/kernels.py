@@ -54,55 +54,6 @@ def _comp(v: wp.vec3d, k: wp.int32):
     return r
 
 
-@wp.func
-def tri_t64(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, tm: wp.float64):
-    # Triangle (a, b, c) against the float64 ray with the reference's test and formula (Woop, Benthin &
-    # Wald's watertight test in float64, backends/geometry.py watertight_intersect), operation for operation
-    # and without FMA contraction: its t in [0, tm], or MISS_T for a miss, the reference's bits
-    ad = wp.vec3d(wp.abs(d[0]), wp.abs(d[1]), wp.abs(d[2]))
-    kz = wp.int32(0)
-    if ad[1] > ad[0]:
-        kz = 1
-    if ad[2] > _comp(ad, kz):
-        kz = 2
-    kx = (kz + 1) % 3
-    ky = (kx + 1) % 3
-    if _comp(d, kz) < wp.float64(0.0):
-        tmp = kx
-        kx = ky
-        ky = tmp
-    dz = _comp(d, kz)
-    sx = _comp(d, kx) / dz
-    sy = _comp(d, ky) / dz
-    sz = wp.float64(1.0) / dz
-    ra = a - o
-    rb = b - o
-    rc = c - o
-    ax = _comp(ra, kx) - sx * _comp(ra, kz)
-    ay = _comp(ra, ky) - sy * _comp(ra, kz)
-    az = sz * _comp(ra, kz)
-    bx = _comp(rb, kx) - sx * _comp(rb, kz)
-    by = _comp(rb, ky) - sy * _comp(rb, kz)
-    bz = sz * _comp(rb, kz)
-    cx = _comp(rc, kx) - sx * _comp(rc, kz)
-    cy = _comp(rc, ky) - sy * _comp(rc, kz)
-    cz = sz * _comp(rc, kz)
-    u = cx * by - cy * bx
-    v = ax * cy - ay * cx
-    w = bx * ay - by * ax
-    zero = wp.float64(0.0)
-    t = MISS_T
-    if (u < zero or v < zero or w < zero) and (u > zero or v > zero or w > zero):
-        return t
-    det = u + v + w
-    if det == zero:
-        return t
-    tt = (u * az + v * bz + w * cz) / det
-    if tt >= zero and tt <= tm:
-        t = tt
-    return t
-
-
 # The ray-mesh query. float32 only proposes, float64 decides. The walk visits the mesh's own BVH (Warp's tree,
 # built over the triangles, WarpCore.upload_mesh) nearest child first, as Warp's mesh_query_ray does, but tests
 # every node's box grown by rad and gives every triangle of a leaf the reference's float64 test; the smallest t
@@ -116,10 +67,12 @@ def tri_t64(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, o: wp.vec3d, d: wp.vec3d, tm:
 #
 # Warp has no ordered walk that takes a test of the caller's, so the walk is native code over Warp's node layout
 # (native/bvh.h: a node is two BVHPackedNodeHalf, lower and upper, whose i is the left and right child, or for a
-# leaf, flagged b, the range of primitive_indices). Its stack holds at most stack_limit (<= 64) nodes; a ray
-# that needs more is walked again by Warp's capsule query (closest_hit), which has no such limit and gives the
-# same hit. A plain loop with a vector as stack in Warp's kernel language took 4x the native walk on an H200,
-# and the capsule query alone, which visits children in a fixed order, 5-11x (2026-11-29).
+# leaf, flagged b, the range of primitive_indices). Its stack: every Warp builder (SAH, LBVH, cuBQL) makes a node
+# at depth BVH_QUERY_STACK_SIZE - 1 a leaf (LBVH: a node within one group, the subtrees group roots start), so
+# Warp's own queries, which push both children, fit in BVH_QUERY_STACK_SIZE (32) entries; this walk pushes at
+# most the two children of the node it pops and keeps at most one deferred sibling per level above, so it fits
+# too, and the array has twice that. A plain loop with a vector as stack in Warp's kernel language took 4x the
+# native walk on an H200, and Warp's capsule query, which visits children in a fixed order, 5-11x (2026-11-29).
 _ORDERED_WALK = r"""
 using namespace wp;
 const Mesh m = mesh_get(mesh);
@@ -147,8 +100,8 @@ const double sy = d64[ky] / d64[kz];
 const double sz = 1.0 / d64[kz];
 double best = miss;
 int face = -1;
-int stack[64];
-float entry[64];
+int stack[2 * BVH_QUERY_STACK_SIZE];
+float entry[2 * BVH_QUERY_STACK_SIZE];
 int n = 0;
 const int top = root == -1 ? *m.bvh.root : root;
 float t0 = FLT_MAX;
@@ -204,7 +157,6 @@ while (n > 0) {
     const bool hb = intersect_ray_aabb_robust(o, dz, rcp, vec3(bl.x, bl.y, bl.z) - grow, vec3(bh.x, bh.y, bh.z) + grow, tb)
                     && !(tb > bound);
     if (ha && hb) {
-        if (n + 2 > stack_limit) return vec2d(miss, -2.0);    // the caller walks this ray again
         const bool a_first = ta <= tb;
         stack[n] = a_first ? b : a;
         entry[n] = a_first ? tb : ta;
@@ -223,46 +175,18 @@ return vec2d(best, double(face));
 
 @wp.func_native(_ORDERED_WALK)
 def ordered_walk(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), reach: wp.float64, o64: wp.vec3d,
-                 d64: wp.vec3d, tm: wp.float64, root: wp.int32, stack_limit: wp.int32, miss: wp.float64) -> wp.vec2d:
-    # (t, face) of the closest float64 hit, (miss, -1) for none, (miss, -2) when the walk needed more than
-    # stack_limit stack entries (at most 64)
+                 d64: wp.vec3d, tm: wp.float64, root: wp.int32, miss: wp.float64) -> wp.vec2d:
+    # (t, face) of the closest float64 hit, (miss, -1) for none
     ...
 
 
 @wp.func
-def capsule_walk(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), reach: wp.float64, o64: wp.vec3d,
-                 d64: wp.vec3d, tm: wp.float64, root: wp.int32):
-    # the same hit as ordered_walk by Warp's capsule query on the same tree: every triangle whose grown box the
-    # float32 ray meets before the bound, in the tree's fixed order, without a stack limit
-    o = wp.vec3(wp.float32(o64[0]), wp.float32(o64[1]), wp.float32(o64[2]))
-    d = wp.vec3(wp.float32(d64[0]), wp.float32(d64[1]), wp.float32(d64[2]))
-    om = wp.max(wp.max(wp.abs(o64[0]), wp.abs(o64[1])), wp.abs(o64[2]))
-    rad = wp.float32((om + reach + wp.float64(1.0)) * wp.float64(4.0e-6))
-    bound = wp.float32(tm) * wp.float32(1.00000024) + rad
-    best = MISS_T
-    face = wp.int32(-1)
-    walk = wp.bvh_query_capsule(wp.mesh_get_bvh(mesh), o, d, rad, root)
-    i = wp.int32(0)
-    while wp.bvh_query_next(walk, i, bound):
-        t = tri_t64(corners64[3 * i], corners64[3 * i + 1], corners64[3 * i + 2], o64, d64, tm)
-        if t < best or (t == best and t < MISS_T and i < face):
-            best = t
-            face = i
-            bound = wp.float32(t) + rad
-    return best, face
-
-
-@wp.func
 def closest_hit(mesh: wp.uint64, corners64: wp.array(dtype=wp.vec3d), reach: wp.float64, o64: wp.vec3d,
-                d64: wp.vec3d, tm: wp.float64, root: wp.int32, stack_limit: wp.int32):
+                d64: wp.vec3d, tm: wp.float64, root: wp.int32):
     # the closest float64 hit of the ray (o64, d64) in [0, tm] among the triangles of the subtree at ``root``
     # (a group's, mesh_get_group_root), or the whole tree for -1: (t, uploaded face), or (MISS_T, -1)
-    r = ordered_walk(mesh, corners64, reach, o64, d64, tm, root, stack_limit, MISS_T)
-    best = r[0]
-    face = wp.int32(r[1])
-    if face == -2:
-        best, face = capsule_walk(mesh, corners64, reach, o64, d64, tm, root)
-    return best, face
+    r = ordered_walk(mesh, corners64, reach, o64, d64, tm, root, MISS_T)
+    return r[0], wp.int32(r[1])
 
 
 @wp.kernel
@@ -274,13 +198,12 @@ def raycast_query_kernel(
     shift: wp.vec3d,                        # subtracted from origins in float64 (zero: already shifted)
     dirs: wp.array(dtype=wp.vec3d),
     t_max: wp.array(dtype=wp.float64),
-    stack_limit: wp.int32,                  # closest_hit's ordered walk: at most this many stack entries (<= 64)
     out_t: wp.array(dtype=wp.float64),
     out_face: wp.array(dtype=wp.int32),
 ):
     tid = wp.tid()
     # componentwise float64 subtraction: bit-identical to np.subtract(origins, shift) on the host
-    t, f = closest_hit(mesh, corners64, reach, origins[tid] - shift, dirs[tid], t_max[tid], wp.int32(-1), stack_limit)
+    t, f = closest_hit(mesh, corners64, reach, origins[tid] - shift, dirs[tid], t_max[tid], wp.int32(-1))
     out_t[tid] = t
     out_face[tid] = f
 
@@ -361,7 +284,6 @@ def raycast_checked_kernel(
     dirs: wp.array(dtype=Any),              # same dtype as origins; any length, not validated
     t_max: wp.array(dtype=wp.float64),
     t_step: wp.int32,                       # 1, or 0 for one bound shared by every ray
-    stack_limit: wp.int32,                  # closest_hit's ordered walk: at most this many stack entries (<= 64)
     out_t: wp.array(dtype=wp.float64),
     out_face: wp.array(dtype=wp.int64),
     out_label: wp.array(dtype=wp.int32),
@@ -376,7 +298,7 @@ def raycast_checked_kernel(
     out_label[tid] = -1
     if ray_ok(ow, dw, n, tm, flags):
         # as ops.raycast's host path: float32 kernels need a finite bound
-        t, f = closest_hit(mesh, corners64, reach, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)), wp.int32(-1), stack_limit)
+        t, f = closest_hit(mesh, corners64, reach, ow - shift, d64, wp.min(tm, wp.float64(1.0e30)), wp.int32(-1))
         put_hit(t, f, face_ids, face_labels, tid, out_t, out_face, out_label)
 
 
@@ -391,7 +313,6 @@ def raycast_groups_kernel(
     t_max: wp.array(dtype=wp.float64),      # (1,) one bound for every ray
     rays_per_group: wp.int32,               # R
     first_group: wp.int32,                  # g0: the group of these arrays' first ray
-    stack_limit: wp.int32,                  # closest_hit's ordered walk: at most this many stack entries (<= 64)
     out_t: wp.array(dtype=wp.float64),
     out_face: wp.array(dtype=wp.int64),
     out_label: wp.array(dtype=wp.int32),
@@ -407,7 +328,7 @@ def raycast_groups_kernel(
     out_label[tid] = -1
     if ray_ok(ow, dw, n, tm, flags):
         root = wp.mesh_get_group_root(mesh, g)
-        t, f = closest_hit(mesh, corners64, reach, ow - shifts[g], d64, wp.min(tm, wp.float64(1.0e30)), root, stack_limit)
+        t, f = closest_hit(mesh, corners64, reach, ow - shifts[g], d64, wp.min(tm, wp.float64(1.0e30)), root)
         put_hit(t, f, face_ids, face_labels, tid, out_t, out_face, out_label)
 
 
