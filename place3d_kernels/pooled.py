@@ -266,7 +266,7 @@ class PooledPSOG:
             summed = np.rint(np.bincount(inv, weights=w.astype(np.float64), minlength=len(cls_))).astype(np.int64)
         out = np.zeros((len(uvox), self.n_classes), dtype=_count_dtype(T))
         out[vinv, cls_] = summed
-        occ = out[:, 1:].sum(axis=1)
+        occ = _occupied(out)
         keep = occ > 0
         if keep.all():              # every voxel still occupied (the plain pool, a jackknife): no row copy
             vox = uvox.copy()
@@ -310,7 +310,7 @@ class PooledPSOG:
             vox = unique_ints(np.concatenate([r.voxels for r in self.records]))
         out = np.zeros((len(vox), self.n_classes), dtype=_count_dtype(self.n_subsets))
         _add_records(out, vox, rank, self.records)
-        occ = out[:, 1:].sum(axis=1)
+        occ = _occupied(out)
         rows = np.flatnonzero(occ > 0)
         if len(rows) < len(vox):                    # entries of count 0 only: not stored, as counts() leaves them
             out, vox, occ = out.take(rows, axis=0), vox[rows], occ[rows]
@@ -383,6 +383,14 @@ def _add_records(out: np.ndarray, vox: np.ndarray, rank, records) -> None:
                 np.add.at(flat, key, r.counts[a:b])
 
     thread_map(block, range(n), n)
+
+
+def _occupied(counts: np.ndarray) -> np.ndarray:
+    """Each row's occupied subsets, ``counts[:, 1:].sum(axis=1)``, summed in the counts' own integer type: a
+    row's occupied counts add up to at most T (each subset gives a voxel one class), and ``_count_dtype`` holds
+    T. ``einsum`` sums the strided rows some three times faster than ``sum`` (which widens int32 to int64):
+    0.11 against 0.30 s for the 7 M rows of the 32-drive pool on the dev VM."""
+    return np.einsum("ij->i", counts[:, 1:])
 
 
 def _count_dtype(T: int):
