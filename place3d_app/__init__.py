@@ -78,6 +78,11 @@ def main(argv: list[str] | None = None) -> int:
         code = forward(path, rest, explicit)
         if code is not None:
             return code
+    if _subcommand(rest) == "reproduce":
+        # its workers' server imports beside this process's own imports (place3d_app.forkserver)
+        from place3d_app.forkserver import start_early
+
+        start_early(rest)
     from place3d_app.cli import main as run_here
 
     return run_here(None if from_sys else rest)

@@ -53,8 +53,11 @@ from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec, backend_name, resolve_lidar
 from place3d_kernels.threads import usable_cores
 
+from place3d_app.forkserver import START_METHOD_ENV, WORKER_ENV, WORKERS_ENV, command_start_method, worker_environment
+
 __all__ = ["Executor", "LocalExecutor", "ProcessExecutor", "RayExecutor", "get_executor", "usable_cores",
-           "default_workers", "WORKERS_ENV", "add_executor_arguments",
+           "default_workers", "WORKERS_ENV", "WORKER_ENV", "START_METHOD_ENV", "command_start_method",
+           "add_executor_arguments",
            "executor_from_args", "check_actor_arguments", "task_seed", "SceneSpec", "ConditionSpec", "PSOGSpec",
            "simulate_to_folder",
            "DistributedObjective", "INSTALL_HINT", "chunks"]
@@ -108,17 +111,6 @@ class LocalExecutor(Executor):
         return [fn(t) for t in tasks]
 
 
-#: ``PLACE3D_WORKERS=N``: at most N worker processes for the process executor (default: the usable cores)
-WORKERS_ENV = "PLACE3D_WORKERS"
-
-#: What each worker process starts with, unless the user set it: one BLAS thread. The workers fill the cores
-#: themselves; a BLAS library that also starts a thread per core in every worker (NumPy's OpenBLAS does for a
-#: matrix product of one frame's points) oversubscribes them many times over. BLAS threads split a product's
-#: output, not its sums, so a product's values are the same with any number of them (the test of this
-#: executor compares its pooled counts with the local executor's bit for bit).
-WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
 def default_workers() -> int:
     """Worker processes of the process executor: the usable cores, at most ``$PLACE3D_WORKERS``."""
     n = usable_cores()
@@ -132,18 +124,6 @@ def default_workers() -> int:
             raise ValueError(f"{WORKERS_ENV}={cap!r}: give a whole number of worker processes >= 1")
         n = min(n, c)
     return n
-
-
-@contextlib.contextmanager
-def _worker_environment():
-    """``WORKER_ENV`` in ``os.environ`` while worker processes start (a spawned process copies it then)."""
-    added = {k: v for k, v in WORKER_ENV.items() if k not in os.environ}
-    os.environ.update(added)
-    try:
-        yield
-    finally:
-        for k in added:
-            os.environ.pop(k, None)
 
 
 def _start_worker(backend: str | None) -> None:
@@ -168,56 +148,12 @@ def _no_task() -> None:
     return None
 
 
-#: what a ``forkserver`` imports once before it forks the workers (``ProcessExecutor(start_method="forkserver")``):
-#: the drive tasks' modules and the SciPy parts of the scene builders. Imports only: no backend, device, thread or
-#: file is made by importing them, so a forked copy is a clean worker.
-FORKSERVER_PRELOAD = ("place3d_kernels.pooled", "place3d_kernels.pipeline", "place3d_kernels.simulate",
-                      "place3d_kernels.scene.opendrive", "place3d_kernels.spec", "scipy.spatial", "scipy.ndimage")
-
-
-def _preload_for(backend: str | None) -> list[str]:
-    """``FORKSERVER_PRELOAD`` plus Warp (imported, not initialised) for a backend that runs on it."""
-    mods = list(FORKSERVER_PRELOAD)
-    name = (backend or "").strip().lower()
-    if name in ("auto", "warp") or name.startswith("warp:"):
-        import importlib.util
-
-        if importlib.util.find_spec("warp") is not None:
-            mods.append("place3d_kernels.backends.warp")
-    return mods
-
-
-#: Environment variable: how the commands' worker processes start, ``spawn`` or ``forkserver`` (default: a
-#: forkserver on Linux, see ``command_start_method``).
-START_METHOD_ENV = "PLACE3D_START_METHOD"
-
-
-def command_start_method() -> str:
-    """How the commands' worker processes start: ``$PLACE3D_START_METHOD``, else ``"forkserver"`` on Linux, else
-    ``"spawn"`` (macOS has a forkserver, but a process forked after Apple's system frameworks were loaded, as
-    NumPy's Accelerate build loads them, may crash: Python spawns there by default for that reason).
-
-    Raises:
-        ValueError: ``$PLACE3D_START_METHOD`` names another method, or one this platform lacks.
-    """
-    import multiprocessing
-
-    have = multiprocessing.get_all_start_methods()
-    asked = os.environ.get(START_METHOD_ENV, "").strip().lower()
-    if asked:
-        if asked not in ("spawn", "forkserver") or asked not in have:
-            raise ValueError(f"{START_METHOD_ENV}={asked!r}: use spawn or forkserver (this platform has "
-                             f"{', '.join(m for m in have if m != 'fork')})")
-        return asked
-    return "forkserver" if sys.platform.startswith("linux") and "forkserver" in have else "spawn"
-
-
 class ProcessExecutor(Executor):
     """Worker processes on this machine (``concurrent.futures.ProcessPoolExecutor``), results in task order.
 
     Processes start with ``spawn`` (a fresh interpreter; ``forkserver`` by ``start_method``), never by a plain
     fork: a forked copy of a process that has started CUDA or OpenCL cannot use them. A ``forkserver`` imports
-    ``_preload_for(backend)`` once and forks every worker from that clean state, so the workers do not each
+    ``forkserver.preload_for(backend)`` once and forks every worker from that clean state, so the workers do not each
     import NumPy, SciPy, Warp and the package (about a second of CPU each). Tasks and results
     cross a pickle boundary, so ``fn`` must be a module-level function and its tasks picklable, as for Ray.
     Several workers share one GPU (each has its own context; Warp and OpenCL allow it).
@@ -229,7 +165,7 @@ class ProcessExecutor(Executor):
         start_method: ``"spawn"`` (default) or ``"forkserver"``.
         prestart: start the workers now instead of at the first ``map``, so that they import the package
             and resolve the backend while this process goes on.
-        preload: the backend name whose modules a ``forkserver`` imports (``_preload_for``; default
+        preload: the backend name whose modules a ``forkserver`` imports (``forkserver.preload_for``; default
             ``backend``), for a caller that starts the server (``start_server``) before it knows the backend;
             ``backend`` may then be set until the first ``map``.
     """
@@ -269,29 +205,24 @@ class ProcessExecutor(Executor):
                     self._start_server()
 
     def _start_server(self) -> None:
-        """Start the forkserver (if this process has none yet) with the workers' environment: every worker
-        forked from it has that environment. Called on the thread that made the executor."""
-        import multiprocessing.forkserver
+        """Start the forkserver (if this process has none yet: ``forkserver.start``) with the workers'
+        environment: every worker forked from it has that environment. Called on the thread that made the
+        executor."""
+        from place3d_app import forkserver
 
-        self._context()
-        with _worker_environment():
-            multiprocessing.forkserver.ensure_running()
+        forkserver.start(self.preload)
         self._server_started = True
 
     def _context(self):
         import multiprocessing
 
-        ctx = multiprocessing.get_context(self.start_method)
-        if self.start_method == "forkserver":
-            # only read by a forkserver not yet running (one per process; a later executor shares it)
-            ctx.set_forkserver_preload(_preload_for(self.preload))
-        return ctx
+        return multiprocessing.get_context(self.start_method)
 
     def _environment(self):
-        """``_worker_environment`` where workers are spawned from this process; a forkserver's workers have the
+        """``worker_environment`` where workers are spawned from this process; a forkserver's workers have the
         server's environment, set when it started (and this process's environment is not changed from a
         thread, which another thread's C code reading it could meet half-written)."""
-        return _worker_environment() if self.start_method == "spawn" else contextlib.nullcontext()
+        return worker_environment() if self.start_method == "spawn" else contextlib.nullcontext()
 
     def _ensure(self, n_tasks: int):
         """The pool, with at least min(n_tasks, workers) processes started."""

@@ -10,7 +10,7 @@ import os
 import numpy as np
 import pytest
 
-from place3d_app import executors
+from place3d_app import executors, forkserver
 from place3d_app.executors import LocalExecutor, ProcessExecutor, executor_from_args
 from place3d_kernels.pooled import Drive, PoolSettings, build_pooled
 
@@ -131,11 +131,66 @@ def test_commands_start_workers_from_a_forkserver_unless_told(monkeypatch, no_sp
 
 
 def test_the_forkserver_preloads_warp_only_for_warp_backends():
-    assert "place3d_kernels.backends.warp" in executors._preload_for("warp:cuda:0")
-    assert "place3d_kernels.backends.warp" in executors._preload_for("auto")
+    assert "place3d_kernels.backends.warp" in forkserver.preload_for("warp:cuda:0")
+    assert "place3d_kernels.backends.warp" in forkserver.preload_for("auto")
     for name in ("opencl:pocl", "reference", None):
-        mods = executors._preload_for(name)
+        mods = forkserver.preload_for(name)
         assert "place3d_kernels.backends.warp" not in mods and "place3d_kernels.pooled" in mods
+
+
+@pytest.mark.parametrize("argv, preload", [
+    (["reproduce"], "auto"),
+    (["--profile", "reproduce", "--routes", "8", "--backend", "opencl:pocl"], "opencl:pocl"),
+    (["reproduce", "--executor=process", "--backend=warp:cuda:0"], "warp:cuda:0"),
+    (["reproduce", "--executor", "local"], None),
+    (["reproduce", "--executor", "ray"], None),
+    (["reproduce", "--ray-address", "ray://head:10001"], None),
+    (["reproduce", "--help"], None),
+    (["evaluate"], None),
+    (["optimize", "--max-evals", "20"], None),
+])
+def test_the_launcher_starts_reproduces_server_early_only_where_it_will_fork_from_it(monkeypatch, argv, preload):
+    started = []
+    monkeypatch.setattr(forkserver, "start", started.append)     # the decision alone; the next test starts one
+    monkeypatch.delenv(forkserver.START_METHOD_ENV, raising=False)
+    monkeypatch.delenv(forkserver.WORKERS_ENV, raising=False)
+    monkeypatch.setattr(forkserver, "_usable_cores", lambda: 4)
+    monkeypatch.setattr(forkserver.sys, "platform", "linux")
+    assert forkserver.start_early(argv) is (preload is not None)
+    assert started == ([] if preload is None else [preload])
+    if preload is not None:
+        for env, value in ((forkserver.WORKERS_ENV, "1"), (forkserver.START_METHOD_ENV, "spawn")):
+            monkeypatch.setenv(env, value)
+            assert not forkserver.start_early(argv)
+            monkeypatch.delenv(env)
+        monkeypatch.setattr(forkserver, "_usable_cores", lambda: 1)
+        assert not forkserver.start_early(argv) and len(started) == 1
+
+
+def test_reproduces_workers_are_forked_from_the_server_the_launcher_started(tmp_path):
+    # in a process of its own, as the console script: the server started before the command's executor is made
+    # is the one its workers come from (their parent), with the workers' environment
+    import subprocess
+    import sys
+
+    code = (
+        "import multiprocessing.forkserver as fs, operator, os\n"
+        "from place3d_app import forkserver\n"
+        "assert forkserver.start_early(['reproduce', '--backend', 'warp:cpu'])\n"
+        "server = fs._forkserver._forkserver_pid\n"
+        "from place3d_app.executors import ProcessExecutor, command_start_method\n"
+        "ex = ProcessExecutor(2, backend='warp:cpu', start_method=command_start_method())\n"
+        "assert set(ex.map(operator.call, [os.getppid] * 4)) == {server}, server\n"
+        "assert ex.map(os.getenv, ['OPENBLAS_NUM_THREADS']) == ['1']\n"
+        "ex.shutdown()\n"
+        "print('ok')\n")
+    env = {k: v for k, v in os.environ.items()
+           if k not in (forkserver.START_METHOD_ENV, forkserver.WORKERS_ENV, "OPENBLAS_NUM_THREADS")}
+    if executors.usable_cores() < 2:
+        pytest.skip("one usable core: reproduce builds its drives in this process")
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
 
 
 def test_forkserver_workers_have_the_worker_environment_and_this_process_keeps_its_own(monkeypatch):

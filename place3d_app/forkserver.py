@@ -1,0 +1,142 @@
+"""The server the commands fork their worker processes from, and its early start for ``place3d reproduce``.
+
+On Linux the commands' workers (``executors.ProcessExecutor(start_method=command_start_method())``) are forked
+from a ``multiprocessing`` forkserver that imported ``preload_for(backend)`` once: NumPy, SciPy's spatial and
+image parts, the drive tasks' modules and Warp (about a second of imports, which sixteen spawned workers would
+otherwise each repeat side by side). A worker can start only once that server has its imports.
+
+``place3d reproduce`` always builds its drives on workers where more than one core is usable, so the console
+script starts the server (``start_early``) before it imports the package and parses the command line: the
+server's imports then run beside this process's own (about 0.6-0.8 s of start-up on the H200 host), instead of
+after them. Standard library only, for that reason.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+
+__all__ = ["WORKER_ENV", "FORKSERVER_PRELOAD", "START_METHOD_ENV", "WORKERS_ENV", "worker_environment",
+           "preload_for", "command_start_method", "start", "start_early"]
+
+#: What each worker process starts with, unless the user set it: one BLAS thread. The workers fill the cores
+#: themselves; a BLAS library that also starts a thread per core in every worker (NumPy's OpenBLAS does for a
+#: matrix product of one frame's points) oversubscribes them many times over. BLAS threads split a product's
+#: output, not its sums, so a product's values are the same with any number of them (the test of the process
+#: executor compares its pooled counts with the local executor's bit for bit).
+WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+#: What a forkserver imports once before it forks the workers: the drive tasks' modules and the SciPy parts of
+#: the scene builders. Imports only: no backend, device, thread or file is made by importing them, so a forked
+#: copy is a clean worker.
+FORKSERVER_PRELOAD = ("place3d_kernels.pooled", "place3d_kernels.pipeline", "place3d_kernels.simulate",
+                      "place3d_kernels.scene.opendrive", "place3d_kernels.spec", "scipy.spatial", "scipy.ndimage")
+
+#: Environment variable: how the commands' worker processes start, ``spawn`` or ``forkserver`` (default: a
+#: forkserver on Linux, see ``command_start_method``).
+START_METHOD_ENV = "PLACE3D_START_METHOD"
+
+#: ``PLACE3D_WORKERS=N``: at most N worker processes for the process executor (default: the usable cores;
+#: ``executors.default_workers``).
+WORKERS_ENV = "PLACE3D_WORKERS"
+
+
+@contextlib.contextmanager
+def worker_environment():
+    """``WORKER_ENV`` in ``os.environ`` while worker processes (or their server) start: a spawned process, and a
+    forkserver with every worker it forks, copies it then."""
+    added = {k: v for k, v in WORKER_ENV.items() if k not in os.environ}
+    os.environ.update(added)
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
+
+
+def preload_for(backend: str | None) -> list[str]:
+    """``FORKSERVER_PRELOAD`` plus Warp (imported, not initialised) for a backend that runs on it."""
+    mods = list(FORKSERVER_PRELOAD)
+    name = (backend or "").strip().lower()
+    if name in ("auto", "warp") or name.startswith("warp:"):
+        import importlib.util
+
+        if importlib.util.find_spec("warp") is not None:
+            mods.append("place3d_kernels.backends.warp")
+    return mods
+
+
+def command_start_method() -> str:
+    """How the commands' worker processes start: ``$PLACE3D_START_METHOD``, else ``"forkserver"`` on Linux, else
+    ``"spawn"`` (macOS has a forkserver, but a process forked after Apple's system frameworks were loaded, as
+    NumPy's Accelerate build loads them, may crash: Python spawns there by default for that reason).
+
+    Raises:
+        ValueError: ``$PLACE3D_START_METHOD`` names another method, or one this platform lacks.
+    """
+    import multiprocessing
+
+    have = multiprocessing.get_all_start_methods()
+    asked = os.environ.get(START_METHOD_ENV, "").strip().lower()
+    if asked:
+        if asked not in ("spawn", "forkserver") or asked not in have:
+            raise ValueError(f"{START_METHOD_ENV}={asked!r}: use spawn or forkserver (this platform has "
+                             f"{', '.join(m for m in have if m != 'fork')})")
+        return asked
+    return "forkserver" if sys.platform.startswith("linux") and "forkserver" in have else "spawn"
+
+
+def start(backend: str | None) -> None:
+    """Start this process's forkserver (a no-op if it runs already) with ``preload_for(backend)`` and the
+    workers' environment. Returns at once: the server imports its preload on its own."""
+    import multiprocessing
+    import multiprocessing.forkserver
+
+    # only read by a forkserver not yet running (one per process; every later executor shares it)
+    multiprocessing.get_context("forkserver").set_forkserver_preload(preload_for(backend))
+    with worker_environment():
+        multiprocessing.forkserver.ensure_running()
+
+
+def _option(argv: list[str], name: str) -> str | None:
+    """The value of ``--name VALUE`` or ``--name=VALUE`` in ``argv`` (the last one given), else None."""
+    value = None
+    for i, a in enumerate(argv):
+        if a == name and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif a.startswith(name + "="):
+            value = a.partition("=")[2]
+    return value
+
+
+def _usable_cores() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def start_early(argv: list[str]) -> bool:
+    """Start the forkserver now when ``argv`` (the command line without the program name) is a ``reproduce``
+    that will fork its workers from it: the default or ``--executor process``/``auto``, no ``--ray-address``,
+    a forkserver as the start method, more than one usable core (and ``$PLACE3D_WORKERS`` not 1). The backend
+    of ``--backend`` (default ``auto``) picks the preload, as ``executors.executor_from_args`` does.
+
+    A guess from the raw arguments (argparse, which reads them later, also takes abbreviated options): a wrong
+    one costs an idle server, never a result, and an invalid setting is left for the command to report.
+    Returns whether the server was started."""
+    try:
+        if next((a for a in argv if not a.startswith("-")), None) != "reproduce" or "-h" in argv or "--help" in argv:
+            return False
+        if (_option(argv, "--executor") or "auto") not in ("auto", "process") or _option(argv, "--ray-address"):
+            return False
+        if command_start_method() != "forkserver":
+            return False
+        cap = os.environ.get(WORKERS_ENV, "").strip()
+        if min(_usable_cores(), int(cap) if cap.isdigit() else 2) < 2:
+            return False
+        start(_option(argv, "--backend") or "auto")
+        return True
+    except Exception:  # noqa: BLE001 - a speed-up only: the command starts its server itself, or reports why not
+        return False
