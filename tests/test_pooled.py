@@ -189,6 +189,24 @@ def test_reproduce_tiny_end_to_end(tmp_path):
     assert (out / "reproduce.png").stat().st_size > 10_000
 
 
+def test_reproduce_outputs_keep_the_json_when_the_figure_drawn_beside_the_study_failed(tmp_path):
+    # reproduce(plot_to=...) draws the figure on a thread; write_outputs waits for it, and a failed figure is
+    # reported only once the study's numbers are on disk
+    from concurrent.futures import Future
+
+    from place3d_app.commands.reproduce import write_outputs
+
+    out = tmp_path / "o"
+    failed = Future()
+    failed.set_exception(OSError("no space left on device"))
+    res = {"settings": {"towns": ["town"]}, "drives": ["town-s0-f4"], "_boots": None,
+           "_plot": (str(out / "reproduce.png"), failed)}
+    with pytest.raises(OSError, match="no space left"):
+        write_outputs(res, out)
+    assert json.loads((out / "reproduce.json").read_text()) == {"settings": {"towns": ["town"]},
+                                                                "drives": ["town-s0-f4"]}
+
+
 def test_reproduce_same_study_in_process_and_on_workers(tmp_path):
     # the process executor builds the drives and scores the convergence table's pools on its workers (while
     # the jackknife runs here); the local one does both here: the same study to the last digit
