@@ -53,6 +53,7 @@ class LeftOutRows:
         self.n_voxels = pooled.grid.n_voxels
         self.voxels, self.counts, self.T = pooled.counts()    # the plain pool: every record once
         self._last = None
+        self._batch = None
 
     def of(self, i: int) -> tuple[int, np.ndarray, np.ndarray]:
         """(T, rows of the plain pool record ``i`` touched (sorted), their count rows (R, K) without it)."""
@@ -64,6 +65,32 @@ class LeftOutRows:
         sub[:, 0] = T - sub[:, 1:].sum(axis=1)
         self._last = (i, (T, rows, sub))
         return T, rows, sub
+
+    def batch(self) -> tuple[list, list, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What ``device_fields`` sends for every record at once, made once for both tasks: (each record's
+        ``index``, the sorted distinct T, and the entry tables of ``Backend.left_out_fields``: rows (R,) int64,
+        estart (R + 1,) int32, classes and counts (E,) int32, row_t (R,) int32), read-only from here, so a
+        backend may keep its device copies while they live (``WarpScoring._resident``)."""
+        if self._batch is None:
+            from place3d_kernels.threads import thread_map, threads_for
+
+            n = len(self.pooled)
+            # each record's index is its own NumPy work over its entries: side by side on threads for a large pool
+            idx = thread_map(self.index, range(n), threads_for(sum(len(r.voxels) for r in self.pooled.records)))
+            Ts = sorted({t for t, *_ in idx})
+            R = np.array([len(r) for _, r, *_ in idx], dtype=np.int64)
+            E = np.array([len(c) for *_, c in idx], dtype=np.int64)
+            e_off = np.concatenate([[0], np.cumsum(E)])
+            estart = np.concatenate([np.flatnonzero(f) + e_off[k] for k, (_, _, f, _, _) in enumerate(idx)]
+                                    + [e_off[-1:]]).astype(np.int32)
+            row_t = np.repeat(np.array([Ts.index(t) for t, *_ in idx], dtype=np.int32), R)
+            rows = np.concatenate([r for _, r, *_ in idx]).astype(np.int64, copy=False)
+            ecls = np.concatenate([c for *_, c, _ in idx]).astype(np.int32, copy=False)
+            ecnt = np.concatenate([c for *_, c in idx]).astype(np.int32, copy=False)
+            for a in (rows, estart, ecls, ecnt, row_t):
+                a.setflags(write=False)
+            self._batch = (idx, Ts, rows, estart, ecls, ecnt, row_t)
+        return self._batch
 
     def index(self, i: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Where record ``i``'s entries fall: (T without it, the rows it touched (sorted), and its entries in
@@ -294,23 +321,12 @@ def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):
     """Every record's left-out rows computed on the backend in one batch (``Backend.left_out_fields``, Warp
     on CUDA): per record (T, its rows' flat voxel indices (host), weights and stop flags (device arrays,
     slices of the batch)). Only the index work (where each record's entries fall) stays on the host."""
-    from place3d_kernels.threads import thread_map, threads_for
-
     src = rows if rows is not None else LeftOutRows(pooled)
-    # each record's index is its own NumPy work over its entries: side by side on threads for a large pool
-    idx = thread_map(src.index, range(len(pooled)), threads_for(sum(len(r.voxels) for r in pooled.records)))
-    Ts = sorted({t for t, *_ in idx})
+    idx, Ts, all_rows, estart, ecls, ecnt, row_t = src.batch()
     term, stop_t, other = device_tables(Ts, task)
-    R = np.array([len(r) for _, r, *_ in idx], dtype=np.int64)
-    E = np.array([len(c) for *_, c in idx], dtype=np.int64)
-    e_off = np.concatenate([[0], np.cumsum(E)])
-    estart = np.concatenate([np.flatnonzero(f) + e_off[k] for k, (_, _, f, _, _) in enumerate(idx)] + [e_off[-1:]])
-    row_t = np.repeat(np.array([Ts.index(t) for t, *_ in idx], dtype=np.int32), R)
-    all_rows = np.concatenate([r for _, r, *_ in idx])
-    w, s = backend.left_out_fields(src.counts, all_rows, estart,
-                                   np.concatenate([c for *_, c, _ in idx]), np.concatenate([c for *_, c in idx]),
-                                   row_t, np.array(Ts), term, stop_t, other, task == "det", VEHICLE,
-                                   float(ENTROPY_SCALE))
+    w, s = backend.left_out_fields(src.counts, all_rows, estart, ecls, ecnt, row_t, np.array(Ts), term, stop_t, other,
+                                   task == "det", VEHICLE, float(ENTROPY_SCALE))
+    R = [len(r) for _, r, *_ in idx]
     r_off = [0, *np.cumsum(R).tolist()]
     return [(t, src.voxels[r], w[r_off[k]:r_off[k + 1]], s[r_off[k]:r_off[k + 1]])
             for k, (t, r, *_) in enumerate(idx)]

@@ -9,6 +9,8 @@ device batch (``left_out.device_fields``).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from place3d_kernels.backends.base import ENTROPY_SCALE
@@ -87,10 +89,21 @@ def device_row_fields(counts: np.ndarray, T: int, task: str, backend):
     every value below 2**31; T at most ``FieldTables.MAX_T``."""
     M = len(counts)
     term, stop_t, other = device_tables([T], task)
-    return backend.left_out_fields(counts, np.arange(M, dtype=np.int64), np.zeros(M + 1, dtype=np.int32),
-                                   np.zeros(1, dtype=np.int32), np.zeros(1, dtype=np.int32),
-                                   np.zeros(M, dtype=np.int32), np.array([T]), term, stop_t, other, task == "det",
-                                   VEHICLE, float(ENTROPY_SCALE))
+    rows, estart, row_t = _whole_rows(M)
+    return backend.left_out_fields(counts, rows, estart, np.zeros(1, dtype=np.int32), np.zeros(1, dtype=np.int32),
+                                   row_t, np.array([T]), term, stop_t, other, task == "det", VEHICLE,
+                                   float(ENTROPY_SCALE))
+
+
+@functools.lru_cache(maxsize=1)
+def _whole_rows(M: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``device_row_fields``' entry tables for M rows with nothing taken out: (rows 0..M-1 int64, estart zeros
+    (M + 1) int32, row_t zeros (M) int32), read-only and kept for the next call (the point grid and the bases
+    of both tasks ask for the same M), so a backend may keep its device copies while they live."""
+    out = (np.arange(M, dtype=np.int64), np.zeros(M + 1, dtype=np.int32), np.zeros(M, dtype=np.int32))
+    for a in out:
+        a.setflags(write=False)
+    return out
 
 
 def _terms(v: np.ndarray) -> np.ndarray:

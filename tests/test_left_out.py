@@ -391,6 +391,50 @@ def test_left_out_rows_made_on_the_device_are_the_hosts(request, monkeypatch, po
 
 
 @pytest.mark.parametrize("name", _patching_backends())
+def test_both_tasks_rows_from_one_shared_batch_are_the_hosts(name, drives):
+    """The jackknife shares one LeftOutRows between its tasks: the records' entry tables are made once
+    (read-only) and each task's left-out rows from them are still LeftOutGrids.rows' bits."""
+    from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.left_out import LeftOutRows, device_fields
+
+    b = get_backend(name)
+    rows = LeftOutRows(drives)
+    for task in ("seg", "det", "seg"):
+        host = LeftOutGrids(drives, task)
+        for i, (T, at, w, s) in enumerate(device_fields(drives, task, b, rows)):
+            hT, _, hat, hw, hs, _ = host.rows(i)
+            assert T == hT and at.tobytes() == hat.tobytes(), (task, i)
+            assert w.numpy().tobytes() == hw.tobytes() and s.numpy().tobytes() == hs.astype(np.uint8).tobytes()
+    assert rows.batch() is rows.batch()
+    assert not any(a.flags.writeable for a in rows.batch()[2:])
+
+
+@pytest.mark.parametrize("name", _patching_backends())
+def test_warp_keeps_device_copies_only_of_arrays_nobody_can_write(name):
+    """WarpScoring._resident: a read-only array that owns its memory is sent once while it lives; a writable
+    array or a view is sent again each time, so a changed array is never scored from a stale copy."""
+    import gc
+
+    from place3d_kernels.backends.registry import get_backend
+
+    b = get_backend(name)
+    x = np.arange(10, dtype=np.int32)
+    b._resident(x, np.int32)
+    x[0] = 7
+    assert b._resident(x, np.int32).numpy()[0] == 7          # writable: sent again, with its new value
+    x.setflags(write=False)
+    kept = b._resident(x, np.int32)
+    assert b._resident(x, np.int32) is kept and kept.numpy().tolist() == x.tolist()
+    view = x[2:]
+    assert b._resident(view, np.int32) is not b._resident(view, np.int32)
+    assert b._resident(x, np.int64).dtype != kept.dtype      # another type: converted, not the kept copy
+    key = id(x)
+    del x, view
+    gc.collect()
+    assert key not in b._resident_arrays                     # dropped with the host array
+
+
+@pytest.mark.parametrize("name", _patching_backends())
 @pytest.mark.parametrize("task", ["seg", "det"])
 def test_device_fields_add_terms_in_numpys_order(name, task):
     """Backend.left_out_fields on rows whose T = 81 subsets spread over all 22 channels (many terms per row,
