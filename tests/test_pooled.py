@@ -295,6 +295,26 @@ def test_convergence_rows_equal_a_direct_recomputation(device_backend, occlusion
     np.testing.assert_array_equal(jk.point, direct(0, 4))
 
 
+@pytest.mark.parametrize("occlusion", ["sog", "none"])
+def test_pool_scorer_from_fields_made_on_the_device_is_the_hosts(monkeypatch, occlusion):
+    # where the backend makes a P-SOG's fields from its count rows (fields_on_device: Warp on CUDA), the
+    # convergence table's pools are scored through the pool's P-SOG; here on warp:cpu made to take that path
+    import place3d_kernels as p3k
+    from place3d_app.commands.reproduce import pool_scorer
+    from place3d_kernels.backends.registry import get_backend
+
+    if "warp:cpu" not in p3k.available_backends():
+        pytest.skip("needs Warp")
+    b = get_backend("warp:cpu")
+    pooled = _four_drive_pool()
+    lidar = LidarModel.load("place3d_16ch")
+    host = pool_scorer(lidar, occlusion, b, "rad", "vehicle")(pooled.subset([1, 2, 3]))
+    monkeypatch.setattr(type(b), "fields_on_device", property(lambda self: True))
+    device = pool_scorer(lidar, occlusion, b, "rad", "vehicle")(pooled.subset([1, 2, 3]))
+    assert device.shape == (16,)
+    np.testing.assert_array_equal(device, host)
+
+
 def test_scene_groups_pair_the_routes_of_one_town():
     from place3d_kernels.pooled import scene_groups
 

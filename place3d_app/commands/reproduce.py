@@ -155,16 +155,18 @@ def pool_scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: st
     Where the metric allows it (``left_out.fused_path`` and the package's own detection view), each task's
     weights and stop mask come from the pool's count rows in blocks (``left_out.LeftOutGrids.dense_base`` at
     the pool's own T) and only the rigs are launched on them (``metrics.msog_on_grid``): no (M, K)
-    probabilities, detection view or entropies of the whole pool at once. The scores are the same to the
-    last bit (tests/test_pooled.py)."""
+    probabilities, detection view or entropies of the whole pool at once. On a backend that makes a P-SOG's
+    fields from its count rows itself (``fields_on_device``: Warp on CUDA) the pool's P-SOG is scored as it
+    is instead: its rows are sent once and made into fields there (``PSOG.handle``), with no host pass over
+    them and no dense grid sent. The scores are the same to the last bit (tests/test_pooled.py)."""
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.left_out import LeftOutGrids, fused_path
     from place3d_kernels.metrics import msog_on_grid
 
-    if det_variant != "vehicle" or not fused_path(lidar, occlusion):
-        score = placement_scorer(lidar, occlusion, backend, roll_units, det_variant, extra)
-        return lambda pool: score(pool.psog())
     b = get_backend(backend)
+    if det_variant != "vehicle" or not fused_path(lidar, occlusion) or getattr(b, "fields_on_device", False):
+        score = placement_scorer(lidar, occlusion, b, roll_units, det_variant, extra)
+        return lambda pool: score(pool.psog())
     poses = placement_poses(roll_units, extra)
 
     def score_pool(pool):
@@ -351,9 +353,12 @@ def submit_ranges(executor, pooled: PooledPSOG, routes_of: list[int], lidar, occ
     jackknife's point), each scored by ``pool_scorer`` on a worker of ``executor`` (one with ``submit``: the
     process executor) while this process goes on."""
     R = max(routes_of) + 1
+    # the widest ranges first: their records (a pickle of some 100 MB each for half of 32 drives) are sent
+    # first, and their pools, the largest to sum and score, start first
+    ranges = sorted((r for r in convergence_ranges(routes_of) if r != (0, R)), key=lambda r: r[0] - r[1])
     return {(lo, hi): executor.submit(_range_scores, (range_pool(pooled, routes_of, lo, hi).records, pooled.grid,
                                                       lidar, occlusion, backend, roll_units, det_variant, extra))
-            for lo, hi in convergence_ranges(routes_of) if (lo, hi) != (0, R)}
+            for lo, hi in ranges}
 
 
 def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size: float | None = None,
