@@ -55,6 +55,16 @@ class LeftOutRows:
         self._last = None
         self._batch = None
 
+    @classmethod
+    def shared(cls, pooled) -> "LeftOutRows":
+        """One ``LeftOutRows`` per pool, kept with it (``PooledPSOG.derived``) until a record is added, so
+        jackknifes of the same records (``reproduce`` runs one per task, as its rigs differ) share the records'
+        index and entry tables (``batch``)."""
+        got = pooled.derived.get(cls)           # emptied when a record is added
+        if got is None:
+            got = pooled.derived[cls] = cls(pooled)
+        return got
+
     def of(self, i: int) -> tuple[int, np.ndarray, np.ndarray]:
         """(T, rows of the plain pool record ``i`` touched (sorted), their count rows (R, K) without it)."""
         if self._last is not None and self._last[0] == i:

@@ -160,6 +160,9 @@ class PooledPSOG:
         self.records: list[DriveRecord] = []
         self._union = self._plain = self._spans = self._plain_counts = self._rank = None
         self._plain_psog = None      # a P-SOG known to be exactly the plain pool (``known_plain``)
+        #: what other modules derive from these records and keep with the pool (``left_out.LeftOutRows.shared``);
+        #: emptied when a record is added
+        self.derived: dict = {}
         for r in records:
             self.add(r)
 
@@ -168,6 +171,7 @@ class PooledPSOG:
             raise ValueError(f"{record.label}: class {int(record.classes.max())} outside the {self.n_classes} channels")
         self.records.append(record)
         self._union = self._plain = self._spans = self._plain_counts = self._plain_psog = self._rank = None
+        self.derived = {}
 
     @property
     def labels(self) -> list[str]:

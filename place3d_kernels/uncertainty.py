@@ -287,7 +287,7 @@ def jackknife_records(records, grid, lidar, placements, tasks=("seg", "det"), oc
             pool_key = None                 # too large to keep: one working grid per task, patched in place
         reuse = not HANDLES.will_keep(pool_key)
         with section("jackknife: left-out grid"):
-            rows = LeftOutRows(pooled)
+            rows = LeftOutRows.shared(pooled)
         handles = {t: iter(HANDLES.get(pool_key, pooled.grid, t, occlusion, b,
                                        lambda t=t: prepared_grids(pooled, t, occlusion, b, normalisation, reuse, rows),
                                        normalisation=normalisation))

@@ -409,6 +409,22 @@ def test_both_tasks_rows_from_one_shared_batch_are_the_hosts(name, drives):
     assert not any(a.flags.writeable for a in rows.batch()[2:])
 
 
+def test_one_pools_jackknifes_share_its_rows_until_a_record_is_added(drives):
+    """LeftOutRows.shared: reproduce's two jackknifes (one per task) share the records' index and tables, kept
+    with the pool; a pool with a record added gets rows made anew."""
+    from place3d_kernels.left_out import LeftOutRows
+
+    pool = PooledPSOG(drives.grid, drives.records[:-1])
+    rows = LeftOutRows.shared(pool)
+    assert LeftOutRows.shared(pool) is rows and rows.T == pool.n_subsets
+    pool.add(drives.records[-1])
+    grown = LeftOutRows.shared(pool)
+    assert grown is not rows and grown.T == drives.n_subsets and len(grown.batch()[0]) == len(drives)
+    for i in range(len(drives)):                 # the same rows as the full pool's own
+        assert np.array_equal(grown.of(i)[2], LeftOutRows(drives).of(i)[2]), i
+    assert pool.derived == {LeftOutRows: grown}
+
+
 @pytest.mark.parametrize("name", _patching_backends())
 def test_warp_keeps_device_copies_only_of_arrays_nobody_can_write(name):
     """WarpScoring._resident: a read-only array that owns its memory is sent once while it lives; a writable
