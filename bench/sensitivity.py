@@ -29,7 +29,7 @@ from place3d_kernels import paper_results as paper
 from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.pooled import Drive, PoolSettings, build_pooled
-from place3d_kernels.reproduce import DEFAULT_TOWNS, machine_info, resolve_town
+from place3d_app.commands.reproduce import DEFAULT_TOWNS, machine_info, resolve_town
 from place3d_kernels.uncertainty import bootstrap_pooled, kendall_tau
 
 BASE = {"voxel_size": 0.2, "occlusion": "sog", "k": 4, "roll_units": "rad", "collection": "collection_64ch",
@@ -60,7 +60,7 @@ def scorer(s: dict, backend):
     the authors' public rigs (the roll rigs and "ours" have no public counterpart)."""
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.placement import Placement
-    from place3d_kernels.reproduce import det_view, paper_poses
+    from place3d_app.commands.reproduce import det_view, paper_poses
 
     lidar = LidarModel.load(s["rig_lidar"])
     poses = {t: paper_poses(t, s["roll_units"]) for t in ("seg", "det")}
