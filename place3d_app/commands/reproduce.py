@@ -12,7 +12,9 @@ P-SOG of N routes per town and that of 2N routes.
 Where the time goes (``place3d --profile reproduce``): with the process executor (``--executor auto`` on a
 machine of several cores) the workers build the drives, two routes of one town a task
 (``pooled.scene_groups``), then score the convergence table's pools while this process runs the jackknife;
-the whole pool's scores are the jackknife's point, not scored again.
+the whole pool's scores are the jackknife's point, not scored again. The figure is drawn on a thread once the
+intervals are known. The console script starts the workers' forkserver before it imports the package
+(``place3d_app.forkserver.start_early``).
 
 Output (``--output``, default ``bench/results/reproduce-<date>/``): ``reproduce.json`` (keys:
 ``settings``, ``machine``, ``time_utc``, ``seconds`` (pool, jackknife, convergence: what this process
