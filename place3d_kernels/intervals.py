@@ -264,12 +264,13 @@ def kendall_tau(a: Sequence[float], b: Sequence[float]) -> float:
 
 
 def plot_scores(boots: dict, path, title: str | None = None, reference: dict | None = None,
-                reference_label: str = "paper") -> str:
-    """Scores with their intervals, one panel per entry of ``boots`` ({panel title: Bootstrap}).
+                reference_label: str = "paper"):
+    """Scores with their intervals, one panel per entry of ``boots`` ({panel title: Bootstrap}); returns the
+    path as a string (for a file object, the object).
 
     Args:
         boots: {panel title: Bootstrap or Jackknife}; each panel's legend names its method (``interval_method``).
-        path: PNG path.
+        path: PNG path (written atomically), or a binary file object the PNG is written into.
         title: the figure's title; default "M-SOG with 95 % intervals: <method>" (the first panel's method).
         reference: optional {panel title: (P,) values} drawn on a second y axis (other scale).
         reference_label: legend label of the reference values.
@@ -308,8 +309,11 @@ def plot_scores(boots: dict, path, title: str | None = None, reference: dict | N
         title = f"M-SOG with {int(first.level * 100)} % intervals: {interval_method(first)}"
     fig.suptitle(title)
     fig.tight_layout()
-    from place3d_kernels.atomic import atomic_savefig
+    if hasattr(path, "write"):
+        fig.savefig(path, format="png", dpi=120)
+    else:
+        from place3d_kernels.atomic import atomic_savefig
 
-    atomic_savefig(fig, path, dpi=120)
+        atomic_savefig(fig, path, dpi=120)
     plt.close(fig)
-    return str(path)
+    return path if hasattr(path, "write") else str(path)

@@ -190,21 +190,26 @@ def test_reproduce_tiny_end_to_end(tmp_path):
 
 
 def test_reproduce_outputs_keep_the_json_when_the_figure_drawn_beside_the_study_failed(tmp_path):
-    # reproduce(plot_to=...) draws the figure on a thread; write_outputs waits for it, and a failed figure is
-    # reported only once the study's numbers are on disk
+    # reproduce(draw_ahead=True) draws the figure into memory on a thread; write_outputs writes the JSON first,
+    # then waits for the figure: a failed figure is reported once the study's numbers are on disk, and no
+    # reproduce.png of this run (or half of one) is left
     from concurrent.futures import Future
 
     from place3d_app.commands.reproduce import write_outputs
 
     out = tmp_path / "o"
     failed = Future()
-    failed.set_exception(OSError("no space left on device"))
-    res = {"settings": {"towns": ["town"]}, "drives": ["town-s0-f4"], "_boots": None,
-           "_plot": (str(out / "reproduce.png"), failed)}
-    with pytest.raises(OSError, match="no space left"):
+    failed.set_exception(MemoryError("the figure could not be drawn"))
+    res = {"settings": {"towns": ["town"]}, "drives": ["town-s0-f4"], "_boots": None, "_figure": failed}
+    with pytest.raises(MemoryError, match="could not be drawn"):
         write_outputs(res, out)
     assert json.loads((out / "reproduce.json").read_text()) == {"settings": {"towns": ["town"]},
                                                                 "drives": ["town-s0-f4"]}
+    assert not (out / "reproduce.png").exists()
+    drawn = Future()
+    drawn.set_result(b"\x89PNG drawn ahead")
+    write_outputs({**res, "_figure": drawn}, out)
+    assert (out / "reproduce.png").read_bytes() == b"\x89PNG drawn ahead"
 
 
 def test_reproduce_same_study_in_process_and_on_workers(tmp_path):

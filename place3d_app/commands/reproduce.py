@@ -12,8 +12,8 @@ P-SOG of N routes per town and that of 2N routes.
 Where the time goes (``place3d --profile reproduce``): with the process executor (``--executor auto`` on a
 machine of several cores) the workers build the drives, two routes of one town a task
 (``pooled.scene_groups``), then score the convergence table's pools while this process runs the jackknife;
-the whole pool's scores are the jackknife's point, not scored again. The figure is drawn on a thread once the
-intervals are known. The console script starts the workers' forkserver before it imports the package
+the whole pool's scores are the jackknife's point, not scored again. The figure is drawn into memory on a thread
+once the intervals are known, and written after the JSON. The console script starts the workers' forkserver before it imports the package
 (``place3d_app.forkserver.start_early``).
 
 Output (``--output``, default ``bench/results/reproduce-<date>/``): ``reproduce.json`` (keys:
@@ -46,7 +46,7 @@ from place3d_kernels.uncertainty import Jackknife, jackknife_pooled, kendall_tau
 
 __all__ = ["reproduce", "convergence", "convergence_ranges", "range_pool", "submit_ranges", "paper_poses",
            "placement_poses", "placement_scorer", "pool_scorer", "jackknife_placements", "det_view", "resolve_town",
-           "DEFAULT_TOWNS", "DET_VARIANTS", "add_arguments", "run", "machine_info", "write_outputs", "write_plot"]
+           "DEFAULT_TOWNS", "DET_VARIANTS", "add_arguments", "run", "machine_info", "write_outputs", "draw_figure"]
 
 #: The paper's maps (Sec. 4 "Data Generation": Towns 1, 3, 4 and 6 of CARLA 0.9.10).
 DEFAULT_TOWNS = ("Town01", "Town03", "Town04", "Town06")
@@ -367,14 +367,14 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
               frames_per_subset: int | None = None, occlusion: str = "sog", rig_lidar: str = "place3d_16ch",
               collection_lidar: str = "collection_64ch", roll_units: str = "rad", det_variant: str = "vehicle",
               backend=None, executor=None, opendrive_dir=None, with_convergence: bool = True, cache=None,
-              progress: bool = False, route_seeds=None, placements=(), roi=None, plot_to=None) -> dict:
+              progress: bool = False, route_seeds=None, placements=(), roi=None, draw_ahead: bool = False) -> dict:
     """Run the study; returns the JSON-able result (see the module docstring for its keys).
 
     ``route_seeds``: the seeds of the routes (default 0 .. routes-1); ``placements``: the user's rigs
     (names or TOML paths), scored beside the paper's eight; ``roi``: the ROI box (``grid.roi_bounds``:
-    None for the default, 3 sizes or 6 corners in metres); ``plot_to``: a PNG path for the intervals' figure
-    (``write_plot``), drawn on a thread while the convergence table is finished (the result's ``_plot``:
-    (path, its ``Future``); ``write_outputs`` waits for it instead of drawing another)."""
+    None for the default, 3 sizes or 6 corners in metres); ``draw_ahead``: draw the intervals' figure
+    (``draw_figure``) on a thread while the convergence table is finished, into memory (the result's
+    ``_figure``: a ``Future`` of the PNG's bytes, which ``write_outputs`` writes; nothing is written before)."""
     from place3d_kernels.backends.registry import get_backend
     from place3d_kernels.lidar import LidarModel
     from place3d_kernels.placement import Placement
@@ -438,14 +438,14 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
                   "interval": "jackknife over routes, each left out once, stratified by town; point +- t se "
                               f"({jk.df} df)",
                   "executor": getattr(executor, "kind", "local"), "n_subsets_total": pooled.n_subsets}
-    plotting = None
-    if plot_to is not None:
-        # the figure shows the intervals alone (about 0.6 s of Matplotlib on the H200 host): drawn while this
-        # process mostly waits for the workers' convergence scores
+    drawing = None
+    if draw_ahead:
+        # the figure shows the intervals alone (about 0.6 s of Matplotlib on the H200 host): drawn into memory
+        # while this process mostly waits for the workers' convergence scores; written with the JSON
         from concurrent.futures import ThreadPoolExecutor
 
-        one = ThreadPoolExecutor(1, thread_name_prefix="place3d-plot")
-        plotting = one.submit(write_plot, boots, settings_d, len(drives), plot_to)
+        one = ThreadPoolExecutor(1, thread_name_prefix="place3d-figure")
+        drawing = one.submit(draw_figure, boots, settings_d, len(drives))
         one.shutdown(wait=False)                # its thread ends with the figure
     t1 = time.perf_counter()
     with section("convergence"):
@@ -467,7 +467,7 @@ def reproduce(towns=DEFAULT_TOWNS, routes: int = 4, frames: int = 40, voxel_size
             "seconds": {"pool": round(t_pool, 2), "jackknife": round(t_boot, 2), "convergence": round(t_conv, 2),
                         "total": round(time.perf_counter() - t0, 2)},
             "drives": pooled.labels, "tasks": tables,
-            "convergence": conv, "_boots": boots, "_plot": None if plotting is None else (str(plot_to), plotting)}
+            "convergence": conv, "_boots": boots, "_figure": drawing}
 
 
 # ---------------------------------------------------------------------------------------- output
@@ -520,38 +520,42 @@ def _seeds_text(seeds) -> str:
     return ",".join(str(s) for s in seeds)
 
 
-def write_plot(boots: dict, settings: dict, n_drives: int, png) -> str:
-    """``reproduce.png``: each task's scores with their intervals beside the paper's Table 1 M-SOG, written to
-    ``png`` (its folder made if missing); returns the path."""
-    png = Path(png)
-    png.parent.mkdir(parents=True, exist_ok=True)
+def draw_figure(boots: dict, settings: dict, n_drives: int) -> bytes:
+    """``reproduce.png``'s bytes: each task's scores with their intervals beside the paper's Table 1 M-SOG."""
+    import io
+
     panels = {f"{t} ({'ours = ' + paper.OURS[t]})": boots[t] for t in TASKS}
     # the paper's values for its eight; the user's rigs (--placements) have none
     ref = {f"{t} ({'ours = ' + paper.OURS[t]})": list(paper.paper_msog(t)) + [np.nan] * (len(boots[t].names) - 8)
            for t in TASKS}
-    with section("output: plot"):
-        return plot_scores(panels, png, title=f"Pooled M-SOG, {n_drives} drives ({len(settings['towns'])} towns x "
-                           f"{settings['routes']} routes), {settings['voxel_size']} m voxels", reference=ref,
-                           reference_label="paper Table 1 M-SOG [x 1e-6 nats/voxel]")
+    buf = io.BytesIO()
+    with section("output: figure"):
+        plot_scores(panels, buf, title=f"Pooled M-SOG, {n_drives} drives ({len(settings['towns'])} towns x "
+                    f"{settings['routes']} routes), {settings['voxel_size']} m voxels", reference=ref,
+                    reference_label="paper Table 1 M-SOG [x 1e-6 nats/voxel]")
+    return buf.getvalue()
 
 
 def write_outputs(res: dict, out) -> dict:
-    """reproduce.json and reproduce.png into folder ``out`` (for the PNG, the one ``reproduce(plot_to=...)`` draws
-    there is waited for; its error, if it failed, is raised once the JSON is written); returns their paths."""
+    """reproduce.json and reproduce.png into folder ``out``, each written atomically, the JSON first (the figure
+    drawn ahead, ``reproduce(draw_ahead=True)``, is waited for; its error, if it failed, is raised once the JSON
+    is written); returns their paths."""
+    from place3d_kernels.atomic import atomic_write, atomic_write_text
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     js = out / "reproduce.json"
-    from place3d_kernels.atomic import atomic_write_text
-
     with section("output: json"):
         atomic_write_text(js, json.dumps({k: v for k, v in res.items() if not k.startswith("_")}, indent=1))
     png = out / "reproduce.png"
-    drawn = res.get("_plot")
-    if drawn is not None and drawn[0] == str(png):
-        with section("output: plot (wait)"):
-            drawn[1].result()
+    drawing = res.get("_figure")
+    if drawing is not None:
+        with section("output: figure (wait)"):
+            data = drawing.result()
     else:
-        write_plot(res["_boots"], res["settings"], len(res["drives"]), png)
+        data = draw_figure(res["_boots"], res["settings"], len(res["drives"]))
+    with section("output: png"):
+        atomic_write(png, data)
     return {"json": str(js), "png": str(png)}
 
 
@@ -601,7 +605,7 @@ def run(args) -> int:
         res = reproduce(args.towns, args.routes, args.frames, args.voxel_size, args.frames_per_subset, args.occlusion,
                         args.lidar, args.collection_lidar, args.roll_units, args.det_variant, args.backend, ex,
                         args.opendrive_dir, not args.no_convergence, progress=not args.quiet, route_seeds=seeds,
-                        placements=args.placements, roi=args.roi, plot_to=Path(out) / "reproduce.png")
+                        placements=args.placements, roi=args.roi, draw_ahead=True)
     finally:
         with section("executor shutdown"):
             ex.shutdown()
