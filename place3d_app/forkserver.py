@@ -111,6 +111,8 @@ def _option(argv: list[str], name: str) -> str | None:
 
 
 def _usable_cores() -> int:
+    # place3d_kernels.threads.usable_cores, which this module cannot import: importing any part of the package
+    # runs place3d_kernels/__init__.py (NumPy and the library, the start-up this module exists to run beside)
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):

@@ -124,9 +124,10 @@ class Server:
         resource_tracker.ensure_running()
         # so does the server the commands fork their workers from (a forkserver on Linux: reproduce's pool, the
         # drives a cold evaluate or optimize builds); started now, with this process's backend's imports
-        from place3d_app.executors import ProcessExecutor, command_start_method
+        from place3d_app import forkserver
 
-        ProcessExecutor(1, backend=self.backend, start_method=command_start_method()).start_server()
+        if forkserver.command_start_method() == "forkserver":
+            forkserver.start(self.backend)
         keep_worker()            # optimize's plots: a pool with matplotlib imported, shared by the commands
         settle_memory()
         self.say(f"pid {os.getpid()}, backend {self.backend}, loaded in {time.perf_counter() - t:.2f} s")

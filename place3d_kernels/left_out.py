@@ -78,9 +78,10 @@ class LeftOutRows:
 
     def batch(self) -> tuple[list, list, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What ``device_fields`` sends for every record at once, made once for both tasks: (each record's
-        ``index``, the sorted distinct T, and the entry tables of ``Backend.left_out_fields``: rows (R,) int64,
-        estart (R + 1,) int32, classes and counts (E,) int32, row_t (R,) int32), read-only from here, so a
-        backend may keep its device copies while they live (``WarpScoring._resident``)."""
+        (T, flat voxel ids of the rows it touched), the sorted distinct T, and the entry tables of
+        ``Backend.left_out_fields``: rows (R,) int64, estart (R + 1,) int32, classes and counts (E,) int32, row_t
+        (R,) int32), read-only from here, so a backend may keep its device copies while they live
+        (``WarpScoring._resident``). Each record's own index arrays are let go once concatenated."""
         if self._batch is None:
             from place3d_kernels.threads import thread_map, threads_for
 
@@ -97,9 +98,12 @@ class LeftOutRows:
             rows = np.concatenate([r for _, r, *_ in idx]).astype(np.int64, copy=False)
             ecls = np.concatenate([c for *_, c, _ in idx]).astype(np.int32, copy=False)
             ecnt = np.concatenate([c for *_, c in idx]).astype(np.int32, copy=False)
-            for a in (rows, estart, ecls, ecnt, row_t):
+            # per record only its T and its rows' voxel ids (what each task's grids are patched at), gathered once
+            ids = [(t, self.voxels[r]) for t, r, *_ in idx]
+            del idx
+            for a in (rows, estart, ecls, ecnt, row_t, *(v for _, v in ids)):
                 a.setflags(write=False)
-            self._batch = (idx, Ts, rows, estart, ecls, ecnt, row_t)
+            self._batch = (ids, Ts, rows, estart, ecls, ecnt, row_t)
         return self._batch
 
     def index(self, i: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -332,14 +336,12 @@ def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):
     on CUDA): per record (T, its rows' flat voxel indices (host), weights and stop flags (device arrays,
     slices of the batch)). Only the index work (where each record's entries fall) stays on the host."""
     src = rows if rows is not None else LeftOutRows(pooled)
-    idx, Ts, all_rows, estart, ecls, ecnt, row_t = src.batch()
+    ids, Ts, all_rows, estart, ecls, ecnt, row_t = src.batch()
     term, stop_t, other = device_tables(Ts, task)
     w, s = backend.left_out_fields(src.counts, all_rows, estart, ecls, ecnt, row_t, np.array(Ts), term, stop_t, other,
                                    task == "det", VEHICLE, float(ENTROPY_SCALE))
-    R = [len(r) for _, r, *_ in idx]
-    r_off = [0, *np.cumsum(R).tolist()]
-    return [(t, src.voxels[r], w[r_off[k]:r_off[k + 1]], s[r_off[k]:r_off[k + 1]])
-            for k, (t, r, *_) in enumerate(idx)]
+    r_off = [0, *np.cumsum([len(v) for _, v in ids]).tolist()]
+    return [(t, v, w[r_off[k]:r_off[k + 1]], s[r_off[k]:r_off[k + 1]]) for k, (t, v) in enumerate(ids)]
 
 
 def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str | None = None, rows=None):
