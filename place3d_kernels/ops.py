@@ -228,8 +228,10 @@ class MeshGroups:
 
     @staticmethod
     def supported(backend) -> bool:
-        """Whether ``backend`` (a name or instance) casts through grouped trees."""
-        return hasattr(get_backend(backend), "upload_mesh_groups")
+        """Whether ``backend`` (a name or instance) casts through grouped trees (``upload_mesh_groups``, and
+        ``casts_groups`` where the backend says per device)."""
+        b = get_backend(backend)
+        return hasattr(b, "upload_mesh_groups") and bool(getattr(b, "casts_groups", True))
 
     def cast(self, origins, directions, t_max: float, rays_per_mesh: int, first: int = 0) -> Hits | None:
         """Hits of blocks of ``rays_per_mesh`` rays, block k into mesh ``first + k``: float64 (N, 3) world

@@ -217,6 +217,61 @@ def test_bvh4_collapse_keeps_every_triangle_once(rng):
     assert b4.depth <= bvh.depth and b4.n_nodes < bvh.n_nodes
 
 
+def _subtree_faces(bvh, root):
+    """Original face ids in the leaves under binary node ``root``."""
+    refs = bvh.child_refs()
+    out, stack = set(), [root]
+    while stack:
+        node = stack.pop()
+        for c in range(2):
+            ref, cnt = int(refs[node, 2 * c]), int(refs[node, 2 * c + 1])
+            if cnt == 0:
+                stack.append(ref)
+            else:
+                out.update(bvh.order[ref:ref + cnt].tolist())
+    return out
+
+
+@pytest.mark.parametrize("sizes", [[1], [2], [1, 1, 1], [5, 1, 300, 2, 1, 40], [1000, 17]])
+def test_grouped_bvh_gives_each_group_a_tree_of_its_own(sizes, rng):
+    """build_bvh's groups: node g is group g's root and its subtree holds exactly that group's faces (every
+    face in one leaf, boxes nested, depth within the cap); the 4-wide collapse keeps the roots as nodes
+    0 .. G-1, each over its group's faces; one group is the plain build, byte for byte."""
+    from place3d_kernels.backends.opencl.bvh import collapse_bvh4
+
+    v, f = _random_soup(rng, sum(sizes))
+    bvh = build_bvh(v, f, groups=sizes)
+    validate_bvh(bvh, v, f)
+    assert bvh.roots == len(sizes) and bvh.depth <= DEFAULT_MAX_DEPTH
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    for g in range(len(sizes)):
+        assert _subtree_faces(bvh, g) == set(range(starts[g], starts[g + 1]))
+    b4 = collapse_bvh4(bvh)
+    ints = b4.nodes[:, 24:32].view(np.int32)
+    for g in range(len(sizes)):
+        faces, stack = set(), [g]
+        while stack:
+            node = stack.pop()
+            for r_, c_ in zip(ints[node, :4], ints[node, 4:]):
+                if c_ == 0:
+                    stack.append(int(r_))
+                elif c_ > 0:
+                    faces.update(bvh.order[r_:r_ + c_].tolist())
+        assert faces == set(range(starts[g], starts[g + 1]))
+    if len(sizes) == 1:
+        plain = build_bvh(v, f)
+        assert plain.nodes.tobytes() == bvh.nodes.tobytes() and plain.tris.tobytes() == bvh.tris.tobytes()
+
+
+def test_grouped_bvh_refuses_groups_that_do_not_cover_the_faces(rng):
+    v, f = _random_soup(rng, 10)
+    for bad in ([], [4, 5], [4, 7], [10, 0], [11, -1]):
+        with pytest.raises(ValueError, match="groups must be face counts"):
+            build_bvh(v, f, groups=bad)
+    with pytest.raises(ValueError, match="layout='levels' only"):
+        build_bvh(v, f, groups=[10], layout="dfs")
+
+
 def test_dfs_layout_is_the_same_tree_with_left_children_next(rng):
     """bvh.dfs_layout renumbers inner nodes in depth-first preorder: a valid tree over the same leaves
     (the same triangle order, depth and leaf count), each inner left child in the row after its parent,

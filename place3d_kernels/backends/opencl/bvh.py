@@ -60,6 +60,7 @@ class BVH:
     n_leaves: int
     lo: np.ndarray            # scene bounds (3,) float32
     hi: np.ndarray
+    roots: int = 1            # nodes 0 .. roots - 1 are the roots, one per group (build_bvh's ``groups``)
 
     @property
     def n_nodes(self) -> int:
@@ -87,8 +88,8 @@ def _half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 4, bins: int = 16,
-              max_depth: int | None = DEFAULT_MAX_DEPTH, layout: str = "levels") -> BVH:
-    """Build the flattened BVH of a triangle mesh.
+              max_depth: int | None = DEFAULT_MAX_DEPTH, layout: str = "levels", groups=None) -> BVH:
+    """Build the flattened BVH of a triangle mesh, or one tree per group of its faces.
 
     Args:
         vertices: (V, 3) float; converted to float32 first, so boxes bound the triangles the kernel tests.
@@ -98,14 +99,28 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 4, bins:
         max_depth: inner-depth cap (see the module docstring); ``None`` disables it (tests only: shows
             how deep plain SAH goes on adversarial input).
         layout: ``"levels"`` (inner nodes numbered level by level, as built) or ``"dfs"`` (``dfs_layout``).
+        groups: optional (G,) face counts, each >= 1, summing to F: faces ``0 .. groups[0] - 1`` are group 0,
+            and so on. Each group gets a tree of its own, rooted at node ``g`` (``BVH.roots`` = G), built level
+            by level together with the others, so G small meshes cost about one build of their union
+            (``MeshGroups``). Only with ``layout="levels"``.
     """
     if layout not in ("levels", "dfs"):
         raise ValueError(f"layout must be 'levels' or 'dfs', got {layout!r}")
-    bvh = _build(vertices, faces, leaf_size, bins, max_depth)
+    if groups is not None and layout != "levels":
+        raise ValueError("grouped trees are built with layout='levels' only")
+    bvh = _build(vertices, faces, leaf_size, bins, max_depth, groups)
     return dfs_layout(bvh) if layout == "dfs" else bvh
 
 
-def _build(vertices, faces, leaf_size, bins, max_depth) -> BVH:
+def _group_sizes(groups, n_tri: int) -> np.ndarray:
+    sizes = np.array([n_tri] if groups is None else groups, dtype=np.int64).reshape(-1)
+    if len(sizes) == 0 or sizes.min() < 1 or sizes.sum() != n_tri:
+        raise ValueError(f"groups must be face counts >= 1 summing to the {n_tri} faces, got {len(sizes)} "
+                         f"counts summing to {int(sizes.sum())}")
+    return sizes
+
+
+def _build(vertices, faces, leaf_size, bins, max_depth, groups=None) -> BVH:
     with np.errstate(over="ignore"):
         v = np.ascontiguousarray(vertices, dtype=np.float32)
     if not np.all(np.isfinite(v)):
@@ -114,44 +129,52 @@ def _build(vertices, faces, leaf_size, bins, max_depth) -> BVH:
     n_tri = len(f)
     if n_tri == 0:
         raise ValueError("cannot build a BVH of an empty mesh")
-    if max_depth is not None and int(need_levels(n_tri, leaf_size)) > max_depth:
-        raise ValueError(f"{n_tri} triangles need more than max_depth={max_depth} levels with leaf_size={leaf_size}")
+    sizes = _group_sizes(groups, n_tri)
+    G = len(sizes)
+    if max_depth is not None and int(need_levels(sizes.max(), leaf_size)) > max_depth:
+        what = f"{n_tri} triangles need" if groups is None else f"a group of {int(sizes.max())} triangles needs"
+        raise ValueError(f"{what} more than max_depth={max_depth} levels with leaf_size={leaf_size}")
     cap = np.iinfo(np.int64).max if max_depth is None else int(max_depth)
+    starts = np.zeros(G, dtype=np.int64)
+    np.cumsum(sizes[:-1], out=starts[1:])
 
     p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     tlo = np.minimum(np.minimum(p0, p1), p2)
     thi = np.maximum(np.maximum(p0, p1), p2)
 
     perm = np.empty(n_tri, dtype=np.int64)
-    if n_tri == 1:  # a root must be an inner node: both of its children are the one-triangle leaf
-        perm[0] = 0
-        c_lo = np.broadcast_to(tlo[0], (1, 2, 3))
-        c_hi = np.broadcast_to(thi[0], (1, 2, 3))
-        return _finish(v, f, perm, c_lo, c_hi, np.zeros((1, 2), np.int32), np.ones((1, 2), np.int32),
-                       1, 1, max_depth, tlo[0], thi[0])
-
-    # node storage (grown as needed)
-    cap_nodes = max(16, n_tri // 2 + 16)
+    # node storage (grown as needed); nodes 0 .. G-1 are the groups' roots
+    cap_nodes = max(16, n_tri // 2 + G + 16)
     c_lo = np.empty((cap_nodes, 2, 3), dtype=np.float32)
     c_hi = np.empty((cap_nodes, 2, 3), dtype=np.float32)
     c_ref = np.zeros((cap_nodes, 2), dtype=np.int32)
     c_cnt = np.zeros((cap_nodes, 2), dtype=np.int32)
-    n_nodes = 1  # root = node 0
-    n_leaves = 0
+    n_nodes = G
+    # a root must be an inner node: a group of one triangle gets both children = its one-triangle leaf
+    one = np.flatnonzero(sizes == 1)
+    perm[starts[one]] = starts[one]
+    c_lo[one] = tlo[starts[one]][:, None]
+    c_hi[one] = thi[starts[one]][:, None]
+    c_ref[one] = starts[one][:, None]
+    c_cnt[one] = 1
+    n_leaves = len(one)
     max_seen = 1
 
     # working set: triangles of the active nodes, concatenated in node order, as rows
     # (lo x y z, hi x y z) so that one np.take moves them all
-    geo = np.empty((6, n_tri), dtype=np.float32)
-    geo[0:3] = tlo.T
-    geo[3:6] = thi.T
+    many = np.flatnonzero(sizes > 1)
     w_id = np.arange(n_tri, dtype=np.int64)
+    if len(one):
+        w_id = w_id[np.repeat(sizes > 1, sizes)]
+    geo = np.empty((6, len(w_id)), dtype=np.float32)
+    geo[0:3] = tlo[w_id].T
+    geo[3:6] = thi[w_id].T
     # active nodes
-    a_start = np.array([0], dtype=np.int64)      # position of the node's first triangle in ``perm``
-    a_cnt = np.array([n_tri], dtype=np.int64)
-    a_parent = np.array([-1], dtype=np.int64)    # parent inner node (-1: the root itself)
-    a_slot = np.array([0], dtype=np.int64)
-    a_depth = np.array([1], dtype=np.int64)      # inner depth this node would have
+    a_start = starts[many]                       # position of the node's first triangle in ``perm``
+    a_cnt = sizes[many]
+    a_parent = -1 - many                         # parent inner node (a root: -1 - its group)
+    a_slot = np.zeros(len(many), dtype=np.int64)
+    a_depth = np.ones(len(many), dtype=np.int64)  # inner depth this node would have
     root_lo = tlo.min(axis=0)
     root_hi = thi.max(axis=0)
     big = np.iinfo(np.int64).max // 4
@@ -250,7 +273,7 @@ def _build(vertices, faces, leaf_size, bins, max_depth) -> BVH:
         sah_ok = np.isfinite(best_cost)
         make_leaf = (a_cnt <= leaf_size) & (~sah_ok | (a_cnt <= best_cost) | (a_depth >= cap))
         make_leaf |= a_cnt <= 1
-        make_leaf &= ~is_root  # the root is always an inner node (n_tri >= 2 here)
+        make_leaf &= ~is_root  # a root is always an inner node (its group has >= 2 triangles here)
         if np.any(make_leaf & (a_cnt > leaf_size)):  # pragma: no cover - excluded by the invariant
             raise AssertionError("BVH depth invariant violated")
         median = ~make_leaf & ~sah_ok
@@ -270,7 +293,7 @@ def _build(vertices, faces, leaf_size, bins, max_depth) -> BVH:
         inner = np.flatnonzero(~make_leaf)
         if len(inner) == 0:
             break
-        ids = np.zeros(k, dtype=np.int64)
+        ids = np.where(is_root, -1 - a_parent, 0)
         nonroot = inner[~is_root[inner]]
         n_new = len(nonroot)
         if n_nodes + n_new > len(c_ref):
@@ -324,7 +347,7 @@ def _build(vertices, faces, leaf_size, bins, max_depth) -> BVH:
         a_depth = np.repeat(a_depth[inner] + 1, 2)
 
     return _finish(v, f, perm, c_lo[:n_nodes], c_hi[:n_nodes], c_ref[:n_nodes], c_cnt[:n_nodes],
-                   max_seen, n_leaves, max_depth, root_lo, root_hi)
+                   max_seen, n_leaves, max_depth, root_lo, root_hi, G)
 
 
 def _pad(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -344,7 +367,7 @@ def _pad(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return plo, phi
 
 
-def _finish(v, f, perm, c_lo, c_hi, c_ref, c_cnt, depth, n_leaves, max_depth, lo, hi) -> BVH:
+def _finish(v, f, perm, c_lo, c_hi, c_ref, c_cnt, depth, n_leaves, max_depth, lo, hi, roots=1) -> BVH:
     n = len(c_ref)
     nodes = np.empty((n, 16), dtype=np.float32)
     c_lo, c_hi = _pad(np.asarray(c_lo), np.asarray(c_hi))
@@ -365,7 +388,7 @@ def _finish(v, f, perm, c_lo, c_hi, c_ref, c_cnt, depth, n_leaves, max_depth, lo
     tris[:, 3].view(np.int32)[:] = perm.astype(np.int32)
     return BVH(nodes=nodes, tris=tris, order=perm.astype(np.int32), depth=int(depth),
                max_depth=-1 if max_depth is None else int(max_depth), n_leaves=int(n_leaves),
-               lo=np.asarray(lo, np.float32), hi=np.asarray(hi, np.float32))
+               lo=np.asarray(lo, np.float32), hi=np.asarray(hi, np.float32), roots=int(roots))
 
 
 def dfs_layout(bvh: BVH) -> BVH:
@@ -405,7 +428,7 @@ def validate_bvh(bvh: BVH, vertices: np.ndarray, faces: np.ndarray) -> None:
     n_tri = len(faces)
     seen = np.zeros(n_tri, dtype=np.int64)
     v = np.asarray(vertices, np.float32)
-    stack = [(0, 1)]
+    stack = [(g, 1) for g in range(bvh.roots)]
     max_d = 0
     while stack:
         node, depth = stack.pop()
@@ -422,7 +445,8 @@ def validate_bvh(bvh: BVH, vertices: np.ndarray, faces: np.ndarray) -> None:
                     assert np.all(bvh.nodes[ref, 6 * cc + 3:6 * cc + 6] <= hi)
             else:
                 ids = bvh.order[ref:ref + cnt]
-                if n_tri > 1 or node != 0 or c == 0:
+                # a root of one triangle has that leaf as both children: count it once
+                if c == 0 or node >= bvh.roots or refs[node, 1] != 1 or refs[node, 0] != ref:
                     seen[ids] += 1
                 pts = v[np.asarray(faces)[ids]].reshape(-1, 3)
                 assert np.all(pts >= lo) and np.all(pts <= hi)
@@ -452,15 +476,17 @@ class BVH4:
 
 def collapse_bvh4(bvh: BVH) -> BVH4:
     """Collapse the binary tree: each 4-wide node takes a binary node's children and twice replaces the inner
-    child of largest surface area by its two children. Vectorised over one level at a time."""
+    child of largest surface area by its two children. Vectorised over one level at a time. A grouped tree's
+    roots stay nodes 0 .. roots - 1."""
     b_lo = np.stack([bvh.nodes[:, 0:3], bvh.nodes[:, 6:9]], 1)      # (n, 2, 3)
     b_hi = np.stack([bvh.nodes[:, 3:6], bvh.nodes[:, 9:12]], 1)
     refs = bvh.child_refs()
     b_ref = np.stack([refs[:, 0], refs[:, 2]], 1).astype(np.int64)  # (n, 2)
     b_cnt = np.stack([refs[:, 1], refs[:, 3]], 1).astype(np.int64)
     out: list[np.ndarray] = []
-    frontier = np.array([0], dtype=np.int64)      # binary inner nodes becoming 4-wide nodes, in id order
-    next_id = 1
+    # binary inner nodes becoming 4-wide nodes, in id order: the roots first, so they keep their ids
+    frontier = np.arange(bvh.roots, dtype=np.int64)
+    next_id = bvh.roots
     depth = 0
     while len(frontier):
         depth += 1

@@ -359,16 +359,19 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
         return CLMesh(self, v, f, bvh, ids, lab)
 
     def _ray_args(self, mesh, o, o_step, d, tm, t_step, shift, tb, fb, lb, map_faces, flags,
-                  scratch: list | None = None) -> list:
+                  scratch: list | None = None, groups: tuple | None = None) -> list:
         """Arguments of the raycast/raycast4 kernels (RAY_ARGS in raycast.cl) and the mesh's; with ``scratch``
-        the rays go to pooled buffers listed there (see ``_upload``)."""
+        the rays go to pooled buffers listed there (see ``_upload``). ``groups``: (shifts (G, 3) float64,
+        rays per group, first group) for a grouped tree (``raycast_groups``)."""
         f32 = o.dtype == np.float32
         if not f32 and not self.fp64:
             raise TypeError(f"{self.name} has no doubles: rays must be float32 here, got {o.dtype}")
+        shifts, per_group, first = (self._dummy, 0, 0) if groups is None else (
+            self._upload(np.ascontiguousarray(groups[0], dtype=self.real), scratch), groups[1], groups[2])
         args = [mesh.nodes, mesh.tris, self._upload(o, scratch), np.int32(o_step), self._upload(d, scratch),
                 np.int32(f32), self._upload(tm, scratch),
-                np.int32(t_step), *(self.real(x) for x in shift), tb, fb, lb, mesh.face_ids, mesh.face_labels,
-                np.int32(map_faces), flags, np.int32(len(d))]
+                np.int32(t_step), *(self.real(x) for x in shift), shifts, np.int32(per_group), np.int32(first),
+                tb, fb, lb, mesh.face_ids, mesh.face_labels, np.int32(map_faces), flags, np.int32(len(d))]
         if self.fp64:
             args += [mesh.verts64, mesh.faces32, np.float64(mesh.reach)]
         return args
@@ -408,6 +411,58 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
         if not self.fp64:
             raise NotImplementedError(f"{self.name} has no doubles (raycast_checks_rays is False); validate the "
                                       f"rays and call raycast")
+        return self._cast_checked(mesh, origins, directions, t_max, np.asarray(shift, dtype=np.float64).reshape(3))
+
+    @property
+    def casts_groups(self) -> bool:
+        """Whether ``upload_mesh_groups`` / ``raycast_groups`` serve ``ops.MeshGroups`` here: devices with
+        doubles (the checked path the groups share with ``raycast_checked``)."""
+        return self.fp64
+
+    def upload_mesh_groups(self, parts):
+        """One BVH over several meshes, a tree of its own per mesh (``build_bvh``'s ``groups``), for
+        ``raycast_groups``.
+
+        Args:
+            parts: one (vertices (V, 3) float64 already shifted, faces (F, 3), face_ids (F,) or None, labels
+                (F,) or None) per group, as ``upload_mesh`` takes them; every part needs a face.
+        """
+        if not parts or any(len(f) == 0 for _, f, _, _ in parts):
+            raise ValueError("upload_mesh_groups needs one or more meshes, each with a face")
+        vs, fs, ids, lab, base = [], [], [], [], 0
+        for v, f, face_ids, labels in parts:
+            v = np.asarray(v, dtype=np.float64).reshape(-1, 3)
+            f = np.asarray(f, dtype=np.int32).reshape(-1, 3)
+            i, lb = mesh_face_tables(len(f), face_ids, labels)
+            vs.append(v)
+            fs.append(f + np.int32(base))
+            ids.append(i)
+            lab.append(lb)
+            base += len(v)
+        v, f = np.concatenate(vs), np.concatenate(fs)
+        bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH, groups=[len(x) for x in fs], **self.bvh_options)
+        return CLMesh(self, v, f, bvh, np.concatenate(ids), np.concatenate(lab))
+
+    def raycast_groups(self, mesh, origins, directions, t_max, shifts, rays_per_group: int, first: int = 0):
+        """``raycast_checked`` into meshes uploaded together by ``upload_mesh_groups``: ray block k
+        (``rays_per_group`` rays of float64 (N, 3) world origins and directions) into mesh ``first + k``,
+        whose shift is ``shifts[first + k]``; one scalar ``t_max``. (t float64, caller's face id int64, label
+        int32), or None where a ray fails ops.raycast's checks."""
+        r = int(rays_per_group)
+        n = len(origins)
+        groups = n // r if r > 0 else 0
+        if (not isinstance(mesh, CLMesh) or r <= 0 or groups * r != n or len(directions) != n
+                or not 0 <= first <= min(len(shifts), mesh.bvh.roots) - groups):
+            raise ValueError(f"raycast_groups needs the handle of upload_mesh_groups and whole blocks of {r} rays "
+                             f"for meshes {first}.. of {len(shifts)}, got {n} origins and {len(directions)} "
+                             f"directions")
+        if not self.fp64:
+            return None
+        return self._cast_checked(mesh, np.ascontiguousarray(origins, dtype=np.float64),
+                                  np.ascontiguousarray(directions, dtype=np.float64), t_max, (0.0, 0.0, 0.0),
+                                  (np.asarray(shifts, dtype=np.float64).reshape(-1, 3), r, int(first)))
+
+    def _cast_checked(self, mesh, origins, directions, t_max, shift, groups=None):
         n = len(directions)
         t_step = 1 if np.ndim(t_max) else 0
         tm = np.ascontiguousarray(t_max, dtype=np.float64) if t_step else np.full(1, float(t_max))
@@ -415,7 +470,7 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
         at, host, dev = self._checked_block(n, scratch)
         tb, fb, lb, fl = (dev.get_sub_region(a, m) for a, m in zip(at, (8 * n, 8 * n, 4 * n, 4 * N_RAY_FLAGS)))
         args = self._ray_args(mesh, origins, 1 if len(origins) == n else 0, directions, tm, t_step,
-                              np.asarray(shift, dtype=np.float64).reshape(3), tb, fb, lb, 1, fl, scratch)
+                              shift, tb, fb, lb, 1, fl, scratch, groups)
         self._launch("raycast4" if mesh.width == 4 else "raycast", n, *args)
         self._fetch(host, dev)          # a blocking copy: the kernel and the uploads are done
         del tb, fb, lb, fl, args

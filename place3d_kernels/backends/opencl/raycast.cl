@@ -276,16 +276,23 @@ ALWAYS_INLINE bool load_ray(int i, __global const void* orig, int o_step, __glob
     return ok;
 }
 
-/* the entry points' shared arguments: rays as given (see load_ray), outputs, face map, flags */
+/* the entry points' shared arguments: rays as given (see load_ray), outputs, face map, flags; a grouped
+ * tree (bvh.py, build_bvh's groups) when per_group > 0: ray i meets group g = first + i / per_group alone,
+ * from its root (node g), with that group's shift (shifts[3g..3g+2]) instead of shx, shy, shz */
 #define RAY_ARGS __global const void* orig, const int o_step, __global const void* dir, const int in_f32, \
     __global const real* t_max, const int t_step, const real shx, const real shy, const real shz, \
+    __global const real* shifts, const int per_group, const int first, \
     __global real* out_t, __global int* out_face, __global int* out_label, __global const int* face_ids, \
     __global const int* face_labels, const int map_faces, __global int* flags, const int n
 #define RAY_LOAD \
     int i = get_global_id(0); \
     if (i >= n) return; \
+    int root = per_group > 0 ? first + i / per_group : 0; \
+    real sx_ = per_group > 0 ? shifts[3 * (long)root] : shx; \
+    real sy_ = per_group > 0 ? shifts[3 * (long)root + 1] : shy; \
+    real sz_ = per_group > 0 ? shifts[3 * (long)root + 2] : shz; \
     real ray_o[3], ray_d[3], tmr; \
-    if (!load_ray(i, orig, o_step, dir, in_f32, t_max, t_step, shx, shy, shz, flags, ray_o, ray_d, &tmr)) { \
+    if (!load_ray(i, orig, o_step, dir, in_f32, t_max, t_step, sx_, sy_, sz_, flags, ray_o, ray_d, &tmr)) { \
         out_t[i] = (real)INFINITY; PUT_FACE(i, -1); if (map_faces) out_label[i] = -1; return; \
     } \
     ray_t r; \
@@ -318,7 +325,7 @@ __kernel void raycast(__global const float* nodes, __global const float* tris, R
     int st_ref[STACK_SIZE], st_cnt[STACK_SIZE];
     float st_t[STACK_SIZE];
     int sp = 0;
-    int ref = 0, cnt = 0;   /* the root, an inner node */
+    int ref = root, cnt = 0;   /* the root, an inner node */
     bool overflow = false;
     for (;;) {
         if (cnt == 0) {
@@ -376,7 +383,7 @@ __kernel void raycast4(__global const float4* nodes, __global const float* tris,
     int st_ref[3 * STACK_SIZE], st_cnt[3 * STACK_SIZE];
     float st_t[3 * STACK_SIZE];
     int sp = 0;
-    int ref = 0, cnt = 0;
+    int ref = root, cnt = 0;   /* the root, an inner node */
     bool overflow = false;
     for (;;) {
         if (cnt == 0) {
