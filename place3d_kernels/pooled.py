@@ -442,17 +442,43 @@ def _records_task(t) -> list[DriveRecord]:
     # waited for it. Then each P-SOG, compressed into the cache on a thread (zlib lets the next drive's work run
     # meanwhile); the task returns only once every file is written, so the cache is whole when the pool is
     # (tests/test_executors.py)
+    # A drive whose P-SOG is in the cache is read from it, its scene built only where its key is not remembered
+    # (``SceneSpec.for_cache``): a warm reproduce built all 32 scenes for nothing (17 s of its 63 s on the dev VM).
     from place3d_kernels.pipeline import wait_for_saves
+    from place3d_kernels.scene.keymemo import SceneRef
 
     drives, settings = t
     try:
-        scenes = [d.build() for d in drives]
-        out = []
-        for d in drives:                    # each scene let go once its record is made
-            out.append(drive_record(d, settings, save_in_background=True, scene=scenes.pop(0)))
+        looked = [_cached_record(d, settings) for d in drives]        # (record or None, scene or SceneRef)
+        missing = [j for j, (rec, _) in enumerate(looked) if rec is None]
+        # the scenes of every miss first; one built to learn its cache key is not built again
+        scenes = []
+        for j in missing:
+            sc = looked[j][1]
+            scenes.append(drives[j].build() if sc is None or isinstance(sc, SceneRef) else sc)
+        out = [rec for rec, _ in looked]
+        del looked
+        for j in missing:                   # each scene let go once its record is made
+            out[j] = drive_record(drives[j], settings, save_in_background=True, scene=scenes.pop(0))
         return out
     finally:
         wait_for_saves()
+
+
+def _cached_record(drive: Drive, settings: PoolSettings) -> tuple[DriveRecord | None, Any]:
+    """(the drive's record from the P-SOG cache, or None on a miss; what the cache was asked with: a
+    ``SceneRef`` when the scene's key is remembered, else the built ``Scene``, or None without a cache)."""
+    if settings.cache is not None and not settings.cache:
+        return None, None
+    from pathlib import Path
+
+    from place3d_kernels.pipeline import cached_psog
+    from place3d_kernels.sog import cache_dir
+
+    folder = Path(settings.cache) if isinstance(settings.cache, (str, Path)) else cache_dir()
+    scene = drive.spec().for_cache(folder)
+    ps = cached_psog(scene, grid=settings.grid, lidar=settings.lidar, frames_per_subset=settings.k, cache=folder)
+    return (None if ps is None else DriveRecord.from_psog(ps, drive.label)), scene
 
 
 def scene_groups(drives: Sequence[Drive], workers: int) -> list[list[int]]:

@@ -146,6 +146,35 @@ def test_pooled_through_an_executor_is_identical(two_drives):
     assert np.array_equal(a.voxels, b.voxels) and np.array_equal(a.probs, b.probs)
 
 
+def test_a_pool_task_reads_cached_drives_without_building_their_scenes(tmp_path, monkeypatch):
+    """``_records_task`` (a worker's drives): on an empty cache each scene is built once (the build that
+    learns its cache key is the one simulated); on a warm cache no scene is built at all, and the records are
+    those of the first pass, bit for bit."""
+    from place3d_kernels import pooled as pooled_mod
+    from place3d_kernels import spec as spec_mod
+
+    built = []
+    make = spec_mod.make_scene
+    monkeypatch.setattr(spec_mod, "make_scene", lambda s: built.append(s.seed) or make(s))
+    spec_mod._build_scene.cache_clear()            # the process's few remembered scenes
+    settings = PoolSettings(0.4, "collection_64ch", 2, None, str(tmp_path))
+    drives = [Drive("town", seed=s, frames=4) for s in (5, 6)]
+    first = pooled_mod._records_task((drives, settings))
+    assert sorted(built) == [5, 6]
+    built.clear()
+    spec_mod._build_scene.cache_clear()
+    again = pooled_mod._records_task((drives, settings))
+    assert built == []
+    for a, b in zip(first, again):
+        assert a.label == b.label and a.n_subsets == b.n_subsets
+        assert np.array_equal(a.voxels, b.voxels) and np.array_equal(a.counts, b.counts)
+    # without a cache every scene is built, once
+    spec_mod._build_scene.cache_clear()
+    off = PoolSettings(0.4, "collection_64ch", 2, None, False)
+    pooled_mod._records_task((drives[:1], off))
+    assert built == [5]
+
+
 def test_bootstrap_over_subsets_of_one_drive(two_drives):
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.placement import Placement
