@@ -281,7 +281,15 @@ def test_reproduce_jackknife_on_patched_grids_equals_rebuilt_pools(device_backen
     lidar = LidarModel.load("place3d_16ch")
     extra = np.stack([np.array([[0.0, 0.0, 2.1, 0.0, 0.0, 0.0]] * 4)])
     strata = [0, 0, 1, 1]
-    fast = jackknife_placements(pooled, lidar, "sog", backend, "rad", "vehicle", extra, strata=strata)
+    import place3d_kernels.uncertainty as unc
+
+    calls = []
+    real = unc.jackknife_records
+    with pytest.MonkeyPatch.context() as mp:
+        # one left-out pass for both tasks over the union of their rigs: 8 seg, det's "ours", the extra
+        mp.setattr(unc, "jackknife_records", lambda *a, **k: calls.append((len(a[3]), a[4])) or real(*a, **k))
+        fast = jackknife_placements(pooled, lidar, "sog", backend, "rad", "vehicle", extra, strata=strata)
+    assert calls == [(10, ("seg", "det"))]
     slow = jackknife_pooled(pooled, placement_scorer(lidar, "sog", backend, "rad", "vehicle", extra), strata=strata)
     assert fast.samples.shape == slow.samples.shape == (4, 18)
     np.testing.assert_array_equal(fast.point, slow.point)

@@ -199,11 +199,25 @@ def jackknife_placements(pooled: PooledPSOG, lidar, occlusion: str, backend, rol
                                 strata=strata)
     poses = placement_poses(roll_units, extra)
     df = route_df(len(pooled), strata)
-    parts = [jackknife_records(pooled, pooled.grid, lidar, {f"{t}{i}": p for i, p in enumerate(poses[t])},
-                               (t,), occlusion, backend, unit="drives", strata=strata, df=df)[t] for t in TASKS]
-    return Jackknife([f"s{i}" for i in range(sum(len(j.names) for j in parts))],
-                     np.concatenate([j.point for j in parts]), np.column_stack([j.samples for j in parts]),
-                     parts[0].level, "drives", len(pooled),
+    # one jackknife for both tasks over the union of their rigs (the paper's det rigs are its seg rigs but
+    # "ours"): each left-out grid is patched once for both tasks from the same rows, and a backend that walks
+    # the rays once for grids sharing a stop mask (Backend.score_placements_many) does so; a rig's score is an
+    # integer sum of its own covered voxels' weights, so it does not depend on the rigs scored beside it
+    rigs, cols = [], {t: [] for t in TASKS}
+    for t in TASKS:
+        for p in poses[t]:
+            key = np.ascontiguousarray(p, dtype=np.float64).tobytes()
+            at = next((k for k, (b, _) in enumerate(rigs) if b == key), None)
+            if at is None:
+                rigs.append((key, p))
+                at = len(rigs) - 1
+            cols[t].append(at)
+    jk = jackknife_records(pooled, pooled.grid, lidar, {f"r{i}": p for i, (_, p) in enumerate(rigs)}, TASKS,
+                           occlusion, backend, unit="drives", strata=strata, df=df)
+    return Jackknife([f"s{i}" for i in range(sum(len(c) for c in cols.values()))],
+                     np.concatenate([jk[t].point[cols[t]] for t in TASKS]),
+                     np.column_stack([jk[t].samples[:, cols[t]] for t in TASKS]),
+                     jk[TASKS[0]].level, "drives", len(pooled),
                      strata=None if strata is None else tuple(np.asarray(strata).tolist()), df=df)
 
 
