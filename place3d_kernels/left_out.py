@@ -58,8 +58,7 @@ class LeftOutRows:
     @classmethod
     def shared(cls, pooled) -> "LeftOutRows":
         """One ``LeftOutRows`` per pool, kept with it (``PooledPSOG.derived``) until a record is added, so
-        jackknifes of the same records (``reproduce`` runs one per task, as its rigs differ) share the records'
-        index and entry tables (``batch``)."""
+        jackknifes of the same records share the records' index and entry tables (``batch``)."""
         got = pooled.derived.get(cls)           # emptied when a record is added
         if got is None:
             got = pooled.derived[cls] = cls(pooled)

@@ -12,7 +12,9 @@ P-SOG of N routes per town and that of 2N routes.
 Where the time goes (``place3d --profile reproduce``): with the process executor (``--executor auto`` on a
 machine of several cores) the workers build the drives, two routes of one town a task
 (``pooled.scene_groups``), then score the convergence table's pools while this process runs the jackknife;
-the whole pool's scores are the jackknife's point, not scored again. The figure is drawn into memory on a thread
+the whole pool's scores are the jackknife's point, not scored again. The jackknife is one pass for both tasks
+over the union of their rigs (``jackknife_placements``). A drive already in the P-SOG cache is read, its scene
+not built. The figure is drawn into memory on a thread
 once the intervals are known, and written after the JSON. The console script starts the workers' forkserver before it imports the package
 (``place3d_app.forkserver.start_early``).
 
