@@ -34,10 +34,14 @@ def _run(tree: Path, cache: str, extra: list[str]) -> tuple[float, str]:
     path = os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH", "")) if p)
     env = {**os.environ, "PYTHONPATH": path, "PLACE3D_CACHE": cache}
     env.pop("PLACE3D_SERVER", None)
-    with tempfile.TemporaryFile("w+") as so, tempfile.TemporaryFile("w+") as se:
+    # from an empty folder: ``python -m`` puts the working directory first on the path, so run from a checkout
+    # it would import that checkout whatever PYTHONPATH says (A/Bs before 2026-11-29 13:45 UTC, run from the
+    # repository root, timed the working tree for every --tree)
+    with tempfile.TemporaryFile("w+") as so, tempfile.TemporaryFile("w+") as se, \
+            tempfile.TemporaryDirectory() as work:
         t = time.perf_counter()
         rc = subprocess.run([sys.executable, "-m", "place3d_app", "evaluate", "--quiet", *extra], env=env,
-                            stdout=so, stderr=se, timeout=120).returncode
+                            stdout=so, stderr=se, timeout=120, cwd=work).returncode
         wall = time.perf_counter() - t
         so.seek(0)
         se.seek(0)
