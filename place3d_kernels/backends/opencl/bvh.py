@@ -88,7 +88,8 @@ def _half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 4, bins: int = 16,
-              max_depth: int | None = DEFAULT_MAX_DEPTH, layout: str = "levels", groups=None) -> BVH:
+              max_depth: int | None = DEFAULT_MAX_DEPTH, layout: str = "levels", groups=None,
+              full_sah_limit: int | None = None) -> BVH:
     """Build the flattened BVH of a triangle mesh, or one tree per group of its faces.
 
     Args:
@@ -103,12 +104,17 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 4, bins:
             and so on. Each group gets a tree of its own, rooted at node ``g`` (``BVH.roots`` = G), built level
             by level together with the others, so G small meshes cost about one build of their union
             (``MeshGroups``). Only with ``layout="levels"``.
+        full_sah_limit: a level of the build tries all three axes while its nodes times bins are at most this
+            (None: ``_FULL_SAH_LIMIT``), else each node's widest centroid axis; 0 = the widest axis everywhere
+            (the OpenCL backend's choice on CPU devices, where the build, not the walk, is what a drive waits
+            for). Any value gives a valid tree and the same hits (the float64 test decides); only speed differs.
     """
     if layout not in ("levels", "dfs"):
         raise ValueError(f"layout must be 'levels' or 'dfs', got {layout!r}")
     if groups is not None and layout != "levels":
         raise ValueError("grouped trees are built with layout='levels' only")
-    bvh = _build(vertices, faces, leaf_size, bins, max_depth, groups)
+    bvh = _build(vertices, faces, leaf_size, bins, max_depth, groups,
+                 _FULL_SAH_LIMIT if full_sah_limit is None else int(full_sah_limit))
     return dfs_layout(bvh) if layout == "dfs" else bvh
 
 
@@ -120,7 +126,7 @@ def _group_sizes(groups, n_tri: int) -> np.ndarray:
     return sizes
 
 
-def _build(vertices, faces, leaf_size, bins, max_depth, groups=None) -> BVH:
+def _build(vertices, faces, leaf_size, bins, max_depth, groups=None, full_sah_limit=_FULL_SAH_LIMIT) -> BVH:
     with np.errstate(over="ignore"):
         v = np.ascontiguousarray(vertices, dtype=np.float32)
     if not np.all(np.isfinite(v)):
@@ -207,7 +213,7 @@ def _build(vertices, faces, leaf_size, bins, max_depth, groups=None) -> BVH:
         lim = np.where(room >= 40, big, leaf_size * np.left_shift(1, np.clip(room, 0, 40)))
         limited = bool(np.any(lim < a_cnt))
         a_cnt32 = a_cnt.astype(np.int32)
-        if k * B <= _FULL_SAH_LIMIT:
+        if k * B <= full_sah_limit:
             cand_axes = [np.full(k, ax, dtype=np.int64) for ax in range(3)]
         else:
             cand_axes = [np.argmax(ext, axis=1)]
