@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["unique_ints", "Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE", "COORDINATE_LIMIT", "rotation_matrices",
-           "sensor_directions", "check_ray_batch", "mesh_face_tables", "first_far_row"]
+           "sensor_directions", "check_ray_batch", "mesh_face_tables", "mesh_group_parts", "group_blocks",
+           "first_far_row"]
 
 #: Fixed-point scale for entropy weights: weight = round(H * ENTROPY_SCALE) as int64. ln(22) * 2**32 is
 #: about 1.3e10, so 7e8 fully uncertain voxels still fit in int64 without overflow.
@@ -435,6 +436,37 @@ class DirectionCache:
             while len(self._entries) > self._size:
                 self._entries.pop(next(iter(self._entries)))
         return hit
+
+
+def mesh_group_parts(parts) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """``upload_mesh_groups``' parts checked, per group: (vertices (V, 3) float64, faces (F, 3) int64, and the face
+    ids and labels of ``mesh_face_tables``).
+
+    Raises:
+        ValueError: no parts, or a part without a face.
+    """
+    if not parts or any(len(f) == 0 for _, f, _, _ in parts):
+        raise ValueError("upload_mesh_groups needs one or more meshes, each with a face")
+    out = []
+    for v, f, face_ids, labels in parts:
+        f = np.asarray(f, dtype=np.int64).reshape(-1, 3)
+        out.append((np.asarray(v, dtype=np.float64).reshape(-1, 3), f, *mesh_face_tables(len(f), face_ids, labels)))
+    return out
+
+
+def group_blocks(n_origins: int, n_directions: int, rays_per_group: int, first: int, n_meshes: int) -> int:
+    """The number of ray blocks of a ``raycast_groups`` call (``rays_per_group`` rays each, block k into mesh
+    ``first + k`` of ``n_meshes``).
+
+    Raises:
+        ValueError: the rays are not whole blocks, or the blocks run past the last mesh.
+    """
+    r = int(rays_per_group)
+    groups = n_origins // r if r > 0 else 0
+    if r <= 0 or groups * r != n_origins or n_directions != n_origins or not 0 <= first <= n_meshes - groups:
+        raise ValueError(f"raycast_groups needs whole blocks of {r} rays for meshes {first}.. of {n_meshes}, "
+                         f"got {n_origins} origins and {n_directions} directions")
+    return groups
 
 
 def mesh_face_tables(n_faces: int, face_ids=None, labels=None) -> tuple[np.ndarray, np.ndarray]:

@@ -9,7 +9,7 @@ import numpy as np
 import pyopencl as cl
 
 from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, GridSpec, mesh_face_tables,
-                                           rotation_matrices, sensor_directions)
+                                           group_blocks, mesh_group_parts, rotation_matrices, sensor_directions)
 from place3d_kernels.backends.geometry import brute_force_raycast
 from place3d_kernels.backends.opencl import _runtime as rt
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, build_bvh, collapse_bvh4
@@ -431,35 +431,22 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
             parts: one (vertices (V, 3) float64 already shifted, faces (F, 3), face_ids (F,) or None, labels
                 (F,) or None) per group, as ``upload_mesh`` takes them; every part needs a face.
         """
-        if not parts or any(len(f) == 0 for _, f, _, _ in parts):
-            raise ValueError("upload_mesh_groups needs one or more meshes, each with a face")
-        vs, fs, ids, lab, base = [], [], [], [], 0
-        for v, f, face_ids, labels in parts:
-            v = np.asarray(v, dtype=np.float64).reshape(-1, 3)
-            f = np.asarray(f, dtype=np.int32).reshape(-1, 3)
-            i, lb = mesh_face_tables(len(f), face_ids, labels)
-            vs.append(v)
-            fs.append(f + np.int32(base))
-            ids.append(i)
-            lab.append(lb)
-            base += len(v)
-        v, f = np.concatenate(vs), np.concatenate(fs)
-        bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH, groups=[len(x) for x in fs], **self.bvh_options)
-        return CLMesh(self, v, f, bvh, np.concatenate(ids), np.concatenate(lab))
+        groups = mesh_group_parts(parts)
+        base = np.cumsum([0] + [len(v) for v, *_ in groups[:-1]])
+        v = np.concatenate([g[0] for g in groups])
+        f = np.concatenate([g[1] + b for g, b in zip(groups, base)]).astype(np.int32)   # into the joined vertices
+        bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH, groups=[len(g[1]) for g in groups], **self.bvh_options)
+        return CLMesh(self, v, f, bvh, np.concatenate([g[2] for g in groups]), np.concatenate([g[3] for g in groups]))
 
     def raycast_groups(self, mesh, origins, directions, t_max, shifts, rays_per_group: int, first: int = 0):
-        """``raycast_checked`` into meshes uploaded together by ``upload_mesh_groups``: ray block k
-        (``rays_per_group`` rays of float64 (N, 3) world origins and directions) into mesh ``first + k``,
-        whose shift is ``shifts[first + k]``; one scalar ``t_max``. (t float64, caller's face id int64, label
-        int32), or None where a ray fails ops.raycast's checks."""
+        """Warp's ``raycast_groups`` here: ray block k into mesh ``first + k`` of a tree from ``upload_mesh_groups``
+        with that mesh's shift; (t, face id int64, label int32), or None where a ray fails ops.raycast's checks
+        (or the device has no doubles)."""
+        if not isinstance(mesh, CLMesh):
+            raise TypeError(f"raycast_groups needs the handle returned by {self.name}.upload_mesh_groups, "
+                            f"got {type(mesh).__name__}")
         r = int(rays_per_group)
-        n = len(origins)
-        groups = n // r if r > 0 else 0
-        if (not isinstance(mesh, CLMesh) or r <= 0 or groups * r != n or len(directions) != n
-                or not 0 <= first <= min(len(shifts), mesh.bvh.roots) - groups):
-            raise ValueError(f"raycast_groups needs the handle of upload_mesh_groups and whole blocks of {r} rays "
-                             f"for meshes {first}.. of {len(shifts)}, got {n} origins and {len(directions)} "
-                             f"directions")
+        group_blocks(len(origins), len(directions), r, first, min(len(shifts), mesh.bvh.roots))
         if not self.fp64:
             return None
         return self._cast_checked(mesh, np.ascontiguousarray(origins, dtype=np.float64),

@@ -24,7 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, mesh_face_tables,
-                                           rotation_matrices, sensor_directions)
+                                           group_blocks, mesh_group_parts, rotation_matrices, sensor_directions)
 from place3d_kernels.backends.warp.cpu_split import CHUNKS_PER_THREAD, MIN_CHUNK, cpu_threads
 
 try:
@@ -265,13 +265,9 @@ class WarpCore(WarpScoring, Backend):
             parts: one (vertices (V, 3) float64 already shifted, faces (F, 3), face_ids (F,) or None, labels
                 (F,) or None) per group, as ``upload_mesh`` takes them; every part needs a face.
         """
-        if not parts or any(len(f) == 0 for _, f, _, _ in parts):
-            raise ValueError("upload_mesh_groups needs one or more meshes, each with a face")
         tri, ids, lab, grp = [], [], [], []
-        for g, (v, f, face_ids, labels) in enumerate(parts):
-            f = np.asarray(f, dtype=np.int64)
-            tri.append(np.asarray(v, dtype=np.float64)[f])
-            i, lb = mesh_face_tables(len(f), face_ids, labels)
+        for g, (v, f, i, lb) in enumerate(mesh_group_parts(parts)):
+            tri.append(v[f])
             ids.append(i)
             lab.append(lb)
             grp.append(np.full(len(f), g, dtype=np.int32))
@@ -287,12 +283,8 @@ class WarpCore(WarpScoring, Backend):
         (``rays_per_group`` rays of float64 (N, 3) world origins and directions) into mesh ``first + k``,
         whose shift is ``shifts[first + k]``; one scalar ``t_max``. (t float64, caller's face id int64, label
         int32), or None where a ray fails ops.raycast's checks."""
-        r = int(rays_per_group)
-        n = len(origins)
-        groups = n // r if r > 0 else 0
-        if r <= 0 or groups * r != n or len(directions) != n or not 0 <= first <= len(shifts) - groups:
-            raise ValueError(f"raycast_groups needs whole blocks of {r} rays for meshes {first}.. of {len(shifts)}, "
-                             f"got {n} origins and {len(directions)} directions")
+        r, n = int(rays_per_group), len(origins)
+        groups = group_blocks(n, len(directions), r, first, len(shifts))
         o, d = self._rays_in(origins), self._rays_in(directions)
         tm = self._t_in(mesh, t_max, 1)
         sh = self._vec3d(shifts)
