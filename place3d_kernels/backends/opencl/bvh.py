@@ -5,15 +5,17 @@ Layout (what ``raycast.cl`` reads):
 * ``nodes``: (n_nodes, 16) float32. Row ``i`` holds the boxes of both children of inner node ``i``
   (``lo0 xyz, hi0 xyz, lo1 xyz, hi1 xyz``) followed by four int32 stored bit-for-bit:
   ``ref0, cnt0, ref1, cnt1``. ``cnt == 0``: the child is inner node ``ref``; ``cnt > 0``: the child is a
-  leaf holding triangles ``ref .. ref + cnt - 1`` of the reordered triangle array. Node 0 is the root.
+  leaf holding triangles ``ref .. ref + cnt - 1`` of the reordered triangle array. Node 0 is the root (a
+  grouped build, ``build_bvh(groups=...)``: nodes 0 .. G-1 are the groups' roots, one tree per group).
 * ``tris``: (F, 12) float32 in leaf order: ``v0 xyz, face id (int32 bits), v1 xyz, 0, v2 xyz, 0`` with
   the ORIGINAL face id, so hits report faces in the caller's order.
 
 Build: top-down, one level of the tree per NumPy pass (every node of a level is split at once), binned SAH
 over up to ``bins`` centroid bins (Wald 2007; fewer bins once nodes are small), on all three axes while a
-level has few nodes and on the widest centroid axis after that. Triangles whose node becomes a leaf leave
-the working set, so each pass costs O(active triangles) (build times: bench/run_bench.py). Child boxes are
-padded outward by ~2**-21 of their coordinates (see ``_pad``).
+level has few nodes and on the widest centroid axis after that (``full_sah_limit``; 0, the widest axis
+everywhere, on CPU devices, where a drive waits for the build more than for the walk). Triangles whose
+node becomes a leaf leave the working set, so each pass costs O(active triangles) (build times:
+bench/run_bench.py). Child boxes are padded outward by ~2**-21 of their coordinates (see ``_pad``).
 
 Devices traverse the 4-wide collapse of this tree by default (``collapse_bvh4``: one float4 slab test per
 node; somewhat faster than the binary tree on an NVIDIA GPU, bench/README.md, "What the studies found",
