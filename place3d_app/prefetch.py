@@ -178,7 +178,6 @@ def start_for_spec(spec, cache: bool | str = True) -> bool:
         True when the build was started (False: not needed, or forking is off or unsafe here).
     """
     import functools
-    from pathlib import Path
 
     from place3d_kernels import spec as specs
 
@@ -186,9 +185,9 @@ def start_for_spec(spec, cache: bool | str = True) -> bool:
         return False
     if cache:
         from place3d_kernels.scene.keymemo import identity, recall
-        from place3d_kernels.sog import cache_dir
+        from place3d_kernels.sog import cache_folder
 
-        folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
+        folder = cache_folder(cache)
         if recall(folder, identity(spec.scene.to_dict(), spec.scene.kind, spec.scene.path)) is not None:
             return False
     specs.supply_scenes(take)

@@ -14,7 +14,7 @@ from place3d_kernels.manifest import cache_warning, verified_bytes, write_manife
 from place3d_kernels.profiling import section
 from place3d_kernels.scene.keymemo import SceneRef
 from place3d_kernels.simulate import DEFAULT_MOUNT, check_frames, simulate
-from place3d_kernels.sog import PSOG, cache_dir, cache_key
+from place3d_kernels.sog import PSOG, cache_folder, cache_key
 
 __all__ = ["scene_psog", "cached_psog", "cache_file", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy", "wait_for_saves"]
 
@@ -111,7 +111,7 @@ def _cache_entry(scene, grid, lidar, frames_per_subset, mount, cache, condition,
     """(file, manifest, inputs) of the P-SOG cache entry for these inputs, or None without a cache."""
     if not cache:
         return None
-    folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
+    folder = cache_folder(cache)
     inputs = dict(scene=scene.key, grid=grid.to_dict(), lidar=[lidar.name, lidar.elevations.tolist(),
                   lidar.azimuths.size, lidar.max_range], mount=np.asarray(mount).tolist(),
                   k=frames_per_subset, condition=getattr(condition, "key", None))

@@ -443,7 +443,8 @@ def _records_task(t) -> list[DriveRecord]:
     # meanwhile); the task returns only once every file is written, so the cache is whole when the pool is
     # (tests/test_executors.py)
     # A drive whose P-SOG is in the cache is read from it, its scene built only where its key is not remembered
-    # (``SceneSpec.for_cache``): a warm reproduce built all 32 scenes for nothing (17 s of its 63 s on the dev VM).
+    # (``SceneSpec.for_cache``): a warm reproduce --routes 8 built all 32 scenes for nothing (pool 19.0 [18.3-19.2]
+    # of 69.6 [65.2-71.4] s on the 2-core dev VM, 3 runs; 3.5 s after).
     from place3d_kernels.pipeline import wait_for_saves
     from place3d_kernels.scene.keymemo import SceneRef
 
@@ -470,12 +471,10 @@ def _cached_record(drive: Drive, settings: PoolSettings) -> tuple[DriveRecord | 
     ``SceneRef`` when the scene's key is remembered, else the built ``Scene``, or None without a cache)."""
     if settings.cache is not None and not settings.cache:
         return None, None
-    from pathlib import Path
-
     from place3d_kernels.pipeline import cached_psog
-    from place3d_kernels.sog import cache_dir
+    from place3d_kernels.sog import cache_folder
 
-    folder = Path(settings.cache) if isinstance(settings.cache, (str, Path)) else cache_dir()
+    folder = cache_folder(settings.cache)
     scene = drive.spec().for_cache(folder)
     ps = cached_psog(scene, grid=settings.grid, lidar=settings.lidar, frames_per_subset=settings.k, cache=folder)
     return (None if ps is None else DriveRecord.from_psog(ps, drive.label)), scene

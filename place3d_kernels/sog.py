@@ -17,14 +17,14 @@ from pathlib import Path
 import numpy as np
 
 from place3d_kernels.backends.registry import get_backend
-from place3d_kernels.backends.base import ENTROPY_SCALE, cache_dir
+from place3d_kernels.backends.base import ENTROPY_SCALE, cache_dir, cache_folder
 from place3d_kernels.classes import CLASSES, N_CLASSES, VEHICLE
 from place3d_kernels.entropy import ENTROPY_BLOCK, entropy
 from place3d_kernels.grid import Grid
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import invert, pose_matrix, transform_points
 
-__all__ = ["PSOG", "entropy", "cache_dir", "cache_key", "keep_loaded", "subset_groups", "subset_votes",
+__all__ = ["PSOG", "entropy", "cache_dir", "cache_folder", "cache_key", "keep_loaded", "subset_groups", "subset_votes",
            "pool_votes"]
 
 _FORMAT = 5  # bump when the on-disk layout or the build changes (2: float64 voxel binning; 3: ray-mesh

@@ -424,11 +424,11 @@ class PSOGSpec:
         file or a recorded sequence, or no cache. The file may not exist; nothing is read or verified."""
         from place3d_kernels.pipeline import cache_file
         from place3d_kernels.scene.keymemo import identity, recall
-        from place3d_kernels.sog import cache_dir
+        from place3d_kernels.sog import cache_folder
 
         if not cache or self.scene.kind not in ("town", "opendrive"):
             return None
-        folder = Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
+        folder = cache_folder(cache)
         if recall(folder, identity(self.scene.to_dict(), self.scene.kind, self.scene.path)) is None:
             return None
         cond = None if self.condition is None else self.condition.condition(None)
@@ -442,9 +442,9 @@ class PSOGSpec:
 
         with section("P-SOG build: scene"):
             if cache:
-                from place3d_kernels.sog import cache_dir
+                from place3d_kernels.sog import cache_folder
 
-                scene = self.scene.for_cache(Path(cache) if isinstance(cache, (str, Path)) else cache_dir())
+                scene = self.scene.for_cache(cache_folder(cache))
             else:
                 scene = self.scene.build()
         return dict(scene=scene, grid=self.grid.grid(), lidar=resolve_lidar(self.lidar),

@@ -14,8 +14,8 @@ machine of several cores) the workers build the drives, two routes of one town a
 (``pooled.scene_groups``), then score the convergence table's pools while this process runs the jackknife;
 the whole pool's scores are the jackknife's point, not scored again. The jackknife is one pass for both tasks
 over the union of their rigs (``jackknife_placements``). A drive already in the P-SOG cache is read, its scene
-not built. The figure is drawn into memory on a thread
-once the intervals are known, and written after the JSON. The console script starts the workers' forkserver before it imports the package
+not built. The figure is drawn into memory on a thread once the intervals are known, and written after the
+JSON. The console script starts the workers' forkserver before it imports the package
 (``place3d_app.forkserver.start_early``).
 
 Output (``--output``, default ``bench/results/reproduce-<date>/``): ``reproduce.json`` (keys:
@@ -205,16 +205,14 @@ def jackknife_placements(pooled: PooledPSOG, lidar, occlusion: str, backend, rol
     # "ours"): each left-out grid is patched once for both tasks from the same rows, and a backend that walks
     # the rays once for grids sharing a stop mask (Backend.score_placements_many) does so; a rig's score is an
     # integer sum of its own covered voxels' weights, so it does not depend on the rigs scored beside it
-    rigs, cols = [], {t: [] for t in TASKS}
+    column, rigs, cols = {}, [], {t: [] for t in TASKS}     # rigs told apart by their bits
     for t in TASKS:
         for p in poses[t]:
-            key = np.ascontiguousarray(p, dtype=np.float64).tobytes()
-            at = next((k for k, (b, _) in enumerate(rigs) if b == key), None)
-            if at is None:
-                rigs.append((key, p))
-                at = len(rigs) - 1
+            at = column.setdefault(np.ascontiguousarray(p, dtype=np.float64).tobytes(), len(rigs))
+            if at == len(rigs):
+                rigs.append(p)
             cols[t].append(at)
-    jk = jackknife_records(pooled, pooled.grid, lidar, {f"r{i}": p for i, (_, p) in enumerate(rigs)}, TASKS,
+    jk = jackknife_records(pooled, pooled.grid, lidar, {f"r{i}": p for i, p in enumerate(rigs)}, TASKS,
                            occlusion, backend, unit="drives", strata=strata, df=df)
     return Jackknife([f"s{i}" for i in range(sum(len(c) for c in cols.values()))],
                      np.concatenate([jk[t].point[cols[t]] for t in TASKS]),

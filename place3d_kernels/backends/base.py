@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["unique_ints", "Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE", "COORDINATE_LIMIT", "rotation_matrices",
-           "sensor_directions", "check_ray_batch", "mesh_face_tables", "mesh_group_parts", "group_blocks",
+__all__ = ["unique_ints", "cache_dir", "cache_folder", "Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE",
+           "COORDINATE_LIMIT", "rotation_matrices", "sensor_directions", "check_ray_batch", "mesh_face_tables", "mesh_group_parts", "group_blocks",
            "first_far_row"]
 
 #: Fixed-point scale for entropy weights: weight = round(H * ENTROPY_SCALE) as int64. ln(22) * 2**32 is
@@ -62,6 +62,12 @@ def cache_dir() -> Path:
     """Where place3d keeps what it built (P-SOGs, OpenCL build markers): ``$PLACE3D_CACHE`` or
     ``~/.cache/place3d``. Here so the backends can find it without importing the domain."""
     return Path(os.environ.get("PLACE3D_CACHE", Path.home() / ".cache" / "place3d"))
+
+
+def cache_folder(cache) -> Path:
+    """The folder a ``cache`` argument names (``scene_psog``'s and the specs'): a path (str or Path) as given,
+    anything else (True) ``cache_dir()``. Callers decide first whether there is a cache at all."""
+    return Path(cache) if isinstance(cache, (str, Path)) else cache_dir()
 
 
 def first_far_row(points: np.ndarray, centre) -> int:
