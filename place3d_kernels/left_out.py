@@ -37,6 +37,7 @@ from place3d_kernels.left_out_memo import HANDLES, KEEP_LEFT_OUT, PreparedLeftOu
 from place3d_kernels.left_out_tables import (FieldTables, device_row_fields, device_tables, fields_of, indicator_rows,
                                              left_out_fields)
 from place3d_kernels.profiling import section
+from place3d_kernels.threads import block_map, thread_map, threads_for
 
 __all__ = ["LeftOutRows", "LeftOutGrids", "left_out_fields", "FieldTables", "PreparedLeftOut", "HANDLES",
            "KEEP_LEFT_OUT", "fused_path", "prepared_grids", "patched_on_host", "patched_on_backend", "patched_in_place",
@@ -82,8 +83,6 @@ class LeftOutRows:
         (R,) int32), read-only from here, so a backend may keep its device copies while they live
         (``WarpScoring._resident``). Each record's own index arrays are let go once concatenated."""
         if self._batch is None:
-            from place3d_kernels.threads import thread_map, threads_for
-
             n = len(self.pooled)
             # each record's index is its own NumPy work over its entries: side by side on threads for a large pool
             idx = thread_map(self.index, range(n), threads_for(sum(len(r.voxels) for r in self.pooled.records)))
@@ -153,15 +152,18 @@ class LeftOutGrids:
             w, s = np.empty(M, dtype=np.int64), np.empty(M, dtype=bool)
             ind = None if self.indicator is None else np.empty(M, dtype=np.int64)
             fields = fields_of(T, self.task, self._tables)
-            for a in range(0, M, BASE_BLOCK):
-                c = self.counts[a:a + BASE_BLOCK].copy()
+
+            def block(a: int, b: int) -> None:
+                c = self.counts[a:b].copy()
                 c[:, 0] = T - c[:, 1:].sum(axis=1)
                 # rows some record with this T touched can hold more than T subsets here (its own included);
                 # every left-out grid overwrites them, but the tables take counts in [0, T] only
                 np.clip(c, 0, T, out=c)
-                w[a:a + BASE_BLOCK], s[a:a + BASE_BLOCK] = fields(c)
+                w[a:b], s[a:b] = fields(c)
                 if ind is not None:
-                    ind[a:a + BASE_BLOCK] = indicator_rows(self.indicator, c, T, w[a:a + BASE_BLOCK])
+                    ind[a:b] = indicator_rows(self.indicator, c, T, w[a:b])
+
+            block_map(block, M, BASE_BLOCK, self.counts.shape[1])
             self._base[T] = (w, s, ind)
         return self._base[T]
 
@@ -175,11 +177,13 @@ class LeftOutGrids:
         w, s = np.empty(R, dtype=np.int64), np.empty(R, dtype=bool)
         ind = None if self.indicator is None else np.empty(R, dtype=np.int64)
         fields = fields_of(T, self.task, self._tables)
-        for a in range(0, R, BASE_BLOCK):        # blocks: the temporaries stay in the cache
-            b = min(a + BASE_BLOCK, R)
+
+        def block(a: int, b: int) -> None:      # blocks: the temporaries stay in the cache
             w[a:b], s[a:b] = fields(sub[a:b])
             if ind is not None:
                 ind[a:b] = indicator_rows(self.indicator, sub[a:b], T, w[a:b])
+
+        block_map(block, R, BASE_BLOCK, sub.shape[1])
         return T, rows, self.voxels[rows], w, s, ind
 
     def dense_base(self, T: int) -> tuple[np.ndarray, np.ndarray]:

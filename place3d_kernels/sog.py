@@ -170,7 +170,7 @@ class PSOG:
             self._probs = np.asarray(probs, dtype=np.float64)
             if self._probs.shape != shape:
                 raise ValueError(f"PSOG probs must be (M={shape[0]}, K={shape[1]}), got {self._probs.shape}")
-        # (rows, T, task): integer count rows whose table fields (``_fields``) are this P-SOG's weights and stop
+        # (rows, T, task): integer count rows whose table fields (``_count_fields``) are this P-SOG's weights and stop
         # mask, row for row; set where the probabilities are known to be counts / T (``_count_source``)
         self._rows_of = None
         self.sha256: str | None = None      # of the file last written by ``save``
@@ -259,27 +259,33 @@ class PSOG:
 
     def _count_source(self, task: str):
         """(count rows, T, task) when this P-SOG's probabilities are its counts / T (known, never checked
-        here), else None: the rows ``_fields`` turns into the ``task`` variant's weights and stop mask."""
+        here), else None: the rows ``_count_fields`` turns into the ``task`` variant's weights and stop mask."""
         if self._rows_of is not None:
             return self._rows_of if task == self._rows_of[2] else None
         if self.counts is None or not self._cache.get("probs_from_counts") or len(self.channels) != N_CLASSES:
             return None
         return self.counts, int(self.n_subsets), task
 
-    def _fields(self, which: int) -> np.ndarray | None:
-        """Weights (``which`` 0, int64) or stop flags (1, bool) of the stored voxels from their count rows
-        (``_count_source``), in blocks of ``ENTROPY_BLOCK`` rows; None without count rows."""
+    def _count_fields(self) -> bool:
+        """Make the weights (int64) and stop flags (bool) of the stored voxels from their count rows
+        (``_count_source``) in one pass, in blocks of ``ENTROPY_BLOCK`` rows on threads (``threads.block_map``),
+        into the "weight rows" and "stop rows" caches; False without count rows."""
         src = self._count_source("seg" if len(self.channels) == N_CLASSES else "det")
         if src is None:
-            return None
+            return False
         from place3d_kernels.left_out_tables import fields_of
+        from place3d_kernels.threads import block_map
 
         rows, T, task = src
         f = fields_of(T, task)
-        out = np.empty(len(rows), dtype=np.int64 if which == 0 else bool)
-        for a in range(0, len(rows), ENTROPY_BLOCK):
-            out[a:a + ENTROPY_BLOCK] = f(rows[a:a + ENTROPY_BLOCK])[which]
-        return out
+        w, s = np.empty(len(rows), dtype=np.int64), np.empty(len(rows), dtype=bool)
+
+        def block(a: int, b: int) -> None:
+            w[a:b], s[a:b] = f(rows[a:b])
+
+        block_map(block, len(rows), ENTROPY_BLOCK, rows.shape[1])
+        self._cache["weight rows"], self._cache["stop rows"] = w, s
+        return True
 
     def for_task(self, task: str) -> "PSOG":
         if task == "seg":
@@ -301,18 +307,15 @@ class PSOG:
     @property
     def weight_rows(self) -> np.ndarray:
         """(M,) int64: ``weights`` at the stored voxels (every other voxel's weight is 0)."""
-        if "weight rows" not in self._cache:
-            rows = self._fields(0)
-            self._cache["weight rows"] = (np.rint(entropy(self.probs) * ENTROPY_SCALE).astype(np.int64)
-                                          if rows is None else rows)
+        if "weight rows" not in self._cache and not self._count_fields():
+            self._cache["weight rows"] = np.rint(entropy(self.probs) * ENTROPY_SCALE).astype(np.int64)
         return self._cache["weight rows"]
 
     @property
     def stop_rows(self) -> np.ndarray:
         """(M,) bool: ``stop_mask`` at the stored voxels (every other voxel is empty and stops no ray)."""
-        if "stop rows" not in self._cache:
-            rows = self._fields(1)
-            self._cache["stop rows"] = (1.0 - self.probs[:, 0]) >= 0.5 - 1e-12 if rows is None else rows
+        if "stop rows" not in self._cache and not self._count_fields():
+            self._cache["stop rows"] = (1.0 - self.probs[:, 0]) >= 0.5 - 1e-12
         return self._cache["stop rows"]
 
     def has_entropy(self) -> bool:

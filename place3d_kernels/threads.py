@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["usable_cores", "threads_for", "thread_map", "THREADED_ENTRIES", "MAX_THREADS"]
+__all__ = ["usable_cores", "threads_for", "thread_map", "block_map", "THREADED_ENTRIES", "MAX_THREADS"]
 
 #: Record entries (all records together) from which a pool's per-record NumPy work runs on several threads
 #: (``pooled.PooledPSOG`` sums, ``left_out.device_fields`` indexes).
@@ -41,3 +41,23 @@ def thread_map(fn, items, threads: int) -> list:
 
     with ThreadPoolExecutor(threads, thread_name_prefix="place3d-pool") as ex:
         return list(ex.map(fn, items))
+
+
+def block_map(fn, n: int, block: int, entries_per_item: int = 1) -> None:
+    """``fn(a, b)`` for each block ``[a, b)`` of ``block`` items of ``range(n)``, in order within each of a few
+    contiguous spans, the spans side by side on threads (``threads_for(n * entries_per_item)``). For row work
+    whose blocks write disjoint slices of outputs made beforehand: each block's values are what the same call
+    gives alone, so the outputs do not depend on the threads."""
+    t = threads_for(n * entries_per_item)
+    starts = range(0, n, block)
+    if t <= 1 or len(starts) <= 1:
+        for a in starts:
+            fn(a, min(a + block, n))
+        return
+    per = -(-len(starts) // (4 * t))            # a few spans per thread: one slow span does not hold the rest
+
+    def span(j: int) -> None:
+        for a in starts[j * per:(j + 1) * per]:
+            fn(a, min(a + block, n))
+
+    thread_map(span, range(-(-len(starts) // per)), t)

@@ -52,6 +52,37 @@ def test_fields_from_counts_equal_those_from_probabilities(T):
         assert np.array_equal(a.entropy, b.entropy)
 
 
+@pytest.mark.parametrize("threads", [1, 3])
+@pytest.mark.parametrize("stop_first", [False, True])
+def test_fields_from_counts_in_blocks_on_threads(monkeypatch, threads, stop_first):
+    """Weights and stop flags made from count rows in one pass of small blocks, side by side on threads
+    (``threads.block_map``), whichever is read first: the probabilities' values, bit for bit."""
+    import place3d_kernels.sog as sog_mod
+    import place3d_kernels.threads as threads_mod
+
+    monkeypatch.setattr(threads_mod, "threads_for", lambda entries: threads)
+    monkeypatch.setattr(sog_mod, "ENTROPY_BLOCK", 37)               # many blocks, a short last one
+    vox, c = _random_counts(40, 1000, seed=5)
+    eager = PSOG(GRID, vox, c / 40.0, n_subsets=40)
+    for task in ("seg", "det"):
+        a, b = PSOG.from_counts(GRID, vox, c, 40).for_task(task), eager.for_task(task)
+        if stop_first:
+            assert a.stop_rows.tobytes() == b.stop_rows.tobytes()
+        assert a.weight_rows.dtype == b.weight_rows.dtype and a.weight_rows.tobytes() == b.weight_rows.tobytes()
+        assert a.stop_rows.dtype == b.stop_rows.dtype and a.stop_rows.tobytes() == b.stop_rows.tobytes()
+
+
+@pytest.mark.parametrize("threads", [1, 2, 5])
+@pytest.mark.parametrize("n", [0, 1, 9, 10, 11, 1001])
+def test_block_map_calls_every_block_once(monkeypatch, threads, n):
+    import place3d_kernels.threads as threads_mod
+
+    monkeypatch.setattr(threads_mod, "threads_for", lambda entries: threads)
+    seen = []
+    threads_mod.block_map(lambda a, b: seen.append((a, b)), n, 10)
+    assert sorted(seen) == [(a, min(a + 10, n)) for a in range(0, n, 10)]
+
+
 def test_a_pickled_lazy_detection_variant_keeps_its_values():
     vox, c = _random_counts(12, 200, seed=3)
     det = PSOG.from_counts(GRID, vox, c, 12).detection()
