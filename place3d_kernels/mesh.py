@@ -61,6 +61,35 @@ class Mesh:
         self._box = (lo, hi)
         self._handles: dict[object, object] = {}
         self._normals: np.ndarray | None = None
+        #: the mesh whose vertices, faces and labels this one begins with (``extended``), else None
+        self.prefix: Mesh | None = None
+        self._parts: dict[object, object] = {}
+
+    @classmethod
+    def extended(cls, prefix: "Mesh", vertices, faces, labels=None) -> "Mesh":
+        """``prefix`` followed by more triangles: ``faces`` index ``vertices``, which come after the prefix's.
+        The same mesh as one made from the concatenated arrays, which also remembers ``prefix``: a backend
+        that extends acceleration structures (``Backend.extends_meshes``) then builds the prefix's part once
+        (kept on ``prefix``, ``part``) and per mesh only the rest's (an OpenDRIVE town's roads and ground,
+        shared by the static meshes of all its routes, ``scene.opendrive``)."""
+        v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+        f = np.asarray(faces).reshape(-1, 3)
+        if not np.issubdtype(f.dtype, np.integer):
+            raise ValueError(f"Mesh faces must be integer vertex indices, got dtype {f.dtype}")
+        lab = np.zeros(len(f), dtype=np.int32) if labels is None else np.asarray(labels).astype(np.int32).reshape(-1)
+        mesh = cls(np.concatenate([prefix.vertices, v]), np.concatenate([prefix.faces, f + len(prefix.vertices)]),
+                   np.concatenate([prefix.labels, lab]))
+        mesh.prefix = prefix
+        return mesh
+
+    def part(self, backend) -> object:
+        """``backend.mesh_part`` of this mesh's uploaded faces, built on first use and kept: what the meshes
+        ``extended`` from this one reuse on that backend."""
+        p = self._parts.get(backend)
+        if p is None:
+            v, faces, _, _ = self.upload_parts()
+            p = self._parts[backend] = backend.mesh_part(v, faces)
+        return p
 
     @property
     def n_faces(self) -> int:
@@ -90,7 +119,13 @@ class Mesh:
             if getattr(backend, "raycast_checks_rays", False):
                 # the face map and labels travel with the BVH, so raycast_checked reports this mesh's
                 # face ids and labels without a host pass
-                h = backend.upload_mesh(v, faces, face_ids=ids, labels=labels)
+                extra = {}
+                if self.prefix is not None and getattr(backend, "extends_meshes", False) \
+                        and len(self.prefix.valid_faces) < len(faces):
+                    # the prefix's uploaded faces are this mesh's first ones (the same vertices, so the same
+                    # non-zero areas); its part is built in its own frame, moved by the shifts' difference
+                    extra["prefix"] = (self.prefix.part(backend), self.prefix.shift - self.shift)
+                h = backend.upload_mesh(v, faces, face_ids=ids, labels=labels, **extra)
             else:   # backends written before upload_mesh took the tables need not know them
                 h = backend.upload_mesh(v, faces)
             self._handles[backend] = h

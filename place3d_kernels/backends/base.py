@@ -144,7 +144,16 @@ class Backend(abc.ABC):
             faces: (F, 3) int32 vertex indices.
             face_ids: (F,) the caller's id of each face, reported by ``raycast_checked`` (default: 0..F-1).
             labels: (F,) int32 label of each face, reported by ``raycast_checked`` (default: 0).
+
+        Backends with ``extends_meshes`` also take ``prefix=(part, offset)``: a ``mesh_part`` of this mesh's first
+        faces (built once, reused by every mesh extending it) and the (3,) float64 offset from its frame to this
+        one's; they build only the other faces' structure (``Mesh.extended``). The hits are the same.
         """
+
+    #: True where ``upload_mesh`` takes a ``prefix`` made by ``mesh_part(vertices, faces)`` (OpenCL with
+    #: doubles): a mesh that extends another (``Mesh.extended``) is uploaded without building the shared
+    #: faces' structure again.
+    extends_meshes: bool = False
 
     #: True where ``raycast`` takes a ``shift`` keyword: the (3,) float64 mesh shift, subtracted from the
     #: world-frame origins in float64 on the device (the same IEEE subtraction as on the host, so the same

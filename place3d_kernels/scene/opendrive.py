@@ -107,7 +107,6 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
     base = _town_base(path, opt)
     od, info, ref, ref_tree, lo, hi = base.od, base.info, base.ref, base.ref_tree, base.lo, base.hi
     rng = np.random.default_rng(seed)
-    parts = list(base.parts)
 
     def heights_at(x, y):
         return _lowest_ref_z(ref, ref_tree, np.stack([np.asarray(x, float), np.asarray(y, float)], 1))
@@ -137,10 +136,11 @@ def from_opendrive(path, seed: int = 0, n_frames: int = 40, **options) -> Scene:
         n_parked += route_parking(T, rng, raster, [edges[i] for i in order], ego_route.p[:, :2], height_at,
                                   static_boxes, geometry=geometry)
     if T.b._parts or T.b._box_c:
-        parts.append(T.b.arrays())       # checked once, as part of the static mesh below
-    offs = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
-    static = Mesh(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] + o for p, o in zip(parts, offs)]),
-                  np.concatenate([p[2] for p in parts]))
+        # the town's roads and ground, then this route's roadside: one mesh (checked once), which remembers
+        # the town's part so that a backend extending meshes builds its tree once per town (Mesh.extended)
+        static = Mesh.extended(base.mesh(), *T.b.arrays())
+    else:
+        static = base.mesh()
 
     actors = traffic(rng, graph, info["lanes"], opt, t, ego_poses[:, :2], ego_route, ego_s0, ego_speed)
     drive_area = float(sum(a for tp, a in info["area"].items() if tp.lower() in DRIVING_TYPES))
@@ -185,6 +185,16 @@ class _TownBase:
     hi: np.ndarray
     road_occ: np.ndarray
     _made: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def mesh(self) -> Mesh:
+        """The town's parts as one Mesh (made on first use): every route's static mesh begins with it."""
+        if "mesh" not in self._made:
+            parts = self.parts
+            offs = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
+            self._made["mesh"] = Mesh(np.concatenate([p[0] for p in parts]),
+                                      np.concatenate([p[1] + o for p, o in zip(parts, offs)]),
+                                      np.concatenate([p[2] for p in parts]))
+        return self._made["mesh"]
 
     def road_distance(self) -> RoadDistance:
         """The road raster's ``RoadDistance`` (the fill's), made on the first route that fills."""

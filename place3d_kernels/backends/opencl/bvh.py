@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BVH", "BVH4", "build_bvh", "dfs_layout", "collapse_bvh4", "need_levels", "validate_bvh",
+__all__ = ["BVH", "BVH4", "build_bvh", "join_bvh", "dfs_layout", "collapse_bvh4", "need_levels", "validate_bvh",
            "DEFAULT_MAX_DEPTH"]
 
 #: Inner-node depth cap; the binary traversal stack of ``raycast.cl`` has this many entries (the 4-wide
@@ -397,6 +397,52 @@ def _finish(v, f, perm, c_lo, c_hi, c_ref, c_cnt, depth, n_leaves, max_depth, lo
     return BVH(nodes=nodes, tris=tris, order=perm.astype(np.int32), depth=int(depth),
                max_depth=-1 if max_depth is None else int(max_depth), n_leaves=int(n_leaves),
                lo=np.asarray(lo, np.float32), hi=np.asarray(hi, np.float32), roots=int(roots))
+
+
+def join_bvh(first: BVH, second: BVH, offset) -> BVH:
+    """One tree over two: a new root whose children are ``first`` (its coordinates moved by ``offset``) and
+    ``second``, for a mesh whose faces are ``first``'s followed by ``second``'s (face ids of ``second`` follow on
+    from ``first``'s). What a mesh extending another reuses (``Mesh.extended``: a town's roads, built once,
+    under each route's roadside); the hits are those of a tree built over the whole mesh (with doubles the
+    float64 test decides whatever the tree; tests/test_mesh_extended.py).
+
+    ``offset``: (3,) float64 added to ``first``'s coordinates (the difference of the two meshes' shifts, whole
+    metres). Its boxes are moved in float64 and rounded outward to float32, so each still holds its triangles;
+    the float32 triangles are moved and rounded to nearest (read only by devices without doubles). Each tree
+    must have one root and a depth below its cap: the joined depth is one more than the deeper of the two."""
+    if first.roots != 1 or second.roots != 1:
+        raise ValueError("join_bvh joins single-root trees")
+    off = np.asarray(offset, dtype=np.float64).reshape(3)
+    n1, f1 = len(first.nodes), len(first.tris)
+    a = first.nodes.copy()
+    boxes = a[:, :12].astype(np.float64).reshape(-1, 4, 3) + off           # lo0, hi0, lo1, hi1
+    moved = boxes.astype(np.float32)
+    lo, hi = moved[:, 0::2], moved[:, 1::2]
+    moved[:, 0::2] = np.where(lo > boxes[:, 0::2], np.nextafter(lo, np.float32(-np.inf)), lo)
+    moved[:, 1::2] = np.where(hi < boxes[:, 1::2], np.nextafter(hi, np.float32(np.inf)), hi)
+    a[:, :12] = moved.reshape(-1, 12)
+    b = second.nodes.copy()
+    for nodes, inner_shift, leaf_shift in ((a, 1, 0), (b, 1 + n1, f1)):
+        ints = nodes[:, 12:16].view(np.int32)
+        for c in (0, 2):
+            inner = ints[:, c + 1] == 0
+            ints[:, c] += np.where(inner, inner_shift, leaf_shift).astype(np.int32)
+    root = np.zeros((1, 16), dtype=np.float32)
+    for c, n in ((0, a), (1, b)):           # each child's box: the union of its root's two child boxes
+        root[0, 6 * c:6 * c + 3] = np.minimum(n[0, 0:3], n[0, 6:9])
+        root[0, 6 * c + 3:6 * c + 6] = np.maximum(n[0, 3:6], n[0, 9:12])
+    root[0, 12:16].view(np.int32)[:] = (1, 0, 1 + n1, 0)
+    t1 = first.tris.copy()
+    for k in (0, 4, 8):
+        t1[:, k:k + 3] = (t1[:, k:k + 3].astype(np.float64) + off).astype(np.float32)
+    t2 = second.tris.copy()
+    t2[:, 3].view(np.int32)[:] += f1
+    caps = [t.max_depth for t in (first, second)]
+    return BVH(nodes=np.concatenate([root, a, b]), tris=np.concatenate([t1, t2]),
+               order=np.concatenate([first.order, second.order + f1]).astype(np.int32),
+               depth=max(first.depth, second.depth) + 1, max_depth=-1 if min(caps) < 0 else max(caps) + 1,
+               n_leaves=first.n_leaves + second.n_leaves, lo=np.minimum(root[0, 0:3], root[0, 6:9]),
+               hi=np.maximum(root[0, 3:6], root[0, 9:12]))
 
 
 def dfs_layout(bvh: BVH) -> BVH:

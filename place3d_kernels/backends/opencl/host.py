@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+from dataclasses import dataclass
 
 import numpy as np
 import pyopencl as cl
@@ -12,7 +13,7 @@ from place3d_kernels.backends.base import (Backend, BackendUnavailable, Directio
                                            group_blocks, mesh_group_parts, rotation_matrices, sensor_directions)
 from place3d_kernels.backends.geometry import brute_force_raycast
 from place3d_kernels.backends.opencl import _runtime as rt
-from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, build_bvh, collapse_bvh4
+from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, build_bvh, collapse_bvh4, join_bvh
 from place3d_kernels.backends.opencl.conditions import OpenCLConditions
 from place3d_kernels.backends.opencl.scoring import CLGrid, OpenCLScoring
 
@@ -35,6 +36,15 @@ def opencl_devices() -> list[str]:
         ImportError: PyOpenCL is not installed (raised when this module is imported).
     """
     return list(rt.platform_table())
+
+
+@dataclass(frozen=True)
+class MeshPart:
+    """A mesh part's tree (``OpenCLBackend.mesh_part``) and the faces it was built over (read-only), which a
+    mesh extending the part must begin with."""
+
+    bvh: BVH
+    faces: np.ndarray
 
 
 class CLMesh:
@@ -354,13 +364,39 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
     #: three-axis levels of ``build_bvh``'s defaults, their trees unchanged. Every choice gives the same hits.
     bvh_options: dict = {}
 
-    def upload_mesh(self, vertices, faces, face_ids=None, labels=None):
+    def upload_mesh(self, vertices, faces, face_ids=None, labels=None, prefix=None):
+        """``Backend.upload_mesh``; ``prefix``: (a ``mesh_part`` of this mesh's first faces, the (3,) float64
+        offset from that part's frame to this one's), where ``extends_meshes``: only the other faces' tree is
+        built, joined under one root with the part's (``bvh.join_bvh``)."""
         # private copies: the handle must not change if the caller edits its arrays later
         v = np.array(vertices, dtype=np.float64, copy=True).reshape(-1, 3)
         f = np.array(faces, dtype=np.int32, copy=True).reshape(-1, 3)
         ids, lab = mesh_face_tables(len(f), face_ids, labels)
-        bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH, **self.bvh_options)
+        part = None if prefix is None else prefix[0]
+        if part is not None and not self.extends_meshes:
+            raise NotImplementedError(f"{self.name} has no doubles: it does not extend mesh parts (extends_meshes)")
+        if part is not None and (len(part.faces) >= len(f) or not np.array_equal(f[:len(part.faces)], part.faces)):
+            raise ValueError("upload_mesh's prefix part is not this mesh's first faces (or leaves none to add)")
+        if part is None:
+            bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH, **self.bvh_options)
+        else:
+            rest = build_bvh(v, f[len(part.faces):], max_depth=DEFAULT_MAX_DEPTH - 1, **self.bvh_options)
+            bvh = join_bvh(part.bvh, rest, prefix[1])
         return CLMesh(self, v, f, bvh, ids, lab)
+
+    @property
+    def extends_meshes(self) -> bool:
+        """Whether ``upload_mesh`` takes a ``prefix`` (``Mesh.extended``): on devices with doubles, where the
+        float64 test decides every hit whatever the tree, so a joined tree gives a whole build's hits."""
+        return self.fp64
+
+    def mesh_part(self, vertices, faces) -> "MeshPart":
+        """The tree of a mesh's faces that meshes extending it reuse (``upload_mesh(prefix=...)``): built one
+        level short of the depth cap, which the joined tree's new root then takes."""
+        f = np.array(faces, dtype=np.int32, copy=True).reshape(-1, 3)
+        f.setflags(write=False)
+        return MeshPart(build_bvh(np.asarray(vertices, dtype=np.float64).reshape(-1, 3), f,
+                                  max_depth=DEFAULT_MAX_DEPTH - 1, **self.bvh_options), f)
 
     def _ray_args(self, mesh, o, o_step, d, tm, t_step, shift, tb, fb, lb, map_faces, flags,
                   scratch: list | None = None, groups: tuple | None = None) -> list:
