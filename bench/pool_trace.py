@@ -2,9 +2,10 @@
 """Where the time of ``reproduce``'s pool goes, per worker: the drives' tasks as ``build_pooled`` makes them
 (``scene_groups``: two routes of one town a task), on the commands' worker processes (a forkserver, the backend
 started in each worker on a thread), each task timed from inside its worker: when it started and ended (from the
-start of the map) and its sections (``profiling.section``: the scene build, ``P-SOG build: simulate`` with its
-parts, ``aggregate``, the save thread). Time inside ``simulate`` that none of its parts accounts for is mostly the
-wait for the worker's backend (sixteen workers starting CUDA on one GPU at once, bench/README.md).
+start of the map) and its sections (``profiling.section``: the scene build with the P-SOG cache look-up,
+``P-SOG build: simulate`` with its parts, ``aggregate``, the save thread). Time inside ``simulate`` that none of
+its parts accounts for is mostly the wait for the worker's backend (sixteen workers starting CUDA on one GPU at
+once, bench/README.md).
 
     python3 bench/pool_trace.py warp:cuda:0 --workers 16 --routes 8 --out trace.json
 
@@ -25,14 +26,22 @@ def _task(t):
     from place3d_kernels import pooled
     from place3d_kernels.profiling import profile, section
 
-    if not getattr(pooled.Drive, "_traced", False):         # the scene build as a section of its own
-        build = pooled.Drive.build
+    if not getattr(pooled.Drive, "_traced", False):
+        # the scene build as a section of its own: a task asks the P-SOG cache first (``_cached_record``), which
+        # builds the scene of a drive whose key is not remembered (every drive of a fresh cache); a scene is
+        # built by ``Drive.build`` only where the cache was not asked
+        build, cached = pooled.Drive.build, pooled._cached_record
 
         def traced(self):
             with section("scene"):
                 return build(self)
 
+        def traced_cached(drive, settings):
+            with section("scene"):
+                return cached(drive, settings)
+
         pooled.Drive.build = traced
+        pooled._cached_record = traced_cached
         pooled.Drive._traced = True
     t0 = time.time()
     with profile(print_table=False) as p:
