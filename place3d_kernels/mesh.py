@@ -82,6 +82,13 @@ class Mesh:
         mesh.prefix = prefix
         return mesh
 
+    def __getstate__(self) -> dict:
+        # a pickled mesh (a scene sent from a prefetching child) travels without its prefix: the arrays hold it
+        # already, and a prefix's tree is only shared within a process
+        state = dict(self.__dict__)
+        state["prefix"], state["_parts"] = None, {}
+        return state
+
     def part(self, backend) -> object:
         """``backend.mesh_part`` of this mesh's uploaded faces, built on first use and kept: what the meshes
         ``extended`` from this one reuse on that backend."""

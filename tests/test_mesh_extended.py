@@ -53,6 +53,11 @@ def test_extended_is_the_concatenated_mesh(rng):
     assert np.array_equal(Mesh.extended(prefix, v, f).labels[prefix.n_faces:], np.zeros(len(f), np.int32))
     with pytest.raises(ValueError, match="integer"):
         Mesh.extended(prefix, v, f.astype(float))
+    import pickle
+
+    back = pickle.loads(pickle.dumps(m))          # a scene sent between processes: the arrays, not the prefix
+    assert back.prefix is None and np.array_equal(back.faces, m.faces) and np.array_equal(back.shift, m.shift)
+    assert len(pickle.dumps(m)) < len(pickle.dumps(plain)) + 1000
 
 
 @pytest.mark.parametrize("name", BACKENDS)
