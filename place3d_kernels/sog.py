@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from place3d_kernels.backends.registry import get_backend
-from place3d_kernels.backends.base import ENTROPY_SCALE, cache_dir, cache_folder
+from place3d_kernels.backends.base import ENTROPY_SCALE, cache_dir, cache_folder, unique_ints
 from place3d_kernels.classes import CLASSES, N_CLASSES, VEHICLE
 from place3d_kernels.entropy import ENTROPY_BLOCK, entropy
 from place3d_kernels.grid import Grid
@@ -104,27 +104,33 @@ def pool_votes(votes: list[tuple[np.ndarray, np.ndarray]], n_voxels: int,
     Returns:
         voxels (M,) int64 ascending (every voxel voted in some subset), counts (M, n_classes) int32 with
         column 0 = the subsets in which the voxel was empty (T minus its other columns).
+
+    Raises:
+        ValueError: a class outside [0, n_classes) or a voxel outside [0, n_voxels).
     """
     vox = np.concatenate([v for v, _ in votes])
     lab = np.concatenate([w for _, w in votes])
     T = len(votes)
     if len(lab) and (lab.min() < 0 or lab.max() >= n_classes):
         raise ValueError(f"votes must be classes in [0, {n_classes}), got range [{lab.min()}, {lab.max()}]")
-    if len(vox) and 0 <= vox.min() and vox.max() < n_voxels and n_voxels <= 16 * len(vox) + 2**23:
-        # dense voxel ids (a flag per grid voxel, ranks by position) instead of a sort of every vote:
-        # the same ascending voxels and rows as np.unique(vox, return_inverse=True)
-        seen = np.zeros(n_voxels, dtype=bool)
-        seen[vox] = True
-        uniq = np.flatnonzero(seen)
-        rank = np.empty(n_voxels, dtype=np.int64)     # read only where a voxel was seen
-        rank[uniq] = np.arange(len(uniq))
-        inv = rank[vox]
+    if len(vox) and (vox.min() < 0 or vox.max() >= n_voxels):
+        raise ValueError(f"voted voxels must lie in [0, {n_voxels}), got range [{vox.min()}, {vox.max()}]")
+    # one sort of every vote (a grid-sized flag array, the earlier way, was fresh memory a worker faulted in per
+    # drive, and NumPy's bare np.unique hashes: base.unique_ints)
+    uniq = unique_ints(vox)
+    if all(len(v) < 2 or bool(np.all(v[1:] > v[:-1])) for v, _ in votes):
+        # each subset votes a voxel once (``subset_votes``: ascending, distinct), so within one subset no
+        # (row, class) cell repeats and one fancy-indexed increment per subset counts it: the counts of a
+        # bincount over all votes, without its (M, K) int64 temporary
+        counts = np.zeros((len(uniq), n_classes), dtype=np.int32)
+        flat = counts.reshape(-1)
+        for v, w in votes:
+            flat[np.searchsorted(uniq, v) * n_classes + w] += 1
     else:
-        uniq, inv = np.unique(vox, return_inverse=True)
-    # integer counts of (row, class) pairs (a pair repeats across subsets, never within one), by bincount:
-    # the counts np.add.at gave, in well under half its time (np.add.at's unbuffered loop is slow)
-    counts = np.bincount(inv * n_classes + lab, minlength=len(uniq) * n_classes).astype(np.int32)
-    counts = counts.reshape(len(uniq), n_classes)
+        # integer counts of (row, class) pairs by bincount: the counts np.add.at gave, in well under half its time
+        inv = np.searchsorted(uniq, vox)
+        counts = np.bincount(inv * n_classes + lab, minlength=len(uniq) * n_classes).astype(np.int32)
+        counts = counts.reshape(len(uniq), n_classes)
     counts[:, 0] = T - counts[:, 1:].sum(axis=1)
     return uniq.astype(np.int64, copy=False), counts
 

@@ -100,6 +100,8 @@ def test_pool_votes_sparse_path_and_bad_classes():
     assert counts[:, :4].tolist() == [[1, 1, 0, 0], [0, 0, 2, 0], [0, 1, 0, 1]]
     with pytest.raises(ValueError, match="classes in"):
         pool_votes([(np.array([1]), np.array([N_CLASSES]))], n_voxels=10)
+    with pytest.raises(ValueError, match="voxels must lie in"):
+        pool_votes([(np.array([1, 10]), np.array([1, 1]))], n_voxels=10)
 
 
 def test_saved_psog_loads_identically(town_frames, tmp_path):

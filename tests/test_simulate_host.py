@@ -1,6 +1,6 @@
 """The cold build's host paths give what the earlier code gave, bit for bit: ``simulate_frame``'s gathers by
 ``ndarray.take`` and its one intensity pass over static and actor returns (points, labels, intensities), and
-``pool_votes``'s counts by ``np.bincount`` (instead of ``np.add.at``).
+``pool_votes``'s counts by one increment per subset or ``np.bincount`` (instead of ``np.add.at``).
 
 The earlier code is kept here, frozen, as the oracle."""
 
@@ -115,8 +115,9 @@ def _old_pool_votes(votes, n_voxels, n_classes):
     return uniq.astype(np.int64), counts
 
 
-@pytest.mark.parametrize("n_voxels", [5000, 2**40])          # dense ranks, and the np.unique path
-def test_pool_votes_equal_the_earlier_counts(n_voxels):
+@pytest.mark.parametrize("repeat", [False, True])             # subsets of distinct ascending voxels, or not
+@pytest.mark.parametrize("n_voxels", [5000, 2**40])          # the grid-sized flags, and the np.unique path
+def test_pool_votes_equal_the_earlier_counts(n_voxels, repeat):
     from place3d_kernels.classes import N_CLASSES
     from place3d_kernels.sog import pool_votes
 
@@ -126,10 +127,14 @@ def test_pool_votes_equal_the_earlier_counts(n_voxels):
         v = np.unique(rng.integers(0, min(n_voxels, 5000), 1500)) * (n_voxels // 5000)
         votes.append((v.astype(np.int64), rng.integers(1, N_CLASSES, len(v)).astype(np.int64)))
     votes.append((np.zeros(0, np.int64), np.zeros(0, np.int64)))     # a subset with no votes
+    if repeat:      # one subset votes a voxel twice, out of order: each vote still counts (the bincount path)
+        v, w = votes[0]
+        votes[0] = (np.r_[v, v[3]], np.r_[w, w[3]])
     got, want = pool_votes(votes, n_voxels), _old_pool_votes(votes, n_voxels, N_CLASSES)
     for x, y in zip(got, want):
         assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y)
-    assert got[1].sum() == len(votes) * len(got[0])           # each voxel: T entries in all
+    if not repeat:
+        assert got[1].sum() == len(votes) * len(got[0])       # each voxel: T entries in all
 
 
 def _per_frame(scene, lidar, frames, b, body_t=None):
