@@ -13,7 +13,8 @@ import os
 __all__ = ["usable_cores", "threads_for", "thread_map", "block_map", "THREADED_ENTRIES", "MAX_THREADS"]
 
 #: Record entries (all records together) from which a pool's per-record NumPy work runs on several threads
-#: (``pooled.PooledPSOG`` sums, ``left_out.device_fields`` indexes).
+#: (``pooled.PooledPSOG`` sums, ``left_out.device_fields`` indexes), and count-table entries from which the
+#: fields of count rows do (``block_map``: ``PSOG`` weights and stop flags, the jackknife's left-out rows).
 THREADED_ENTRIES = 1 << 20
 #: At most this many threads (and no more than the usable cores).
 MAX_THREADS = 8
