@@ -635,5 +635,7 @@ def pool_specs(specs, backend=None, cache=True, progress: bool = False, known: d
         rec = known.get(s) if known else None
         pooled.add(rec if rec is not None else DriveRecord.from_psog(s.build(backend=backend, cache=cache), s.scene.label))
         if progress:
-            print(f"  drive {i + 1}/{len(specs)} {s.scene.label}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+            # a record a worker made was timed with the workers (the caller's line): not "0.0 s" here
+            took = "built by a worker" if rec is not None else f"{time.perf_counter() - t0:.1f} s"
+            print(f"  drive {i + 1}/{len(specs)} {s.scene.label}: {took}", file=sys.stderr)
     return pooled

@@ -130,7 +130,7 @@ def test_tiny_pooled_optimize_reports_intervals_over_routes(tmp_path):
 
 
 # ------------------------------------------------------------------------------ drives built in workers
-def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_path, monkeypatch):
+def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_path, monkeypatch, capsys):
     # the drives a cold cache lacks are built by worker processes; the pool read back from the cache is the
     # pool built one drive after another in this process, bit for bit; a warm cache starts no worker. The
     # workers come from the commands' server (a forkserver on Linux), started before the backend is known,
@@ -181,7 +181,10 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
     a = pool_specs(specs, backend="warp:cpu").psog()
     # the workers' records, pooled without reading the files, are the records read back
     assert set(opts.built) == set(specs)
-    sent = pool_specs(specs, backend="broken-if-used", known=opts.built)
+    capsys.readouterr()
+    sent = pool_specs(specs, backend="broken-if-used", known=opts.built, progress=True)
+    # a worker's drive is not reported as taking the pooling's 0.0 s
+    assert capsys.readouterr().err.count(": built by a worker\n") == len(specs)
     read = pool_specs(specs, backend="warp:cpu")
     for x, y in zip(sent.records, read.records):
         assert x.label == y.label and x.n_subsets == y.n_subsets
