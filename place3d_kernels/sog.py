@@ -23,6 +23,7 @@ from place3d_kernels.entropy import ENTROPY_BLOCK, entropy
 from place3d_kernels.grid import Grid
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import invert, pose_matrix, transform_points
+from place3d_kernels.threads import block_map
 
 __all__ = ["PSOG", "entropy", "cache_dir", "cache_folder", "cache_key", "keep_loaded", "subset_groups", "subset_votes",
            "pool_votes"]
@@ -99,7 +100,8 @@ def subset_votes(frames: list[PointCloud], grid: Grid, frames_per_subset: int, b
 
 def pool_votes(votes: list[tuple[np.ndarray, np.ndarray]], n_voxels: int,
                n_classes: int = N_CLASSES) -> tuple[np.ndarray, np.ndarray]:
-    """Per-voxel label counts over the T = ``len(votes)`` subset SOGs of ``subset_votes``.
+    """Per-voxel label counts over the T = ``len(votes)`` subset SOGs of ``subset_votes``; ``n_voxels``: the
+    grid's voxel count (every voted voxel lies below it).
 
     Returns:
         voxels (M,) int64 ascending (every voxel voted in some subset), counts (M, n_classes) int32 with
@@ -280,7 +282,6 @@ class PSOG:
         if src is None:
             return False
         from place3d_kernels.left_out_tables import fields_of
-        from place3d_kernels.threads import block_map
 
         rows, T, task = src
         f = fields_of(T, task)

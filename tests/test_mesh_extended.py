@@ -89,8 +89,10 @@ def test_joined_tree_is_valid_and_casts_like_a_whole_build(name, width, rng):
     uv, uf, _, _ = m.upload_parts()
     validate_bvh(h.bvh, uv, uf)
     refs = h.bvh.child_refs()
-    assert refs[0, 1] == 0 and refs[0, 3] == 0                         # the new root's two subtrees
-    assert h.bvh.depth == max(prefix.part(b).bvh.depth, h.bvh.depth - 1) + 1
+    # the new root's two subtrees: the prefix's kept tree as node 1 onwards, the rest's after it
+    part = prefix.part(b).bvh
+    assert refs[0].tolist() == [1, 0, 1 + len(part.nodes), 0]
+    assert np.array_equal(h.bvh.order[:len(part.order)], part.order) and h.bvh.depth > part.depth
     got, want = p3k.raycast(m, o, d, 60.0, backend=b), p3k.raycast(plain, o, d, 60.0, backend=b)
     assert got.t.tobytes() == want.t.tobytes() and np.array_equal(got.face, want.face)
 
