@@ -96,11 +96,13 @@ def coverage_counts(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog"
         return out
     local = poses.copy()
     local[..., :3] = p.grid.to_local(poses[..., :3])
-    el, az, r = lidar.elevations, lidar.azimuths, lidar.max_range
-    sums, counts = b.score_placements(p.handle(b, occlusion), el, az, r, local)
+    # the indicator grids share the P-SOG's stop mask, so one score_placements_many call covers them all: a
+    # backend that walks the rays once for several grids (OpenCL on CPUs) walks them once here, not 1 + kinds times
+    handles = [p.handle(b, occlusion)] + [indicator_handle(p, k, b, occlusion) for k in kinds]
+    res = b.score_placements_many(handles, lidar.elevations, lidar.azimuths, lidar.max_range, local)
+    sums, counts = res[0]
     out["sum"], out["n_covered"] = np.asarray(sums, np.int64), np.asarray(counts, np.int64)
-    for k in kinds:
-        n, _ = b.score_placements(indicator_handle(p, k, b, occlusion), el, az, r, local)
+    for k, (n, _) in zip(kinds, res[1:]):
         out[f"n_{k}"] = np.asarray(n, np.int64)
     return out
 

@@ -302,18 +302,26 @@ def test_grids_of_one_stop_mask_score_together_as_alone(name):
     stop = rng.random(n) < 0.03
     grids = [np.where(rng.random(n) < 0.4, rng.integers(1, 10**9, n), 0).astype(np.int64) for _ in range(2)]
     grids.append((grids[0] > 0).astype(np.int64))
+    # indicators that Warp and OpenCL count from the first grid's bits (0/1 weights): one with ones where the
+    # first grid has none (the "evidence" kind), one of zeros only
+    grids.append((rng.random(n) < 0.5).astype(np.int64))
+    grids.append(np.zeros(n, dtype=np.int64))
     lidar = _small_lidar()
     poses = np.zeros((3, 2, 6))
     poses[..., :3] = rng.uniform(1.0, 3.0, (3, 2, 3))
     poses[..., 3:] = rng.uniform(-0.3, 0.3, (3, 2, 3))
-    for s in (stop, None):
-        handles = [b.prepare_grid(spec, w, s) for w in grids]
-        got = b.score_placements_many(handles, lidar.elevations, lidar.azimuths, 6.0, poses)
+    orders = [list(range(len(grids))), [2, 0, 3, 1, 2, 4]]     # an indicator first; one grid twice
+    for s, order, rigs in ((stop, orders[0], poses), (None, orders[0], poses), (stop, orders[1], poses),
+                           (stop, orders[0], poses[:1])):
+        handles = [b.prepare_grid(spec, grids[i], s) for i in order]
+        got = b.score_placements_many(handles, lidar.elevations, lidar.azimuths, 6.0, rigs)
         assert len(got) == len(handles)
         for h, (sums, counts) in zip(handles, got):
-            want = b.score_placements(h, lidar.elevations, lidar.azimuths, 6.0, poses)
+            want = b.score_placements(h, lidar.elevations, lidar.azimuths, 6.0, rigs)
             assert sums.tobytes() == want[0].tobytes() and counts.tobytes() == want[1].tobytes()
         assert got[0][1].tobytes() == got[1][1].tobytes()          # one walk: the same voxels counted
+        if order == orders[0]:
+            assert got[2][0].tobytes() != got[3][0].tobytes() and not got[4][0].any()   # not all alike
 
 
 def test_records_in_any_entry_order_give_the_same_left_out_grids(drives):

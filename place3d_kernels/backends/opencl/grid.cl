@@ -442,6 +442,22 @@ __kernel void count_bits(__global const uint* bits, const long words, const int 
     part_cnt[p * chunks + c] = cnt;
 }
 
+/* count_bits of the set bits whose voxel has a nonzero weight in another grid: masks[q] is that grid's word q in
+ * the bitset's layout (flat bricks: occlusion bits low, nonzero-weight bits high). For a grid of 0/1 weights
+ * (an indicator) this is its sum over the covered voxels. */
+__kernel void count_masked(__global const uint* bits, const long words, const int per, const int chunks,
+                           __global const ulong* masks, __global long* part_cnt)
+{
+    int c = get_global_id(0);
+    long p = get_global_id(1);
+    if (c >= chunks) return;
+    long w0 = (long)c * per, w1 = w0 + per < words ? w0 + per : words;
+    __global const uint* mine = bits + p * words;
+    long cnt = 0;
+    for (long q = w0; q < w1; ++q) cnt += popcount(mine[q] & (uint)(masks[q] >> 32));
+    part_cnt[p * chunks + c] = cnt;
+}
+
 __kernel void score_walk(__global const real* rig, __global const real* sdir, const int L, const int CA,
                          const real t_max, GRID_ARGS, __global uint* bits, const long words, const int G)
 {
@@ -461,7 +477,7 @@ __kernel void score_walk(__global const real* rig, __global const real* sdir, co
 /* global size (chunks, P): chunk c of candidate p covers words [c * per, (c + 1) * per) */
 __kernel void score_reduce(__global const uint* bits, const long words, const int G, const int per,
                            const int chunks, __global const long* weights, __global const uint* nonzero,
-                           const long n_voxels, __global long* part_sum, __global long* part_cnt)
+                           const int binary, const long n_voxels, __global long* part_sum, __global long* part_cnt)
 {
     /* nonzero: bit b of word w set when voxel 32 w + b has a nonzero weight. Covered voxels are counted
        with popcount, and weights are read only for covered voxels with entropy (about 8 % of them on the
@@ -477,6 +493,10 @@ __kernel void score_reduce(__global const uint* bits, const long words, const in
         for (int g = 0; g < G; ++g) u |= base[(long)g * words + w];
         cnt += popcount(u);
         u &= nonzero[w];
+        if (binary) {               /* every weight 0 or 1 (an indicator grid): the sum is the bits left */
+            sum += popcount(u);
+            continue;
+        }
         while (u) {
             int b = 31 - clz(u & (~u + 1u));   /* index of the lowest set bit */
             u &= u - 1u;

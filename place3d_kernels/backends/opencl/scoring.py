@@ -55,13 +55,15 @@ class CLGrid:
             self.masks = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=m)
         self.flat = None      # score_rays_flat's masks (bricks.flat_brick_masks), made from masks on first use
         self.writable = False  # read-only buffers: write_voxels takes working grids only
+        # every weight 0 or 1 (an indicator grid, metrics' denominators): its sums are counts of bits
+        self.binary = bool(w.size) and int(w.min()) >= 0 and int(w.max()) <= 1
 
     @classmethod
     def working(cls, backend: "OpenCLScoring", spec: GridSpec, use_stop: bool) -> "CLGrid":
         """A grid of zero weights and no stop, its buffers writable (``OpenCLBackend.working_grid``), in the
         form of the backend's score strategy; filled on the device, nothing uploaded."""
         self = cls.__new__(cls)
-        self.spec, self.use_stop, self.writable = spec, bool(use_stop), True
+        self.spec, self.use_stop, self.writable, self.binary = spec, bool(use_stop), True, False
         n = spec.n_voxels
         words = max((n + 31) // 32, 1)
         zeros = backend._zeroed
@@ -121,15 +123,23 @@ class OpenCLScoring:
     def score_placements_many(self, handles, elevations, azimuths, t_max, poses):
         """``Backend.score_placements_many``: with the private strategy the rays are walked once (on the first
         handle's stop mask) and each grid's weights reduced over the same bitsets; the atomic strategy sums
-        weights during its walk, so it walks once per grid."""
+        weights during its walk, so it walks once per grid, except for grids of 0/1 weights (indicators,
+        ``CLGrid.binary``), whose sums it counts from the first grid's bitsets against their nonzero bits."""
         handles = list(handles)
         for handle in handles:
             if not isinstance(handle, CLGrid):
                 raise TypeError(f"score_placements needs the handle from {self.name}.prepare_grid, "
                                 f"got {type(handle).__name__}")
-        if self.score_strategy != "private" or len(handles) < 2:
+        if len(handles) < 2:
             return [self._score_placements(h, elevations, azimuths, t_max, poses) for h in handles]
-        return self._score_private(handles, elevations, azimuths, t_max, poses)
+        if self.score_strategy == "private":
+            return self._score_private(handles, elevations, azimuths, t_max, poses)
+        first = handles[0]
+        extra = [h for h in handles[1:] if h.binary and h.spec.shape == first.spec.shape]
+        got = dict(zip(map(id, [first] + extra), self._score_placements(first, elevations, azimuths, t_max, poses,
+                                                                        extra, many=True)))
+        return [got[id(h)] if id(h) in got else self._score_placements(h, elevations, azimuths, t_max, poses)
+                for h in handles]
 
     def _score_inputs(self, poses, elevations, azimuths):
         """(P, L, rig pose rows, direction table buffer, rays per LiDAR) of a score call."""
@@ -175,20 +185,24 @@ class OpenCLScoring:
                          *grid_args, bits, np.int64(words), np.int32(G))
             for h, (sums, counts) in zip(handles, out):
                 self._launch("score_reduce", (n_chunks, pn), bits, np.int64(words), np.int32(G), np.int32(per),
-                             np.int32(n_chunks), h.weights, h.nonzero, np.int64(spec.n_voxels), ps, pc)
+                             np.int32(n_chunks), h.weights, h.nonzero, np.int32(h.binary), np.int64(spec.n_voxels),
+                             ps, pc)
                 sums[p0:p0 + pn] = self._read(ps, np.int64, pn * n_chunks).reshape(pn, -1).sum(1, dtype=np.int64)
                 counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(1, dtype=np.int64)
         return out
 
-    def _score_placements(self, handle, elevations, azimuths, t_max, poses):
+    def _score_placements(self, handle, elevations, azimuths, t_max, poses, extra=(), many: bool = False):
+        """(sums, counts) of ``handle``; with ``many``, [(sums, counts)] of ``handle`` and then of each 0/1 grid
+        of ``extra`` (atomic strategy: counted from ``handle``'s bitsets, its counts ``handle``'s)."""
         if self.score_strategy == "private":
             return self._score_private([handle], elevations, azimuths, t_max, poses)[0]
         P, L, rig, sdir_b, CA = self._score_inputs(poses, elevations, azimuths)
         sums = np.zeros(P, dtype=np.int64)
         counts = np.zeros(P, dtype=np.int64)
+        marked = [np.zeros(P, dtype=np.int64) for _ in extra]
         n_rays = L * CA
         if P == 0 or n_rays == 0:
-            return sums, counts
+            return [(sums, counts)] + [(m, counts) for m in marked] if many else (sums, counts)
         spec = handle.spec
         per = self.rays_per_item
         items = (n_rays + per - 1) // per
@@ -225,7 +239,11 @@ class OpenCLScoring:
             part = self._read(ps, np.int64, pn * (1 if gpu else items))
             sums[p0:p0 + pn] = part.reshape(pn, -1).sum(axis=1, dtype=np.int64)
             counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(axis=1, dtype=np.int64)
-        return sums, counts
+            for h, m in zip(extra, marked):         # an indicator's covered voxels of weight 1, from these bits
+                self._launch("count_masked", (n_chunks, pn), bits, np.int64(words), np.int32(per_count),
+                             np.int32(n_chunks), self._flat_masks(h), pc)
+                m[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(axis=1, dtype=np.int64)
+        return [(sums, counts)] + [(m, counts) for m in marked] if many else (sums, counts)
 
     #: work-group size of score_gpu.cl's kernel. On an H100 groups of 64 and 128 were equally fast, 256 slower, and
     #: NVIDIA register caps from 40 to 80 changed nothing (bench/README.md, "What the studies found", dense rig)

@@ -46,6 +46,17 @@ class _WarpGrid:
         self.masks = masks              # per brick word w: [2w] occlusion bits, [2w + 1] nonzero-weight bits
                                         # (uint32 pairs; on CUDA the same bytes as one uint64 per brick)
         self.flat = flat                # CUDA: the score kernel's masks per 8 x 4 x 1 brick (bricks.flat_brick_masks)
+        self.binary = False             # every weight 0 or 1 (prepare_grid): its sums are counts of masked bits
+        self._masks64 = None            # CPU: the brick pairs as one uint64 each (count_masked_kernel)
+
+    def nonzero_words(self, cuda: bool):
+        """This grid's masks in the score bitsets' layout, one uint64 per word (nonzero-weight bits high):
+        the flat bricks on CUDA, the 4 x 4 x 2 brick pairs on the CPU."""
+        if cuda:
+            return self.flat
+        if self._masks64 is None:
+            self._masks64 = wp.array(self.masks.numpy().view(np.uint64), dtype=wp.uint64, device=self.masks.device)
+        return self._masks64
 
 
 class _WarpGridBase:
@@ -60,13 +71,18 @@ class WarpScoring:
 
     # ------------------------------------------------------------------ grids
     def prepare_grid(self, grid, weights, stop):
-        w = wp.array(np.ascontiguousarray(weights, dtype=np.int64), dtype=wp.int64, device=self.device)
-        masks = brick_masks(grid.shape, np.asarray(weights).reshape(-1) != 0,
+        host = np.ascontiguousarray(weights, dtype=np.int64)
+        w = wp.array(host, dtype=wp.int64, device=self.device)
+        masks = brick_masks(grid.shape, host.reshape(-1) != 0,
                             None if stop is None else np.asarray(stop).reshape(-1) != 0)
         if self.device.is_cuda:   # each brick's pair as one little-endian uint64, and the score kernel's bricks
             pairs = wp.array(masks.view(np.uint64), dtype=wp.uint64, device=self.device)
-            return _WarpGrid(grid, w, pairs, self._flat_masks(grid.shape, pairs))
-        return _WarpGrid(grid, w, wp.array(masks, dtype=wp.uint32, device=self.device))
+            out = _WarpGrid(grid, w, pairs, self._flat_masks(grid.shape, pairs))
+        else:
+            out = _WarpGrid(grid, w, wp.array(masks, dtype=wp.uint32, device=self.device))
+        # an indicator grid (metrics' denominators): score_placements_many counts its covered voxels from the bits
+        out.binary = bool(host.size) and int(host.min()) >= 0 and int(host.max()) <= 1
+        return out
 
     def _flat_masks(self, shape, pairs):
         """The CUDA score kernel's masks (``bricks.flat_brick_masks``) from a grid's brick pairs, on the device."""
@@ -226,6 +242,35 @@ class WarpScoring:
 
     # ------------------------------------------------------------------ scores
     def score_placements(self, handle, elevations, azimuths, t_max, poses):
+        return self._score_walked(handle, (), elevations, azimuths, t_max, poses)[0]
+
+    def score_placements_many(self, handles, elevations, azimuths, t_max, poses):
+        """``Backend.score_placements_many``: the rays are walked once, on the first grid. A further grid of 0/1
+        weights (an indicator, such as the denominators' grids of ``indicators.py``: ``prepare_grid`` marks it
+        ``binary``) sums to its covered voxels with weight 1, which are counted from the same bitsets against its
+        nonzero-weight bits; its counts are the first grid's (one stop mask: the caller's promise). Other grids,
+        and a single rig split over CPU threads, are walked on their own."""
+        handles = list(handles)
+        poses = np.asarray(poses, dtype=np.float64)
+        first = handles[0] if handles else None
+        extra = [h for h in handles[1:] if getattr(h, "binary", False) and h.spec.shape == first.spec.shape]
+        if not extra or self._splits(poses, elevations, azimuths):
+            return [self.score_placements(h, elevations, azimuths, t_max, poses) for h in handles]
+        got = dict(zip(map(id, [first] + extra), self._score_walked(first, extra, elevations, azimuths, t_max, poses)))
+        return [got[id(h)] if id(h) in got else self.score_placements(h, elevations, azimuths, t_max, poses)
+                for h in handles]
+
+    def _splits(self, poses, elevations, azimuths) -> bool:
+        """Whether ``score_placements`` may take these rigs as one rig split over the CPU threads
+        (``_score_one_rig_split``; it decides again by the load)."""
+        if self.device.is_cuda or self.threads <= 1 or poses.ndim != 3 or len(poses) != 1:
+            return False
+        rays = poses.shape[1] * len(self._directions.get(elevations, azimuths)[0])
+        return rays >= 2 * MIN_CHUNK and _split_pays(rays, self.threads)
+
+    def _score_walked(self, handle, extra, elevations, azimuths, t_max, poses):
+        """[(sums, counts)] of ``handle`` and then of each grid of ``extra`` (0/1 weights, the same stop mask),
+        from one walk of the rays on ``handle``."""
         poses = np.asarray(poses, dtype=np.float64)
         if not np.all(np.isfinite(poses)):
             # metrics.msog_batch refuses them first; here because the CUDA kernel's loop has no step bound,
@@ -234,7 +279,7 @@ class WarpScoring:
             raise ValueError(f"poses must be finite; poses{bad} is {poses[tuple(bad)]}")
         P, L = poses.shape[:2]
         if P == 0:     # no candidates: empty scores, as on every backend (a Warp array has no empty slice)
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+            return [(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))] * (1 + len(extra))
         flat = poses.reshape(-1, 6)
         sd, sd_a = self._directions.get(elevations, azimuths)     # host and device tables
         # CUDA's score kernel keeps its bitsets in flat bricks, the CPU's in 4 x 4 x 2 ones (bricks.py)
@@ -244,7 +289,7 @@ class WarpScoring:
         bits = wp.zeros(n, dtype=wp.uint32, device=self.device) if kept is None else kept[:n]
         done = False
         try:
-            out = self._score_into(handle, bits, sd, sd_a, flat, P, L, t_max, words)
+            out = self._score_into(handle, bits, sd, sd_a, flat, P, L, t_max, words, extra)
             done = True
             return out
         finally:
@@ -275,13 +320,15 @@ class WarpScoring:
             if self._bits is None or self._bits[0].shape[0] < buf.shape[0]:
                 self._bits = (buf, clean)
 
-    def _score_into(self, handle, bits, sd, sd_a, flat, P, L, t_max, words):
-        """score_placements on zeroed bitsets ``bits`` (P * words words)."""
+    def _score_into(self, handle, bits, sd, sd_a, flat, P, L, t_max, words, extra=()):
+        """score_placements on zeroed bitsets ``bits`` (P * words words): [(sums, counts)] of ``handle``, then
+        of each 0/1 grid of ``extra`` (its sums the covered voxels it marks, its counts ``handle``'s)."""
         spec = handle.spec
         nx, ny, nz = spec.shape
         _, by, bz = brick_shape(spec.shape)
-        both = wp.zeros(2 * P, dtype=wp.int64, device=self.device)    # sums, then counts: one download
-        sums, counts = both[:P], both[P:]
+        # sums, counts, then each extra grid's sums: one download
+        both = wp.zeros((2 + len(extra)) * P, dtype=wp.int64, device=self.device)
+        sums, counts = both[:P], both[P:2 * P]
         rot = wp.array(rotation_matrices(flat), dtype=wp.mat33d, device=self.device)
         pos = self._vec3d(flat[:, :3])
         rays = L * len(sd)     # per candidate
@@ -296,8 +343,8 @@ class WarpScoring:
                       inputs=[sd_a, rot, pos, int(L), float(t_max), float(spec.voxel_size), int(nx), int(ny),
                               int(nz), int(fx), int(fy), handle.flat, handle.weights, int(words), bits, sums],
                       block_dim=g.SCORE_BLOCK_DIM)
-        elif P == 1 and self.threads > 1 and rays >= 2 * MIN_CHUNK and _split_pays(rays, self.threads):
-            return self._score_one_rig_split(handle, sd, rot, pos, L, t_max)
+        elif not extra and P == 1 and self.threads > 1 and rays >= 2 * MIN_CHUNK and _split_pays(rays, self.threads):
+            return [self._score_one_rig_split(handle, sd, rot, pos, L, t_max)]
         elif P == 1 or self.threads <= 1:
             # no block_dim on the CPU: the default keeps the kernels module's one compiled variant
             wp.launch(self.k.score_kernel, dim=P * rays, device=self.device,
@@ -311,9 +358,19 @@ class WarpScoring:
                         bits[a * words:b * words], sums[a:b]]
 
             self._launch_groups(self.k.score_kernel, P, rays, cand_range)
+        for e, h in enumerate(extra):          # before _count_bits, which zeroes the CUDA bitsets
+            self._count_masked(bits, P, words, h.nonzero_words(self.device.is_cuda), both[(2 + e) * P:(3 + e) * P])
         self._count_bits(bits, P, words, counts)
         out = both.numpy()
-        return out[:P], out[P:]
+        return [(out[:P], out[P:2 * P])] + [(out[(2 + e) * P:(3 + e) * P], out[P:2 * P]) for e in range(len(extra))]
+
+    def _count_masked(self, bits, P: int, words: int, masks, counts) -> None:
+        """counts[c] = bits of candidate c's bitset set where ``masks`` (one uint64 per bitset word, nonzero-weight
+        bits high) has its nonzero bit: another grid's covered voxels of nonzero weight (count_masked_kernel)."""
+        per = self.k.count_words_per_thread(P * words)
+        chunks = -(-words // per)
+        wp.launch(self.k.count_masked_kernel, dim=P * chunks, device=self.device,
+                  inputs=[bits, int(words), int(chunks), int(per), masks, counts])
 
     def _count_bits(self, bits, P: int, words: int, counts) -> None:
         """counts[c] = set bits of candidate c's bitset (P candidates of ``words`` words each); on CUDA the
