@@ -157,8 +157,9 @@ def msog_batch(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", tas
             the paper's definition), ``"evidence"`` (covered voxels stored in the P-SOG, i.e. occupied in at
             least one subset) or ``"uncertain"`` (covered voxels with H > 0). See
             docs/metric-normalisation.md for why N_L rewards rays through empty air. Every normalisation
-            takes every sensor, body and minimum range (the alternatives count their voxels with a second
-            call of the same kernel).
+            takes every sensor, body and minimum range (the alternatives count their voxels on a grid of 0/1
+            weights: for grid LiDARs in the same ``score_placements_many`` call, which Warp and OpenCL answer
+            from one walk of the rays; for explicit rays with a second call of the same kernel).
         body: optional ``VehicleBody`` (ego frame) whose surface blocks rays.
 
     Returns:

@@ -324,6 +324,22 @@ def test_grids_of_one_stop_mask_score_together_as_alone(name):
             assert got[2][0].tobytes() != got[3][0].tobytes() and not got[4][0].any()   # not all alike
 
 
+def test_zero_one_tells_indicator_grids_from_others():
+    """``prepare_grid`` marks grids of 0/1 weights (their sums may come from another grid's walk): any weight
+    other than 0 or 1, wherever it is, makes a grid an ordinary one."""
+    from place3d_kernels.backends.base import zero_one
+
+    rng = np.random.default_rng(3)
+    ind = (rng.random(1000) < 0.3).astype(np.int64)
+    assert zero_one(ind, ind != 0) and zero_one(np.zeros(7, np.int64), np.zeros(7, bool))
+    assert zero_one(np.zeros(0, np.int64), np.zeros(0, bool))
+    for at, value in ((int(np.flatnonzero(ind)[0]), 2), (999, 5), (int(np.flatnonzero(ind == 0)[0]), -1),
+                      (int(np.flatnonzero(ind)[-1]), 10**12)):
+        w = ind.copy()
+        w[at] = value
+        assert not zero_one(w, w != 0), (at, value)
+
+
 def test_records_in_any_entry_order_give_the_same_left_out_grids(drives):
     """A record's entries are found in the pool by voxel; entries out of voxel order (not what from_psog
     writes, but allowed) take the sorting path and give the same grids."""

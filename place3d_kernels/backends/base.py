@@ -38,7 +38,7 @@ import numpy as np
 
 __all__ = ["unique_ints", "cache_dir", "cache_folder", "Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE",
            "COORDINATE_LIMIT", "rotation_matrices", "sensor_directions", "check_ray_batch", "mesh_face_tables", "mesh_group_parts", "group_blocks",
-           "first_far_row"]
+           "first_far_row", "zero_one"]
 
 #: Fixed-point scale for entropy weights: weight = round(H * ENTROPY_SCALE) as int64. ln(22) * 2**32 is
 #: about 1.3e10, so 7e8 fully uncertain voxels still fit in int64 without overflow.
@@ -528,6 +528,16 @@ def _dense_rows(grid: GridSpec, voxels, weights, stop) -> tuple[np.ndarray, np.n
     s = np.zeros(grid.n_voxels, dtype=np.uint8)
     s[ids] = s_rows
     return w, s
+
+
+def zero_one(weights: np.ndarray, nonzero: np.ndarray) -> bool:
+    """Whether every weight is 0 or 1 (an indicator grid: ``score_placements_many`` may count its covered voxels
+    from another grid's walk), given ``nonzero = weights != 0``: only the nonzero weights are looked at, and a grid
+    of other weights (an entropy grid) is told by its first nonzero one (``argmax`` stops at the first True)."""
+    first = int(np.argmax(nonzero)) if len(nonzero) else 0
+    if len(nonzero) and nonzero[first] and weights[first] != 1:
+        return False
+    return bool(np.all(weights[nonzero] == 1))
 
 
 def check_voxel_rows(voxels, weights, stop, n_voxels: int, has_stop: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

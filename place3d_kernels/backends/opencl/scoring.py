@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl as cl
 
-from place3d_kernels.backends.base import GridSpec, check_voxel_rows
+from place3d_kernels.backends.base import GridSpec, check_voxel_rows, zero_one
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 from place3d_kernels.backends.opencl import _runtime as rt
 
@@ -36,6 +36,9 @@ class CLGrid:
         if w.shape != (spec.n_voxels,):
             raise ValueError(f"weights must have one int64 per voxel ({spec.n_voxels}), got shape {w.shape}")
         self.weights = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=w)
+        nonzero = w != 0
+        # every weight 0 or 1 (an indicator grid, metrics' denominators): its sums are counts of bits
+        self.binary = zero_one(w, nonzero)
         self.use_stop = stop is not None
         # each score strategy reads one form of the occlusion mask: bytes (private) or bricked bit pairs
         # of (occlusion, nonzero weight) for the atomic strategy (score_rays_csr reads them, and flat_masks makes
@@ -44,19 +47,17 @@ class CLGrid:
         if backend.score_strategy == "private":
             self.stop = backend._stop_buffer(stop, spec, keep=True)
             # score_reduce's nonzero-weight bits: bit b of word q for voxel 32 q + b (little-endian words)
-            self.nonzero = _bit_words(ctx, w != 0)
+            self.nonzero = _bit_words(ctx, nonzero)
             # score_walk_lanes reads the stop mask as bits in the same layout
             self.stop_bits = _bit_words(ctx, np.asarray(stop).reshape(-1) != 0) if self.use_stop else backend._dummy
         else:
             sm = None if stop is None else np.asarray(stop).reshape(-1) != 0
             if sm is not None and sm.shape != (spec.n_voxels,):
                 raise ValueError(f"stop mask must have one uint8 per voxel ({spec.n_voxels}), got shape {sm.shape}")
-            m = brick_masks(spec.shape, w != 0, sm)
+            m = brick_masks(spec.shape, nonzero, sm)
             self.masks = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=m)
         self.flat = None      # score_rays_flat's masks (bricks.flat_brick_masks), made from masks on first use
         self.writable = False  # read-only buffers: write_voxels takes working grids only
-        # every weight 0 or 1 (an indicator grid, metrics' denominators): its sums are counts of bits
-        self.binary = bool(w.size) and int(w.min()) >= 0 and int(w.max()) <= 1
 
     @classmethod
     def working(cls, backend: "OpenCLScoring", spec: GridSpec, use_stop: bool) -> "CLGrid":

@@ -11,7 +11,7 @@ import os
 import numpy as np
 import warp as wp
 
-from place3d_kernels.backends.base import check_voxel_rows, rotation_matrices
+from place3d_kernels.backends.base import check_voxel_rows, rotation_matrices, zero_one
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 from place3d_kernels.backends.warp.cpu_split import CHUNKS_PER_THREAD, MIN_CHUNK
 
@@ -71,17 +71,17 @@ class WarpScoring:
 
     # ------------------------------------------------------------------ grids
     def prepare_grid(self, grid, weights, stop):
-        host = np.ascontiguousarray(weights, dtype=np.int64)
+        host = np.ascontiguousarray(weights, dtype=np.int64).reshape(-1)
         w = wp.array(host, dtype=wp.int64, device=self.device)
-        masks = brick_masks(grid.shape, host.reshape(-1) != 0,
-                            None if stop is None else np.asarray(stop).reshape(-1) != 0)
+        nonzero = host != 0
+        masks = brick_masks(grid.shape, nonzero, None if stop is None else np.asarray(stop).reshape(-1) != 0)
         if self.device.is_cuda:   # each brick's pair as one little-endian uint64, and the score kernel's bricks
             pairs = wp.array(masks.view(np.uint64), dtype=wp.uint64, device=self.device)
             out = _WarpGrid(grid, w, pairs, self._flat_masks(grid.shape, pairs))
         else:
             out = _WarpGrid(grid, w, wp.array(masks, dtype=wp.uint32, device=self.device))
         # an indicator grid (metrics' denominators): score_placements_many counts its covered voxels from the bits
-        out.binary = bool(host.size) and int(host.min()) >= 0 and int(host.max()) <= 1
+        out.binary = zero_one(host, nonzero)
         return out
 
     def _flat_masks(self, shape, pairs):
