@@ -176,9 +176,12 @@ def test_bad_input_gives_the_same_error_and_the_server_survives(server, tmp_path
 
 def test_ctrl_c_on_the_client_interrupts_the_command_not_the_server_and_the_next_client_waits(server, tmp_path):
     path, proc = server
+    # a command that outlasts the sleeps below: CMA-ES stops a search on this small grid by its own criteria
+    # (1,452 evaluations, 7.5 s standalone on the dev VM since the denominators take one walk), so restarts
+    # keep it searching until it is interrupted
     client = subprocess.Popen([sys.executable, "-m", "place3d_app", f"--server={path}", "optimize", *SMALL,
-                               "--max-evals", "1000000"], cwd=tmp_path, env=_env(), stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True)
+                               "--max-evals", "1000000", "--restarts", "1000"], cwd=tmp_path, env=_env(),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(4)                      # connected, P-SOG built, searching
     assert client.poll() is None, client.communicate()
     # a second client waits for its turn, and says so
