@@ -711,6 +711,13 @@ def test_lidar_rays_vs_reference(variant, rng):
     tol = 1e-12 if b.fp64 else 1e-6
     np.testing.assert_allclose(o, ro, atol=tol * 10)
     np.testing.assert_allclose(d, rd, atol=tol)
+    for a in (o, d):         # on CPU devices the kernel writes the returned arrays: each call its own
+        assert a.dtype == np.float64 and a.shape == (3 * 7 * 33, 3) and a.flags.c_contiguous
+    kept = o.copy(), d.copy()
+    b.lidar_rays(el, az, poses + 1.0)
+    assert np.array_equal(o, kept[0]) and np.array_equal(d, kept[1])
+    e = b.lidar_rays(el, az, np.zeros((0, 6)))
+    assert e[0].shape == (0, 3) and e[1].shape == (0, 3)
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
