@@ -4,6 +4,7 @@
     python3 bench/bench_pool.py --routes 2 --runs 3 --tree /tmp/before --tree .        # A/B on one machine
     python3 bench/bench_pool.py --routes 8 --backend warp:cuda:0 --runs 3              # the GPU host (gpu_reproduce.sh)
     python3 bench/bench_pool.py --executors local process                             # executors alternating
+    python3 bench/bench_pool.py --tree .:PLACE3D_WORKERS=8 --tree .                   # a setting against none
 
 Each run is the command as the ``place3d`` console script runs it (``python -m place3d_app reproduce``), in a
 subprocess with the tree first on ``PYTHONPATH``, timed from start to exit, with an empty P-SOG cache
@@ -40,9 +41,11 @@ def stats(xs: list[float]) -> dict:
     return {"median": statistics.median(xs), "min": min(xs), "max": max(xs), "runs": xs} if xs else {}
 
 
-def run_once(tree: Path, args: list[str], psog_cache: Path, warp_cache: Path, timeout: float) -> tuple[float, dict]:
+def run_once(tree: Path, args: list[str], psog_cache: Path, warp_cache: Path, timeout: float,
+             extra_env: dict | None = None) -> tuple[float, dict]:
     env = dict(os.environ, PLACE3D_CACHE=str(psog_cache), WARP_CACHE_PATH=str(warp_cache),
-               PYTHONPATH=os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH", "")) if p))
+               PYTHONPATH=os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH", "")) if p),
+               **(extra_env or {}))
     env.pop("PLACE3D_SERVER", None)
     with tempfile.TemporaryDirectory() as out:
         cmd = [sys.executable, "-m", "place3d_app", "reproduce", *args, "--quiet", "--output", out]
@@ -57,7 +60,8 @@ def run_once(tree: Path, args: list[str], psog_cache: Path, warp_cache: Path, ti
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tree", action="append", default=None,
-                    help="a checkout to time (repeat for an A/B; default: this one)")
+                    help="a checkout to time (repeat for an A/B; default: this one); TREE:NAME=VALUE,... runs it with "
+                         "those environment settings (cold_profile.parse_tree)")
     ap.add_argument("--towns", nargs="+", default=["Town01", "Town03", "Town04", "Town06"])
     ap.add_argument("--routes", type=int, default=2)
     ap.add_argument("--frames", type=int, default=40)
@@ -73,7 +77,11 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default="", help="appended to the file name (e.g. 'before-after')")
     ap.add_argument("--out", default=None, help="folder (default $OUT, else bench/results/)")
     a = ap.parse_args(argv)
-    trees = [Path(t).resolve() for t in (a.tree or [str(ROOT)])]
+    from cold_profile import parse_tree
+
+    parsed = [parse_tree(t) for t in (a.tree or [str(ROOT)])]     # (label, tree, environment settings)
+    trees = [str(t) + ("" if not env else label[len(t.name):]) for label, t, env in parsed]
+    tree_of = {k: (t, env) for k, (_, t, env) in zip(trees, parsed)}
     cmd = ["--towns", *a.towns, "--routes", str(a.routes), "--frames", str(a.frames), "--backend", a.backend]
     if a.resamples is not None:
         cmd += ["--resamples", str(a.resamples)]
@@ -87,7 +95,7 @@ def main(argv=None) -> int:
     variants = [(t, e) for t in trees for e in a.executors]
 
     def vname(t, e):
-        return str(t) + ("" if e is None else f" --executor {e}")
+        return t + ("" if e is None else f" --executor {e}")
 
     per: dict[str, dict] = {vname(t, e): {"wall_s": [], "pool_s": [], "jackknife_s": [], "convergence_s": [],
                                           "total_s": [], "executor": None} for t, e in variants}
@@ -97,13 +105,14 @@ def main(argv=None) -> int:
         warp = {t: Path(scratch, f"warp{i}") for i, t in enumerate(trees)}
         for t in trees:         # kernels compiled into each tree's cache, untimed
             with tempfile.TemporaryDirectory() as c:
-                run_once(t, ["--towns", "town", "--routes", "2", "--frames", "2",
-                             "--no-convergence", "--backend", a.backend], Path(c), warp[t], a.timeout)
+                run_once(tree_of[t][0], ["--towns", "town", "--routes", "2", "--frames", "2",
+                                         "--no-convergence", "--backend", a.backend], Path(c), warp[t], a.timeout,
+                         tree_of[t][1])
         for i in range(a.runs):
             for t, e in (variants if i % 2 == 0 else variants[::-1]):     # A B, B A, ...: no order bias
                 with tempfile.TemporaryDirectory() as c:
-                    wall, res = run_once(t, cmd + ([] if e is None else ["--executor", e]), Path(c), warp[t],
-                                         a.timeout)
+                    wall, res = run_once(tree_of[t][0], cmd + ([] if e is None else ["--executor", e]), Path(c),
+                                         warp[t], a.timeout, tree_of[t][1])
                 r = per[vname(t, e)]
                 r["wall_s"].append(round(wall, 3))
                 for k in ("pool", "jackknife", "convergence", "total"):
