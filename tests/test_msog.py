@@ -88,6 +88,11 @@ def test_batch_equals_single_and_is_bit_identical(device_backend, psog, rng):
             np.testing.assert_array_equal(a, b)
             single = [p3k.msog(psog, lidar, p, occ, task, backend=device_backend) for p in poses]
             np.testing.assert_array_equal(a, single)
+            for norm in ("evidence", "uncertain"):      # optimize scores its baselines in one batch
+                a = p3k.msog_batch(psog, lidar, poses, occ, task, backend=device_backend, normalisation=norm)
+                one = [p3k.msog_batch(psog, lidar, p[None], occ, task, backend=device_backend,
+                                      normalisation=norm)[0] for p in poses]
+                np.testing.assert_array_equal(a, one)
 
 
 def test_covered_voxels_union_gives_msog(backend, psog):
