@@ -196,14 +196,15 @@ class OpenCLScoring:
         """(sums, counts) of ``handle``; with ``many``, [(sums, counts)] of ``handle`` and then of each 0/1 grid
         of ``extra`` (atomic strategy: counted from ``handle``'s bitsets, its counts ``handle``'s)."""
         if self.score_strategy == "private":
-            return self._score_private([handle], elevations, azimuths, t_max, poses)[0]
+            got = self._score_private([handle, *extra], elevations, azimuths, t_max, poses)
+            return got if many else got[0]
         P, L, rig, sdir_b, CA = self._score_inputs(poses, elevations, azimuths)
         sums = np.zeros(P, dtype=np.int64)
         counts = np.zeros(P, dtype=np.int64)
         marked = [np.zeros(P, dtype=np.int64) for _ in extra]
         n_rays = L * CA
         if P == 0 or n_rays == 0:
-            return [(sums, counts)] + [(m, counts) for m in marked] if many else (sums, counts)
+            return [(sums, counts)] + [(m, counts.copy()) for m in marked] if many else (sums, counts)
         spec = handle.spec
         per = self.rays_per_item
         items = (n_rays + per - 1) // per
@@ -244,7 +245,7 @@ class OpenCLScoring:
                 self._launch("count_masked", (n_chunks, pn), bits, np.int64(words), np.int32(per_count),
                              np.int32(n_chunks), self._flat_masks(h), pc)
                 m[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(axis=1, dtype=np.int64)
-        return [(sums, counts)] + [(m, counts) for m in marked] if many else (sums, counts)
+        return [(sums, counts)] + [(m, counts.copy()) for m in marked] if many else (sums, counts)
 
     #: work-group size of score_gpu.cl's kernel. On an H100 groups of 64 and 128 were equally fast, 256 slower, and
     #: NVIDIA register caps from 40 to 80 changed nothing (bench/README.md, "What the studies found", dense rig)

@@ -362,7 +362,9 @@ class WarpScoring:
             self._count_masked(bits, P, words, h.nonzero_words(self.device.is_cuda), both[(2 + e) * P:(3 + e) * P])
         self._count_bits(bits, P, words, counts)
         out = both.numpy()
-        return [(out[:P], out[P:2 * P])] + [(out[(2 + e) * P:(3 + e) * P], out[P:2 * P]) for e in range(len(extra))]
+        # each grid its own counts array (the same covered voxels), so no caller's change reaches another's
+        return [(out[:P], out[P:2 * P])] + [(out[(2 + e) * P:(3 + e) * P], out[P:2 * P].copy())
+                                            for e in range(len(extra))]
 
     def _count_masked(self, bits, P: int, words: int, masks, counts) -> None:
         """counts[c] = bits of candidate c's bitset set where ``masks`` (one uint64 per bitset word, nonzero-weight
