@@ -50,5 +50,5 @@ def indicator_handle(p: PSOG, kind: str, b, occlusion: str):
     key = (kind, b, occlusion)
     if key not in cache:
         stop = p.stop_mask if occlusion == "sog" else None
-        cache[key] = b.prepare_grid(p.grid.spec, indicator_weights(p, kind), stop)
+        cache[key] = b.prepare_indicator(p.grid.spec, indicator_weights(p, kind), stop)
     return cache[key]

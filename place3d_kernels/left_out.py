@@ -291,7 +291,7 @@ def patched_on_host(pooled, task: str, occlusion: str, backend, indicator: str |
             stop = stop if occlusion == "sog" else None
             h = backend.prepare_grid(pooled.grid.spec, w, stop)
             if ind is not None:
-                h = (h, backend.prepare_grid(pooled.grid.spec, ind, stop))
+                h = (h, backend.prepare_indicator(pooled.grid.spec, ind, stop))
         yield h
 
 

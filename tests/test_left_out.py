@@ -302,8 +302,7 @@ def test_grids_of_one_stop_mask_score_together_as_alone(name):
     stop = rng.random(n) < 0.03
     grids = [np.where(rng.random(n) < 0.4, rng.integers(1, 10**9, n), 0).astype(np.int64) for _ in range(2)]
     grids.append((grids[0] > 0).astype(np.int64))
-    # indicators that Warp and OpenCL count from the first grid's bits (0/1 weights): one with ones where the
-    # first grid has none (the "evidence" kind), one of zeros only
+    # more 0/1 grids: one with ones where the first grid has none (the "evidence" kind), one of zeros only
     grids.append((rng.random(n) < 0.5).astype(np.int64))
     grids.append(np.zeros(n, dtype=np.int64))
     lidar = _small_lidar()
@@ -311,33 +310,22 @@ def test_grids_of_one_stop_mask_score_together_as_alone(name):
     poses[..., :3] = rng.uniform(1.0, 3.0, (3, 2, 3))
     poses[..., 3:] = rng.uniform(-0.3, 0.3, (3, 2, 3))
     orders = [list(range(len(grids))), [2, 0, 3, 1, 2, 4]]     # an indicator first; one grid twice
+    def prepared(i, s):     # the 0/1 grids as indicators (Warp and OpenCL count them from the first grid's walk)
+        return (b.prepare_indicator if i >= 2 else b.prepare_grid)(spec, grids[i], s)
+
     for s, order, rigs in ((stop, orders[0], poses), (None, orders[0], poses), (stop, orders[1], poses),
                            (stop, orders[0], poses[:1])):
-        handles = [b.prepare_grid(spec, grids[i], s) for i in order]
+        handles = [prepared(i, s) for i in order]
         got = b.score_placements_many(handles, lidar.elevations, lidar.azimuths, 6.0, rigs)
         assert len(got) == len(handles)
-        for h, (sums, counts) in zip(handles, got):
+        for i, h, (sums, counts) in zip(order, handles, got):
             want = b.score_placements(h, lidar.elevations, lidar.azimuths, 6.0, rigs)
             assert sums.tobytes() == want[0].tobytes() and counts.tobytes() == want[1].tobytes()
+            plain = b.score_placements(b.prepare_grid(spec, grids[i], s), lidar.elevations, lidar.azimuths, 6.0, rigs)
+            assert sums.tobytes() == plain[0].tobytes() and counts.tobytes() == plain[1].tobytes()
         assert got[0][1].tobytes() == got[1][1].tobytes()          # one walk: the same voxels counted
         if order == orders[0]:
             assert got[2][0].tobytes() != got[3][0].tobytes() and not got[4][0].any()   # not all alike
-
-
-def test_zero_one_tells_indicator_grids_from_others():
-    """``prepare_grid`` marks grids of 0/1 weights (their sums may come from another grid's walk): any weight
-    other than 0 or 1, wherever it is, makes a grid an ordinary one."""
-    from place3d_kernels.backends.base import zero_one
-
-    rng = np.random.default_rng(3)
-    ind = (rng.random(1000) < 0.3).astype(np.int64)
-    assert zero_one(ind, ind != 0) and zero_one(np.zeros(7, np.int64), np.zeros(7, bool))
-    assert zero_one(np.zeros(0, np.int64), np.zeros(0, bool))
-    for at, value in ((int(np.flatnonzero(ind)[0]), 2), (999, 5), (int(np.flatnonzero(ind == 0)[0]), -1),
-                      (int(np.flatnonzero(ind)[-1]), 10**12)):
-        w = ind.copy()
-        w[at] = value
-        assert not zero_one(w, w != 0), (at, value)
 
 
 def test_records_in_any_entry_order_give_the_same_left_out_grids(drives):

@@ -38,7 +38,7 @@ import numpy as np
 
 __all__ = ["unique_ints", "cache_dir", "cache_folder", "Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE",
            "COORDINATE_LIMIT", "rotation_matrices", "sensor_directions", "check_ray_batch", "mesh_face_tables", "mesh_group_parts", "group_blocks",
-           "first_far_row", "zero_one"]
+           "first_far_row"]
 
 #: Fixed-point scale for entropy weights: weight = round(H * ENTROPY_SCALE) as int64. ln(22) * 2**32 is
 #: about 1.3e10, so 7e8 fully uncertain voxels still fit in int64 without overflow.
@@ -229,6 +229,13 @@ class Backend(abc.ABC):
         change or reuse ``weights`` and ``stop`` afterwards (the jackknife keeps handles of grids it patched
         in one working array).
         """
+
+    def prepare_indicator(self, grid: GridSpec, weights: np.ndarray, stop: np.ndarray | None) -> object:
+        """``prepare_grid`` for a grid whose weights are all 0 or 1, as the caller promises (the denominators'
+        indicator grids, ``indicators.indicator_weights``): its sums are the covered voxels it marks, which a
+        backend may count from another grid's walk in ``score_placements_many`` (Warp, OpenCL). Weights other
+        than 0 and 1 here give wrong sums there. Here: ``prepare_grid``."""
+        return self.prepare_grid(grid, weights, stop)
 
     def grid_from_rows(self, grid: GridSpec, voxels: np.ndarray, weights: np.ndarray,
                        stop: np.ndarray | None) -> object:
@@ -528,16 +535,6 @@ def _dense_rows(grid: GridSpec, voxels, weights, stop) -> tuple[np.ndarray, np.n
     s = np.zeros(grid.n_voxels, dtype=np.uint8)
     s[ids] = s_rows
     return w, s
-
-
-def zero_one(weights: np.ndarray, nonzero: np.ndarray) -> bool:
-    """Whether every weight is 0 or 1 (an indicator grid: ``score_placements_many`` may count its covered voxels
-    from another grid's walk), given ``nonzero = weights != 0``: only the nonzero weights are looked at, and a grid
-    of other weights (an entropy grid) is told by its first nonzero one (``argmax`` stops at the first True)."""
-    first = int(np.argmax(nonzero)) if len(nonzero) else 0
-    if len(nonzero) and nonzero[first] and weights[first] != 1:
-        return False
-    return bool(np.all(weights[nonzero] == 1))
 
 
 def check_voxel_rows(voxels, weights, stop, n_voxels: int, has_stop: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl as cl
 
-from place3d_kernels.backends.base import GridSpec, check_voxel_rows, zero_one
+from place3d_kernels.backends.base import GridSpec, check_voxel_rows
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 from place3d_kernels.backends.opencl import _runtime as rt
 
@@ -37,8 +37,7 @@ class CLGrid:
             raise ValueError(f"weights must have one int64 per voxel ({spec.n_voxels}), got shape {w.shape}")
         self.weights = cl.Buffer(ctx, _MF.READ_ONLY | _MF.COPY_HOST_PTR, hostbuf=w)
         nonzero = w != 0
-        # every weight 0 or 1 (an indicator grid, metrics' denominators): its sums are counts of bits
-        self.binary = zero_one(w, nonzero)
+        self.binary = False    # every weight 0 or 1 (prepare_indicator): its sums are counts of bits
         self.use_stop = stop is not None
         # each score strategy reads one form of the occlusion mask: bytes (private) or bricked bit pairs
         # of (occlusion, nonzero weight) for the atomic strategy (score_rays_csr reads them, and flat_masks makes
@@ -86,6 +85,12 @@ class OpenCLScoring:
     def prepare_grid(self, grid, weights, stop):
         return CLGrid(self, grid, weights, stop)
 
+    def prepare_indicator(self, grid, weights, stop):
+        # its sums are counted from bits (score_reduce's popcount, count_masked): the caller's 0/1 promise
+        h = CLGrid(self, grid, weights, stop)
+        h.binary = True
+        return h
+
     writes_grids = True
 
     def working_grid(self, grid, voxels, weights, stop):
@@ -125,7 +130,7 @@ class OpenCLScoring:
         """``Backend.score_placements_many``: with the private strategy the rays are walked once (on the first
         handle's stop mask) and each grid's weights reduced over the same bitsets; the atomic strategy sums
         weights during its walk, so it walks once per grid, except for grids of 0/1 weights (indicators,
-        ``CLGrid.binary``), whose sums it counts from the first grid's bitsets against their nonzero bits."""
+        ``prepare_indicator``), whose sums it counts from the first grid's bitsets against their nonzero bits."""
         handles = list(handles)
         for handle in handles:
             if not isinstance(handle, CLGrid):

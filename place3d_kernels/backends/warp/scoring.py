@@ -11,7 +11,7 @@ import os
 import numpy as np
 import warp as wp
 
-from place3d_kernels.backends.base import check_voxel_rows, rotation_matrices, zero_one
+from place3d_kernels.backends.base import check_voxel_rows, rotation_matrices
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 from place3d_kernels.backends.warp.cpu_split import CHUNKS_PER_THREAD, MIN_CHUNK
 
@@ -46,7 +46,7 @@ class _WarpGrid:
         self.masks = masks              # per brick word w: [2w] occlusion bits, [2w + 1] nonzero-weight bits
                                         # (uint32 pairs; on CUDA the same bytes as one uint64 per brick)
         self.flat = flat                # CUDA: the score kernel's masks per 8 x 4 x 1 brick (bricks.flat_brick_masks)
-        self.binary = False             # every weight 0 or 1 (prepare_grid): its sums are counts of masked bits
+        self.binary = False             # every weight 0 or 1 (prepare_indicator): its sums are counts of bits
         self._masks64 = None            # CPU: the brick pairs as one uint64 each (count_masked_kernel)
 
     def nonzero_words(self, cuda: bool):
@@ -71,18 +71,19 @@ class WarpScoring:
 
     # ------------------------------------------------------------------ grids
     def prepare_grid(self, grid, weights, stop):
-        host = np.ascontiguousarray(weights, dtype=np.int64).reshape(-1)
-        w = wp.array(host, dtype=wp.int64, device=self.device)
-        nonzero = host != 0
-        masks = brick_masks(grid.shape, nonzero, None if stop is None else np.asarray(stop).reshape(-1) != 0)
+        w = wp.array(np.ascontiguousarray(weights, dtype=np.int64), dtype=wp.int64, device=self.device)
+        masks = brick_masks(grid.shape, np.asarray(weights).reshape(-1) != 0,
+                            None if stop is None else np.asarray(stop).reshape(-1) != 0)
         if self.device.is_cuda:   # each brick's pair as one little-endian uint64, and the score kernel's bricks
             pairs = wp.array(masks.view(np.uint64), dtype=wp.uint64, device=self.device)
-            out = _WarpGrid(grid, w, pairs, self._flat_masks(grid.shape, pairs))
-        else:
-            out = _WarpGrid(grid, w, wp.array(masks, dtype=wp.uint32, device=self.device))
-        # an indicator grid (metrics' denominators): score_placements_many counts its covered voxels from the bits
-        out.binary = zero_one(host, nonzero)
-        return out
+            return _WarpGrid(grid, w, pairs, self._flat_masks(grid.shape, pairs))
+        return _WarpGrid(grid, w, wp.array(masks, dtype=wp.uint32, device=self.device))
+
+    def prepare_indicator(self, grid, weights, stop):
+        # score_placements_many counts its covered voxels from the first grid's bits (the caller's 0/1 promise)
+        h = self.prepare_grid(grid, weights, stop)
+        h.binary = True
+        return h
 
     def _flat_masks(self, shape, pairs):
         """The CUDA score kernel's masks (``bricks.flat_brick_masks``) from a grid's brick pairs, on the device."""
@@ -246,8 +247,8 @@ class WarpScoring:
 
     def score_placements_many(self, handles, elevations, azimuths, t_max, poses):
         """``Backend.score_placements_many``: the rays are walked once, on the first grid. A further grid of 0/1
-        weights (an indicator, such as the denominators' grids of ``indicators.py``: ``prepare_grid`` marks it
-        ``binary``) sums to its covered voxels with weight 1, which are counted from the same bitsets against its
+        weights (an indicator, such as the denominators' grids of ``indicators.py``, made by ``prepare_indicator``)
+        sums to its covered voxels with weight 1, which are counted from the same bitsets against its
         nonzero-weight bits; its counts are the first grid's (one stop mask: the caller's promise). Other grids,
         and a single rig split over CPU threads, are walked on their own."""
         handles = list(handles)
