@@ -239,8 +239,16 @@ def test_bit_count_equals_numpy_whatever_the_words_per_thread(per):
     host[words:2 * words] = 0                       # a candidate with nothing covered
     counts = wp.zeros(P, dtype=wp.int64, device="cpu")
     chunks = -(-words // per)
+    bits = wp.array(host, dtype=wp.uint32, device="cpu")
     wp.launch(k.count_bits_kernel, dim=P * chunks, device="cpu",
-              inputs=[wp.array(host, dtype=wp.uint32, device="cpu"), words, chunks, per, counts])
+              inputs=[bits, words, chunks, per, wp.zeros(1, dtype=wp.uint64, device="cpu"), 0, counts])
     want = np.bitwise_count(host.reshape(P, words)).sum(axis=1)
     np.testing.assert_array_equal(counts.numpy(), want)
+    # masked: the bits under the high halves of one uint64 per word (another grid's nonzero-weight bits)
+    masks = rng.integers(0, 2**63, words, dtype=np.uint64)
+    masked = wp.zeros(P, dtype=wp.int64, device="cpu")
+    wp.launch(k.count_bits_kernel, dim=P * chunks, device="cpu",
+              inputs=[bits, words, chunks, per, wp.array(masks, dtype=wp.uint64, device="cpu"), 1, masked])
+    high = (masks >> np.uint64(32)).astype(np.uint32)
+    np.testing.assert_array_equal(masked.numpy(), np.bitwise_count(host.reshape(P, words) & high).sum(axis=1))
     assert k.count_words_per_thread(2**24) == 1024 and k.count_words_per_thread(2**24 - 1) == k.COUNT_WORDS

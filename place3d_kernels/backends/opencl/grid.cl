@@ -429,8 +429,11 @@ __kernel void score_rays_flat(__global const real* rig, __global const real* sdi
 }
 
 /* global size (chunks, P): set bits of words [c * per, (c + 1) * per) of candidate p's bitset */
+/* Set bits of each candidate's bitset, or (masked) of those whose voxel has a nonzero weight in another grid:
+ * masks[q] is that grid's word q in the bitset's layout (flat bricks: occlusion bits low, nonzero-weight bits
+ * high); for a grid of 0/1 weights (an indicator) that is its sum over the covered voxels. */
 __kernel void count_bits(__global const uint* bits, const long words, const int per, const int chunks,
-                         __global long* part_cnt)
+                         __global const ulong* masks, const int masked, __global long* part_cnt)
 {
     int c = get_global_id(0);
     long p = get_global_id(1);
@@ -438,23 +441,11 @@ __kernel void count_bits(__global const uint* bits, const long words, const int 
     long w0 = (long)c * per, w1 = w0 + per < words ? w0 + per : words;
     __global const uint* mine = bits + p * words;
     long cnt = 0;
-    for (long q = w0; q < w1; ++q) cnt += popcount(mine[q]);
-    part_cnt[p * chunks + c] = cnt;
-}
-
-/* count_bits of the set bits whose voxel has a nonzero weight in another grid: masks[q] is that grid's word q in
- * the bitset's layout (flat bricks: occlusion bits low, nonzero-weight bits high). For a grid of 0/1 weights
- * (an indicator) this is its sum over the covered voxels. */
-__kernel void count_masked(__global const uint* bits, const long words, const int per, const int chunks,
-                           __global const ulong* masks, __global long* part_cnt)
-{
-    int c = get_global_id(0);
-    long p = get_global_id(1);
-    if (c >= chunks) return;
-    long w0 = (long)c * per, w1 = w0 + per < words ? w0 + per : words;
-    __global const uint* mine = bits + p * words;
-    long cnt = 0;
-    for (long q = w0; q < w1; ++q) cnt += popcount(mine[q] & (uint)(masks[q] >> 32));
+    if (masked) {
+        for (long q = w0; q < w1; ++q) cnt += popcount(mine[q] & (uint)(masks[q] >> 32));
+    } else {
+        for (long q = w0; q < w1; ++q) cnt += popcount(mine[q]);
+    }
     part_cnt[p * chunks + c] = cnt;
 }
 

@@ -242,13 +242,13 @@ class OpenCLScoring:
                 self._launch("score_rays_flat", (items, pn), rig_b, sdir_b, np.int32(L), np.int32(CA), *grid_args,
                              np.int32(per), np.int32(items), ps)
             self._launch("count_bits", (n_chunks, pn), bits, np.int64(words), np.int32(per_count),
-                         np.int32(n_chunks), pc)
+                         np.int32(n_chunks), self._dummy, np.int32(0), pc)
             part = self._read(ps, np.int64, pn * (1 if gpu else items))
             sums[p0:p0 + pn] = part.reshape(pn, -1).sum(axis=1, dtype=np.int64)
             counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(axis=1, dtype=np.int64)
             for h, m in zip(extra, marked):         # an indicator's covered voxels of weight 1, from these bits
-                self._launch("count_masked", (n_chunks, pn), bits, np.int64(words), np.int32(per_count),
-                             np.int32(n_chunks), self._flat_masks(h), pc)
+                self._launch("count_bits", (n_chunks, pn), bits, np.int64(words), np.int32(per_count),
+                             np.int32(n_chunks), self._flat_masks(h), np.int32(1), pc)
                 m[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(axis=1, dtype=np.int64)
         return [(sums, counts)] + [(m, counts.copy()) for m in marked] if many else (sums, counts)
 
@@ -332,6 +332,6 @@ class OpenCLScoring:
                 cs = np.concatenate([[0], np.cumsum(part, dtype=np.int64)])
                 sums[p0:p0 + pn] = cs[off[p0 + 1:p0 + pn + 1] - a] - cs[off[p0:p0 + pn] - a]
             self._launch("count_bits", (n_chunks, pn), bits, np.int64(words), np.int32(per_count),
-                         np.int32(n_chunks), pc)
+                         np.int32(n_chunks), self._dummy, np.int32(0), pc)
             counts[p0:p0 + pn] = self._read(pc, np.int64, pn * n_chunks).reshape(pn, -1).sum(axis=1, dtype=np.int64)
         return sums, counts

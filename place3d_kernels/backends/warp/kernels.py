@@ -739,8 +739,12 @@ def count_words_per_thread(total_words: int) -> int:
 
 @wp.kernel
 def count_bits_kernel(bits: wp.array(dtype=wp.uint32), words_per_candidate: wp.int64,
-                      chunks_per_candidate: wp.int64, per_thread: wp.int32, counts: wp.array(dtype=wp.int64)):
-    # covered voxels of each candidate = set bits of its bitset; one atomic add per per_thread words
+                      chunks_per_candidate: wp.int64, per_thread: wp.int32, masks: wp.array(dtype=wp.uint64),
+                      masked: wp.int32, counts: wp.array(dtype=wp.int64)):
+    # covered voxels of each candidate = set bits of its bitset; one atomic add per per_thread words. With
+    # ``masked``, only the bits whose voxel has a nonzero weight in another grid: masks[w] is that grid's word w
+    # (occlusion bits low, nonzero-weight bits high) in the bitset's layout (4 x 4 x 2 bricks on the CPU, flat
+    # bricks on CUDA); for a grid of 0/1 weights that is its sum over the covered voxels
     tid = wp.int64(wp.tid())
     cand = tid / chunks_per_candidate
     w0 = (tid - cand * chunks_per_candidate) * wp.int64(per_thread)
@@ -749,27 +753,10 @@ def count_bits_kernel(bits: wp.array(dtype=wp.uint32), words_per_candidate: wp.i
     for q in range(per_thread):
         at = w0 + wp.int64(q)
         if at < words_per_candidate:
-            c += wp.int64(wp.bit_count(bits[base + at]))
-    if c > wp.int64(0):
-        wp.atomic_add(counts, wp.int32(cand), c)
-
-
-@wp.kernel
-def count_masked_kernel(bits: wp.array(dtype=wp.uint32), words_per_candidate: wp.int64,
-                        chunks_per_candidate: wp.int64, per_thread: wp.int32, masks: wp.array(dtype=wp.uint64),
-                        counts: wp.array(dtype=wp.int64)):
-    # counts[c] += set bits of candidate c's bitset whose voxel has a nonzero weight in another grid: masks[w] is
-    # that grid's word w (occlusion bits low, nonzero-weight bits high) in the bitset's layout (4 x 4 x 2 bricks
-    # on the CPU, flat bricks on CUDA). For a grid of 0/1 weights this is its sum over the covered voxels.
-    tid = wp.int64(wp.tid())
-    cand = tid / chunks_per_candidate
-    w0 = (tid - cand * chunks_per_candidate) * wp.int64(per_thread)
-    base = cand * words_per_candidate
-    c = wp.int64(0)
-    for q in range(per_thread):
-        at = w0 + wp.int64(q)
-        if at < words_per_candidate:
-            c += wp.int64(wp.bit_count(bits[base + at] & wp.uint32(masks[at] >> wp.uint64(32))))
+            v = bits[base + at]
+            if masked != 0:
+                v = v & wp.uint32(masks[at] >> wp.uint64(32))
+            c += wp.int64(wp.bit_count(v))
     if c > wp.int64(0):
         wp.atomic_add(counts, wp.int32(cand), c)
 

@@ -47,7 +47,7 @@ class _WarpGrid:
                                         # (uint32 pairs; on CUDA the same bytes as one uint64 per brick)
         self.flat = flat                # CUDA: the score kernel's masks per 8 x 4 x 1 brick (bricks.flat_brick_masks)
         self.binary = False             # every weight 0 or 1 (prepare_indicator): its sums are counts of bits
-        self._masks64 = None            # CPU: the brick pairs as one uint64 each (count_masked_kernel)
+        self._masks64 = None            # CPU: the brick pairs as one uint64 each (count_bits_kernel, masked)
 
     def nonzero_words(self, cuda: bool):
         """This grid's masks in the score bitsets' layout, one uint64 per word (nonzero-weight bits high):
@@ -369,11 +369,8 @@ class WarpScoring:
 
     def _count_masked(self, bits, P: int, words: int, masks, counts) -> None:
         """counts[c] = bits of candidate c's bitset set where ``masks`` (one uint64 per bitset word, nonzero-weight
-        bits high) has its nonzero bit: another grid's covered voxels of nonzero weight (count_masked_kernel)."""
-        per = self.k.count_words_per_thread(P * words)
-        chunks = -(-words // per)
-        wp.launch(self.k.count_masked_kernel, dim=P * chunks, device=self.device,
-                  inputs=[bits, int(words), int(chunks), int(per), masks, counts])
+        bits high) has its nonzero bit: another grid's covered voxels of nonzero weight (count_bits_kernel)."""
+        self._count_words(bits, P, words, counts, masks)
 
     def _count_bits(self, bits, P: int, words: int, counts) -> None:
         """counts[c] = set bits of candidate c's bitset (P candidates of ``words`` words each); on CUDA the
@@ -387,10 +384,22 @@ class WarpScoring:
             wp.launch(g.count_clear_kernel, dim=P * t, device=self.device, inputs=[bits, int(words), int(t), counts],
                       block_dim=g.SCORE_BLOCK_DIM)
             return
+        self._count_words(bits, P, words, counts)
+
+    def _count_words(self, bits, P: int, words: int, counts, masks=None) -> None:
+        """count_bits_kernel over P candidates' bitsets, of every set bit or (``masks``) of the masked ones."""
         per = self.k.count_words_per_thread(P * words)
         chunks = -(-words // per)
+        masked = masks is not None
         wp.launch(self.k.count_bits_kernel, dim=P * chunks, device=self.device,
-                  inputs=[bits, int(words), int(chunks), int(per), counts])
+                  inputs=[bits, int(words), int(chunks), int(per), masks if masked else self._no_masks(), int(masked),
+                          counts])
+
+    def _no_masks(self):
+        """The one-word masks argument of an unmasked count (never read)."""
+        if getattr(self, "_no_masks_array", None) is None:
+            self._no_masks_array = wp.zeros(1, dtype=wp.uint64, device=self.device)
+        return self._no_masks_array
 
     def _score_one_rig_split(self, handle, sd, rot, pos, L, t_max):
         """CPU: one rig's rays over the thread pool, exactly. Thread c walks the sensor directions
