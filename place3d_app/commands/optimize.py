@@ -343,8 +343,9 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
 
     baselines = {}
     if args.lidars == 4:
-        # the paper's placements in one batch (each rig's score is the same alone or batched): eleven calls of
-        # one rig took 1.6-3.0 s against 1.2-1.5 s on the 2-core dev VM (opencl:pocl, default pooled P-SOG, 2 runs)
+        # the paper's placements in one batch (each rig's score is the same alone or batched): eleven calls of one
+        # rig took 2.34 [2.24-2.59] s of the warm default command against 1.19 [0.95-1.54] s for one call on the
+        # 2-core dev VM (opencl:pocl, 3 runs each, alternated, with the session's other changes; results ab-2026-11-29-s27)
         with section("baseline scores"):
             got = msog_batch(psog, lidar, np.stack([Placement.load(n).poses for n in PAPER_PLACEMENTS]),
                              args.occlusion, args.task, b, normalisation=args.normalisation)

@@ -47,16 +47,14 @@ class _WarpGrid:
                                         # (uint32 pairs; on CUDA the same bytes as one uint64 per brick)
         self.flat = flat                # CUDA: the score kernel's masks per 8 x 4 x 1 brick (bricks.flat_brick_masks)
         self.binary = False             # every weight 0 or 1 (prepare_indicator): its sums are counts of bits
-        self._masks64 = None            # CPU: the brick pairs as one uint64 each (count_bits_kernel, masked)
 
     def nonzero_words(self, cuda: bool):
         """This grid's masks in the score bitsets' layout, one uint64 per word (nonzero-weight bits high):
-        the flat bricks on CUDA, the 4 x 4 x 2 brick pairs on the CPU."""
+        the flat bricks on CUDA, on the CPU the 4 x 4 x 2 brick pairs read as one uint64 each (an alias)."""
         if cuda:
             return self.flat
-        if self._masks64 is None:
-            self._masks64 = wp.array(self.masks.numpy().view(np.uint64), dtype=wp.uint64, device=self.masks.device)
-        return self._masks64
+        return wp.array(ptr=self.masks.ptr, shape=(self.masks.shape[0] // 2,), dtype=wp.uint64,
+                        device=self.masks.device)
 
 
 class _WarpGridBase:
@@ -249,25 +247,17 @@ class WarpScoring:
         """``Backend.score_placements_many``: the rays are walked once, on the first grid. A further grid of 0/1
         weights (an indicator, such as the denominators' grids of ``indicators.py``, made by ``prepare_indicator``)
         sums to its covered voxels with weight 1, which are counted from the same bitsets against its
-        nonzero-weight bits; its counts are the first grid's (one stop mask: the caller's promise). Other grids,
-        and a single rig split over CPU threads, are walked on their own."""
+        nonzero-weight bits; its counts are the first grid's (one stop mask: the caller's promise). Other grids
+        are walked on their own; with such grids a single rig is not split over CPU threads."""
         handles = list(handles)
         poses = np.asarray(poses, dtype=np.float64)
         first = handles[0] if handles else None
         extra = [h for h in handles[1:] if getattr(h, "binary", False) and h.spec.shape == first.spec.shape]
-        if not extra or self._splits(poses, elevations, azimuths):
+        if not extra:
             return [self.score_placements(h, elevations, azimuths, t_max, poses) for h in handles]
         got = dict(zip(map(id, [first] + extra), self._score_walked(first, extra, elevations, azimuths, t_max, poses)))
         return [got[id(h)] if id(h) in got else self.score_placements(h, elevations, azimuths, t_max, poses)
                 for h in handles]
-
-    def _splits(self, poses, elevations, azimuths) -> bool:
-        """Whether ``score_placements`` may take these rigs as one rig split over the CPU threads
-        (``_score_one_rig_split``; it decides again by the load)."""
-        if self.device.is_cuda or self.threads <= 1 or poses.ndim != 3 or len(poses) != 1:
-            return False
-        rays = poses.shape[1] * len(self._directions.get(elevations, azimuths)[0])
-        return rays >= 2 * MIN_CHUNK and _split_pays(rays, self.threads)
 
     def _score_walked(self, handle, extra, elevations, azimuths, t_max, poses):
         """[(sums, counts)] of ``handle`` and then of each grid of ``extra`` (0/1 weights, the same stop mask),
