@@ -5,6 +5,9 @@ global test and a ``nullcontext`` (well under a microsecond), so call sites stay
 each section adds its ``time.perf_counter`` span to an accumulator (total seconds and number of entries).
 Nested sections are timed on their own and also inside their parent; the table indents them, so a
 parent's row includes its children's time. Sections opened on other threads are counted at top level.
+The table's last two columns say when a section was first entered and last left (seconds from the
+profile's start): where sections overlap (a thread beside the main one, a wait for worker processes),
+the sum of the rows is more than the wall time, and these columns show what ran beside what.
 
     place3d --profile optimize --max-evals 300     # prints the table on stderr when the command ends
 """
@@ -24,10 +27,12 @@ _NULL = contextlib.nullcontext()
 
 
 class Profile:
-    """Accumulated sections: ``totals[path] = [seconds, calls]``, ``path`` a tuple of nested names."""
+    """Accumulated sections: ``totals[path] = [seconds, calls]``, ``path`` a tuple of nested names, and
+    ``spans[path] = [first entered, last left]`` in seconds from the profile's start."""
 
     def __init__(self):
         self.totals: dict[tuple[str, ...], list] = {}
+        self.spans: dict[tuple[str, ...], list] = {}
         self.start = time.perf_counter()
         self.wall = 0.0
         self._local = threading.local()
@@ -47,19 +52,27 @@ class Profile:
         try:
             yield
         finally:
-            dt = time.perf_counter() - t
+            end = time.perf_counter()
             stack.pop()
-            acc = self.totals.setdefault(path, [0.0, 0])
-            acc[0] += dt
-            acc[1] += 1
+            self._add(path, end - t, end)
+
+    def _add(self, path: tuple, seconds: float, end: float) -> None:
+        acc = self.totals.setdefault(path, [0.0, 0])
+        acc[0] += seconds
+        acc[1] += 1
+        span = self.spans.setdefault(path, [end - seconds - self.start, 0.0])
+        span[0] = min(span[0], end - seconds - self.start)
+        span[1] = max(span[1], end - self.start)
 
     def table(self) -> str:
         """The sections as an indented text table in first-seen order, with the whole span last."""
         wall = self.wall or (time.perf_counter() - self.start)
-        rows = [f"{'section':44s} {'seconds':>9s} {'calls':>7s} {'share':>6s}"]
+        rows = [f"{'section':44s} {'seconds':>9s} {'calls':>7s} {'share':>6s} {'from':>7s} {'to':>7s}"]
         for path, (sec, calls) in _tree_order(self.totals):
             name = "  " * (len(path) - 1) + path[-1]
-            rows.append(f"{name[:44]:44s} {sec:9.3f} {calls:7d} {100 * sec / wall if wall else 0:5.1f}%")
+            first, last = self.spans.get(path, (float("nan"), float("nan")))
+            rows.append(f"{name[:44]:44s} {sec:9.3f} {calls:7d} {100 * sec / wall if wall else 0:5.1f}% "
+                        f"{first:7.2f} {last:7.2f}")
         top = sum(v[0] for p, v in self.totals.items() if len(p) == 1)
         rows.append(f"{'(not in a section)':44s} {max(wall - top, 0.0):9.3f}")
         rows.append(f"{'total (profile span)':44s} {wall:9.3f}")
@@ -89,12 +102,10 @@ def section(name: str):
 
 def record(name: str, seconds: float) -> None:
     """Add a span measured elsewhere (another process's step) as one call of ``name``, nested in the
-    section open on this thread; a no-op outside a profile."""
+    section open on this thread, taken to have ended now; a no-op outside a profile."""
     p = _ACTIVE
     if p is not None:
-        acc = p.totals.setdefault(tuple(p._stack()) + (name,), [0.0, 0])
-        acc[0] += float(seconds)
-        acc[1] += 1
+        p._add(tuple(p._stack()) + (name,), float(seconds), time.perf_counter())
 
 
 @contextlib.contextmanager

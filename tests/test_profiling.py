@@ -52,3 +52,32 @@ def test_record_adds_a_span_measured_elsewhere_under_the_open_section():
     assert p.totals[("top",)] == [2.0, 1]
     assert not any("outside" in k for k in p.totals)
     assert "    child step" not in p.table() and "  child step" in p.table()
+
+
+def test_spans_say_when_a_section_was_first_entered_and_last_left():
+    # a section entered twice with a gap: its span runs from the first entry to the last exit, longer than its
+    # seconds; a thread's section beside it overlaps it; the table prints both numbers per row
+    import threading
+
+    from place3d_kernels.profiling import profile, section
+
+    with profile(print_table=False) as p:
+        with section("twice"):
+            time.sleep(0.02)
+        time.sleep(0.05)
+
+        def beside():
+            with section("thread"):
+                time.sleep(0.03)
+
+        th = threading.Thread(target=beside)
+        th.start()
+        with section("twice"):
+            time.sleep(0.02)
+        th.join()
+    first, last = p.spans[("twice",)]
+    assert 0.0 <= first < 0.01 and last - first >= 0.09 > p.totals[("twice",)][0]
+    t0, t1 = p.spans[("thread",)]
+    assert first + 0.06 <= t0 < t1 <= p.wall and t1 - t0 >= 0.03
+    row = next(r for r in p.table().splitlines() if r.startswith("twice"))
+    assert row.split()[-2:] == [f"{first:.2f}", f"{last:.2f}"]

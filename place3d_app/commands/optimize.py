@@ -234,9 +234,10 @@ def _probe(name):
         return get_backend(name)
 
 
-def _search_imports(certificate_here: bool) -> None:
+def _search_imports(certificate_here: bool, t_quantiles: bool) -> None:
     """Import what the search uses (pycma) and, where the certificate is computed in this process
-    (``certificate_here``), SciPy's ``pdist``, ahead of them."""
+    (``certificate_here``), SciPy's ``pdist``, ahead of them; with ``t_quantiles`` (intervals over pooled
+    routes) ``scipy.special``, whose t quantiles the interval takes (``intervals.Jackknife``)."""
     import importlib
 
     from place3d_kernels.lazy_imports import import_cma
@@ -244,6 +245,8 @@ def _search_imports(certificate_here: bool) -> None:
     import_cma()
     if certificate_here:
         importlib.import_module("scipy.spatial.distance")       # optimize.certificate's pdist
+    if t_quantiles:
+        importlib.import_module("scipy.special")
 
 
 def run(args, spec, psog_for) -> int:
@@ -288,14 +291,17 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     # while this one builds the scene and reads the cached P-SOG, which need no backend; a cache miss waits
     # for it (scene_psog takes the Future). The same thread then imports pycma, which a cold command otherwise
     # imported once the P-SOG was built; on a cache miss it overlaps the simulation. Where the figures have
-    # processes, the certificate is computed in their helper process (optimize's certificate_executor) and
-    # this process never imports SciPy: its import held the interpreter lock beside the simulation
-    # (bench/README.md, "What the studies found", cold command: imports, tail and exit). Elsewhere this thread
-    # imports the certificate's SciPy module too.
+    # processes, the certificate is computed in their helper process (optimize's certificate_executor): its
+    # SciPy import held the interpreter lock beside an in-process simulation (bench/README.md, "What the
+    # studies found", cold command: imports, tail and exit). Elsewhere this thread imports the certificate's
+    # SciPy module too. Intervals over pooled routes take t quantiles from scipy.special (0.3-0.5 s to import
+    # on the H200 host, once the search had ended): this thread imports it while the drives are built in the
+    # worker processes.
     bg = ThreadPoolExecutor(max_workers=1, thread_name_prefix="place3d-optimize")
     probe = bg.submit(_probe, args.backend)
     helper = plotter.helper if plotter is not None else None
-    imports = bg.submit(_search_imports, helper is None)
+    imports = bg.submit(_search_imports, helper is None,
+                        args.interval == "jackknife" and len(getattr(args, "drives", None) or ()) > 1)
     try:
         lidar = LidarModel.load(args.lidar)
         with section("scene + P-SOG"):
@@ -561,8 +567,9 @@ def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
 
     from place3d_kernels.optimize.diagnostics import transfer
 
-    res.holdout = holdout(scenes(), lidar, res.best_placement.poses, base_poses, occlusion=args.occlusion,
-                          task=args.task, backend=b, normalisation=args.normalisation)
+    with section("held-out check"):           # its P-SOGs (a nested section) and the rigs' scores on them
+        res.holdout = holdout(scenes(), lidar, res.best_placement.poses, base_poses, occlusion=args.occlusion,
+                              task=args.task, backend=b, normalisation=args.normalisation)
     res.transfer = transfer(res.holdout)
     for line in format_holdout(res.holdout, res.transfer):
         print(line)
