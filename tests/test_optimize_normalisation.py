@@ -199,3 +199,36 @@ def test_uncertain_on_two_subsets_is_flat_and_the_command_says_so(capsys):
     err = capsys.readouterr().err
     assert err.startswith("place3d: warning: --normalisation uncertain on a P-SOG of T = 2 subsets")
     assert "--normalisation paper" in err and len(err.strip().splitlines()) == 1
+
+
+def test_held_out_pool_made_during_the_search_scores_as_after_it(tmp_path, monkeypatch):
+    """The held-out P-SOG pooled from two drives is made with its grids on a thread while the search runs
+    (``held_out_ahead``, hosts of 4+ cores or PLACE3D_JACKKNIFE_PREFETCH=1) or after it (=0): the same
+    held-out scores either way, each ``msog_batch`` of the rig on that pool under the run's normalisation."""
+    from place3d_app.cli import main
+    from place3d_app.commands.optimize import holdout_specs
+    from place3d_app.commands.routes import drive_specs
+    from place3d_kernels.pooled import pool_specs
+    from place3d_kernels.spec import specs_from_args
+
+    extra = ["--routes", "2", "--holdout-seeds", "5,6", "--interval", "none"]
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "cache"))
+    got = {}
+    for ahead in ("1", "0"):
+        monkeypatch.setenv("PLACE3D_JACKKNIFE_PREFETCH", ahead)
+        with contextlib.redirect_stdout(io.StringIO()):
+            assert main(["optimize", *TINY, *extra, "--output", str(tmp_path / ahead)]) == 0
+        got[ahead] = json.loads((tmp_path / ahead / "result.json").read_text())
+    assert got["1"]["holdout"] == got["0"]["holdout"] and got["1"]["best_placement"] == got["0"]["best_placement"]
+    args = _args(extra)
+    spec = specs_from_args(args)
+    args.drives = drive_specs(args, spec)
+    ((_, seeds, drives),) = holdout_specs(args, spec)
+    held = pool_specs(drives, backend=B).psog()
+    (h,) = got["1"]["holdout"]
+    lidar = LidarModel.load("place3d_16ch")
+    assert seeds == [5, 6] and h["seeds"] == [5, 6]
+    for name, poses in [("best", np.array(got["1"]["best_placement"])),
+                        *((n, Placement.load(n).poses) for n in ("center", "line"))]:
+        want = float(msog_batch(held, lidar, poses[None], backend=B, normalisation="uncertain")[0])
+        assert (h["best"] if name == "best" else h["baselines"][name]) == want, name

@@ -6,6 +6,7 @@ import csv
 import dataclasses
 import io
 import json
+import threading
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -315,8 +316,20 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     from place3d_app.commands.common import warn_flat_objective
 
     warn_flat_objective(psog, args.normalisation)
+    held_out = held_out_ahead(args, spec, b)     # the held-out P-SOGs and their grids, made during the search
     if plotter is not None and plotter.processes:
-        plotter.keep_panel(*entropy_view(psog))     # coverage.png's left panel, drawn during the search
+        # coverage.png's left panel, drawn during the search; its entropies (float, every stored voxel: 0.3-0.4 s
+        # of NumPy on the H200 host, before the baselines) are made on a thread, joined before the figures start
+        def keep_panel():
+            try:
+                plotter.keep_panel(*entropy_view(psog))
+            except Exception:  # noqa: BLE001 - the figure then draws the panel itself, and meets the error there
+                pass
+
+        panel = threading.Thread(target=keep_panel, daemon=True, name="place3d-panel")
+        panel.start()
+    else:
+        panel = None
     # The jackknife after the search scores the rigs on the drive's left-out grids, which depend on the
     # records and the task, not on the search: they are prepared on a thread while it runs
     # (place3d_app.prefetch.prepare_in_background)
@@ -379,6 +392,9 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
             placement.name = f"optimized-{args.task}"
+            if panel is not None:
+                with section("plotting: panel (wait)"):
+                    panel.join()
             plots = start_plots(plotter, history, placement, space, psog, lidar, b, args.occlusion, out)
 
     try:
@@ -409,7 +425,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     print("best placement (x, y, z, roll):")
     for p in best.poses:
         print("  " + ", ".join(f"{v:+.2f}" for v in p[:4]))
-    report_trust(args, spec, res, psog, lidar, b, baselines)
+    report_trust(args, spec, res, psog, lidar, b, baselines, held_out)
     cert = res.certificate
     if args.output:
         best.save(out / f"optimized-{args.task}.toml",
@@ -534,11 +550,62 @@ def report_intervals(args, spec, res, lidar, b, base_poses, psog=None) -> dict |
     return iv
 
 
-def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
-    """Fill ``res.diagnostics``, ``res.holdout`` and ``res.transfer`` (the held-out verdict, unless
-    --no-holdout) and print them (issue 34, item 4)."""
-    from place3d_kernels.optimize.diagnostics import diagnose, format_diagnostics, format_holdout, holdout
+def held_out_psogs(args, spec, specs, b, grids: bool = False):
+    """Yield ``(scene name, seeds, P-SOG)`` for each held-out spec of ``specs`` (``holdout_specs``), each checked
+    for entropy; with ``grids``, the grids its scoring will ask for (the task's weights, stop mask and
+    indicators on ``b``, kept by the P-SOG) are prepared too."""
+    from place3d_kernels.indicators import INDICATORS, indicator_handle
     from place3d_kernels.pipeline import check_entropy
+    from place3d_kernels.pooled import pool_specs
+
+    for name, seeds, drives in specs:
+        with section("held-out P-SOGs"):
+            if len(drives) == 1:
+                p = drives[0].build(backend=b, cache=not args.no_cache, progress=not args.quiet)
+            else:
+                p = pool_specs(drives, backend=b, cache=not args.no_cache, known=getattr(args, "built", None)).psog()
+        check_entropy(p, spec.frames_per_subset)
+        if grids and args.occlusion in ("sog", "none"):
+            with section("held-out grids"):
+                view = p.for_task(args.task)
+                view.handle(b, args.occlusion)
+                for kind in INDICATORS:
+                    indicator_handle(view, kind, b, args.occlusion)
+        yield name, seeds, p
+
+
+def held_out_ahead(args, spec, b):
+    """A ``Future`` of the held-out P-SOGs (``held_out_psogs`` with their grids), made on a daemon thread while
+    the search runs, or None (they are made after it, as before): where there are held-out P-SOGs, each pooled
+    from drives the workers built (a single drive would be built with a progress bar), and the host has cores
+    to spare (``prefetch.prefetch_wanted``: 4 or more, or ``PLACE3D_JACKKNIFE_PREFETCH=1``).
+
+    They depend on the held-out drives alone, not on the search, and took about 1 s of a cold default
+    ``optimize`` after it on the H200 (pooling, weights, and the uploads of three grids). An error on the
+    thread is raised where the command asks for them, after the search."""
+    from concurrent.futures import Future
+
+    from place3d_app.prefetch import prefetch_wanted
+
+    specs = getattr(args, "holdout", None)
+    if not specs or any(len(drives) < 2 for _, _, drives in specs) or not prefetch_wanted():
+        return None
+    done: Future = Future()
+
+    def work():
+        try:
+            done.set_result(list(held_out_psogs(args, spec, specs, b, grids=True)))
+        except BaseException as e:  # noqa: BLE001 - raised by result() in the command
+            done.set_exception(e)
+
+    threading.Thread(target=work, name="place3d-held-out", daemon=True).start()
+    return done
+
+
+def report_trust(args, spec, res, psog, lidar, b, baselines, held_out=None) -> None:
+    """Fill ``res.diagnostics``, ``res.holdout`` and ``res.transfer`` (the held-out verdict, unless
+    --no-holdout) and print them (issue 34, item 4). ``held_out``: ``held_out_ahead``'s Future, or None."""
+    from place3d_kernels.optimize.diagnostics import diagnose, format_diagnostics, format_holdout, holdout
     from place3d_kernels.placement import Placement
 
     base_poses = {name: Placement.load(name).poses for name in baselines}
@@ -552,23 +619,15 @@ def report_trust(args, spec, res, psog, lidar, b, baselines) -> None:
     specs = args.holdout if getattr(args, "holdout", None) is not None else holdout_specs(args, spec)
     if not specs:
         return
-
-    def scenes():
-        from place3d_kernels.pooled import pool_specs
-
-        for name, seeds, drives in specs:
-            with section("held-out P-SOGs"):
-                if len(drives) == 1:
-                    p = drives[0].build(backend=b, cache=not args.no_cache, progress=not args.quiet)
-                else:
-                    p = pool_specs(drives, backend=b, cache=not args.no_cache, known=getattr(args, "built", None)).psog()
-            check_entropy(p, spec.frames_per_subset)
-            yield name, seeds, p
-
     from place3d_kernels.optimize.diagnostics import transfer
 
     with section("held-out check"):           # its P-SOGs (a nested section) and the rigs' scores on them
-        res.holdout = holdout(scenes(), lidar, res.best_placement.poses, base_poses, occlusion=args.occlusion,
+        if held_out is not None:
+            with section("held-out P-SOGs (wait)"):
+                scenes = iter(held_out.result())
+        else:
+            scenes = held_out_psogs(args, spec, specs, b)
+        res.holdout = holdout(scenes, lidar, res.best_placement.poses, base_poses, occlusion=args.occlusion,
                               task=args.task, backend=b, normalisation=args.normalisation)
     res.transfer = transfer(res.holdout)
     for line in format_holdout(res.holdout, res.transfer):
