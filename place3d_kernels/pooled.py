@@ -343,7 +343,10 @@ class PooledPSOG:
     def plain_psog(self, reference: PSOG | None = None) -> PSOG:
         """``psog()`` (every record once), or ``reference`` itself when it is exactly that P-SOG: the same
         grid, voxels, counts, T and float64 probabilities (checked here). The scene's own P-SOG is, for
-        records of its drive; reusing it reuses its weights and the grids already on the device."""
+        records of its drive; reusing it reuses its weights and the grids already on the device. A reference
+        given to ``known_plain`` is returned unchecked."""
+        if reference is not None and reference is self._plain_psog:
+            return reference                    # known to be exactly this pool's P-SOG (``known_plain``)
         vox, c, T = self.counts()
         if (reference is not None and reference.n_subsets == T and reference.counts is not None
                 and reference.grid.to_dict() == self.grid.to_dict() and len(reference.channels) == self.n_classes

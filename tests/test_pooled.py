@@ -401,3 +401,22 @@ def test_the_plain_pool_summed_on_threads_is_the_sum_on_one(monkeypatch, ranked)
     assert np.array_equal(vox1, vox5) and c1.dtype == c5.dtype and np.array_equal(c1, c5)
     # and the table is the sum itself: every entry once (the repeated ones added up)
     assert int(c1[:, 1:].sum()) == sum(int(r.counts.sum()) for r in recs)
+
+
+def test_plain_psog_returns_a_known_plain_reference_without_comparing():
+    # optimize's pooled P-SOG is pooled.psog() itself (routes.pooled_psog marks it known_plain): the jackknife's
+    # point takes it as it is; another P-SOG of the same content is still checked, a different one refused,
+    # and adding a record forgets what was known
+    pooled = _four_drive_pool()
+    psog = pooled.psog()
+    pooled.known_plain(psog)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(np, "array_equal", lambda *a, **k: pytest.fail("compared arrays of a known plain P-SOG"))
+        assert pooled.plain_psog(psog) is psog
+    twin = pooled.psog()
+    assert pooled.plain_psog(twin) is twin                        # equal content: passes the check
+    other = PooledPSOG(pooled.grid, pooled.records[:3]).psog()
+    got = pooled.plain_psog(other)
+    assert got is not other and np.array_equal(got.counts, psog.counts)
+    pooled.add(pooled.records[0])
+    assert pooled.plain_psog(psog) is not psog                   # the pool changed: psog is no longer it

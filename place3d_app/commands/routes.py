@@ -94,6 +94,7 @@ def pooled_psog(args, spec, backend, specs=None):
         pooled = pool_specs(specs, backend=backend, cache=not args.no_cache, progress=not args.quiet,
                             known=getattr(args, "built", None))
         psog = pooled.psog()
+        pooled.known_plain(psog)      # it is the plain pool: the jackknife's point takes it without comparing arrays
     check_entropy(psog, spec.frames_per_subset)
     strata = [s.scene.name for s in specs]
     if not args.quiet:
