@@ -10,7 +10,8 @@ import numpy as np
 
 from place3d_kernels.sog import PSOG
 
-__all__ = ["NORMALISATIONS", "INDICATORS", "check_normalisation", "indicator_weights", "indicator_handle"]
+__all__ = ["NORMALISATIONS", "INDICATORS", "check_normalisation", "indicator_weights", "indicator_weight_rows",
+           "indicator_handle"]
 
 #: Denominators of M-SOG: the paper's N_L, and two that do not reward rays through never-occupied air.
 NORMALISATIONS = ("paper", "evidence", "uncertain")
@@ -44,11 +45,22 @@ def indicator_weights(p: PSOG, kind: str) -> np.ndarray:
     raise ValueError(f"indicator must be one of {INDICATORS}, got {kind!r}")
 
 
+def indicator_weight_rows(p: PSOG, kind: str) -> np.ndarray:
+    """(M,) int64 0/1: ``indicator_weights(p, kind)`` at the P-SOG's stored voxels (0 everywhere else)."""
+    if kind == "evidence":
+        return np.ones(len(p.voxels), dtype=np.int64)
+    if kind == "uncertain":
+        return (p.weight_rows > 0).astype(np.int64)
+    raise ValueError(f"indicator must be one of {INDICATORS}, got {kind!r}")
+
+
 def indicator_handle(p: PSOG, kind: str, b, occlusion: str):
-    """The prepared grid of ``indicator_weights(p, kind)`` on backend ``b`` (kept while ``p`` lives)."""
+    """The prepared grid of ``indicator_weights(p, kind)`` on backend ``b`` (kept while ``p`` lives), made from
+    the stored voxels' rows as ``PSOG.handle`` makes the weights' grid (``Backend.indicator_from_rows``: on
+    CUDA and OpenCL filled on the device, no dense host array)."""
     cache = _indicator_handles.setdefault(p, {})
     key = (kind, b, occlusion)
     if key not in cache:
-        stop = p.stop_mask if occlusion == "sog" else None
-        cache[key] = b.prepare_indicator(p.grid.spec, indicator_weights(p, kind), stop)
+        stop = p.stop_rows if occlusion == "sog" else None
+        cache[key] = b.indicator_from_rows(p.grid.spec, p.voxels, indicator_weight_rows(p, kind), stop)
     return cache[key]

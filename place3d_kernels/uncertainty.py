@@ -390,7 +390,7 @@ def rig_vs_baselines_intervals(source, lidar, best_poses, baseline_placements, t
     def scores(rigs):
         if method == "jackknife":
             routes = unit == "drives"       # over routes: stratified by scene, t quantiles (jackknife_pooled)
-            return jackknife_records(pooled.records, pooled.grid, L, rigs, (task,), occlusion, backend, level,
+            return jackknife_records(pooled, pooled.grid, L, rigs, (task,), occlusion, backend, level,
                                      unit=unit, normalisation=normalisation, reference=reference,
                                      pool_key=pool_key, strata=strata if routes else None,
                                      df=route_df(len(pooled), strata) if routes else None)[task]

@@ -248,6 +248,13 @@ class Backend(abc.ABC):
         w, s = _dense_rows(grid, voxels, weights, stop)
         return self.prepare_grid(grid, w, s)
 
+    def indicator_from_rows(self, grid: GridSpec, voxels: np.ndarray, weights: np.ndarray,
+                            stop: np.ndarray | None) -> object:
+        """``grid_from_rows`` for rows of 0/1 weights, as the caller promises: what ``prepare_indicator`` is to
+        ``prepare_grid`` (a P-SOG's indicator grids from its stored voxels, ``indicators.indicator_handle``).
+        Here: ``grid_from_rows``."""
+        return self.grid_from_rows(grid, voxels, weights, stop)
+
     def grid_base_from_rows(self, grid: GridSpec, voxels: np.ndarray, weights: np.ndarray,
                             stop: np.ndarray | None) -> object:
         """``grid_base`` of the dense arrays that ``grid_from_rows`` describes (backends that patch grids)."""

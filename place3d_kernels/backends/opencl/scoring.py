@@ -98,6 +98,11 @@ class OpenCLScoring:
         self.write_voxels(h, voxels, weights, stop)
         return h
 
+    def indicator_from_rows(self, grid, voxels, weights, stop):
+        h = self.grid_from_rows(grid, voxels, weights, stop)     # a working grid, filled from the rows here
+        h.binary = True
+        return h
+
     def write_voxels(self, handle, voxels, weights, stop):
         if not isinstance(handle, CLGrid) or not handle.writable:
             raise TypeError(f"write_voxels needs a handle from {self.name}.working_grid, got {type(handle).__name__}")

@@ -116,6 +116,11 @@ class WarpScoring:
         base = self._zero_base(grid, stop is not None)
         return self._patched(grid, base.weights, base.stop, ids, w_rows, None if stop is None else s_rows)
 
+    def indicator_from_rows(self, grid, voxels, weights, stop):
+        h = self.grid_from_rows(grid, voxels, weights, stop)     # on CUDA filled there, brick masks by a kernel
+        h.binary = True
+        return h
+
     def grid_base_from_rows(self, grid, voxels, weights, stop):
         if not self.device.is_cuda:
             return super().grid_base_from_rows(grid, voxels, *_on_host(weights, stop))
