@@ -232,3 +232,23 @@ def test_held_out_pool_made_during_the_search_scores_as_after_it(tmp_path, monke
                         *((n, Placement.load(n).poses) for n in ("center", "line"))]:
         want = float(msog_batch(held, lidar, poses[None], backend=B, normalisation="uncertain")[0])
         assert (h["best"] if name == "best" else h["baselines"][name]) == want, name
+
+
+@pytest.mark.parametrize("ahead", ["1", "0"])
+def test_a_held_out_failure_is_the_commands_error_either_way(tmp_path, monkeypatch, capsys, ahead):
+    """An error making the held-out P-SOGs, on the search's thread (``held_out_ahead``) or after the search,
+    ends the command as the same one-line error (exit 2), after the search's report."""
+    import place3d_app.commands.optimize as opt
+    from place3d_app.cli import main
+
+    def broken(*a, **k):
+        raise ValueError("held-out drive unreadable")
+        yield                                             # a generator, as held_out_psogs
+
+    monkeypatch.setattr(opt, "held_out_psogs", broken)
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("PLACE3D_JACKKNIFE_PREFETCH", ahead)
+    code = main(["optimize", *TINY, "--routes", "2", "--holdout-seeds", "5,6", "--interval", "none",
+                 "--output", str(tmp_path / "out")])
+    out, err = capsys.readouterr()
+    assert code == 2 and "held-out drive unreadable" in err and "best M-SOG" in out
