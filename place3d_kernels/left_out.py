@@ -300,19 +300,23 @@ def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: st
     the base with the record's rows written over a copy of it there (``patched_grid``): per grid, no dense
     host copy, no host brick masks and no upload of the whole grid. Where the backend computes fields
     (``fields_on_device``: Warp on CUDA), every record's rows are made there in one batch first
-    (``device_fields``; not for an indicator)."""
+    (``device_fields``; with the "uncertain" indicator, which is their weights above 0, not "evidence")."""
     grids = LeftOutGrids(pooled, task, indicator, rows)
     sog = occlusion == "sog"
     bases = {}
     batch = None
-    if indicator is None and getattr(backend, "fields_on_device", False) and grids.T <= FieldTables.MAX_T \
-            and (len(grids.counts) == 0 or int(grids.counts.max()) < 2**31):
+    # the rows' fields on the device where the backend computes them; the "uncertain" indicator is then its
+    # weights above 0 (left_out_tables.indicator_rows), read back from the device rows ("evidence" needs the
+    # counts: the host's rows)
+    if indicator in (None, "uncertain") and getattr(backend, "fields_on_device", False) \
+            and grids.T <= FieldTables.MAX_T and (len(grids.counts) == 0 or int(grids.counts.max()) < 2**31):
         with section("jackknife: left-out grid"):
             batch = device_fields(pooled, task, backend, grids.source)
     for i in range(len(pooled)):
         with section("jackknife: left-out grid"):
             if batch is not None:
-                (T, at, w, stop), ind = batch[i], None
+                T, at, w, stop = batch[i]
+                ind = None if indicator is None else _positive(w)
             else:
                 T, _, at, w, stop, ind = grids.rows(i)
         with section("jackknife: grid upload"):
@@ -320,7 +324,10 @@ def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: st
                 # _base_fields(T) made where the left-out rows were (no host pass over the pool's M rows): the
                 # same bits, each count clipped into [0, T] as there (tests/test_left_out.py)
                 wb, sb = device_row_fields(grids.counts, T, task, backend)
-                bases[T] = [backend.grid_base_from_rows(pooled.grid.spec, grids.voxels, wb, sb if sog else None)]
+                sv = sb if sog else None
+                bases[T] = [backend.grid_base_from_rows(pooled.grid.spec, grids.voxels, wb, sv)]
+                if indicator is not None:
+                    bases[T].append(backend.grid_base_from_rows(pooled.grid.spec, grids.voxels, _positive(wb), sv))
             elif T not in bases:
                 # from the pool's M voxels: the backend fills its dense copy (no dense host array)
                 wb, sb, ib = grids._base_fields(T)
@@ -332,6 +339,13 @@ def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: st
             if ind is not None:
                 h = (h, backend.patched_grid(bases[T][1], at, ind, stop if sog else None))
         yield h
+
+
+def _positive(w) -> np.ndarray:
+    """(R,) int64 0/1: where the weights ``w`` (a NumPy array, or a Warp device array, read back) are above 0,
+    the "uncertain" indicator of those rows (``left_out_tables.indicator_rows``)."""
+    w = w.numpy() if hasattr(w, "numpy") else np.asarray(w)
+    return (w > 0).astype(np.int64)
 
 
 def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):

@@ -534,3 +534,27 @@ def test_bases_made_on_the_device_are_the_hosts(request, pool, task, name):
         assert got.weights.numpy().tobytes() == want.weights.numpy().tobytes()
         assert got.stop.numpy().tobytes() == want.stop.numpy().tobytes()
     assert over > 0                                  # the clip was exercised
+
+
+@pytest.mark.parametrize("name", _patching_backends())
+@pytest.mark.parametrize("task", ["seg", "det"])
+def test_uncertain_indicator_from_device_rows_is_the_hosts(monkeypatch, drives, task, name):
+    """With the rows' fields on the device (as on CUDA), patched_on_backend makes the "uncertain" indicator of
+    each left-out grid from those weights (above 0) and its base from the base's: each pair of grids is what the
+    host's patched copies give (LeftOutGrids.dense with the indicator), weights and brick masks bit for bit."""
+    from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.left_out import patched_on_backend
+
+    b = get_backend(name)
+    monkeypatch.setattr(type(b), "fields_on_device", property(lambda self: True))
+    dense = LeftOutGrids(drives, task, "uncertain")
+    n = 0
+    for i, (h, hi) in enumerate(patched_on_backend(drives, task, "sog", b, "uncertain")):
+        w, stop, ind = dense.dense(i)
+        assert ind.any() and not np.array_equal(ind, w)        # the two grids differ: each is checked
+        for got, weights in ((h, w), (hi, ind)):
+            want = b.prepare_grid(drives.grid.spec, weights, stop)
+            assert got.weights.numpy().tobytes() == want.weights.numpy().tobytes(), f"record {i}"
+            assert got.masks.numpy().tobytes() == want.masks.numpy().tobytes(), f"masks, record {i}"
+        n += 1
+    assert n == len(drives)
