@@ -326,8 +326,9 @@ def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: st
                 wb, sb = device_row_fields(grids.counts, T, task, backend)
                 sv = sb if sog else None
                 bases[T] = [backend.grid_base_from_rows(pooled.grid.spec, grids.voxels, wb, sv)]
-                if indicator is not None:
-                    bases[T].append(backend.grid_base_from_rows(pooled.grid.spec, grids.voxels, _positive(wb), sv))
+                if indicator is not None:          # host rows: the weights and the stop flags read back
+                    bases[T].append(backend.grid_base_from_rows(pooled.grid.spec, grids.voxels, _positive(wb),
+                                                                None if sv is None else _host(sv)))
             elif T not in bases:
                 # from the pool's M voxels: the backend fills its dense copy (no dense host array)
                 wb, sb, ib = grids._base_fields(T)
@@ -336,16 +337,20 @@ def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: st
                 if ib is not None:
                     bases[T].append(backend.grid_base_from_rows(pooled.grid.spec, grids.voxels, ib, sv))
             h = backend.patched_grid(bases[T][0], at, w, stop if sog else None)
-            if ind is not None:
-                h = (h, backend.patched_grid(bases[T][1], at, ind, stop if sog else None))
+            if ind is not None:                    # its rows on the host, the stop flags too (a device batch's)
+                h = (h, backend.patched_grid(bases[T][1], at, ind, _host(stop) if sog else None))
         yield h
 
 
+def _host(a) -> np.ndarray:
+    """``a`` as a NumPy array: a device array (``device_fields``' rows: Warp) read back, a host array as it is."""
+    return a.numpy() if hasattr(a, "numpy") else np.asarray(a)
+
+
 def _positive(w) -> np.ndarray:
-    """(R,) int64 0/1: where the weights ``w`` (a NumPy array, or a Warp device array, read back) are above 0,
-    the "uncertain" indicator of those rows (``left_out_tables.indicator_rows``)."""
-    w = w.numpy() if hasattr(w, "numpy") else np.asarray(w)
-    return (w > 0).astype(np.int64)
+    """(R,) int64 0/1: where the weights ``w`` (host or device rows, ``_host``) are above 0, the "uncertain"
+    indicator of those rows (``left_out_tables.indicator_rows``)."""
+    return (_host(w) > 0).astype(np.int64)
 
 
 def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):
