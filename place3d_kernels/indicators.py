@@ -57,7 +57,7 @@ def indicator_weight_rows(p: PSOG, kind: str) -> np.ndarray:
 def indicator_handle(p: PSOG, kind: str, b, occlusion: str):
     """The prepared grid of ``indicator_weights(p, kind)`` on backend ``b`` (kept while ``p`` lives), made from
     the stored voxels' rows as ``PSOG.handle`` makes the weights' grid (``Backend.indicator_from_rows``: on
-    CUDA and OpenCL filled on the device, no dense host array)."""
+    CUDA filled on the device, no dense host array)."""
     cache = _indicator_handles.setdefault(p, {})
     key = (kind, b, occlusion)
     if key not in cache:
