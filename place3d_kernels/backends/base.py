@@ -38,7 +38,7 @@ import numpy as np
 
 __all__ = ["unique_ints", "cache_dir", "cache_folder", "Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE",
            "COORDINATE_LIMIT", "rotation_matrices", "sensor_directions", "check_ray_batch", "mesh_face_tables", "mesh_group_parts", "group_blocks",
-           "first_far_row"]
+           "first_far_row", "dense_rows", "check_voxel_rows"]
 
 #: Fixed-point scale for entropy weights: weight = round(H * ENTROPY_SCALE) as int64. ln(22) * 2**32 is
 #: about 1.3e10, so 7e8 fully uncertain voxels still fit in int64 without overflow.
@@ -245,7 +245,7 @@ class Backend(abc.ABC):
         dense arrays made on the host; backends that can fill a grid on the device do so without them."""
         if self.writes_grids:
             return self.working_grid(grid, voxels, weights, stop)
-        w, s = _dense_rows(grid, voxels, weights, stop)
+        w, s = dense_rows(grid, voxels, weights, stop)
         return self.prepare_grid(grid, w, s)
 
     def indicator_from_rows(self, grid: GridSpec, voxels: np.ndarray, weights: np.ndarray,
@@ -258,7 +258,7 @@ class Backend(abc.ABC):
     def grid_base_from_rows(self, grid: GridSpec, voxels: np.ndarray, weights: np.ndarray,
                             stop: np.ndarray | None) -> object:
         """``grid_base`` of the dense arrays that ``grid_from_rows`` describes (backends that patch grids)."""
-        w, s = _dense_rows(grid, voxels, weights, stop)
+        w, s = dense_rows(grid, voxels, weights, stop)
         return self.grid_base(grid, w, s)
 
     #: True where the jackknife's left-out grids are best made by ``grid_base`` and ``patched_grid``, a base
@@ -532,7 +532,7 @@ def check_ray_batch(origins, directions, t_end, ray_offsets) -> tuple[np.ndarray
     return o, d, te, off
 
 
-def _dense_rows(grid: GridSpec, voxels, weights, stop) -> tuple[np.ndarray, np.ndarray | None]:
+def dense_rows(grid: GridSpec, voxels, weights, stop) -> tuple[np.ndarray, np.ndarray | None]:
     """(weights (n,) int64, stop (n,) uint8 or None) over the whole grid: the rows at ``voxels``, 0 elsewhere."""
     ids, w_rows, s_rows = check_voxel_rows(voxels, weights, stop, grid.n_voxels, stop is not None)
     w = np.zeros(grid.n_voxels, dtype=np.int64)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl as cl
 
-from place3d_kernels.backends.base import GridSpec, _dense_rows, check_voxel_rows
+from place3d_kernels.backends.base import GridSpec, dense_rows, check_voxel_rows
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 from place3d_kernels.backends.opencl import _runtime as rt
 
@@ -102,7 +102,7 @@ class OpenCLScoring:
         # the dense arrays and prepare_indicator, not a working grid: with a working-grid indicator beside it, the
         # default optimize's search scored about 10 % slower on PoCL (dev VM, five pairs of runs, 4-11 s of
         # 44-62 s; one call alone showed no difference, the cause was not found); GPUs not measured
-        w, s = _dense_rows(grid, voxels, weights, stop)
+        w, s = dense_rows(grid, voxels, weights, stop)
         return self.prepare_indicator(grid, w, s)
 
     def write_voxels(self, handle, voxels, weights, stop):
