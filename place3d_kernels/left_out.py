@@ -348,9 +348,9 @@ def _host(a) -> np.ndarray:
 
 
 def _positive(w) -> np.ndarray:
-    """(R,) int64 0/1: where the weights ``w`` (host or device rows, ``_host``) are above 0, the "uncertain"
-    indicator of those rows (``left_out_tables.indicator_rows``)."""
-    return (_host(w) > 0).astype(np.int64)
+    """(R,) int64 0/1: the "uncertain" indicator of rows whose weights are ``w`` (host or device rows, ``_host``):
+    ``left_out_tables.indicator_rows``, which reads the weights alone for that kind."""
+    return indicator_rows("uncertain", None, 0, _host(w))
 
 
 def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):

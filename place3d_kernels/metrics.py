@@ -98,13 +98,19 @@ def coverage_counts(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog"
     local[..., :3] = p.grid.to_local(poses[..., :3])
     # the indicator grids share the P-SOG's stop mask, so one score_placements_many call covers them all: a
     # backend that walks the rays once for several grids (OpenCL on CPUs) walks them once here, not 1 + kinds times
-    handles = [p.handle(b, occlusion)] + [indicator_handle(p, k, b, occlusion) for k in kinds]
+    handles = count_handles(p, occlusion, b, kinds)
     res = b.score_placements_many(handles, lidar.elevations, lidar.azimuths, lidar.max_range, local)
     sums, counts = res[0]
     out["sum"], out["n_covered"] = np.asarray(sums, np.int64), np.asarray(counts, np.int64)
     for k, (n, _) in zip(kinds, res[1:]):
         out[f"n_{k}"] = np.asarray(n, np.int64)
     return out
+
+
+def count_handles(p: PSOG, occlusion: str, b, kinds=INDICATORS) -> list:
+    """The prepared grids ``coverage_counts`` scores a task's P-SOG ``p`` on (kept by ``p``): its weights' grid,
+    then one indicator grid per kind. A caller may make them ahead (``place3d optimize``'s held-out P-SOGs)."""
+    return [p.handle(b, occlusion)] + [indicator_handle(p, k, b, occlusion) for k in kinds]
 
 
 def _ray_counts(p: PSOG, lidar: LidarModel, poses: np.ndarray, occlusion: str, b, mesh, kinds, body) -> dict:

@@ -554,7 +554,7 @@ def held_out_psogs(args, spec, specs, b, grids: bool = False):
     """Yield ``(scene name, seeds, P-SOG)`` for each held-out spec of ``specs`` (``holdout_specs``), each checked
     for entropy; with ``grids``, the grids its scoring will ask for (the task's weights, stop mask and
     indicators on ``b``, kept by the P-SOG) are prepared too."""
-    from place3d_kernels.indicators import INDICATORS, indicator_handle
+    from place3d_kernels.metrics import count_handles
     from place3d_kernels.pipeline import check_entropy
     from place3d_kernels.pooled import pool_specs
 
@@ -566,11 +566,8 @@ def held_out_psogs(args, spec, specs, b, grids: bool = False):
                 p = pool_specs(drives, backend=b, cache=not args.no_cache, known=getattr(args, "built", None)).psog()
         check_entropy(p, spec.frames_per_subset)
         if grids and args.occlusion in ("sog", "none"):
-            with section("held-out grids"):
-                view = p.for_task(args.task)
-                view.handle(b, args.occlusion)
-                for kind in INDICATORS:
-                    indicator_handle(view, kind, b, args.occlusion)
+            with section("held-out grids"):       # the grids the held-out scores (coverage_counts) ask for
+                count_handles(p.for_task(args.task), args.occlusion, b)
         yield name, seeds, p
 
 

@@ -86,7 +86,7 @@ class OpenCLScoring:
         return CLGrid(self, grid, weights, stop)
 
     def prepare_indicator(self, grid, weights, stop):
-        # its sums are counted from bits (score_reduce's popcount, count_masked): the caller's 0/1 promise
+        # its sums are counted from bits (score_reduce's popcount, the masked count_bits): the caller's 0/1 promise
         h = CLGrid(self, grid, weights, stop)
         h.binary = True
         return h

@@ -355,17 +355,13 @@ class WarpScoring:
 
             self._launch_groups(self.k.score_kernel, P, rays, cand_range)
         for e, h in enumerate(extra):          # before _count_bits, which zeroes the CUDA bitsets
-            self._count_masked(bits, P, words, h.nonzero_words(self.device.is_cuda), both[(2 + e) * P:(3 + e) * P])
+            # its covered voxels of nonzero weight: the bits set where its masks have their nonzero bit
+            self._count_words(bits, P, words, both[(2 + e) * P:(3 + e) * P], h.nonzero_words(self.device.is_cuda))
         self._count_bits(bits, P, words, counts)
         out = both.numpy()
         # each grid its own counts array (the same covered voxels), so no caller's change reaches another's
         return [(out[:P], out[P:2 * P])] + [(out[(2 + e) * P:(3 + e) * P], out[P:2 * P].copy())
                                             for e in range(len(extra))]
-
-    def _count_masked(self, bits, P: int, words: int, masks, counts) -> None:
-        """counts[c] = bits of candidate c's bitset set where ``masks`` (one uint64 per bitset word, nonzero-weight
-        bits high) has its nonzero bit: another grid's covered voxels of nonzero weight (count_bits_kernel)."""
-        self._count_words(bits, P, words, counts, masks)
 
     def _count_bits(self, bits, P: int, words: int, counts) -> None:
         """counts[c] = set bits of candidate c's bitset (P candidates of ``words`` words each); on CUDA the
