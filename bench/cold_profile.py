@@ -10,6 +10,9 @@ tree against the same tree without it. The command runs as the ``place3d`` conso
 (``python -m place3d_app``, with ``PLACE3D_SERVER`` unset), so its exit is the script's; a tree from before the
 application wing (such as tag lab-2026-11-27) runs it under its old name, ``place3d_client``.
 ``--cprofile`` adds one run under cProfile per tree (the top functions by own and cumulative time).
+``--warm`` runs the command a second time after each cold run, with the caches the cold run filled (the P-SOGs
+read from the cache instead of built, Warp's kernels and the driver's cache kept): what a user's next run waits
+for. Its walls and profile tables are reported beside the cold ones.
 
 Python bytecode. ``pip install`` compiles the installed packages' bytecode and a package's first import
 writes its own, so a user's cold command reads ``.pyc`` files. A host that sets ``PYTHONDONTWRITEBYTECODE=1``
@@ -30,6 +33,7 @@ bench/results/): the walls per tree (median, min, max, every run) and ``log``, e
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import os
@@ -62,9 +66,12 @@ def entry_module(tree: Path, cprofile: bool) -> str:
 
 
 def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = None, args: tuple = (),
-             extra_env: dict | None = None) -> tuple[float, str, str]:
-    """One cold run of the command from ``tree``: (wall seconds, last stdout line, stderr's profile table)."""
-    with tempfile.TemporaryDirectory() as cold, tempfile.TemporaryDirectory() as o:
+             extra_env: dict | None = None, caches: str | None = None) -> tuple[float, str, str]:
+    """One cold run of the command from ``tree``: (wall seconds, last stdout line, stderr's profile table).
+    ``caches``: a folder for the Warp, CUDA and P-SOG caches, kept after the run (a later run with the same
+    folder is a warm one); default a new temporary folder."""
+    with (contextlib.nullcontext(caches) if caches else tempfile.TemporaryDirectory()) as cold, \
+            tempfile.TemporaryDirectory() as o:
         env = dict(os.environ, WARP_CACHE_PATH=f"{cold}/warp", CUDA_CACHE_PATH=f"{cold}/cuda",
                    PLACE3D_CACHE=f"{cold}/psog", PYTHONPATH=str(tree) + os.pathsep + os.environ.get("PYTHONPATH", ""),
                    PLACE3D_SERVER="", **(extra_env or {}))
@@ -126,12 +133,15 @@ def main() -> None:
     ap.add_argument("--max-evals", type=int, default=2000)
     ap.add_argument("--cprofile", action="store_true", help="one more run per tree under cProfile")
     ap.add_argument("--bytecode", action="store_true", help="compile the trees' and packages' bytecode first")
+    ap.add_argument("--warm", action="store_true",
+                    help="after each cold run, the same command again with the caches it filled (a warm run)")
     ap.add_argument("--args", default="", help="more options of the command, e.g. '--routes 1 --no-holdout'")
     ap.add_argument("--machine", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
     ap.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "bench" / "results")))
     a = ap.parse_args()
     trees = [parse_tree(t) for t in (a.tree or [str(ROOT)])]
     walls: dict[str, list[float]] = {label: [] for label, _, _ in trees}
+    warm: dict[str, list[float]] = {label: [] for label, _, _ in trees}
     log = [f"# cold place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend} {a.args}; fresh Warp, "
            f"CUDA and P-SOG caches each run; trees alternating: {[f'{t} {e or {}}' for _, t, e in trees]}"]
     if a.bytecode:
@@ -142,14 +152,21 @@ def main() -> None:
         log.append(f"# bytecode as the host has it (PYTHONDONTWRITEBYTECODE={os.environ.get('PYTHONDONTWRITEBYTECODE', 'unset')})")
     for r in range(a.runs):
         for label, t, env in (trees if r % 2 == 0 else trees[::-1]):     # A B, B A, ...: no order bias
-            w, last, table = cold_run(t, a.backend, a.max_evals, args=tuple(a.args.split()), extra_env=env)
-            walls[label].append(w)
-            log += [f"## {label} run {r + 1}: wall {w:.3f} s | {last}", table.rstrip(), ""]
-            print(f"{label} run {r + 1}: wall {w:.3f} s | {last}", flush=True)
-    summary = {}
-    for t, ws in walls.items():
-        summary[t] = {"median": statistics.median(ws), "min": min(ws), "max": max(ws), "runs": ws}
-        log.append(f"{t}: wall median {summary[t]['median']:.3f} [{min(ws):.3f}-{max(ws):.3f}] s over {len(ws)} runs")
+            with tempfile.TemporaryDirectory() as caches:
+                for kind, into in (("cold", walls), ("warm", warm))[:2 if a.warm else 1]:
+                    w, last, table = cold_run(t, a.backend, a.max_evals, args=tuple(a.args.split()), extra_env=env,
+                                              caches=caches)
+                    into[label].append(w)
+                    name = label if kind == "cold" else f"{label} (warm)"
+                    log += [f"## {name} run {r + 1}: wall {w:.3f} s | {last}", table.rstrip(), ""]
+                    print(f"{name} run {r + 1}: wall {w:.3f} s | {last}", flush=True)
+    summary, warm_summary = {}, {}
+    for kind, source, into in (("", walls, summary), (" (warm)", warm, warm_summary)):
+        for t, ws in source.items():
+            if ws:
+                into[t] = {"median": statistics.median(ws), "min": min(ws), "max": max(ws), "runs": ws}
+                log.append(f"{t}{kind}: wall median {into[t]['median']:.3f} [{min(ws):.3f}-{max(ws):.3f}] s "
+                           f"over {len(ws)} runs")
     if a.cprofile:
         for label, t, env in trees:
             pf = Path(tempfile.mkdtemp()) / "cold.pstats"
@@ -163,11 +180,13 @@ def main() -> None:
                 log.append(s.read())
     path = write_result("cold-profile", {
         "command": f"place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend} {a.args}".strip(),
-        "trees": {label: str(t) for label, t, _ in trees}, "walls_s": summary, "bytecode_compiled_ahead": a.bytecode,
+        "trees": {label: str(t) for label, t, _ in trees}, "walls_s": summary,
+        **({"warm_walls_s": warm_summary} if a.warm else {}), "bytecode_compiled_ahead": a.bytecode,
         "log": "\n".join(log) + "\n"}, a.machine, a.out)
     print(f"wrote {path}")
-    for t, s in summary.items():
-        print(f"{t}: cold wall median {s['median']:.3f} [{s['min']:.3f}-{s['max']:.3f}] s")
+    for kind, source in (("cold", summary), ("warm", warm_summary)):
+        for t, s in source.items():
+            print(f"{t}: {kind} wall median {s['median']:.3f} [{s['min']:.3f}-{s['max']:.3f}] s")
 
 
 if __name__ == "__main__":
