@@ -78,9 +78,11 @@ def warning_line(message, category: type[Warning], filename: str) -> str:
 def _emit(line: str, file=None) -> None:
     """``line`` on its own line of ``file`` (stderr), above any progress bar being drawn there."""
     file = sys.stderr if file is None else file
-    tqdm = sys.modules.get("tqdm")
-    if tqdm is not None and getattr(tqdm.tqdm, "_instances", None):
-        tqdm.tqdm.write(line, file=file)       # clears the bars, writes, draws them again
+    # tqdm's class, if it is imported: another thread may be importing it now (the module is in sys.modules
+    # before its body has run), so it is looked up, never assumed (a logged line then printed plainly)
+    bar = getattr(sys.modules.get("tqdm"), "tqdm", None)
+    if bar is not None and getattr(bar, "_instances", None):
+        bar.write(line, file=file)       # clears the bars, writes, draws them again
     else:
         print(line, file=file, flush=True)
 

@@ -85,3 +85,16 @@ def test_a_plot_without_intervals_is_refused_before_any_output(tmp_path, monkeyp
     monkeypatch.chdir(tmp_path)
     assert main(["evaluate", "--quiet", "--interval", "none", "--plot", "p.png", "center"]) == 2
     assert "--interval none" in capsys.readouterr().err
+
+
+def test_a_line_logged_while_another_thread_imports_tqdm_is_printed(monkeypatch, capsys):
+    # a P-SOG save thread logged its full-disk warning while the command's thread was importing tqdm: the
+    # module was in sys.modules without its class yet, and the line became a "--- Logging error ---" traceback
+    import sys
+    import types
+
+    from place3d_app.messages import _emit
+
+    monkeypatch.setitem(sys.modules, "tqdm", types.ModuleType("tqdm"))        # partially initialised
+    _emit("place3d: warning: a line")
+    assert capsys.readouterr().err == "place3d: warning: a line\n"
