@@ -153,21 +153,29 @@ class PSOG:
     from the integer counts by table look-ups (``left_out_tables.FieldTables``, the same bits as from the
     probabilities) and never builds the (M, K) float64 array unless something reads it. ``probs`` may also
     be a callable giving them, called on first use (``detection``'s variant of such a P-SOG).
+
+    ``occupied`` (instead of ``counts``): the counts as a cache file stores them (``_counts_members``: flat indices
+    into ``counts[:, 1:]`` of the nonzero entries, and those entries), made into the dense ``counts`` on first
+    use. A drive read from the cache for pooling needs only these entries (``pooled.DriveRecord.from_psog``).
     """
 
     def __init__(self, grid: Grid, voxels: np.ndarray, probs, channels=None, n_subsets=None,
-                 counts: np.ndarray | None = None):
+                 counts: np.ndarray | None = None, occupied: tuple | None = None):
         self.grid = grid
         self.voxels = np.asarray(voxels, dtype=np.int64)
         self.channels = tuple(channels) if channels is not None else ("empty",) + CLASSES[1:]
         self.n_subsets = n_subsets
-        self.counts = counts
+        self._counts = counts
         self._cache: dict = {}
         shape = (len(self.voxels), len(self.channels))
+        if occupied is not None:
+            if counts is not None or not n_subsets:
+                raise ValueError("PSOG takes counts or their occupied entries (with n_subsets >= 1), not both")
+            self._cache["occupied"] = (np.asarray(occupied[0]), np.asarray(occupied[1]))
         if probs is None:
-            if counts is None or not n_subsets:
+            if (counts is None and occupied is None) or not n_subsets:
                 raise ValueError("PSOG needs probs, or integer counts and n_subsets >= 1 to derive them")
-            if np.shape(counts) != shape:
+            if occupied is None and np.shape(counts) != shape:
                 raise ValueError(f"PSOG counts must be (M={shape[0]}, K={shape[1]}), got {np.shape(counts)}")
             self._probs = None
             self._cache["probs_from_counts"] = True
@@ -189,6 +197,15 @@ class PSOG:
             state["_probs"] = self.probs
             state["_cache"] = {k: v for k, v in self._cache.items() if k != "probs_of"}
         return state
+
+    @property
+    def counts(self) -> np.ndarray | None:
+        """(M, K) integer subset counts, or None (built from probabilities); from the occupied entries a cache
+        file stores, made on first use (two threads may both make them: the same values)."""
+        if self._counts is None and "occupied" in self._cache:
+            self._counts = _dense_counts(*self._cache["occupied"], len(self.voxels), len(self.channels),
+                                         self.n_subsets)
+        return self._counts
 
     @property
     def probs(self) -> np.ndarray:
@@ -458,19 +475,15 @@ class PSOG:
         with np.load(src, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
             voxels, T = z["voxels"], meta["n_subsets"]
-            occupied = None
-            if "occupied_index" in z.files:         # _counts_members' sparse layout: the dense counts rebuilt
+            occupied, counts = None, None
+            if "occupied_index" in z.files:         # _counts_members' sparse layout: dense counts on first use
                 occupied = (z["occupied_index"], z["occupied_counts"])
-                counts = _dense_counts(*occupied, len(voxels), len(meta["channels"]), T)
-            else:
-                counts = z["counts"] if z["counts"].size else None
+            elif z["counts"].size:
+                counts = z["counts"]
             # files without probs stored them as counts / T (save checked that this gives the same bits): the
             # P-SOG derives them from the counts when read
             probs = None if "probs" not in z.files else z["probs"]
-            psog = cls(Grid.from_dict(meta["grid"]), voxels, probs, meta["channels"], T, counts)
-            if occupied is not None:
-                psog._cache["occupied"] = occupied  # DriveRecord.from_psog's entries, as stored
-            return psog
+            return cls(Grid.from_dict(meta["grid"]), voxels, probs, meta["channels"], T, counts, occupied=occupied)
 
     def __repr__(self) -> str:
         return (f"PSOG(grid {self.grid.shape} @ {self.grid.voxel_size} m, {len(self.voxels):,} occupied voxels, "

@@ -223,3 +223,49 @@ def test_evaluate_cold_warm_and_in_process_give_one_table(tmp_path, capsys, monk
         assert main(argv) == 0
         tables.append([line for line in capsys.readouterr().out.splitlines() if not line.endswith(" s")])
     assert tables[0] == tables[1] == tables[2] and len(tables[0]) > 5
+
+
+def test_cached_drives_are_read_side_by_side_before_the_probe_is_waited_for(tmp_path, monkeypatch, capsys):
+    # the drives the cache holds are read (pooled.cached_records, on threads) before optimize's backend probe is
+    # waited for; a drive the cache lacks is built afterwards on the probed backend; the pool is the one
+    # pool_specs makes reading the files one by one
+    from concurrent.futures import Future
+
+    from place3d_app.commands.routes import pooled_psog
+    from place3d_kernels import pooled
+    from place3d_kernels.pooled import cached_records, pool_specs
+
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "c"))
+    args, specs = _drives(["optimize", *TINY, "--route-seeds", "3-5", "--backend", "warp:cpu"])
+    args.quiet = False
+    first = pool_specs(specs[:2], backend="warp:cpu")                 # two of the three drives cached
+    got = cached_records(specs)
+    assert list(got) == specs[:2] and cached_records(specs, cache=False) == {}
+    for x, y in zip(got.values(), first.records):
+        assert x.label == y.label and x.n_subsets == y.n_subsets
+        assert all(np.array_equal(getattr(x, f), getattr(y, f)) for f in ("voxels", "classes", "counts"))
+    probe, seen, real = Future(), [], pooled.cached_records
+
+    def spy(todo, cache=True):
+        seen.append((probe.done(), [s.scene.seed for s in todo]))
+        out = real(todo, cache)
+        if not probe.done():
+            probe.set_result("warp:cpu")
+        return out
+
+    monkeypatch.setattr(pooled, "cached_records", spy)
+    import threading
+
+    late = threading.Timer(5.0, lambda: probe.done() or probe.set_result("warp:cpu"))   # a reader that waits
+    late.start()                                                  # for the probe first ends, and fails below
+    capsys.readouterr()
+    _, _, psog = pooled_psog(args, specs_from_args(args), probe, specs)
+    err = capsys.readouterr().err
+    late.cancel()
+    assert seen[0] == (False, [3, 4, 5])              # read before the probe had answered
+    lines = [line for line in err.splitlines() if line.startswith("  drive ")]
+    assert [line.endswith(": read from the cache") for line in lines] == [True, True, False]
+    assert lines[2].startswith("  drive 3/3 ") and lines[2].endswith(" s")          # built here, timed
+    want = pool_specs(specs, backend="warp:cpu").psog()
+    assert np.array_equal(psog.voxels, want.voxels) and np.array_equal(psog.counts, want.counts)
+    assert psog.n_subsets == want.n_subsets

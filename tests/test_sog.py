@@ -100,6 +100,30 @@ def test_save_load_roundtrip(tmp_path):
         assert "probs" not in z.files            # from frames: counts / T, derived on load to the same bits
 
 
+def test_a_loaded_psog_makes_its_dense_counts_only_when_asked(tmp_path):
+    # pooling reads a drive's occupied entries as stored (DriveRecord.from_psog); the dense (M, K) table took
+    # most of a cache read and is made on first use of ``counts``, the same table as before the save
+    import pickle
+
+    from place3d_kernels.pooled import DriveRecord
+
+    f = [frame([[0.5, 0.5, 0.5], [1.5, 2.5, 1.5], [2.5, 0.5, 0.5]], [ROAD, CAR, CAR]),
+         frame([[0.5, 0.5, 0.5], [1.5, 2.5, 1.5]], [ROAD, ROAD])]
+    psog = p3k.PSOG.from_frames(f, G, frames_per_subset=1, backend="reference")
+    back = p3k.PSOG.load(psog.save(tmp_path / "p.npz"))
+    rec, want = DriveRecord.from_psog(back, "d"), DriveRecord.from_psog(psog, "d")
+    assert back._counts is None                              # the record came from the stored entries
+    for name in ("voxels", "classes", "counts"):
+        a, b = getattr(rec, name), getattr(want, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    again = pickle.loads(pickle.dumps(back))                 # a served client's copy keeps the entries
+    for q in (back, again):
+        assert q.counts.dtype == psog.counts.dtype and np.array_equal(q.counts, psog.counts)
+    np.testing.assert_array_equal(back.probs, psog.probs)
+    with pytest.raises(ValueError, match="not both"):
+        p3k.PSOG(G, psog.voxels, None, psog.channels, 2, psog.counts, occupied=back._cache["occupied"])
+
+
 def test_save_load_keeps_probs_that_are_not_counts_over_t(tmp_path):
     rng = np.random.default_rng(2)
     p = rng.random(G.shape + (3,))
