@@ -88,12 +88,14 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
 
 def cached_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "collection_64ch",
                 frames_per_subset: int = DEFAULT_FRAMES_PER_SUBSET, mount=DEFAULT_MOUNT,
-                cache: bool | str | Path = True, condition=None, body=None) -> PSOG | None:
-    """The P-SOG ``scene_psog`` would read from the cache for these inputs, or None (no backend needed)."""
+                cache: bool | str | Path = True, condition=None, body=None, warn: bool = True) -> PSOG | None:
+    """The P-SOG ``scene_psog`` would read from the cache for these inputs, or None (no backend needed).
+    ``warn=False``: a file that fails its check is not reported here (a caller that builds it next, through
+    ``scene_psog``, reads it again and reports it once)."""
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
     entry = _cache_entry(scene, grid, lidar, frames_per_subset, mount, cache, condition, body)
-    return None if entry is None else _load_cached(*entry)
+    return None if entry is None else _load_cached(*entry, warn=warn)
 
 
 def cache_file(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "collection_64ch",
@@ -122,7 +124,7 @@ def _cache_entry(scene, grid, lidar, frames_per_subset, mount, cache, condition,
     return path, path.with_suffix(".json"), inputs
 
 
-def _load_cached(path: Path, manifest: Path, inputs: dict) -> PSOG | None:
+def _load_cached(path: Path, manifest: Path, inputs: dict, warn: bool = True) -> PSOG | None:
     if not path.exists():
         return None
     try:
@@ -132,7 +134,8 @@ def _load_cached(path: Path, manifest: Path, inputs: dict) -> PSOG | None:
         with section("P-SOG cache load"):
             return PSOG.load(path, check=lambda: verified_bytes(path, manifest, inputs, "P-SOG cache"))
     except Exception as e:  # noqa: BLE001 - a broken or mismatching cache file is rebuilt, not fatal
-        cache_warning(path, e)
+        if warn:
+            cache_warning(path, e)
         return None
 
 

@@ -666,7 +666,7 @@ def cached_records(specs, cache=True) -> dict:
     specs = [s for s in dict.fromkeys(specs) if (f := s.cache_file(cache)) is not None and f.exists()]
 
     def read(s):
-        ps = s.cached(cache)
+        ps = s.cached(cache, warn=False)        # a file that fails its check: build reads it again, says so once
         return None if ps is None else DriveRecord.from_psog(ps, s.scene.label)
 
     got = thread_map(read, specs, min(len(specs), usable_cores()))

@@ -408,15 +408,16 @@ class PSOGSpec:
         return scene_psog(**self._psog_inputs(cache, cond), backend=b, progress=progress, aggregate=aggregate,
                           save_in_background=save_in_background)
 
-    def cached(self, cache: bool | str = True):
+    def cached(self, cache: bool | str = True, warn: bool = True):
         """The P-SOG ``build`` would read from the cache, or None; needs no backend (an application that
-        probes its backend meanwhile asks this first and waits for the probe only on a miss)."""
+        probes its backend meanwhile asks this first and waits for the probe only on a miss). ``warn``: as
+        ``pipeline.cached_psog``'s."""
         from place3d_kernels.pipeline import cached_psog
 
         if not cache or self.scene.kind == "semantickitti":
             return None
         cond = None if self.condition is None else self.condition.condition(None)
-        return cached_psog(**self._psog_inputs(cache, cond))
+        return cached_psog(**self._psog_inputs(cache, cond), warn=warn)
 
     def cache_file(self, cache: bool | str = True) -> Path | None:
         """The cache file ``build`` would read, found without building the scene, or None when that cannot

@@ -269,3 +269,20 @@ def test_cached_drives_are_read_side_by_side_before_the_probe_is_waited_for(tmp_
     want = pool_specs(specs, backend="warp:cpu").psog()
     assert np.array_equal(psog.voxels, want.voxels) and np.array_equal(psog.counts, want.counts)
     assert psog.n_subsets == want.n_subsets
+
+
+def test_a_damaged_cached_drive_is_reported_once_and_rebuilt(tmp_path, monkeypatch):
+    # the side-by-side reads (cached_records) leave a file that fails its check to the build, which reports it
+    # (one warning, not one from each reader) and rebuilds the same P-SOG
+    from place3d_kernels.manifest import StaleCacheWarning
+    from place3d_kernels.pooled import pool_specs
+
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "c"))
+    _, specs = _drives(["evaluate", *TINY, "--route-seeds", "7-8", "--backend", "warp:cpu"])
+    want = pool_specs(specs, backend="warp:cpu").psog()
+    f = specs[1].cache_file()
+    f.write_bytes(f.read_bytes() + b"damage")
+    with pytest.warns(StaleCacheWarning) as seen:
+        got = pool_specs(specs, backend="warp:cpu").psog()
+    assert [f.name in str(w.message) for w in seen if issubclass(w.category, StaleCacheWarning)] == [True]
+    assert np.array_equal(got.voxels, want.voxels) and np.array_equal(got.counts, want.counts)
