@@ -13,7 +13,7 @@ import sys
 import time
 
 __all__ = ["add_route_arguments", "route_seeds", "drive_specs", "pooled_psog", "psog_for_routes",
-           "build_missing", "read_cached", "SINGLE_ROUTE_WARNING"]
+           "build_missing", "SINGLE_ROUTE_WARNING"]
 
 SINGLE_ROUTE_WARNING = ("place3d: warning: one route: the order of the placements is not converged on a single "
                         "drive (docs/guide.md, 'How many routes'); pool several with --routes N")
@@ -88,14 +88,23 @@ def pooled_psog(args, spec, backend, specs=None):
     from concurrent.futures import Future
 
     t = time.perf_counter()
-    have = read_cached(args, specs)     # needs no backend: while optimize's probe may still run
-    if isinstance(backend, Future) and not all(s in have for s in specs):
+    # the cached drives read side by side (pooled.cached_records) before the backend is waited for: reading needs
+    # none, so a warm optimize reads them while its probe runs (on the H200 it waited for the probe, 0.55 s, then
+    # read four drives one after the other, 0.71 s); with every record at hand nothing is built, and the pool
+    # is summed while the probe may still run
+    from place3d_kernels.pooled import cached_records
+
+    built = getattr(args, "built", None) or {}
+    todo = [s for s in specs if s not in built]
+    read = {}
+    if todo and not args.no_cache:
+        with section("P-SOG cache reads (side by side)"):
+            read = cached_records(todo)
+    if isinstance(backend, Future) and not all(s in built or s in read for s in specs):
         backend = backend.result()      # optimize's probe thread: the library takes a resolved backend
-    # with every record at hand nothing is built, and the pool is summed while the probe may still run
     with section("P-SOG (pooled drives)"):
         pooled = pool_specs(specs, backend=None if isinstance(backend, Future) else backend, cache=not args.no_cache,
-                            progress=not args.quiet,
-                            known=getattr(args, "built", None), read=getattr(args, "read", None))
+                            progress=not args.quiet, known=built, read=read)
         psog = pooled.psog()
         pooled.known_plain(psog)      # it is the plain pool: the jackknife's point takes it without comparing arrays
     check_entropy(psog, spec.frames_per_subset)
@@ -103,25 +112,6 @@ def pooled_psog(args, spec, backend, specs=None):
     if not args.quiet:
         print(f"pooled P-SOG of {len(specs)} drives ready in {time.perf_counter() - t:.1f} s: {psog}", file=sys.stderr)
     return pooled, strata, psog
-
-
-def read_cached(args, specs) -> dict:
-    """Read the drives of ``specs`` that the P-SOG cache holds (and no worker built for this run) side by side
-    (``pooled.cached_records``) into ``args.read`` ({spec: record}), which ``pool_specs(read=...)`` then takes;
-    nothing with ``--no-cache``. Returns every record at hand ({spec: record}: read, or built by the workers).
-    Needs no backend, so a command reads its drives while its backend is probed:
-    a warm default ``optimize`` on the H200 host first waited for the probe (0.55 s), then read its four
-    drives one after the other (0.71 s) and the four held-out ones on a thread beside the search (0.65 s)."""
-    from place3d_kernels.pooled import cached_records
-    from place3d_kernels.profiling import section
-
-    have = {**(getattr(args, "read", None) or {}), **(getattr(args, "built", None) or {})}
-    todo = [s for s in specs if s not in have]
-    if todo and not getattr(args, "no_cache", False):
-        with section("P-SOG cache reads (side by side)"):
-            args.read = {**(getattr(args, "read", None) or {}), **cached_records(todo)}
-        have.update(args.read)
-    return have
 
 
 def _build_spec(spec):
