@@ -5,7 +5,8 @@ package imports, Warp, CUDA, pycma, the cached P-SOG, while the kernels take mil
 "What the studies found", warm command and ``place3d serve``). Like ``dmypy`` or the Gradle daemon,
 ``place3d serve`` pays that once and then runs each command sent by ``place3d --server ...``
 (``place3d_app``) in its own process, where the imports are done, the backend instances with their compiled
-kernels are kept by the registry, and the last P-SOGs read stay in memory (``sog.keep_loaded``).
+kernels are kept by the registry, and the last P-SOGs read stay in memory (``sog.keep_loaded``), as do the
+last pooled P-SOGs with their prepared grids (``pool_memo.keep_pools``).
 
 Per command the server takes on the client's side of the process: its standard input, output and error
 (passed as descriptors, so the output is the bytes the in-process command writes, C-level output
@@ -43,14 +44,14 @@ from pathlib import Path
 
 # Server, settle_memory, run_command, client_side and the settings are imported here so that they stay
 # importable from place3d_app.serve; the server reads its settings (HANDSHAKE_TIMEOUT_S, MAX_HANDSHAKES,
-# KEEP_PSOGS) from place3d_app.serve_loop, so change them there.
+# KEEP_PSOGS, KEEP_POOLS) from place3d_app.serve_loop, so change them there.
 from place3d_app.serve_loop import (  # noqa: F401
-    DEFAULT_IDLE_TIMEOUT_S, HANDSHAKE_TIMEOUT_S, KEEP_PSOGS, MAX_HANDSHAKES, Server, client_side, run_command,
-    settle_memory)
+    DEFAULT_IDLE_TIMEOUT_S, HANDSHAKE_TIMEOUT_S, KEEP_POOLS, KEEP_PSOGS, MAX_HANDSHAKES, Server, client_side,
+    run_command, settle_memory)
 from place3d_app.serve_socket import claim_socket_path, client_wire, is_listening, open_log
 
 __all__ = ["add_arguments", "serve", "Server", "client_wire", "is_listening", "claim_socket_path", "open_log",
-           "DEFAULT_IDLE_TIMEOUT_S", "KEEP_PSOGS", "HANDSHAKE_TIMEOUT_S", "MAX_HANDSHAKES"]
+           "DEFAULT_IDLE_TIMEOUT_S", "KEEP_PSOGS", "KEEP_POOLS", "HANDSHAKE_TIMEOUT_S", "MAX_HANDSHAKES"]
 
 #: The most bytes of a Unix socket path (``sun_path`` holds 108 with its terminating NUL).
 MAX_SOCKET_PATH = 107

@@ -28,7 +28,7 @@ from pathlib import Path
 from place3d_app.serve_socket import claim_socket_path, client_wire
 from place3d_kernels.profiling import count_start_up_of
 
-__all__ = ["Server", "run_command", "client_side", "settle_memory", "DEFAULT_IDLE_TIMEOUT_S", "KEEP_PSOGS",
+__all__ = ["Server", "run_command", "client_side", "settle_memory", "DEFAULT_IDLE_TIMEOUT_S", "KEEP_PSOGS", "KEEP_POOLS",
            "HANDSHAKE_TIMEOUT_S", "MAX_HANDSHAKES"]
 
 #: Seconds without a command after which the server exits.
@@ -36,6 +36,10 @@ DEFAULT_IDLE_TIMEOUT_S = 900.0
 #: P-SOGs kept in memory between commands (``sog.keep_loaded``); one on the default 0.1 m grid keeps dense
 #: fields of about 0.3 GB (``grid.DENSE_BYTES_PER_VOXEL``) and as much again in its prepared backend copy.
 KEEP_PSOGS = 4
+#: Pooled P-SOGs kept between commands (``pool_memo.keep_pools``) with their P-SOGs and prepared grids: a default
+#: ``optimize`` pools its four searched drives and four held-out ones, ``evaluate`` the searched four. One
+#: default pool keeps about 0.5 GB on the host and its grids on the device.
+KEEP_POOLS = 2
 #: Seconds a connected client has to send its request after the greeting; the client sends it at once
 #: (computing its identity takes milliseconds), so only a stalled or hostile peer reaches this.
 HANDSHAKE_TIMEOUT_S = 10.0
@@ -109,6 +113,7 @@ class Server:
         from place3d_kernels.backends.registry import get_backend
         from place3d_kernels.lazy_imports import import_cma
         from place3d_kernels.optimize.plots import keep_worker
+        from place3d_kernels.pool_memo import keep_pools
         from place3d_kernels.sog import keep_loaded
 
         warm()                   # the CLI's parser: imports every subcommand's module
@@ -116,6 +121,7 @@ class Server:
         import tqdm  # noqa: F401
         self.backend = get_backend(backend).name      # imports Warp / PyOpenCL, starts CUDA or the OpenCL device
         keep_loaded(KEEP_PSOGS)
+        keep_pools(KEEP_POOLS)
         # multiprocessing's resource tracker lives as long as this process once a command spawns a process
         # (optimize's plot worker on 4+ cores); started by a command it would inherit that client's stdout
         # and stderr and hold its pipe open after the command ends. Started now it holds the server's own.

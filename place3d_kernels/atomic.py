@@ -25,7 +25,8 @@ import threading
 import time
 from pathlib import Path
 
-__all__ = ["atomic_write", "atomic_write_text", "atomic_savefig", "WriteError", "remove_stale_temps", "temp_name", "TEMP_MARK"]
+__all__ = ["atomic_write", "atomic_write_text", "atomic_savefig", "WriteError", "remove_stale_temps", "temp_name", "TEMP_MARK",
+           "file_identity"]
 
 TEMP_MARK = ".p3tmp-"
 #: temporary files of other hosts (a cache folder on a shared file system) are removed after this long
@@ -163,3 +164,15 @@ def atomic_savefig(fig, path, **kw) -> Path:
     """``fig.savefig(path, **kw)`` through ``atomic_write`` (the format from the suffix unless given)."""
     fmt = kw.pop("format", None) or (Path(path).suffix[1:].lower() or "png")
     return atomic_write(path, lambda f: fig.savefig(f, format=fmt, **kw))
+
+
+def file_identity(path) -> tuple | None:
+    """(resolved path, device, inode, size, modification time in ns) of a file, or None if it is absent: the key
+    under which a process keeps what it read from a cache file (``sog.keep_loaded``, the left-out grids of
+    ``left_out_memo``, ``pool_memo``). ``atomic_write`` replaces a file (a new inode), so a rewritten file never
+    has the identity of the one it replaced."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (os.path.realpath(path), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)

@@ -39,7 +39,7 @@ class PreparedLeftOut:
 
     - ``pool_key``, the records' content identity, given by the caller: for records read from the
       subset-record cache, the file's resolved path, device, inode, size and modification time in ns
-      (``subset_records.records_file_identity``), taken before and after the read. A rewritten file
+      (``atomic.file_identity``), taken before and after the read. A rewritten file
       (``os.replace``: a new inode) or a touched one gets another key. Callers without such an identity
       pass None and nothing is kept.
     - the grid (its bounds and voxel size), the task, the occlusion mode (the stop mask or none) and the

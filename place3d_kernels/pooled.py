@@ -26,6 +26,7 @@ import numpy as np
 
 from place3d_kernels.classes import N_CLASSES
 from place3d_kernels.grid import Grid, roi_grid
+from place3d_kernels.pool_memo import keep_pool, kept_pool, pool_files_key
 from place3d_kernels.backends.base import unique_ints
 from place3d_kernels.sog import PSOG
 from place3d_kernels.threads import thread_map, threads_for, usable_cores
@@ -164,10 +165,15 @@ class PooledPSOG:
         #: what other modules derive from these records and keep with the pool (``left_out.LeftOutRows.shared``);
         #: emptied when a record is added
         self.derived: dict = {}
+        #: kept between commands (``pool_memo.keep_pool``): records can no longer be added
+        self.shared = False
         for r in records:
             self.add(r)
 
     def add(self, record: DriveRecord) -> None:
+        if self.shared:
+            raise ValueError("this pool is kept between commands (pool_memo) and shared; extend a copy: "
+                             "PooledPSOG(pool.grid, pool.records)")
         if record.classes.size and int(record.classes.max()) >= self.n_classes:
             raise ValueError(f"{record.label}: class {int(record.classes.max())} outside the {self.n_classes} channels")
         self.records.append(record)
@@ -355,6 +361,14 @@ class PooledPSOG:
                 and reference.probs_are_counts()):      # its counts are c and its T is T: probs == c / T
             return reference
         return PSOG.from_counts(self.grid, vox, c, T)
+
+    def kept_psog(self) -> PSOG:
+        """``psog()``, made on the first call and kept with the pool (as ``known_plain``'s): a pool kept between
+        commands (``pool_memo``) keeps its P-SOG, and what that P-SOG derives on first use (weights, stop mask,
+        each backend's prepared grids), with it."""
+        if self._plain_psog is None:
+            self._plain_psog = self.psog()
+        return self._plain_psog
 
     def psog(self, multiplicity=None) -> PSOG:
         """The pooled P-SOG: ``p(v = c) = count / T_total`` (see ``counts`` for ``multiplicity``).
@@ -621,7 +635,10 @@ def pool_specs(specs, backend=None, cache=True, progress: bool = False, known: d
     condition, vehicle and collection LiDAR), each built or read from the on-disk cache by ``spec.build``, or
     taken from ``known`` ({spec: DriveRecord}: records already made, e.g. by the worker that built the drive)
     or ``read`` (records ``cached_records`` read already). The cached drives among the rest are read first,
-    side by side (``cached_records``); only the others are built, one after the other, on ``backend``.
+    side by side (``cached_records``); only the others are built, one after the other, on ``backend``. Where
+    the process keeps pools (``pool_memo.keep_pools``: ``place3d serve``), a pool of these very cache files
+    kept by an earlier call is returned as it is (shared: nothing may be added to it), and a pool whose every
+    drive was read from its file is kept.
 
     ``build_pooled`` pools ``Drive``s (scene, seed, frames); this pools full specs, so a command's adverse
     condition and vehicle body apply to every drive. Records come back in spec order, labelled by the
@@ -637,6 +654,14 @@ def pool_specs(specs, backend=None, cache=True, progress: bool = False, known: d
     if len(grids) != 1:
         raise ValueError("pooled drives must share one ROI grid")
     known, read = dict(known or {}), dict(read or {})
+    # a pool kept from an earlier command on these very files (pool_memo.keep_pools: place3d serve)
+    key = None if known else pool_files_key(specs, cache)
+    pooled = kept_pool(key)
+    if pooled is not None:
+        if progress:
+            for i, s in enumerate(specs):
+                print(f"  drive {i + 1}/{len(specs)} {s.scene.label}: pooled by an earlier command", file=sys.stderr)
+        return pooled
     read.update(cached_records([s for s in specs if s not in known and s not in read], cache))
     pooled = PooledPSOG(specs[0].grid.grid())
     for i, s in enumerate(specs):
@@ -649,6 +674,8 @@ def pool_specs(specs, backend=None, cache=True, progress: bool = False, known: d
             took = ("built by a worker" if s in known else "read from the cache" if s in read
                     else f"{time.perf_counter() - t0:.1f} s")
             print(f"  drive {i + 1}/{len(specs)} {s.scene.label}: {took}", file=sys.stderr)
+    if key is not None and all(s in read for s in specs) and pool_files_key(specs, cache) == key:
+        keep_pool(key, pooled)          # every drive read from the files the key names, none rewritten meanwhile
     return pooled
 
 

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import threading
 from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
 
+from place3d_kernels.atomic import file_identity
 from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.backends.base import ENTROPY_SCALE, cache_dir, cache_folder, unique_ints
 from place3d_kernels.classes import CLASSES, N_CLASSES, VEHICLE
@@ -453,8 +453,9 @@ class PSOG:
         rewritten file has another identity)."""
         if not _keep:
             return cls._read(path, check)
-        st = os.stat(path)
-        key = (os.path.realpath(path), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+        key = file_identity(path)
+        if key is None:                      # absent: the read raises what it raises without keep_loaded
+            return cls._read(path, check)
         with _loaded_lock:
             psog = _loaded.get(key)
             if psog is not None:

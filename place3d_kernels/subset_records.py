@@ -17,9 +17,11 @@ from typing import Callable
 
 import numpy as np
 
+from place3d_kernels.atomic import file_identity
+
 
 __all__ = ["frame_subset_records", "votes_records", "subset_records_path", "spec_subset_records", "records_aggregator",
-           "records_file_identity", "keyed_subset_records"]
+           "keyed_subset_records"]
 
 
 def frame_subset_records(frames, grid, k: int, backend=None, label: str = "drive") -> list:
@@ -131,26 +133,15 @@ def spec_subset_records(spec, backend=None, cache: bool = True) -> list:
     return recs
 
 
-def records_file_identity(path) -> tuple | None:
-    """(resolved path, device, inode, size, modification time in ns) of a file, or None if it is absent:
-    the key ``sog.keep_loaded`` uses for P-SOG files. ``_write_records`` replaces a file (a new inode),
-    so a rewritten record file never has the identity of the one it replaced."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return (os.path.realpath(path), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
-
-
 def keyed_subset_records(spec, backend=None, cache: bool = True) -> tuple[list, tuple | None]:
     """``spec_subset_records`` and, when the records are exactly the cache file's content, that file's
-    identity (``records_file_identity``): the key under which a process may keep what it derives from
+    identity (``atomic.file_identity``): the key under which a process may keep what it derives from
     them (``left_out.PreparedLeftOut``). None when the records were simulated or rewritten meanwhile (the
     identity changed during the read), or nothing is cached (``cache=False``, semantickitti)."""
     path = subset_records_path(spec)[0] if cache else None
-    before = None if path is None else records_file_identity(path)
+    before = None if path is None else file_identity(path)
     recs = spec_subset_records(spec, backend, cache)
-    if before is None or records_file_identity(path) != before:
+    if before is None or file_identity(path) != before:
         return recs, None
     return recs, before
 
@@ -200,7 +191,7 @@ def records_aggregator(spec) -> Callable:
         if path is not None:
             # the intervals read these records back (keyed_subset_records: this file's identity while it is
             # not rewritten) and find this P-SOG their pool without pooling and comparing them again
-            HANDLES.remember_plain(records_file_identity(path), psog)
+            HANDLES.remember_plain(file_identity(path), psog)
         return psog
 
     return aggregate

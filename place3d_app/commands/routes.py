@@ -92,21 +92,24 @@ def pooled_psog(args, spec, backend, specs=None):
     # none, so a warm optimize reads them while its probe runs (on the H200 it waited for the probe, 0.55 s, then
     # read four drives one after the other, 0.71 s); with every record at hand nothing is built, and the pool
     # is summed while the probe may still run
+    from place3d_kernels.pool_memo import kept_pool, pool_files_key
     from place3d_kernels.pooled import cached_records
 
     built = getattr(args, "built", None) or {}
     todo = [s for s in specs if s not in built]
     read = {}
-    if todo and not args.no_cache:
+    # a pool an earlier command kept (place3d serve: pool_memo) needs neither reads nor a backend
+    kept = not built and kept_pool(pool_files_key(specs, not args.no_cache)) is not None
+    if todo and not args.no_cache and not kept:
         with section("P-SOG cache reads (side by side)"):
             read = cached_records(todo)
-    if isinstance(backend, Future) and not all(s in built or s in read for s in specs):
+    if isinstance(backend, Future) and not kept and not all(s in built or s in read for s in specs):
         backend = backend.result()      # optimize's probe thread: the library takes a resolved backend
     with section("P-SOG (pooled drives)"):
         pooled = pool_specs(specs, backend=None if isinstance(backend, Future) else backend, cache=not args.no_cache,
                             progress=not args.quiet, known=built, read=read)
-        psog = pooled.psog()
-        pooled.known_plain(psog)      # it is the plain pool: the jackknife's point takes it without comparing arrays
+        # the plain pool (the jackknife's point takes it without comparing arrays), kept with a kept pool
+        psog = pooled.kept_psog()
     check_entropy(psog, spec.frames_per_subset)
     strata = [s.scene.name for s in specs]
     if not args.quiet:
