@@ -24,7 +24,7 @@ from place3d_kernels.indicators import (INDICATORS, NORMALISATIONS, check_normal
 from place3d_kernels.sog import PSOG
 
 __all__ = ["msog", "msog_batch", "msog_tasks", "msog_on_grid", "msog_on_handles", "covered_voxels",
-           "msog_from_voxels", "coverage_counts", "OCCLUSION_MODES", "NORMALISATIONS"]
+           "coverage_mask", "msog_from_voxels", "coverage_counts", "OCCLUSION_MODES", "NORMALISATIONS"]
 
 OCCLUSION_MODES = ("none", "sog", "mesh")
 def _poses(placement) -> np.ndarray:
@@ -305,6 +305,13 @@ def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog",
 
     Used to cache coverage per LiDAR pose: the M-SOG of a rig is then a union of cached sets.
     """
+    return np.flatnonzero(coverage_mask(psog, lidar, poses, occlusion, backend, mesh))
+
+
+def coverage_mask(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog", backend=None,
+                  mesh: Mesh | None = None) -> np.ndarray:
+    """(n_voxels,) bool, flat in C order: True at ``covered_voxels``' voxels (the backend's coverage mask as it
+    comes, for a caller that wants the mask rather than the indices: a figure's covered columns)."""
     poses = _poses(poses).reshape(-1, 6)
     check_inputs(psog, poses, occlusion, mesh)
     b = get_backend(backend)
@@ -318,16 +325,14 @@ def covered_voxels(psog: PSOG, lidar: LidarModel, poses, occlusion: str = "sog",
 
         o, d, t_end, _, _ = rigs_rays([([lidar] * len(poses), poses)], None, b,
                                       mesh if occlusion == "mesh" else None)
-        stop = psog.stop_mask if occlusion == "sog" else None
-        return np.flatnonzero(coverage(psog.grid, o, d, t_end, backend=b, stop=stop))
-    o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, poses)
-    if occlusion == "mesh":
-        t_end = np.minimum(raycast(mesh, o, d, lidar.max_range, backend=b).t, lidar.max_range)
     else:
-        t_end = lidar.max_range
-
+        o, d = b.lidar_rays(lidar.elevations, lidar.azimuths, poses)
+        if occlusion == "mesh":
+            t_end = np.minimum(raycast(mesh, o, d, lidar.max_range, backend=b).t, lidar.max_range)
+        else:
+            t_end = lidar.max_range
     stop = psog.stop_mask if occlusion == "sog" else None
-    return np.flatnonzero(coverage(psog.grid, o, d, t_end, backend=b, stop=stop))
+    return np.asarray(coverage(psog.grid, o, d, t_end, backend=b, stop=stop), dtype=bool).reshape(-1)
 
 
 def msog_from_voxels(psog: PSOG, voxels: np.ndarray, task: str = "seg") -> float:

@@ -83,6 +83,14 @@ def test_covered_voxels_equal_the_unique_traversal():
         want = np.unique(p3k.traverse(psog.grid, o, d, lidar.max_range, backend=b, stop=stop).voxels)
         got = p3k.covered_voxels(psog, lidar, poses, occlusion=occlusion, backend=b)
         assert np.array_equal(got, want)
+        # the mask coverage.png reads: True exactly there; its columns and count are the indices'
+        from place3d_app.commands.optimize import coverage_view
+        from place3d_kernels.metrics import coverage_mask
+
+        mask = coverage_mask(psog, lidar, poses, occlusion=occlusion, backend=b)
+        assert mask.shape == (grid.n_voxels,) and np.array_equal(np.flatnonzero(mask), want)
+        _, columns, n, _ = coverage_view(psog, mask)
+        assert n == len(want) and np.array_equal(np.flatnonzero(columns), np.unique(want // grid.shape[2]))
 
 
 def test_scene_keys_are_remembered_and_a_new_identity_builds_again(tmp_path, monkeypatch):
