@@ -630,7 +630,7 @@ def parse_route_seeds(text) -> list[int]:
 
 
 def pool_specs(specs, backend=None, cache=True, progress: bool = False, known: dict | None = None,
-               read: dict | None = None) -> PooledPSOG:
+               read: dict | None = None, files_key=None) -> PooledPSOG:
     """The pooled P-SOG of several ``spec.PSOGSpec`` (one per drive: scene x route seed, each with the run's
     condition, vehicle and collection LiDAR), each built or read from the on-disk cache by ``spec.build``, or
     taken from ``known`` ({spec: DriveRecord}: records already made, e.g. by the worker that built the drive)
@@ -638,7 +638,8 @@ def pool_specs(specs, backend=None, cache=True, progress: bool = False, known: d
     side by side (``cached_records``); only the others are built, one after the other, on ``backend``. Where
     the process keeps pools (``pool_memo.keep_pools``: ``place3d serve``), a pool of these very cache files
     kept by an earlier call is returned as it is (shared: nothing may be added to it), and a pool whose every
-    drive was read from its file is kept.
+    drive was read from its file is kept. ``files_key``: the files' ``pool_memo.pool_files_key`` taken before
+    ``read`` was read (default: taken here, before the reads).
 
     ``build_pooled`` pools ``Drive``s (scene, seed, frames); this pools full specs, so a command's adverse
     condition and vehicle body apply to every drive. Records come back in spec order, labelled by the
@@ -655,7 +656,7 @@ def pool_specs(specs, backend=None, cache=True, progress: bool = False, known: d
         raise ValueError("pooled drives must share one ROI grid")
     known, read = dict(known or {}), dict(read or {})
     # a pool kept from an earlier command on these very files (pool_memo.keep_pools: place3d serve)
-    key = None if known else pool_files_key(specs, cache)
+    key = None if known else files_key if files_key is not None else pool_files_key(specs, cache)
     pooled = kept_pool(key)
     if pooled is not None:
         if progress:

@@ -68,6 +68,20 @@ def test_a_rewritten_file_or_a_workers_record_pools_again():
     second = pool_specs(specs, backend="warp:cpu")
     assert second is not first and second.shared and _same(second.psog(), first.psog())
     assert pool_specs(specs, backend="warp:cpu") is second
+    # read (as routes.pooled_psog reads, before the pool is made), then a file rewritten before the pooling: the
+    # identities taken before the reads no longer hold, so the pool is not kept
+    from place3d_kernels.pooled import cached_records
+
+    pool_memo.keep_pools(0)
+    pool_memo.keep_pools(2)
+    key = pool_memo.pool_files_key(specs)
+    read = cached_records(specs)
+    tmp.write_bytes(f.read_bytes())
+    os.replace(tmp, f)
+    late = pool_specs(specs, backend="warp:cpu", read=read, files_key=key)
+    assert not late.shared and pool_memo.kept_pool(pool_memo.pool_files_key(specs)) is None
+    key = pool_memo.pool_files_key(specs)
+    assert pool_specs(specs, backend="warp:cpu", read=cached_records(specs), files_key=key).shared
     # a record made elsewhere (a worker's) is not the file's content by identity: that pool is not kept
     rec = DriveRecord.from_psog(specs[0].build(backend="warp:cpu"), specs[0].scene.label)
     mixed = pool_specs(specs, backend="warp:cpu", known={specs[0]: rec})

@@ -98,8 +98,10 @@ def pooled_psog(args, spec, backend, specs=None):
     built = getattr(args, "built", None) or {}
     todo = [s for s in specs if s not in built]
     read = {}
-    # a pool an earlier command kept (place3d serve: pool_memo) needs neither reads nor a backend
-    kept = not built and kept_pool(pool_files_key(specs, not args.no_cache)) is not None
+    # a pool an earlier command kept (place3d serve: pool_memo) needs neither reads nor a backend; the files'
+    # identities are taken before they are read
+    key = None if built else pool_files_key(specs, not args.no_cache)
+    kept = kept_pool(key) is not None
     if todo and not args.no_cache and not kept:
         with section("P-SOG cache reads (side by side)"):
             read = cached_records(todo)
@@ -107,7 +109,7 @@ def pooled_psog(args, spec, backend, specs=None):
         backend = backend.result()      # optimize's probe thread: the library takes a resolved backend
     with section("P-SOG (pooled drives)"):
         pooled = pool_specs(specs, backend=None if isinstance(backend, Future) else backend, cache=not args.no_cache,
-                            progress=not args.quiet, known=built, read=read)
+                            progress=not args.quiet, known=built, read=read, files_key=key)
         # the plain pool (the jackknife's point takes it without comparing arrays), kept with a kept pool
         psog = pooled.kept_psog()
     check_entropy(psog, spec.frames_per_subset)
