@@ -38,7 +38,7 @@ DEFAULT_IDLE_TIMEOUT_S = 900.0
 KEEP_PSOGS = 4
 #: Pooled P-SOGs kept between commands (``pool_memo.keep_pools``) with their P-SOGs and prepared grids: a default
 #: ``optimize`` pools its four searched drives and four held-out ones, ``evaluate`` the searched four. One
-#: default pool keeps about 0.5 GB on the host and its grids on the device.
+#: default pool keeps 1.3 GB of host memory with a CPU backend's grids (``pool_memo.keep_pools``), less on a GPU.
 KEEP_POOLS = 2
 #: Seconds a connected client has to send its request after the greeting; the client sends it at once
 #: (computing its identity takes milliseconds), so only a stalled or hostile peer reaches this.

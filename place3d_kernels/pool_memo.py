@@ -29,8 +29,9 @@ _lock = threading.Lock()
 
 def keep_pools(n: int) -> None:
     """Keep the last ``n`` pools ``pool_specs`` made from cached drives (0, the default, keeps none and
-    forgets those kept). One default pool (0.1 m grid) keeps its counts and rank rows (about 0.2 GB), its
-    P-SOG's dense fields (about 0.3 GB) and as much again in each backend's prepared copy."""
+    forgets those kept). One default pool (four drives, 0.1 m grid) keeps its counts and rank rows, its P-SOG's
+    dense fields and each backend's prepared grids: 1.3 GB of host memory with opencl:pocl's grids (host memory
+    on a CPU device; dev VM, 2026-11-30), less on a GPU, whose grids are on the device."""
     global _keep
     if n < 0:
         raise ValueError(f"keep_pools needs n >= 0 pools, got {n}")
