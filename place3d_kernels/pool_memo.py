@@ -17,14 +17,11 @@ same before and after the reads. A kept pool is shared: ``PooledPSOG.add`` refus
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
+from place3d_kernels.kept import Kept
 
 __all__ = ["keep_pools", "kept_pool", "keep_pool", "pool_files_key"]
 
-_pools: OrderedDict = OrderedDict()
-_keep = 0
-_lock = threading.Lock()
+_POOLS = Kept("pools")
 
 
 def keep_pools(n: int) -> None:
@@ -32,20 +29,14 @@ def keep_pools(n: int) -> None:
     forgets those kept). One default pool (four drives, 0.1 m grid) keeps its counts and rank rows, its P-SOG's
     dense fields and each backend's prepared grids: 1.3 GB of host memory with opencl:pocl's grids (host memory
     on a CPU device; dev VM, 2026-11-30), less on a GPU, whose grids are on the device."""
-    global _keep
-    if n < 0:
-        raise ValueError(f"keep_pools needs n >= 0 pools, got {n}")
-    with _lock:
-        _keep = int(n)
-        while len(_pools) > _keep:
-            _pools.popitem(last=False)
+    _POOLS.keep(n)
 
 
 def pool_files_key(specs, cache=True) -> tuple | None:
     """The key of a pool of ``specs`` (``spec.PSOGSpec``s): the grid and, per drive, its label and its cache
     file's identity; None when nothing is kept (``keep_pools(0)``, no cache) or a drive's file is not known
     without building its scene or does not exist."""
-    if not _keep or not cache:
+    if not _POOLS.keeps or not cache:
         return None
     from place3d_kernels.atomic import file_identity
 
@@ -61,25 +52,12 @@ def pool_files_key(specs, cache=True) -> tuple | None:
 
 def kept_pool(key):
     """The pool kept under ``key`` (``pool_files_key``), or None."""
-    if key is None:
-        return None
-    with _lock:
-        pooled = _pools.get(key)
-        if pooled is not None:
-            _pools.move_to_end(key)
-        return pooled
+    return _POOLS.get(key)
 
 
 def keep_pool(key, pooled) -> None:
     """Keep ``pooled`` under ``key`` (nothing when ``key`` is None or no pool is kept); it is shared from now
     on (``PooledPSOG.add`` refuses it)."""
-    if key is None:
-        return
-    with _lock:
-        if not _keep:
-            return
-        pooled.shared = True
-        _pools[key] = pooled
-        _pools.move_to_end(key)
-        while len(_pools) > _keep:
-            _pools.popitem(last=False)
+    if key is not None and _POOLS.keeps:
+        pooled.shared = True              # before it is visible to another caller
+        _POOLS.put(key, pooled)

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import threading
-from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +19,7 @@ from place3d_kernels.backends.base import ENTROPY_SCALE, cache_dir, cache_folder
 from place3d_kernels.classes import CLASSES, N_CLASSES, VEHICLE
 from place3d_kernels.entropy import ENTROPY_BLOCK, entropy
 from place3d_kernels.grid import Grid
+from place3d_kernels.kept import Kept
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import invert, pose_matrix, transform_points
 from place3d_kernels.threads import block_map
@@ -35,9 +34,7 @@ _FORMAT = 5  # bump when the on-disk layout or the build changes (2: float64 vox
 
 
 #: P-SOGs read by ``PSOG.load``, kept by file identity while ``keep_loaded(n)`` allows (``place3d serve``)
-_loaded: OrderedDict = OrderedDict()
-_keep = 0
-_loaded_lock = threading.Lock()
+_LOADED = Kept("P-SOGs")
 
 
 def keep_loaded(n: int) -> None:
@@ -50,13 +47,7 @@ def keep_loaded(n: int) -> None:
     that was rewritten (``PSOG.save`` replaces it: a new inode) is read again. Nothing in the package writes
     into a P-SOG's arrays after it is made, so sharing one between commands gives the same results.
     """
-    global _keep
-    if n < 0:
-        raise ValueError(f"keep_loaded needs n >= 0 P-SOGs, got {n}")
-    with _loaded_lock:
-        _keep = int(n)
-        while len(_loaded) > _keep:
-            _loaded.popitem(last=False)
+    _LOADED.keep(n)
 
 
 def subset_groups(frames: list, k: int) -> list[list]:
@@ -451,21 +442,13 @@ class PSOG:
         ``check``: optional ``check() -> bytes``, the file's bytes once verified (``manifest.verified_bytes``),
         called whenever the file is read (not for a P-SOG kept in memory: it was checked when read, and a
         rewritten file has another identity)."""
-        if not _keep:
+        if not _LOADED.keeps:
             return cls._read(path, check)
-        key = file_identity(path)
-        if key is None:                      # absent: the read raises what it raises without keep_loaded
-            return cls._read(path, check)
-        with _loaded_lock:
-            psog = _loaded.get(key)
-            if psog is not None:
-                _loaded.move_to_end(key)
-                return psog
-        psog = cls._read(path, check)
-        with _loaded_lock:
-            _loaded[key] = psog
-            while len(_loaded) > _keep:
-                _loaded.popitem(last=False)
+        key = file_identity(path)            # None (absent): the read raises what it raises without keep_loaded
+        psog = _LOADED.get(key)
+        if psog is None:
+            psog = cls._read(path, check)
+            _LOADED.put(key, psog)
         return psog
 
     @classmethod

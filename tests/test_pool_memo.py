@@ -90,7 +90,7 @@ def test_a_rewritten_file_or_a_workers_record_pools_again():
     pool_memo.keep_pools(0)
     assert pool_specs(specs, backend="warp:cpu") is not second
     assert pool_memo.kept_pool(pool_memo.pool_files_key(specs)) is None
-    with pytest.raises(ValueError, match=">= 0"):
+    with pytest.raises(ValueError, match="n >= 0"):
         pool_memo.keep_pools(-1)
 
 
