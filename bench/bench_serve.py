@@ -1,7 +1,9 @@
-"""Wall time of ``place3d optimize`` in-process against the same command through a warm ``place3d serve``.
+"""Wall time of ``place3d optimize`` (or ``evaluate``) in-process against the same command through a warm
+``place3d serve``.
 
     python3 bench/bench_serve.py --backend warp:cuda:0 --machine H100
     python3 bench/bench_serve.py --backend opencl:pocl --machine cpu-2core-dev
+    python3 bench/bench_serve.py --backend warp:cuda:0 --command evaluate
 
 Both are the ``place3d`` entry point (``python -m place3d_app``) in a subprocess, timed from start to
 exit; the server variant adds ``--server=SOCKET``. One untimed run of each first fills the Warp kernel
@@ -62,7 +64,9 @@ def main(argv=None) -> int:
     ap.add_argument("--backend", default="auto", help="backend of the command and the server (default auto)")
     ap.add_argument("--machine", default=None, help="machine label (default: the GPU model, or cpu-<cores>core)")
     ap.add_argument("--runs", type=int, default=3, help="timed runs of each variant (default 3, at least 3)")
-    ap.add_argument("--max-evals", type=int, default=2000)
+    ap.add_argument("--command", choices=("optimize", "evaluate"), default="optimize",
+                    help="the command timed (default optimize; evaluate: its defaults, every placement)")
+    ap.add_argument("--max-evals", type=int, default=2000, help="optimize's evaluations (default 2000)")
     ap.add_argument("--task", default="seg")
     ap.add_argument("--timeout", type=float, default=600)
     ap.add_argument("--output", default=None, help="JSON path (default bench/results/serve-<machine>-<date>.json, "
@@ -74,8 +78,9 @@ def main(argv=None) -> int:
     work = Path(tempfile.mkdtemp(prefix="p3b-", dir="/tmp"))     # short: a socket path holds 107 bytes
     sock = work / "s.sock"
     base = [sys.executable, "-m", "place3d_app"]
-    command = ["optimize", "--max-evals", str(args.max_evals), "--task", args.task, "--backend", args.backend,
-               "--quiet"]
+    command = (["optimize", "--max-evals", str(args.max_evals), "--task", args.task] if args.command == "optimize"
+               else ["evaluate"]) + ["--backend", args.backend, "--quiet"]
+    out = "out" if args.command == "optimize" else "out.json"     # optimize writes a folder, evaluate a JSON file
     load_before = os.getloadavg()
     t = time.perf_counter()
     # cwd: ``python -m`` puts the working directory first on the path, so a server started from another
@@ -96,7 +101,7 @@ def main(argv=None) -> int:
             for name, cmd in variants.items():
                 run_dir = work / f"{name}-{i}"
                 run_dir.mkdir()
-                wall, r = _timed(cmd + ["--output", "out"], run_dir, args.timeout)
+                wall, r = _timed(cmd + ["--output", out], run_dir, args.timeout)
                 if "running here" in r.stderr:
                     raise RuntimeError(f"the server did not take the command: {r.stderr[-2000:]}")
                 texts[name] = TIMING.sub("<t> s", r.stdout).replace(str(run_dir), "<dir>")
@@ -119,12 +124,13 @@ def main(argv=None) -> int:
         "client_round_trip_s": stats(client), "python_c_pass_s": stats(bare),
         # the server's own time per command (its log), warm-up first: the rest of server_s is the client,
         # the socket and the interpreter's start
-        "server_side_s": [float(m) for m in re.findall(r" optimize .*-> exit 0 in ([0-9.]+) s", log)],
+        "server_side_s": [float(m) for m in re.findall(rf" {args.command} .*-> exit 0 in ([0-9.]+) s", log)],
         "server_start_s": server_start, "server_log": log.splitlines()[:2],
         "loadavg_1_5_15_before": load_before, "loadavg_1_5_15_after": os.getloadavg(),
         "note": "alternating runs after one untimed warm-up run of each; wall time of the whole subprocess",
     }
-    bench = "serve" if args.max_evals == 2000 else f"serve-evals{args.max_evals}"
+    bench = ("serve" if args.max_evals == 2000 else f"serve-evals{args.max_evals}") if args.command == "optimize" \
+        else "serve-evaluate"
     out = write_result(bench, res, args.machine, path=args.output)
     print(json.dumps({k: res[k] for k in ("in_process_s", "server_s", "speedup_median", "client_round_trip_s",
                                           "same_stdout_timing_masked")}, indent=1))
