@@ -129,7 +129,7 @@ class DriveRecord:
     @classmethod
     def from_psog(cls, psog: PSOG, label: str) -> "DriveRecord":
         """From a P-SOG built by ``PSOG.from_frames`` (it carries integer counts)."""
-        occupied = psog._cache.get("occupied")       # a P-SOG read from the cache: its entries as stored, and
+        occupied = psog.occupied                     # a P-SOG read from the cache: its entries as stored, and
         if occupied is None and (psog.counts is None or psog.n_subsets is None):    # no dense counts made
             raise ValueError(f"{label}: the P-SOG has no subset counts (built from probabilities?); pooling "
                              f"needs a P-SOG from PSOG.from_frames / scene_psog")

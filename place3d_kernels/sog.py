@@ -190,6 +190,12 @@ class PSOG:
         return state
 
     @property
+    def occupied(self) -> tuple | None:
+        """The ``occupied`` entries the P-SOG was made with (a cache file's: flat indices into ``counts[:, 1:]``
+        and their counts), or None."""
+        return self._cache.get("occupied")
+
+    @property
     def counts(self) -> np.ndarray | None:
         """(M, K) integer subset counts, or None (built from probabilities); from the occupied entries a cache
         file stores, made on first use (two threads may both make them: the same values)."""

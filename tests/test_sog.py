@@ -121,7 +121,7 @@ def test_a_loaded_psog_makes_its_dense_counts_only_when_asked(tmp_path):
         assert q.counts.dtype == psog.counts.dtype and np.array_equal(q.counts, psog.counts)
     np.testing.assert_array_equal(back.probs, psog.probs)
     with pytest.raises(ValueError, match="not both"):
-        p3k.PSOG(G, psog.voxels, None, psog.channels, 2, psog.counts, occupied=back._cache["occupied"])
+        p3k.PSOG(G, psog.voxels, None, psog.channels, 2, psog.counts, occupied=back.occupied)
 
 
 def test_save_load_keeps_probs_that_are_not_counts_over_t(tmp_path):
