@@ -27,8 +27,8 @@ _POOLS = Kept("pools")
 def keep_pools(n: int) -> None:
     """Keep the last ``n`` pools ``pool_specs`` made from cached drives (0, the default, keeps none and
     forgets those kept). One default pool (four drives, 0.1 m grid) keeps its counts and rank rows, its P-SOG's
-    dense fields and each backend's prepared grids: 1.3 GB of host memory with opencl:pocl's grids (host memory
-    on a CPU device; dev VM, 2026-11-30), less on a GPU, whose grids are on the device."""
+    dense fields and each backend's prepared grids: 1.30-1.31 GB of host memory with opencl:pocl's grids (host
+    memory on a CPU device; dev VM, 3 runs, 2026-11-30), less on a GPU, whose grids are on the device."""
     _POOLS.keep(n)
 
 
