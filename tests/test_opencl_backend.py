@@ -183,19 +183,23 @@ def deep_scene(n=120, r=1.35, first=0):
     return np.stack([v0, v1, v2], 1).reshape(-1, 3), np.arange(3 * n).reshape(n, 3)
 
 
+@pytest.mark.parametrize("builder", ["sah", "lbvh"])
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 17, 1000])
-def test_bvh_structure(n, rng):
+def test_bvh_structure(n, builder, rng):
     v, f = _random_soup(rng, n)
-    bvh = build_bvh(v, f)
+    bvh = build_bvh(v, f, builder=builder)
     validate_bvh(bvh, v, f)
     assert sorted(bvh.order.tolist()) == list(range(n))
     assert bvh.depth <= DEFAULT_MAX_DEPTH
 
 
-def test_bvh_identical_triangles_split_by_median():
+@pytest.mark.parametrize("builder", ["sah", "lbvh"])
+def test_bvh_identical_triangles_split_by_median(builder):
+    """One centre for every triangle: SAH splits at the object median, Morton order by the triangle index
+    (the keys' low bits); either way a balanced tree."""
     v = np.tile(np.eye(3), (100, 1))
     f = np.arange(300).reshape(100, 3)
-    bvh = build_bvh(v, f, leaf_size=4)
+    bvh = build_bvh(v, f, leaf_size=4, builder=builder)
     validate_bvh(bvh, v, f)
     assert bvh.depth <= int(need_levels(100, 4)) + 1
 
@@ -232,15 +236,16 @@ def _subtree_faces(bvh, root):
     return out
 
 
+@pytest.mark.parametrize("builder", ["sah", "lbvh"])
 @pytest.mark.parametrize("sizes", [[1], [2], [1, 1, 1], [5, 1, 300, 2, 1, 40], [1000, 17]])
-def test_grouped_bvh_gives_each_group_a_tree_of_its_own(sizes, rng):
+def test_grouped_bvh_gives_each_group_a_tree_of_its_own(sizes, builder, rng):
     """build_bvh's groups: node g is group g's root and its subtree holds exactly that group's faces (every
     face in one leaf, boxes nested, depth within the cap); the 4-wide collapse keeps the roots as nodes
     0 .. G-1, each over its group's faces; one group is the plain build, byte for byte."""
     from place3d_kernels.backends.opencl.bvh import collapse_bvh4
 
     v, f = _random_soup(rng, sum(sizes))
-    bvh = build_bvh(v, f, groups=sizes)
+    bvh = build_bvh(v, f, groups=sizes, builder=builder)
     validate_bvh(bvh, v, f)
     assert bvh.roots == len(sizes) and bvh.depth <= DEFAULT_MAX_DEPTH
     starts = np.concatenate([[0], np.cumsum(sizes)])
@@ -259,7 +264,7 @@ def test_grouped_bvh_gives_each_group_a_tree_of_its_own(sizes, rng):
                     faces.update(bvh.order[r_:r_ + c_].tolist())
         assert faces == set(range(starts[g], starts[g + 1]))
     if len(sizes) == 1:
-        plain = build_bvh(v, f)
+        plain = build_bvh(v, f, builder=builder)
         assert plain.nodes.tobytes() == bvh.nodes.tobytes() and plain.tris.tobytes() == bvh.tris.tobytes()
 
 
@@ -321,10 +326,46 @@ def test_widest_axis_trees_are_valid_and_give_the_same_hits(rng):
     validate_bvh(widest, v, f)
     assert widest.nodes.tobytes() != three.nodes.tobytes()      # another tree, or the test proves nothing
     validate_bvh(build_bvh(v, f, full_sah_limit=0, groups=[1000, 1, 1999]), v, f)
+    _same_hits_with_options(v, f, rng, {"full_sah_limit": 65536}, {"full_sah_limit": 0})
+
+
+def test_morton_trees_are_valid_and_give_the_same_hits(rng):
+    """``builder="lbvh"`` (the CPU devices' builds, ``lbvh.build_lbvh``) gives another valid tree (every face in
+    one leaf, boxes nested, within the depth cap, leaves of at most ``leaf_size``), and the same hits as the SAH
+    tree on every OpenCL device here, for both tree widths; a tree built with the town's part joined under a
+    route's (``join_bvh``) too."""
+    from place3d_kernels.backends.opencl.bvh import join_bvh
+
+    v, f = _random_soup(rng, 3000)
+    sah, morton = build_bvh(v, f), build_bvh(v, f, builder="lbvh")
+    validate_bvh(morton, v, f)
+    assert morton.nodes.tobytes() != sah.nodes.tobytes()        # another tree, or the test proves nothing
+    assert morton.order.tolist() != sah.order.tolist()
+    counts = morton.child_refs()[:, [1, 3]]
+    assert counts.max() <= 4 and (counts > 0).any()
+    joined = join_bvh(build_bvh(v, f[:1000], builder="lbvh", max_depth=DEFAULT_MAX_DEPTH - 1),
+                      build_bvh(v, f[1000:], builder="lbvh", max_depth=DEFAULT_MAX_DEPTH - 1), np.zeros(3))
+    validate_bvh(joined, v, f)
     for dev in _DEVICES:
         b = OpenCLBackend(dev)
-        assert b.bvh_options == ({"full_sah_limit": 0} if b.is_cpu else {})     # CPUs build widest-axis trees
-    _same_hits_with_options(v, f, rng, {"full_sah_limit": 65536}, {"full_sah_limit": 0})
+        assert b.bvh_options == ({"builder": "lbvh", "full_sah_limit": 0} if b.is_cpu else {})   # CPUs: Morton
+    _same_hits_with_options(v, f, rng, {}, {"builder": "lbvh"})
+    with pytest.raises(ValueError, match="builder must be"):
+        build_bvh(v, f, builder="octree")
+
+
+def test_morton_tree_deeper_than_the_cap_falls_back_to_sah():
+    """``build_lbvh`` gives None where its tree would exceed ``max_depth``; ``build_bvh(builder="lbvh")`` then
+    builds SAH's tree, byte for byte, within the cap."""
+    from place3d_kernels.backends.opencl.lbvh import build_lbvh
+
+    v, f = deep_scene(210, 2.0, -105)        # tiny triangles at 2**i: a chain in Morton order too
+    cap = int(need_levels(len(f), 4)) + 2
+    assert build_lbvh(v, f, max_depth=None).depth > cap, "the scene must be deeper than the cap in Morton order"
+    assert build_lbvh(v, f, max_depth=cap) is None
+    got, want = build_bvh(v, f, builder="lbvh", max_depth=cap), build_bvh(v, f, max_depth=cap)
+    validate_bvh(got, v, f)
+    assert got.depth <= cap and got.nodes.tobytes() == want.nodes.tobytes()
 
 
 def test_need_levels():

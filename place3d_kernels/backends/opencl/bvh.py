@@ -17,6 +17,9 @@ everywhere, on CPU devices, where a drive waits for the build more than for the 
 node becomes a leaf leave the working set, so each pass costs O(active triangles) (build times:
 bench/run_bench.py). Child boxes are padded outward by ~2**-21 of their coordinates (see ``_pad``).
 
+CPU devices build their trees with ``lbvh.build_lbvh`` instead (``build_bvh(builder="lbvh")``: Morton order, a
+few NumPy passes in all, a looser tree), which falls back to this builder where its tree would be too deep.
+
 Devices traverse the 4-wide collapse of this tree by default (``collapse_bvh4``: one float4 slab test per
 node; somewhat faster than the binary tree on an NVIDIA GPU, bench/README.md, "What the studies found",
 ray-mesh, OpenCL on NVIDIA).
@@ -91,7 +94,7 @@ def _half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 4, bins: int = 16,
               max_depth: int | None = DEFAULT_MAX_DEPTH, layout: str = "levels", groups=None,
-              full_sah_limit: int | None = None) -> BVH:
+              full_sah_limit: int | None = None, builder: str = "sah") -> BVH:
     """Build the flattened BVH of a triangle mesh, or one tree per group of its faces.
 
     Args:
@@ -110,13 +113,24 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 4, bins:
             (None: ``_FULL_SAH_LIMIT``), else each node's widest centroid axis; 0 = the widest axis everywhere
             (the OpenCL backend's choice on CPU devices, where the build, not the walk, is what a drive waits
             for). Any value gives a valid tree and the same hits (the float64 test decides); only speed differs.
+        builder: ``"sah"`` (this module's binned SAH) or ``"lbvh"`` (``lbvh.build_lbvh``: Morton order, the
+            OpenCL backend's choice on CPU devices; ``bins`` and ``full_sah_limit`` unused), which falls back
+            to SAH where its tree would exceed ``max_depth``. Either gives the same hits.
     """
     if layout not in ("levels", "dfs"):
         raise ValueError(f"layout must be 'levels' or 'dfs', got {layout!r}")
     if groups is not None and layout != "levels":
         raise ValueError("grouped trees are built with layout='levels' only")
-    bvh = _build(vertices, faces, leaf_size, bins, max_depth, groups,
-                 _FULL_SAH_LIMIT if full_sah_limit is None else int(full_sah_limit))
+    if builder not in ("sah", "lbvh"):
+        raise ValueError(f"builder must be 'sah' or 'lbvh', got {builder!r}")
+    bvh = None
+    if builder == "lbvh":
+        from place3d_kernels.backends.opencl.lbvh import build_lbvh
+
+        bvh = build_lbvh(vertices, faces, leaf_size, max_depth, groups)
+    if bvh is None:
+        bvh = _build(vertices, faces, leaf_size, bins, max_depth, groups,
+                     _FULL_SAH_LIMIT if full_sah_limit is None else int(full_sah_limit))
     return dfs_layout(bvh) if layout == "dfs" else bvh
 
 

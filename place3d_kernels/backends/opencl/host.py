@@ -142,7 +142,7 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
         self.raycast_checks_rays = self.fp64
         self.stack_size = int(stack_size) if stack_size is not None else DEFAULT_MAX_DEPTH
         self.is_cpu = bool(self.device.type & cl.device_type.CPU)
-        self.bvh_options = {"full_sah_limit": 0} if self.is_cpu else {}
+        self.bvh_options = {"builder": "lbvh", "full_sah_limit": 0} if self.is_cpu else {}
         self.rays_per_item = int(rays_per_item) if rays_per_item else 1
         if score_strategy not in (None, "private", "atomic"):
             raise ValueError(f"score_strategy must be 'private' or 'atomic', got {score_strategy!r}")
@@ -359,10 +359,11 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
         return local, self._in(local, keep=True)
 
     # ----------------------------------------------------------------- ray-mesh
-    #: keyword arguments of ``bvh.build_bvh`` (leaf_size, bins, full_sah_limit) for meshes uploaded from now on;
-    #: set per device in ``__init__``: on CPUs the widest-axis SAH (``full_sah_limit=0``), whose build a drive's
-    #: static mesh waits for (dev VM, 2026-11-29: 1M-triangle city 5.34 -> 4.44 s to build, its 524k-ray cast
-    #: 0.09 -> 0.10 s; a Town03 static mesh 1.70 -> 1.32 s, its 40 sweeps within noise); GPUs keep the
+    #: keyword arguments of ``bvh.build_bvh`` (builder, leaf_size, bins, full_sah_limit) for meshes uploaded from
+    #: now on; set per device in ``__init__``. On CPUs, whose drives wait for their static meshes' trees more than
+    #: for the walk, the Morton builder (``lbvh.build_lbvh``; the widest-axis SAH, ``full_sah_limit=0``, where it
+    #: falls back): dev VM, 2026-11-30, two Town03 drives simulated 4.52-4.56 -> 3.68-3.74 s (casts 1.28-1.44 ->
+    #: 1.56-1.62 s), `reproduce --routes 8`'s pool 74.8 -> 61.0 s (3 runs each, alternated). GPUs keep the
     #: three-axis levels of ``build_bvh``'s defaults, their trees unchanged. Every choice gives the same hits.
     bvh_options: dict = {}
 
