@@ -348,7 +348,7 @@ def test_morton_trees_are_valid_and_give_the_same_hits(rng):
     validate_bvh(joined, v, f)
     for dev in _DEVICES:
         b = OpenCLBackend(dev)
-        assert b.bvh_options == ({"builder": "lbvh", "full_sah_limit": 0} if b.is_cpu else {})   # CPUs: Morton
+        assert b.bvh_options == ({"builder": "lbvh", "full_sah_limit": 0} if b.is_cpu else {"builder": "lbvh"})
     _same_hits_with_options(v, f, rng, {}, {"builder": "lbvh"})
     with pytest.raises(ValueError, match="builder must be"):
         build_bvh(v, f, builder="octree")

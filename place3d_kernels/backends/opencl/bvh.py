@@ -17,8 +17,9 @@ everywhere, on CPU devices, where a drive waits for the build more than for the 
 node becomes a leaf leave the working set, so each pass costs O(active triangles) (build times:
 bench/run_bench.py). Child boxes are padded outward by ~2**-21 of their coordinates (see ``_pad``).
 
-CPU devices build their trees with ``lbvh.build_lbvh`` instead (``build_bvh(builder="lbvh")``: Morton order, a
-few NumPy passes in all, a looser tree), which falls back to this builder where its tree would be too deep.
+The OpenCL backend builds its trees with ``lbvh.build_lbvh`` instead (``build_bvh(builder="lbvh")``: Morton order,
+a few NumPy passes in all, a looser tree that its drives' sweeps walk about as fast), which falls back to this
+builder where its tree would be too deep (``OpenCLBackend.bvh_options``).
 
 Devices traverse the 4-wide collapse of this tree by default (``collapse_bvh4``: one float4 slab test per
 node; somewhat faster than the binary tree on an NVIDIA GPU, bench/README.md, "What the studies found",

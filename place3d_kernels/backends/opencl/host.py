@@ -142,7 +142,7 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
         self.raycast_checks_rays = self.fp64
         self.stack_size = int(stack_size) if stack_size is not None else DEFAULT_MAX_DEPTH
         self.is_cpu = bool(self.device.type & cl.device_type.CPU)
-        self.bvh_options = {"builder": "lbvh", "full_sah_limit": 0} if self.is_cpu else {}
+        self.bvh_options = {"builder": "lbvh", "full_sah_limit": 0} if self.is_cpu else {"builder": "lbvh"}
         self.rays_per_item = int(rays_per_item) if rays_per_item else 1
         if score_strategy not in (None, "private", "atomic"):
             raise ValueError(f"score_strategy must be 'private' or 'atomic', got {score_strategy!r}")
@@ -360,11 +360,13 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
 
     # ----------------------------------------------------------------- ray-mesh
     #: keyword arguments of ``bvh.build_bvh`` (builder, leaf_size, bins, full_sah_limit) for meshes uploaded from
-    #: now on; set per device in ``__init__``. On CPUs, whose drives wait for their static meshes' trees more than
-    #: for the walk, the Morton builder (``lbvh.build_lbvh``; the widest-axis SAH, ``full_sah_limit=0``, where it
-    #: falls back): dev VM, 2026-11-30, two Town03 drives simulated 4.52-4.56 -> 3.68-3.74 s (casts 1.28-1.44 ->
-    #: 1.56-1.62 s), `reproduce --routes 8`'s pool 74.8 -> 61.0 s (3 runs each, alternated). GPUs keep the
-    #: three-axis levels of ``build_bvh``'s defaults, their trees unchanged. Every choice gives the same hits.
+    #: now on; set per device in ``__init__``. Every device builds Morton-order trees (``lbvh.build_lbvh``), since a
+    #: drive waits for its static mesh's trees more than for their 40 sweeps; where that builder falls back to SAH,
+    #: CPUs split on the widest axis (``full_sah_limit=0``), GPUs try all three. 2026-11-30, SAH -> Morton, 3 pairs
+    #: each: two Town03 drives simulated on the dev VM's PoCL 4.52-4.56 -> 3.68-3.74 s (casts 1.28-1.44 -> 1.56-1.62
+    #: s), on an H200's opencl:nvidia 3.31-3.54 -> 1.66-1.84 s (casts 0.15-0.16 s both), a 1M-triangle city built
+    #: there in 4.4-5.5 -> 1.6-2.0 s (its 524k-ray cast 5.1-6.5 / 4.7-6.6 ms); `reproduce --routes 8`'s pool on
+    #: the dev VM 74.8 -> 61.0 s (3 runs each, alternated). Every choice gives the same hits.
     bvh_options: dict = {}
 
     def upload_mesh(self, vertices, faces, face_ids=None, labels=None, prefix=None):

@@ -1,13 +1,14 @@
-"""Linear BVH builder (Morton order, Karras 2012) for the OpenCL ray caster: the CPU devices' choice.
+"""Linear BVH builder (Morton order, Karras 2012): the OpenCL backend's trees on every device.
 
-A drive on a CPU device (PoCL) waits for its static mesh's tree more than for the walk: the binned SAH
-builder of ``bvh.py`` costs about 3 us a triangle in NumPy (one pass over every active triangle per tree
-level), a Town03 route's static mesh about 1 s. This builder sorts the triangles once by the Morton code
-of their box centres and reads the whole binary radix tree off the sorted keys, every inner node at once
+A drive waits for its static mesh's tree more than for the walk: the binned SAH builder of ``bvh.py`` costs
+about 3 us a triangle in NumPy on the host (one pass over every active triangle per tree level), a Town03
+route's static mesh about 1 s on the dev VM. This builder sorts the triangles once by the Morton code of
+their box centres and reads the whole binary radix tree off the sorted keys, every inner node at once
 (Karras, "Maximizing Parallelism in the Construction of BVHs, Octrees, and k-d Trees", HPG 2012,
-section 4): a few NumPy passes of O(n log n), about 0.3 s for the same mesh on the dev VM. The tree is
-worse for the walk than SAH's (Town03 drives: casts about 15 % slower on the dev VM), which the build
-more than repays where a drive's tree is built once and walked by 40 sweeps (docs/performance.md).
+section 4): a few NumPy passes of O(n log n), about 0.3 s for the same mesh. The tree is looser than SAH's:
+a Town03 drive's casts about 15 % slower on the dev VM's PoCL, no slower on an H200's opencl:nvidia, which
+the build more than repays where a drive's tree is built once and walked by 40 sweeps
+(``OpenCLBackend.bvh_options`` has the figures; docs/performance.md).
 
 The output is ``bvh.BVH`` in the builder's "levels" layout, so ``collapse_bvh4``, ``join_bvh`` and the
 kernels read it unchanged, and every tree gives the same hits: the float64 triangle test decides each hit,
