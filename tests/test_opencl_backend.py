@@ -16,6 +16,9 @@ import pytest
 from place3d_kernels.backends.base import BackendUnavailable, GridSpec
 from place3d_kernels.backends.geometry import brute_force_raycast
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, build_bvh, need_levels, validate_bvh
+from place3d_kernels.backends.opencl.lbvh import build_lbvh, morton_tree
+
+BUILDERS = {"sah": build_bvh, "lbvh": build_lbvh}
 from place3d_kernels.backends.reference import ReferenceBackend
 
 try:
@@ -187,7 +190,7 @@ def deep_scene(n=120, r=1.35, first=0):
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 17, 1000])
 def test_bvh_structure(n, builder, rng):
     v, f = _random_soup(rng, n)
-    bvh = build_bvh(v, f, builder=builder)
+    bvh = BUILDERS[builder](v, f)
     validate_bvh(bvh, v, f)
     assert sorted(bvh.order.tolist()) == list(range(n))
     assert bvh.depth <= DEFAULT_MAX_DEPTH
@@ -199,7 +202,7 @@ def test_bvh_identical_triangles_split_by_median(builder):
     (the keys' low bits); either way a balanced tree."""
     v = np.tile(np.eye(3), (100, 1))
     f = np.arange(300).reshape(100, 3)
-    bvh = build_bvh(v, f, leaf_size=4, builder=builder)
+    bvh = BUILDERS[builder](v, f, leaf_size=4)
     validate_bvh(bvh, v, f)
     assert bvh.depth <= int(need_levels(100, 4)) + 1
 
@@ -245,7 +248,7 @@ def test_grouped_bvh_gives_each_group_a_tree_of_its_own(sizes, builder, rng):
     from place3d_kernels.backends.opencl.bvh import collapse_bvh4
 
     v, f = _random_soup(rng, sum(sizes))
-    bvh = build_bvh(v, f, groups=sizes, builder=builder)
+    bvh = BUILDERS[builder](v, f, groups=sizes)
     validate_bvh(bvh, v, f)
     assert bvh.roots == len(sizes) and bvh.depth <= DEFAULT_MAX_DEPTH
     starts = np.concatenate([[0], np.cumsum(sizes)])
@@ -264,7 +267,7 @@ def test_grouped_bvh_gives_each_group_a_tree_of_its_own(sizes, builder, rng):
                     faces.update(bvh.order[r_:r_ + c_].tolist())
         assert faces == set(range(starts[g], starts[g + 1]))
     if len(sizes) == 1:
-        plain = build_bvh(v, f, builder=builder)
+        plain = BUILDERS[builder](v, f)
         assert plain.nodes.tobytes() == bvh.nodes.tobytes() and plain.tris.tobytes() == bvh.tris.tobytes()
 
 
@@ -330,40 +333,41 @@ def test_widest_axis_trees_are_valid_and_give_the_same_hits(rng):
 
 
 def test_morton_trees_are_valid_and_give_the_same_hits(rng):
-    """``builder="lbvh"`` (the CPU devices' builds, ``lbvh.build_lbvh``) gives another valid tree (every face in
-    one leaf, boxes nested, within the depth cap, leaves of at most ``leaf_size``), and the same hits as the SAH
-    tree on every OpenCL device here, for both tree widths; a tree built with the town's part joined under a
-    route's (``join_bvh``) too."""
+    """``lbvh.build_lbvh`` (every OpenCL device's builds) gives another valid tree (every face in one leaf, boxes
+    nested, within the depth cap, leaves of at most ``leaf_size``), and the same hits as the SAH tree on every
+    OpenCL device here, for both tree widths; a tree built with the town's part joined under a route's
+    (``join_bvh``) too."""
     from place3d_kernels.backends.opencl.bvh import join_bvh
 
     v, f = _random_soup(rng, 3000)
-    sah, morton = build_bvh(v, f), build_bvh(v, f, builder="lbvh")
+    sah, morton = build_bvh(v, f), build_lbvh(v, f)
     validate_bvh(morton, v, f)
     assert morton.nodes.tobytes() != sah.nodes.tobytes()        # another tree, or the test proves nothing
     assert morton.order.tolist() != sah.order.tolist()
     counts = morton.child_refs()[:, [1, 3]]
     assert counts.max() <= 4 and (counts > 0).any()
-    joined = join_bvh(build_bvh(v, f[:1000], builder="lbvh", max_depth=DEFAULT_MAX_DEPTH - 1),
-                      build_bvh(v, f[1000:], builder="lbvh", max_depth=DEFAULT_MAX_DEPTH - 1), np.zeros(3))
+    joined = join_bvh(build_lbvh(v, f[:1000], max_depth=DEFAULT_MAX_DEPTH - 1),
+                      build_lbvh(v, f[1000:], max_depth=DEFAULT_MAX_DEPTH - 1), np.zeros(3))
     validate_bvh(joined, v, f)
     for dev in _DEVICES:
         b = OpenCLBackend(dev)
         assert b.bvh_options == ({"builder": "lbvh", "full_sah_limit": 0} if b.is_cpu else {"builder": "lbvh"})
     _same_hits_with_options(v, f, rng, {}, {"builder": "lbvh"})
-    with pytest.raises(ValueError, match="builder must be"):
-        build_bvh(v, f, builder="octree")
+    if _DEVICES:
+        b = OpenCLBackend(_DEVICES[0])
+        b.bvh_options = {"builder": "octree"}
+        with pytest.raises(ValueError, match="builder must be"):
+            b.upload_mesh(v, f)
 
 
 def test_morton_tree_deeper_than_the_cap_falls_back_to_sah():
-    """``build_lbvh`` gives None where its tree would exceed ``max_depth``; ``build_bvh(builder="lbvh")`` then
-    builds SAH's tree, byte for byte, within the cap."""
-    from place3d_kernels.backends.opencl.lbvh import build_lbvh
-
+    """``morton_tree`` gives None where its tree would exceed ``max_depth``; ``build_lbvh`` then builds SAH's tree
+    with its arguments, byte for byte, within the cap."""
     v, f = deep_scene(210, 2.0, -105)        # tiny triangles at 2**i: a chain in Morton order too
     cap = int(need_levels(len(f), 4)) + 2
-    assert build_lbvh(v, f, max_depth=None).depth > cap, "the scene must be deeper than the cap in Morton order"
-    assert build_lbvh(v, f, max_depth=cap) is None
-    got, want = build_bvh(v, f, builder="lbvh", max_depth=cap), build_bvh(v, f, max_depth=cap)
+    assert morton_tree(v, f, max_depth=None).depth > cap, "the scene must be deeper than the cap in Morton order"
+    assert morton_tree(v, f, max_depth=cap) is None
+    got, want = build_lbvh(v, f, max_depth=cap, full_sah_limit=0), build_bvh(v, f, max_depth=cap, full_sah_limit=0)
     validate_bvh(got, v, f)
     assert got.depth <= cap and got.nodes.tobytes() == want.nodes.tobytes()
 

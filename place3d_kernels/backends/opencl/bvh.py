@@ -17,9 +17,9 @@ everywhere, on CPU devices, where a drive waits for the build more than for the 
 node becomes a leaf leave the working set, so each pass costs O(active triangles) (build times:
 bench/run_bench.py). Child boxes are padded outward by ~2**-21 of their coordinates (see ``_pad``).
 
-The OpenCL backend builds its trees with ``lbvh.build_lbvh`` instead (``build_bvh(builder="lbvh")``: Morton order,
-a few NumPy passes in all, a looser tree that its drives' sweeps walk about as fast), which falls back to this
-builder where its tree would be too deep (``OpenCLBackend.bvh_options``).
+The OpenCL backend builds its trees with ``lbvh.build_lbvh`` instead (Morton order, a few NumPy passes in all, a
+looser tree that its drives' sweeps walk about as fast), which falls back to this builder where its tree would be
+too deep (``OpenCLBackend.bvh_options``).
 
 Devices traverse the 4-wide collapse of this tree by default (``collapse_bvh4``: one float4 slab test per
 node; somewhat faster than the binary tree on an NVIDIA GPU, bench/README.md, "What the studies found",
@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["BVH", "BVH4", "build_bvh", "join_bvh", "dfs_layout", "collapse_bvh4", "need_levels", "validate_bvh",
-           "DEFAULT_MAX_DEPTH"]
+           "group_sizes", "assemble_bvh", "DEFAULT_MAX_DEPTH"]
 
 #: Inner-node depth cap; the binary traversal stack of ``raycast.cl`` has this many entries (the 4-wide
 #: one three times as many).
@@ -95,7 +95,7 @@ def _half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 4, bins: int = 16,
               max_depth: int | None = DEFAULT_MAX_DEPTH, layout: str = "levels", groups=None,
-              full_sah_limit: int | None = None, builder: str = "sah") -> BVH:
+              full_sah_limit: int | None = None) -> BVH:
     """Build the flattened BVH of a triangle mesh, or one tree per group of its faces.
 
     Args:
@@ -114,28 +114,18 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 4, bins:
             (None: ``_FULL_SAH_LIMIT``), else each node's widest centroid axis; 0 = the widest axis everywhere
             (the OpenCL backend's choice on CPU devices, where the build, not the walk, is what a drive waits
             for). Any value gives a valid tree and the same hits (the float64 test decides); only speed differs.
-        builder: ``"sah"`` (this module's binned SAH) or ``"lbvh"`` (``lbvh.build_lbvh``: Morton order, the
-            OpenCL backend's choice on CPU devices; ``bins`` and ``full_sah_limit`` unused), which falls back
-            to SAH where its tree would exceed ``max_depth``. Either gives the same hits.
     """
     if layout not in ("levels", "dfs"):
         raise ValueError(f"layout must be 'levels' or 'dfs', got {layout!r}")
     if groups is not None and layout != "levels":
         raise ValueError("grouped trees are built with layout='levels' only")
-    if builder not in ("sah", "lbvh"):
-        raise ValueError(f"builder must be 'sah' or 'lbvh', got {builder!r}")
-    bvh = None
-    if builder == "lbvh":
-        from place3d_kernels.backends.opencl.lbvh import build_lbvh
-
-        bvh = build_lbvh(vertices, faces, leaf_size, max_depth, groups)
-    if bvh is None:
-        bvh = _build(vertices, faces, leaf_size, bins, max_depth, groups,
-                     _FULL_SAH_LIMIT if full_sah_limit is None else int(full_sah_limit))
+    bvh = _build(vertices, faces, leaf_size, bins, max_depth, groups,
+                 _FULL_SAH_LIMIT if full_sah_limit is None else int(full_sah_limit))
     return dfs_layout(bvh) if layout == "dfs" else bvh
 
 
-def _group_sizes(groups, n_tri: int) -> np.ndarray:
+def group_sizes(groups, n_tri: int) -> np.ndarray:
+    """(G,) int64 face counts of ``build_bvh``'s ``groups`` (one group of every face for None), checked."""
     sizes = np.array([n_tri] if groups is None else groups, dtype=np.int64).reshape(-1)
     if len(sizes) == 0 or sizes.min() < 1 or sizes.sum() != n_tri:
         raise ValueError(f"groups must be face counts >= 1 summing to the {n_tri} faces, got {len(sizes)} "
@@ -152,7 +142,7 @@ def _build(vertices, faces, leaf_size, bins, max_depth, groups=None, full_sah_li
     n_tri = len(f)
     if n_tri == 0:
         raise ValueError("cannot build a BVH of an empty mesh")
-    sizes = _group_sizes(groups, n_tri)
+    sizes = group_sizes(groups, n_tri)
     G = len(sizes)
     if max_depth is not None and int(need_levels(sizes.max(), leaf_size)) > max_depth:
         what = f"{n_tri} triangles need" if groups is None else f"a group of {int(sizes.max())} triangles needs"
@@ -369,7 +359,7 @@ def _build(vertices, faces, leaf_size, bins, max_depth, groups=None, full_sah_li
         a_slot = np.tile(np.array([0, 1], dtype=np.int64), len(inner))
         a_depth = np.repeat(a_depth[inner] + 1, 2)
 
-    return _finish(v, f, perm, c_lo[:n_nodes], c_hi[:n_nodes], c_ref[:n_nodes], c_cnt[:n_nodes],
+    return assemble_bvh(v, f, perm, c_lo[:n_nodes], c_hi[:n_nodes], c_ref[:n_nodes], c_cnt[:n_nodes],
                    max_seen, n_leaves, max_depth, root_lo, root_hi, G)
 
 
@@ -390,7 +380,9 @@ def _pad(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return plo, phi
 
 
-def _finish(v, f, perm, c_lo, c_hi, c_ref, c_cnt, depth, n_leaves, max_depth, lo, hi, roots=1) -> BVH:
+def assemble_bvh(v, f, perm, c_lo, c_hi, c_ref, c_cnt, depth, n_leaves, max_depth, lo, hi, roots=1) -> BVH:
+    """The ``BVH`` of a built binary tree (this module's and ``lbvh``'s builders): per inner node its two children's
+    boxes (padded outward here, ``_pad``), refs and counts, and ``perm``, the original face of each leaf slot."""
     n = len(c_ref)
     nodes = np.empty((n, 16), dtype=np.float32)
     c_lo, c_hi = _pad(np.asarray(c_lo), np.asarray(c_hi))

@@ -14,6 +14,7 @@ from place3d_kernels.backends.base import (Backend, BackendUnavailable, Directio
 from place3d_kernels.backends.geometry import brute_force_raycast
 from place3d_kernels.backends.opencl import _runtime as rt
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, build_bvh, collapse_bvh4, join_bvh
+from place3d_kernels.backends.opencl.lbvh import build_lbvh
 from place3d_kernels.backends.opencl.conditions import OpenCLConditions
 from place3d_kernels.backends.opencl.scoring import CLGrid, OpenCLScoring
 
@@ -359,15 +360,25 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
         return local, self._in(local, keep=True)
 
     # ----------------------------------------------------------------- ray-mesh
-    #: keyword arguments of ``bvh.build_bvh`` (builder, leaf_size, bins, full_sah_limit) for meshes uploaded from
-    #: now on; set per device in ``__init__``. Every device builds Morton-order trees (``lbvh.build_lbvh``), since a
-    #: drive waits for its static mesh's trees more than for their 40 sweeps; where that builder falls back to SAH,
+    #: how meshes uploaded from now on get their trees (``_tree``): the builder and its keyword arguments
+    #: (leaf_size, bins, full_sah_limit); set per device in ``__init__``. Every device builds Morton-order trees
+    #: (``lbvh.build_lbvh``), since a drive waits for its static mesh's trees more than for their 40 sweeps; where
+    #: that builder falls back to SAH,
     #: CPUs split on the widest axis (``full_sah_limit=0``), GPUs try all three. 2026-11-30, SAH -> Morton, 3 pairs
     #: each: two Town03 drives simulated on the dev VM's PoCL 4.52-4.56 -> 3.68-3.74 s (casts 1.28-1.44 -> 1.56-1.62
     #: s), on an H200's opencl:nvidia 3.31-3.54 -> 1.66-1.84 s (casts 0.15-0.16 s both), a 1M-triangle city built
     #: there in 4.4-5.5 -> 1.6-2.0 s (its 524k-ray cast 5.1-6.5 / 4.7-6.6 ms); `reproduce --routes 8`'s pool on
     #: the dev VM 74.8 -> 61.0 s (3 runs each, alternated). Every choice gives the same hits.
     bvh_options: dict = {}
+
+    def _tree(self, vertices, faces, **kw) -> BVH:
+        """A mesh's binary tree, built as ``bvh_options`` say (``builder``: ``"lbvh"``, ``lbvh.build_lbvh``, or
+        ``"sah"``, ``bvh.build_bvh``; the other keys are the builder's arguments)."""
+        opts = dict(self.bvh_options)
+        builder = opts.pop("builder", "sah")
+        if builder not in ("sah", "lbvh"):
+            raise ValueError(f"bvh_options' builder must be 'sah' or 'lbvh', got {builder!r}")
+        return (build_lbvh if builder == "lbvh" else build_bvh)(vertices, faces, **kw, **opts)
 
     def upload_mesh(self, vertices, faces, face_ids=None, labels=None, prefix=None):
         """``Backend.upload_mesh``; ``prefix``: (a ``mesh_part`` of this mesh's first faces, the (3,) float64
@@ -383,9 +394,9 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
         if part is not None and (len(part.faces) >= len(f) or not np.array_equal(f[:len(part.faces)], part.faces)):
             raise ValueError("upload_mesh's prefix part is not this mesh's first faces (or leaves none to add)")
         if part is None:
-            bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH, **self.bvh_options)
+            bvh = self._tree(v, f, max_depth=DEFAULT_MAX_DEPTH)
         else:
-            rest = build_bvh(v, f[len(part.faces):], max_depth=DEFAULT_MAX_DEPTH - 1, **self.bvh_options)
+            rest = self._tree(v, f[len(part.faces):], max_depth=DEFAULT_MAX_DEPTH - 1)
             bvh = join_bvh(part.bvh, rest, prefix[1])
         return CLMesh(self, v, f, bvh, ids, lab)
 
@@ -400,8 +411,8 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
         level short of the depth cap, which the joined tree's new root then takes."""
         f = np.array(faces, dtype=np.int32, copy=True).reshape(-1, 3)
         f.setflags(write=False)
-        return MeshPart(build_bvh(np.asarray(vertices, dtype=np.float64).reshape(-1, 3), f,
-                                  max_depth=DEFAULT_MAX_DEPTH - 1, **self.bvh_options), f)
+        return MeshPart(self._tree(np.asarray(vertices, dtype=np.float64).reshape(-1, 3), f,
+                                   max_depth=DEFAULT_MAX_DEPTH - 1), f)
 
     def _ray_args(self, mesh, o, o_step, d, tm, t_step, shift, tb, fb, lb, map_faces, flags,
                   scratch: list | None = None, groups: tuple | None = None) -> list:
@@ -476,7 +487,7 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
         base = np.cumsum([0] + [len(v) for v, *_ in groups[:-1]])
         v = np.concatenate([g[0] for g in groups])
         f = np.concatenate([g[1] + b for g, b in zip(groups, base)]).astype(np.int32)   # into the joined vertices
-        bvh = build_bvh(v, f, max_depth=DEFAULT_MAX_DEPTH, groups=[len(g[1]) for g in groups], **self.bvh_options)
+        bvh = self._tree(v, f, max_depth=DEFAULT_MAX_DEPTH, groups=[len(g[1]) for g in groups])
         return CLMesh(self, v, f, bvh, np.concatenate([g[2] for g in groups]), np.concatenate([g[3] for g in groups]))
 
     def raycast_groups(self, mesh, origins, directions, t_max, shifts, rays_per_group: int, first: int = 0):

@@ -25,16 +25,18 @@ Details:
 * Groups (``groups``): keys of group g share their top bits, so the radix tree's node whose range is exactly
   the group exists (the longest common prefix of its first and last keys) and becomes root g; a group of one
   triangle gets a root whose two children are that triangle, as ``bvh.build_bvh`` makes.
-* Depth: a radix tree is no deeper than its keys have bits; ``build_lbvh`` returns None when the tree would
-  be deeper than ``max_depth`` or the keys do not fit in 64 bits, and ``bvh.build_bvh`` then builds SAH's
-  tree, whose depth bound is proven.
+* Depth: a radix tree is no deeper than its keys have bits; where the tree would be deeper than ``max_depth``
+  or the keys do not fit in 64 bits (``morton_tree`` gives None), ``build_lbvh`` builds SAH's tree
+  (``bvh.build_bvh``), whose depth bound is proven.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["build_lbvh"]
+from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, assemble_bvh, group_sizes, build_bvh
+
+__all__ = ["build_lbvh", "morton_tree"]
 
 _MORTON_BITS = 10            # per axis: 30-bit codes
 
@@ -96,12 +98,21 @@ def _radix_tree(key: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.minimum(i_all, j), np.maximum(i_all, j), gamma
 
 
-def build_lbvh(vertices, faces, leaf_size: int = 4, max_depth: int | None = 64, groups=None):
-    """``bvh.BVH`` of a triangle mesh (one tree per group of faces with ``groups``, as ``bvh.build_bvh``) by
-    Morton order; None when the tree would be deeper than ``max_depth`` or the keys need more than 64 bits
-    (``bvh.build_bvh`` then builds the SAH tree). Vertices go to float32 first, as there."""
-    from place3d_kernels.backends.opencl.bvh import _finish, _group_sizes
+def build_lbvh(vertices, faces, leaf_size: int = 4, max_depth: int | None = DEFAULT_MAX_DEPTH, groups=None,
+               **sah) -> BVH:
+    """``bvh.BVH`` of a triangle mesh (one tree per group of faces with ``groups``) in Morton order
+    (``morton_tree``), or where that tree would be deeper than ``max_depth``, ``bvh.build_bvh``'s binned SAH tree
+    with the same arguments and ``sah`` (its ``bins``, ``full_sah_limit``). Either gives the same hits."""
+    tree = morton_tree(vertices, faces, leaf_size, max_depth, groups)
+    if tree is None:
+        tree = build_bvh(vertices, faces, leaf_size=leaf_size, max_depth=max_depth, groups=groups, **sah)
+    return tree
 
+
+def morton_tree(vertices, faces, leaf_size: int = 4, max_depth: int | None = DEFAULT_MAX_DEPTH,
+                groups=None) -> BVH | None:
+    """The Morton-order tree of ``build_lbvh``, or None when it would be deeper than ``max_depth`` or its keys
+    need more than 64 bits. Vertices go to float32 first, as in ``bvh.build_bvh``."""
     with np.errstate(over="ignore"):
         v = np.ascontiguousarray(vertices, dtype=np.float32)
     if not np.all(np.isfinite(v)):
@@ -110,7 +121,7 @@ def build_lbvh(vertices, faces, leaf_size: int = 4, max_depth: int | None = 64, 
     n = len(f)
     if n == 0:
         raise ValueError("cannot build a BVH of an empty mesh")
-    sizes = _group_sizes(groups, n)
+    sizes = group_sizes(groups, n)
     n_groups = len(sizes)
     index_bits = max(1, int(n - 1).bit_length())
     group_bits = int(n_groups - 1).bit_length()
@@ -196,5 +207,5 @@ def build_lbvh(vertices, faces, leaf_size: int = 4, max_depth: int | None = 64, 
         c_ref[single], c_cnt[single] = starts[single][:, None], 1
         c_lo[single], c_hi[single] = l_lo[k][:, None], l_hi[k][:, None]
     n_leaves = int(leaf.sum()) + len(single)
-    return _finish(v, f, order.astype(np.int64), c_lo, c_hi, c_ref, c_cnt, depth, n_leaves, max_depth,
+    return assemble_bvh(v, f, order.astype(np.int64), c_lo, c_hi, c_ref, c_cnt, depth, n_leaves, max_depth,
                    tlo.min(axis=0), thi.max(axis=0), n_groups)
