@@ -6,7 +6,7 @@ route's static mesh about 1 s on the dev VM. This builder sorts the triangles on
 their box centres and reads the whole binary radix tree off the sorted keys, every inner node at once
 (Karras, "Maximizing Parallelism in the Construction of BVHs, Octrees, and k-d Trees", HPG 2012,
 section 4): a few NumPy passes of O(n log n), about 0.3 s for the same mesh. The tree is looser than SAH's:
-a Town03 drive's casts about 15 % slower on the dev VM's PoCL, no slower on an H200's opencl:nvidia, which
+a Town03 drive's casts 10-27 % slower on the dev VM's PoCL, no slower on an H200's opencl:nvidia, which
 the build more than repays where a drive's tree is built once and walked by 40 sweeps
 (``OpenCLBackend.bvh_options`` has the figures; docs/performance.md).
 
@@ -19,7 +19,7 @@ Details:
 * Keys: group id (top bits), the 30-bit Morton code of the centre, then the triangle index, so every key is
   distinct and Karras' prefix lengths need no tie rule. The Morton grid is a cube (one scale, the largest
   centroid extent of the group), so a flat town's top splits fall across its long axes, as SAH's do; with
-  a scale per axis, its height got as many bits as its width and the casts ran about 30 % slower.
+  a scale per axis, its height got as many bits as its width and the casts ran 19-37 % slower than SAH's.
 * Leaves: a child whose key range holds at most ``leaf_size`` triangles is a leaf of that range (the sorted
   order is the leaf order), so leaves hold 1 .. ``leaf_size`` triangles.
 * Groups (``groups``): keys of group g share their top bits, so the radix tree's node whose range is exactly
