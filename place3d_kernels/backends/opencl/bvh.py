@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["BVH", "BVH4", "build_bvh", "join_bvh", "dfs_layout", "collapse_bvh4", "need_levels", "validate_bvh",
-           "group_sizes", "assemble_bvh", "DEFAULT_MAX_DEPTH"]
+           "group_sizes", "tree_input", "assemble_bvh", "DEFAULT_MAX_DEPTH"]
 
 #: Inner-node depth cap; the binary traversal stack of ``raycast.cl`` has this many entries (the 4-wide
 #: one three times as many).
@@ -133,16 +133,27 @@ def group_sizes(groups, n_tri: int) -> np.ndarray:
     return sizes
 
 
-def _build(vertices, faces, leaf_size, bins, max_depth, groups=None, full_sah_limit=_FULL_SAH_LIMIT) -> BVH:
+def tree_input(vertices, faces, groups=None) -> tuple[np.ndarray, ...]:
+    """What a tree builder starts from, checked: (vertices (V, 3) float32, faces (F, 3) int64, the groups' face
+    counts (``group_sizes``), each triangle's box lo and hi (F, 3) float32).
+
+    Raises:
+        ValueError: vertices not finite in float32, no faces, or groups that do not cover the faces."""
     with np.errstate(over="ignore"):
         v = np.ascontiguousarray(vertices, dtype=np.float32)
     if not np.all(np.isfinite(v)):
         raise ValueError("mesh vertices are not finite in float32 (|x| > 3.4e38?); shift the mesh near the origin")
     f = np.ascontiguousarray(faces, dtype=np.int64)
-    n_tri = len(f)
-    if n_tri == 0:
+    if len(f) == 0:
         raise ValueError("cannot build a BVH of an empty mesh")
-    sizes = group_sizes(groups, n_tri)
+    sizes = group_sizes(groups, len(f))
+    p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    return v, f, sizes, np.minimum(np.minimum(p0, p1), p2), np.maximum(np.maximum(p0, p1), p2)
+
+
+def _build(vertices, faces, leaf_size, bins, max_depth, groups=None, full_sah_limit=_FULL_SAH_LIMIT) -> BVH:
+    v, f, sizes, tlo, thi = tree_input(vertices, faces, groups)
+    n_tri = len(f)
     G = len(sizes)
     if max_depth is not None and int(need_levels(sizes.max(), leaf_size)) > max_depth:
         what = f"{n_tri} triangles need" if groups is None else f"a group of {int(sizes.max())} triangles needs"
@@ -151,9 +162,6 @@ def _build(vertices, faces, leaf_size, bins, max_depth, groups=None, full_sah_li
     starts = np.zeros(G, dtype=np.int64)
     np.cumsum(sizes[:-1], out=starts[1:])
 
-    p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    tlo = np.minimum(np.minimum(p0, p1), p2)
-    thi = np.maximum(np.maximum(p0, p1), p2)
 
     perm = np.empty(n_tri, dtype=np.int64)
     # node storage (grown as needed); nodes 0 .. G-1 are the groups' roots

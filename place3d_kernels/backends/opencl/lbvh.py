@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, assemble_bvh, group_sizes, build_bvh
+from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, assemble_bvh, build_bvh, tree_input
 
 __all__ = ["build_lbvh", "morton_tree"]
 
@@ -113,15 +113,8 @@ def morton_tree(vertices, faces, leaf_size: int = 4, max_depth: int | None = DEF
                 groups=None) -> BVH | None:
     """The Morton-order tree of ``build_lbvh``, or None when it would be deeper than ``max_depth`` or its keys
     need more than 64 bits. Vertices go to float32 first, as in ``bvh.build_bvh``."""
-    with np.errstate(over="ignore"):
-        v = np.ascontiguousarray(vertices, dtype=np.float32)
-    if not np.all(np.isfinite(v)):
-        raise ValueError("mesh vertices are not finite in float32 (|x| > 3.4e38?); shift the mesh near the origin")
-    f = np.ascontiguousarray(faces, dtype=np.int64)
+    v, f, sizes, tlo, thi = tree_input(vertices, faces, groups)
     n = len(f)
-    if n == 0:
-        raise ValueError("cannot build a BVH of an empty mesh")
-    sizes = group_sizes(groups, n)
     n_groups = len(sizes)
     index_bits = max(1, int(n - 1).bit_length())
     group_bits = int(n_groups - 1).bit_length()
@@ -131,9 +124,6 @@ def morton_tree(vertices, faces, leaf_size: int = 4, max_depth: int | None = DEF
     np.cumsum(sizes[:-1], out=starts[1:])
     ends = starts + sizes - 1
 
-    p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    tlo = np.minimum(np.minimum(p0, p1), p2)
-    thi = np.maximum(np.maximum(p0, p1), p2)
     centre = 0.5 * (tlo.astype(np.float64) + thi)
     gid = np.repeat(np.arange(n_groups, dtype=np.int64), sizes)
     c_min = np.minimum.reduceat(centre, starts, axis=0)
