@@ -17,8 +17,6 @@ from place3d_kernels.backends.base import BackendUnavailable, GridSpec
 from place3d_kernels.backends.geometry import brute_force_raycast
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, build_bvh, need_levels, validate_bvh
 from place3d_kernels.backends.opencl.lbvh import build_lbvh, morton_tree
-
-BUILDERS = {"sah": build_bvh, "lbvh": build_lbvh}
 from place3d_kernels.backends.reference import ReferenceBackend
 
 try:
@@ -30,6 +28,7 @@ except ImportError as e:  # pragma: no cover - environment without PyOpenCL
     _DEVICES, _WHY = [], f"PyOpenCL not importable: {e}"
 
 REF = ReferenceBackend()
+BUILDERS = {"sah": build_bvh, "lbvh": build_lbvh}     # the two tree builders, for the host-only BVH tests
 EPS = 1e-4  # 0.1 mm (docs/architecture.md, Kernel contract)
 
 _instances: dict[str, "OpenCLBackend"] = {}

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["BVH", "BVH4", "build_bvh", "join_bvh", "dfs_layout", "collapse_bvh4", "need_levels", "validate_bvh",
-           "group_sizes", "tree_input", "assemble_bvh", "DEFAULT_MAX_DEPTH"]
+           "tree_input", "assemble_bvh", "DEFAULT_MAX_DEPTH"]
 
 #: Inner-node depth cap; the binary traversal stack of ``raycast.cl`` has this many entries (the 4-wide
 #: one three times as many).
@@ -124,7 +124,7 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 4, bins:
     return dfs_layout(bvh) if layout == "dfs" else bvh
 
 
-def group_sizes(groups, n_tri: int) -> np.ndarray:
+def _group_sizes(groups, n_tri: int) -> np.ndarray:
     """(G,) int64 face counts of ``build_bvh``'s ``groups`` (one group of every face for None), checked."""
     sizes = np.array([n_tri] if groups is None else groups, dtype=np.int64).reshape(-1)
     if len(sizes) == 0 or sizes.min() < 1 or sizes.sum() != n_tri:
@@ -135,7 +135,7 @@ def group_sizes(groups, n_tri: int) -> np.ndarray:
 
 def tree_input(vertices, faces, groups=None) -> tuple[np.ndarray, ...]:
     """What a tree builder starts from, checked: (vertices (V, 3) float32, faces (F, 3) int64, the groups' face
-    counts (``group_sizes``), each triangle's box lo and hi (F, 3) float32).
+    counts (checked), each triangle's box lo and hi (F, 3) float32).
 
     Raises:
         ValueError: vertices not finite in float32, no faces, or groups that do not cover the faces."""
@@ -146,7 +146,7 @@ def tree_input(vertices, faces, groups=None) -> tuple[np.ndarray, ...]:
     f = np.ascontiguousarray(faces, dtype=np.int64)
     if len(f) == 0:
         raise ValueError("cannot build a BVH of an empty mesh")
-    sizes = group_sizes(groups, len(f))
+    sizes = _group_sizes(groups, len(f))
     p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     return v, f, sizes, np.minimum(np.minimum(p0, p1), p2), np.maximum(np.maximum(p0, p1), p2)
 
@@ -161,7 +161,6 @@ def _build(vertices, faces, leaf_size, bins, max_depth, groups=None, full_sah_li
     cap = np.iinfo(np.int64).max if max_depth is None else int(max_depth)
     starts = np.zeros(G, dtype=np.int64)
     np.cumsum(sizes[:-1], out=starts[1:])
-
 
     perm = np.empty(n_tri, dtype=np.int64)
     # node storage (grown as needed); nodes 0 .. G-1 are the groups' roots
@@ -368,7 +367,7 @@ def _build(vertices, faces, leaf_size, bins, max_depth, groups=None, full_sah_li
         a_depth = np.repeat(a_depth[inner] + 1, 2)
 
     return assemble_bvh(v, f, perm, c_lo[:n_nodes], c_hi[:n_nodes], c_ref[:n_nodes], c_cnt[:n_nodes],
-                   max_seen, n_leaves, max_depth, root_lo, root_hi, G)
+                        max_seen, n_leaves, max_depth, root_lo, root_hi, G)
 
 
 def _pad(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

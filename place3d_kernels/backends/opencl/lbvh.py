@@ -5,7 +5,8 @@ about 3 us a triangle in NumPy on the host (one pass over every active triangle 
 route's static mesh about 1 s on the dev VM. This builder sorts the triangles once by the Morton code of
 their box centres and reads the whole binary radix tree off the sorted keys, every inner node at once
 (Karras, "Maximizing Parallelism in the Construction of BVHs, Octrees, and k-d Trees", HPG 2012,
-section 4): a few NumPy passes of O(n log n), about 0.3 s for the same mesh. The tree is looser than SAH's:
+section 4): a few NumPy passes of O(n log n), 0.44 s for the same
+mesh (1.30 s SAH; 3 builds each). The tree is looser than SAH's:
 a Town03 drive's casts 10-27 % slower on the dev VM's PoCL, no slower on an H200's opencl:nvidia, which
 the build more than repays where a drive's tree is built once and walked by 40 sweeps
 (``OpenCLBackend.bvh_options`` has the figures; docs/performance.md).
@@ -198,4 +199,4 @@ def morton_tree(vertices, faces, leaf_size: int = 4, max_depth: int | None = DEF
         c_lo[single], c_hi[single] = l_lo[k][:, None], l_hi[k][:, None]
     n_leaves = int(leaf.sum()) + len(single)
     return assemble_bvh(v, f, order.astype(np.int64), c_lo, c_hi, c_ref, c_cnt, depth, n_leaves, max_depth,
-                   tlo.min(axis=0), thi.max(axis=0), n_groups)
+                        tlo.min(axis=0), thi.max(axis=0), n_groups)
