@@ -308,8 +308,7 @@ def patched_on_backend(pooled, task: str, occlusion: str, backend, indicator: st
     # the rows' fields on the device where the backend computes them; the "uncertain" indicator is then its
     # weights above 0 (left_out_tables.indicator_rows), read back from the device rows ("evidence" needs the
     # counts: the host's rows)
-    if indicator in (None, "uncertain") and getattr(backend, "fields_on_device", False) \
-            and grids.T <= FieldTables.MAX_T and (len(grids.counts) == 0 or int(grids.counts.max()) < 2**31):
+    if _fields_here(grids, backend, indicator):
         with section("jackknife: left-out grid"):
             batch = device_fields(pooled, task, backend, grids.source)
     for i in range(len(pooled)):
@@ -372,6 +371,9 @@ def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str 
     and the previous record's rows it did not touch written (``Backend.write_voxels``). An item is valid
     until the next is asked for."""
     grids = LeftOutGrids(pooled, task, indicator, rows)
+    if _fields_here(grids, backend, indicator):
+        yield from _written_from_device_rows(grids, pooled, task, occlusion, backend, indicator)
+        return
     sog = occlusion == "sog"
     spec = pooled.grid.spec
     work = {}                     # T -> [handle, indicator handle or None, rows last written]
@@ -392,6 +394,49 @@ def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str 
             if hi is not None:
                 backend.write_voxels(hi, at, ind, stop if sog else None)
             work[T][2] = written
+        yield h if hi is None else (h, hi)
+
+
+def _fields_here(grids: "LeftOutGrids", backend, indicator: str | None) -> bool:
+    """Whether the left-out rows are made on the backend (``fields_on_device``; the "uncertain" indicator is
+    then their weights above 0, "evidence" needs the counts: the host's rows), the tables allow T and every
+    count fits an int32."""
+    return (indicator in (None, "uncertain") and getattr(backend, "fields_on_device", False)
+            and grids.T <= FieldTables.MAX_T and (len(grids.counts) == 0 or int(grids.counts.max()) < 2**31))
+
+
+def _written_from_device_rows(grids: "LeftOutGrids", pooled, task: str, occlusion: str, backend,
+                              indicator: str | None):
+    """``patched_in_place`` with every row made on the backend (OpenCL GPUs): each record's left-out rows in
+    one batch (``device_fields``) and each T's base rows (``device_row_fields``) stay on the device; per record
+    the previous record's rows are put back from the base's and the record's own written over them (the
+    indicator from the same rows, read as weight > 0), so nothing but voxel ids and row indexes is sent."""
+    sog = occlusion == "sog"
+    spec = pooled.grid.spec
+    with section("jackknife: left-out grid"):
+        batch = device_fields(pooled, task, backend, grids.source)
+        _, _, all_rows, *_ = grids.source.batch()
+        r_off = np.concatenate([[0], np.cumsum([len(v) for _, v, _, _ in batch])])
+    work = {}                     # T -> [handle, indicator handle or None, base weights, base stop, rows last written]
+    for i, (T, at, w, stop) in enumerate(batch):
+        with section("jackknife: grid upload"):
+            if T not in work:
+                wb, sb = device_row_fields(grids.counts, T, task, backend)
+                sv = sb if sog else None
+                work[T] = [backend.working_grid(spec, grids.voxels, wb, sv),
+                           None if indicator is None else backend.working_grid(spec, grids.voxels, wb.positive(), sv),
+                           wb, sb, None]
+            h, hi, wb, sb, last = work[T]
+            if last is not None:                  # the previous record's rows back to the base's
+                back = grids.voxels[last]
+                bw, bs = wb.take(last), sb.take(last) if sog else None
+                backend.write_voxels(h, back, bw, bs)
+                if hi is not None:
+                    backend.write_voxels(hi, back, bw.positive(), bs)
+            backend.write_voxels(h, at, w, stop if sog else None)
+            if hi is not None:
+                backend.write_voxels(hi, at, w.positive(), stop if sog else None)
+            work[T][4] = all_rows[r_off[i]:r_off[i + 1]]
         yield h if hi is None else (h, hi)
 
 

@@ -16,6 +16,7 @@ from place3d_kernels.backends.opencl import _runtime as rt
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, build_bvh, collapse_bvh4, join_bvh
 from place3d_kernels.backends.opencl.lbvh import build_lbvh
 from place3d_kernels.backends.opencl.conditions import OpenCLConditions
+from place3d_kernels.backends.opencl.fields import OpenCLFields
 from place3d_kernels.backends.opencl.scoring import CLGrid, OpenCLScoring
 
 __all__ = ["OpenCLBackend", "CLMesh", "CLGrid", "opencl_devices"]
@@ -77,7 +78,7 @@ class CLMesh:
         return f"<CLMesh {len(self.faces)} faces, BVH{self.width} of {tree.n_nodes} nodes, depth {tree.depth}>"
 
 
-class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
+class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
     """Kernels of the contract on one OpenCL device.
 
     Args:
@@ -186,6 +187,8 @@ class OpenCLBackend(OpenCLScoring, Backend, OpenCLConditions):
                 files, opts = ("common.cl", "vote.cl"), self._options()
             elif name.startswith("patch_"):
                 files, opts = ("patch.cl",), ()
+            elif name == "left_out_fields":
+                files, opts = ("left_out.cl",), ()
             elif self.walk_lanes:   # walk_lanes.cl: the CPU walk, 32-bit voxel indices (see score_placements)
                 files, opts = ("common.cl", "grid.cl", "walk_lanes.cl"), self._options() + ("-DFLAT32",)
             else:

@@ -11,6 +11,7 @@ import pyopencl as cl
 from place3d_kernels.backends.base import GridSpec, dense_rows, check_voxel_rows
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 from place3d_kernels.backends.opencl import _runtime as rt
+from place3d_kernels.backends.opencl.fields import CLRows
 
 __all__ = ["CLGrid", "OpenCLScoring"]
 
@@ -109,10 +110,15 @@ class OpenCLScoring:
         if not isinstance(handle, CLGrid) or not handle.writable:
             raise TypeError(f"write_voxels needs a handle from {self.name}.working_grid, got {type(handle).__name__}")
         spec = handle.spec
-        ids, w, s = check_voxel_rows(voxels, weights, stop, spec.n_voxels, handle.use_stop)
+        if isinstance(weights, CLRows):         # rows on the device (left_out_fields): read there, not sent
+            ids, row_args = self._device_row_args(voxels, weights, stop, spec.n_voxels, handle.use_stop)
+        else:
+            ids, w, s = check_voxel_rows(voxels, weights, stop, spec.n_voxels, handle.use_stop)
+            row_args = (self._in(w), self._in(s), np.int64(len(ids)), np.int64(0), np.int64(0), self._dummy,
+                        np.int32(0))
         n = len(ids)
         if n:
-            rows = (self._in(ids), self._in(w), self._in(s), np.int64(n), handle.weights)
+            rows = (self._in(ids), *row_args, handle.weights)
             if self.score_strategy == "private":
                 self._launch("patch_private", n, *rows, handle.nonzero, np.int32(handle.use_stop), handle.stop,
                              handle.stop_bits)
@@ -124,6 +130,27 @@ class OpenCLScoring:
                 if handle.flat is not None:          # the score kernel's bricks, made again from the pairs
                     self._fill_flat(handle)
         self.queue.finish()         # the rows' host memory (_in uses it in place on CPUs) is free after this
+
+    def _device_row_args(self, voxels, weights: CLRows, stop, n_voxels: int, use_stop: bool):
+        """(flat voxel ids, the patch kernels' row arguments) for rows on the device, checked as
+        ``check_voxel_rows`` checks host rows: one weight and stop value per voxel, both picked by one index."""
+        ids = np.ascontiguousarray(voxels, dtype=np.int64).reshape(-1)
+        if use_stop and stop is None:
+            raise ValueError("a grid with a stop mask needs a stop value per written voxel")
+        s = stop if use_stop else None
+        if s is not None and not isinstance(s, CLRows):
+            raise TypeError(f"weights on the device need their stop flags there too, got {type(s).__name__}")
+        if len(weights) != len(ids) or (s is not None and len(s) != len(ids)):
+            raise ValueError(f"writing {len(ids)} voxels needs one weight and one stop value per voxel, got "
+                             f"{len(weights)} and {len(ids) if s is None else len(s)}")
+        if s is not None and s.index is not weights.index:
+            raise ValueError("device weights and stop flags must be picked by the same index")
+        if len(ids) and (int(ids.min()) < 0 or int(ids.max()) >= n_voxels):
+            raise ValueError(f"voxel indices must lie in [0, {n_voxels}), got [{int(ids.min())}, {int(ids.max())}]")
+        flags = (1 if weights.index is not None else 0) | (2 if weights.is_positive else 0)
+        gather = self._dummy if weights.index is None else self._in(np.asarray(weights.index, dtype=np.int64))
+        return ids, (weights.buffer, self._dummy if s is None else s.buffer, np.int64(len(ids)),
+                     np.int64(weights.offset), np.int64(0 if s is None else s.offset), gather, np.int32(flags))
 
     def _zeroed(self, nbytes: int) -> cl.Buffer:
         buf = self._out(nbytes)

@@ -1,0 +1,134 @@
+"""The OpenCL backend's left-out fields on the device (``left_out.cl``): the jackknife's left-out rows and a
+P-SOG's weight and stop rows made from count rows where they are scored, as Warp makes them on CUDA
+(``WarpScoring.left_out_fields``), bit for bit the host's ``left_out_tables.FieldTables``. The rows stay on the
+device (``CLRows``) and ``OpenCLScoring.write_voxels`` writes them into a working grid there. A mixin of
+``OpenCLBackend`` (host.py), whose plumbing (``_in``, ``_out``, ``_launch``, ...) it uses.
+
+On an H200's opencl:nvidia the jackknife of ``reproduce --routes 8`` had spent 4.74 s making these rows on the
+host and 1.31 s sending them, against Warp's 0.56 and 0.10 s (one profiled run each, drives cached;
+bench/results/ab-2026-11-30-s31/README.md, section 4)."""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+import pyopencl as cl
+
+__all__ = ["CLRows", "OpenCLFields"]
+
+_MF = cl.mem_flags
+
+
+class CLRows:
+    """``n`` values of ``dtype`` on the device, from element ``offset`` of ``buffer`` (which holds ``size``):
+    a batch of rows or a record's part of it, sliced like an array (``left_out.device_fields``). ``take(index)``
+    picks rows by a host index instead (the base's rows put back over a working grid), ``positive()`` reads each
+    weight as 1 where it is above 0, else 0 (the "uncertain" indicator); ``numpy()`` reads the values back."""
+
+    def __init__(self, backend, buffer: cl.Buffer, dtype, size: int, n: int | None = None, offset: int = 0,
+                 index: np.ndarray | None = None, positive: bool = False):
+        self.backend, self.buffer, self.dtype, self.size = backend, buffer, np.dtype(dtype), int(size)
+        self.offset = int(offset)
+        self.index = index
+        self.n = int(len(index) if index is not None else (self.size - self.offset if n is None else n))
+        self.is_positive = bool(positive)
+
+    @property
+    def shape(self) -> tuple[int]:
+        return (self.n,)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def _with(self, **kw) -> "CLRows":
+        args = dict(n=self.n, offset=self.offset, index=self.index, positive=self.is_positive)
+        args.update(kw)
+        return CLRows(self.backend, self.buffer, self.dtype, self.size, **args)
+
+    def __getitem__(self, item) -> "CLRows":
+        if not isinstance(item, slice) or self.index is not None:
+            raise TypeError("CLRows takes a slice of unpicked rows only; use take() for an index")
+        a, b, step = item.indices(self.n)
+        if step != 1:
+            raise ValueError("CLRows slices take a step of 1")
+        return self._with(n=max(b - a, 0), offset=self.offset + a)
+
+    def take(self, index) -> "CLRows":
+        """The rows at ``index`` (host integers into these rows; the same array object for a grid's weights
+        and stop flags, which ``write_voxels`` picks by one upload)."""
+        if self.index is not None:
+            raise TypeError("CLRows.take on rows already picked")
+        index = np.asarray(index)
+        if len(index) and (int(index.min()) < 0 or int(index.max()) >= self.n):
+            raise IndexError(f"row index out of range [0, {self.n})")
+        return self._with(index=index)
+
+    def positive(self) -> "CLRows":
+        return self._with(positive=True)
+
+    def numpy(self) -> np.ndarray:
+        b = self.backend
+        if self.index is None:
+            out = np.empty(self.n, dtype=self.dtype)
+            if self.n:
+                cl.enqueue_copy(b.queue, out, self.buffer, src_offset=self.offset * self.dtype.itemsize)
+        else:
+            whole = np.empty(self.size, dtype=self.dtype)
+            if self.size:
+                cl.enqueue_copy(b.queue, whole, self.buffer)
+            out = whole[self.offset + np.asarray(self.index, dtype=np.int64)]
+        return (out > 0).astype(self.dtype) if self.is_positive else out
+
+
+class OpenCLFields:
+    """``Backend.left_out_fields`` and ``fields_on_device`` on OpenCL (see the module docstring)."""
+
+    @property
+    def fields_on_device(self) -> bool:
+        """Whether the jackknife and a P-SOG's grid make their fields here from count rows: every device with
+        doubles (the tables' terms are float64)."""
+        return self.fp64
+
+    def left_out_fields(self, counts, rows, estart, ecls, ecnt, row_t, Ts, term, stop_t, other, det, veh, scale):
+        """Weights and stop flags of left-out count rows, one launch (``left_out.cl``): row r is
+        ``counts[rows[r]]`` less the entries ``estart[r]:estart[r + 1]`` of ``(ecls, ecnt)``, over
+        ``Ts[row_t[r]]`` subsets, its terms from the host's tables. Returns (R,) int64 and (R,) uint8 rows on the
+        device (``CLRows``) for ``write_voxels``."""
+        if not self.fp64:
+            raise NotImplementedError(f"{self.name} has no doubles: left-out fields are made on the host")
+        counts = np.asarray(counts)
+        if counts.ndim != 2:
+            raise ValueError(f"counts must be (M, K), got shape {counts.shape}")
+        term = np.asarray(term)
+        R = len(rows)
+        w, s = self._out(max(R, 1) * 8), self._out(max(R, 1))
+        if R:
+            a = self._resident
+            args = (a(counts, np.int32), np.int32(counts.shape[1]), a(rows, np.int64), a(estart, np.int32),
+                    a(ecls, np.int32), a(ecnt, np.int32), a(row_t, np.int32), a(Ts, np.int32), a(term, np.float64),
+                    a(stop_t, np.uint8), a(other, np.float64), np.int32(term.shape[1]), np.int32(bool(det)),
+                    np.int32(veh), np.float64(scale), np.int64(R), w, s)
+            self._launch("left_out_fields", R, *args)
+            if self.is_cpu:     # the inputs' host memory (``_in`` uses it in place there) is held until this
+                self.queue.finish()
+            del args
+        return CLRows(self, w, np.int64, R), CLRows(self, s, np.uint8, R)
+
+    def _resident(self, x, dtype) -> cl.Buffer:
+        """``x`` on the device as ``dtype``. On GPUs a read-only array that owns its memory (the pool's counts,
+        the jackknife's entry tables) is sent once and its copy kept while the array lives, as
+        ``WarpScoring._resident`` does; anything else is sent on each call (on CPUs the host memory itself)."""
+        if not (not self.is_cpu and isinstance(x, np.ndarray) and x.base is None and not x.flags.writeable
+                and x.dtype == np.dtype(dtype) and x.flags.c_contiguous and x.nbytes):
+            return self._in(np.ascontiguousarray(x, dtype=dtype))
+        memo = self.__dict__.setdefault("_resident_buffers", {})
+        key = id(x)
+        hit = memo.get(key)
+        if hit is not None and hit[0]() is x:
+            return hit[1]
+        buf = cl.Buffer(self.ctx, _MF.READ_ONLY, size=x.nbytes)
+        cl.enqueue_copy(self.queue, buf, x)
+        # dropped with the host array (its id is free for another array only once it is gone)
+        memo[key] = (weakref.ref(x, lambda _, key=key: memo.pop(key, None)), buf)
+        return buf
