@@ -412,9 +412,36 @@ def test_no_platform_message(monkeypatch):
         pytest.skip(_WHY)
     from place3d_kernels.backends.opencl import _runtime
 
-    monkeypatch.setattr(_runtime, "platform_table", lambda: {})
+    monkeypatch.setattr(_runtime, "platform_table", lambda vendor=None: {})
     with pytest.raises(BackendUnavailable, match=r"no CL platforms.*pip install 'place3d-kernels\[opencl\]'"):
         OpenCLBackend("pocl")
+
+
+def test_a_named_platform_alone_is_probed_and_its_probe_context_used_once():
+    """OpenCLBackend("pocl") in a fresh process probes PoCL's platform only (another vendor's driver is not
+    started: on the H200 host NVIDIA's beside PoCL), and takes the probe's context instead of making a second;
+    a second backend on that device makes a context of its own."""
+    import subprocess
+    import sys
+
+    if "pocl" not in _DEVICES:
+        pytest.skip("needs PoCL")
+    code = ("from place3d_kernels.backends.opencl import _runtime as rt\n"
+            "from place3d_kernels.backends.opencl.host import OpenCLBackend\n"
+            "import pyopencl as cl\n"
+            "others = [p for p in cl.get_platforms() if rt.short_name(p.name) != 'pocl']\n"
+            "a = OpenCLBackend('pocl')\n"
+            "print('PROBES', rt._probe.cache_info().currsize, 'OTHERS', len(others))\n"
+            "print('LEFT', len(rt._probe_contexts))\n"
+            "b = OpenCLBackend('pocl')\n"
+            "print('DISTINCT', a.ctx.int_ptr != b.ctx.int_ptr)\n"
+            "print('ALL', sorted(rt.platform_table()))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = dict(ln.split(" ", 1) for ln in out.stdout.splitlines())
+    assert lines["PROBES"].split()[0] == "1"        # PoCL's platform only, whatever else is installed
+    assert lines["LEFT"] == "0" and lines["DISTINCT"] == "True"
+    assert "pocl" in lines["ALL"]
 
 
 def test_missing_pyopencl_is_an_import_error_and_the_backend_is_listed_as_missing():

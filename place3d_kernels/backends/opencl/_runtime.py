@@ -73,18 +73,13 @@ def _compiles(ctx: "cl.Context") -> str | None:
 
 
 @lru_cache(maxsize=None)
-def platform_table() -> dict[str, tuple["cl.Platform", list["cl.Device"]]]:
-    """Usable platforms by unique short name (a second platform of the same vendor gets a suffix 2, 3...).
-
-    Platforms without a device are left out, and so are platforms that cannot compile a one-line kernel
-    (``unusable_platforms()`` says why). No ICD platform at all gives an empty dict. Cached: the probe
-    compiles once per process.
-    """
+def _platforms() -> tuple:
+    """((platform, available devices), ...) of every ICD platform with a device, the older of two PoCLs left
+    out (``unusable_platforms`` says so); nothing compiled yet."""
     try:
         plats = cl.get_platforms()
     except cl.Error:  # PLATFORM_NOT_FOUND_KHR: the ICD loader found no driver
-        return {}
-    table: dict[str, tuple[cl.Platform, list[cl.Device]]] = {}
+        return ()
     # Two PoCL installs (Debian's and PyPI's wheel, as .ci/run has them) are the same CPU twice: keep the
     # newest PoCL only. PyPI's 3.0 passes the one-line probe on CPUs its LLVM 14 does not know, then
     # builds the real programs without kernels.
@@ -92,21 +87,63 @@ def platform_table() -> dict[str, tuple["cl.Platform", list["cl.Device"]]]:
     for p in pocls[1:]:
         _unusable.append((f"{p.name} ({p.version.strip()})",
                           f"a second PoCL on the same CPU; using {pocls[0].version.strip()}"))
-    plats = [p for p in plats if p not in pocls[1:]]
+    out = []
     for p in plats:
+        if p in pocls[1:]:
+            continue
         try:
             devs = p.get_devices()
         except cl.Error:
             devs = []
         devs = [d for d in devs if d.available]
-        if not devs:
-            continue
-        why = _compiles(cl.Context(devs[:1]))
-        if why is not None:
-            hint = POCL_CPU_HINT if "unknown target cpu" in why.lower() else "check the OpenCL driver"
-            _unusable.append((f"{p.name} ({p.version.strip()})", f"cannot compile: {why}; {hint}"))
-            continue
+        if devs:
+            out.append((p, devs))
+    return tuple(out)
+
+
+#: the compile probe's context of each usable platform's first device, handed to the first backend made on that
+#: device (``probe_context``): a worker process making opencl:nvidia then makes one context there, not two
+_probe_contexts: dict = {}
+
+
+@lru_cache(maxsize=None)
+def _probe(p: "cl.Platform", dev: "cl.Device") -> bool:
+    """Whether platform ``p`` compiles the one-line kernel on ``dev`` (else ``unusable_platforms`` says why);
+    once per process."""
+    ctx = cl.Context([dev])
+    why = _compiles(ctx)
+    if why is not None:
+        hint = POCL_CPU_HINT if "unknown target cpu" in why.lower() else "check the OpenCL driver"
+        _unusable.append((f"{p.name} ({p.version.strip()})", f"cannot compile: {why}; {hint}"))
+        return False
+    _probe_contexts[dev.int_ptr] = ctx
+    return True
+
+
+def probe_context(dev: "cl.Device") -> "cl.Context | None":
+    """The compile probe's context on ``dev`` if nothing has taken it yet (then it is given once), else None."""
+    with _lock:
+        return _probe_contexts.pop(dev.int_ptr, None)
+
+
+@lru_cache(maxsize=None)
+def platform_table(vendor: str | None = None) -> dict[str, tuple["cl.Platform", list["cl.Device"]]]:
+    """Usable platforms by unique short name (a second platform of the same vendor gets a suffix 2, 3...).
+
+    Platforms without a device are left out, and so are platforms that cannot compile a one-line kernel
+    (``unusable_platforms()`` says why). No ICD platform at all gives an empty dict. ``vendor``: only the
+    platforms of that short name (``short_name``; its suffixed names too) are probed and listed: a backend
+    named ``opencl:nvidia`` does not start PoCL's compiler and thread pool (on a 16-core H200 host sixteen
+    workers starting opencl:nvidia at once had taken 5.5-7.7 s each, 0.4 s alone). Cached: each platform is
+    probed once per process.
+    """
+    table: dict[str, tuple[cl.Platform, list[cl.Device]]] = {}
+    for p, devs in _platforms():
         base = short_name(p.name)
+        if vendor is not None and base != vendor:
+            continue
+        if not _probe(p, devs[0]):
+            continue
         name, k = base, 2
         while name in table:
             name, k = f"{base}{k}", k + 1
@@ -120,7 +157,7 @@ def _pocl_version(p: "cl.Platform") -> tuple[int, ...]:
 
 
 def unusable_platforms() -> list[tuple[str, str]]:
-    """(platform, reason) for platforms that have a device but failed the compile probe."""
+    """(platform, reason) for platforms that have a device but failed the compile probe (every platform probed)."""
     platform_table()
     return list(_unusable)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import threading
 from dataclasses import dataclass
 
@@ -109,12 +110,15 @@ class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
     def __init__(self, platform: str = "pocl", *, fp64: bool | None = None, stack_size: int | None = None,
                  rays_per_item: int | None = None, score_strategy: str | None = None, bvh_width: int | None = None,
                  score_kernel: str | None = None):
-        table = rt.platform_table()
+        plat, _, dev_index = str(platform).strip().lower().partition(":")
+        # the named vendor's platforms alone (no other driver started); all of them where that names none
+        table = rt.platform_table(re.sub(r"\d+$", "", plat)) or {}
+        if plat not in table:
+            table = rt.platform_table()
         if not table:
             raise BackendUnavailable(
                 "no CL platforms available to the ICD loader (or none with a usable device). Install a CL "
                 f"driver such as PoCL for the CPU: {rt.INSTALL_HINT}")
-        plat, _, dev_index = str(platform).strip().lower().partition(":")
         if plat not in table:
             raise BackendUnavailable(
                 f"OpenCL platform {platform!r} not found; platforms with a device here: {sorted(table)} "
@@ -131,7 +135,7 @@ class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
             self.device = (gpus or devices)[0]
         self.name = f"opencl:{str(platform).strip().lower()}"
         try:
-            self.ctx = cl.Context([self.device])
+            self.ctx = rt.probe_context(self.device) or cl.Context([self.device])
             self.queue = cl.CommandQueue(self.ctx)
         except cl.Error as e:  # pragma: no cover - driver trouble
             raise BackendUnavailable(f"cannot create an OpenCL context on {self.device.name!r}: {e}") from e
