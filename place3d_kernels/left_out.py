@@ -368,8 +368,9 @@ def device_fields(pooled, task: str, backend, rows: LeftOutRows | None = None):
 def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str | None = None, rows=None):
     """``prepared_grids`` with ``reuse``, on a backend that writes grids in place: per T one working grid
     (``Backend.working_grid``, filled from the base's M voxels on the device), and per record only its rows
-    and the previous record's rows it did not touch written (``Backend.write_voxels``). An item is valid
-    until the next is asked for."""
+    and the previous record's rows it did not touch written (``Backend.write_voxels``). Where the backend
+    computes fields (``fields_on_device``: OpenCL devices with doubles) the rows are made and kept there
+    (``_written_from_device_rows``). An item is valid until the next is asked for."""
     grids = LeftOutGrids(pooled, task, indicator, rows)
     if _fields_here(grids, backend, indicator):
         yield from _written_from_device_rows(grids, pooled, task, occlusion, backend, indicator)

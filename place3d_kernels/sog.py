@@ -396,8 +396,8 @@ class PSOG:
     def _device_rows(self, backend):
         """(weights, stop) of the stored voxels as device arrays, made on ``backend`` from the count rows
         (``left_out_tables.device_row_fields``: the bits ``weight_rows`` and ``stop_rows`` hold), where the
-        backend computes fields (``fields_on_device``: Warp on CUDA), the P-SOG has count rows, T is at most
-        ``FieldTables.MAX_T`` and the host's rows were not made already; else None."""
+        backend computes fields (``fields_on_device``: Warp on CUDA, OpenCL devices with doubles), the P-SOG has
+        count rows, T is at most ``FieldTables.MAX_T`` and the host's rows were not made already; else None."""
         if not getattr(backend, "fields_on_device", False) or "weight rows" in self._cache:
             return None
         src = self._count_source("seg" if len(self.channels) == N_CLASSES else "det")

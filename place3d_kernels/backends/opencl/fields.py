@@ -6,7 +6,8 @@ device (``CLRows``) and ``OpenCLScoring.write_voxels`` writes them into a workin
 
 On an H200's opencl:nvidia the jackknife of ``reproduce --routes 8`` had spent 4.74 s making these rows on the
 host and 1.31 s sending them, against Warp's 0.56 and 0.10 s (one profiled run each, drives cached;
-bench/results/ab-2026-11-30-s31/README.md, section 4)."""
+bench/results/ab-2026-11-30-s31/README.md, section 4); made here, 0.47-0.58 and 0.62-0.76 s, and the whole command
+24.2 -> 17.4 s (3 runs each, alternated; bench/results/ab-2026-11-30-s32/README.md, section 1)."""
 
 from __future__ import annotations
 
@@ -87,7 +88,8 @@ class OpenCLFields:
     @property
     def fields_on_device(self) -> bool:
         """Whether the jackknife and a P-SOG's grid make their fields here from count rows: every device with
-        doubles (the tables' terms are float64)."""
+        doubles (the tables' terms are float64). PoCL too: on the 2-core dev VM the default ``evaluate`` took
+        4.92 [4.83-5.02] s warm against 5.48 [5.12-5.62] s with the host's rows (3 runs each, alternated)."""
         return self.fp64
 
     def left_out_fields(self, counts, rows, estart, ecls, ecnt, row_t, Ts, term, stop_t, other, det, veh, scale):
