@@ -56,14 +56,20 @@ def worker_environment():
 
 
 def preload_for(backend: str | None) -> list[str]:
-    """``FORKSERVER_PRELOAD`` plus Warp (imported, not initialised) for a backend that runs on it."""
+    """``FORKSERVER_PRELOAD`` plus Warp (imported, not initialised) for a backend that runs on it, or PyOpenCL
+    and the OpenCL backend's modules (imported; no platform is asked for, so no driver is loaded) for an OpenCL
+    one: sixteen workers importing PyOpenCL side by side took 0.53-0.81 s each on a 16-core H200 host, 0.3-0.4 s
+    alone (bench/results/ab-2026-11-30-s32/README.md, section 2)."""
+    import importlib.util
+
     mods = list(FORKSERVER_PRELOAD)
     name = (backend or "").strip().lower()
     if name in ("auto", "warp") or name.startswith("warp:"):
-        import importlib.util
-
         if importlib.util.find_spec("warp") is not None:
             mods.append("place3d_kernels.backends.warp")
+    elif name == "opencl" or name.startswith("opencl:"):
+        if importlib.util.find_spec("pyopencl") is not None:
+            mods.append("place3d_kernels.backends.opencl")
     return mods
 
 

@@ -408,7 +408,7 @@ def _fields_here(grids: "LeftOutGrids", backend, indicator: str | None) -> bool:
 
 def _written_from_device_rows(grids: "LeftOutGrids", pooled, task: str, occlusion: str, backend,
                               indicator: str | None):
-    """``patched_in_place`` with every row made on the backend (OpenCL GPUs): each record's left-out rows in
+    """``patched_in_place`` with every row made on the backend (OpenCL with doubles): each record's left-out rows in
     one batch (``device_fields``) and each T's base rows (``device_row_fields``) stay on the device; per record
     the previous record's rows are put back from the base's and the record's own written over them (the
     indicator from the same rows, read as weight > 0), so nothing but voxel ids and row indexes is sent."""

@@ -130,12 +130,19 @@ def test_commands_start_workers_from_a_forkserver_unless_told(monkeypatch, no_sp
             executor_from_args(_args(), tasks=8)
 
 
-def test_the_forkserver_preloads_warp_only_for_warp_backends():
+def test_the_forkserver_preloads_warp_only_for_warp_backends_and_opencl_for_opencl_ones():
+    import importlib.util
+
     assert "place3d_kernels.backends.warp" in forkserver.preload_for("warp:cuda:0")
     assert "place3d_kernels.backends.warp" in forkserver.preload_for("auto")
     for name in ("opencl:pocl", "reference", None):
         mods = forkserver.preload_for(name)
         assert "place3d_kernels.backends.warp" not in mods and "place3d_kernels.pooled" in mods
+    for name in ("warp:cuda:0", "auto", "reference", None):
+        assert "place3d_kernels.backends.opencl" not in forkserver.preload_for(name)
+    has_cl = importlib.util.find_spec("pyopencl") is not None
+    for name in ("opencl:pocl", "opencl:nvidia", "opencl"):
+        assert ("place3d_kernels.backends.opencl" in forkserver.preload_for(name)) is has_cl
 
 
 @pytest.mark.parametrize("argv, preload", [
@@ -191,6 +198,53 @@ def test_reproduces_workers_are_forked_from_the_server_the_launcher_started(tmp_
     out = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_workers_forked_from_a_server_that_imported_pyopencl_use_opencl(tmp_path):
+    # an OpenCL command's server imports PyOpenCL and the backend's modules (no platform asked for): its
+    # workers find them imported and make the backend and run its kernels, as this process does
+    import subprocess
+    import sys
+
+    pytest.importorskip("pyopencl")
+    import place3d_kernels as p3k
+
+    if "opencl:pocl" not in p3k.available_backends():
+        pytest.skip("needs PoCL")
+    if executors.usable_cores() < 2:
+        pytest.skip("one usable core: reproduce builds its drives in this process")
+    (tmp_path / "cltask.py").write_text(
+        "import sys\n"
+        "def fields(_):\n"
+        "    pre = 'pyopencl' in sys.modules and 'place3d_kernels.backends.opencl.host' in sys.modules\n"
+        "    import numpy as np\n"
+        "    from place3d_kernels.backends.registry import get_backend\n"
+        "    from place3d_kernels.classes import N_CLASSES, VEHICLE\n"
+        "    from place3d_kernels.left_out import FieldTables\n"
+        "    tb = FieldTables(3, 'seg')\n"
+        "    c = np.zeros((4, N_CLASSES), np.int32)\n"
+        "    c[:, 1] = np.arange(4)\n"
+        "    w, _ = get_backend('opencl:pocl').left_out_fields(c, np.arange(4), np.zeros(5, np.int32),\n"
+        "        np.zeros(1, np.int32), np.zeros(1, np.int32), np.zeros(4, np.int32), np.array([3]), tb.term[None],\n"
+        "        tb.stop[None].astype(np.uint8), np.zeros((1, 1, 1)), False, VEHICLE, 1e6)\n"
+        "    return pre, w.numpy().tolist()\n")
+    code = (
+        "from place3d_app import forkserver\n"
+        "assert forkserver.start_early(['reproduce', '--backend', 'opencl:pocl'])\n"
+        "from place3d_app.executors import ProcessExecutor, command_start_method\n"
+        "import cltask\n"
+        "ex = ProcessExecutor(2, backend='opencl:pocl', start_method=command_start_method())\n"
+        "got = ex.map(cltask.fields, [0, 1])\n"
+        "ex.shutdown()\n"
+        "here = cltask.fields(0)[1]\n"
+        "assert all(pre for pre, _ in got) and all(w == here for _, w in got), (got, here)\n"
+        "print('ok')\n")
+    env = {k: v for k, v in os.environ.items()
+           if k not in (forkserver.START_METHOD_ENV, forkserver.WORKERS_ENV, "OPENBLAS_NUM_THREADS")}
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(tmp_path), env.get("PYTHONPATH", "")) if p)
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-3000:]
 
 
 def test_forkserver_workers_have_the_worker_environment_and_this_process_keeps_its_own(monkeypatch):

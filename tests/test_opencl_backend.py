@@ -420,7 +420,7 @@ def test_no_platform_message(monkeypatch):
 def test_a_named_platform_alone_is_probed_and_its_probe_context_used_once():
     """OpenCLBackend("pocl") in a fresh process probes PoCL's platform only (another vendor's driver is not
     started: on the H200 host NVIDIA's beside PoCL), and takes the probe's context instead of making a second;
-    a second backend on that device makes a context of its own."""
+    a second backend on that device makes a context of its own; listing every platform keeps no probe context."""
     import subprocess
     import sys
 
@@ -431,17 +431,18 @@ def test_a_named_platform_alone_is_probed_and_its_probe_context_used_once():
             "import pyopencl as cl\n"
             "others = [p for p in cl.get_platforms() if rt.short_name(p.name) != 'pocl']\n"
             "a = OpenCLBackend('pocl')\n"
-            "print('PROBES', rt._probe.cache_info().currsize, 'OTHERS', len(others))\n"
+            "print('PROBES', len(rt._probed), 'OTHERS', len(others))\n"
             "print('LEFT', len(rt._probe_contexts))\n"
             "b = OpenCLBackend('pocl')\n"
             "print('DISTINCT', a.ctx.int_ptr != b.ctx.int_ptr)\n"
-            "print('ALL', sorted(rt.platform_table()))\n")
+            "print('ALL', sorted(rt.platform_table()))\n"
+            "print('KEPT', len(rt._probe_contexts))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     lines = dict(ln.split(" ", 1) for ln in out.stdout.splitlines())
     assert lines["PROBES"].split()[0] == "1"        # PoCL's platform only, whatever else is installed
     assert lines["LEFT"] == "0" and lines["DISTINCT"] == "True"
-    assert "pocl" in lines["ALL"]
+    assert "pocl" in lines["ALL"] and lines["KEPT"] == "0"   # a listing of every platform keeps no context
 
 
 def test_missing_pyopencl_is_an_import_error_and_the_backend_is_listed_as_missing():

@@ -101,29 +101,38 @@ def _platforms() -> tuple:
     return tuple(out)
 
 
-#: the compile probe's context of each usable platform's first device, handed to the first backend made on that
-#: device (``probe_context``): a worker process making opencl:nvidia then makes one context there, not two
+#: whether each probed device's platform compiles (device pointer -> bool), once per process
+_probed: dict = {}
+#: the compile probe's context on a device, kept where a backend is about to be made there (``platform_table``
+#: with a vendor) and handed to it (``probe_context``): a worker process making opencl:nvidia then makes one
+#: context there, not two. A listing of every platform keeps none (a context holds device memory).
 _probe_contexts: dict = {}
 
 
-@lru_cache(maxsize=None)
-def _probe(p: "cl.Platform", dev: "cl.Device") -> bool:
+def _probe(p: "cl.Platform", dev: "cl.Device", keep: bool) -> bool:
     """Whether platform ``p`` compiles the one-line kernel on ``dev`` (else ``unusable_platforms`` says why);
-    once per process."""
+    probed once per process, its context kept for ``probe_context`` with ``keep``."""
+    known = _probed.get(dev.int_ptr)
+    if known is not None:
+        return known
     ctx = cl.Context([dev])
     why = _compiles(ctx)
     if why is not None:
         hint = POCL_CPU_HINT if "unknown target cpu" in why.lower() else "check the OpenCL driver"
         _unusable.append((f"{p.name} ({p.version.strip()})", f"cannot compile: {why}; {hint}"))
-        return False
-    _probe_contexts[dev.int_ptr] = ctx
-    return True
+    elif keep:
+        _probe_contexts[dev.int_ptr] = ctx
+    _probed[dev.int_ptr] = why is None
+    return why is None
 
 
 def probe_context(dev: "cl.Device") -> "cl.Context | None":
-    """The compile probe's context on ``dev`` if nothing has taken it yet (then it is given once), else None."""
+    """The compile probe's context on ``dev`` if nothing has taken it yet (then it is given once), else None;
+    the probe contexts of other devices are let go (a backend on another device of the platform keeps none)."""
     with _lock:
-        return _probe_contexts.pop(dev.int_ptr, None)
+        ctx = _probe_contexts.pop(dev.int_ptr, None)
+        _probe_contexts.clear()
+        return ctx
 
 
 @lru_cache(maxsize=None)
@@ -133,16 +142,17 @@ def platform_table(vendor: str | None = None) -> dict[str, tuple["cl.Platform", 
     Platforms without a device are left out, and so are platforms that cannot compile a one-line kernel
     (``unusable_platforms()`` says why). No ICD platform at all gives an empty dict. ``vendor``: only the
     platforms of that short name (``short_name``; its suffixed names too) are probed and listed: a backend
-    named ``opencl:nvidia`` does not start PoCL's compiler and thread pool (on a 16-core H200 host sixteen
-    workers starting opencl:nvidia at once had taken 5.5-7.7 s each, 0.4 s alone). Cached: each platform is
-    probed once per process.
+    named ``opencl:nvidia`` does not start PoCL's compiler and thread pool (with the probe's context handed
+    on, sixteen processes starting opencl:nvidia at once on a 16-core H200 host took 0.49-2.55 s each against
+    4.60-5.94 s before; bench/results/ab-2026-11-30-s32/README.md, section 2). Cached: each platform is probed
+    once per process.
     """
     table: dict[str, tuple[cl.Platform, list[cl.Device]]] = {}
     for p, devs in _platforms():
         base = short_name(p.name)
         if vendor is not None and base != vendor:
             continue
-        if not _probe(p, devs[0]):
+        if not _probe(p, devs[0], keep=vendor is not None):
             continue
         name, k = base, 2
         while name in table:
