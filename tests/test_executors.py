@@ -177,9 +177,6 @@ def test_the_launcher_starts_reproduces_server_early_only_where_it_will_fork_fro
 def test_reproduces_workers_are_forked_from_the_server_the_launcher_started(tmp_path):
     # in a process of its own, as the console script: the server started before the command's executor is made
     # is the one its workers come from (their parent), with the workers' environment
-    import subprocess
-    import sys
-
     code = (
         "import multiprocessing.forkserver as fs, operator, os\n"
         "from place3d_app import forkserver\n"
@@ -191,21 +188,28 @@ def test_reproduces_workers_are_forked_from_the_server_the_launcher_started(tmp_
         "assert ex.map(os.getenv, ['OPENBLAS_NUM_THREADS']) == ['1']\n"
         "ex.shutdown()\n"
         "print('ok')\n")
-    env = {k: v for k, v in os.environ.items()
-           if k not in (forkserver.START_METHOD_ENV, forkserver.WORKERS_ENV, "OPENBLAS_NUM_THREADS")}
     if executors.usable_cores() < 2:
         pytest.skip("one usable core: reproduce builds its drives in this process")
+    _run_as_console_script(code, tmp_path)
+
+
+def _run_as_console_script(code: str, tmp_path) -> None:
+    """Run ``code`` in a process of its own, as the console script would (none of this test run's start method,
+    worker cap or BLAS threads in its environment; modules in ``tmp_path`` importable), and expect it to print ok."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items()
+           if k not in (forkserver.START_METHOD_ENV, forkserver.WORKERS_ENV, "OPENBLAS_NUM_THREADS")}
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(tmp_path), env.get("PYTHONPATH", "")) if p)
     out = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True,
                          timeout=300)
-    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-3000:]
 
 
 def test_workers_forked_from_a_server_that_imported_pyopencl_use_opencl(tmp_path):
     # an OpenCL command's server imports PyOpenCL and the backend's modules (no platform asked for): its
     # workers find them imported and make the backend and run its kernels, as this process does
-    import subprocess
-    import sys
-
     pytest.importorskip("pyopencl")
     import place3d_kernels as p3k
 
@@ -239,12 +243,7 @@ def test_workers_forked_from_a_server_that_imported_pyopencl_use_opencl(tmp_path
         "here = cltask.fields(0)[1]\n"
         "assert all(pre for pre, _ in got) and all(w == here for _, w in got), (got, here)\n"
         "print('ok')\n")
-    env = {k: v for k, v in os.environ.items()
-           if k not in (forkserver.START_METHOD_ENV, forkserver.WORKERS_ENV, "OPENBLAS_NUM_THREADS")}
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(tmp_path), env.get("PYTHONPATH", "")) if p)
-    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True,
-                         timeout=300)
-    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-3000:]
+    _run_as_console_script(code, tmp_path)
 
 
 def test_forkserver_workers_have_the_worker_environment_and_this_process_keeps_its_own(monkeypatch):

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from field_cases import exact_terms, grid_arrays, wide_rows
+
 from place3d_kernels.backends.bricks import flat_brick_masks
 from place3d_kernels.left_out import LeftOutGrids
 from place3d_kernels.lidar import LidarModel
@@ -225,23 +227,6 @@ def _in_place_backend(name):
     return get_backend(name)
 
 
-def _grid_arrays(b, h):
-    """The arrays a handle holds, by backend: what score_placements reads."""
-    if b.name == "reference":
-        return [h.weights, h.stop]
-    n = h.spec.n_voxels
-    out = [b._read(h.weights, np.int64, n)]
-    if h.masks is not None and b.score_strategy == "atomic":
-        out.append(b._read(h.masks, np.uint32, h.masks.size // 4))
-        out.append(None if h.flat is None else b._read(h.flat, np.uint64, h.flat.size // 8))
-    else:
-        words = h.nonzero.size // 4
-        out.append(b._read(h.nonzero, np.uint32, words))
-        if h.use_stop:
-            out += [b._read(h.stop, np.uint8, n), b._read(h.stop_bits, np.uint32, words)]
-    return out
-
-
 @pytest.mark.parametrize("name", _in_place_backends())
 @pytest.mark.parametrize("with_stop", [True, False])
 def test_voxels_written_in_place_are_the_uploaded_grid(name, with_stop):
@@ -272,7 +257,7 @@ def test_voxels_written_in_place_are_the_uploaded_grid(name, with_stop):
         want = b.prepare_grid(spec, w, sv(stop))
         if b.name != "reference" and b.score_strategy == "atomic" and h.flat is not None:
             b._flat_masks(want)
-        got_a, want_a = _grid_arrays(b, h), _grid_arrays(b, want)
+        got_a, want_a = grid_arrays(b, h), grid_arrays(b, want)
         assert len(got_a) == len(want_a)
         for g, x in zip(got_a, want_a):
             assert (g is None) == (x is None) and (g is None or g.tobytes() == x.tobytes()), k
@@ -466,45 +451,19 @@ def test_warp_keeps_device_copies_only_of_arrays_nobody_can_write(name):
 @pytest.mark.parametrize("task", ["seg", "det"])
 def test_device_fields_add_terms_in_numpys_order(name, task):
     """Backend.left_out_fields on rows whose T = 81 subsets spread over all 22 channels (many terms per row,
-    where the order of addition shows) and one entry taken out of each: FieldTables' weights bit for bit."""
+    where the order of addition shows) and one entry taken out of each: FieldTables' weights bit for bit; at
+    ENTROPY_SCALE the rounding hides most last-bit differences of H, at 2**60 every bit of H shows."""
     from place3d_kernels.backends.base import ENTROPY_SCALE
     from place3d_kernels.backends.registry import get_backend
-    from place3d_kernels.classes import N_CLASSES, VEHICLE
-    from place3d_kernels.left_out import FieldTables
 
     b = get_backend(name)
-    rng = np.random.default_rng(4)
-    T, R = 81, 5000
-    counts = np.stack([np.bincount(rng.integers(0, N_CLASSES, T + 3), minlength=N_CLASSES) for _ in range(R)])
-    cls = np.array([1 + int(np.flatnonzero(r[1:])[0]) for r in counts])       # one occupied class per row
-    cnt = np.minimum(counts[np.arange(R), cls], rng.integers(1, 4, R))
-    want_rows = counts.copy()
-    want_rows[np.arange(R), cls] -= cnt
-    keep = want_rows[:, 1:].sum(axis=1) <= T                                  # rows that fit T subsets
-    counts, cls, cnt, want_rows = counts[keep], cls[keep], cnt[keep], want_rows[keep]
-    want_rows[:, 0] = T - want_rows[:, 1:].sum(axis=1)
-    tb = FieldTables(T, task)
-    ww, ws = tb(want_rows)
-    n = len(counts)
-    assert n > 1000
-    w, s = b.left_out_fields(counts.astype(np.int32), np.arange(n), np.arange(n + 1), cls, cnt,
-                             np.zeros(n, dtype=np.int32), np.array([T]), tb.term[None], tb.stop[None].astype(np.uint8),
-                             tb.other[None] if task == "det" else np.zeros((1, 1, 1)), task == "det", VEHICLE,
-                             float(ENTROPY_SCALE))
+    args, rows, tb = wide_rows(task, 5000)
+    ww, ws = tb(rows)
+    assert len(rows) > 1000
+    w, s = b.left_out_fields(*args, float(ENTROPY_SCALE))
     assert w.numpy().tobytes() == ww.tobytes() and s.numpy().tobytes() == ws.astype(np.uint8).tobytes()
-    # at ENTROPY_SCALE the rounding hides most last-bit differences of H; at 2**60 every bit of H shows
-    # (H <= ln 22 < 8, so H * 2**60 fits an int64)
-    if task == "seg":
-        terms = tb.term[want_rows]
-    else:
-        c0, cv = want_rows[:, 0], want_rows[:, VEHICLE]
-        terms = np.stack([tb.term[c0], tb.term[cv], tb.other[c0, cv]], axis=1)
-    exact = np.rint(terms.sum(axis=-1) * 2.0**60).astype(np.int64)
-    w60, _ = b.left_out_fields(counts.astype(np.int32), np.arange(n), np.arange(n + 1), cls, cnt,
-                               np.zeros(n, dtype=np.int32), np.array([T]), tb.term[None],
-                               tb.stop[None].astype(np.uint8), tb.other[None] if task == "det" else np.zeros((1, 1, 1)),
-                               task == "det", VEHICLE, 2.0**60)
-    assert w60.numpy().tobytes() == exact.tobytes()
+    w60, _ = b.left_out_fields(*args, 2.0**60)
+    assert w60.numpy().tobytes() == exact_terms(task, rows, tb).tobytes()
 
 
 @pytest.mark.parametrize("name", _patching_backends())

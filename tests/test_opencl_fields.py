@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from field_cases import exact_terms, grid_arrays, same_arrays, wide_rows
+
 from place3d_kernels.backends.base import ENTROPY_SCALE, GridSpec
 from place3d_kernels.classes import N_CLASSES, VEHICLE
 from place3d_kernels.left_out import FieldTables
@@ -56,71 +58,24 @@ def drives():
     return PooledPSOG(_spec().grid.grid(), recs)
 
 
-def _wide_rows(task, seed=4):
-    # rows whose T = 81 subsets spread over all 22 channels (many terms per row, where the order of addition
-    # shows), one entry taken out of each: (inputs of left_out_fields but the scale, the host's rows)
-    rng = np.random.default_rng(seed)
-    T, R = 81, 3000
-    counts = np.stack([np.bincount(rng.integers(0, N_CLASSES, T + 3), minlength=N_CLASSES) for _ in range(R)])
-    cls = np.array([1 + int(np.flatnonzero(r[1:])[0]) for r in counts])
-    cnt = np.minimum(counts[np.arange(R), cls], rng.integers(1, 4, R))
-    rows = counts.copy()
-    rows[np.arange(R), cls] -= cnt
-    keep = rows[:, 1:].sum(axis=1) <= T
-    counts, cls, cnt, rows = counts[keep], cls[keep], cnt[keep], rows[keep]
-    rows[:, 0] = T - rows[:, 1:].sum(axis=1)
-    tb = FieldTables(T, task)
-    n = len(counts)
-    args = (counts.astype(np.int32), np.arange(n), np.arange(n + 1), cls, cnt, np.zeros(n, dtype=np.int32),
-            np.array([T]), tb.term[None], tb.stop[None].astype(np.uint8),
-            tb.other[None] if task == "det" else np.zeros((1, 1, 1)), task == "det", VEHICLE)
-    return args, rows, tb
-
-
 @pytest.mark.parametrize("name", _names())
 @pytest.mark.parametrize("task", ["seg", "det"])
 def test_left_out_fields_are_the_host_tables_bit_for_bit(name, task):
     """Backend.left_out_fields: FieldTables' weights and stop flags; at a scale of 2**60 every bit of the entropy
-    shows, and it is NumPy's sum of the row's terms (the same order of addition, no multiply-add)."""
+    shows, and it is NumPy's sum of the row's terms (the same order of addition, no multiply-add). A record's part,
+    rows picked by an index and the "uncertain" indicator read back as the host's."""
     b = _backend(name)
-    args, rows, tb = _wide_rows(task)
+    args, rows, tb = wide_rows(task, 3000)
     assert len(rows) > 1000
     ww, ws = tb(rows)
     w, s = b.left_out_fields(*args, float(ENTROPY_SCALE))
     assert w.numpy().tobytes() == ww.tobytes() and s.numpy().tobytes() == ws.astype(np.uint8).tobytes()
-    if task == "seg":
-        terms = tb.term[rows]
-    else:
-        c0, cv = rows[:, 0], rows[:, VEHICLE]
-        terms = np.stack([tb.term[c0], tb.term[cv], tb.other[c0, cv]], axis=1)
     w60, _ = b.left_out_fields(*args, 2.0**60)
-    assert w60.numpy().tobytes() == np.rint(terms.sum(axis=-1) * 2.0**60).astype(np.int64).tobytes()
-    # a record's part, rows picked by an index, and the "uncertain" indicator read back as the host's
+    assert w60.numpy().tobytes() == exact_terms(task, rows, tb).tobytes()
     assert w[7:19].numpy().tobytes() == ww[7:19].tobytes()
     pick = np.array([11, 0, 3], dtype=np.int64)
     assert w[7:19].take(pick).numpy().tobytes() == ww[7:19][pick].tobytes()
     assert w.positive().numpy().tobytes() == (ww > 0).astype(np.int64).tobytes()
-
-
-def _arrays(b, h):
-    """What score_placements reads from a working grid, by score strategy."""
-    n = h.spec.n_voxels
-    out = [b._read(h.weights, np.int64, n)]
-    if b.score_strategy == "atomic":
-        out.append(b._read(h.masks, np.uint32, h.masks.size // 4))
-        out.append(None if h.flat is None else b._read(h.flat, np.uint64, h.flat.size // 8))
-    else:
-        words = h.nonzero.size // 4
-        out.append(b._read(h.nonzero, np.uint32, words))
-        if h.use_stop:
-            out += [b._read(h.stop, np.uint8, n), b._read(h.stop_bits, np.uint32, words)]
-    return out
-
-
-def _same(a, b) -> bool:
-    # two lists of _arrays, the same arrays (or both None) bit for bit
-    return len(a) == len(b) and all((u is None and v is None) or (u is not None and v is not None
-                                                                  and u.tobytes() == v.tobytes()) for u, v in zip(a, b))
 
 
 @pytest.mark.parametrize("name", _names())
@@ -131,6 +86,7 @@ def test_working_grids_written_from_device_rows_are_the_hosts(monkeypatch, drive
     """left_out.patched_in_place with the rows made on the device (every record's rows in one launch, each T's base
     rows too, the previous record's rows put back from the base's by an index): after each record the working
     grid, and the "uncertain" indicator's, holds what the host's rows written in place give."""
+    import place3d_kernels.left_out as left_out
     from place3d_kernels.left_out import patched_in_place
 
     b = _backend(name)
@@ -139,10 +95,8 @@ def test_working_grids_written_from_device_rows_are_the_hosts(monkeypatch, drive
     def run():
         out = []
         for item in patched_in_place(drives, task, occlusion, b, indicator):     # valid until the next one
-            out.append([_arrays(b, h) for h in (item if indicator else (item,))])
+            out.append([grid_arrays(b, h) for h in (item if indicator else (item,))])
         return out
-
-    import place3d_kernels.left_out as left_out
 
     _fields_here(monkeypatch, b, False)
     want = run()
@@ -154,7 +108,7 @@ def test_working_grids_written_from_device_rows_are_the_hosts(monkeypatch, drive
     assert calls == [1]                     # every record's rows from one batch on the device
     assert len(got) == len(want) == len(drives)
     for i, (g, x) in enumerate(zip(got, want)):
-        assert all(_same(ga, xa) for ga, xa in zip(g, x)), i
+        assert all(same_arrays(ga, xa) for ga, xa in zip(g, x)), i
 
 
 @pytest.mark.parametrize("name", _names())
@@ -186,12 +140,12 @@ def test_a_psog_grid_from_device_rows_is_the_hosts(monkeypatch, drives, name, ta
     weight_rows), and the working grid is the one from the host's rows."""
     b = _backend(name)
     _fields_here(monkeypatch, b, False)
-    want = _arrays(b, drives.psog().for_task(task).handle(b, "sog"))
+    want = grid_arrays(b, drives.psog().for_task(task).handle(b, "sog"))
     _fields_here(monkeypatch, b)
     got = drives.psog().for_task(task)          # a P-SOG of its own: handles are kept per P-SOG
     h = got.handle(b, "sog")
     assert ("device rows", b) in got._cache and "weight rows" not in got._cache
-    assert _same(_arrays(b, h), want)
+    assert same_arrays(grid_arrays(b, h), want)
 
 
 @pytest.mark.parametrize("name", _names()[:1])
@@ -209,7 +163,7 @@ def test_device_rows_are_checked_before_any_write(name):
                              float(ENTROPY_SCALE))
     ids = np.arange(6, dtype=np.int64) * 5
     h = b.working_grid(spec, ids, w, s)
-    before = _arrays(b, h)
+    before = grid_arrays(b, h)
     idx = np.array([0, 2])
     with pytest.raises(ValueError, match="one weight and one stop value per voxel"):
         b.write_voxels(h, ids[:4], w, s)
@@ -223,7 +177,7 @@ def test_device_rows_are_checked_before_any_write(name):
         b.write_voxels(h, ids, w, None)
     with pytest.raises(IndexError):
         w.take(np.array([6]))
-    assert _same(_arrays(b, h), before)
+    assert same_arrays(grid_arrays(b, h), before)
     want = np.zeros(spec.n_voxels, dtype=np.int64)
     want[ids] = tb(np.c_[3 - counts[:, 1], counts[:, 1:]][:, :N_CLASSES])[0]
     assert b._read(h.weights, np.int64, spec.n_voxels).tobytes() == want.tobytes()
