@@ -410,7 +410,7 @@ def _written_from_device_rows(grids: "LeftOutGrids", pooled, task: str, occlusio
                               indicator: str | None):
     """``patched_in_place`` with every row made on the backend (OpenCL with doubles): each record's left-out rows in
     one batch (``device_fields``) and each T's base rows (``device_row_fields``) stay on the device; per record
-    the previous record's rows are put back from the base's and the record's own written over them (the
+    the previous record's rows it does not touch are put back from the base's and its own written (the
     indicator from the same rows, read as weight > 0), so nothing but voxel ids and row indexes is sent."""
     sog = occlusion == "sog"
     spec = pooled.grid.spec
@@ -419,7 +419,9 @@ def _written_from_device_rows(grids: "LeftOutGrids", pooled, task: str, occlusio
         _, _, all_rows, *_ = grids.source.batch()
         r_off = np.concatenate([[0], np.cumsum([len(v) for _, v, _, _ in batch])])
     work = {}                     # T -> [handle, indicator handle or None, base weights, base stop, rows last written]
+    mark = np.zeros(len(grids.voxels), dtype=bool)
     for i, (T, at, w, stop) in enumerate(batch):
+        rows_i = all_rows[r_off[i]:r_off[i + 1]]
         with section("jackknife: grid upload"):
             if T not in work:
                 wb, sb = device_row_fields(grids.counts, T, task, backend)
@@ -428,16 +430,18 @@ def _written_from_device_rows(grids: "LeftOutGrids", pooled, task: str, occlusio
                            None if indicator is None else backend.working_grid(spec, grids.voxels, wb.positive(), sv),
                            wb, sb, None]
             h, hi, wb, sb, last = work[T]
-            if last is not None:                  # the previous record's rows back to the base's
-                back = grids.voxels[last]
-                bw, bs = wb.take(last), sb.take(last) if sog else None
-                backend.write_voxels(h, back, bw, bs)
+            if last is not None:                  # the previous record's other rows back to the base's
+                mark[rows_i] = True
+                back = last[~mark[last]]
+                mark[rows_i] = False
+                bw, bs = wb.take(back), sb.take(back) if sog else None
+                backend.write_voxels(h, grids.voxels[back], bw, bs)
                 if hi is not None:
-                    backend.write_voxels(hi, back, bw.positive(), bs)
+                    backend.write_voxels(hi, grids.voxels[back], bw.positive(), bs)
             backend.write_voxels(h, at, w, stop if sog else None)
             if hi is not None:
                 backend.write_voxels(hi, at, w.positive(), stop if sog else None)
-            work[T][4] = all_rows[r_off[i]:r_off[i + 1]]
+            work[T][4] = rows_i
         yield h if hi is None else (h, hi)
 
 

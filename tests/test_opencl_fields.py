@@ -84,11 +84,15 @@ def test_left_out_fields_are_the_host_tables_bit_for_bit(name, task):
 @pytest.mark.parametrize("indicator", [None, "uncertain"])
 def test_working_grids_written_from_device_rows_are_the_hosts(monkeypatch, drives, name, task, occlusion, indicator):
     """left_out.patched_in_place with the rows made on the device (every record's rows in one launch, each T's base
-    rows too, the previous record's rows put back from the base's by an index): after each record the working
-    grid, and the "uncertain" indicator's, holds what the host's rows written in place give."""
+    rows too, the previous record's rows it does not touch put back from the base's by an index): after each
+    record the working grid, and the "uncertain" indicator's, holds what the host's rows written in place give."""
     import place3d_kernels.left_out as left_out
-    from place3d_kernels.left_out import patched_in_place
+    from place3d_kernels.left_out import LeftOutRows, patched_in_place
 
+    rows = LeftOutRows(drives)
+    first, second = rows.index(0)[1], rows.index(1)[1]       # both kinds of a previous record's rows occur:
+    assert np.intersect1d(first, second).size and np.setdiff1d(first, second).size   # written again, put back
+    assert rows.index(0)[0] == rows.index(1)[0]              # on the same working grid (one T)
     b = _backend(name)
     assert b.fields_on_device                   # every device with doubles, by default
 
