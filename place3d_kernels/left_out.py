@@ -369,7 +369,7 @@ def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str 
     """``prepared_grids`` with ``reuse``, on a backend that writes grids in place: per T one working grid
     (``Backend.working_grid``, filled from the base's M voxels on the device), and per record only its rows
     and the previous record's rows it did not touch written (``Backend.write_voxels``). Where the backend
-    computes fields (``fields_on_device``: OpenCL devices with doubles) the rows are made and kept there
+    computes fields (``fields_on_device``: OpenCL GPUs with doubles) the rows are made and kept there
     (``_written_from_device_rows``). An item is valid until the next is asked for."""
     grids = LeftOutGrids(pooled, task, indicator, rows)
     if _fields_here(grids, backend, indicator):
@@ -408,7 +408,7 @@ def _fields_here(grids: "LeftOutGrids", backend, indicator: str | None) -> bool:
 
 def _written_from_device_rows(grids: "LeftOutGrids", pooled, task: str, occlusion: str, backend,
                               indicator: str | None):
-    """``patched_in_place`` with every row made on the backend (OpenCL with doubles): each record's left-out rows in
+    """``patched_in_place`` with every row made on the backend (OpenCL GPUs with doubles): each record's left-out rows in
     one batch (``device_fields``) and each T's base rows (``device_row_fields``) stay on the device; per record
     the previous record's rows it does not touch are put back from the base's and its own written (the
     indicator from the same rows, read as weight > 0), so nothing but voxel ids and row indexes is sent."""

@@ -396,7 +396,7 @@ class PSOG:
     def _device_rows(self, backend):
         """(weights, stop) of the stored voxels as device arrays, made on ``backend`` from the count rows
         (``left_out_tables.device_row_fields``: the bits ``weight_rows`` and ``stop_rows`` hold), where the
-        backend computes fields (``fields_on_device``: Warp on CUDA, OpenCL devices with doubles), the P-SOG has
+        backend computes fields (``fields_on_device``: Warp on CUDA, OpenCL GPUs with doubles), the P-SOG has
         count rows, T is at most ``FieldTables.MAX_T`` and the host's rows were not made already; else None."""
         if not getattr(backend, "fields_on_device", False) or "weight rows" in self._cache:
             return None

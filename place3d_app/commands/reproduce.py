@@ -160,7 +160,7 @@ def pool_scorer(lidar, occlusion: str, backend, roll_units: str, det_variant: st
     weights and stop mask come from the pool's count rows in blocks (``left_out.LeftOutGrids.dense_base`` at
     the pool's own T) and only the rigs are launched on them (``metrics.msog_on_grid``): no (M, K)
     probabilities, detection view or entropies of the whole pool at once. On a backend that makes a P-SOG's
-    fields from its count rows itself (``fields_on_device``: Warp on CUDA, OpenCL devices with doubles) the
+    fields from its count rows itself (``fields_on_device``: Warp on CUDA, OpenCL GPUs with doubles) the
     pool's P-SOG is scored as it is instead: its rows are sent once and made into fields there
     (``PSOG.handle``), with no host pass over them and no dense grid sent. The scores are the same to the last bit (tests/test_pooled.py)."""
     from place3d_kernels.backends.registry import get_backend

@@ -87,10 +87,13 @@ class OpenCLFields:
 
     @property
     def fields_on_device(self) -> bool:
-        """Whether the jackknife and a P-SOG's grid make their fields here from count rows: every device with
-        doubles (the tables' terms are float64). PoCL too: on the 2-core dev VM the default ``evaluate`` took
-        4.92 [4.83-5.02] s warm against 5.48 [5.12-5.62] s with the host's rows (3 runs each, alternated)."""
-        return self.fp64
+        """Whether the jackknife and a P-SOG's grid make their fields here from count rows: GPUs with doubles (the
+        tables' terms are float64). A CPU device keeps the host's rows, which lie in its own memory: with PoCL
+        making them on the 2-core dev VM the default ``evaluate`` took 4.92 against 5.48 s warm, but the warm
+        default ``optimize`` 50.4 [49.8-51.6] against 47.8 [47.7-58.7] s (its held-out P-SOGs and diagnostics
+        made the "uncertain" indicator's host rows beside the device's), and ``reproduce`` did not move beyond
+        its noise (3 runs each, alternated; bench/results/ab-2026-11-30-s32/README.md, sections 5, 6 and 9)."""
+        return self.fp64 and not self.is_cpu
 
     def left_out_fields(self, counts, rows, estart, ecls, ecnt, row_t, Ts, term, stop_t, other, det, veh, scale):
         """Weights and stop flags of left-out count rows, one launch (``left_out.cl``): row r is
