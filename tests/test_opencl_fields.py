@@ -185,3 +185,32 @@ def test_device_rows_are_checked_before_any_write(name):
     want = np.zeros(spec.n_voxels, dtype=np.int64)
     want[ids] = tb(np.c_[3 - counts[:, 1], counts[:, 1:]][:, :N_CLASSES])[0]
     assert b._read(h.weights, np.int64, spec.n_voxels).tobytes() == want.tobytes()
+
+
+def test_a_gpu_keeps_device_copies_only_of_arrays_nobody_can_write():
+    """OpenCLFields._resident on a GPU: a read-only array that owns its memory is sent once while it lives; a
+    writable array or a view is sent again each time (a changed array is never read from a stale copy). Runs
+    where an OpenCL GPU with doubles is lent; CPUs read the host memory itself."""
+    import gc
+
+    gpus = [n for n in _names() if "/" not in n and not _backend(n).is_cpu]
+    if not gpus:
+        pytest.skip("no OpenCL GPU here")
+    b = _backend(gpus[0])
+
+    def read(buf, n):
+        return b._read(buf, np.int32, n)
+
+    x = np.arange(10, dtype=np.int32)
+    b._resident(x, np.int32)
+    x[0] = 7
+    assert read(b._resident(x, np.int32), 10)[0] == 7            # writable: sent again, with its new value
+    x.setflags(write=False)
+    kept = b._resident(x, np.int32)
+    assert b._resident(x, np.int32) is kept and read(kept, 10).tolist() == x.tolist()
+    view = x[2:]
+    assert b._resident(view, np.int32) is not b._resident(view, np.int32)
+    key = id(x)
+    del x, view
+    gc.collect()
+    assert key not in b._resident_buffers                         # dropped with the host array
