@@ -428,10 +428,8 @@ def test_a_named_platform_alone_is_probed_and_its_probe_context_used_once():
         pytest.skip("needs PoCL")
     code = ("from place3d_kernels.backends.opencl import _runtime as rt\n"
             "from place3d_kernels.backends.opencl.host import OpenCLBackend\n"
-            "import pyopencl as cl\n"
-            "others = [p for p in cl.get_platforms() if rt.short_name(p.name) != 'pocl']\n"
             "a = OpenCLBackend('pocl')\n"
-            "print('PROBES', len(rt._probed), 'OTHERS', len(others))\n"
+            "print('PROBES', len(rt._probed))\n"
             "print('LEFT', len(rt._probe_contexts))\n"
             "b = OpenCLBackend('pocl')\n"
             "print('DISTINCT', a.ctx.int_ptr != b.ctx.int_ptr)\n"
@@ -440,7 +438,7 @@ def test_a_named_platform_alone_is_probed_and_its_probe_context_used_once():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     lines = dict(ln.split(" ", 1) for ln in out.stdout.splitlines())
-    assert lines["PROBES"].split()[0] == "1"        # PoCL's platform only, whatever else is installed
+    assert lines["PROBES"] == "1"                   # PoCL's platform only, whatever else is installed
     assert lines["LEFT"] == "0" and lines["DISTINCT"] == "True"
     assert "pocl" in lines["ALL"] and lines["KEPT"] == "0"   # a listing of every platform keeps no context
 

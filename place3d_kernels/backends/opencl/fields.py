@@ -11,10 +11,10 @@ bench/results/ab-2026-11-30-s31/README.md, section 4); made here, 0.47-0.58 and 
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 import pyopencl as cl
+
+from place3d_kernels.backends.base import resident_copy
 
 __all__ = ["CLRows", "OpenCLFields"]
 
@@ -121,19 +121,16 @@ class OpenCLFields:
         return CLRows(self, w, np.int64, R), CLRows(self, s, np.uint8, R)
 
     def _resident(self, x, dtype) -> cl.Buffer:
-        """``x`` on the device as ``dtype``. On GPUs a read-only array that owns its memory (the pool's counts,
-        the jackknife's entry tables) is sent once and its copy kept while the array lives, as
-        ``WarpScoring._resident`` does; anything else is sent on each call (on CPUs the host memory itself)."""
-        if not (not self.is_cpu and isinstance(x, np.ndarray) and x.base is None and not x.flags.writeable
-                and x.dtype == np.dtype(dtype) and x.flags.c_contiguous and x.nbytes):
+        """``x`` on the device as ``dtype``: on GPUs a read-only host array that owns its memory is sent once and
+        its copy kept while it lives (``base.resident_copy``, as Warp's), anything else sent on each call; on CPUs
+        the host memory itself (``_in``)."""
+        if self.is_cpu:
             return self._in(np.ascontiguousarray(x, dtype=dtype))
-        memo = self.__dict__.setdefault("_resident_buffers", {})
-        key = id(x)
-        hit = memo.get(key)
-        if hit is not None and hit[0]() is x:
-            return hit[1]
-        buf = cl.Buffer(self.ctx, _MF.READ_ONLY, size=x.nbytes)
-        cl.enqueue_copy(self.queue, buf, x)
-        # dropped with the host array (its id is free for another array only once it is gone)
-        memo[key] = (weakref.ref(x, lambda _, key=key: memo.pop(key, None)), buf)
+        return resident_copy(self.__dict__.setdefault("_resident_buffers", {}), x, dtype, self._send_copy)
+
+    def _send_copy(self, a: np.ndarray) -> cl.Buffer:
+        if a.nbytes == 0:
+            return self._dummy
+        buf = cl.Buffer(self.ctx, _MF.READ_ONLY, size=a.nbytes)
+        cl.enqueue_copy(self.queue, buf, a)
         return buf

@@ -11,7 +11,7 @@ import os
 import numpy as np
 import warp as wp
 
-from place3d_kernels.backends.base import check_voxel_rows, rotation_matrices
+from place3d_kernels.backends.base import check_voxel_rows, resident_copy, rotation_matrices
 from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
 from place3d_kernels.backends.warp.cpu_split import CHUNKS_PER_THREAD, MIN_CHUNK
 
@@ -180,27 +180,12 @@ class WarpScoring:
         return w[:R], s[:R]
 
     def _resident(self, x, dtype):
-        """``x`` on the device as ``dtype``. A read-only array that owns its memory (the pool's counts table,
-        the jackknife's entry tables: read-only from where they are made) is sent once and its device copy kept
-        while the array lives; a jackknife otherwise sent the pool's counts (0.6 GB on the default grid of 32
-        drives) for each task's left-out rows, each task's bases and each task's point grid. Anything else
-        (a writable array, a view, another type) is sent on each call."""
+        """``x`` on the device as ``dtype``: a device array as it is, a read-only host array that owns its memory
+        sent once while it lives (``base.resident_copy``), anything else sent on each call."""
         if isinstance(x, wp.array):
             return x
-        if not (isinstance(x, np.ndarray) and x.base is None and not x.flags.writeable
-                and x.dtype == np.dtype(dtype) and x.flags.c_contiguous):
-            return wp.array(np.ascontiguousarray(x, dtype=dtype), device=self.device)
-        memo = self.__dict__.setdefault("_resident_arrays", {})
-        key = id(x)
-        hit = memo.get(key)
-        if hit is not None and hit[0]() is x:
-            return hit[1]
-        import weakref
-
-        d = wp.array(x, device=self.device)
-        # dropped with the host array (its id is free for another array only once it is gone)
-        memo[key] = (weakref.ref(x, lambda _, key=key: memo.pop(key, None)), d)
-        return d
+        return resident_copy(self.__dict__.setdefault("_resident_arrays", {}), x, dtype,
+                             lambda a: wp.array(a, device=self.device))
 
     def patched_grid(self, base, voxels, weights, stop):
         # the base copied on the device, the changed voxels written over it, and the brick masks made from the
