@@ -6,8 +6,9 @@ device (``CLRows``) and ``OpenCLScoring.write_voxels`` writes them into a workin
 
 On an H200's opencl:nvidia the jackknife of ``reproduce --routes 8`` had spent 4.74 s making these rows on the
 host and 1.31 s sending them, against Warp's 0.56 and 0.10 s (one profiled run each, drives cached;
-bench/results/ab-2026-11-30-s31/README.md, section 4); made here, 0.47-0.58 and 0.62-0.76 s, and the whole command
-24.2 -> 17.4 s (3 runs each, alternated; bench/results/ab-2026-11-30-s32/README.md, section 1)."""
+bench/results/ab-2026-11-30-s31/README.md, section 4); made here, 0.51-0.56 and 0.73-0.75 s against 4.59-4.69 and
+1.19-1.31 s (two profiled pairs, drives cached), and the whole command 24.2 -> 17.4 s (3 runs each, alternated;
+bench/results/ab-2026-11-30-s32/README.md, sections 1 and 7)."""
 
 from __future__ import annotations
 
