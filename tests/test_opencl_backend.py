@@ -443,6 +443,65 @@ def test_a_named_platform_alone_is_probed_and_its_probe_context_used_once():
     assert "pocl" in lines["ALL"] and lines["KEPT"] == "0"   # a listing of every platform keeps no context
 
 
+def _add_one(ctx, dev):
+    import pyopencl as cl
+
+    q = cl.CommandQueue(ctx)
+    prg = cl.Program(ctx, "__kernel void add1(__global int *a) { a[get_global_id(0)] += 1; }").build()
+    a = np.arange(64, dtype=np.int32)
+    buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
+    prg.add1(q, a.shape, None, buf)
+    out = np.empty_like(a)
+    cl.enqueue_copy(q, out, buf)
+    return out
+
+
+@pytest.mark.parametrize("platform", _DEVICES or [pytest.param(None, marks=pytest.mark.skip(reason=_WHY))])
+def test_a_context_made_through_the_loader_is_pyopencls_and_owns_one_reference(platform, monkeypatch):
+    """new_context makes the context through ctypes (PyOpenCL holds the GIL in clCreateContext), never through
+    PyOpenCL's constructor where the loader is found, and hands PyOpenCL a context it owns alone: one
+    reference, freed with it; a kernel runs there."""
+    import sys
+
+    import pyopencl as cl
+
+    from place3d_kernels.backends.opencl import _runtime as rt
+
+    dev = rt.platform_table()[platform][1][0]
+    if sys.platform.startswith("linux"):
+        assert rt._icd_loader() is not None          # PyOpenCL's own libOpenCL, found in this process's maps
+    made = cl.Context
+
+    class NoConstructor:                              # PyOpenCL's clCreateContext refused; from_int_ptr kept
+        from_int_ptr = staticmethod(made.from_int_ptr)
+
+        def __new__(cls, *a, **k):
+            raise AssertionError("new_context called PyOpenCL's Context()")
+
+    if rt._icd_loader() is not None:
+        monkeypatch.setattr(rt.cl, "Context", NoConstructor)
+    ctx = rt.new_context(dev)
+    monkeypatch.undo()
+    assert isinstance(ctx, made) and ctx.devices == [dev]
+    assert ctx.get_info(cl.context_info.REFERENCE_COUNT) == 1
+    np.testing.assert_array_equal(_add_one(ctx, dev), np.arange(1, 65, dtype=np.int32))
+
+
+def test_without_the_loader_a_context_is_made_by_pyopencl(monkeypatch):
+    if not _DEVICES:
+        pytest.skip(_WHY)
+    import pyopencl as cl
+
+    from place3d_kernels.backends.opencl import _runtime as rt
+
+    dev = rt.platform_table()[_DEVICES[0]][1][0]
+    monkeypatch.setattr(rt, "_icd_loader", lambda: None)
+    rt._open_drivers()                                # nothing to open: PyOpenCL's get_platforms does it
+    ctx = rt.new_context(dev)
+    assert isinstance(ctx, cl.Context) and ctx.get_info(cl.context_info.REFERENCE_COUNT) == 1
+    np.testing.assert_array_equal(_add_one(ctx, dev), np.arange(1, 65, dtype=np.int32))
+
+
 def test_missing_pyopencl_is_an_import_error_and_the_backend_is_listed_as_missing():
     import subprocess
     import sys

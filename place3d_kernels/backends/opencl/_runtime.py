@@ -76,6 +76,7 @@ def _compiles(ctx: "cl.Context") -> str | None:
 def _platforms() -> tuple:
     """((platform, available devices), ...) of every ICD platform with a device, the older of two PoCLs left
     out (``unusable_platforms`` says so); nothing compiled yet."""
+    _open_drivers()
     try:
         plats = cl.get_platforms()
     except cl.Error:  # PLATFORM_NOT_FOUND_KHR: the ICD loader found no driver
@@ -101,6 +102,61 @@ def _platforms() -> tuple:
     return tuple(out)
 
 
+# PyOpenCL calls clGetPlatformIDs (whose first call opens every vendor driver) and clCreateContext holding the
+# GIL. Through ctypes, which lets go of it during a foreign call, the same ICD loader opens the drivers and makes
+# the context, and PyOpenCL takes the context over. opencl:nvidia's `reproduce --routes 8` on an H200 host
+# (three leases, 3 runs each, alternated, the same study numbers): 17.1 -> 14.3, 17.8 -> 15.4, 18.5 -> 16.3 s,
+# the pool 1.5-2 s shorter. The pool alone (bench/pool_trace.py, its main process making the backend before the
+# map) did not move: the gain is most likely the command's, whose backend starts while a thread of it starts
+# the sixteen workers (bench/results/ab-2026-11-30-s33/README.md).
+@lru_cache(maxsize=None)
+def _icd_loader():
+    """PyOpenCL's own ICD loader (the ``libOpenCL`` its extension module loaded, read from /proc/self/maps)
+    opened by ctypes, or None where there is not exactly one (not Linux, or something unexpected)."""
+    import ctypes
+
+    try:
+        with open("/proc/self/maps") as f:
+            paths = {ln.split()[-1] for ln in f if "/libOpenCL" in ln}
+    except OSError:
+        return None
+    if len(paths) != 1:
+        return None
+    try:
+        lib = ctypes.CDLL(paths.pop())
+        lib.clGetPlatformIDs.restype = ctypes.c_int
+        lib.clGetPlatformIDs.argtypes = [ctypes.c_uint, ctypes.c_void_p, ctypes.POINTER(ctypes.c_uint)]
+        lib.clCreateContext.restype = ctypes.c_void_p
+        lib.clCreateContext.argtypes = [ctypes.c_void_p, ctypes.c_uint, ctypes.POINTER(ctypes.c_void_p),
+                                        ctypes.c_void_p, ctypes.c_void_p, ctypes.POINTER(ctypes.c_int)]
+    except (OSError, AttributeError):
+        return None
+    return lib
+
+
+def _open_drivers() -> None:
+    """The ICD loader's first clGetPlatformIDs (it opens every vendor driver) made through ctypes."""
+    import ctypes
+
+    lib = _icd_loader()
+    if lib is not None:
+        lib.clGetPlatformIDs(0, None, ctypes.byref(ctypes.c_uint(0)))
+
+
+def new_context(dev: "cl.Device") -> "cl.Context":
+    """A context on ``dev`` alone, made through ctypes where PyOpenCL's loader is found (the GIL let go while
+    the driver works), else by PyOpenCL; either way a ``cl.Context`` that owns its one reference."""
+    import ctypes
+
+    lib = _icd_loader()
+    if lib is not None:
+        err = ctypes.c_int(0)
+        handle = lib.clCreateContext(None, 1, (ctypes.c_void_p * 1)(dev.int_ptr), None, None, ctypes.byref(err))
+        if handle and err.value == 0:
+            return cl.Context.from_int_ptr(handle, retain=False)
+    return cl.Context([dev])        # PyOpenCL's own call, and its error where the driver refuses
+
+
 #: whether each probed device's platform compiles (device pointer -> bool), once per process
 _probed: dict = {}
 #: the compile probe's context on a device, kept where a backend is about to be made there (``platform_table``
@@ -115,7 +171,7 @@ def _probe(p: "cl.Platform", dev: "cl.Device", keep: bool) -> bool:
     known = _probed.get(dev.int_ptr)
     if known is not None:
         return known
-    ctx = cl.Context([dev])
+    ctx = new_context(dev)
     why = _compiles(ctx)
     if why is not None:
         hint = POCL_CPU_HINT if "unknown target cpu" in why.lower() else "check the OpenCL driver"

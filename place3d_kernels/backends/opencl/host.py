@@ -135,7 +135,7 @@ class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
             self.device = (gpus or devices)[0]
         self.name = f"opencl:{str(platform).strip().lower()}"
         try:
-            self.ctx = rt.probe_context(self.device) or cl.Context([self.device])
+            self.ctx = rt.probe_context(self.device) or rt.new_context(self.device)
             self.queue = cl.CommandQueue(self.ctx)
         except cl.Error as e:  # pragma: no cover - driver trouble
             raise BackendUnavailable(f"cannot create an OpenCL context on {self.device.name!r}: {e}") from e
