@@ -100,7 +100,8 @@ def main(argv=None) -> int:
     ex = ProcessExecutor(a.workers, backend=a.backend, start_method=command_start_method(), prestart=True)
     name = get_backend(a.backend).name
     drives = [Drive(resolve_town(t), seed=r) for r in range(a.routes) for t in a.towns.split(",")]
-    settings = PoolSettings(None, "collection_64ch", None, name, a.cache or tempfile.mkdtemp(prefix="pool-trace-"), None)
+    cache = a.cache or tempfile.mkdtemp(prefix="pool-trace-")
+    settings = PoolSettings(None, "collection_64ch", None, name, cache, None)
     groups = scene_groups(drives, a.workers)
     t1 = time.time()
     got = ex.map(_task, [([drives[i] for i in g], settings) for g in groups])
