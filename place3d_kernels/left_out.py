@@ -369,7 +369,7 @@ def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str 
     """``prepared_grids`` with ``reuse``, on a backend that writes grids in place: per T one working grid
     (``Backend.working_grid``, filled from the base's M voxels on the device), and per record only its rows
     and the previous record's rows it did not touch written (``Backend.write_voxels``). Where the backend
-    computes fields (``fields_on_device``: OpenCL GPUs with doubles) the rows are made and kept there
+    computes fields (``left_out_on_device``: OpenCL devices with doubles) the rows are made and kept there
     (``_written_from_device_rows``). An item is valid until the next is asked for."""
     grids = LeftOutGrids(pooled, task, indicator, rows)
     if _fields_here(grids, backend, indicator):
@@ -399,16 +399,16 @@ def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str 
 
 
 def _fields_here(grids: "LeftOutGrids", backend, indicator: str | None) -> bool:
-    """Whether the left-out rows are made on the backend (``fields_on_device``; the "uncertain" indicator is
+    """Whether the left-out rows are made on the backend (``left_out_on_device``; the "uncertain" indicator is
     then their weights above 0, "evidence" needs the counts: the host's rows), the tables allow T and every
     count fits an int32."""
-    return (indicator in (None, "uncertain") and getattr(backend, "fields_on_device", False)
+    return (indicator in (None, "uncertain") and getattr(backend, "left_out_on_device", False)
             and grids.T <= FieldTables.MAX_T and (len(grids.counts) == 0 or int(grids.counts.max()) < 2**31))
 
 
 def _written_from_device_rows(grids: "LeftOutGrids", pooled, task: str, occlusion: str, backend,
                               indicator: str | None):
-    """``patched_in_place`` with every row made on the backend (OpenCL GPUs with doubles): each record's left-out rows in
+    """``patched_in_place`` with every row made on the backend (OpenCL devices with doubles): each record's left-out rows in
     one batch (``device_fields``) and each T's base rows (``device_row_fields``) stay on the device; per record
     the previous record's rows it does not touch are put back from the base's and its own written (the
     indicator from the same rows, read as weight > 0), so nothing but voxel ids and row indexes is sent."""

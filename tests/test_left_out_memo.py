@@ -125,7 +125,7 @@ def test_a_second_jackknife_prepares_no_grid(spec, prepared):
     # each left-out grid once; where grids are written in place, also each task's working grid filled once, and
     # where their rows are made on the device a record's grid after the first is two writes (the previous
     # record's rows put back from the base's, then its own; every record here leaves the same T)
-    per_task = n + 1 + ((n - 1) if getattr(b, "fields_on_device", False) else 0) if b.writes_grids else n
+    per_task = n + 1 + ((n - 1) if getattr(b, "left_out_on_device", False) else 0) if b.writes_grids else n
     assert len(prepared) == 2 * per_task
 
 

@@ -43,8 +43,9 @@ def _backend(name):
 
 def _fields_here(monkeypatch, b, here: bool = True) -> None:
     """Tell ``b``'s class to make fields on the device, or (``here=False``) on the host, as on a device without
-    doubles."""
+    doubles: a P-SOG's grid and the jackknife's left-out rows both."""
     monkeypatch.setattr(type(b), "fields_on_device", property(lambda self: here))
+    monkeypatch.setattr(type(b), "left_out_on_device", property(lambda self: here))
 
 
 def _spec(seed=0, frames=16):
@@ -94,7 +95,8 @@ def test_working_grids_written_from_device_rows_are_the_hosts(monkeypatch, drive
     assert np.intersect1d(first, second).size and np.setdiff1d(first, second).size   # written again, put back
     assert rows.index(0)[0] == rows.index(1)[0]              # on the same working grid (one T)
     b = _backend(name)
-    assert b.fields_on_device is not b.is_cpu   # GPUs with doubles, by default
+    assert b.fields_on_device is not b.is_cpu   # a P-SOG's grid: GPUs with doubles, by default
+    assert b.left_out_on_device                  # the jackknife's rows: every device with doubles
 
     def run():
         out = []
@@ -104,7 +106,7 @@ def test_working_grids_written_from_device_rows_are_the_hosts(monkeypatch, drive
 
     _fields_here(monkeypatch, b, False)
     want = run()
-    _fields_here(monkeypatch, b)
+    monkeypatch.undo()                      # the defaults again: the rows made on the device
     calls = []
     made = left_out.device_fields
     monkeypatch.setattr(left_out, "device_fields", lambda *a, **k: calls.append(1) or made(*a, **k))

@@ -88,13 +88,19 @@ class OpenCLFields:
 
     @property
     def fields_on_device(self) -> bool:
-        """Whether the jackknife and a P-SOG's grid make their fields here from count rows: GPUs with doubles (the
+        """Whether a P-SOG's grid makes its fields here from count rows (``PSOG.handle``): GPUs with doubles (the
         tables' terms are float64). A CPU device keeps the host's rows, which lie in its own memory: with PoCL
-        making them on the 2-core dev VM the default ``evaluate`` took 4.92 against 5.48 s warm, but the warm
-        default ``optimize`` 50.4 [49.8-51.6] against 47.8 [47.7-58.7] s (its held-out P-SOGs and diagnostics
-        made the "uncertain" indicator's host rows beside the device's), and ``reproduce`` did not move beyond
-        its noise (3 runs each, alternated; bench/results/ab-2026-11-30-s32/README.md, sections 5, 6 and 9)."""
+        making them on the 2-core dev VM (for the jackknife too) the warm default ``optimize`` took 50.4
+        [49.8-51.6] against 47.8 [47.7-58.7] s (its held-out P-SOGs and diagnostics made the "uncertain"
+        indicator's host rows beside the device's; 3 runs each, alternated; bench/results/ab-2026-11-30-s32/
+        README.md, section 9)."""
         return self.fp64 and not self.is_cpu
+
+    @property
+    def left_out_on_device(self) -> bool:
+        """Whether the jackknife makes its left-out rows here (``left_out._fields_here``): every device with
+        doubles, CPUs too (see ``fields_on_device`` for a P-SOG's grid)."""
+        return self.fp64
 
     def left_out_fields(self, counts, rows, estart, ecls, ecnt, row_t, Ts, term, stop_t, other, det, veh, scale):
         """Weights and stop flags of left-out count rows, one launch (``left_out.cl``): row r is

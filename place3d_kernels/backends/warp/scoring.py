@@ -157,8 +157,13 @@ class WarpScoring:
     @property
     def fields_on_device(self) -> bool:
         """Whether the jackknife computes its left-out rows here in one batch (``left_out_fields``; on CUDA,
-        where the host's rows were most of a left-out grid's time)."""
+        where the host's rows were most of a left-out grid's time), and a P-SOG's grid its fields."""
         return self.device.is_cuda
+
+    @property
+    def left_out_on_device(self) -> bool:
+        """The jackknife's switch (``left_out._fields_here``): as ``fields_on_device`` on Warp."""
+        return self.fields_on_device
 
     def left_out_fields(self, counts, rows, estart, ecls, ecnt, row_t, Ts, term, stop_t, other, det, veh, scale):
         """Weights and stop flags of left-out count rows, one device batch (``left_out_kernels``): row r is
