@@ -408,10 +408,11 @@ def _fields_here(grids: "LeftOutGrids", backend, indicator: str | None) -> bool:
 
 def _written_from_device_rows(grids: "LeftOutGrids", pooled, task: str, occlusion: str, backend,
                               indicator: str | None):
-    """``patched_in_place`` with every row made on the backend (OpenCL devices with doubles): each record's left-out rows in
-    one batch (``device_fields``) and each T's base rows (``device_row_fields``) stay on the device; per record
-    the previous record's rows it does not touch are put back from the base's and its own written (the
-    indicator from the same rows, read as weight > 0), so nothing but voxel ids and row indexes is sent."""
+    """``patched_in_place`` with every row made on the backend (OpenCL devices with doubles): each record's
+    left-out rows in one batch (``device_fields``) and each T's base rows (``device_row_fields``) stay on the
+    device; per record the previous record's rows it does not touch are put back from the base's and its own
+    written (the indicator from the same rows, read as weight > 0), so nothing but voxel ids and row indexes is
+    sent."""
     sog = occlusion == "sog"
     spec = pooled.grid.spec
     with section("jackknife: left-out grid"):

@@ -99,7 +99,10 @@ class OpenCLFields:
     @property
     def left_out_on_device(self) -> bool:
         """Whether the jackknife makes its left-out rows here (``left_out._fields_here``): every device with
-        doubles, CPUs too (see ``fields_on_device`` for a P-SOG's grid)."""
+        doubles, CPUs too (see ``fields_on_device`` for a P-SOG's grid). With PoCL making them on the 2-core dev VM
+        the warm ``reproduce --routes 8`` took 32.5 [31.6-33.0] against 37.6 [36.2-37.7] s, the default
+        ``evaluate`` 4.06 against 4.62 s warm, the warm ``optimize`` no longer (3 runs or 5 pairs, alternated;
+        bench/results/ab-2026-11-30-s33/README.md, section 8)."""
         return self.fp64
 
     def left_out_fields(self, counts, rows, estart, ecls, ecnt, row_t, Ts, term, stop_t, other, det, veh, scale):
