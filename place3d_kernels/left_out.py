@@ -234,13 +234,21 @@ class LeftOutGrids:
         T, rows, at, w, s, ind = self.rows(i)
         if last is None or not len(last):
             return (T, at, w, s, ind), rows
-        mark[rows] = True
-        back = last[~mark[last]]
-        mark[rows] = False
+        back = _untouched(last, rows, mark)
         wb, sb, ib = self._base_fields(T)
         out = (T, np.concatenate([self.voxels[back], at]), np.concatenate([wb[back], w]),
                np.concatenate([sb[back], s]), None if ind is None else np.concatenate([ib[back], ind]))
         return out, rows
+
+
+def _untouched(last: np.ndarray, rows: np.ndarray, mark: np.ndarray) -> np.ndarray:
+    """The rows of ``last`` not among ``rows`` (in ``last``'s order): those a working grid must get back from its
+    base when it goes from one record's left-out grid to the next. ``mark``: (M,) bool scratch, all False (and
+    left so)."""
+    mark[rows] = True
+    back = last[~mark[last]]
+    mark[rows] = False
+    return back
 
 
 def fused_path(lidar, occlusion: str, normalisation: str = "paper", body=None) -> bool:
@@ -432,9 +440,7 @@ def _written_from_device_rows(grids: "LeftOutGrids", pooled, task: str, occlusio
                            wb, sb, None]
             h, hi, wb, sb, last = work[T]
             if last is not None:                  # the previous record's other rows back to the base's
-                mark[rows_i] = True
-                back = last[~mark[last]]
-                mark[rows_i] = False
+                back = _untouched(last, rows_i, mark)
                 bw, bs = wb.take(back), sb.take(back) if sog else None
                 backend.write_voxels(h, grids.voxels[back], bw, bs)
                 if hi is not None:
