@@ -495,9 +495,12 @@ def test_without_the_loader_a_context_is_made_by_pyopencl(monkeypatch):
     from place3d_kernels.backends.opencl import _runtime as rt
 
     dev = rt.platform_table()[_DEVICES[0]][1][0]
+    made, calls = cl.Context, []
     monkeypatch.setattr(rt, "_icd_loader", lambda: None)
-    rt._open_drivers()                                # nothing to open: PyOpenCL's get_platforms does it
+    monkeypatch.setattr(rt.cl, "Context", lambda devices: calls.append(devices) or made(devices))
     ctx = rt.new_context(dev)
+    monkeypatch.undo()
+    assert calls == [[dev]]                           # PyOpenCL's own constructor, on that device alone
     assert isinstance(ctx, cl.Context) and ctx.get_info(cl.context_info.REFERENCE_COUNT) == 1
     np.testing.assert_array_equal(_add_one(ctx, dev), np.arange(1, 65, dtype=np.int32))
 

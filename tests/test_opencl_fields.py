@@ -1,8 +1,8 @@
 """The OpenCL backend's left-out fields on the device (backends/opencl/fields.py, left_out.cl): the rows are the
 host's ``FieldTables`` bit for bit, the jackknife's working grids written from them are the grids written from
 the host's rows, and a P-SOG's grid from its device-made rows is the host's. On every OpenCL device with doubles
-here (PoCL in CI, told to take the GPUs' way; an NVIDIA GPU where one is lent), both score strategies, each against
-the same backend told to make its rows on the host."""
+here (PoCL in CI, which makes the jackknife's rows so by default and is told to for a P-SOG's grid; an NVIDIA GPU
+where one is lent), both score strategies, each against the same backend told to make its rows on the host."""
 
 from __future__ import annotations
 

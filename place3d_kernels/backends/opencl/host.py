@@ -371,10 +371,11 @@ class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
     #: (leaf_size, bins, full_sah_limit); set per device in ``__init__``. Every device builds Morton-order trees
     #: (``lbvh.build_lbvh``), since a drive waits for its static mesh's trees more than for their 40 sweeps; where
     #: that builder falls back to SAH, CPUs split on the widest axis (``full_sah_limit=0``), GPUs try all three.
-    #: 2026-11-30, SAH -> Morton, 3 pairs each: two Town03 drives simulated on the dev VM's PoCL 4.52-4.56 -> 3.68-3.74 s (casts 1.28-1.44 -> 1.56-1.62
-    #: s), on an H200's opencl:nvidia 3.31-3.54 -> 1.66-1.84 s (casts 0.15-0.16 s both), a 1M-triangle city built
-    #: there in 4.4-5.5 -> 1.6-2.0 s (its 524k-ray cast 5.1-6.5 / 4.7-6.6 ms); `reproduce --routes 8`'s pool on
-    #: the dev VM 74.8 -> 61.0 s (3 runs each, alternated). Every choice gives the same hits.
+    #: 2026-11-30, SAH -> Morton, 3 pairs each: two Town03 drives simulated on the dev VM's PoCL 4.52-4.56 ->
+    #: 3.68-3.74 s (casts 1.28-1.44 -> 1.56-1.62 s), on an H200's opencl:nvidia 3.31-3.54 -> 1.66-1.84 s (casts
+    #: 0.15-0.16 s both), a 1M-triangle city built there in 4.4-5.5 -> 1.6-2.0 s (its 524k-ray cast 5.1-6.5 /
+    #: 4.7-6.6 ms); `reproduce --routes 8`'s pool on the dev VM 74.8 -> 61.0 s (3 runs each, alternated). Every
+    #: choice gives the same hits.
     bvh_options: dict = {}
 
     def _tree(self, vertices, faces, **kw) -> BVH:
