@@ -25,7 +25,15 @@ __all__ = ["WORKER_ENV", "FORKSERVER_PRELOAD", "START_METHOD_ENV", "WORKERS_ENV"
 #: matrix product of one frame's points) oversubscribes them many times over. BLAS threads split a product's
 #: output, not its sums, so a product's values are the same with any number of them (the test of the process
 #: executor compares its pooled counts with the local executor's bit for bit).
-WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+#:
+#: And one hardware work queue per CUDA context (``CUDA_DEVICE_MAX_CONNECTIONS``, default 8: without MPS each
+#: context gets its own pool of host-to-device connections, NVIDIA's MPS documentation, "Environment Variables").
+#: The driver makes the workers' contexts one after another, and their queues are most of that work: on an
+#: H200, sixteen processes starting a context at once waited 2.2-2.4 s each, 0.8-0.9 s with one queue (Warp's
+#: whole start 2.4-2.5 -> 1.1 s); NVIDIA's OpenCL driver makes CUDA contexts too. A worker runs its kernels on
+#: one stream (Warp's) or one OpenCL queue, in order, so a single queue takes nothing from it; the command's own
+#: process keeps the driver's default (bench/results/ab-2026-11-30-s34/README.md).
+WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "CUDA_DEVICE_MAX_CONNECTIONS": "1"}
 
 #: What a forkserver imports once before it forks the workers: the drive tasks' modules and the SciPy parts of
 #: the scene builders. Imports only: no backend, device, thread or file is made by importing them, so a forked
