@@ -7,6 +7,7 @@ cache is warmed by one untimed small run first; bytecode is compiled first for t
 command imports (``cold_profile.compile_bytecode``: Warp, NumPy, ...), as ``pip install`` does for a user.
 
     python3 bench/evaluate_times.py --runs 3 --tree .old --tree . [--args "--voxel-size 0.2"] --out $OUT
+    python3 bench/evaluate_times.py --runs 3 --tree .:NAME=VALUE --tree .     # a setting against none
 
 Writes ``evaluate-times-<machine>-<date>.json``: per tree the cold and warm walls (median, min, max, runs) and
 a digest of each run's table (the scores must agree between trees and runs).
@@ -25,14 +26,14 @@ import tempfile
 import time
 from pathlib import Path
 
-from cold_profile import compile_bytecode
+from cold_profile import compile_bytecode, parse_tree
 from results_io import write_result
 
 
-def _run(tree: Path, cache: str, extra: list[str]) -> tuple[float, str]:
+def _run(tree: Path, cache: str, extra: list[str], settings: dict | None = None) -> tuple[float, str]:
     # the tree first, then what the host needs on the path (the lent GPU host keeps Warp in /tmp/site there)
     path = os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH", "")) if p)
-    env = {**os.environ, "PYTHONPATH": path, "PLACE3D_CACHE": cache}
+    env = {**os.environ, **(settings or {}), "PYTHONPATH": path, "PLACE3D_CACHE": cache}
     env.pop("PLACE3D_SERVER", None)
     # from an empty folder: ``python -m`` puts the working directory first on the path, so run from a checkout
     # it would import that checkout whatever PYTHONPATH says (A/Bs before 2026-11-29 13:45 UTC, run from the
@@ -59,14 +60,19 @@ def _stats(v: list[float]) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--tree", action="append", default=None, help="checkout to run (repeat for an A/B)")
+    ap.add_argument("--tree", action="append", default=None,
+                    help="checkout to run (repeat for an A/B); TREE:NAME=VALUE,... runs it with those environment "
+                         "settings (cold_profile.parse_tree)")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--args", default="", help="more options of the command, e.g. '--voxel-size 0.2'")
     ap.add_argument("--no-warmup", action="store_true", help="the kernel cache is warm already")
     ap.add_argument("--machine", default=None)
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
-    trees = [Path(t).resolve() for t in (a.tree or ["."])]
+    variants = [parse_tree(t) for t in (a.tree or ["."])]         # (label, tree, environment settings)
+    if len({label for label, _, _ in variants}) != len(variants):
+        raise SystemExit("two --tree arguments give the same label; name the checkouts apart")
+    trees = list(dict.fromkeys(tree for _, tree, _ in variants))
     extra = shlex.split(a.args)
     # bytecode of the trees and of the packages the command imports (Warp among them), as pip install compiles
     # it for a user: the lent GPU host sets PYTHONDONTWRITEBYTECODE=1, where Warp's import from source alone
@@ -75,19 +81,19 @@ def main() -> None:
         print(line, flush=True)
     if not a.no_warmup:
         with tempfile.TemporaryDirectory() as c:      # Warp's kernels compiled once, untimed
-            _run(trees[-1], c, [*extra, "--routes", "2", "--frames", "8"])
-    walls = {str(t): {"cold": [], "warm": []} for t in trees}
-    digests = {str(t): [] for t in trees}
+            _run(variants[-1][1], c, [*extra, "--routes", "2", "--frames", "8"], variants[-1][2])
+    walls = {label: {"cold": [], "warm": []} for label, _, _ in variants}
+    digests = {label: [] for label, _, _ in variants}
     for r in range(a.runs):
         # the order turns every run (A B, B A, ...): two A/Bs on the H100 host each had the second tree's cold
         # runs slower, a bias a fixed order cannot tell from an effect
-        for t in (trees if r % 2 == 0 else trees[::-1]):
+        for label, t, settings in (variants if r % 2 == 0 else variants[::-1]):
             with tempfile.TemporaryDirectory() as c:
                 for kind in ("cold", "warm"):
-                    w, d = _run(t, c, extra)
-                    walls[str(t)][kind].append(round(w, 3))
-                    digests[str(t)].append(d)
-                    print(f"run {r + 1} {t.name or t}: {kind} {w:.2f} s  table {d}", flush=True)
+                    w, d = _run(t, c, extra, settings)
+                    walls[label][kind].append(round(w, 3))
+                    digests[label].append(d)
+                    print(f"run {r + 1} {label}: {kind} {w:.2f} s  table {d}", flush=True)
     figures = {"command": "place3d evaluate " + " ".join(extra), "trees": {
         k: {kind: _stats(v) for kind, v in w.items()} for k, w in walls.items()}, "table_digests": digests,
         "same_tables": len({d for v in digests.values() for d in v}) == 1}

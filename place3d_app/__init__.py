@@ -24,7 +24,7 @@ from __future__ import annotations
 import os
 import sys
 
-__all__ = ["main", "run", "leave", "server_request", "forward"]
+__all__ = ["main", "run", "leave", "server_request", "forward", "one_work_queue"]
 
 #: The option that asks for the server; ``--server=PATH`` names its socket.
 FLAG = "--server"
@@ -32,6 +32,15 @@ FLAG = "--server"
 ENV = "PLACE3D_SERVER"
 #: ``PLACE3D_FAST_EXIT``: ``0`` = the console script exits through the interpreter's full teardown (see ``leave``).
 FAST_EXIT_ENV = "PLACE3D_FAST_EXIT"
+#: The commands that run here with one hardware work queue per CUDA context (``CUDA_DEVICE_MAX_CONNECTIONS=1``,
+#: unless the user set it; ``one_work_queue``). Each runs the package's kernels on one Warp stream or one OpenCL
+#: queue, in order, so one queue takes nothing from them, and the driver makes such a context faster: on an H200,
+#: with the command's drive workers already on one queue, cold default ``optimize`` 4.77 [4.20-4.89] -> 4.49
+#: [4.45-4.59] s, warm 2.67 -> 2.54 s, ``evaluate`` cold 3.58 -> 3.28 s, warm 1.37 -> 1.32 s (3 runs each,
+#: alternated; bench/results/ab-2026-11-30-s34/README.md). Not ``downstream`` (PyTorch's training may overlap
+#: copies with kernels on several streams) nor ``serve``, whose clients must start with its ``CUDA_*`` settings.
+ONE_QUEUE_COMMANDS = frozenset({"evaluate", "optimize", "reproduce", "study", "simulate", "blindspot"})
+ONE_QUEUE_ENV = "CUDA_DEVICE_MAX_CONNECTIONS"
 #: Seconds without an answer from the server after which the client says that it waits, and for what.
 BUSY_NOTE_AFTER_S = 1.0
 #: Seconds the server has to greet a client (it does so from a thread of its own at once, busy or not);
@@ -68,6 +77,17 @@ def _subcommand(argv: list[str]) -> str | None:
     return next((a for a in argv if not a.startswith("-")), None)
 
 
+def one_work_queue(argv: list[str], environ=None) -> bool:
+    """Set ``CUDA_DEVICE_MAX_CONNECTIONS=1`` in ``environ`` (default ``os.environ``) for a command of
+    ``ONE_QUEUE_COMMANDS`` run in this process, before anything starts CUDA, unless the user set it; returns
+    whether it was set here. Its worker processes have it anyway (``forkserver.WORKER_ENV``)."""
+    environ = os.environ if environ is None else environ
+    if _subcommand(argv) not in ONE_QUEUE_COMMANDS or ONE_QUEUE_ENV in environ:
+        return False
+    environ[ONE_QUEUE_ENV] = "1"
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``place3d`` (``argv`` without the program name; default ``sys.argv[1:]``); returns the exit code."""
     from_sys = argv is None
@@ -78,6 +98,9 @@ def main(argv: list[str] | None = None) -> int:
         code = forward(path, rest, explicit)
         if code is not None:
             return code
+    if from_sys:
+        # the console script only: a caller of main() in its own process keeps its environment
+        one_work_queue(rest)
     if _subcommand(rest) == "reproduce":
         # its workers' server imports beside this process's own imports (place3d_app.forkserver)
         from place3d_app.forkserver import start_early

@@ -31,8 +31,9 @@ __all__ = ["WORKER_ENV", "FORKSERVER_PRELOAD", "START_METHOD_ENV", "WORKERS_ENV"
 #: The driver makes the workers' contexts one after another, and their queues are most of that work: on an
 #: H200, sixteen processes starting a context at once waited 2.2-2.4 s each, 0.8-0.9 s with one queue (Warp's
 #: whole start 2.4-2.5 -> 1.1 s); NVIDIA's OpenCL driver makes CUDA contexts too. A worker runs its kernels on
-#: one stream (Warp's) or one OpenCL queue, in order, so a single queue takes nothing from it; the command's own
-#: process keeps the driver's default (bench/results/ab-2026-11-30-s34/README.md).
+#: one stream (Warp's) or one OpenCL queue, in order, so a single queue takes nothing from it; the console script
+#: sets it for the kernel commands' own process too (``place3d_app.ONE_QUEUE_COMMANDS``;
+#: bench/results/ab-2026-11-30-s34/README.md).
 WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "CUDA_DEVICE_MAX_CONNECTIONS": "1"}
 
 #: What a forkserver imports once before it forks the workers: the drive tasks' modules and the SciPy parts of

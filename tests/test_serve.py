@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 
 import place3d_kernels as p3k
-from place3d_app import server_request, wire
+from place3d_app import one_work_queue, server_request, wire
 from place3d_app.cli import asks_for_server
 from place3d_app.serve import is_listening
 from place3d_kernels.sog import PSOG, keep_loaded
@@ -98,6 +98,18 @@ def test_flag_is_read_before_the_subcommand_only():
     assert server_request(["backends"], {"PLACE3D_SERVER": "1"}) == ("", False, ["backends"])
     assert server_request(["backends"], {"PLACE3D_SERVER": "/y.sock"}) == ("/y.sock", False, ["backends"])
     assert server_request(["backends"], {"PLACE3D_SERVER": "0"}) == (None, False, ["backends"])
+
+
+def test_kernel_commands_run_here_with_one_cuda_work_queue_unless_the_user_set_it():
+    env = {}
+    assert one_work_queue(["--profile", "optimize", "--max-evals", "5"], env)
+    assert env == {"CUDA_DEVICE_MAX_CONNECTIONS": "1"}
+    env = {"CUDA_DEVICE_MAX_CONNECTIONS": "8"}
+    assert not one_work_queue(["evaluate"], env) and env == {"CUDA_DEVICE_MAX_CONNECTIONS": "8"}
+    # PyTorch's training keeps the driver's queues; a server's clients must start with its CUDA_* settings
+    for argv in (["downstream"], ["serve"], ["bench"], []):
+        env = {}
+        assert not one_work_queue(argv, env) and env == {}, argv
 
 
 @pytest.mark.parametrize("argv", [["--server", "backends"], ["--server=/s", "--profile", "x"], ["optimize", "--server"],
