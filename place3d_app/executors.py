@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import sys
 import threading
 import time
@@ -127,12 +128,28 @@ def default_workers() -> int:
 
 
 def _start_worker(backend: str | None) -> None:
+    # a drive task returns before its P-SOG file is written (pipeline.saves_outlive_tasks): the worker waits for
+    # its saves when it ends, at a normal exit (the saver thread is joined) and when an idle pool is ended
+    # (``shutdown(wait=False)`` sends SIGTERM: the handler waits for the files, then leaves at once as before)
+    from place3d_kernels.pipeline import saves_outlive_tasks
+
+    saves_outlive_tasks(True)
+    signal.signal(signal.SIGTERM, _end_after_saves)
     # each worker resolves the run's backend once (get_backend keeps one instance per name), on a thread of
     # its own, and takes its first task at once: a drive's scene (Python, the CPU) is built while the backend
     # starts (on CUDA mostly the driver's context and module loads, foreign calls that let this thread run);
     # the task's first get_backend waits for that thread's (the registry makes each backend once)
     if backend:
         threading.Thread(target=_resolve_backend, args=(backend,), daemon=True, name="place3d-backend").start()
+
+
+def _end_after_saves(signum, frame) -> None:
+    try:
+        from place3d_kernels.pipeline import wait_for_saves
+
+        wait_for_saves()
+    finally:
+        os._exit(0)
 
 
 def _resolve_backend(backend: str) -> None:
@@ -271,10 +288,12 @@ class ProcessExecutor(Executor):
 
     def shutdown(self, wait: bool = True) -> None:
         """Stop the workers. ``wait=False`` returns at once: workers with nothing left to do (every task
-        submitted here has returned) are ended at once, as nothing of theirs can be lost (a drive task returns
-        only once its cache files are written); otherwise they are asked to exit after their tasks (the
-        interpreter joins them at its exit). Ending them spares the command's exit their own: with a GPU
-        backend, 16 workers tearing down 16 device contexts. A later ``map`` starts new ones."""
+        submitted here has returned) are sent SIGTERM, which each answers by waiting for the cache files its
+        drive tasks may still be writing (``pipeline.saves_outlive_tasks``) and leaving without the
+        interpreter's teardown; otherwise they are asked to exit after their tasks. Either way the interpreter
+        joins them at its exit, so the cache is whole when the command ends. Ending them spares the command's
+        exit their own: with a GPU backend, 16 workers tearing down 16 device contexts. A later ``map`` starts
+        new ones."""
         with self._lock:
             pool, self._pool, self._started = self._pool, None, 0
         if pool is None:

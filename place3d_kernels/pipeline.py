@@ -16,7 +16,8 @@ from place3d_kernels.scene.keymemo import SceneRef
 from place3d_kernels.simulate import DEFAULT_MOUNT, check_frames, simulate
 from place3d_kernels.sog import PSOG, cache_folder, cache_key
 
-__all__ = ["scene_psog", "cached_psog", "cache_file", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy", "wait_for_saves"]
+__all__ = ["scene_psog", "cached_psog", "cache_file", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy",
+           "wait_for_saves", "saves_outlive_tasks"]
 
 log = logging.getLogger(__name__)
 
@@ -170,6 +171,21 @@ def wait_for_saves() -> None:
     """Wait until every P-SOG that ``scene_psog(save_in_background=True)`` is writing is on disk."""
     while _saves:
         _saves.pop(0).result()
+
+
+_outlive = False
+
+
+def saves_outlive_tasks(on: bool | None = None) -> bool:
+    """Whether a task that builds P-SOGs for another process (``pooled``'s drive tasks) may return while their
+    cache files are still being written on the saver thread; ``on`` sets it. Off by default: such a task waits
+    for its saves, so the cache is whole when it returns. A process that itself waits for its saves before it
+    ends turns it on (the application's worker processes: their normal exit joins the saver thread, and their
+    SIGTERM handler waits for it), so the file's compression leaves the task's critical path."""
+    global _outlive
+    if on is not None:
+        _outlive = bool(on)
+    return _outlive
 
 
 def check_entropy(psog: PSOG, frames_per_subset: int | None = None) -> PSOG:

@@ -458,12 +458,13 @@ def _records_task(t) -> list[DriveRecord]:
     # (executors._start_worker): sixteen workers starting CUDA on one GPU at once took 2.3-2.8 s each on an H200
     # host against 0.5 s for one (2026-11-29), longer than a big town's first scene, and the drive's simulation
     # waited for it. Then each P-SOG, compressed into the cache on a thread (zlib lets the next drive's work run
-    # meanwhile); the task returns only once every file is written, so the cache is whole when the pool is
-    # (tests/test_executors.py)
+    # meanwhile); the task returns once every file is written, so the cache is whole when the pool is, unless
+    # this process waits for its saves when it ends (``pipeline.saves_outlive_tasks``: the application's worker
+    # processes; then the last file's 0.2-0.3 s leave the task; tests/test_executors.py)
     # A drive whose P-SOG is in the cache is read from it, its scene built only where its key is not remembered
     # (``SceneSpec.for_cache``): a warm reproduce --routes 8 built all 32 scenes for nothing (pool 19.0 [18.3-19.2]
     # of 69.6 [65.2-71.4] s on the 2-core dev VM, 3 runs; 3.5 s after).
-    from place3d_kernels.pipeline import wait_for_saves
+    from place3d_kernels.pipeline import saves_outlive_tasks, wait_for_saves
     from place3d_kernels.scene.keymemo import SceneRef
 
     drives, settings = t
@@ -481,7 +482,8 @@ def _records_task(t) -> list[DriveRecord]:
             out[j] = drive_record(drives[j], settings, save_in_background=True, scene=scenes.pop(0))
         return out
     finally:
-        wait_for_saves()
+        if not saves_outlive_tasks():
+            wait_for_saves()
 
 
 def _cached_record(drive: Drive, settings: PoolSettings) -> tuple[DriveRecord | None, Any]:

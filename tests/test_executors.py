@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -41,20 +43,60 @@ def test_process_pool_is_the_local_pool_bit_for_bit(device_backend, start_method
     assert np.array_equal(procs.psog().probs, local.psog().probs)
 
 
-def test_the_workers_cache_files_are_written_when_the_pool_returns(device_backend, tmp_path, monkeypatch):
-    # the workers compress each drive's P-SOG into the cache on a thread while they build the next drive; the
-    # pool returns only once every file is whole, so a command run right after reads them all, simulating none
+@pytest.mark.parametrize("wait", [True, False])
+def test_the_workers_cache_files_are_whole_when_the_workers_end(device_backend, tmp_path, monkeypatch, wait):
+    # the workers compress each drive's P-SOG into the cache on a thread while they build the next drive, and
+    # return the last one's record before its file is written; a worker ends only once its files are whole,
+    # leaving after its tasks (wait) or ended idle (SIGTERM), so a command run next reads them all, simulating none
     settings = PoolSettings(0.8, "collection_64ch", 4, device_backend, str(tmp_path))
     drives = [Drive("town", seed=s, frames=f) for s, f in ((0, 8), (1, 4), (2, 8))]
-    with ProcessExecutor(2, backend=device_backend) as ex:
-        built = build_pooled(drives, settings, executor=ex)
-        assert len(list(tmp_path.glob("psog-*.json"))) == 3      # the manifests, each written after its file
+    ex = ProcessExecutor(2, backend=device_backend)
+    built = build_pooled(drives, settings, executor=ex)
+    workers = list(ex._pool._processes.values())
+    ex.shutdown(wait=wait)
+    _wait_until_gone(workers)
+    assert len(list(tmp_path.glob("psog-*.json"))) == 3          # the manifests, each written after its file
 
     def no_simulation(*a, **k):
         raise AssertionError("a drive was simulated again: its cache file was missing or unreadable")
 
     monkeypatch.setattr("place3d_kernels.pipeline.simulate", no_simulation)
     _same_records(build_pooled(drives, settings, executor=LocalExecutor()), built)
+
+
+def test_idle_workers_ended_by_shutdown_finish_their_cache_writes_first(tmp_path, monkeypatch):
+    # a write that takes a second, left on a worker's saver thread by a task that has returned: ending the idle
+    # workers (shutdown(wait=False), SIGTERM) waits for it instead of killing it
+    (tmp_path / "slowsave.py").write_text(
+        "import time\n"
+        "from pathlib import Path\n"
+        "from place3d_kernels import pipeline\n"
+        "def write_later(path):\n"
+        "    def save():\n"
+        "        time.sleep(1.0)\n"
+        "        Path(path).write_text('whole')\n"
+        "    pipeline._saves.append(pipeline._saver().submit(save))\n"
+        "    return pipeline.saves_outlive_tasks()\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import slowsave
+
+    paths = [str(tmp_path / f"file{i}") for i in range(2)]
+    ex = ProcessExecutor(2)
+    assert ex.map(slowsave.write_later, paths) == [True, True]
+    workers = list(ex._pool._processes.values())
+    t = time.perf_counter()
+    ex.shutdown(wait=False)
+    assert time.perf_counter() - t < 0.5                     # returns at once; the workers finish on their own
+    _wait_until_gone(workers)
+    assert [Path(p).read_text() for p in paths] == ["whole", "whole"]
+
+
+def _wait_until_gone(processes, timeout: float = 60.0) -> None:
+    # the pool's own thread reaps them (a join here may race it for the exit status), so poll for them gone
+    end = time.monotonic() + timeout
+    while any(p.is_alive() for p in processes):
+        assert time.monotonic() < end, "worker processes still running"
+        time.sleep(0.05)
 
 
 def test_process_executor_keeps_task_order_and_raises_the_task_error():
