@@ -100,6 +100,32 @@ def test_save_load_roundtrip(tmp_path):
         assert "probs" not in z.files            # from frames: counts / T, derived on load to the same bits
 
 
+def test_npz_members_are_read_as_numpy_reads_them(tmp_path):
+    # the P-SOG reader inflates each member in one call (sog._npz_arrays); it must give np.load's arrays: a saved
+    # P-SOG's members, and an empty, a 0-d text, a Fortran-ordered and a small-int member; object arrays refused
+    import io
+    import json
+
+    from place3d_kernels.sog import _npz_arrays
+
+    f = [frame([[0.5, 0.5, 0.5], [1.5, 2.5, 1.5]], [ROAD, CAR]), frame([[0.5, 0.5, 0.5]], [CAR])]
+    path = p3k.PSOG.from_frames(f, G, frames_per_subset=1, backend="reference").save(tmp_path / "p.npz")
+    buf = io.BytesIO()
+    np.savez_compressed(buf, empty=np.zeros(0), meta=json.dumps({"a": 1}), fortran=np.asfortranarray(
+        np.arange(12.0).reshape(3, 4)), small=np.arange(5, dtype=np.int8), rows=np.zeros((0, 3), np.int64))
+    for data in (path.read_bytes(), buf.getvalue()):
+        got = _npz_arrays(data)
+        with np.load(io.BytesIO(data), allow_pickle=False) as want:
+            assert sorted(got) == sorted(want.files)
+            for k in want.files:
+                assert got[k].dtype == want[k].dtype and got[k].shape == want[k].shape, k
+                assert np.array_equal(got[k], want[k]) and got[k].flags.writeable, k
+    buf = io.BytesIO()
+    np.savez(buf, objects=np.array([1, "a"], dtype=object))
+    with pytest.raises(ValueError, match="object arrays"):
+        _npz_arrays(buf.getvalue())
+
+
 def test_a_loaded_psog_makes_its_dense_counts_only_when_asked(tmp_path):
     # pooling reads a drive's occupied entries as stored (DriveRecord.from_psog); the dense (M, K) table took
     # most of a cache read and is made on first use of ``counts``, the same table as before the save
