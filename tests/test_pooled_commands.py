@@ -4,6 +4,7 @@ CARLA maps by name, and a tiny pooled evaluate / optimize on the embedded town."
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -156,6 +157,7 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
 
         def shutdown(self, wait=True):
             self.waited = wait
+            self.workers_at_end = list((getattr(self._pool, "_processes", None) or {}).values())
             super().shutdown(wait)
 
     monkeypatch.setattr(executors, "ProcessExecutor", Recorded)
@@ -173,8 +175,14 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
     probe = Future()                                                  # optimize's probe, answered later
     probe.set_result("warp:cpu")
     assert build_missing(opts, specs, probe) == 2
-    assert all(s.cache_file() is not None and s.cache_file().exists() for s in specs)
     (ex,) = made
+    # a worker returns its drive's record while the file is still written, and ends once it is: the files are
+    # whole when the workers are gone (the command's exit waits for that)
+    end = time.monotonic() + 60
+    while any(p.is_alive() for p in ex.workers_at_end):
+        assert time.monotonic() < end, "drive workers still running"
+        time.sleep(0.05)
+    assert ex.workers_at_end and all(s.cache_file() is not None and s.cache_file().exists() for s in specs)
     assert ex.start_method == executors.command_start_method() and ex.preload == "warp:cpu"
     assert ex.backend_when_started is None and ex.backend == "warp:cpu" and ex.waited is False
     assert build_missing(opts, specs, "warp:cpu") == 0               # warm: nothing missing, no workers
