@@ -17,7 +17,7 @@ from place3d_kernels.simulate import DEFAULT_MOUNT, check_frames, simulate
 from place3d_kernels.sog import PSOG, cache_folder, cache_key
 
 __all__ = ["scene_psog", "cached_psog", "cache_file", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy",
-           "wait_for_saves", "saves_outlive_tasks"]
+           "wait_for_saves", "saves_outlive_tasks", "end_task_saves"]
 
 log = logging.getLogger(__name__)
 
@@ -186,6 +186,13 @@ def saves_outlive_tasks(on: bool | None = None) -> bool:
     if on is not None:
         _outlive = bool(on)
     return _outlive
+
+
+def end_task_saves() -> None:
+    """What a drive task does with its background saves before it returns: waits for them, unless this process
+    lets them outlive its tasks (``saves_outlive_tasks``)."""
+    if not _outlive:
+        wait_for_saves()
 
 
 def check_entropy(psog: PSOG, frames_per_subset: int | None = None) -> PSOG:

@@ -464,7 +464,7 @@ def _records_task(t) -> list[DriveRecord]:
     # A drive whose P-SOG is in the cache is read from it, its scene built only where its key is not remembered
     # (``SceneSpec.for_cache``): a warm reproduce --routes 8 built all 32 scenes for nothing (pool 19.0 [18.3-19.2]
     # of 69.6 [65.2-71.4] s on the 2-core dev VM, 3 runs; 3.5 s after).
-    from place3d_kernels.pipeline import saves_outlive_tasks, wait_for_saves
+    from place3d_kernels.pipeline import end_task_saves
     from place3d_kernels.scene.keymemo import SceneRef
 
     drives, settings = t
@@ -482,8 +482,7 @@ def _records_task(t) -> list[DriveRecord]:
             out[j] = drive_record(drives[j], settings, save_in_background=True, scene=scenes.pop(0))
         return out
     finally:
-        if not saves_outlive_tasks():
-            wait_for_saves()
+        end_task_saves()
 
 
 def _cached_record(drive: Drive, settings: PoolSettings) -> tuple[DriveRecord | None, Any]:

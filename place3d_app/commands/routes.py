@@ -124,12 +124,11 @@ def _build_spec(spec):
     it without reading the file again. The file is written on the worker's saver thread; the task waits for it
     unless the worker waits for it when it ends (``pipeline.saves_outlive_tasks``, the process executor's
     workers): the command then has the record 0.2-0.3 s sooner, and the cache is whole when the workers end."""
-    from place3d_kernels.pipeline import saves_outlive_tasks, wait_for_saves
+    from place3d_kernels.pipeline import end_task_saves
     from place3d_kernels.pooled import DriveRecord
 
     record = DriveRecord.from_psog(spec.build(cache=spec.cache or True, save_in_background=True), spec.scene.label)
-    if not saves_outlive_tasks():
-        wait_for_saves()
+    end_task_saves()
     return record
 
 
