@@ -45,17 +45,18 @@ def test_import_cma_keeps_a_matplotlib_imported_before():
     assert out == "True False"
 
 
-def test_optimize_search_imports_leave_scipy_to_the_helper():
-    """place3d optimize's early imports: pycma always, SciPy's pdist only where the certificate is computed
-    in this process (no helper process), scipy.special where intervals over routes take t quantiles."""
+def test_optimize_scipy_imports_leave_scipy_to_the_helper():
+    """place3d optimize's early SciPy imports (pycma is imported on its own, the one the search waits for):
+    SciPy's pdist only where the certificate is computed in this process (no helper process), scipy.special
+    where intervals over routes take t quantiles."""
     out = _run("""
         import sys
-        from place3d_app.commands.optimize import _search_imports
-        _search_imports(False, False)
+        from place3d_app.commands.optimize import _scipy_imports
+        _scipy_imports(False, False)
         print("cma" in sys.modules, any(n.startswith("scipy") for n in sys.modules))
-        _search_imports(False, True)
+        _scipy_imports(False, True)
         print("scipy.special" in sys.modules, any(n.startswith("scipy.spatial") for n in sys.modules))
-        _search_imports(True, False)
+        _scipy_imports(True, False)
         print("scipy.spatial.distance" in sys.modules)
     """)
-    assert out.splitlines() == ["True False", "True False", "True"]
+    assert out.splitlines() == ["False False", "True False", "True"]

@@ -235,15 +235,12 @@ def _probe(name):
         return get_backend(name)
 
 
-def _search_imports(certificate_here: bool, t_quantiles: bool) -> None:
-    """Import what the search uses (pycma) and, where the certificate is computed in this process
-    (``certificate_here``), SciPy's ``pdist``, ahead of them; with ``t_quantiles`` (intervals over pooled
-    routes) ``scipy.special``, whose t quantiles the interval takes (``intervals.Jackknife``)."""
+def _scipy_imports(certificate_here: bool, t_quantiles: bool) -> None:
+    """Import, ahead of their use, the SciPy modules the command takes after its search: where the certificate
+    is computed in this process (``certificate_here``) SciPy's ``pdist``; with ``t_quantiles`` (intervals over
+    pooled routes) ``scipy.special``, whose t quantiles the interval takes (``intervals.Jackknife``)."""
     import importlib
 
-    from place3d_kernels.lazy_imports import import_cma
-
-    import_cma()
     if certificate_here:
         importlib.import_module("scipy.spatial.distance")       # optimize.certificate's pdist
     if t_quantiles:
@@ -286,6 +283,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     from place3d_kernels.manifest import provenance, write_manifest
     from place3d_kernels.metrics import msog_batch
     from place3d_kernels.optimize import FixedHeight, MinDistance, MSOGObjective, SearchSpace, optimize
+    from place3d_kernels.lazy_imports import import_cma
     from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
 
     # The backend probe (importing Warp and starting CUDA: a large part of a cold command) runs on a thread
@@ -297,18 +295,22 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     # studies found", cold command: imports, tail and exit). Elsewhere this thread imports the certificate's
     # SciPy module too. Intervals over pooled routes take t quantiles from scipy.special (0.3-0.5 s to import
     # on the H200 host, once the search had ended): this thread imports it while the drives are built in the
-    # worker processes.
+    # worker processes. The search waits for pycma alone: a warm command waited 0.01-0.07 s more for SciPy's
+    # modules (bench/results/ab-2026-11-30-s35/README.md).
     bg = ThreadPoolExecutor(max_workers=1, thread_name_prefix="place3d-optimize")
     probe = bg.submit(_probe, args.backend)
     helper = plotter.helper if plotter is not None else None
-    imports = bg.submit(_search_imports, helper is None,
-                        args.interval == "jackknife" and len(getattr(args, "drives", None) or ()) > 1)
+    cma_imported = bg.submit(import_cma)
+    bg.submit(_scipy_imports, helper is None,
+              args.interval == "jackknife" and len(getattr(args, "drives", None) or ()) > 1)
     try:
         lidar = LidarModel.load(args.lidar)
         with section("scene + P-SOG"):
             _, psog = psog_for(probe)
         with section("import cma"):
-            imports.result()
+            # SciPy's modules go on importing on the thread meanwhile (a later import of one waits for it there:
+            # Python's import lock)
+            cma_imported.result()
         with section("backend probe (wait)"):
             b = probe.result()
     finally:
