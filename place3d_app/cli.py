@@ -64,7 +64,9 @@ def cmd_optimize(args) -> int:
 
     spec = specs_from_args(args)
     args.drives = drive_specs(args, spec)             # scenes x route seeds, checked before any work
-    start_for_spec(spec, cache=not args.no_cache)    # the scene is built on another core during the probe
+    if len(args.drives) == 1:
+        # the scene is built on another core during the probe (several drives are built by worker processes)
+        start_for_spec(spec, cache=not args.no_cache)
     return run_optimize(args, spec, psog_for=lambda backend: psog_for_routes(spec, args, backend))
 
 

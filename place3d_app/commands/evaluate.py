@@ -33,16 +33,18 @@ def cmd_evaluate(args) -> int:
                          f"{' with --resamples 0' if args.interval == 'bootstrap' else ''} has none to draw")
     with section("setup: specs, backend, placements"):
         spec = specs_from_args(args)
-        start_for_spec(spec, cache=not args.no_cache)    # the scene is built on another core during the probe
+        from place3d_app.commands.routes import build_missing, drive_specs, pooled_psog
+
+        drives = drive_specs(args, spec)
+        if len(drives) == 1:
+            # the scene is built on another core during the probe (several drives are built by worker processes)
+            start_for_spec(spec, cache=not args.no_cache)
         b = get_backend(args.backend)
         lidar = LidarModel.load(args.lidar)
         names = args.placements or list(PAPER_PLACEMENTS)
         placements = [Placement.load(n) for n in names]
         check_rigs_in_roi(spec.grid.grid(), {n: pl.poses for n, pl in zip(names, placements)})
         body = spec.vehicle_body()
-        from place3d_app.commands.routes import build_missing, drive_specs, pooled_psog
-
-        drives = drive_specs(args, spec)
     # the intervals' and the plot's imports load while the P-SOG is read or built (after the scene's fork)
     import_in_background(*(LATE_IMPORTS["intervals"] if args.interval != "none" else ()),
                          *(LATE_IMPORTS["plot"] if (args.plot or args.output) and args.interval != "none" else ()))
