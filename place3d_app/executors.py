@@ -185,12 +185,14 @@ class ProcessExecutor(Executor):
         preload: the backend name whose modules a ``forkserver`` imports (``forkserver.preload_for``; default
             ``backend``), for a caller that starts the server (``start_server``) before it knows the backend;
             ``backend`` may then be set until the first ``map``.
+        opendrive: whether the workers may build scenes of OpenDRIVE maps (the server then imports the SciPy
+            parts of their builders too; ``forkserver.OPENDRIVE_PRELOAD``).
     """
 
     kind = "process"
 
     def __init__(self, workers: int | None = None, backend: str | None = None, start_method: str = "spawn",
-                 prestart: bool = False, preload: str | None = None) -> None:
+                 prestart: bool = False, preload: str | None = None, opendrive: bool = True) -> None:
         super().__init__()
         if start_method not in ("spawn", "forkserver"):
             raise ValueError(f"start_method must be 'spawn' or 'forkserver', got {start_method!r}")
@@ -199,6 +201,7 @@ class ProcessExecutor(Executor):
             raise ValueError(f"workers must be >= 1, got {workers}")
         self.backend = backend
         self.preload = backend if preload is None else preload
+        self.opendrive = opendrive
         self.start_method = start_method
         self._pool = None
         self._started = 0
@@ -227,7 +230,7 @@ class ProcessExecutor(Executor):
         executor."""
         from place3d_app import forkserver
 
-        forkserver.start(self.preload)
+        forkserver.start(self.preload, self.opendrive)
         self._server_started = True
 
     def _context(self):

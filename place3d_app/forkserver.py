@@ -1,9 +1,10 @@
 """The server the commands fork their worker processes from, and its early start for ``place3d reproduce``.
 
 On Linux the commands' workers (``executors.ProcessExecutor(start_method=command_start_method())``) are forked
-from a ``multiprocessing`` forkserver that imported ``preload_for(backend)`` once: NumPy, SciPy's spatial and
-image parts, the drive tasks' modules and Warp (about a second of imports, which sixteen spawned workers would
-otherwise each repeat side by side). A worker can start only once that server has its imports.
+from a ``multiprocessing`` forkserver that imported ``preload_for(backend)`` once: NumPy, the drive tasks' modules
+and Warp, and SciPy's spatial and image parts where the drives include OpenDRIVE maps (0.4-1.5 s of imports,
+which sixteen spawned workers would otherwise each repeat side by side). A worker can start only once that server
+has its imports.
 
 ``place3d reproduce`` always builds its drives on workers where more than one core is usable, so the console
 script starts the server (``start_early``) before it imports the package and parses the command line: the
@@ -18,7 +19,7 @@ import os
 import sys
 
 __all__ = ["WORKER_ENV", "FORKSERVER_PRELOAD", "START_METHOD_ENV", "WORKERS_ENV", "worker_environment",
-           "preload_for", "command_start_method", "start", "start_early"]
+           "OPENDRIVE_PRELOAD", "preload_for", "command_start_method", "start", "start_early"]
 
 #: What each worker process starts with, unless the user set it: one BLAS thread. The workers fill the cores
 #: themselves; a BLAS library that also starts a thread per core in every worker (NumPy's OpenBLAS does for a
@@ -36,11 +37,15 @@ __all__ = ["WORKER_ENV", "FORKSERVER_PRELOAD", "START_METHOD_ENV", "WORKERS_ENV"
 #: bench/results/ab-2026-11-30-s34/README.md).
 WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "CUDA_DEVICE_MAX_CONNECTIONS": "1"}
 
-#: What a forkserver imports once before it forks the workers: the drive tasks' modules and the SciPy parts of
-#: the scene builders. Imports only: no backend, device, thread or file is made by importing them, so a forked
-#: copy is a clean worker.
+#: What a forkserver imports once before it forks the workers: the drive tasks' modules (the scene builders
+#: with them). Imports only: no backend, device, thread or file is made by importing them, so a forked copy is a
+#: clean worker.
 FORKSERVER_PRELOAD = ("place3d_kernels.pooled", "place3d_kernels.pipeline", "place3d_kernels.simulate",
-                      "place3d_kernels.scene.opendrive", "place3d_kernels.spec", "scipy.spatial", "scipy.ndimage")
+                      "place3d_kernels.scene.opendrive", "place3d_kernels.spec")
+#: What it imports besides for workers that may build scenes of OpenDRIVE maps: the SciPy parts their builders
+#: take (k-d trees, image morphology). A drive of the embedded town imports neither, and they were a large part
+#: of the server's imports (0.72 s of 1.0 s on the 2-core dev VM), which every worker waits for.
+OPENDRIVE_PRELOAD = ("scipy.spatial", "scipy.ndimage")
 
 #: Environment variable: how the commands' worker processes start, ``spawn`` or ``forkserver`` (default: a
 #: forkserver on Linux, see ``command_start_method``).
@@ -64,14 +69,15 @@ def worker_environment():
             os.environ.pop(k, None)
 
 
-def preload_for(backend: str | None) -> list[str]:
-    """``FORKSERVER_PRELOAD`` plus Warp (imported, not initialised) for a backend that runs on it, or PyOpenCL
+def preload_for(backend: str | None, opendrive: bool = True) -> list[str]:
+    """``FORKSERVER_PRELOAD`` (and ``OPENDRIVE_PRELOAD`` unless ``opendrive`` is False: workers that build no
+    scene of an OpenDRIVE map) plus Warp (imported, not initialised) for a backend that runs on it, or PyOpenCL
     and the OpenCL backend's modules (imported; no platform is asked for, so no driver is loaded) for an OpenCL
     one: sixteen workers importing PyOpenCL side by side took 0.53-0.81 s each on a 16-core H200 host, 0.3-0.4 s
     alone (bench/results/ab-2026-11-30-s32/README.md, section 2)."""
     import importlib.util
 
-    mods = list(FORKSERVER_PRELOAD)
+    mods = list(FORKSERVER_PRELOAD) + (list(OPENDRIVE_PRELOAD) if opendrive else [])
     name = (backend or "").strip().lower()
     if name in ("auto", "warp") or name.startswith("warp:"):
         if importlib.util.find_spec("warp") is not None:
@@ -102,14 +108,15 @@ def command_start_method() -> str:
     return "forkserver" if sys.platform.startswith("linux") and "forkserver" in have else "spawn"
 
 
-def start(backend: str | None) -> None:
-    """Start this process's forkserver (a no-op if it runs already) with ``preload_for(backend)`` and the
-    workers' environment. Returns at once: the server imports its preload on its own."""
+def start(backend: str | None, opendrive: bool = True) -> None:
+    """Start this process's forkserver (a no-op if it runs already) with ``preload_for(backend, opendrive)`` and
+    the workers' environment. Returns at once: the server imports its preload on its own."""
     import multiprocessing
     import multiprocessing.forkserver
 
-    # only read by a forkserver not yet running (one per process; every later executor shares it)
-    multiprocessing.get_context("forkserver").set_forkserver_preload(preload_for(backend))
+    # only read by a forkserver not yet running (one per process; every later executor shares it: a worker that
+    # needs a module the server did not import imports it itself)
+    multiprocessing.get_context("forkserver").set_forkserver_preload(preload_for(backend, opendrive))
     with worker_environment():
         multiprocessing.forkserver.ensure_running()
 

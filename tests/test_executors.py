@@ -185,6 +185,36 @@ def test_the_forkserver_preloads_warp_only_for_warp_backends_and_opencl_for_open
         assert ("place3d_kernels.backends.opencl" in forkserver.preload_for(name)) is has_cl
 
 
+def test_the_forkserver_preloads_scipy_only_for_workers_that_may_build_opendrive_scenes(tmp_path):
+    """A server whose workers build only drives of the embedded town leaves SciPy's parts out of its imports;
+    by default (any scene) they are in. Such a drive, built in a fresh interpreter that imported only the light
+    preload, imports no SciPy module: what the light server leaves out, no town drive needs."""
+    import subprocess
+    import sys
+    import textwrap
+
+    for name in ("warp:cuda:0", "opencl:pocl", None):
+        assert set(forkserver.OPENDRIVE_PRELOAD) <= set(forkserver.preload_for(name))
+        light = forkserver.preload_for(name, opendrive=False)
+        assert not set(forkserver.OPENDRIVE_PRELOAD) & set(light) and set(forkserver.FORKSERVER_PRELOAD) <= set(light)
+    code = textwrap.dedent(f"""
+        import dataclasses, importlib, sys
+        from place3d_app import forkserver
+        for m in forkserver.preload_for("warp:cpu", opendrive=False):
+            importlib.import_module(m)
+        from place3d_app.cli import build_parser
+        from place3d_app.commands.routes import _build_spec, drive_specs
+        from place3d_kernels.spec import specs_from_args
+        args = build_parser().parse_args(["optimize", "--frames", "8", "--voxel-size", "0.8", "--backend", "warp:cpu"])
+        d = drive_specs(args, specs_from_args(args))[0]
+        record = _build_spec(dataclasses.replace(d, cache={str(tmp_path)!r}))
+        print(d.scene.kind, record.n_subsets, sorted(m for m in sys.modules if m == "scipy" or m.startswith("scipy.")))
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split("\n")[-2] == "town 2 []"
+
+
 @pytest.mark.parametrize("argv, preload", [
     (["reproduce"], "auto"),
     (["--profile", "reproduce", "--routes", "8", "--backend", "opencl:pocl"], "opencl:pocl"),

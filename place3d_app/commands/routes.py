@@ -160,11 +160,13 @@ def build_missing(args, specs, backend) -> int:
     if len(missing) < 2 or n < 2:
         return 0
     t = time.perf_counter()
-    # the workers' server (a forkserver on Linux, command_start_method) imports NumPy, SciPy, Warp and the drive
-    # modules while this process waits for its backend probe; the workers are forked from it once the backend's
-    # name is known, and ended as soon as every drive has returned (each task returns after its file is written)
+    # the workers' server (a forkserver on Linux, command_start_method) imports NumPy, Warp and the drive modules
+    # (SciPy's parts too for OpenDRIVE maps) while this process waits for its backend probe; the workers are
+    # forked from it once the backend's name is known, and ended as soon as every drive has returned (a worker's
+    # last file is written before it ends)
     asked = backend if isinstance(backend, str) else getattr(backend, "name", None) or getattr(args, "backend", None)
-    ex = ProcessExecutor(n, start_method=command_start_method(), preload=str(asked or "auto"))
+    ex = ProcessExecutor(n, start_method=command_start_method(), preload=str(asked or "auto"),
+                         opendrive=any(s.scene.kind == "opendrive" for s in missing))
     from place3d_kernels.profiling import section
 
     try:
