@@ -101,8 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     if from_sys:
         # the console script only: a caller of main() in its own process keeps its environment
         one_work_queue(rest)
-    if _subcommand(rest) == "reproduce":
-        # its workers' server imports beside this process's own imports (place3d_app.forkserver)
+    if _subcommand(rest) in ("reproduce", "evaluate", "optimize"):
+        # the workers' server imports beside this process's own imports, where it will be used (place3d_app.forkserver)
         from place3d_app.forkserver import start_early
 
         start_early(rest)

@@ -1,4 +1,4 @@
-"""The server the commands fork their worker processes from, and its early start for ``place3d reproduce``.
+"""The server the commands fork their worker processes from, and its early start.
 
 On Linux the commands' workers (``executors.ProcessExecutor(start_method=command_start_method())``) are forked
 from a ``multiprocessing`` forkserver that imported ``preload_for(backend)`` once: NumPy, the drive tasks' modules
@@ -6,10 +6,13 @@ and Warp, and SciPy's spatial and image parts where the drives include OpenDRIVE
 which sixteen spawned workers would otherwise each repeat side by side). A worker can start only once that server
 has its imports.
 
-``place3d reproduce`` always builds its drives on workers where more than one core is usable, so the console
-script starts the server (``start_early``) before it imports the package and parses the command line: the
-server's imports then run beside this process's own (about 0.6-0.8 s of start-up on the H200 host), instead of
-after them. Standard library only, for that reason.
+``place3d reproduce`` always builds its drives on workers where more than one core is usable, and ``evaluate``
+and ``optimize`` build on workers the drives their cache lacks: the console script starts the server
+(``start_early``) before it imports the package and parses the command line, for ``reproduce`` always and for the
+other two while the P-SOG cache holds no drive yet (a machine's first run): the server's imports then run beside
+this process's own (about 0.6-0.8 s of start-up on the H200 host) and its backend probe, instead of after them.
+A cold default ``evaluate`` on an H200 took 2.97 [2.93-3.03] s without it, 2.53 [2.33-2.58] s with it (3 runs each,
+bench/results/ab-2026-11-30-s35/README.md). Standard library only, for that reason.
 """
 
 from __future__ import annotations
@@ -141,26 +144,61 @@ def _usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def _options(argv: list[str], name: str) -> list[str]:
+    """Every value of ``--name VALUE`` / ``--name=VALUE`` in ``argv``, in order."""
+    out = []
+    for i, a in enumerate(argv):
+        if a == name and i + 1 < len(argv):
+            out.append(argv[i + 1])
+        elif a.startswith(name + "="):
+            out.append(a.partition("=")[2])
+    return out
+
+
+def _no_drive_cached() -> bool:
+    """Whether the P-SOG cache folder (``$PLACE3D_CACHE`` or ``~/.cache/place3d``, as ``backends.base.cache_dir``)
+    holds no P-SOG file yet: the first run on a machine, whose drives are all built by worker processes."""
+    folder = os.environ.get("PLACE3D_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "place3d")
+    try:
+        with os.scandir(folder) as it:
+            return not any(e.name.startswith("psog-") and e.name.endswith(".npz") for e in it)
+    except OSError:                   # no folder yet
+        return True
+
+
+#: The commands that build a cold cache's drives in worker processes (``routes.build_missing``): ``start_early``
+#: starts their server while the cache holds no drive (``_no_drive_cached``).
+DRIVE_COMMANDS = ("evaluate", "optimize")
+
+
 def start_early(argv: list[str]) -> bool:
-    """Start the forkserver now when ``argv`` (the command line without the program name) is a ``reproduce``
-    that will fork its workers from it: the default or ``--executor process``/``auto``, no ``--ray-address``,
-    a forkserver as the start method, more than one usable core (and ``$PLACE3D_WORKERS`` not 1). The backend
-    of ``--backend`` (default ``auto``) picks the preload, as ``executors.executor_from_args`` does.
+    """Start the forkserver now when ``argv`` (the command line without the program name) is a command that will
+    fork its workers from it: a ``reproduce`` with the default or ``--executor process``/``auto``, or an
+    ``evaluate`` / ``optimize`` of several drives (not ``--routes 1``) with the local executor, the cache on and
+    no drive in it yet; never with ``--ray-address``; a forkserver as the start method, more than one usable core
+    (and ``$PLACE3D_WORKERS`` not 1). The backend of ``--backend`` (default ``auto``) picks the preload, as
+    ``executors.executor_from_args`` does; SciPy's parts are left out for drives of the embedded town only.
 
     A guess from the raw arguments (argparse, which reads them later, also takes abbreviated options): a wrong
     one costs an idle server, never a result, and an invalid setting is left for the command to report.
     Returns whether the server was started."""
     try:
-        if next((a for a in argv if not a.startswith("-")), None) != "reproduce" or "-h" in argv or "--help" in argv:
+        cmd = next((a for a in argv if not a.startswith("-")), None)
+        if cmd not in ("reproduce", *DRIVE_COMMANDS) or "-h" in argv or "--help" in argv:
             return False
-        if (_option(argv, "--executor") or "auto") not in ("auto", "process") or _option(argv, "--ray-address"):
+        executors = ("auto", "process") if cmd == "reproduce" else ("local", "auto")
+        if (_option(argv, "--executor") or executors[0]) not in executors or _option(argv, "--ray-address"):
+            return False
+        if cmd != "reproduce" and ("--no-cache" in argv or _option(argv, "--routes") == "1"
+                                   or not _no_drive_cached()):
             return False
         if command_start_method() != "forkserver":
             return False
         cap = os.environ.get(WORKERS_ENV, "").strip()
         if min(_usable_cores(), int(cap) if cap.isdigit() else 2) < 2:
             return False
-        start(_option(argv, "--backend") or "auto")
+        town_only = cmd != "reproduce" and all(v == "town" for v in _options(argv, "--scene") or ["town"])
+        start(_option(argv, "--backend") or "auto", opendrive=not town_only)
         return True
     except Exception:  # noqa: BLE001 - a speed-up only: the command starts its server itself, or reports why not
         return False

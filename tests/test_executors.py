@@ -223,12 +223,11 @@ def test_the_forkserver_preloads_scipy_only_for_workers_that_may_build_opendrive
     (["reproduce", "--executor", "ray"], None),
     (["reproduce", "--ray-address", "ray://head:10001"], None),
     (["reproduce", "--help"], None),
-    (["evaluate"], None),
-    (["optimize", "--max-evals", "20"], None),
+    (["study"], None),
 ])
 def test_the_launcher_starts_reproduces_server_early_only_where_it_will_fork_from_it(monkeypatch, argv, preload):
     started = []
-    monkeypatch.setattr(forkserver, "start", started.append)     # the decision alone; the next test starts one
+    monkeypatch.setattr(forkserver, "start", lambda b, opendrive=True: started.append(b))   # the decision alone
     monkeypatch.delenv(forkserver.START_METHOD_ENV, raising=False)
     monkeypatch.delenv(forkserver.WORKERS_ENV, raising=False)
     monkeypatch.setattr(forkserver, "_usable_cores", lambda: 4)
@@ -242,6 +241,35 @@ def test_the_launcher_starts_reproduces_server_early_only_where_it_will_fork_fro
             monkeypatch.delenv(env)
         monkeypatch.setattr(forkserver, "_usable_cores", lambda: 1)
         assert not forkserver.start_early(argv) and len(started) == 1
+
+
+@pytest.mark.parametrize("argv, preload", [
+    (["evaluate"], ("auto", False)),
+    (["--profile", "optimize", "--max-evals", "20", "--backend=warp:cuda:0"], ("warp:cuda:0", False)),
+    (["optimize", "--scene", "town", "--scene", "opendrive:Town01"], ("auto", True)),
+    (["evaluate", "--routes", "1"], None),
+    (["optimize", "--no-cache"], None),
+    (["optimize", "--executor", "ray"], None),
+    (["evaluate", "--ray-address", "ray://head:10001"], None),
+])
+def test_the_launcher_starts_the_server_early_for_evaluate_and_optimize_only_on_an_empty_cache(
+        monkeypatch, tmp_path, argv, preload):
+    # evaluate and optimize fork workers only for the drives the cache lacks: the server is started ahead while
+    # the cache holds no P-SOG file (the first run on a machine), without SciPy's parts for town drives
+    started = []
+    monkeypatch.setattr(forkserver, "start", lambda b, opendrive=True: started.append((b, opendrive)))
+    monkeypatch.delenv(forkserver.START_METHOD_ENV, raising=False)
+    monkeypatch.delenv(forkserver.WORKERS_ENV, raising=False)
+    monkeypatch.setattr(forkserver, "_usable_cores", lambda: 4)
+    monkeypatch.setattr(forkserver.sys, "platform", "linux")
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "cache"))      # not made yet: empty
+    assert forkserver.start_early(argv) is (preload is not None) and started == ([] if preload is None else [preload])
+    (tmp_path / "cache").mkdir()
+    (tmp_path / "cache" / "keymemo.json").write_text("{}")             # other files: still no drive
+    assert forkserver.start_early(argv) is (preload is not None)
+    (tmp_path / "cache" / "psog-town-0123.npz").write_bytes(b"")       # a drive cached: none started
+    started.clear()
+    assert not forkserver.start_early(argv) and started == []
 
 
 def test_reproduces_workers_are_forked_from_the_server_the_launcher_started(tmp_path):
