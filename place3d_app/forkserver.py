@@ -174,10 +174,11 @@ DRIVE_COMMANDS = ("evaluate", "optimize")
 def start_early(argv: list[str]) -> bool:
     """Start the forkserver now when ``argv`` (the command line without the program name) is a command that will
     fork its workers from it: a ``reproduce`` with the default or ``--executor process``/``auto``, or an
-    ``evaluate`` / ``optimize`` of several drives (not ``--routes 1``) with the local executor, the cache on and
-    no drive in it yet; never with ``--ray-address``; a forkserver as the start method, more than one usable core
-    (and ``$PLACE3D_WORKERS`` not 1). The backend of ``--backend`` (default ``auto``) picks the preload, as
-    ``executors.executor_from_args`` does; SciPy's parts are left out for drives of the embedded town only.
+    ``evaluate`` / ``optimize`` of several drives (not ``--routes 1``, not only mesh or recorded scenes, which
+    have one route each) with the local executor, the cache on and no drive in it yet; never with
+    ``--ray-address``; a forkserver as the start method, more than one usable core (and ``$PLACE3D_WORKERS`` not
+    1). The backend of ``--backend`` (default ``auto``) picks the preload, as ``executors.executor_from_args``
+    does; SciPy's parts are left out for drives of the embedded town only.
 
     A guess from the raw arguments (argparse, which reads them later, also takes abbreviated options): a wrong
     one costs an idle server, never a result, and an invalid setting is left for the command to report.
@@ -189,15 +190,16 @@ def start_early(argv: list[str]) -> bool:
         executors = ("auto", "process") if cmd == "reproduce" else ("local", "auto")
         if (_option(argv, "--executor") or executors[0]) not in executors or _option(argv, "--ray-address"):
             return False
-        if cmd != "reproduce" and ("--no-cache" in argv or _option(argv, "--routes") == "1"
-                                   or not _no_drive_cached()):
-            return False
+        scenes = _options(argv, "--scene") or ["town"]
+        if cmd != "reproduce" and ("--no-cache" in argv or _option(argv, "--routes") == "1" or not _no_drive_cached()
+                                   or all(v.startswith(("mesh:", "semantickitti:")) for v in scenes)):
+            return False        # nothing for workers: drives cached, or scenes of one fixed route each
         if command_start_method() != "forkserver":
             return False
         cap = os.environ.get(WORKERS_ENV, "").strip()
         if min(_usable_cores(), int(cap) if cap.isdigit() else 2) < 2:
             return False
-        town_only = cmd != "reproduce" and all(v == "town" for v in _options(argv, "--scene") or ["town"])
+        town_only = cmd != "reproduce" and all(v == "town" for v in scenes)
         start(_option(argv, "--backend") or "auto", opendrive=not town_only)
         return True
     except Exception:  # noqa: BLE001 - a speed-up only: the command starts its server itself, or reports why not

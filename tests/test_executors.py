@@ -248,6 +248,8 @@ def test_the_launcher_starts_reproduces_server_early_only_where_it_will_fork_fro
     (["--profile", "optimize", "--max-evals", "20", "--backend=warp:cuda:0"], ("warp:cuda:0", False)),
     (["optimize", "--scene", "town", "--scene", "opendrive:Town01"], ("auto", True)),
     (["evaluate", "--routes", "1"], None),
+    (["evaluate", "--scene", "mesh:city.obj"], None),
+    (["optimize", "--scene=semantickitti:seq00"], None),
     (["optimize", "--no-cache"], None),
     (["optimize", "--executor", "ray"], None),
     (["evaluate", "--ray-address", "ray://head:10001"], None),
