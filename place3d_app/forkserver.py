@@ -46,8 +46,9 @@ WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "CUDA_DEVICE_
 FORKSERVER_PRELOAD = ("place3d_kernels.pooled", "place3d_kernels.pipeline", "place3d_kernels.simulate",
                       "place3d_kernels.scene.opendrive", "place3d_kernels.spec")
 #: What it imports besides for workers that may build scenes of OpenDRIVE maps: the SciPy parts their builders
-#: take (k-d trees, image morphology). A drive of the embedded town imports neither, and they were a large part
-#: of the server's imports (0.72 s of 1.0 s on the 2-core dev VM), which every worker waits for.
+#: take (k-d trees, image morphology). A drive of the embedded town imports neither, and they were half of the
+#: server's imports, which every worker waits for (1.00-1.52 -> 0.44-0.69 s without them on the H200 host, 3 rounds;
+#: bench/results/ab-2026-11-30-s35/README.md).
 OPENDRIVE_PRELOAD = ("scipy.spatial", "scipy.ndimage")
 
 #: Environment variable: how the commands' worker processes start, ``spawn`` or ``forkserver`` (default: a
