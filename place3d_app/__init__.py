@@ -101,11 +101,11 @@ def main(argv: list[str] | None = None) -> int:
     if from_sys:
         # the console script only: a caller of main() in its own process keeps its environment
         one_work_queue(rest)
-    if _subcommand(rest) in ("reproduce", "evaluate", "optimize"):
-        # the workers' server imports beside this process's own imports, where it will be used (place3d_app.forkserver)
-        from place3d_app.forkserver import start_early
+    # the workers' server imports beside this process's own imports, for the commands that will use it
+    # (start_early decides; place3d_app.forkserver, standard library only)
+    from place3d_app.forkserver import start_early
 
-        start_early(rest)
+    start_early(rest)
     from place3d_app.cli import main as run_here
 
     return run_here(None if from_sys else rest)

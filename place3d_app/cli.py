@@ -64,9 +64,7 @@ def cmd_optimize(args) -> int:
 
     spec = specs_from_args(args)
     args.drives = drive_specs(args, spec)             # scenes x route seeds, checked before any work
-    if len(args.drives) == 1:
-        # the scene is built on another core during the probe (several drives are built by worker processes)
-        start_for_spec(spec, cache=not args.no_cache)
+    start_for_spec(spec, cache=not args.no_cache, drives=len(args.drives))   # built on another core during the probe
     return run_optimize(args, spec, psog_for=lambda backend: psog_for_routes(spec, args, backend))
 
 

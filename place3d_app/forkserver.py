@@ -125,26 +125,6 @@ def start(backend: str | None, opendrive: bool = True) -> None:
         multiprocessing.forkserver.ensure_running()
 
 
-def _option(argv: list[str], name: str) -> str | None:
-    """The value of ``--name VALUE`` or ``--name=VALUE`` in ``argv`` (the last one given), else None."""
-    value = None
-    for i, a in enumerate(argv):
-        if a == name and i + 1 < len(argv):
-            value = argv[i + 1]
-        elif a.startswith(name + "="):
-            value = a.partition("=")[2]
-    return value
-
-
-def _usable_cores() -> int:
-    # place3d_kernels.threads.usable_cores, which this module cannot import: importing any part of the package
-    # runs place3d_kernels/__init__.py (NumPy and the library, the start-up this module exists to run beside)
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
-
-
 def _options(argv: list[str], name: str) -> list[str]:
     """Every value of ``--name VALUE`` / ``--name=VALUE`` in ``argv``, in order."""
     out = []
@@ -156,12 +136,32 @@ def _options(argv: list[str], name: str) -> list[str]:
     return out
 
 
-def _no_drive_cached() -> bool:
-    """Whether the P-SOG cache folder (``$PLACE3D_CACHE`` or ``~/.cache/place3d``, as ``backends.base.cache_dir``)
-    holds no P-SOG file yet: the first run on a machine, whose drives are all built by worker processes."""
-    folder = os.environ.get("PLACE3D_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "place3d")
+def _option(argv: list[str], name: str) -> str | None:
+    """The value of ``--name VALUE`` or ``--name=VALUE`` in ``argv`` (the last one given), else None."""
+    return (_options(argv, name) or [None])[-1]
+
+
+def _usable_cores() -> int:
+    # place3d_kernels.threads.usable_cores, which this module cannot import: importing any part of the package
+    # runs place3d_kernels/__init__.py (NumPy and the library, the start-up this module exists to run beside)
     try:
-        with os.scandir(folder) as it:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _cache_folder() -> str:
+    """``backends.base.cache_dir()`` without importing the package: ``$PLACE3D_CACHE`` or ``~/.cache/place3d``
+    (tests/test_executors.py holds the two together)."""
+    return os.environ.get("PLACE3D_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "place3d"))
+
+
+def _no_drive_cached() -> bool:
+    """Whether the P-SOG cache folder (``_cache_folder``) holds no P-SOG file (``psog-*.npz``, as
+    ``pipeline.cache_file`` names them) yet: the first run on a machine, whose drives are all built by worker
+    processes."""
+    try:
+        with os.scandir(_cache_folder()) as it:
             return not any(e.name.startswith("psog-") and e.name.endswith(".npz") for e in it)
     except OSError:                   # no folder yet
         return True

@@ -168,11 +168,13 @@ def take(key: Hashable):
     return scene
 
 
-def start_for_spec(spec, cache: bool | str = True) -> bool:
+def start_for_spec(spec, cache: bool | str = True, drives: int = 1) -> bool:
     """Start building ``spec``'s scene (a ``PSOGSpec``) in a forked child when its P-SOG build will need it:
     not for recorded frames, nor when the scene's key is remembered in the cache folder (a cached P-SOG is
-    then found without it). Call it before the backend is probed; ``PSOGSpec.build`` then takes the scene
-    through the supplier this registers (``place3d_kernels.spec.supply_scenes``).
+    then found without it), nor when the command has several ``drives`` (worker processes build them, and
+    nothing took the scene: no profile of a pooled command waited for it). Call it before the backend is
+    probed; ``PSOGSpec.build`` then takes the scene through the supplier this registers
+    (``place3d_kernels.spec.supply_scenes``).
 
     Returns:
         True when the build was started (False: not needed, or forking is off or unsafe here).
@@ -181,7 +183,7 @@ def start_for_spec(spec, cache: bool | str = True) -> bool:
 
     from place3d_kernels import spec as specs
 
-    if spec.scene.kind == "semantickitti" or not enabled():
+    if drives > 1 or spec.scene.kind == "semantickitti" or not enabled():
         return False
     if cache:
         from place3d_kernels.scene.keymemo import identity, recall

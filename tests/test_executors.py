@@ -274,6 +274,28 @@ def test_the_launcher_starts_the_server_early_for_evaluate_and_optimize_only_on_
     assert not forkserver.start_early(argv) and started == []
 
 
+def test_the_launchers_cache_guess_reads_the_folder_and_files_the_package_writes(monkeypatch, tmp_path):
+    # the launcher cannot import the package: its cache folder and file pattern are written again in
+    # forkserver, held here to backends.base.cache_dir and to a drive's cache file as the workers write it
+    import dataclasses
+
+    from place3d_app.cli import build_parser
+    from place3d_app.commands.routes import _build_spec, drive_specs
+    from place3d_kernels.backends.base import cache_dir
+    from place3d_kernels.spec import specs_from_args
+
+    monkeypatch.delenv("PLACE3D_CACHE", raising=False)
+    assert Path(forkserver._cache_folder()) == cache_dir()
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "c"))
+    assert Path(forkserver._cache_folder()) == cache_dir() == tmp_path / "c"
+    assert forkserver._no_drive_cached()                                   # no folder yet
+    args = build_parser().parse_args(["optimize", "--frames", "8", "--voxel-size", "0.8", "--backend", "warp:cpu"])
+    d = drive_specs(args, specs_from_args(args))[0]
+    _build_spec(dataclasses.replace(d, cache=str(cache_dir())))
+    assert d.cache_file() is not None and d.cache_file().exists()
+    assert not forkserver._no_drive_cached()
+
+
 def test_reproduces_workers_are_forked_from_the_server_the_launcher_started(tmp_path):
     # in a process of its own, as the console script: the server started before the command's executor is made
     # is the one its workers come from (their parent), with the workers' environment

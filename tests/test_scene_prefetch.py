@@ -164,6 +164,7 @@ def _check_prefetch_only_when_the_build_needs_the_scene(tmp):
     remember(folder, ident, "town", "some-key")
     assert not scene_prefetch.start_for_spec(spec, cache=str(folder))         # key remembered: a cached P-SOG needs no scene
     assert not scene_prefetch.start_for_spec(PSOGSpec(SceneSpec("semantickitti:/nowhere")), cache=False)
+    assert not scene_prefetch.start_for_spec(spec, cache=False, drives=4)     # several drives: workers build them
     assert scene_prefetch.start_for_spec(spec, cache=False)                    # --no-cache always builds the scene
     try:
         got = spec.scene.build()                               # spec._build_scene takes the forked scene

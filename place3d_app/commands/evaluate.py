@@ -36,9 +36,7 @@ def cmd_evaluate(args) -> int:
         from place3d_app.commands.routes import build_missing, drive_specs, pooled_psog
 
         drives = drive_specs(args, spec)
-        if len(drives) == 1:
-            # the scene is built on another core during the probe (several drives are built by worker processes)
-            start_for_spec(spec, cache=not args.no_cache)
+        start_for_spec(spec, cache=not args.no_cache, drives=len(drives))  # built on another core during the probe
         b = get_backend(args.backend)
         lidar = LidarModel.load(args.lidar)
         names = args.placements or list(PAPER_PLACEMENTS)
