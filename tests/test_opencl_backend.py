@@ -865,9 +865,12 @@ def test_voxel_keys_vs_reference(variant, rng):
         assert (got != want).mean() < 0.15                   # float32 rounds points on faces either way
 
 
+@pytest.mark.parametrize("on_host", [False, True])
 @pytest.mark.parametrize("variant", VARIANTS)
-def test_vote_identical_to_reference(variant, rng):
+def test_vote_identical_to_reference(variant, on_host, rng, monkeypatch):
+    # the kernels and the host's sort (what a CPU device votes with, ``vote_on_host``) on every device
     b = _backend(variant)
+    monkeypatch.setattr(b, "vote_on_host", on_host)
     n = 50_000
     keys = rng.integers(-3, 4000, n)
     labels = rng.integers(0, 6, n)                            # few classes: many ties
@@ -893,6 +896,7 @@ def test_vote_paths_identical_to_reference(variant, path, rng, monkeypatch):
     import place3d_kernels.backends.opencl.host as be
 
     b = _backend(variant)
+    monkeypatch.setattr(b, "vote_on_host", False)       # the kernels' paths, also on a CPU device
     n = 30_000
     hi = 2**30 if path == "hash" else 5000
     keys = rng.integers(-2, hi, n)

@@ -163,6 +163,10 @@ class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
         #: on CPUs the private strategy walks 16 rays per work-item in vector lanes (walk_lanes.cl); False: one
         #: at a time (score_walk). Same bitsets; bench/bench_pocl_walk.py (tag lab-2026-11-27) compared the two.
         self.walk_lanes = self.is_cpu
+        #: on CPUs ``vote`` is the host's sort (``_vote_numpy``, the same votes without the kernels' passes over
+        #: their tables and buffers: a drive's ten subset votes 0.34-0.40 -> 0.18-0.22 s with PoCL on the 2-core
+        #: dev VM, 2026-11-30); False: the kernels (the tests hold both to the reference)
+        self.vote_on_host = self.is_cpu
         if bvh_width not in (None, 2, 4):
             raise ValueError(f"bvh_width must be 2 or 4, got {bvh_width!r}")
         self.bvh_width = bvh_width or 4
@@ -682,6 +686,8 @@ class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
         n_vote = int(voting.sum())
         if n_vote == 0:
             return np.empty(0, np.int64), np.empty(0, np.int32)
+        if self.vote_on_host:
+            return _vote_numpy(k, lab, n_classes)
         kmax = int(k.max())
         n = len(k)
         lab_b = self._in(lab)
