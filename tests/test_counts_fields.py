@@ -169,14 +169,23 @@ def test_a_grid_from_device_made_rows_is_the_hosts(task, name, monkeypatch):
     assert s.numpy().tobytes() == want.stop_rows.astype(np.uint8).tobytes()
 
 
-@pytest.mark.parametrize("degenerate", [False, True])
-def test_check_entropy_from_counts_agrees_with_the_weights(degenerate):
+@pytest.mark.parametrize("degenerate", [False, True, "last row only"])
+@pytest.mark.parametrize("block", [1 << 16, 7])
+def test_check_entropy_from_counts_agrees_with_the_weights(degenerate, block, monkeypatch):
+    # the counts are read block by block (``ENTROPY_CHECK_ROWS``): one block, and 43 blocks of 7 rows with the
+    # only row that has entropy in the last, short one
+    from place3d_kernels import sog
     from place3d_kernels.pipeline import check_entropy
 
+    monkeypatch.setattr(sog, "ENTROPY_CHECK_ROWS", block)
     vox, c = _random_counts(9, 300, seed=2)
     if degenerate:                              # every voxel a single class in every subset
         c = np.zeros_like(c)
         c[np.arange(len(c)), 1 + np.arange(len(c)) % (N_CLASSES - 1)] = 9
+    if degenerate == "last row only":
+        c[-1] = 0
+        c[-1, 1:3] = (4, 5)
+        degenerate = False
     lazy = PSOG.from_counts(GRID, vox, c, 9)
     eager = PSOG(GRID, vox, c / 9.0, n_subsets=9)
     assert bool(eager.weight_rows.any()) is (not degenerate)
