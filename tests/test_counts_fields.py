@@ -170,14 +170,14 @@ def test_a_grid_from_device_made_rows_is_the_hosts(task, name, monkeypatch):
 
 
 @pytest.mark.parametrize("degenerate", [False, True, "last row only"])
-@pytest.mark.parametrize("block", [1 << 16, 7])
+@pytest.mark.parametrize("block", [8192, 7])
 def test_check_entropy_from_counts_agrees_with_the_weights(degenerate, block, monkeypatch):
-    # the counts are read block by block (``ENTROPY_CHECK_ROWS``): one block, and 43 blocks of 7 rows with the
+    # the counts are read block by block (``ENTROPY_BLOCK`` rows): one block, and 42 blocks of 7 rows with the
     # only row that has entropy in the last, short one
     from place3d_kernels import sog
     from place3d_kernels.pipeline import check_entropy
 
-    monkeypatch.setattr(sog, "ENTROPY_CHECK_ROWS", block)
+    monkeypatch.setattr(sog, "ENTROPY_BLOCK", block)
     vox, c = _random_counts(9, 300, seed=2)
     if degenerate:                              # every voxel a single class in every subset
         c = np.zeros_like(c)
