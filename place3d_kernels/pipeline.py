@@ -14,9 +14,9 @@ from place3d_kernels.manifest import cache_warning, verified_bytes, write_manife
 from place3d_kernels.profiling import section
 from place3d_kernels.scene.keymemo import SceneRef
 from place3d_kernels.simulate import DEFAULT_MOUNT, check_frames, simulate
-from place3d_kernels.sog import PSOG, cache_folder, cache_key
+from place3d_kernels.sog import PSOG, cache_folder, cache_key, subset_groups
 
-__all__ = ["scene_psog", "cached_psog", "cache_file", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy",
+__all__ = ["scene_psog", "part_psog", "drive_subsets", "save_psog", "cached_psog", "cache_file", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy",
            "wait_for_saves", "saves_outlive_tasks", "end_task_saves"]
 
 log = logging.getLogger(__name__)
@@ -60,18 +60,7 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
         found = _load_cached(*entry)
         if found is not None:
             return found
-    if isinstance(scene, SceneRef):
-        with section("P-SOG build: scene"):
-            scene = scene.build()    # known by its key only (PSOGSpec.build): the geometry is needed now
-    check_frames(scene.n_frames, lidar, "frames")      # every frame is held before the vote
-    # actor meshes made ahead by whoever built the scene (the application's forked build), else none yet
-    dynamic = scene.take_prebuilt()
-    with section("P-SOG build: simulate"):
-        # intensities only for a condition (fog, wet ground, snow read them); the vote needs labels alone
-        frames = simulate(scene, lidar, mount=mount, backend=backend, progress=progress, body=body,
-                          dynamic=dynamic, intensity=condition is not None)
-    if condition is not None:
-        frames = [condition(f, i) for i, f in enumerate(frames)]
+    frames = _frames(_built(scene), lidar, mount, backend, progress, condition, body)
     with section("P-SOG build: aggregate"):
         if aggregate is not None:
             psog = aggregate(frames, backend)
@@ -85,6 +74,73 @@ def scene_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "coll
             else:
                 _save(psog, path, manifest, inputs)
     return psog
+
+
+def part_psog(scene, subsets: range, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "collection_64ch",
+              frames_per_subset: int = DEFAULT_FRAMES_PER_SUBSET, mount=DEFAULT_MOUNT, backend=None, condition=None,
+              body=None, progress: bool = False) -> PSOG:
+    """The P-SOG of some subsets of a drive: the subsets ``subsets`` (a range of indices into the T subsets
+    ``scene_psog`` votes, ``sog.subset_groups``) simulated and voted alone, with T = ``len(subsets)``; never
+    cached. Parts that cover ``range(drive_subsets(...))`` once, merged (``pooled.DriveRecord.merge``), give
+    the integer counts ``scene_psog`` builds from all the frames: each subset's frames, reference pose and
+    vote are the same, and the counts are sums over subsets. Drives split so are built by several processes
+    at once (``place3d_app``'s cold commands); ``save_psog`` then writes the merged drive to the cache.
+
+    Args: as ``scene_psog``'s, and ``subsets``: ``range(a, b)`` with 0 <= a < b <= T.
+    """
+    if isinstance(lidar, str):
+        lidar = LidarModel.load(lidar)
+    scene = _built(scene)
+    groups = subset_groups(list(range(scene.n_frames)), frames_per_subset)
+    if not isinstance(subsets, range) or subsets.step != 1 or not 0 <= subsets.start < subsets.stop <= len(groups):
+        raise ValueError(f"subsets must be range(a, b) with 0 <= a < b <= {len(groups)} (the drive's subsets), "
+                         f"got {subsets!r}")
+    frames = [i for g in groups[subsets.start:subsets.stop] for i in g]
+    frames = _frames(scene, lidar, mount, backend, progress, condition, body, frames)
+    with section("P-SOG build: aggregate"):
+        return PSOG.from_frames(frames, grid, frames_per_subset, backend=backend, progress=progress)
+
+
+def drive_subsets(n_frames: int, frames_per_subset: int = DEFAULT_FRAMES_PER_SUBSET) -> int:
+    """T, the subsets ``scene_psog`` votes for a drive of ``n_frames`` frames (``sog.subset_groups``)."""
+    return len(subset_groups(list(range(int(n_frames))), frames_per_subset))
+
+
+def save_psog(psog: PSOG, scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "collection_64ch",
+              frames_per_subset: int = DEFAULT_FRAMES_PER_SUBSET, mount=DEFAULT_MOUNT, cache: bool | str | Path = True,
+              condition=None, body=None) -> Path | None:
+    """Write ``psog`` (a whole drive's, e.g. merged from ``part_psog`` parts) to the cache entry ``scene_psog``
+    reads for these inputs, with its manifest, as ``scene_psog`` writes it; returns the file (None without a
+    cache). ``scene``: the ``Scene`` or its ``SceneRef`` (only its name and key are read)."""
+    if isinstance(lidar, str):
+        lidar = LidarModel.load(lidar)
+    entry = _cache_entry(scene, grid, lidar, frames_per_subset, mount, cache, condition, body)
+    if entry is None:
+        return None
+    _save(psog, *entry)
+    return entry[0]
+
+
+def _built(scene):
+    if isinstance(scene, SceneRef):
+        with section("P-SOG build: scene"):
+            scene = scene.build()    # known by its key only (PSOGSpec.build): the geometry is needed now
+    return scene
+
+
+def _frames(scene, lidar, mount, backend, progress, condition, body, frames=None) -> list:
+    """The scene's simulated frames (all, or the indices ``frames``), each through ``condition`` if any."""
+    at = list(range(scene.n_frames)) if frames is None else list(frames)
+    check_frames(len(at), lidar, "frames")      # every frame is held before the vote
+    # actor meshes made ahead by whoever built the scene (the application's forked build), else none yet
+    dynamic = scene.take_prebuilt()
+    with section("P-SOG build: simulate"):
+        # intensities only for a condition (fog, wet ground, snow read them); the vote needs labels alone
+        out = simulate(scene, lidar, mount=mount, frames=frames, backend=backend, progress=progress, body=body,
+                       dynamic=dynamic, intensity=condition is not None)
+    if condition is not None:
+        out = [condition(f, i) for i, f in zip(at, out)]      # a frame's index in the drive, part or whole
+    return out
 
 
 def cached_psog(scene, grid: Grid = DEFAULT_GRID, lidar: LidarModel | str = "collection_64ch",

@@ -142,6 +142,33 @@ class DriveRecord:
         return cls(label, int(psog.n_subsets), psog.voxels[v].astype(np.int64), (k + 1).astype(np.int16),
                    c[v, k].astype(np.int32))
 
+    @classmethod
+    def merge(cls, parts: Sequence["DriveRecord"], n_classes: int = N_CLASSES) -> "DriveRecord":
+        """One drive's record from records of disjoint sets of its subsets (``PSOGSpec.build_part``): the
+        entries of equal (voxel, class) summed, T the parts' T summed, the label the first part's. The counts
+        are integer sums, so they are the record of the drive built whole, to the bit."""
+        if not parts:
+            raise ValueError("DriveRecord.merge needs at least one part")
+        if len(parts) == 1:
+            return parts[0]
+        key = np.concatenate([r.voxels * n_classes + r.classes for r in parts])
+        counts = np.concatenate([r.counts for r in parts])
+        # each part's keys ascend (voxel, then class): a stable sort merges the runs
+        order = np.argsort(key, kind="stable")
+        key, counts = key[order], counts[order]
+        starts = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]])) if len(key) else np.zeros(0, np.int64)
+        summed = np.add.reduceat(counts, starts).astype(np.int32) if len(key) else counts
+        key = key[starts]
+        return cls(parts[0].label, int(sum(r.n_subsets for r in parts)), key // n_classes,
+                   (key % n_classes).astype(np.int16), summed)
+
+    def psog(self, grid: Grid, n_classes: int = N_CLASSES) -> PSOG:
+        """This drive's P-SOG over ``grid``: the one ``PSOG.from_frames`` makes from its frames (its counts and
+        the file ``PSOG.save`` writes of it), made from the occupied entries the record holds."""
+        voxels, row = np.unique(self.voxels, return_inverse=True)
+        at = row.astype(np.int64) * (n_classes - 1) + (self.classes.astype(np.int64) - 1)    # into counts[:, 1:]
+        return PSOG(grid, voxels, None, n_subsets=self.n_subsets, occupied=(at, self.counts.astype(np.int32)))
+
     @property
     def nbytes(self) -> int:
         return int(self.voxels.nbytes + self.classes.nbytes + self.counts.nbytes)

@@ -408,6 +408,36 @@ class PSOGSpec:
         return scene_psog(**self._psog_inputs(cache, cond), backend=b, progress=progress, aggregate=aggregate,
                           save_in_background=save_in_background)
 
+    def subsets(self) -> int:
+        """T, the subsets ``build`` votes for this drive (``pipeline.drive_subsets``; a generated scene's
+        ``frames``), or 1 where the frames are not known before the scene is read (files, sequences)."""
+        from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET, drive_subsets
+
+        if self.scene.kind not in ("town", "opendrive"):
+            return 1
+        return drive_subsets(self.scene.frames, self.frames_per_subset or DEFAULT_FRAMES_PER_SUBSET)
+
+    def build_part(self, subsets: range, backend=None, cache: bool | str = True):
+        """The P-SOG of the subsets ``subsets`` of this drive alone (``pipeline.part_psog``; never read from or
+        written to the cache). ``cache``: the folder whose remembered scene keys are used and kept
+        (``scene.keymemo``), so ``save`` finds the file name without building the scene again."""
+        from place3d_kernels.pipeline import part_psog
+
+        if self.scene.kind not in ("town", "opendrive"):
+            raise ValueError(f"build_part: a {self.scene.kind} scene's drive is built whole (build)")
+        b = self.backend if backend is None else backend
+        inputs = self._psog_inputs(cache, None if self.condition is None else self.condition.condition(b))
+        del inputs["cache"]
+        return part_psog(subsets=subsets, backend=b, **inputs)
+
+    def save(self, psog, cache: bool | str = True):
+        """Write ``psog``, this drive's whole P-SOG (e.g. its ``build_part`` parts merged), to the cache file
+        ``build`` reads (``pipeline.save_psog``); returns the file, or None without a cache."""
+        from place3d_kernels.pipeline import save_psog
+
+        cond = None if self.condition is None else self.condition.condition(None)
+        return save_psog(psog, **self._psog_inputs(cache, cond))
+
     def cached(self, cache: bool | str = True, warn: bool = True):
         """The P-SOG ``build`` would read from the cache, or None; needs no backend (an application that
         probes its backend meanwhile asks this first and waits for the probe only on a miss). ``warn``: as

@@ -556,6 +556,7 @@ def held_out_psogs(args, spec, specs, b, grids: bool = False):
     """Yield ``(scene name, seeds, P-SOG)`` for each held-out spec of ``specs`` (``holdout_specs``), each checked
     for entropy; with ``grids``, the grids its scoring will ask for (the task's weights, stop mask and
     indicators on ``b``, kept by the P-SOG) are prepared too."""
+    from place3d_app.commands.routes import built_records
     from place3d_kernels.metrics import count_handles
     from place3d_kernels.pipeline import check_entropy
     from place3d_kernels.pooled import pool_specs
@@ -565,7 +566,7 @@ def held_out_psogs(args, spec, specs, b, grids: bool = False):
             if len(drives) == 1:
                 p = drives[0].build(backend=b, cache=not args.no_cache, progress=not args.quiet)
             else:
-                p = pool_specs(drives, backend=b, cache=not args.no_cache, known=getattr(args, "built", None)).kept_psog()
+                p = pool_specs(drives, backend=b, cache=not args.no_cache, known=built_records(args, drives)).kept_psog()
         check_entropy(p, spec.frames_per_subset)
         if grids and args.occlusion in ("sog", "none"):
             with section("held-out grids"):       # the grids the held-out scores (coverage_counts) ask for

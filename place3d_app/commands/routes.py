@@ -13,7 +13,7 @@ import sys
 import time
 
 __all__ = ["add_route_arguments", "route_seeds", "drive_specs", "pooled_psog", "psog_for_routes",
-           "build_missing", "SINGLE_ROUTE_WARNING"]
+           "build_missing", "built_records", "drive_parts", "DRIVE_PARTS", "SINGLE_ROUTE_WARNING"]
 
 SINGLE_ROUTE_WARNING = ("place3d: warning: one route: the order of the placements is not converged on a single "
                         "drive (docs/guide.md, 'How many routes'); pool several with --routes N")
@@ -119,6 +119,13 @@ def pooled_psog(args, spec, backend, specs=None):
     return pooled, strata, psog
 
 
+#: Parts a missing drive is built in where the host has the cores (``drive_parts``): each part builds the scene
+#: and simulates and votes its share of the drive's subsets, and the parts' records are merged (exact integer
+#: sums) into the drive's. On the lent H200 (16 cores) a cold default optimize took 3.90 [3.84-4.34] s with the
+#: searched drives in two parts against 4.32 [4.08-4.59] s whole (5 runs each; bench/results/ab-2026-11-30-s37/).
+DRIVE_PARTS = 2
+
+
 def _build_spec(spec):
     """A worker's task: the drive's P-SOG built into the cache, and its record sent back, so the command pools
     it without reading the file again. The file is written on the worker's saver thread; the task waits for it
@@ -132,11 +139,53 @@ def _build_spec(spec):
     return record
 
 
-def build_missing(args, specs, backend) -> int:
-    """Build the drives of ``specs`` that the cache lacks in worker processes, one per usable core (at most
-    one per drive); returns how many were built. Each lands in the cache, and its ``DriveRecord`` is kept in
-    ``args.built`` ({spec: record}), which ``pooled_psog`` and ``pool_specs(known=...)`` take instead of
-    reading the file.
+def _build_part(task):
+    """A worker's task: ``(spec, subsets)``'s record (``PSOGSpec.build_part``), not cached (the command merges
+    the parts and has ``_save_drive`` write the drive)."""
+    from place3d_kernels.pooled import DriveRecord
+
+    spec, subsets = task
+    return DriveRecord.from_psog(spec.build_part(subsets, cache=spec.cache or True), spec.scene.label)
+
+
+def _save_drive(task):
+    """A worker's task: ``(spec, record)``, the drive's merged record, written to the cache as ``build`` would."""
+    spec, record = task
+    spec.save(record.psog(spec.grid.grid()), cache=spec.cache or True)
+
+
+def drive_parts(first: int, later: int, workers: int) -> int:
+    """Parts each of ``first`` missing drives is built in, beside ``later`` drives built whole, by ``workers``
+    usable cores: ``DRIVE_PARTS`` where all those processes take at most three quarters of the cores, else 1
+    (a quarter stays for this process and the workers' own threads). On the H200 host (16 cores) twelve worker
+    processes (eight parts and four held-out drives) built the searched drives 0.3-0.4 s sooner than eight whole
+    drives, and sixteen 20-frame drives at once took as long as eight 40-frame ones."""
+    return DRIVE_PARTS if first and first * DRIVE_PARTS + later <= workers * 3 // 4 else 1
+
+
+def built_records(args, specs) -> dict:
+    """{spec: record} of the drives of ``specs`` that the workers built (``build_missing``): ``args.built``, with
+    the drives still building (``args.building``) waited for."""
+    built = dict(getattr(args, "built", None) or {})
+    for s in specs:
+        f = (getattr(args, "building", None) or {}).get(s)
+        if s not in built and f is not None:
+            built[s] = f.result()
+    return built
+
+
+def build_missing(args, specs, backend, later=()) -> int:
+    """Build the drives of ``specs`` and ``later`` that the cache lacks in worker processes, one per usable core
+    (at most one per drive); returns how many it builds. Each lands in the cache, and its
+    ``DriveRecord`` is kept in ``args.built`` ({spec: record}), which ``pooled_psog`` and ``pool_specs(known=...)``
+    take instead of reading the file.
+
+    Where the cores allow (``drive_parts``), each missing drive of ``specs`` is built in ``DRIVE_PARTS`` parts
+    (``_build_part``) by as many workers, beside ``later``'s drives (optimize's held-out drives, needed after the
+    search) built whole: this returns when ``specs``' drives are back and merged, ``later``'s in
+    ``args.building`` ({spec: Future of its record}, ``built_records``); workers write the merged drives to the
+    cache (``_save_drive``), and are ended on a thread once everything is done. Otherwise every drive is built
+    whole at once and this returns when all are back.
 
     A drive counts as cached when its cache file exists (``PSOGSpec.cache_file``: found without building
     its scene; one whose scene key was never remembered counts as missing). Nothing is started for fewer
@@ -151,13 +200,22 @@ def build_missing(args, specs, backend) -> int:
     if getattr(args, "no_cache", False) or getattr(args, "ray_address", None) \
             or getattr(args, "executor", "local") not in ("local", "auto", None):
         return 0
-    missing = []
-    for s in specs:
-        f = s.cache_file()
-        if s.scene.kind in ("town", "opendrive") and (f is None or not f.exists()):
-            missing.append(s)
-    n = min(default_workers(), len(missing))
-    if len(missing) < 2 or n < 2:
+
+    def lacking(group):
+        out = []
+        for s in group:
+            f = s.cache_file()
+            if s.scene.kind in ("town", "opendrive") and (f is None or not f.exists()):
+                out.append(s)
+        return out
+
+    first, rest = lacking(specs), lacking(later)
+    cores = default_workers()
+    parts = drive_parts(len(first), len(rest), cores)
+    if parts == 1:
+        first, rest = first + rest, []         # every drive whole, one worker each, as many as the cores
+    n = min(cores, len(first) * parts + len(rest))
+    if len(first) + len(rest) < 2 or n < 2:
         return 0
     t = time.perf_counter()
     # the workers' server (a forkserver on Linux, command_start_method) imports NumPy, Warp and the drive modules
@@ -166,9 +224,10 @@ def build_missing(args, specs, backend) -> int:
     # last file is written before it ends)
     asked = backend if isinstance(backend, str) else getattr(backend, "name", None) or getattr(args, "backend", None)
     ex = ProcessExecutor(n, start_method=command_start_method(), preload=str(asked or "auto"),
-                         opendrive=any(s.scene.kind == "opendrive" for s in missing))
+                         opendrive=any(s.scene.kind == "opendrive" for s in first + rest))
     from place3d_kernels.profiling import section
 
+    saves, done = [], False
     try:
         ex.start_server()
         if isinstance(backend, Future):
@@ -179,15 +238,67 @@ def build_missing(args, specs, backend) -> int:
             # the cache folder resolved here: a forkserver's workers have the server's environment, which may
             # be older than this command's ($PLACE3D_CACHE set since, or a served client's)
             folder = str(cache_dir())
-            records = ex.map(_build_spec, [dataclasses.replace(s, backend=name, cache=s.cache or folder)
-                                           for s in missing])
+            first_tasks = [_submit_drive(ex, dataclasses.replace(s, backend=name, cache=s.cache or folder), parts)
+                           for s in first]
+            building = {s: ex.submit(_build_spec, dataclasses.replace(s, backend=name, cache=s.cache or folder))
+                        for s in rest}
+            records = []
+            for spec, tasks in first_tasks:
+                record, save = _finish_drive(ex, spec, tasks)
+                records.append(record)
+                saves += [save] if save is not None else []
+        done = True
     finally:
-        ex.shutdown(wait=False)
-    args.built = {**(getattr(args, "built", None) or {}), **dict(zip(missing, records))}
+        if done and (saves or rest):
+            _end_when_done(ex, saves, building.values())
+        else:
+            ex.shutdown(wait=False)
+    args.built = {**(getattr(args, "built", None) or {}), **dict(zip(first, records))}
+    args.building = {**(getattr(args, "building", None) or {}), **building}
     if not getattr(args, "quiet", False):
-        print(f"built {len(missing)} drives in {n} worker processes in {time.perf_counter() - t:.1f} s",
+        how = f" ({parts} parts each)" if parts > 1 else ""
+        also = f"; {len(rest)} held-out drives still building" if rest else ""
+        print(f"built {len(first)} drives{how} in {n} worker processes in {time.perf_counter() - t:.1f} s{also}",
               file=sys.stderr)
-    return len(missing)
+    return len(first) + len(rest)
+
+
+def _submit_drive(ex, spec, parts: int):
+    """``(spec, futures)``: the worker tasks that build ``spec`` (its backend and cache folder set), the whole
+    drive (``_build_spec``) or ``parts`` parts of about equal subsets (``_build_part``)."""
+    T = spec.subsets()
+    if parts == 1 or T < parts:
+        return spec, [ex.submit(_build_spec, spec)]
+    cut = [round(T * j / parts) for j in range(parts + 1)]
+    return spec, [ex.submit(_build_part, (spec, range(a, b))) for a, b in zip(cut, cut[1:])]
+
+
+def _finish_drive(ex, spec, tasks):
+    """``(record, save)``: the drive's record from its tasks (waited for); a drive built in parts is merged, and
+    ``save`` is the future of the worker task that writes it to the cache (else None: the task wrote it)."""
+    from place3d_kernels.pooled import DriveRecord
+
+    record = DriveRecord.merge([f.result() for f in tasks])
+    return record, (ex.submit(_save_drive, (spec, record)) if len(tasks) > 1 else None)
+
+
+def _end_when_done(ex, saves, others) -> None:
+    """End ``ex``'s workers once ``saves`` (cache writes) and ``others`` (drives still building) are done, on a
+    thread: the command goes on meanwhile. The interpreter's exit waits for tasks still running, so the cache is
+    whole when the command ends. A failed write is reported (the next command builds that drive again); a failed
+    drive is raised where the command asks for its record (``built_records``)."""
+    import threading
+    from concurrent.futures import wait
+
+    def run():
+        wait(list(saves) + list(others))
+        for f in saves:
+            if f.exception() is not None:
+                print(f"place3d: warning: a drive's P-SOG cache file was not written: {f.exception()}",
+                      file=sys.stderr)
+        ex.shutdown(wait=False)
+
+    threading.Thread(target=run, name="place3d-drives-end", daemon=True).start()
 
 
 def psog_for_routes(spec, args, backend):
@@ -199,7 +310,7 @@ def psog_for_routes(spec, args, backend):
     drives = getattr(args, "drives", None) or drive_specs(args, spec)
     # the held-out drives (optimize's check) are built beside the searched ones, in parallel
     held_out = [d for _, _, ds in (getattr(args, "holdout", None) or ()) for d in ds]
-    build_missing(args, list(drives) + held_out, backend)
+    build_missing(args, list(drives), backend, later=held_out)
     pool = pooled_psog(args, spec, backend, drives)
     args.pool = pool
     if pool is None:

@@ -1,0 +1,154 @@
+"""A drive built in parts (``PSOGSpec.build_part``, merged with ``DriveRecord.merge``) is the drive built whole:
+the same record, the same P-SOG and the same cache file, on every backend; and the cold commands' split of the
+missing drives (``routes.build_missing``) gives the records and files of whole builds."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from place3d_kernels.lidar import LidarModel
+from place3d_kernels.pipeline import drive_subsets, part_psog
+from place3d_kernels.pooled import DriveRecord
+from place3d_kernels.sog import PSOG
+from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec
+
+
+#: a small sensor, and a tiny one for the reference backend (it tests every ray against every triangle)
+SMALL = LidarModel.uniform(16, fov_deg=(-25.0, 2.0), azimuth_steps=128, max_range=60.0, name="small16")
+TINY = LidarModel.uniform(4, fov_deg=(-25.0, 2.0), azimuth_steps=24, max_range=60.0, name="tiny4")
+
+
+def _same_record(a: DriveRecord, b: DriveRecord) -> None:
+    assert a.label == b.label and a.n_subsets == b.n_subsets
+    for f in ("voxels", "classes", "counts"):
+        x, y = getattr(a, f), getattr(b, f)
+        assert x.dtype == y.dtype and np.array_equal(x, y), f
+
+
+def _same_file(a, b) -> None:
+    """Two cache entries hold the same arrays, and their manifests the same inputs (the zip members carry the
+    time they were written, so the bytes differ)."""
+    with np.load(a) as x, np.load(b) as y:
+        assert x.files == y.files
+        for k in x.files:
+            assert x[k].dtype == y[k].dtype and np.array_equal(x[k], y[k]), k
+    ma, mb = (json.loads(p.with_suffix(".json").read_text()) for p in (a, b))
+    assert ma["spec"] == mb["spec"] and ma["sha256"] == mb["sha256"]
+
+
+def test_parts_merge_to_the_whole_drive(backend, tmp_path):
+    spec = PSOGSpec(SceneSpec("town", 3, 9), backend=backend, grid=0.8, frames_per_subset=2,
+                    lidar=TINY if backend == "reference" else SMALL)
+    assert spec.subsets() == 4                       # 9 frames, k = 2: the trailing frame is dropped
+    whole = spec.build(cache=str(tmp_path / "whole"))
+    splits = [(0, 1, 4)] if backend == "reference" else [(0, 1, 4), (0, 2, 4), (0, 1, 2, 3, 4)]
+    for i, cuts in enumerate(splits):
+        folder = str(tmp_path / f"parts{i}")
+        parts = [spec.build_part(range(a, b), cache=folder) for a, b in zip(cuts, cuts[1:])]
+        assert [p.n_subsets for p in parts] == [b - a for a, b in zip(cuts, cuts[1:])]
+        merged = DriveRecord.merge([DriveRecord.from_psog(p, "d") for p in parts])
+        _same_record(merged, DriveRecord.from_psog(whole, "d"))
+        psog = merged.psog(spec.grid.grid())
+        assert np.array_equal(psog.voxels, whole.voxels) and np.array_equal(psog.counts, whole.counts)
+        assert psog.counts.dtype == whole.counts.dtype and psog.probs.tobytes() == whole.probs.tobytes()
+        # the merged drive written to the cache: the file and manifest a whole build writes, found by build()
+        assert spec.cached(cache=folder) is None                 # parts are never cached
+        _same_file(spec.save(psog, cache=folder), spec.cache_file(cache=str(tmp_path / "whole")))
+        found = spec.cached(cache=folder)
+        assert found is not None and np.array_equal(found.counts, whole.counts)
+
+
+def test_parts_under_a_condition_take_each_frame_index_of_the_drive(tmp_path):
+    # a condition draws its noise per frame index: a part's frames keep their index in the drive
+    spec = PSOGSpec(SceneSpec("town", 3, 8), backend="warp:cpu", grid=0.8, frames_per_subset=2,
+                    condition=ConditionSpec("snow", seed=5))
+    whole = spec.build(cache=False)
+    parts = [spec.build_part(r, cache=str(tmp_path)) for r in (range(0, 3), range(3, 4))]
+    _same_record(DriveRecord.merge([DriveRecord.from_psog(p, "d") for p in parts]), DriveRecord.from_psog(whole, "d"))
+    # a part of the last subset alone is not the first subset's frames
+    first = DriveRecord.from_psog(spec.build_part(range(0, 1), cache=str(tmp_path)), "d")
+    last = DriveRecord.from_psog(parts[1], "d")
+    assert not (len(first.voxels) == len(last.voxels) and np.array_equal(first.voxels, last.voxels))
+
+
+def test_part_ranges_are_checked():
+    scene = SceneSpec("town", 3, 6).build()
+    assert drive_subsets(6, 2) == 3 and drive_subsets(6, 4) == 1 and drive_subsets(3, 4) == 1
+    for bad in (range(0, 0), range(2, 4), range(-1, 1), range(0, 3, 2), (0, 1)):
+        with pytest.raises(ValueError, match="subsets must be range"):
+            part_psog(scene, bad, frames_per_subset=2, backend="warp:cpu")
+    assert PSOGSpec(SceneSpec("mesh:x.obj")).subsets() == 1
+    with pytest.raises(ValueError, match="built whole"):
+        PSOGSpec(SceneSpec("mesh:x.obj")).build_part(range(0, 1))
+
+
+def test_merge_sums_equal_entries_and_keeps_the_order():
+    a = DriveRecord("d", 2, np.array([1, 1, 5], np.int64), np.array([2, 7, 3], np.int16), np.array([2, 1, 2], np.int32))
+    b = DriveRecord("d", 3, np.array([0, 1, 5, 9], np.int64), np.array([4, 7, 3, 1], np.int16),
+                    np.array([3, 2, 1, 3], np.int32))
+    m = DriveRecord.merge([a, b])
+    assert m.n_subsets == 5 and m.label == "d"
+    assert m.voxels.tolist() == [0, 1, 1, 5, 9] and m.classes.tolist() == [4, 2, 7, 3, 1]
+    assert m.counts.tolist() == [3, 2, 3, 3, 3]
+    assert (m.voxels.dtype, m.classes.dtype, m.counts.dtype) == (np.int64, np.int16, np.int32)
+    assert DriveRecord.merge([a]) is a
+    with pytest.raises(ValueError):
+        DriveRecord.merge([])
+    p = m.psog(__import__("place3d_kernels.grid", fromlist=["Grid"]).Grid((0, 0, 0), (1, 1, 10), 0.1))
+    assert isinstance(p, PSOG) and p.voxels.tolist() == [0, 1, 5, 9]
+    assert p.counts[1].tolist()[:8] == [0, 0, 2, 0, 0, 0, 0, 3] and p.counts[:, 0].tolist() == [2, 0, 2, 2]
+
+
+def test_drive_parts_leaves_a_quarter_of_the_cores():
+    from place3d_app.commands.routes import DRIVE_PARTS, drive_parts
+
+    assert DRIVE_PARTS == 2
+    assert drive_parts(4, 4, 16) == 2 and drive_parts(4, 5, 16) == 1 and drive_parts(4, 0, 11) == 2
+    assert drive_parts(4, 0, 10) == 1 and drive_parts(8, 0, 16) == 1 and drive_parts(4, 0, 2) == 1
+    assert drive_parts(0, 4, 16) == 1
+
+
+def test_missing_drives_built_in_parts_with_held_out_ones_later(tmp_path, monkeypatch):
+    # eight cores: two searched drives in two parts each and the held-out drive whole (five workers); the
+    # command has the searched drives' merged records when build_missing returns, the held-out one later, and
+    # the cache files of all three are those of whole builds
+    import argparse
+
+    from place3d_app import executors
+    from place3d_app.commands.routes import build_missing, built_records
+
+    made = []
+
+    class Recorded(executors.ProcessExecutor):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            made.append(self)
+
+        def shutdown(self, wait=True):
+            self.workers_at_end = list((getattr(self._pool, "_processes", None) or {}).values())
+            super().shutdown(wait)
+
+    monkeypatch.setattr(executors, "ProcessExecutor", Recorded)
+    monkeypatch.delenv("PLACE3D_WORKERS", raising=False)
+    monkeypatch.setattr("place3d_app.executors.usable_cores", lambda: 8)
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "workers"))
+    specs = [PSOGSpec(SceneSpec("town", s, 8), grid=0.8, frames_per_subset=2) for s in (3, 4)]
+    later = [PSOGSpec(SceneSpec("town", 7, 8), grid=0.8, frames_per_subset=2)]
+    opts = argparse.Namespace(no_cache=False, quiet=True, backend="warp:cpu")
+    assert build_missing(opts, specs, "warp:cpu", later=later) == 3
+    (ex,) = made
+    assert ex.workers == 5 and set(opts.built) == set(specs) and set(opts.building) == set(later)
+    held = built_records(opts, later)
+    end = time.monotonic() + 120
+    while not hasattr(ex, "workers_at_end") or any(p.is_alive() for p in ex.workers_at_end):
+        assert time.monotonic() < end, "drive workers still running"
+        time.sleep(0.05)
+    for s in specs + later:
+        whole = s.build(cache=str(tmp_path / "whole"), backend="warp:cpu")
+        _same_record(({**opts.built, **held})[s], DriveRecord.from_psog(whole, s.scene.label))
+        _same_file(s.cache_file(cache=str(tmp_path / "workers")), s.cache_file(cache=str(tmp_path / "whole")))
+    assert build_missing(opts, specs, "warp:cpu", later=later) == 0        # warm: nothing missing
