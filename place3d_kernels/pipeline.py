@@ -16,8 +16,8 @@ from place3d_kernels.scene.keymemo import SceneRef
 from place3d_kernels.simulate import DEFAULT_MOUNT, check_frames, simulate
 from place3d_kernels.sog import PSOG, cache_folder, cache_key, subset_groups
 
-__all__ = ["scene_psog", "part_psog", "drive_subsets", "save_psog", "cached_psog", "cache_file", "FrameCondition", "DEFAULT_FRAMES_PER_SUBSET", "check_entropy",
-           "wait_for_saves", "saves_outlive_tasks", "end_task_saves"]
+__all__ = ["scene_psog", "part_psog", "drive_subsets", "save_psog", "cached_psog", "cache_file", "FrameCondition",
+           "DEFAULT_FRAMES_PER_SUBSET", "check_entropy", "wait_for_saves", "saves_outlive_tasks", "end_task_saves"]
 
 log = logging.getLogger(__name__)
 

@@ -566,7 +566,8 @@ def held_out_psogs(args, spec, specs, b, grids: bool = False):
             if len(drives) == 1:
                 p = drives[0].build(backend=b, cache=not args.no_cache, progress=not args.quiet)
             else:
-                p = pool_specs(drives, backend=b, cache=not args.no_cache, known=built_records(args, drives)).kept_psog()
+                known = built_records(args, drives)      # held-out drives the workers may still be building
+                p = pool_specs(drives, backend=b, cache=not args.no_cache, known=known).kept_psog()
         check_entropy(p, spec.frames_per_subset)
         if grids and args.occlusion in ("sog", "none"):
             with section("held-out grids"):       # the grids the held-out scores (coverage_counts) ask for

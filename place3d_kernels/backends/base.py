@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["unique_ints", "cache_dir", "cache_folder", "Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE",
+__all__ = ["unique_ints", "host_vote", "cache_dir", "cache_folder", "Backend", "GridSpec", "BackendUnavailable", "ENTROPY_SCALE",
            "COORDINATE_LIMIT", "rotation_matrices", "sensor_directions", "check_ray_batch", "mesh_face_tables", "mesh_group_parts", "group_blocks",
            "first_far_row", "dense_rows", "check_voxel_rows", "resident_copy"]
 
@@ -600,3 +600,22 @@ def unique_ints(a) -> np.ndarray:
     keep[0] = True
     np.not_equal(s[1:], s[:-1], out=keep[1:])
     return s[keep]
+
+
+def host_vote(keys, labels, n_classes: int) -> tuple[np.ndarray, np.ndarray]:
+    """``Backend.vote`` with NumPy: one sort of the voting (voxel, label) pairs, the count of each, and per voxel
+    the label with the most points (ties: the lowest label); keys < 0 and label 0 (unlabeled) do not vote.
+    The reference backend's vote, and the OpenCL backend's host path (CPU devices, keys beyond 32 bits).
+
+    Returns:
+        voxels (M,) int64 ascending, winning labels (M,) int32.
+    """
+    k = np.asarray(keys, dtype=np.int64)
+    lab = np.asarray(labels, dtype=np.int64)
+    ok = (k >= 0) & (lab > 0)
+    combo, counts = np.unique(k[ok] * n_classes + lab[ok], return_counts=True)
+    vox, cls = combo // n_classes, combo % n_classes
+    order = np.lexsort((cls, -counts, vox))          # voxel ascending, count descending, label ascending
+    vox, cls = vox[order], cls[order]
+    first = np.concatenate([[True], vox[1:] != vox[:-1]]) if len(vox) else np.zeros(0, bool)
+    return vox[first].astype(np.int64), cls[first].astype(np.int32)

@@ -10,8 +10,9 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
-from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, GridSpec, mesh_face_tables,
-                                           group_blocks, mesh_group_parts, rotation_matrices, sensor_directions)
+from place3d_kernels.backends.base import (Backend, BackendUnavailable, DirectionCache, GridSpec, host_vote,
+                                           mesh_face_tables, group_blocks, mesh_group_parts, rotation_matrices,
+                                           sensor_directions)
 from place3d_kernels.backends.geometry import brute_force_raycast
 from place3d_kernels.backends.opencl import _runtime as rt
 from place3d_kernels.backends.opencl.bvh import DEFAULT_MAX_DEPTH, BVH, build_bvh, collapse_bvh4, join_bvh
@@ -163,9 +164,9 @@ class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
         #: on CPUs the private strategy walks 16 rays per work-item in vector lanes (walk_lanes.cl); False: one
         #: at a time (score_walk). Same bitsets; bench/bench_pocl_walk.py (tag lab-2026-11-27) compared the two.
         self.walk_lanes = self.is_cpu
-        #: on CPUs ``vote`` is the host's sort (``_vote_numpy``, the same votes without the kernels' passes over
-        #: their tables and buffers: a drive's ten subset votes 0.34-0.40 -> 0.18-0.22 s with PoCL on the 2-core
-        #: dev VM, 2026-11-30); False: the kernels (the tests hold both to the reference)
+        #: on CPUs ``vote`` is the host's sort (``base.host_vote``, the reference backend's vote, without the
+        #: kernels' passes over their tables and buffers: a drive's ten subset votes 0.34-0.40 -> 0.18-0.22 s with
+        #: PoCL on the 2-core dev VM, 2026-11-30); False: the kernels (the tests hold them to the reference)
         self.vote_on_host = self.is_cpu
         if bvh_width not in (None, 2, 4):
             raise ValueError(f"bvh_width must be 2 or 4, got {bvh_width!r}")
@@ -687,7 +688,7 @@ class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
         if n_vote == 0:
             return np.empty(0, np.int64), np.empty(0, np.int32)
         if self.vote_on_host:
-            return _vote_numpy(k, lab, n_classes)
+            return host_vote(k, lab, n_classes)
         kmax = int(k.max())
         n = len(k)
         lab_b = self._in(lab)
@@ -711,7 +712,7 @@ class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
                 self._launch("vote_argmax", M, cnt, np.int32(n_classes), bb, np.int32(M))
                 return voxels.astype(np.int64, copy=False), self._fetch(best, bb)
         if kmax >= 2**31 - 1 or n_vote * n_classes >= 2**31 - 1:
-            return _vote_numpy(k, lab, n_classes)  # beyond 32-bit hash keys: exact host path
+            return host_vote(k, lab, n_classes)  # beyond 32-bit hash keys: exact host path
         H = 1 << max(4, int(math.ceil(math.log2(2 * n_vote))))
         table = self._out(H * 4)
         cl.enqueue_fill_buffer(self.queue, table, np.int32(-1), 0, H * 4)
@@ -737,16 +738,6 @@ class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
         self._launch("vote_best_count", H, t2, c2, np.int32(n_classes), bc, np.int32(H))
         self._launch("vote_best_label", H, t2, c2, np.int32(n_classes), bc, bl, np.int32(H))
         return voxels, self._read(bl, np.int32, M)
-
-def _vote_numpy(k, lab, n_classes):
-    ok = (k >= 0) & (lab > 0)
-    combo, counts = np.unique(k[ok] * n_classes + lab[ok], return_counts=True)
-    vox, cls = combo // n_classes, combo % n_classes
-    order = np.lexsort((cls, -counts, vox))
-    vox, cls = vox[order], cls[order]
-    first = np.concatenate([[True], vox[1:] != vox[:-1]])
-    return vox[first].astype(np.int64), cls[first].astype(np.int32)
-
 
 def _refine_on_host(mesh: CLMesh, o, d, tm, t, face):
     """Float64 hit distance of the reported face (devices without fp64), as the kernel does otherwise."""

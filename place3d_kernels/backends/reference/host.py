@@ -13,7 +13,7 @@ from place3d_kernels.backends.base import (Backend, GridSpec, check_ray_batch, c
                                           sensor_directions)
 from place3d_kernels.backends.geometry import closest_hits
 from place3d_kernels.backends.reference.conditions import ReferenceConditions
-from place3d_kernels.backends.base import unique_ints
+from place3d_kernels.backends.base import host_vote, unique_ints
 
 __all__ = ["ReferenceBackend", "ReferenceCore", "traverse_ray"]
 
@@ -205,15 +205,7 @@ class ReferenceCore(Backend):
         return np.where(inside, flat, -1).astype(np.int64)
 
     def vote(self, keys, labels, n_classes):
-        k = np.asarray(keys, dtype=np.int64)
-        lab = np.asarray(labels, dtype=np.int64)
-        ok = (k >= 0) & (lab > 0)
-        combo, counts = np.unique(k[ok] * n_classes + lab[ok], return_counts=True)
-        vox, cls = combo // n_classes, combo % n_classes
-        order = np.lexsort((cls, -counts, vox))          # voxel asc, count desc, label asc
-        vox, cls = vox[order], cls[order]
-        first = np.concatenate([[True], vox[1:] != vox[:-1]]) if len(vox) else np.zeros(0, bool)
-        return vox[first].astype(np.int64), cls[first].astype(np.int32)
+        return host_vote(keys, labels, n_classes)
 
 
 class ReferenceBackend(ReferenceCore, ReferenceConditions):
