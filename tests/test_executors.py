@@ -390,7 +390,9 @@ def test_an_idle_pool_is_ended_at_once_and_a_busy_one_finishes():
         p.terminate = lambda stop=stop, pid=p.pid: (ended.append(pid), stop())
     ex.shutdown(wait=False)                             # nothing pending: the workers are ended
     _wait_until_gone(procs)                             # (polled: a join here races the pool's own for the status)
-    assert sorted(ended) == sorted(p.pid for p in procs)
+    # each worker terminated; a second terminate of the same worker is the pool's own (CPython's manager thread may
+    # see a worker end before it sees the shutdown, take the pool for broken and terminate its workers again)
+    assert set(ended) == {p.pid for p in procs}
     f = ex.submit(time.sleep, 0.5)                      # a later submit starts new workers
     ex.shutdown(wait=False)                             # a task still runs: it is let finish
     assert f.result(timeout=30) is None
