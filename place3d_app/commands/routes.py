@@ -121,8 +121,8 @@ def pooled_psog(args, spec, backend, specs=None):
 
 #: Parts a missing drive is built in where the host has the cores (``drive_parts``): each part builds the scene
 #: and simulates and votes its share of the drive's subsets, and the parts' records are merged (exact integer
-#: sums) into the drive's. On the lent H200 (16 cores) a cold default optimize took 3.90 [3.84-4.34] s with the
-#: searched drives in two parts against 4.32 [4.08-4.59] s whole (5 runs each; bench/results/ab-2026-11-30-s37/).
+#: sums) into the drive's. On the lent H200 (16 cores) the cold default optimize's median went down by 0.16-0.42 s
+#: on three leases, e.g. 4.32 [4.08-4.59] -> 3.90 [3.84-4.34] s (5 runs each; bench/results/ab-2026-11-30-s37/).
 DRIVE_PARTS = 2
 
 
