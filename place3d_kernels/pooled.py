@@ -162,13 +162,6 @@ class DriveRecord:
         return cls(parts[0].label, int(sum(r.n_subsets for r in parts)), key // n_classes,
                    (key % n_classes).astype(np.int16), summed)
 
-    def psog(self, grid: Grid, n_classes: int = N_CLASSES) -> PSOG:
-        """This drive's P-SOG over ``grid``: the one ``PSOG.from_frames`` makes from its frames (its counts and
-        the file ``PSOG.save`` writes of it), made from the occupied entries the record holds."""
-        voxels, row = np.unique(self.voxels, return_inverse=True)
-        at = row.astype(np.int64) * (n_classes - 1) + (self.classes.astype(np.int64) - 1)    # into counts[:, 1:]
-        return PSOG(grid, voxels, None, n_subsets=self.n_subsets, occupied=(at, self.counts.astype(np.int32)))
-
     @property
     def nbytes(self) -> int:
         return int(self.voxels.nbytes + self.classes.nbytes + self.counts.nbytes)

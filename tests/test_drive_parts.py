@@ -12,7 +12,7 @@ import pytest
 
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.pipeline import drive_subsets, part_psog
-from place3d_kernels.pooled import DriveRecord
+from place3d_kernels.pooled import DriveRecord, PooledPSOG
 from place3d_kernels.sog import PSOG
 from place3d_kernels.spec import ConditionSpec, PSOGSpec, SceneSpec
 
@@ -52,7 +52,7 @@ def test_parts_merge_to_the_whole_drive(backend, tmp_path):
         assert [p.n_subsets for p in parts] == [b - a for a, b in zip(cuts, cuts[1:])]
         merged = DriveRecord.merge([DriveRecord.from_psog(p, "d") for p in parts])
         _same_record(merged, DriveRecord.from_psog(whole, "d"))
-        psog = merged.psog(spec.grid.grid())
+        psog = PooledPSOG(spec.grid.grid(), [merged]).psog()
         assert np.array_equal(psog.voxels, whole.voxels) and np.array_equal(psog.counts, whole.counts)
         assert psog.counts.dtype == whole.counts.dtype and psog.probs.tobytes() == whole.probs.tobytes()
         # the merged drive written to the cache: the file and manifest a whole build writes, found by build()
@@ -98,7 +98,7 @@ def test_merge_sums_equal_entries_and_keeps_the_order():
     assert DriveRecord.merge([a]) is a
     with pytest.raises(ValueError):
         DriveRecord.merge([])
-    p = m.psog(__import__("place3d_kernels.grid", fromlist=["Grid"]).Grid((0, 0, 0), (1, 1, 10), 0.1))
+    p = PooledPSOG(__import__("place3d_kernels.grid", fromlist=["Grid"]).Grid((0, 0, 0), (1, 1, 10), 0.1), [m]).psog()
     assert isinstance(p, PSOG) and p.voxels.tolist() == [0, 1, 5, 9]
     assert p.counts[1].tolist()[:8] == [0, 0, 2, 0, 0, 0, 0, 3] and p.counts[:, 0].tolist() == [2, 0, 2, 2]
 

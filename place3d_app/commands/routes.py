@@ -150,8 +150,11 @@ def _build_part(task):
 
 def _save_drive(task):
     """A worker's task: ``(spec, record)``, the drive's merged record, written to the cache as ``build`` would."""
+    from place3d_kernels.pooled import PooledPSOG
+
     spec, record = task
-    spec.save(record.psog(spec.grid.grid()), cache=spec.cache or True)
+    # a pool of one record is that drive's P-SOG exactly (PooledPSOG.psog)
+    spec.save(PooledPSOG(spec.grid.grid(), [record]).psog(), cache=spec.cache or True)
 
 
 def drive_parts(first: int, later: int, workers: int) -> int:
@@ -176,7 +179,7 @@ def built_records(args, specs) -> dict:
 
 def build_missing(args, specs, backend, later=()) -> int:
     """Build the drives of ``specs`` and ``later`` that the cache lacks in worker processes, one per usable core
-    (at most one per drive); returns how many it builds. Each lands in the cache, and its
+    (at most one per drive, or per part of a drive); returns how many drives it builds. Each lands in the cache, and its
     ``DriveRecord`` is kept in ``args.built`` ({spec: record}), which ``pooled_psog`` and ``pool_specs(known=...)``
     take instead of reading the file.
 

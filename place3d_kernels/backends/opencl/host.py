@@ -683,12 +683,12 @@ class OpenCLBackend(OpenCLScoring, OpenCLFields, Backend, OpenCLConditions):
         n_classes = int(n_classes)
         if len(lab) and (lab.min() < 0 or lab.max() >= n_classes):
             raise ValueError(f"labels must lie in [0, {n_classes}), got range [{lab.min()}, {lab.max()}]")
+        if self.vote_on_host:
+            return host_vote(k, lab, n_classes)     # its own voting mask (empty votes included)
         voting = (k >= 0) & (lab > 0)
         n_vote = int(voting.sum())
         if n_vote == 0:
             return np.empty(0, np.int64), np.empty(0, np.int32)
-        if self.vote_on_host:
-            return host_vote(k, lab, n_classes)
         kmax = int(k.max())
         n = len(k)
         lab_b = self._in(lab)
