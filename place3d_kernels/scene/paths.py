@@ -80,12 +80,15 @@ def fillet(corners: np.ndarray, radii, step: float = 0.25) -> Path:
         pts.append(np.stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)], 1))
     pts.append(P[-1:])
     pts = np.concatenate(pts)
-    # densify straight stretches: one block of rows per stretch, joined once (the rows a per-row list gave)
-    out = [pts[:1]]
-    for a, b in zip(pts[:-1], pts[1:]):
-        n = max(1, int(math.ceil(np.linalg.norm(b - a) / step)))
-        out.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
-    return Path(np.concatenate(out))
+    # densify straight stretches: stretch i from a = pts[i] to b = pts[i + 1] gets n_i = ceil(|b - a| / step)
+    # rows a + (b - a) * j / n_i, j = 1..n_i, all stretches at once (the same IEEE operations, row for row, as
+    # the per-stretch loop this replaced, which took about a third of a town's build)
+    a, d = pts[:-1], pts[1:] - pts[:-1]
+    n = np.maximum(1, np.ceil(np.sqrt(np.einsum("ij,ij->i", d, d)) / step).astype(np.int64))
+    first = np.repeat(np.cumsum(n) - n, n)
+    j = (np.arange(int(n.sum())) - first + 1).astype(float)
+    rows = np.repeat(a, n, axis=0) + np.repeat(d, n, axis=0) * (j / np.repeat(n, n))[:, None]
+    return Path(np.concatenate([pts[:1], rows]))
 
 
 def lane_path(nodes, centres, offset, step=0.25) -> Path:
