@@ -17,6 +17,28 @@ def frame(points, labels, pose=ORIGIN):
     return p3k.PointCloud(np.asarray(points, float), np.asarray(labels), ego_pose=np.asarray(pose, float))
 
 
+def _vote_by_hand(keys, labels):
+    """Each voxel's label with the most points, ties to the lowest; keys < 0 and label 0 do not vote."""
+    from collections import Counter, defaultdict
+
+    per = defaultdict(Counter)
+    for k, lab in zip(keys.tolist(), labels.tolist()):
+        if k >= 0 and lab > 0:
+            per[k][lab] += 1
+    vox = sorted(per)
+    return vox, [min(per[v], key=lambda lab: (-per[v][lab], lab)) for v in vox]
+
+
+def test_vote_matches_a_count_by_hand(backend, rng):
+    # every backend's vote (the reference's and OpenCL's host sort, base.host_vote, and the device kernels)
+    # against a per-voxel count in plain Python, many ties among few labels
+    keys = rng.integers(-3, 600, 5000)
+    labels = rng.integers(0, 5, 5000)
+    vox, lab = p3k.get_backend(backend).vote(keys, labels, 22)
+    want_vox, want_lab = _vote_by_hand(keys, labels)
+    assert vox.tolist() == want_vox and lab.tolist() == want_lab
+
+
 def test_vote_majority_ties_and_unlabeled(backend):
     pts = [[0.5, 0.5, 0.5]] * 5 + [[1.5, 0.5, 0.5]] * 4 + [[2.5, 0.5, 0.5]] * 3 + [[9, 9, 9]]
     labels = [ROAD, ROAD, CAR, CAR, CAR,          # voxel A: car wins 3-2
