@@ -37,8 +37,8 @@ Multi-machine clusters: the output folder and the P-SOG cache folder should be o
 from __future__ import annotations
 
 import contextlib
+import atexit
 import os
-import signal
 import sys
 import threading
 import time
@@ -129,12 +129,15 @@ def default_workers() -> int:
 
 def _start_worker(backend: str | None) -> None:
     # a drive task returns before its P-SOG file is written (pipeline.saves_outlive_tasks): the worker waits for
-    # its saves when it ends, at a normal exit (the saver thread is joined) and when an idle pool is ended
-    # (``shutdown(wait=False)`` sends SIGTERM: the handler waits for the files, then leaves at once as before)
+    # its saves when it ends, which it does when it reads the pool's exit sentinel (``shutdown``): its non-daemon
+    # threads, the saver's among them, are joined before it leaves (``BaseProcess._bootstrap``)
     from place3d_kernels.pipeline import saves_outlive_tasks
 
     saves_outlive_tasks(True)
-    signal.signal(signal.SIGTERM, _end_after_saves)
+    # a forkserver's worker then leaves with os._exit (the server's child never tears its interpreter down); a
+    # spawned one would run the interpreter's whole teardown (its device context's among it): it leaves at its
+    # first exit handler instead, once its threads are joined
+    atexit.register(_leave_now)
     # each worker resolves the run's backend once (get_backend keeps one instance per name), on a thread of
     # its own, and takes its first task at once: a drive's scene (Python, the CPU) is built while the backend
     # starts (on CUDA mostly the driver's context and module loads, foreign calls that let this thread run);
@@ -143,13 +146,14 @@ def _start_worker(backend: str | None) -> None:
         threading.Thread(target=_resolve_backend, args=(backend,), daemon=True, name="place3d-backend").start()
 
 
-def _end_after_saves(signum, frame) -> None:
-    try:
-        from place3d_kernels.pipeline import wait_for_saves
-
-        wait_for_saves()
-    finally:
-        os._exit(0)
+def _leave_now() -> None:
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            if stream is not None:
+                stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(0)
 
 
 def _resolve_backend(backend: str) -> None:
@@ -290,30 +294,22 @@ class ProcessExecutor(Executor):
         self._submitted_futures = [f for f in self._submitted_futures if not f.done()] + list(futures)
 
     def shutdown(self, wait: bool = True) -> None:
-        """Stop the workers. ``wait=False`` returns at once: workers with nothing left to do (every task
-        submitted here has returned) are sent SIGTERM, which each answers by waiting for the cache files its
-        drive tasks may still be writing (``pipeline.saves_outlive_tasks``) and leaving without the
-        interpreter's teardown; otherwise they are asked to exit after their tasks. Either way the interpreter
-        joins them at its exit, so the cache is whole when the command ends. Ending them spares the command's
-        exit their own: with a GPU backend, 16 workers tearing down 16 device contexts. A later ``map`` starts
-        new ones."""
+        """Stop the workers: each leaves once its task, if any, has returned and it reads the pool's exit
+        sentinel, after its cache files are written (``_start_worker``); ``wait=False`` returns at once, and the
+        interpreter joins them at its exit, so the cache is whole when the command ends. A later ``map`` starts
+        new ones.
+
+        Idle workers are not sent SIGTERM (as they were until 2026-11-30): an idle worker waits in the task
+        queue's read, one of them holding the queue's lock, a semaphore shared by the workers. A signal that
+        reaches a worker just before it blocks on that lock is not acted on until the lock is had, and the
+        lock's holder, ended by its own signal, never gives it back: that worker then waited forever, and the
+        interpreter's exit with it (one end in about 250 on the dev VM; tests/test_executors.py)."""
         with self._lock:
             pool, self._pool, self._started = self._pool, None, 0
         if pool is None:
             return
-        idle = all(f.done() for f in self._submitted_futures)
         self._submitted_futures = []
-        if not wait and idle and hasattr(pool, "terminate_workers"):       # Python 3.14
-            pool.terminate_workers()
-            return
-        # before 3.14 the pool names its processes only in a private mapping (CPython's, since 3.2)
-        processes = list((getattr(pool, "_processes", None) or {}).values()) if not wait and idle else []
         pool.shutdown(wait=wait, cancel_futures=True)
-        for proc in processes:
-            try:
-                proc.terminate()
-            except (ProcessLookupError, ValueError):    # gone already, or closed
-                pass
 
 
 def _import_ray():
