@@ -36,3 +36,27 @@ def rng():
 def _isolated_cache(tmp_path, monkeypatch):
     """P-SOG caches go to a per-test folder, never the user's."""
     monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "cache"))
+
+
+_session = None
+
+
+def pytest_sessionfinish(session, exitstatus):
+    global _session
+    _session = session
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config):
+    """End the test process as the console script ends a command (``place3d_app.leave``): non-daemon threads
+    joined and ``atexit`` handlers run, then ``os._exit`` with pytest's exit status, without the interpreter's
+    last teardown (module namespaces, the loaded C libraries' destructors). A CI run (2026-11-30 22:41 UTC, main
+    at d8a1cf3) passed every test and then died in that teardown: SIGSEGV on a thread other than the main one,
+    executing heap memory (the kernel's log), as when a native thread outlives the library state it uses. A test
+    process holds many such threads to its end (seen in a full run: Ray's gRPC threads after ``ray.shutdown``,
+    Dr.Jit's pool, PoCL's and the BLAS's workers), none of them ours to stop. ``PLACE3D_FAST_EXIT=0`` keeps the
+    full teardown."""
+    if _session is not None:
+        from place3d_app import leave
+
+        leave(int(_session.exitstatus))
