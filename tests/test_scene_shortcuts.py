@@ -86,3 +86,44 @@ def test_the_fills_batched_heights_are_the_one_point_queries():
     (a, occ_a), (b, occ_b) = out
     assert len(a[0]) > 1000
     assert all(np.array_equal(p, q) for p, q in zip(a, b)) and np.array_equal(occ_a, occ_b)
+
+
+
+def _densified_by_stretch(pts: np.ndarray, step: float) -> np.ndarray:
+    """The densifying loop ``paths.fillet`` ran until 2026-11-30: one block of rows per stretch."""
+    out = [pts[:1]]
+    for a, b in zip(pts[:-1], pts[1:]):
+        n = max(1, int(math.ceil(np.linalg.norm(b - a) / step)))
+        out.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    return np.concatenate(out)
+
+
+def test_a_fillets_stretches_densified_at_once_are_the_loops_rows(monkeypatch):
+    # the points of the town's lanes and pedestrian rings (corners and radii as the builder gives them), then
+    # random polylines with repeated and axis-aligned points: the same rows, bit for bit
+    from place3d_kernels.scene import paths, town_actors
+    from place3d_kernels.spec import SceneSpec, make_scene
+
+    calls, plain = [], paths.fillet
+
+    def keep(corners, radii, step=0.25):
+        calls.append((paths._arcs(corners, radii, step), step))
+        return plain(corners, radii, step)
+
+    monkeypatch.setattr(town_actors, "fillet", keep)
+    monkeypatch.setattr(paths, "fillet", keep)
+    for seed in range(3):
+        make_scene(SceneSpec("town", seed, 8))
+    rng = np.random.default_rng(7)
+    for _ in range(30):
+        p = np.round(rng.uniform(-30, 30, (int(rng.integers(2, 9)), 2)), int(rng.integers(0, 3)))
+        p[int(rng.integers(1, len(p)))] = p[0]
+        calls.append((p, float(rng.choice([0.2, 0.25, 1.0]))))
+    # stretches whose length is a whole number of steps, where a length off in its last bit changes the rows
+    for leg in ((0.3, 0.4), (0.6, 0.8), (1.2, 1.6), (0.09, 0.12), (2.1, 2.8), (0.15, 0.2), (0.5, 1.2)):
+        calls.append((np.cumsum(np.tile(leg, (40, 1)) * rng.choice([-1.0, 1.0], (40, 2)), axis=0), 0.25))
+        calls.append((np.cumsum(np.tile(leg, (40, 1)), axis=0), 0.1))
+    assert len(calls) > 100
+    for pts, step in calls:
+        got, want = paths._densify(pts, step), _densified_by_stretch(pts, step)
+        assert got.shape == want.shape and np.array_equal(got.view(np.uint64), want.view(np.uint64))
