@@ -37,7 +37,6 @@ Multi-machine clusters: the output folder and the P-SOG cache folder should be o
 from __future__ import annotations
 
 import contextlib
-import atexit
 import os
 import sys
 import threading
@@ -132,28 +131,19 @@ def _start_worker(backend: str | None) -> None:
     # its saves when it ends, which it does when it reads the pool's exit sentinel (``shutdown``): its non-daemon
     # threads, the saver's among them, are joined before it leaves (``BaseProcess._bootstrap``)
     from place3d_kernels.pipeline import saves_outlive_tasks
+    from place3d_kernels.threads import leave_at_exit
 
     saves_outlive_tasks(True)
     # a forkserver's worker then leaves with os._exit (the server's child never tears its interpreter down); a
     # spawned one would run the interpreter's whole teardown (its device context's among it): it leaves at its
-    # first exit handler instead, once its threads are joined
-    atexit.register(_leave_now)
+    # first exit handler instead, once its threads are joined (``threads.leave_at_exit``)
+    leave_at_exit()
     # each worker resolves the run's backend once (get_backend keeps one instance per name), on a thread of
     # its own, and takes its first task at once: a drive's scene (Python, the CPU) is built while the backend
     # starts (on CUDA mostly the driver's context and module loads, foreign calls that let this thread run);
     # the task's first get_backend waits for that thread's (the registry makes each backend once)
     if backend:
         threading.Thread(target=_resolve_backend, args=(backend,), daemon=True, name="place3d-backend").start()
-
-
-def _leave_now() -> None:
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            if stream is not None:
-                stream.flush()
-        except (OSError, ValueError):
-            pass
-    os._exit(0)
 
 
 def _resolve_backend(backend: str) -> None:

@@ -1,4 +1,4 @@
-"""How many threads NumPy work may use here, and a map over them.
+"""How many threads NumPy work may use here, a map over them, and how a worker process leaves.
 
 NumPy's indexing, comparisons and reductions over large arrays release the interpreter lock, so independent
 pieces of such work (a pool's records, blocks of its rows) run side by side on threads. The library's
@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["usable_cores", "threads_for", "thread_map", "block_map", "THREADED_ENTRIES", "MAX_THREADS"]
+__all__ = ["usable_cores", "threads_for", "thread_map", "block_map", "leave_at_exit", "THREADED_ENTRIES",
+           "MAX_THREADS"]
 
 #: Record entries (all records together) from which a pool's per-record NumPy work runs on several threads
 #: (``pooled.PooledPSOG`` sums, ``left_out.device_fields`` indexes), and count-table entries from which the
@@ -62,3 +63,26 @@ def block_map(fn, n: int, block: int, entries_per_item: int = 1) -> None:
             fn(a, min(a + block, n))
 
     thread_map(span, range(-(-len(starts) // per)), t)
+
+
+def leave_at_exit() -> None:
+    """In a worker process: leave at the interpreter's first exit handler (``atexit`` runs the last registered
+    first), with the standard streams flushed and ``os._exit(0)``, skipping the rest of the teardown (module
+    namespaces, the loaded C libraries' destructors, a device context's). By then the process's non-daemon
+    threads are joined. The status is 0 even for a worker that failed: a pool tells a dead worker by its
+    process sentinel, not by its status."""
+    import atexit
+
+    atexit.register(_leave_now)
+
+
+def _leave_now() -> None:
+    import sys
+
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            if stream is not None:
+                stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(0)

@@ -306,21 +306,9 @@ def _worker_started() -> None:
     status is 0 even for a worker that failed; a pool tells a dead worker by its process sentinel, not by
     the status.
     """
-    import atexit
+    from place3d_kernels.threads import leave_at_exit
 
-    atexit.register(_leave_now)
-
-
-def _leave_now() -> None:
-    import sys
-
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            if stream is not None:
-                stream.flush()
-        except (OSError, ValueError):
-            pass
-    os._exit(0)
+    leave_at_exit()
 
 
 def _warm_up() -> None:
