@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -55,8 +56,12 @@ def pytest_unconfigure(config):
     executing heap memory (the kernel's log), as when a native thread outlives the library state it uses. A test
     process holds many such threads to its end (seen in a full run: Ray's gRPC threads after ``ray.shutdown``,
     Dr.Jit's pool, PoCL's and the BLAS's workers), none of them ours to stop. ``PLACE3D_FAST_EXIT=0`` keeps the
-    full teardown."""
-    if _session is not None:
+    full teardown. Only where pytest is the program (``pytest``, ``python -m pytest``), not inside another one
+    that called ``pytest.main``."""
+    prog = os.path.normpath(sys.argv[0] if sys.argv else "")
+    is_program = os.path.basename(prog).startswith(("pytest", "py.test")) or prog.endswith(
+        os.path.join("pytest", "__main__.py"))
+    if _session is not None and is_program:
         from place3d_app import leave
 
         leave(int(_session.exitstatus))
