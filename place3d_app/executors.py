@@ -276,11 +276,12 @@ class ProcessExecutor(Executor):
         with self._environment():
             return pool.submit(fn, task)
 
-    def shutdown(self, wait: bool = True) -> None:
+    def shutdown(self, wait: bool = True, cancel: bool = True) -> None:
         """Stop the workers: each leaves once its task, if any, has returned and it reads the pool's exit
         sentinel, after its cache files are written (``_start_worker``); ``wait=False`` returns at once, and the
-        interpreter joins them at its exit, so the cache is whole when the command ends. A later ``map`` starts
-        new ones.
+        interpreter joins them at its exit, so the cache is whole when the command ends. ``cancel``: tasks not
+        started yet are dropped (their futures cancelled); with False they still run, and their futures
+        complete, before the workers leave. A later ``map`` starts new ones.
 
         Idle workers are not sent SIGTERM (as they were until 2026-11-30): an idle worker waits in the task
         queue's read, one of them holding the queue's lock, a semaphore shared by the workers. A signal that
@@ -291,7 +292,7 @@ class ProcessExecutor(Executor):
             pool, self._pool, self._started = self._pool, None, 0
         if pool is None:
             return
-        pool.shutdown(wait=wait, cancel_futures=True)
+        pool.shutdown(wait=wait, cancel_futures=cancel)
 
 
 def _import_ray():

@@ -128,9 +128,9 @@ def test_missing_drives_built_in_parts_with_held_out_ones_later(tmp_path, monkey
             super().__init__(*a, **k)
             made.append(self)
 
-        def shutdown(self, wait=True):
+        def shutdown(self, wait=True, cancel=True):
             self.workers_at_end = list((getattr(self._pool, "_processes", None) or {}).values())
-            super().shutdown(wait)
+            super().shutdown(wait, cancel)
 
     monkeypatch.setattr(executors, "ProcessExecutor", Recorded)
     monkeypatch.delenv("PLACE3D_WORKERS", raising=False)

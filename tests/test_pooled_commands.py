@@ -155,10 +155,10 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
             self.backend_when_started = self.backend
             super().start_server()
 
-        def shutdown(self, wait=True):
+        def shutdown(self, wait=True, cancel=True):
             self.waited = wait
             self.workers_at_end = list((getattr(self._pool, "_processes", None) or {}).values())
-            super().shutdown(wait)
+            super().shutdown(wait, cancel)
 
     monkeypatch.setattr(executors, "ProcessExecutor", Recorded)
     monkeypatch.setenv("PLACE3D_WORKERS", "2")

@@ -187,7 +187,7 @@ def build_missing(args, specs, backend, later=()) -> int:
     (``_build_part``) by as many workers, beside ``later``'s drives (optimize's held-out drives, needed after the
     search) built whole: this returns when ``specs``' drives are back and merged, ``later``'s in
     ``args.building`` ({spec: Future of its record}, ``built_records``); workers write the merged drives to the
-    cache (``_save_drive``), and are ended on a thread once everything is done. Otherwise every drive is built
+    cache (``_save_drive``), and leave once every task is done. Otherwise every drive is built
     whole at once and this returns when all are back.
 
     A drive counts as cached when its cache file exists (``PSOGSpec.cache_file``: found without building
@@ -230,7 +230,7 @@ def build_missing(args, specs, backend, later=()) -> int:
                          opendrive=any(s.scene.kind == "opendrive" for s in first + rest))
     from place3d_kernels.profiling import section
 
-    saves, done = [], False
+    done = False
     try:
         ex.start_server()
         if isinstance(backend, Future):
@@ -245,17 +245,13 @@ def build_missing(args, specs, backend, later=()) -> int:
                            for s in first]
             building = {s: ex.submit(_build_spec, dataclasses.replace(s, backend=name, cache=s.cache or folder))
                         for s in rest}
-            records = []
-            for spec, tasks in first_tasks:
-                record, save = _finish_drive(ex, spec, tasks)
-                records.append(record)
-                saves += [save] if save is not None else []
+            records = [_finish_drive(ex, spec, tasks) for spec, tasks in first_tasks]
         done = True
     finally:
-        if done and (saves or rest):
-            _end_when_done(ex, saves, building.values())
-        else:
-            ex.shutdown(wait=False)
+        # the merged drives' writes and the held-out drives still queued or running finish before the workers
+        # leave (the interpreter's exit waits for them, so the cache is whole when the command ends); after a
+        # failure the tasks not started are dropped
+        ex.shutdown(wait=False, cancel=not done)
     args.built = {**(getattr(args, "built", None) or {}), **dict(zip(first, records))}
     args.building = {**(getattr(args, "building", None) or {}), **building}
     if not getattr(args, "quiet", False):
@@ -277,31 +273,20 @@ def _submit_drive(ex, spec, parts: int):
 
 
 def _finish_drive(ex, spec, tasks):
-    """``(record, save)``: the drive's record from its tasks (waited for); a drive built in parts is merged, and
-    ``save`` is the future of the worker task that writes it to the cache (else None: the task wrote it)."""
+    """The drive's record from its tasks (waited for); a drive built in parts is merged, and a worker task
+    writes it to the cache (a drive built whole was written by its task)."""
     from place3d_kernels.pooled import DriveRecord
 
     record = DriveRecord.merge([f.result() for f in tasks])
-    return record, (ex.submit(_save_drive, (spec, record)) if len(tasks) > 1 else None)
+    if len(tasks) > 1:
+        ex.submit(_save_drive, (spec, record)).add_done_callback(_report_failed_save)
+    return record
 
 
-def _end_when_done(ex, saves, others) -> None:
-    """End ``ex``'s workers once ``saves`` (cache writes) and ``others`` (drives still building) are done, on a
-    thread: the command goes on meanwhile. The interpreter's exit waits for tasks still running, so the cache is
-    whole when the command ends. A failed write is reported (the next command builds that drive again); a failed
-    drive is raised where the command asks for its record (``built_records``)."""
-    import threading
-    from concurrent.futures import wait
-
-    def run():
-        wait(list(saves) + list(others))
-        for f in saves:
-            if f.exception() is not None:
-                print(f"place3d: warning: a drive's P-SOG cache file was not written: {f.exception()}",
-                      file=sys.stderr)
-        ex.shutdown(wait=False)
-
-    threading.Thread(target=run, name="place3d-drives-end", daemon=True).start()
+def _report_failed_save(f) -> None:
+    # a failed write leaves the drive out of the cache: the next command builds it again
+    if not f.cancelled() and f.exception() is not None:
+        print(f"place3d: warning: a drive's P-SOG cache file was not written: {f.exception()}", file=sys.stderr)
 
 
 def psog_for_routes(spec, args, backend):
