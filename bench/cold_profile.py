@@ -42,6 +42,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -68,6 +69,8 @@ def entry_module(tree: Path, cprofile: bool) -> str:
 def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = None, args: tuple = (),
              extra_env: dict | None = None, caches: str | None = None) -> tuple[float, str, str]:
     """One cold run of the command from ``tree``: (wall seconds, last stdout line, stderr's profile table).
+    The wall ends when every process holding the command's output has closed it (its workers too); the line
+    also names when the command's own process ended (``process exit``), which is what a shell waits for.
     ``caches``: a folder for the Warp, CUDA and P-SOG caches, kept after the run (a later run with the same
     folder is a warm one); default a new temporary folder."""
     with (contextlib.nullcontext(caches) if caches else tempfile.TemporaryDirectory()) as cold, \
@@ -83,16 +86,26 @@ def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = N
         cmd = pre + ["-m", entry, "--profile", "optimize", "--max-evals", str(max_evals),
                      "--task", "seg", "--backend", backend, "--quiet", *args, "--output", o]
         t = time.perf_counter()
-        p = subprocess.run(cmd, env=env, cwd=tree, capture_output=True, text=True, timeout=600)
-        wall = time.perf_counter() - t
-        if p.returncode:
-            raise RuntimeError(f"{tree}: exited {p.returncode}\n{p.stdout[-2000:]}\n{p.stderr[-3000:]}")
+        p = subprocess.Popen(cmd, env=env, cwd=tree, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        texts = {}
+        readers = [threading.Thread(target=lambda n, f: texts.__setitem__(n, f.read()), args=(n, f), daemon=True)
+                   for n, f in (("stdout", p.stdout), ("stderr", p.stderr))]
+        for r in readers:
+            r.start()
+        code = p.wait(timeout=600)
+        exited = time.perf_counter() - t         # the command's own process has ended (a shell's prompt returns)
+        for r in readers:
+            r.join(timeout=600)
+        wall = time.perf_counter() - t           # and every process that holds its output (its workers) too
+        out, err = texts.get("stdout", ""), texts.get("stderr", "")
+        if code:
+            raise RuntimeError(f"{tree}: exited {code}\n{out[-2000:]}\n{err[-3000:]}")
         res = json.loads((Path(o) / "result.json").read_text())
     # what must not change between trees: the best rig and score, the baselines' scores, the intervals
     digest = hashlib.sha256(json.dumps([res["best_score"], res["best_placement"], res["baseline_scores"],
                                         res["intervals"]], sort_keys=True).encode()).hexdigest()[:12]
-    last = f"results {digest} | " + (p.stdout.strip().splitlines() or [""])[-1]
-    table = p.stderr[p.stderr.find("place3d profile"):] if "place3d profile" in p.stderr else p.stderr[-3000:]
+    last = f"process exit {exited:.3f} s | results {digest} | " + (out.strip().splitlines() or [""])[-1]
+    table = err[err.find("place3d profile"):] if "place3d profile" in err else err[-3000:]
     return wall, last, table
 
 

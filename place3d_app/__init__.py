@@ -24,7 +24,7 @@ from __future__ import annotations
 import os
 import sys
 
-__all__ = ["main", "run", "leave", "server_request", "forward", "one_work_queue"]
+__all__ = ["main", "run", "leave", "returns_quickly", "server_request", "forward", "one_work_queue"]
 
 #: The option that asks for the server; ``--server=PATH`` names its socket.
 FLAG = "--server"
@@ -112,8 +112,24 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run() -> None:
-    """The ``place3d`` console script: ``main``, then ``leave`` with its exit code."""
+    """The ``place3d`` console script: ``main``, then ``leave`` with its exit code; a kernel command run here
+    runs in a child process whose teardown the shell does not wait for (``place3d_app.quick_return``)."""
+    from place3d_app import quick_return
+
+    if returns_quickly(sys.argv[1:]) and quick_return.can_fork():
+        quick_return.start()
     leave(main())
+
+
+def returns_quickly(argv: list[str], environ=None) -> bool:
+    """Whether the console script runs ``argv`` (without the program name) in a child whose teardown it does not
+    wait for (``place3d_app.quick_return``): a kernel command (``ONE_QUEUE_COMMANDS``: CUDA contexts and large
+    arrays, the slow ends) run here (no server asked for: a client of ``place3d serve`` holds neither), with
+    the fast exit on (``PLACE3D_FAST_EXIT`` not 0)."""
+    environ = os.environ if environ is None else environ
+    server, _, rest = server_request(argv, environ)
+    return (_subcommand(rest) in ONE_QUEUE_COMMANDS and server is None
+            and environ.get(FAST_EXIT_ENV, "1").strip() != "0")
 
 
 def leave(code) -> None:
@@ -148,6 +164,9 @@ def leave(code) -> None:
                 stream.flush()
         except (OSError, ValueError):            # a closed pipe (place3d ... | head), a closed stream
             code = code or 120                   # the code Python's exit gives when its flush fails
+    quick = sys.modules.get("place3d_app.quick_return")
+    if quick is not None:
+        quick.report(code)                       # the console script's waiting parent leaves now (run)
     os._exit(code)
 
 

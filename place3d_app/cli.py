@@ -211,6 +211,11 @@ def main(argv=None) -> int:
     set_command_line(None if argv is None else ["place3d", *argv])
     from place3d_app.messages import cli_output
 
+    quick = sys.modules.get("place3d_app.quick_return")
+    if args.profile and quick is not None and quick.waiting_parent() is not None:
+        from place3d_kernels.profiling import count_start_up_of
+
+        count_start_up_of(quick.waiting_parent())     # the start-up line counts from the console script's start
     try:
         # warnings and the library's log lines print as one line each (only those that matter under --quiet)
         with cli_output(quiet=bool(getattr(args, "quiet", False))), \
