@@ -106,7 +106,8 @@ def _wait(pid: int, read_end: int) -> None:
             pass
 
     for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(s, forward)
+        if signal.getsignal(s) is not signal.SIG_IGN:    # one ignored here (nohup, a background job) stays so
+            signal.signal(s, forward)
     data = b""
     # up to the newline: a process the child forked (not exec'd) may hold the pipe's write end for longer
     while not data.endswith(b"\n") and (chunk := os.read(read_end, 64)):   # EINTR: retried (PEP 475)

@@ -141,6 +141,22 @@ def test_sigint_to_the_parent_outside_a_terminal_interrupts_the_command(tmp_path
     assert out == "child output\ninterrupted\n"
 
 
+def test_a_signal_the_caller_ignores_stays_ignored(tmp_path):
+    # as nohup starts a command: SIGHUP ignored in the parent and (inherited) in the child
+    pid_file = tmp_path / "child.pid"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    p = subprocess.Popen([sys.executable, "-c", PROGRAM, str(pid_file), "wait", "0"], env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    child = _child_pid(pid_file)
+    p.send_signal(signal.SIGHUP)
+    time.sleep(0.5)
+    assert p.poll() is None and _alive(child)
+    p.send_signal(signal.SIGTERM)
+    p.communicate(timeout=60)
+    assert p.returncode == -signal.SIGTERM and _gone_within(child, 10)
+
+
 def test_a_killed_parent_takes_the_child_with_it(tmp_path):
     p, pid_file = _start(tmp_path, "wait")
     child = _child_pid(pid_file)
