@@ -143,7 +143,23 @@ def _start_worker(backend: str | None) -> None:
     # starts (on CUDA mostly the driver's context and module loads, foreign calls that let this thread run);
     # the task's first get_backend waits for that thread's (the registry makes each backend once)
     if backend:
-        threading.Thread(target=_resolve_backend, args=(backend,), daemon=True, name="place3d-backend").start()
+        start_backend(backend)
+
+
+_backends_started: set = set()
+_backends_lock = threading.Lock()
+
+
+def start_backend(backend: str) -> None:
+    """Resolve ``backend`` on a thread of its own, once per process (a worker's first task, or its start, asks):
+    a later ``get_backend`` of that name waits for it instead of starting it again."""
+    if not backend:
+        return
+    with _backends_lock:
+        if backend in _backends_started:
+            return
+        _backends_started.add(backend)
+    threading.Thread(target=_resolve_backend, args=(backend,), daemon=True, name="place3d-backend").start()
 
 
 def _resolve_backend(backend: str) -> None:

@@ -393,3 +393,40 @@ def test_an_idle_pool_is_ended_at_once_and_a_busy_one_finishes(method):
     f = ex.submit(time.sleep, 0.5)                      # a later submit starts new workers
     ex.shutdown(wait=False)                             # a task still runs: it is let finish
     assert f.result(timeout=30) is None
+
+
+
+HELD_OUT_TASK = """
+import dataclasses, json, sys
+from place3d_app import executors
+from place3d_app.cli import build_parser
+from place3d_app.commands import routes
+from place3d_app.commands.routes import drive_specs
+from place3d_kernels.spec import specs_from_args
+
+args = build_parser().parse_args(["optimize", "--frames", "8", "--voxel-size", "0.8", "--backend", "warp:cpu"])
+d = dataclasses.replace(drive_specs(args, specs_from_args(args))[0], backend="warp:cpu", cache=sys.argv[1])
+record = getattr(routes, sys.argv[2])(d)
+print(json.dumps({"started": sorted(executors._backends_started), "entries": len(record.voxels)}))
+"""
+
+
+@pytest.mark.parametrize("task,early", [("_build_spec", True), ("_build_part", True), ("_build_held_out", False)])
+def test_a_held_out_drive_does_not_start_its_backend_ahead(tmp_path, task, early):
+    # a searched drive's task (whole or a part) starts its worker's backend on a thread as it starts, beside the
+    # scene; a held-out drive's task leaves it to its simulation, after the scene: fewer CUDA contexts made at
+    # once while the parts wait for theirs. A fresh process each: the set is per process
+    import json
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    arg = "_build_part" if task == "_build_part" else task
+    program = HELD_OUT_TASK if task != "_build_part" else HELD_OUT_TASK.replace(
+        "getattr(routes, sys.argv[2])(d)", "routes._build_part((d, range(0, 1)))")
+    p = subprocess.run([sys.executable, "-c", program, str(tmp_path), arg], capture_output=True, text=True,
+                       env={**os.environ, "PYTHONPATH": str(root)}, timeout=300)
+    assert p.returncode == 0, p.stderr[-3000:]
+    got = json.loads(p.stdout.strip().splitlines()[-1])
+    assert got["entries"] > 0                          # the drive was built: its backend was made either way
+    assert got["started"] == (["warp:cpu"] if early else [])

@@ -130,7 +130,22 @@ def _build_spec(spec):
     """A worker's task: the drive's P-SOG built into the cache, and its record sent back, so the command pools
     it without reading the file again. The file is written on the worker's saver thread; the task waits for it
     unless the worker waits for it when it ends (``pipeline.saves_outlive_tasks``, the process executor's
-    workers): the command then has the record 0.2-0.3 s sooner, and the cache is whole when the workers end."""
+    workers): the command then has the record 0.2-0.3 s sooner, and the cache is whole when the workers end.
+    The worker's backend starts at once, on a thread, while the scene is built."""
+    from place3d_app.executors import start_backend
+
+    start_backend(spec.backend)
+    return _build_held_out(spec)
+
+
+def _build_held_out(spec):
+    """``_build_spec`` for a drive needed only after the search (optimize's held-out drives): the worker's
+    backend is started when the simulation asks for it, after the scene. The driver makes CUDA contexts one
+    after another: twelve workers starting theirs at once (eight parts and four held-out drives) had them
+    0.66 s after their start, 0.2-0.3 s after the parts' scenes were built; with the held-out drives' contexts
+    made after their scenes the parts had theirs 0.58 s after their start, the searched drives were back
+    1.28 [1.23-1.32] s after they were sent instead of 1.39 [1.31-1.80] s, and the held-out drives ended no
+    later (H200, 6 cold default optimizes each; bench/results/ab-2026-12-01-s39/)."""
     from place3d_kernels.pipeline import end_task_saves
     from place3d_kernels.pooled import DriveRecord
 
@@ -141,10 +156,12 @@ def _build_spec(spec):
 
 def _build_part(task):
     """A worker's task: ``(spec, subsets)``'s record (``PSOGSpec.build_part``), not cached (the command merges
-    the parts and has ``_save_drive`` write the drive)."""
+    the parts and has ``_save_drive`` write the drive); the worker's backend starts at once, as ``_build_spec``."""
+    from place3d_app.executors import start_backend
     from place3d_kernels.pooled import DriveRecord
 
     spec, subsets = task
+    start_backend(spec.backend)
     return DriveRecord.from_psog(spec.build_part(subsets, cache=spec.cache or True), spec.scene.label)
 
 
@@ -236,14 +253,15 @@ def build_missing(args, specs, backend, later=()) -> int:
         if isinstance(backend, Future):
             backend = backend.result()
         name = backend_name(backend)
-        ex.backend = name
+        # each task starts its worker's backend (none at the worker's start): a held-out drive's only after
+        # its scene (_build_held_out)
         with section("drives: worker processes (start, build, send)"):
             # the cache folder resolved here: a forkserver's workers have the server's environment, which may
             # be older than this command's ($PLACE3D_CACHE set since, or a served client's)
             folder = str(cache_dir())
             first_tasks = [_submit_drive(ex, dataclasses.replace(s, backend=name, cache=s.cache or folder), parts)
                            for s in first]
-            building = {s: ex.submit(_build_spec, dataclasses.replace(s, backend=name, cache=s.cache or folder))
+            building = {s: ex.submit(_build_held_out, dataclasses.replace(s, backend=name, cache=s.cache or folder))
                         for s in rest}
             records = [_finish_drive(ex, spec, tasks) for spec, tasks in first_tasks]
         done = True
