@@ -13,11 +13,11 @@ down. The mold linker ends the same way for the same reason.
 Nothing a command promises changes: its outputs and cache files are written, and its streams flushed, before
 the parent hears the code. A child that ends without sending one (killed, crashed, or ended through
 ``sys.exit``, as argparse does for a bad option) is waited for, and the parent ends with its status: the same
-exit code, or the same signal. The parent passes SIGTERM, SIGHUP and SIGINT on to the child
-(not a Ctrl-C at the terminal, which reaches the child itself: both are in the terminal's foreground process
-group; the child stops the command and sends 130), and when the parent itself is killed the kernel kills the
-child (``PR_SET_PDEATHSIG``). Linux only (the fork happens before any thread or
-library exists); ``PLACE3D_FAST_EXIT=0`` turns it off with ``leave``'s own shortcut.
+exit code, or the same signal. The parent passes SIGTERM, SIGHUP and SIGINT on to the child (not a Ctrl-C at
+the terminal, which reaches the child itself: both are in the terminal's foreground process group; the child
+stops the command and sends 130; a signal the caller ignores, as nohup does, stays ignored), and when the parent
+itself is killed the kernel kills the child (``PR_SET_PDEATHSIG``). Linux only (the fork happens before any
+thread or library exists); ``PLACE3D_FAST_EXIT=0`` turns it off with ``leave``'s own shortcut.
 
 Standard library only: it runs before the package is imported.
 """
@@ -89,7 +89,7 @@ def _die_with(parent: int) -> None:
         import ctypes
 
         ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))   # 1: PR_SET_PDEATHSIG
-    except (OSError, AttributeError):   # no prctl here: the child then outlives a killed parent, as a thread would not
+    except (OSError, AttributeError):   # no prctl here: a killed parent then leaves the command to finish alone
         pass
     if os.getppid() != parent:
         os._exit(1)
