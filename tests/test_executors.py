@@ -425,7 +425,8 @@ def test_a_held_out_drive_does_not_start_its_backend_ahead(tmp_path, task, early
     program = HELD_OUT_TASK if task != "_build_part" else HELD_OUT_TASK.replace(
         "getattr(routes, sys.argv[2])(d)", "routes._build_part((d, range(0, 1)))")
     p = subprocess.run([sys.executable, "-c", program, str(tmp_path), arg], capture_output=True, text=True,
-                       env={**os.environ, "PYTHONPATH": str(root)}, timeout=300)
+                       env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))},
+                       timeout=300)
     assert p.returncode == 0, p.stderr[-3000:]
     got = json.loads(p.stdout.strip().splitlines()[-1])
     assert got["entries"] > 0                          # the drive was built: its backend was made either way
