@@ -127,25 +127,30 @@ DRIVE_PARTS = 2
 
 
 def _build_spec(spec):
-    """A worker's task: the drive's P-SOG built into the cache, and its record sent back, so the command pools
-    it without reading the file again. The file is written on the worker's saver thread; the task waits for it
-    unless the worker waits for it when it ends (``pipeline.saves_outlive_tasks``, the process executor's
-    workers): the command then has the record 0.2-0.3 s sooner, and the cache is whole when the workers end.
-    The worker's backend starts at once, on a thread, while the scene is built."""
+    """A worker's task: the drive's record (``_drive_record``), the worker's backend started at once, on a
+    thread, while the scene is built."""
     from place3d_app.executors import start_backend
 
     start_backend(spec.backend)
-    return _build_held_out(spec)
+    return _drive_record(spec)
 
 
 def _build_held_out(spec):
-    """``_build_spec`` for a drive needed only after the search (optimize's held-out drives): the worker's
-    backend is started when the simulation asks for it, after the scene. The driver makes CUDA contexts one
-    after another: twelve workers starting theirs at once (eight parts and four held-out drives) had them
-    0.66 s after their start, 0.2-0.3 s after the parts' scenes were built; with the held-out drives' contexts
-    made after their scenes the parts had theirs 0.58 s after their start, the searched drives were back
-    1.28 [1.23-1.32] s after they were sent instead of 1.39 [1.31-1.80] s, and the held-out drives ended no
-    later (H200, 6 cold default optimizes each; bench/results/ab-2026-12-01-s39/)."""
+    """A worker's task for a drive needed only after the search (optimize's held-out drives): its record
+    (``_drive_record``), the worker's backend started when the simulation asks for it, after the scene. The
+    driver makes CUDA contexts one after another: twelve workers starting theirs at once (eight parts and four
+    held-out drives) had them 0.66 s after their start, 0.2-0.3 s after the parts' scenes were built; with the
+    held-out drives' contexts made after their scenes the parts had theirs 0.58 s after their start, the
+    searched drives were back 1.28 [1.23-1.32] s after they were sent instead of 1.39 [1.31-1.80] s, and the
+    held-out drives ended no later (H200, 6 cold default optimizes each; bench/results/ab-2026-12-01-s39/)."""
+    return _drive_record(spec)
+
+
+def _drive_record(spec):
+    """The drive's P-SOG built into the cache, and its record sent back, so the command pools it without
+    reading the file again. The file is written on the worker's saver thread; the task waits for it unless the
+    worker waits for it when it ends (``pipeline.saves_outlive_tasks``, the process executor's workers): the
+    command then has the record 0.2-0.3 s sooner, and the cache is whole when the workers end."""
     from place3d_kernels.pipeline import end_task_saves
     from place3d_kernels.pooled import DriveRecord
 
