@@ -92,7 +92,12 @@ def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = N
                    for n, f in (("stdout", p.stdout), ("stderr", p.stderr))]
         for r in readers:
             r.start()
-        code = p.wait(timeout=600)
+        try:
+            code = p.wait(timeout=600)
+        except subprocess.TimeoutExpired:       # as subprocess.run(timeout=) did: the command killed, then raised
+            p.kill()
+            p.wait()
+            raise
         exited = time.perf_counter() - t         # the command's own process has ended (a shell's prompt returns)
         for r in readers:
             r.join(timeout=600)
