@@ -205,6 +205,57 @@ def test_missing_drives_are_built_in_worker_processes_with_the_same_pool(tmp_pat
     assert build_missing(argparse.Namespace(no_cache=True, quiet=True), specs, "warp:cpu") == 0
 
 
+def test_drive_workers_do_not_wait_for_a_running_probe(tmp_path, monkeypatch):
+    # optimize's probe (a Future) still running: the workers take the name the command was given and resolve it
+    # themselves, so build_missing returns with the drives built while the probe has not answered (it would
+    # answer in 60 s: code that waited for it returns after that)
+    import argparse
+    import threading
+    from concurrent.futures import Future
+
+    from place3d_app.commands.routes import _workers_backend, build_missing
+    from place3d_kernels.backends.registry import get_backend
+
+    monkeypatch.setenv("PLACE3D_WORKERS", "2")
+    monkeypatch.setattr("place3d_app.executors.usable_cores", lambda: 2)
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "c"))
+    _, specs = _drives(["optimize", *TINY, "--route-seeds", "3,4", "--backend", "warp:cpu"])
+    opts = argparse.Namespace(no_cache=False, quiet=True, backend="warp:cpu")
+    probe = Future()
+    late = threading.Timer(60, probe.set_result, (get_backend("warp:cpu"),))
+    late.start()
+    try:
+        assert build_missing(opts, specs, probe) == 2
+        assert not probe.done() and set(opts.built) == set(specs)
+    finally:
+        late.cancel()
+    # the name the workers take: the one given, else $PLACE3D_BACKEND, else auto; a finished probe's own
+    monkeypatch.delenv("PLACE3D_BACKEND", raising=False)
+    assert _workers_backend(argparse.Namespace(backend=None), Future()) == "auto"
+    monkeypatch.setenv("PLACE3D_BACKEND", "reference")
+    assert _workers_backend(argparse.Namespace(backend=None), Future()) == "reference"
+    assert _workers_backend(argparse.Namespace(backend=" warp:cpu "), Future()) == "warp:cpu"
+    done = Future()
+    done.set_result(get_backend("warp:cpu"))
+    assert _workers_backend(argparse.Namespace(backend="auto"), done) == "warp:cpu"
+
+
+def test_optimize_with_drives_to_build_and_a_backend_that_does_not_resolve_says_so_once(tmp_path):
+    # the workers start on the name given while the probe runs (_workers_backend): a name that resolves nowhere is
+    # still reported once, exit 2, no traceback
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PLACE3D_CACHE": str(tmp_path / "c"), "PLACE3D_WORKERS": "2"}
+    r = subprocess.run([sys.executable, "-m", "place3d_app", "optimize", *TINY, "--route-seeds", "3,4",
+                        "--max-evals", "12", "--backend", "nosuch"], env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    assert r.stderr.count("Unknown or unavailable backend 'nosuch'") == 1
+
+
 def test_evaluate_with_drives_to_build_and_a_backend_that_does_not_resolve_says_so_once(tmp_path):
     # with drives to build in worker processes, a backend name that does not resolve is reported once, in
     # the probe's own words (no worker traceback), exit 2

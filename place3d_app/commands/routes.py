@@ -9,6 +9,7 @@ warns that the order is not converged.
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 import time
 
@@ -215,12 +216,10 @@ def build_missing(args, specs, backend, later=()) -> int:
     A drive counts as cached when its cache file exists (``PSOGSpec.cache_file``: found without building
     its scene; one whose scene key was never remembered counts as missing). Nothing is started for fewer
     than two missing drives, one usable core, ``--no-cache``, or an executor other than the local one
-    (Ray runs place their own work). ``backend`` may be a Future (optimize's probe), waited for only here."""
-    from concurrent.futures import Future
-
+    (Ray runs place their own work). ``backend`` may be a Future (optimize's probe), which the workers do not
+    wait for (``_workers_backend``)."""
     from place3d_app.executors import ProcessExecutor, command_start_method, default_workers
     from place3d_kernels.sog import cache_dir
-    from place3d_kernels.spec import backend_name
 
     if getattr(args, "no_cache", False) or getattr(args, "ray_address", None) \
             or getattr(args, "executor", "local") not in ("local", "auto", None):
@@ -244,9 +243,9 @@ def build_missing(args, specs, backend, later=()) -> int:
         return 0
     t = time.perf_counter()
     # the workers' server (a forkserver on Linux, command_start_method) imports NumPy, Warp and the drive modules
-    # (SciPy's parts too for OpenDRIVE maps) while this process waits for its backend probe; the workers are
-    # forked from it once the backend's name is known, and ended as soon as every drive has returned (a worker's
-    # last file is written before it ends)
+    # (SciPy's parts too for OpenDRIVE maps) while this process makes its backend on the probe's thread; the
+    # workers are forked from it as soon as it has them, and ended as soon as every drive has returned (a
+    # worker's last file is written before it ends)
     asked = backend if isinstance(backend, str) else getattr(backend, "name", None) or getattr(args, "backend", None)
     ex = ProcessExecutor(n, start_method=command_start_method(), preload=str(asked or "auto"),
                          opendrive=any(s.scene.kind == "opendrive" for s in first + rest))
@@ -255,9 +254,7 @@ def build_missing(args, specs, backend, later=()) -> int:
     done = False
     try:
         ex.start_server()
-        if isinstance(backend, Future):
-            backend = backend.result()
-        name = backend_name(backend)
+        name = _workers_backend(args, backend)
         # each task starts its worker's backend (none at the worker's start): a held-out drive's only after
         # its scene (_build_held_out)
         with section("drives: worker processes (start, build, send)"):
@@ -283,6 +280,27 @@ def build_missing(args, specs, backend, later=()) -> int:
         print(f"built {len(first)} drives{how} in {n} worker processes in {time.perf_counter() - t:.1f} s{also}",
               file=sys.stderr)
     return len(first) + len(rest)
+
+
+def _workers_backend(args, backend) -> str:
+    """The backend name the drive workers start: ``backend``'s name, or, while ``backend`` is a probe still
+    running (optimize's ``Future``), the name the command was given (``--backend``, else ``$PLACE3D_BACKEND``,
+    else ``auto``), which each worker resolves itself: on this machine it resolves as the probe does, and a
+    P-SOG is the same bit for bit on every backend (tests/test_cross_backend.py). So the workers are forked as
+    soon as their server has its imports, not once this process has started its own backend as well (Warp's
+    import and a CUDA context: 0.44-0.61 s of a cold default optimize on the H200 host). The drives' step of a
+    cold default optimize then ended at 1.76 [1.59-1.91] s of its profile instead of 1.93 [1.77-2.09] s
+    (5 runs each, H200; bench/results/ab-2026-12-01-s40/). A name no worker can resolve fails in the workers
+    with the message the probe would give."""
+    from concurrent.futures import Future
+
+    from place3d_kernels.spec import backend_name
+
+    if isinstance(backend, Future):
+        if not backend.done():
+            return str(getattr(args, "backend", None) or os.environ.get("PLACE3D_BACKEND") or "auto").strip()
+        backend = backend.result()
+    return backend_name(backend)
 
 
 def _submit_drive(ex, spec, parts: int):
