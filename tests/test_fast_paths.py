@@ -260,3 +260,40 @@ def test_bit_count_equals_numpy_whatever_the_words_per_thread(per):
     high = (masks >> np.uint64(32)).astype(np.uint32)
     np.testing.assert_array_equal(masked.numpy(), np.bitwise_count(host.reshape(P, words) & high).sum(axis=1))
     assert k.count_words_per_thread(2**24) == 1024 and k.count_words_per_thread(2**24 - 1) == k.COUNT_WORDS
+
+
+@pytest.mark.parametrize("words", [1, 5003, 70_001])
+def test_cuda_clearing_count_with_a_mask_equals_numpy(words):
+    """CUDA's one pass after a score launch (``count_clear_masked_kernel``, the ``uncertain`` / ``evidence``
+    denominators): every set bit and the masked ones per candidate, as NumPy counts them, and the bitsets
+    zero afterwards; as the masked count_bits pass and count_clear gave them. Skipped without a CUDA device."""
+    wp = pytest.importorskip("warp")
+    from place3d_kernels.backends.registry import get_backend
+
+    try:
+        b = get_backend("warp:cuda:0")
+    except Exception as e:  # noqa: BLE001 - no CUDA device here
+        pytest.skip(f"no CUDA device: {e}")
+    rng = np.random.default_rng(words)
+    P = 4
+    host = rng.integers(0, 2**32, P * words, dtype=np.uint64).astype(np.uint32)
+    host[rng.random(P * words) < 0.7] = 0                 # most words untouched, as a rig's walk leaves them
+    host[words:2 * words] = 0                            # a candidate with nothing covered
+    masks = rng.integers(0, 2**63, words, dtype=np.uint64)
+    high = (masks >> np.uint64(32)).astype(np.uint32)
+    results = []
+    for fused in (True, False):
+        bits = wp.array(host, dtype=wp.uint32, device=b.device)
+        m = wp.array(masks, dtype=wp.uint64, device=b.device)
+        counts, masked = (wp.zeros(P, dtype=wp.int64, device=b.device) for _ in range(2))
+        if fused:
+            b._count_bits(bits, P, words, counts, masked, m)
+        else:
+            b._count_words(bits, P, words, masked, m)
+            b._count_bits(bits, P, words, counts)
+        assert not bits.numpy().any()
+        results.append((counts.numpy(), masked.numpy()))
+    np.testing.assert_array_equal(results[0][0], np.bitwise_count(host.reshape(P, words)).sum(axis=1))
+    np.testing.assert_array_equal(results[0][1], np.bitwise_count(host.reshape(P, words) & high).sum(axis=1))
+    np.testing.assert_array_equal(results[0][0], results[1][0])
+    np.testing.assert_array_equal(results[0][1], results[1][1])

@@ -344,27 +344,38 @@ class WarpScoring:
                         bits[a * words:b * words], sums[a:b]]
 
             self._launch_groups(self.k.score_kernel, P, rays, cand_range)
-        for e, h in enumerate(extra):          # before _count_bits, which zeroes the CUDA bitsets
-            # its covered voxels of nonzero weight: the bits set where its masks have their nonzero bit
-            self._count_words(bits, P, words, both[(2 + e) * P:(3 + e) * P], h.nonzero_words(self.device.is_cuda))
-        self._count_bits(bits, P, words, counts)
+        if self.device.is_cuda and len(extra) == 1:
+            # one pass counts every set bit and the 0/1 grid's, and zeroes the bitsets
+            self._count_bits(bits, P, words, counts, both[2 * P:3 * P], extra[0].nonzero_words(True))
+        else:
+            for e, h in enumerate(extra):          # before _count_bits, which zeroes the CUDA bitsets
+                # its covered voxels of nonzero weight: the bits set where its masks have their nonzero bit
+                self._count_words(bits, P, words, both[(2 + e) * P:(3 + e) * P], h.nonzero_words(self.device.is_cuda))
+            self._count_bits(bits, P, words, counts)
         out = both.numpy()
         # each grid its own counts array (the same covered voxels), so no caller's change reaches another's
         return [(out[:P], out[P:2 * P])] + [(out[(2 + e) * P:(3 + e) * P], out[P:2 * P].copy())
                                             for e in range(len(extra))]
 
-    def _count_bits(self, bits, P: int, words: int, counts) -> None:
+    def _count_bits(self, bits, P: int, words: int, counts, masked=None, masks=None) -> None:
         """counts[c] = set bits of candidate c's bitset (P candidates of ``words`` words each); on CUDA the
-        bitsets are left zero."""
+        bitsets are left zero, and with ``masks`` (CUDA only: ``nonzero_words(True)`` of a 0/1 grid)
+        ``masked[c]`` gets the set bits that grid's nonzero weights keep, in the same pass."""
         if self.device.is_cuda:
             g = self.score_gpu
             if words > g.MAX_WORDS:
                 raise ValueError(f"{words:,} bitset words per candidate; the CUDA bit count indexes at most "
                                  f"{g.MAX_WORDS:,} (a coarser voxel size or a smaller grid)")
             t = g.count_threads_per_candidate(words, P)
-            wp.launch(g.count_clear_kernel, dim=P * t, device=self.device, inputs=[bits, int(words), int(t), counts],
-                      block_dim=g.SCORE_BLOCK_DIM)
+            if masks is None:
+                wp.launch(g.count_clear_kernel, dim=P * t, device=self.device,
+                          inputs=[bits, int(words), int(t), counts], block_dim=g.SCORE_BLOCK_DIM)
+            else:
+                wp.launch(g.count_clear_masked_kernel, dim=P * t, device=self.device,
+                          inputs=[bits, int(words), int(t), masks, counts, masked], block_dim=g.SCORE_BLOCK_DIM)
             return
+        if masks is not None:
+            raise ValueError("a masked count in the clearing pass is CUDA's; on the CPU count_words counts it")
         self._count_words(bits, P, words, counts)
 
     def _count_words(self, bits, P: int, words: int, counts, masks=None) -> None:
