@@ -286,7 +286,7 @@ def _workers_backend(args, backend) -> str:
     """The backend name the drive workers start: ``backend``'s name, or, while ``backend`` is a probe still
     running (optimize's ``Future``), the name the command was given (``--backend``, else ``$PLACE3D_BACKEND``,
     else ``auto``), which each worker resolves itself: on this machine it resolves as the probe does, and a
-    P-SOG is the same bit for bit on every backend (tests/test_cross_backend.py). So the workers are forked as
+    P-SOG is the same bit for bit on every backend (tests/test_sog.py, tests/test_pipeline.py). So the workers are forked as
     soon as their server has its imports, not once this process has started its own backend as well (Warp's
     import and a CUDA context: 0.44-0.61 s of a cold default optimize on the H200 host). The drives' step of a
     cold default optimize then ended at 1.76 [1.59-1.91] s of its profile instead of 1.93 [1.77-2.09] s
