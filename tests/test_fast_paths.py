@@ -264,7 +264,7 @@ def test_bit_count_equals_numpy_whatever_the_words_per_thread(per):
 
 @pytest.mark.parametrize("words", [1, 5003, 70_001])
 def test_cuda_clearing_count_with_a_mask_equals_numpy(words):
-    """CUDA's one pass after a score launch (``count_clear_masked_kernel``, the ``uncertain`` / ``evidence``
+    """CUDA's one pass after a score launch (``count_clear_kernel`` with masks, the ``uncertain`` / ``evidence``
     denominators): every set bit and the masked ones per candidate, as NumPy counts them, and the bitsets
     zero afterwards; as the masked count_bits pass and count_clear gave them. Skipped without a CUDA device."""
     wp = pytest.importorskip("warp")

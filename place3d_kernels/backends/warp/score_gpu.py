@@ -418,12 +418,16 @@ def count_threads_per_candidate(words: int, candidates: int) -> int:
 
 @wp.kernel
 def count_clear_kernel(bits: wp.array(dtype=wp.uint32), words_per_candidate: wp.int32,
-                       threads_per_candidate: wp.int32, counts: wp.array(dtype=wp.int64)):
-    # counts[c] += set bits of candidate c's bitset; the words read are left zero
+                       threads_per_candidate: wp.int32, masks: wp.array(dtype=wp.uint64), has_masks: wp.int32,
+                       counts: wp.array(dtype=wp.int64), masked: wp.array(dtype=wp.int64)):
+    # counts[c] += set bits of candidate c's bitset; the words read are left zero. With has_masks, in the same
+    # pass masked[c] += the set bits whose voxel the masks' high halves keep (a 0/1 grid's nonzero weights: the
+    # "evidence" and "uncertain" denominators, counted by a pass of their own, uncoalesced, before 2026-12-01)
     tid = wp.tid()
     cand = tid / threads_per_candidate
     p = word_address(bits, wp.int64(cand) * wp.int64(words_per_candidate))
     n = wp.int32(0)
+    m = wp.int32(0)
     c = tid - cand * threads_per_candidate
     if c < words_per_candidate:
         # words c, c + T, ... below words_per_candidate (a count, so the index never passes 2^31 - 1)
@@ -432,32 +436,8 @@ def count_clear_kernel(bits: wp.array(dtype=wp.uint32), words_per_candidate: wp.
             v = load_word(p, at)
             if v != wp.uint32(0):
                 n += wp.bit_count(v)
-                store_word(p, at, wp.uint32(0))
-    if n > 0:
-        wp.atomic_add(counts, cand, wp.int64(n))
-
-
-@wp.kernel
-def count_clear_masked_kernel(bits: wp.array(dtype=wp.uint32), words_per_candidate: wp.int32,
-                              threads_per_candidate: wp.int32, masks: wp.array(dtype=wp.uint64),
-                              counts: wp.array(dtype=wp.int64), masked: wp.array(dtype=wp.int64)):
-    # count_clear_kernel, and in the same pass masked[c] += the set bits of candidate c whose voxel the masks'
-    # high halves keep (a 0/1 grid's nonzero weights: the "evidence" and "uncertain" denominators). Before, a
-    # count_bits_kernel pass read the bitsets for these, each thread a run of consecutive words (a warp's loads
-    # 64 words apart), and this one read them again: 0.29 + 0.17 ms of each default search generation on an H200
-    tid = wp.tid()
-    cand = tid / threads_per_candidate
-    p = word_address(bits, wp.int64(cand) * wp.int64(words_per_candidate))
-    n = wp.int32(0)
-    m = wp.int32(0)
-    c = tid - cand * threads_per_candidate
-    if c < words_per_candidate:
-        for q in range((words_per_candidate - 1 - c) / threads_per_candidate + 1):
-            at = c + q * threads_per_candidate
-            v = load_word(p, at)
-            if v != wp.uint32(0):
-                n += wp.bit_count(v)
-                m += wp.bit_count(v & wp.uint32(masks[at] >> wp.uint64(32)))
+                if has_masks != 0:
+                    m += wp.bit_count(v & wp.uint32(masks[at] >> wp.uint64(32)))
                 store_word(p, at, wp.uint32(0))
     if n > 0:
         wp.atomic_add(counts, cand, wp.int64(n))

@@ -345,8 +345,9 @@ class WarpScoring:
 
             self._launch_groups(self.k.score_kernel, P, rays, cand_range)
         if self.device.is_cuda and len(extra) == 1:
-            # one pass counts every set bit and the 0/1 grid's, and zeroes the bitsets (count_clear_masked_kernel:
-            # 0.540 -> 0.387 ms a call for 14 candidates on the 0.1 m grid, H200; bench/results/ab-2026-12-01-s40/)
+            # one pass counts every set bit and the 0/1 grid's, and zeroes the bitsets (count_clear_kernel with
+            # masks: 0.540 -> 0.387 ms a call for 14 candidates on the 0.1 m grid, H200;
+            # bench/results/ab-2026-12-01-s40/)
             self._count_bits(bits, P, words, counts, both[2 * P:3 * P], extra[0].nonzero_words(True))
         else:
             for e, h in enumerate(extra):          # before _count_bits, which zeroes the CUDA bitsets
@@ -368,12 +369,10 @@ class WarpScoring:
                 raise ValueError(f"{words:,} bitset words per candidate; the CUDA bit count indexes at most "
                                  f"{g.MAX_WORDS:,} (a coarser voxel size or a smaller grid)")
             t = g.count_threads_per_candidate(words, P)
-            if masks is None:
-                wp.launch(g.count_clear_kernel, dim=P * t, device=self.device,
-                          inputs=[bits, int(words), int(t), counts], block_dim=g.SCORE_BLOCK_DIM)
-            else:
-                wp.launch(g.count_clear_masked_kernel, dim=P * t, device=self.device,
-                          inputs=[bits, int(words), int(t), masks, counts, masked], block_dim=g.SCORE_BLOCK_DIM)
+            with_masks = masks is not None
+            wp.launch(g.count_clear_kernel, dim=P * t, device=self.device,
+                      inputs=[bits, int(words), int(t), masks if with_masks else self._no_masks(), int(with_masks),
+                              counts, masked if with_masks else counts], block_dim=g.SCORE_BLOCK_DIM)
             return
         if masks is not None:
             raise ValueError("a masked count in the clearing pass is CUDA's; on the CPU count_words counts it")
