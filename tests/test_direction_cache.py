@@ -100,8 +100,9 @@ def test_a_kept_bitset_comes_back_zeroed_and_is_not_shared():
 def test_the_cuda_bit_count_counts_and_leaves_the_bitsets_zero(threads):
     """score_gpu.count_clear_kernel (run here on Warp's CPU device) gives each candidate's set bits, for any
     threads per candidate (a last word not on a thread's stride, more threads than words), and leaves every
-    word zero; count_threads_per_candidate keeps 64 words a thread for small bitsets and about 2^18
-    threads for large ones."""
+    word zero; with masks, in the same pass, the set bits under the masks' high halves (the ``uncertain`` /
+    ``evidence`` denominators); count_threads_per_candidate keeps 64 words a thread for small bitsets and about
+    2^18 threads for large ones."""
     wp = pytest.importorskip("warp")
     from place3d_kernels.backends.warp import score_gpu as g
 
@@ -110,10 +111,17 @@ def test_the_cuda_bit_count_counts_and_leaves_the_bitsets_zero(threads):
     host = rng.integers(0, 2**32, P * words, dtype=np.uint64).astype(np.uint32)
     host[words:2 * words] = 0                     # a candidate with nothing covered
     host[2 * words:2 * words + 100] = 0           # and zero words among set ones
-    bits = wp.array(host, dtype=wp.uint32, device="cpu")
-    counts = wp.zeros(P, dtype=wp.int64, device="cpu")
-    wp.launch(g.count_clear_kernel, dim=P * threads, device="cpu", inputs=[bits, words, threads, counts])
-    np.testing.assert_array_equal(counts.numpy(), np.bitwise_count(host.reshape(P, words)).sum(axis=1))
-    assert not bits.numpy().any()
+    masks = rng.integers(0, 2**63, words, dtype=np.uint64)
+    high = (masks >> np.uint64(32)).astype(np.uint32)
+    for with_masks in (0, 1):
+        bits = wp.array(host, dtype=wp.uint32, device="cpu")
+        counts, masked = (wp.zeros(P, dtype=wp.int64, device="cpu") for _ in range(2))
+        m = wp.array(masks if with_masks else masks[:1], dtype=wp.uint64, device="cpu")
+        wp.launch(g.count_clear_kernel, dim=P * threads, device="cpu",
+                  inputs=[bits, words, threads, m, with_masks, counts, masked])
+        np.testing.assert_array_equal(counts.numpy(), np.bitwise_count(host.reshape(P, words)).sum(axis=1))
+        want = np.bitwise_count(host.reshape(P, words) & high).sum(axis=1) if with_masks else np.zeros(P)
+        np.testing.assert_array_equal(masked.numpy(), want)
+        assert not bits.numpy().any()
     assert g.count_threads_per_candidate(6400, 22) == 100
     assert g.count_threads_per_candidate(2**23, 16) == 2**14
