@@ -44,6 +44,10 @@ elif what == "sys-exit":
 elif what == "signal":
     os.kill(os.getpid(), signal.SIGUSR1)
     time.sleep(10)
+elif what == "wait-hup":               # a command with a SIGHUP handler of its own, then as "wait"
+    signal.signal(signal.SIGHUP, lambda *_: print("child got SIGHUP", flush=True))
+    time.sleep(30)
+    os._exit(0)
 elif what == "wait":                   # until a signal ends it (SIGINT: KeyboardInterrupt, as a command gets)
     try:
         time.sleep(30)
@@ -142,19 +146,22 @@ def test_sigint_to_the_parent_outside_a_terminal_interrupts_the_command(tmp_path
 
 
 def test_a_signal_the_caller_ignores_stays_ignored(tmp_path):
-    # as nohup starts a command: SIGHUP ignored in the parent and (inherited) in the child
+    # as nohup starts a command: SIGHUP ignored where the parent starts. The parent does not pass a SIGHUP sent to
+    # it on to the child, even to a command that handles SIGHUP itself ("wait-hup"); both go on
     pid_file = tmp_path / "child.pid"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    p = subprocess.Popen([sys.executable, "-c", PROGRAM, str(pid_file), "wait", "0"], env=env, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True,
+    p = subprocess.Popen([sys.executable, "-c", PROGRAM, str(pid_file), "wait-hup", "0"], env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
     child = _child_pid(pid_file)
+    time.sleep(0.3)                            # the child's own handler is installed after its pid file
     p.send_signal(signal.SIGHUP)
     time.sleep(0.5)
     assert p.poll() is None and _alive(child)
     p.send_signal(signal.SIGTERM)
-    p.communicate(timeout=60)
+    out, _ = p.communicate(timeout=60)
     assert p.returncode == -signal.SIGTERM and _gone_within(child, 10)
+    assert "child got SIGHUP" not in out
 
 
 def test_a_killed_parent_takes_the_child_with_it(tmp_path):
