@@ -395,7 +395,6 @@ def test_an_idle_pool_is_ended_at_once_and_a_busy_one_finishes(method):
     assert f.result(timeout=30) is None
 
 
-
 HELD_OUT_TASK = """
 import dataclasses, json, sys
 from place3d_app import executors
@@ -421,10 +420,9 @@ def test_a_held_out_drive_does_not_start_its_backend_ahead(tmp_path, task, early
     import sys
 
     root = Path(__file__).resolve().parents[1]
-    arg = "_build_part" if task == "_build_part" else task
     program = HELD_OUT_TASK if task != "_build_part" else HELD_OUT_TASK.replace(
         "getattr(routes, sys.argv[2])(d)", "routes._build_part((d, range(0, 1)))")
-    p = subprocess.run([sys.executable, "-c", program, str(tmp_path), arg], capture_output=True, text=True,
+    p = subprocess.run([sys.executable, "-c", program, str(tmp_path), task], capture_output=True, text=True,
                        env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))},
                        timeout=300)
     assert p.returncode == 0, p.stderr[-3000:]
