@@ -9,7 +9,6 @@ warns that the order is not converged.
 from __future__ import annotations
 
 import dataclasses
-import os
 import sys
 import time
 
@@ -284,21 +283,23 @@ def build_missing(args, specs, backend, later=()) -> int:
 
 def _workers_backend(args, backend) -> str:
     """The backend name the drive workers start: ``backend``'s name, or, while ``backend`` is a probe still
-    running (optimize's ``Future``), the name the command was given (``--backend``, else ``$PLACE3D_BACKEND``,
-    else ``auto``), which each worker resolves itself: on this machine it resolves as the probe does, and a
-    P-SOG is the same bit for bit on every backend (tests/test_sog.py, tests/test_pipeline.py). So the workers are forked as
-    soon as their server has its imports, not once this process has started its own backend as well (Warp's
-    import and a CUDA context: 0.44-0.61 s of a cold default optimize on the H200 host). The drives' step of a
-    cold default optimize then ended at 1.76 [1.59-1.91] s of its profile instead of 1.93 [1.77-2.09] s
-    (5 runs each, H200; bench/results/ab-2026-12-01-s40/). A name no worker can resolve fails in the workers
-    with the message the probe would give."""
+    running (optimize's ``Future``), the name the command was given (``--backend``, else
+    ``registry.default_name``: ``$PLACE3D_BACKEND``, else ``auto``), which each worker resolves itself: on this
+    machine it resolves as the probe does, and a P-SOG is the same bit for bit on every backend
+    (tests/test_sog.py, tests/test_pipeline.py). So the workers are forked as soon as their server has its
+    imports, not once this process has started its own backend as well (Warp's import and a CUDA context:
+    0.44-0.61 s of a cold default optimize on the H200 host). The drives' step of a cold default optimize then
+    ended at 1.76 [1.59-1.91] s of its profile instead of 1.93 [1.77-2.09] s (5 runs each, H200;
+    bench/results/ab-2026-12-01-s40/). A name no worker can resolve fails in the workers with the message the
+    probe would give."""
     from concurrent.futures import Future
 
+    from place3d_kernels.backends.registry import default_name
     from place3d_kernels.spec import backend_name
 
     if isinstance(backend, Future):
         if not backend.done():
-            return str(getattr(args, "backend", None) or os.environ.get("PLACE3D_BACKEND") or "auto").strip()
+            return str(getattr(args, "backend", None) or default_name()).strip()
         backend = backend.result()
     return backend_name(backend)
 

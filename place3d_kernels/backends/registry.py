@@ -22,8 +22,8 @@ import threading
 from dataclasses import dataclass
 from functools import lru_cache
 
-__all__ = ["Family", "FAMILIES", "available_backends", "get_backend", "use_backend", "resolve", "backend_report",
-           "forget"]
+__all__ = ["Family", "FAMILIES", "available_backends", "default_name", "get_backend", "use_backend", "resolve",
+           "backend_report", "forget"]
 
 
 @dataclass(frozen=True)
@@ -211,10 +211,16 @@ def _construct(full: str):
     return cls(device) if spec.devices is not None else cls()
 
 
+def default_name() -> str:
+    """The name ``get_backend(None)`` resolves: the innermost ``use_backend`` scope's, else ``$PLACE3D_BACKEND``,
+    else ``"auto"``."""
+    return _current.get() or os.environ.get("PLACE3D_BACKEND") or "auto"
+
+
 def get_backend(name: str | object | None = None):
-    """The Backend for a name (``None`` = the current default); instances are cached per name."""
+    """The Backend for a name (``None`` = the current default, ``default_name``); instances are cached per name."""
     if name is None:
-        name = _current.get() or os.environ.get("PLACE3D_BACKEND") or "auto"
+        name = default_name()
     if not isinstance(name, str):
         return name  # already a Backend
     inst = _instances.get(name)
