@@ -8,7 +8,6 @@ import numpy as np
 
 from place3d_kernels.scene.bodies import Body, vehicle_body
 from place3d_kernels.scene.opendrive_routes import Route
-from place3d_kernels.scene.primitives import transform
 from place3d_kernels.scene.props import Props
 
 __all__ = ["Raster", "RoadDistance", "road_area_points", "roadside", "fill", "edge_frame", "edge_geometry", "route_parking"]
@@ -124,7 +123,7 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes,
                 m, _ = vehicle_body(rng, "car" if rng.random() < 0.85 else "van")
                 L = float(m.bounds[1, 0] - m.bounds[0, 0])
                 p = r.poses([u + L / 2])[0]
-                T.b.add(transform(m.vertices, p[0], p[1], p[2], yaw=p[5]), m.faces, m.labels)
+                T.b.add_moved(m.vertices, m.faces, m.labels, p[0], p[1], p[2], yaw=p[5])
                 boxes.append(_box_of(m, p[0], p[1], p[2], p[5]))
                 parked += 1
                 u += L + rng.uniform(0.8, 2.5)
@@ -175,7 +174,7 @@ def roadside(T: Props, rng, raster: Raster, edges, lanes, height_at, opt, boxes,
                 px, py = x + n[0] * 2.2, y + n[1] * 2.2
                 if raster.take(px, py, 4.8, 2.0, yaw, 0.3):
                     z0 = height_at(x, y)
-                    T.b.add(transform(m.vertices, px, py, z0, yaw=yaw), m.faces, m.labels)
+                    T.b.add_moved(m.vertices, m.faces, m.labels, px, py, z0, yaw=yaw)
                     boxes.append(_box_of(m, px, py, z0, yaw))
                     parked += 1
             u += rng.uniform(5.0, 12.0)
@@ -262,7 +261,7 @@ def route_parking(T: Props, rng, raster: Raster, edges, route_xy, height_at, box
             px, py = x + n[0] * 2.2, y + n[1] * 2.2
             if rng.random() < 0.7 and raster.take(px, py, hi[0] - lo[0], hi[1] - lo[1], yaw, 0.3):
                 z0 = height_at(px, py)
-                T.b.add(transform(m.vertices, px, py, z0, yaw=yaw), m.faces, m.labels)
+                T.b.add_moved(m.vertices, m.faces, m.labels, px, py, z0, yaw=yaw)
                 boxes.append(_box_of(m, px, py, z0, yaw))
                 parked += 1
             u += rng.uniform(5.0, 15.0)

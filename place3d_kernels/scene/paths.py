@@ -16,12 +16,15 @@ class Path:
     """A planar curve sampled densely; poses by arc length (linear extrapolation past both ends)."""
 
     def __init__(self, points: np.ndarray):
-        p = np.asarray(points, float)
-        keep = np.r_[True, np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-9]
-        p = p[keep]
-        self.points = p
+        p = np.array(points, float)        # a copy: the path never shares the caller's array
         d = np.diff(p, axis=0)
         seg = np.linalg.norm(d, axis=1)
+        keep = seg > 1e-9
+        if not keep.all():          # repeated points dropped, the rest measured again
+            p = p[np.r_[True, keep]]
+            d = np.diff(p, axis=0)
+            seg = np.linalg.norm(d, axis=1)
+        self.points = p
         self.s = np.r_[0.0, np.cumsum(seg)]
         head = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
         # yaw at vertices: mean of adjacent segment headings
@@ -65,14 +68,19 @@ def _arcs(corners: np.ndarray, radii, step: float) -> np.ndarray:
     P = np.asarray(corners, float)
     radii = np.broadcast_to(np.asarray(radii, float), (len(P),))
     pts = [P[:1]]                 # blocks of rows, joined once
+    made = {}                     # a corner met again (a walker's next lap) gives the same arc: made once
     for i in range(1, len(P) - 1):
+        seen = (P[i - 1:i + 2].tobytes(), float(radii[i]))
+        if seen in made:
+            pts.append(made[seen])
+            continue
         u, w = P[i] - P[i - 1], P[i + 1] - P[i]
         lu, lw = np.linalg.norm(u), np.linalg.norm(w)
         u, w = u / lu, w / lw
         cross = u[0] * w[1] - u[1] * w[0]
         theta = math.acos(float(np.clip(u @ w, -1.0, 1.0)))
         if theta < 1e-6:
-            pts.append(P[i:i + 1])
+            pts.append(made.setdefault(seen, P[i:i + 1]))
             continue
         t = min(radii[i] * math.tan(theta / 2), 0.49 * lu, 0.49 * lw)
         r = t / math.tan(theta / 2)
@@ -82,7 +90,7 @@ def _arcs(corners: np.ndarray, radii, step: float) -> np.ndarray:
         a0 = math.atan2(A[1] - centre[1], A[0] - centre[0])
         k = max(2, int(math.ceil(r * theta / step)))
         a = a0 + sgn * theta * np.linspace(0, 1, k + 1)
-        pts.append(np.stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)], 1))
+        pts.append(made.setdefault(seen, np.stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)], 1)))
     pts.append(P[-1:])
     return np.concatenate(pts)
 

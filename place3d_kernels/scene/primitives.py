@@ -178,13 +178,35 @@ def slab_grid(xs, ys, z0: float, z1: float) -> tuple[np.ndarray, np.ndarray, np.
 
 def transform(v, x=0.0, y=0.0, z=0.0, yaw=0.0, scale=1.0) -> np.ndarray:
     """Scale (scalar or per-axis), rotate about +z by ``yaw`` and translate vertices."""
-    v = np.asarray(v, float) * np.asarray(scale, float)
-    c, s = np.cos(yaw), np.sin(yaw)
-    out = np.empty_like(v)
-    out[:, 0] = c * v[:, 0] - s * v[:, 1] + x
-    out[:, 1] = s * v[:, 0] + c * v[:, 1] + y
-    out[:, 2] = v[:, 2] + z
-    return out
+    return _Moved.apply([_Moved(v, x, y, z, yaw, scale)], np.array([len(v)]))
+
+
+class _Moved:
+    """A part's vertices ``v`` and the ``transform`` that moves them, kept until ``MeshBuilder.arrays``."""
+
+    __slots__ = ("v", "x", "y", "z", "yaw", "scale")
+
+    def __init__(self, v, x, y, z, yaw, scale):
+        self.v, self.x, self.y, self.z, self.yaw, self.scale = v, x, y, z, yaw, scale
+
+    def __len__(self) -> int:
+        return len(self.v)
+
+    @staticmethod
+    def apply(moved: list, counts: np.ndarray) -> np.ndarray:
+        """Every part's moved vertices, one after the other: ``transform``'s products, sums and differences,
+        element for element (scaled, then turned, then shifted), for all parts in one pass."""
+        v = np.concatenate([np.asarray(m.v, float) for m in moved])
+        scale = np.array([(m.scale,) * 3 if np.ndim(m.scale) == 0 else m.scale for m in moved], float)
+        v = v * np.repeat(scale, counts, axis=0)
+        yaw = np.array([m.yaw for m in moved], float)
+        c, s = np.repeat(np.cos(yaw), counts), np.repeat(np.sin(yaw), counts)
+        x, y, z = (np.repeat(np.array([getattr(m, k) for m in moved], float), counts) for k in "xyz")
+        out = np.empty_like(v)
+        out[:, 0] = c * v[:, 0] - s * v[:, 1] + x
+        out[:, 1] = s * v[:, 0] + c * v[:, 1] + y
+        out[:, 2] = v[:, 2] + z
+        return out
 
 
 def instances(v, f, positions, yaws=None, scales=None) -> tuple[np.ndarray, np.ndarray]:
@@ -212,19 +234,26 @@ def instances(v, f, positions, yaws=None, scales=None) -> tuple[np.ndarray, np.n
 
 
 class MeshBuilder:
-    """Collects labelled parts and batched boxes, then emits one Mesh."""
+    """Collects labelled parts, moved parts and batched boxes, then emits one Mesh."""
 
     def __init__(self) -> None:
-        self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        # (vertices, faces, label) in order; a moved part's vertices are a _Moved, made in arrays()
+        self._parts: list[tuple] = []
         self._box_c: list = []
         self._box_s: list = []
         self._box_y: list = []
         self._box_l: list = []
 
     def add(self, v, f, label) -> None:
-        f = np.asarray(f)
-        lab = np.broadcast_to(np.asarray(label, dtype=np.int32), (len(f),))
-        self._parts.append((np.asarray(v, float), f, lab))
+        """A part: vertices, faces and its label (one for all faces, or one per face)."""
+        self._parts.append((np.asarray(v, float), np.asarray(f), label))
+
+    def add_moved(self, v, f, label, x=0.0, y=0.0, z=0.0, yaw=0.0, scale=1.0) -> None:
+        """``add(transform(v, x, y, z, yaw, scale), f, label)``, the same arrays, with the transforms of all parts
+        added so made in one pass (``arrays``): a town adds about 1,300 small parts (trees, poles, parked cars),
+        each a dozen NumPy calls on a few dozen vertices when moved one by one. ``v`` must not change
+        before ``arrays`` (templates and bodies never do)."""
+        self._parts.append((_Moved(v, x, y, z, yaw, scale), np.asarray(f), label))
 
     def add_box(self, cx, cy, z0, sx, sy, sz, yaw=0.0, label=0) -> None:
         """A box standing on ``z0`` (bottom), centred at (cx, cy), size (sx, sy, sz), rotated by yaw."""
@@ -250,9 +279,24 @@ class MeshBuilder:
         if self._box_c:
             v, f = boxes(np.array(self._box_c), np.array(self._box_s), np.array(self._box_y))
             parts.append((v, f, np.repeat(np.array(self._box_l, dtype=np.int32), BOX_TRIANGLES)))
-        offs = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
-        return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] + o for p, o in zip(parts, offs)]),
-                np.concatenate([p[2] for p in parts]))
+        nv = np.array([len(p[0]) for p in parts])
+        nf = np.array([len(p[1]) for p in parts])
+        first = np.cumsum(nv) - nv
+        verts = np.empty((int(nv.sum()), 3))
+        moved = [i for i, p in enumerate(parts) if isinstance(p[0], _Moved)]
+        for i, p in enumerate(parts):
+            if not isinstance(p[0], _Moved):
+                verts[first[i]:first[i] + nv[i]] = p[0]
+        if moved:
+            rows = np.repeat(first[moved] - np.cumsum(nv[moved]) + nv[moved], nv[moved]) + np.arange(nv[moved].sum())
+            verts[rows] = _Moved.apply([parts[i][0] for i in moved], nv[moved])
+        faces = np.concatenate([p[1] for p in parts]) + np.repeat(first, nf)[:, None]
+        one = [np.ndim(p[2]) == 0 for p in parts]
+        labels = np.repeat(np.array([p[2] if o else 0 for p, o in zip(parts, one)], dtype=np.int32), nf)
+        start = np.cumsum(nf) - nf
+        for i in np.flatnonzero(~np.array(one)):
+            labels[start[i]:start[i] + nf[i]] = parts[i][2]
+        return verts, faces, labels
 
     def build(self):
         from place3d_kernels.mesh import Mesh

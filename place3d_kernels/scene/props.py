@@ -8,7 +8,7 @@ import numpy as np
 
 from place3d_kernels.classes import CLASS_ID
 from place3d_kernels.scene.bodies import template, vehicle_body
-from place3d_kernels.scene.primitives import MeshBuilder, gable_roof, transform
+from place3d_kernels.scene.primitives import MeshBuilder, gable_roof
 
 __all__ = ["Props"]
 
@@ -41,22 +41,22 @@ class Props:
         th = max(rng.uniform(2.2, 3.4) * scale, trunk_min)
         tr = rng.uniform(0.14, 0.24) * scale
         pv, pf = template("prism6")
-        self.b.add(transform(pv, x, y, z0, scale=(tr, tr, th + 0.3)), pf, VEGETATION)
+        self.b.add_moved(pv, pf, VEGETATION, x, y, z0, scale=(tr, tr, th + 0.3))
         cr = rng.uniform(1.4, 2.6) * scale
         if crown_max is not None:
             cr = min(cr, crown_max)
         cz = rng.uniform(0.9, 1.4)
         iv, if_ = template("ico1")
-        self.b.add(transform(iv, x, y, z0 + th + cr * cz, yaw=rng.uniform(0, 6.3),
-                             scale=(cr, cr * rng.uniform(0.85, 1.0), cr * cz)), if_, VEGETATION)
+        self.b.add_moved(iv, if_, VEGETATION, x, y, z0 + th + cr * cz, yaw=rng.uniform(0, 6.3),
+                         scale=(cr, cr * rng.uniform(0.85, 1.0), cr * cz))
         if rng.random() < 0.35:  # a second, smaller blob on top
             c2 = cr * 0.7
-            self.b.add(transform(iv, x + rng.uniform(-0.4, 0.4) * (cr - c2), y + rng.uniform(-0.4, 0.4) * (cr - c2),
-                                 z0 + th + cr * cz * 1.7, scale=(c2, c2, c2 * cz)), if_, VEGETATION)
+            self.b.add_moved(iv, if_, VEGETATION, x + rng.uniform(-0.4, 0.4) * (cr - c2),
+                             y + rng.uniform(-0.4, 0.4) * (cr - c2), z0 + th + cr * cz * 1.7, scale=(c2, c2, c2 * cz))
 
     def cylinder(self, x, y, z0, r, h, label, n=8):
         pv, pf = template(f"prism{n}")
-        self.b.add(transform(pv, x, y, z0, scale=(r, r, h)), pf, label)
+        self.b.add_moved(pv, pf, label, x, y, z0, scale=(r, r, h))
 
     def lamp(self, x, y, z0, yaw):
         """A street lamp at (x, y) with its arm pointing along ``yaw``."""
@@ -78,10 +78,10 @@ class Props:
             v[:, 2] = (v[:, 2] - 0.5) * 0.04
             # turn the plate's axis from z to x (rotation about y by +90 deg), so it faces along yaw
             v = np.stack([v[:, 2], v[:, 1], -v[:, 0]], 1)
-            self.b.add(transform(v, x + ox, y + oy, z0 + 2.5, yaw=yaw), pf, SIGN)
+            self.b.add_moved(v, pf, SIGN, x + ox, y + oy, z0 + 2.5, yaw=yaw)
         elif shape == "tri":
             rv, rf = gable_roof(0.04, 0.8, 0.7)  # a thin triangular prism, base at z = 0
-            self.b.add(transform(rv, x + ox, y + oy, z0 + 2.2, yaw=yaw), rf, SIGN)
+            self.b.add_moved(rv, rf, SIGN, x + ox, y + oy, z0 + 2.2, yaw=yaw)
         elif shape == "rect":
             self.b.add_box(x + ox, y + oy, z0 + 2.0, 0.04, 0.6, 0.9, yaw, SIGN)
         else:
@@ -153,7 +153,7 @@ class Props:
 
     def vehicle(self, x, y, yaw, kind=None, z0=0.0):
         m, _ = vehicle_body(self.rng, kind)
-        self.b.add(transform(m.vertices, x, y, z0, yaw=yaw), m.faces, m.labels)
+        self.b.add_moved(m.vertices, m.faces, m.labels, x, y, z0, yaw=yaw)
 
     def building(self, x, y, z0, w, d, h, yaw=0.0, style=None):
         """A building centred at (x, y) with footprint w x d (local x, y), height h above z0."""
@@ -198,7 +198,7 @@ class Props:
         h = rng.uniform(3.0, 6.5)
         self.b.add_box(x, y, z0, w, d, h, yaw, BUILDING)
         rv, rf = gable_roof(w + 0.6, d + 0.6, rng.uniform(1.5, 3.0))
-        self.b.add(transform(rv, x, y, z0 + h, yaw=yaw), rf, BUILDING)
+        self.b.add_moved(rv, rf, BUILDING, x, y, z0 + h, yaw=yaw)
         if rng.random() < 0.5:  # chimney
             c, s = math.cos(yaw), math.sin(yaw)
             lx, ly = rng.uniform(-0.3, 0.3) * w, rng.uniform(-0.25, 0.25) * d

@@ -14,17 +14,17 @@ from place3d_kernels.scene.paths import DIRS, fillet, lane_path, walk
 __all__ = ["ego_drive", "place_actors"]
 
 
-def _obb_overlap(c1, yaw1, h1, c2, yaw2, h2) -> np.ndarray:
-    """Whether oriented rectangles overlap (SAT), vectorised over the leading axis.
+def _axes(yaw) -> np.ndarray:
+    """(N, 2, 2): each rectangle's unit x and y axes for yaws (N,)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], 1)
 
-    c: (N, 2) centres, yaw: (N,), h: (2,) or (N, 2) half extents.
+
+def _obb_overlap(c1, a1, h1, c2, a2, h2) -> np.ndarray:
+    """Whether oriented rectangles overlap (SAT), row by row.
+
+    c: (N, 2) centres, a: (N, 2, 2) axes (``_axes``), h: (N, 2) half extents.
     """
-    c1, c2 = np.asarray(c1, float), np.asarray(c2, float)
-    yaw1, yaw2 = np.asarray(yaw1, float), np.asarray(yaw2, float)
-    h1 = np.broadcast_to(np.asarray(h1, float), c1.shape)
-    h2 = np.broadcast_to(np.asarray(h2, float), c2.shape)
-    a1 = np.stack([np.stack([np.cos(yaw1), np.sin(yaw1)], -1), np.stack([-np.sin(yaw1), np.cos(yaw1)], -1)], 1)
-    a2 = np.stack([np.stack([np.cos(yaw2), np.sin(yaw2)], -1), np.stack([-np.sin(yaw2), np.cos(yaw2)], -1)], 1)
     d = c2 - c1
     sep = np.zeros(len(c1), bool)
     for axes in (a1, a2):
@@ -92,21 +92,31 @@ class _Placer:
 
     def __init__(self, ego_poses):
         self.ego_c = ego_poses[:, :2].copy()
-        self.eyaw = ego_poses[:, 5].copy()
-        self.ego_h = np.array([EGO_LENGTH / 2 + 0.4, EGO_WIDTH / 2 + 0.3])  # with a safety margin
+        self.ego_a = _axes(ego_poses[:, 5])
+        n = len(ego_poses)
+        self.ego_h = np.broadcast_to(np.array([EGO_LENGTH / 2 + 0.4, EGO_WIDTH / 2 + 0.3]), (n, 2))  # with a margin
         self.actors: list[Actor] = []
-        self.veh_boxes: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # centres (n,2), yaw (n,), half (2,)
+        # the accepted vehicles' boxes at every frame, one block of rows per vehicle: centres, axes, half extents
+        # (with a 0.3 m margin); a candidate is checked against all of them at once
+        self.veh_c = np.empty((0, 2))
+        self.veh_a = np.empty((0, 2, 2))
+        self.veh_h = np.empty((0, 2))
 
     def try_add(self, mesh, poses, tag, check_vehicles=True):
         off_c, half = _footprint(mesh)
         cen = _world_centre(poses, off_c)
-        if np.any(_obb_overlap(self.ego_c, self.eyaw, self.ego_h, cen, poses[:, 5], half)):
+        axes = _axes(poses[:, 5])
+        h = np.broadcast_to(half, cen.shape)
+        if np.any(_obb_overlap(self.ego_c, self.ego_a, self.ego_h, cen, axes, h)):
             return False
         if check_vehicles:
-            for oc, oy, oh in self.veh_boxes:
-                if np.any(_obb_overlap(oc, oy, oh + 0.3, cen, poses[:, 5], half)):
-                    return False
-            self.veh_boxes.append((cen, poses[:, 5], half))
+            k = len(self.veh_c) // len(cen)
+            if k and np.any(_obb_overlap(self.veh_c, self.veh_a, self.veh_h, np.tile(cen, (k, 1)),
+                                         np.tile(axes, (k, 1, 1)), np.tile(h, (k, 1)))):
+                return False
+            self.veh_c = np.concatenate([self.veh_c, cen])
+            self.veh_a = np.concatenate([self.veh_a, axes])
+            self.veh_h = np.concatenate([self.veh_h, np.broadcast_to(half + 0.3, cen.shape)])
         self.actors.append(Actor(mesh, poses, tag))
         return True
 

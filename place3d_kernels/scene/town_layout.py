@@ -8,7 +8,7 @@ import numpy as np
 
 from place3d_kernels.classes import CLASS_ID
 from place3d_kernels.scene.bodies import vehicle_body
-from place3d_kernels.scene.primitives import plane_grid, slab_grid, transform
+from place3d_kernels.scene.primitives import plane_grid, slab_grid
 from place3d_kernels.scene.props import Props
 from place3d_kernels.scene.town_blocks import BLOCK_KINDS, Occupancy
 from place3d_kernels.scene.town_furniture import sidewalk_furniture
@@ -119,7 +119,7 @@ def _parking_strip(T: Props, pt, a0, a1, v, yaw_road, along):
             x, y = pt(u + length / 2, v)
             # right-hand traffic: the south (axis 0) / east (axis 1) lane runs along +u
             yaw = yaw_road + (0.0 if along else math.pi)
-            b.add(transform(m.vertices, x, y, 0.0, yaw=yaw), m.faces, m.labels)
+            b.add_moved(m.vertices, m.faces, m.labels, x, y, 0.0, yaw=yaw)
             u += length + rng.uniform(0.8, 2.5)
         else:
             u += rng.uniform(4.0, 8.0)
