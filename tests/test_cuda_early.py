@@ -7,6 +7,8 @@ import json
 import os
 import subprocess
 import sys
+import threading
+import types
 from pathlib import Path
 
 import pytest
@@ -24,13 +26,41 @@ def test_which_names_take_a_cuda_device(name, ordinal):
     assert cuda_early.ordinal_of(name) == ordinal
 
 
-def test_nothing_starts_once_warp_is_imported_or_when_turned_off(monkeypatch):
+def test_nothing_starts_once_warp_is_initialised_or_when_turned_off(monkeypatch):
+    monkeypatch.setattr(cuda_early, "_started", set())
     monkeypatch.setitem(sys.modules, "warp", sys.modules.get("warp", object()))
+    monkeypatch.setattr(cuda_early, "_warp_initialised", lambda: True)
+    monkeypatch.setattr(cuda_early, "_retain", lambda ordinal: pytest.fail("retained after Warp's init"))
     assert cuda_early.start("warp:cuda:0") is None
     monkeypatch.delitem(sys.modules, "warp")
     monkeypatch.setenv(cuda_early.ENV, "0")
     assert cuda_early.start("warp:cuda:0") is None
     assert cuda_early.start("opencl:pocl") is None
+
+
+def test_an_imported_warp_not_yet_initialised_gets_the_context_first(monkeypatch):
+    # a worker forked from a server that imported Warp: the context is retained at once, on the caller's thread,
+    # before get_backend goes on to Warp's init
+    monkeypatch.setattr(cuda_early, "_started", set())
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.setitem(sys.modules, "warp", sys.modules.get("warp", object()))
+    monkeypatch.setattr(cuda_early, "_warp_initialised", lambda: False)
+    retained = []
+    monkeypatch.setattr(cuda_early, "_retain", lambda ordinal: retained.append((ordinal, threading.current_thread())))
+    assert cuda_early.start("warp:cuda:2") is None
+    assert retained == [(2, threading.current_thread())]
+    assert cuda_early.start("warp:cuda:2") is None and len(retained) == 1       # once per device and process
+
+
+def test_whether_warp_is_initialised_is_read_from_its_runtime(monkeypatch):
+    ctx = types.SimpleNamespace(runtime=None)
+    monkeypatch.setitem(sys.modules, "warp._src.context", ctx)
+    assert not cuda_early._warp_initialised()
+    ctx.runtime = object()
+    assert cuda_early._warp_initialised()
+    monkeypatch.delitem(sys.modules, "warp._src.context")
+    monkeypatch.delitem(sys.modules, "warp.context", raising=False)
+    assert cuda_early._warp_initialised()          # a layout it cannot read: nothing is started
 
 
 PROGRAM = """
@@ -45,6 +75,35 @@ again = cuda_early.start("auto")                      # once per device and proc
 b = get_backend("auto")
 print(json.dumps({"started": started, "again": again is None, "name": b.name, "available": available_backends()}))
 """
+
+
+PROGRAM_IMPORTED = """
+import json, sys
+import warp
+from place3d_kernels.backends import cuda_early
+from place3d_kernels.backends.registry import available_backends, get_backend
+before = cuda_early._warp_initialised()
+b = get_backend("auto")
+print(json.dumps({"started": 0 in cuda_early._started, "before": before, "name": b.name,
+                  "available": available_backends()}))
+"""
+
+
+@pytest.mark.parametrize("early", ["1", "0"])
+def test_a_process_that_imported_warp_gets_the_same_backend_either_way(early):
+    pytest.importorskip("warp")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+           cuda_early.ENV: early}
+    runs = {}
+    for setting in (early, "0"):
+        p = subprocess.run([sys.executable, "-c", PROGRAM_IMPORTED], capture_output=True, text=True, timeout=300,
+                           env={**env, cuda_early.ENV: setting})
+        assert p.returncode == 0, p.stderr
+        runs[setting] = json.loads(p.stdout.strip().splitlines()[-1])
+    got = runs[early]
+    assert got["before"] is False                    # imported, not initialised: what a forked worker has
+    assert got["started"] == (early == "1" and sys.platform.startswith("linux"))
+    assert got["name"] in got["available"] and got["name"] == runs["0"]["name"]
 
 
 @pytest.mark.parametrize("early", ["1", "0"])

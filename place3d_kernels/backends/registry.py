@@ -227,8 +227,9 @@ def get_backend(name: str | object | None = None):
     if inst is not None:
         return inst
     with _making:
-        if name not in _instances and "warp" not in sys.modules:
-            # a cold start of a Warp CUDA backend: the driver starts on a thread while Warp is imported (cuda_early.py)
+        if name not in _instances:
+            # a cold start of a Warp CUDA backend: the driver starts on a thread while Warp is imported, or first
+            # where Warp is imported but not initialised (a forked worker; cuda_early.py)
             from place3d_kernels.backends import cuda_early
 
             cuda_early.start(name)
