@@ -38,18 +38,51 @@ def test_nothing_starts_once_warp_is_initialised_or_when_turned_off(monkeypatch)
     assert cuda_early.start("opencl:pocl") is None
 
 
-def test_an_imported_warp_not_yet_initialised_gets_the_context_first(monkeypatch):
-    # a worker forked from a server that imported Warp: the context is retained at once, on the caller's thread,
-    # before get_backend goes on to Warp's init
+def test_an_imported_warp_not_yet_initialised_gets_the_context_started(monkeypatch):
+    # a worker forked from a server that imported Warp: the driver starts on a thread, as before an import
     monkeypatch.setattr(cuda_early, "_started", set())
+    monkeypatch.setattr(cuda_early, "_threads", [])
     monkeypatch.setattr(sys, "platform", "linux")
     monkeypatch.setitem(sys.modules, "warp", sys.modules.get("warp", object()))
     monkeypatch.setattr(cuda_early, "_warp_initialised", lambda: False)
-    retained = []
-    monkeypatch.setattr(cuda_early, "_retain", lambda ordinal: retained.append((ordinal, threading.current_thread())))
-    assert cuda_early.start("warp:cuda:2") is None
-    assert retained == [(2, threading.current_thread())]
-    assert cuda_early.start("warp:cuda:2") is None and len(retained) == 1       # once per device and process
+    monkeypatch.setattr(cuda_early.importlib.util, "find_spec", lambda n: object())
+    gate, retained = threading.Event(), []
+    monkeypatch.setattr(cuda_early, "_retain", lambda ordinal: (retained.append(ordinal), gate.wait(30)))
+    t = cuda_early.start("warp:cuda:2")
+    assert t is not None and cuda_early.pending() == [t]
+    assert cuda_early.start("warp:cuda:2") is None                 # once per device and process
+    gate.set()
+    t.join(30)
+    assert retained == [2] and cuda_early.pending() == []
+
+
+def test_warp_starts_after_the_context_with_its_kernels_imported(monkeypatch):
+    # host._init: with a context being made on cuda_early's thread, the kernels' modules are imported and the
+    # thread joined before Warp's init runs
+    import importlib
+
+    host = pytest.importorskip("place3d_kernels.backends.warp.host")
+    calls, real_import = [], importlib.import_module
+
+    class Making:
+        def join(self):
+            calls.append("join")
+
+    def importing(name, *a):
+        calls.append(name.rsplit(".", 1)[-1])
+        return real_import(name, *a)
+
+    monkeypatch.setattr(host, "_initialised", False)
+    monkeypatch.setattr(cuda_early, "pending", lambda: [Making()])
+    monkeypatch.setattr(importlib, "import_module", importing)
+    monkeypatch.setattr(host.wp, "init", lambda: calls.append("init"))
+    host._init()
+    assert calls == ["kernels", "score_gpu", "left_out_kernels", "join", "init"]
+    calls.clear()
+    monkeypatch.setattr(host, "_initialised", False)
+    monkeypatch.setattr(cuda_early, "pending", lambda: [])
+    host._init()
+    assert calls == ["init"]                    # nothing in flight: Warp's init as before
 
 
 def test_whether_warp_is_initialised_is_read_from_its_runtime(monkeypatch):

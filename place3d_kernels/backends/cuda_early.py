@@ -10,11 +10,9 @@ device in this process; Warp retains it once more). The two
 overlap (figures: bench/README.md, "What the studies found", cold command: kernels and start).
 
 Where Warp is imported but not yet initialised (a worker forked from a server that imported it,
-``place3d_app.forkserver``), :func:`start` makes the same calls at once, on the caller's thread, before
-Warp's ``init``: Warp then finds the context made. Forked workers that let Warp's ``init`` start the driver
-and then retain the context had their backend 0.96-1.01 s after their start, eight at once on the H200 host,
-1.37-1.42 s twelve at once; with the context retained first, 0.52-0.53 s and 0.71-0.72 s (0.24-0.46 s
-against 0.24-0.25 s alone; two rounds each; bench/results/ab-2026-12-01-s41/).
+``place3d_app.forkserver``), :func:`start` starts the same thread; the Warp backend's start then imports its
+kernels' modules while the driver works (about 0.18 s of Python that used to follow Warp's ``init``) and
+waits for the thread (:func:`pending`) before Warp's ``init``, which finds the context made.
 
 Only for names that pick a Warp CUDA device (``warp:cuda:N``, ``warp:cuda``, ``warp``, ``auto``), only
 while Warp is not initialised, only where Warp is installed and ``libcuda`` loads; every failure is
@@ -29,12 +27,13 @@ import re
 import sys
 import threading
 
-__all__ = ["start", "ordinal_of", "ENV"]
+__all__ = ["start", "pending", "ordinal_of", "ENV"]
 
 #: Environment variable: "0" = never start the driver early.
 ENV = "PLACE3D_CUDA_EARLY"
 
 _started: set[int] = set()
+_threads: list[threading.Thread] = []
 _lock = threading.Lock()
 
 
@@ -49,31 +48,32 @@ def ordinal_of(name: str) -> int | None:
 
 
 def start(name: str) -> threading.Thread | None:
-    """Start the CUDA driver and retain the primary context of the device ``name`` takes: on a daemon thread
-    while Warp is not imported (the thread is returned), at once where Warp is imported but not initialised
-    (None is returned, the context made); None when nothing was started (see the module's conditions)."""
+    """Start the CUDA driver and retain the primary context of the device ``name`` takes, on a daemon
+    thread (returned), or None when nothing was started (see the module's conditions)."""
     ordinal = ordinal_of(name)
     if (ordinal is None or ordinal in _started or os.environ.get(ENV, "1").strip() == "0"
             or not sys.platform.startswith("linux")):
         return None
-    imported = "warp" in sys.modules
-    if imported and _warp_initialised():
+    if "warp" in sys.modules and _warp_initialised():
         return None
     with _lock:
         if ordinal in _started:
             return None
         _started.add(ordinal)         # tried once per process, started or not: get_backend("auto") repeats
-    if imported:
-        _retain(ordinal)
-        return None
     try:
         if importlib.util.find_spec("warp") is None:
             return None
     except (ImportError, ValueError):
         return None
     t = threading.Thread(target=_retain, args=(ordinal,), name="place3d-cuda-start", daemon=True)
+    _threads.append(t)
     t.start()
     return t
+
+
+def pending() -> list[threading.Thread]:
+    """The threads :func:`start` started that are still making a context (Warp's start waits for them)."""
+    return [t for t in _threads if t.is_alive()]
 
 
 def _warp_initialised() -> bool:

@@ -44,6 +44,19 @@ def _init() -> None:
     if not _initialised:
         import logging
 
+        from place3d_kernels.backends import cuda_early
+
+        waiting = cuda_early.pending()
+        if waiting:
+            # the driver is making the context on another thread (cuda_early): the kernels' modules, Python
+            # that would otherwise follow Warp's init, are imported meanwhile; then Warp finds the context made
+            import importlib
+
+            for module in ("kernels", "score_gpu", "left_out_kernels"):
+                importlib.import_module(f"place3d_kernels.backends.warp.{module}")
+            for t in waiting:
+                t.join()
+
         if os.environ.get("PLACE3D_WARP_VERBOSE") is None:
             wp.config.log_level = logging.WARNING   # no init banner unless asked for
             # Warp's native library prints "Could not find or load the NVIDIA CUDA driver" straight to
