@@ -233,6 +233,18 @@ def instances(v, f, positions, yaws=None, scales=None) -> tuple[np.ndarray, np.n
     return out_v, out_f
 
 
+def _checked_label(label, f: np.ndarray):
+    """``label`` as a part keeps it: one value, or one per face (checked here, where the part is added)."""
+    if np.ndim(label) == 0:
+        return label
+    label = np.asarray(label)
+    if label.size == 1:
+        return label.reshape(()).item()
+    if label.shape != (len(f),):
+        raise ValueError(f"a part's labels must be one value or one per face ({len(f)}), got shape {label.shape}")
+    return label
+
+
 class MeshBuilder:
     """Collects labelled parts, moved parts and batched boxes, then emits one Mesh."""
 
@@ -246,14 +258,16 @@ class MeshBuilder:
 
     def add(self, v, f, label) -> None:
         """A part: vertices, faces and its label (one for all faces, or one per face)."""
-        self._parts.append((np.asarray(v, float), np.asarray(f), label))
+        f = np.asarray(f)
+        self._parts.append((np.asarray(v, float), f, _checked_label(label, f)))
 
     def add_moved(self, v, f, label, x=0.0, y=0.0, z=0.0, yaw=0.0, scale=1.0) -> None:
         """``add(transform(v, x, y, z, yaw, scale), f, label)``, the same arrays, with the transforms of all parts
         added so made in one pass (``arrays``): a town adds about 1,300 small parts (trees, poles, parked cars),
         each a dozen NumPy calls on a few dozen vertices when moved one by one. ``v`` must not change
         before ``arrays`` (templates and bodies never do)."""
-        self._parts.append((_Moved(v, x, y, z, yaw, scale), np.asarray(f), label))
+        f = np.asarray(f)
+        self._parts.append((_Moved(v, x, y, z, yaw, scale), f, _checked_label(label, f)))
 
     def add_box(self, cx, cy, z0, sx, sy, sz, yaw=0.0, label=0) -> None:
         """A box standing on ``z0`` (bottom), centred at (cx, cy), size (sx, sy, sz), rotated by yaw."""
@@ -288,6 +302,8 @@ class MeshBuilder:
             if not isinstance(p[0], _Moved):
                 verts[first[i]:first[i] + nv[i]] = p[0]
         if moved:
+            # the moved parts' vertices come out of apply one part after the other; row r of part j goes to
+            # first[j] + (r - where part j starts in apply's output)
             rows = np.repeat(first[moved] - np.cumsum(nv[moved]) + nv[moved], nv[moved]) + np.arange(nv[moved].sum())
             verts[rows] = _Moved.apply([parts[i][0] for i in moved], nv[moved])
         faces = np.concatenate([p[1] for p in parts]) + np.repeat(first, nf)[:, None]
