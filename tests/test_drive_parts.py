@@ -107,15 +107,16 @@ def test_drive_parts_leaves_a_quarter_of_the_cores():
     from place3d_app.commands.routes import DRIVE_PARTS, drive_parts
 
     assert DRIVE_PARTS == 2
-    assert drive_parts(4, 4, 16) == 2 and drive_parts(4, 5, 16) == 1 and drive_parts(4, 0, 11) == 2
-    assert drive_parts(4, 0, 10) == 1 and drive_parts(8, 0, 16) == 1 and drive_parts(4, 0, 2) == 1
-    assert drive_parts(0, 4, 16) == 1
+    # the workers are DRIVE_PARTS per drive of the larger group (the later drives' parts queue behind)
+    assert drive_parts(4, 4, 16) == 2 and drive_parts(4, 6, 16) == 2 and drive_parts(4, 7, 16) == 1
+    assert drive_parts(4, 0, 11) == 2 and drive_parts(4, 0, 10) == 1 and drive_parts(8, 0, 16) == 1
+    assert drive_parts(4, 0, 2) == 1 and drive_parts(0, 4, 16) == 1
 
 
 def test_missing_drives_built_in_parts_with_held_out_ones_later(tmp_path, monkeypatch):
-    # eight cores: two searched drives in two parts each and the held-out drive whole (five workers); the
-    # command has the searched drives' merged records when build_missing returns, the held-out one later, and
-    # the cache files of all three are those of whole builds
+    # eight cores: two searched drives in two parts each (four workers) and the held-out drive's two parts queued
+    # behind them; the command has the searched drives' merged records when build_missing returns, the held-out
+    # one later, and the cache files of all three are those of whole builds
     import argparse
 
     from place3d_app import executors
@@ -141,7 +142,7 @@ def test_missing_drives_built_in_parts_with_held_out_ones_later(tmp_path, monkey
     opts = argparse.Namespace(no_cache=False, quiet=True, backend="warp:cpu")
     assert build_missing(opts, specs, "warp:cpu", later=later) == 3
     (ex,) = made
-    assert ex.workers == 5 and set(opts.built) == set(specs) and set(opts.building) == set(later)
+    assert ex.workers == 4 and set(opts.built) == set(specs) and set(opts.building) == set(later)
     held = built_records(opts, later)
     end = time.monotonic() + 120
     while not hasattr(ex, "workers_at_end") or any(p.is_alive() for p in ex.workers_at_end):
@@ -152,3 +153,40 @@ def test_missing_drives_built_in_parts_with_held_out_ones_later(tmp_path, monkey
         _same_record(({**opts.built, **held})[s], DriveRecord.from_psog(whole, s.scene.label))
         _same_file(s.cache_file(cache=str(tmp_path / "workers")), s.cache_file(cache=str(tmp_path / "whole")))
     assert build_missing(opts, specs, "warp:cpu", later=later) == 0        # warm: nothing missing
+
+
+def test_later_drives_are_merged_as_they_come_back_and_a_failure_reaches_their_future():
+    # routes._finish_later on the thread build_missing leaves: each later drive's parts merged into its Future
+    # (the merged drive's write sent to the executor), a part's failure set on that drive's Future, and the pool
+    # let go once every later drive is done, without dropping the writes
+    from concurrent.futures import Future
+
+    from place3d_app.commands import routes
+
+    class Ex:
+        def __init__(self):
+            self.sent, self.ended = [], None
+
+        def submit(self, fn, task):
+            self.sent.append((fn.__name__, task[0]))
+            f = Future()
+            f.set_result(None)
+            return f
+
+        def shutdown(self, wait=True, cancel=True):
+            self.ended = (wait, cancel)
+
+    def done(value=None, error=None):
+        f = Future()
+        f.set_exception(error) if error else f.set_result(value)
+        return f
+
+    a = DriveRecord("a", 4, np.array([1, 2], np.int64), np.array([3, 3], np.int16), np.array([1, 2], np.int32))
+    b = DriveRecord("a", 4, np.array([2, 5], np.int64), np.array([3, 1], np.int16), np.array([1, 1], np.int32))
+    ex, building = Ex(), {"s1": Future(), "s2": Future()}
+    later = [("s1", ("spec1", [done(a), done(b)])), ("s2", ("spec2", [done(a), done(error=RuntimeError("gpu lost"))]))]
+    routes._finish_later(ex, later, building)
+    _same_record(building["s1"].result(), DriveRecord.merge([a, b]))
+    with pytest.raises(RuntimeError, match="gpu lost"):
+        building["s2"].result()
+    assert ex.sent == [("_save_drive", "spec1")] and ex.ended == (False, False)

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import threading
 import time
+from concurrent.futures import Future
 
 __all__ = ["add_route_arguments", "route_seeds", "drive_specs", "pooled_psog", "psog_for_routes",
            "build_missing", "built_records", "drive_parts", "DRIVE_PARTS", "SINGLE_ROUTE_WARNING"]
@@ -135,17 +137,6 @@ def _build_spec(spec):
     return _drive_record(spec)
 
 
-def _build_held_out(spec):
-    """A worker's task for a drive needed only after the search (optimize's held-out drives): its record
-    (``_drive_record``), the worker's backend started when the simulation asks for it, after the scene. The
-    driver makes CUDA contexts one after another: twelve workers starting theirs at once (eight parts and four
-    held-out drives) had them 0.66 s after their start, 0.2-0.3 s after the parts' scenes were built; with the
-    held-out drives' contexts made after their scenes the parts had theirs 0.58 s after their start, the
-    searched drives were back 1.28 [1.23-1.32] s after they were sent instead of 1.39 [1.31-1.80] s, and the
-    held-out drives ended no later (H200, 6 cold default optimizes each; bench/results/ab-2026-12-01-s39/)."""
-    return _drive_record(spec)
-
-
 def _drive_record(spec):
     """The drive's P-SOG built into the cache, and its record sent back, so the command pools it without
     reading the file again. The file is written on the worker's saver thread; the task waits for it unless the
@@ -180,12 +171,12 @@ def _save_drive(task):
 
 
 def drive_parts(first: int, later: int, workers: int) -> int:
-    """Parts each of ``first`` missing drives is built in, beside ``later`` drives built whole, by ``workers``
-    usable cores: ``DRIVE_PARTS`` where all those processes take at most three quarters of the cores, else 1
-    (a quarter stays for this process and the workers' own threads). On the H200 host (16 cores) twelve worker
-    processes (eight parts and four held-out drives) built the searched drives 0.3-0.4 s sooner than eight whole
-    drives, and sixteen 20-frame drives at once took as long as eight 40-frame ones."""
-    return DRIVE_PARTS if first and first * DRIVE_PARTS + later <= workers * 3 // 4 else 1
+    """Parts each of ``first`` missing drives, and of ``later`` ones (queued behind them), is built in by
+    ``workers`` usable cores: ``DRIVE_PARTS`` where the worker processes that takes (``DRIVE_PARTS`` per drive of
+    the larger group) are at most three quarters of the cores, else 1 (a quarter stays for this process and the
+    workers' own threads). On the H200 host (16 cores) eight part workers built the searched drives 0.3-0.4 s
+    sooner than eight whole drives, and sixteen 20-frame drives at once took as long as eight 40-frame ones."""
+    return DRIVE_PARTS if first and max(first, later) * DRIVE_PARTS <= workers * 3 // 4 else 1
 
 
 def built_records(args, specs) -> dict:
@@ -205,11 +196,12 @@ def build_missing(args, specs, backend, later=()) -> int:
     ``DriveRecord`` is kept in ``args.built`` ({spec: record}), which ``pooled_psog`` and ``pool_specs(known=...)``
     take instead of reading the file.
 
-    Where the cores allow (``drive_parts``), each missing drive of ``specs`` is built in ``DRIVE_PARTS`` parts
-    (``_build_part``) by as many workers, beside ``later``'s drives (optimize's held-out drives, needed after the
-    search) built whole: this returns when ``specs``' drives are back and merged, ``later``'s in
-    ``args.building`` ({spec: Future of its record}, ``built_records``); workers write the merged drives to the
-    cache (``_save_drive``), and leave once every task is done. Otherwise every drive is built
+    Where the cores allow (``drive_parts``), each missing drive is built in ``DRIVE_PARTS`` parts (``_build_part``),
+    ``specs``' drives first, one worker a part, and ``later``'s (optimize's held-out drives, needed after the
+    search) queued behind them: the same workers take them as they finish, their backends made already. This
+    returns when ``specs``' drives are back and merged, ``later``'s in ``args.building`` ({spec: Future of its
+    record}, ``built_records``), merged by a thread of this process as they come back; workers write the merged
+    drives to the cache (``_save_drive``), and leave once every task is done. Otherwise every drive is built
     whole at once and this returns when all are back.
 
     A drive counts as cached when its cache file exists (``PSOGSpec.cache_file``: found without building
@@ -237,7 +229,7 @@ def build_missing(args, specs, backend, later=()) -> int:
     parts = drive_parts(len(first), len(rest), cores)
     if parts == 1:
         first, rest = first + rest, []         # every drive whole, one worker each, as many as the cores
-    n = min(cores, len(first) * parts + len(rest))
+    n = min(cores, max(len(first), len(rest)) * parts)      # the later drives' parts queue behind
     if len(first) + len(rest) < 2 or n < 2:
         return 0
     t = time.perf_counter()
@@ -250,27 +242,35 @@ def build_missing(args, specs, backend, later=()) -> int:
                          opendrive=any(s.scene.kind == "opendrive" for s in first + rest))
     from place3d_kernels.profiling import section
 
-    done = False
+    done, later_tasks = False, []
+    building = {s: Future() for s in rest}
     try:
         ex.start_server()
         name = _workers_backend(args, backend)
-        # each task starts its worker's backend (none at the worker's start): a held-out drive's only after
-        # its scene (_build_held_out)
+        # each task starts its worker's backend (none at the worker's start)
         with section("drives: worker processes (start, build, send)"):
             # the cache folder resolved here: a forkserver's workers have the server's environment, which may
             # be older than this command's ($PLACE3D_CACHE set since, or a served client's)
             folder = str(cache_dir())
             first_tasks = [_submit_drive(ex, dataclasses.replace(s, backend=name, cache=s.cache or folder), parts)
                            for s in first]
-            building = {s: ex.submit(_build_held_out, dataclasses.replace(s, backend=name, cache=s.cache or folder))
-                        for s in rest}
+            # the drives needed later (optimize's held-out drives) in parts too, queued behind the searched ones:
+            # the same workers take them as they finish, their backends made already. Built beside the parts in
+            # four more workers, each making a CUDA context while the parts' were being made, they had kept the
+            # parts' contexts and GPU work waiting: a cold default optimize ended at 3.67 [3.44-3.80] s, 3.40
+            # [3.34-3.60] s so (H200, 6 runs each; the held-out drives back no later; bench/results/ab-2026-12-01-s41/)
+            later_tasks = [(s, _submit_drive(ex, dataclasses.replace(s, backend=name, cache=s.cache or folder), parts))
+                           for s in rest]
             records = [_finish_drive(ex, spec, tasks) for spec, tasks in first_tasks]
         done = True
     finally:
-        # the merged drives' writes and the held-out drives still queued or running finish before the workers
-        # leave (the interpreter's exit waits for them, so the cache is whole when the command ends); after a
-        # failure the tasks not started are dropped
-        ex.shutdown(wait=False, cancel=not done)
+        if done and later_tasks:
+            # the later drives are merged, and their files' writes sent to the workers, as they come back; then
+            # the pool is let go (its workers leave once every file is written)
+            threading.Thread(target=_finish_later, args=(ex, later_tasks, building), name="place3d-later-drives").start()
+        else:
+            # after a failure the tasks not started are dropped
+            ex.shutdown(wait=False, cancel=not done)
     args.built = {**(getattr(args, "built", None) or {}), **dict(zip(first, records))}
     args.building = {**(getattr(args, "building", None) or {}), **building}
     if not getattr(args, "quiet", False):
@@ -279,6 +279,19 @@ def build_missing(args, specs, backend, later=()) -> int:
         print(f"built {len(first)} drives{how} in {n} worker processes in {time.perf_counter() - t:.1f} s{also}",
               file=sys.stderr)
     return len(first) + len(rest)
+
+
+def _finish_later(ex, later_tasks, building) -> None:
+    """Merge each later drive's parts as they come back into its Future (``building``), sending the merged
+    drive's write to a worker; then let the pool go."""
+    try:
+        for (s, (spec, tasks)) in later_tasks:
+            try:
+                building[s].set_result(_finish_drive(ex, spec, tasks))
+            except BaseException as e:  # noqa: BLE001 - the held-out check reports it (built_records)
+                building[s].set_exception(e)
+    finally:
+        ex.shutdown(wait=False, cancel=False)
 
 
 def _workers_backend(args, backend) -> str:
