@@ -12,7 +12,9 @@ overlap (figures: bench/README.md, "What the studies found", cold command: kerne
 Where Warp is imported but not yet initialised (a worker forked from a server that imported it,
 ``place3d_app.forkserver``), :func:`start` starts the same thread; the Warp backend's start then imports its
 kernels' modules while the driver works (about 0.18 s of Python that used to follow Warp's ``init``) and
-waits for the thread (:func:`pending`) before Warp's ``init``, which finds the context made.
+waits for the thread (:func:`pending`) before Warp's ``init``, which finds the context made. On the H200 host the
+drive step of a cold default optimize ended 0.07-0.14 s sooner so (two leases, 6 runs each; no effect on
+``reproduce``; bench/results/ab-2026-12-01-s41/, sections 5 and 8).
 
 Only for names that pick a Warp CUDA device (``warp:cuda:N``, ``warp:cuda``, ``warp``, ``auto``), only
 while Warp is not initialised, only where Warp is installed and ``libcuda`` loads; every failure is
