@@ -228,8 +228,9 @@ def get_backend(name: str | object | None = None):
         return inst
     with _making:
         if name not in _instances:
-            # a cold start of a Warp CUDA backend: the driver starts on a thread while Warp is imported, or first
-            # where Warp is imported but not initialised (a forked worker; cuda_early.py)
+            # a cold start of a Warp CUDA backend: the driver starts on a thread while Warp is imported, or, where
+            # Warp is imported but not initialised (a forked worker), while Warp's start imports its kernels
+            # (cuda_early.py)
             from place3d_kernels.backends import cuda_early
 
             cuda_early.start(name)
