@@ -269,6 +269,12 @@ def test_fillet_points_match_earlier_rows(rng):
         want = CurvePath(_old_fillet_points(corners, radii))
         got = fillet(corners, radii)
         assert got.points.tobytes() == want.points.tobytes() and got.yaw.tobytes() == want.yaw.tobytes()
+    for laps in (1, 3):                 # a walker's laps: each corner met again is filleted once (paths._arcs)
+        ring = np.array([(0, 0), (70.5, 0), (70.5, 71.2), (0, 71.2)]) + rng.uniform(-2, 2, 2)
+        corners = np.concatenate([ring] * laps + [ring[:1]])
+        want = CurvePath(_old_fillet_points(corners, 1.0, 0.2))
+        got = fillet(corners, 1.0, 0.2)
+        assert got.points.tobytes() == want.points.tobytes() and got.s.tobytes() == want.s.tobytes()
 
 
 def test_entropy_in_blocks_is_the_whole_array_entropy(town_frames, monkeypatch):

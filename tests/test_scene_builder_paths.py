@@ -4,8 +4,6 @@ change every result)."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
@@ -13,7 +11,7 @@ from place3d_kernels.classes import CLASS_ID
 from place3d_kernels.mesh import Mesh, _twice_areas
 from place3d_kernels.scene import town
 from place3d_kernels.scene.bodies import template, vehicle_body
-from place3d_kernels.scene.paths import Path, _arcs, fillet
+from place3d_kernels.scene.paths import Path, fillet
 from place3d_kernels.scene.primitives import MeshBuilder, boxes, transform
 from place3d_kernels.scene.town_actors import _axes, _obb_overlap
 
@@ -85,51 +83,6 @@ def ref_vehicle(rng, kind):
     return ref_arrays(parts, bc, bs, by, bl)
 
 
-def ref_arcs(corners, radii, step):
-    P = np.asarray(corners, float)
-    radii = np.broadcast_to(np.asarray(radii, float), (len(P),))
-    pts = [P[:1]]
-    for i in range(1, len(P) - 1):
-        u, w = P[i] - P[i - 1], P[i + 1] - P[i]
-        lu, lw = np.linalg.norm(u), np.linalg.norm(w)
-        u, w = u / lu, w / lw
-        cross = u[0] * w[1] - u[1] * w[0]
-        theta = math.acos(float(np.clip(u @ w, -1.0, 1.0)))
-        if theta < 1e-6:
-            pts.append(P[i:i + 1])
-            continue
-        t = min(radii[i] * math.tan(theta / 2), 0.49 * lu, 0.49 * lw)
-        r = t / math.tan(theta / 2)
-        A = P[i] - u * t
-        sgn = 1.0 if cross > 0 else -1.0
-        centre = A + sgn * r * np.array([-u[1], u[0]])
-        a0 = math.atan2(A[1] - centre[1], A[0] - centre[0])
-        k = max(2, int(math.ceil(r * theta / step)))
-        a = a0 + sgn * theta * np.linspace(0, 1, k + 1)
-        pts.append(np.stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)], 1))
-    pts.append(P[-1:])
-    return np.concatenate(pts)
-
-
-def ref_obb_overlap(c1, yaw1, h1, c2, yaw2, h2):
-    c1, c2 = np.asarray(c1, float), np.asarray(c2, float)
-    h1 = np.broadcast_to(np.asarray(h1, float), c1.shape)
-    h2 = np.broadcast_to(np.asarray(h2, float), c2.shape)
-    a1 = np.stack([np.stack([np.cos(yaw1), np.sin(yaw1)], -1), np.stack([-np.sin(yaw1), np.cos(yaw1)], -1)], 1)
-    a2 = np.stack([np.stack([np.cos(yaw2), np.sin(yaw2)], -1), np.stack([-np.sin(yaw2), np.cos(yaw2)], -1)], 1)
-    d = c2 - c1
-    sep = np.zeros(len(c1), bool)
-    for axes in (a1, a2):
-        for k in range(2):
-            ax = axes[:, k]
-            r1 = h1[:, 0] * np.abs(np.einsum("nj,nj->n", ax, a1[:, 0])) + \
-                h1[:, 1] * np.abs(np.einsum("nj,nj->n", ax, a1[:, 1]))
-            r2 = h2[:, 0] * np.abs(np.einsum("nj,nj->n", ax, a2[:, 0])) + \
-                h2[:, 1] * np.abs(np.einsum("nj,nj->n", ax, a2[:, 1]))
-            sep |= np.abs(np.einsum("nj,nj->n", ax, d)) > r1 + r2
-    return ~sep
-
-
 # ------------------------------------------------------------------ the tests
 def test_moved_parts_are_the_parts_moved_one_by_one():
     rng = np.random.default_rng(3)
@@ -182,16 +135,6 @@ def test_face_areas_and_extents_are_numpys_to_the_bit():
     assert degenerate.valid_faces.tolist() == [1]
 
 
-def test_fillets_of_a_walkers_laps_are_the_corner_by_corner_arcs():
-    rng = np.random.default_rng(0)
-    for laps in (1, 3, 5):
-        ring = np.array([(0, 0), (70.5, 0), (70.5, 71.2), (0, 71.2)]) + rng.uniform(-2, 2, 2)
-        corners = np.concatenate([ring] * laps + [ring[:1]])
-        assert same(_arcs(corners, 1.0, 0.2), ref_arcs(corners, 1.0, 0.2))
-    lane = np.array([(0, 0), (40, 0), (40, 30), (80, 30), (120, 30), (120, 0.0)])   # turns and a straight corner
-    assert same(_arcs(lane, [0, 8, 12, 0, 8, 0], 0.25), ref_arcs(lane, [0, 8, 12, 0, 8, 0], 0.25))
-
-
 def test_a_path_through_repeated_points_drops_them():
     pts = np.array([(0, 0), (1, 0), (1, 0), (2, 1), (2, 1), (2, 1), (4, 1.0)])
     got, want = Path(pts), Path(pts[[0, 1, 3, 6]])
@@ -202,11 +145,17 @@ def test_a_path_through_repeated_points_drops_them():
 
 
 def test_overlap_with_axes_made_once_is_the_one_at_a_time_test():
+    # the axes as the test made them inline before, and a candidate checked against many boxes in one call
+    # (try_add's batch over every accepted vehicle) gives each row's answer of one call per box
     rng = np.random.default_rng(1)
     n = 500
     c1, c2 = rng.uniform(-6, 6, (n, 2)), rng.uniform(-6, 6, (n, 2))
     y1, y2 = rng.uniform(-3.2, 3.2, n), rng.uniform(-3.2, 3.2, n)
-    h1, h2 = np.array([2.7, 1.3]), rng.uniform(0.3, 3, (n, 2))
-    want = ref_obb_overlap(c1, y1, h1, c2, y2, h2)
-    got = _obb_overlap(c1, _axes(y1), np.broadcast_to(h1, c1.shape), c2, _axes(y2), h2)
-    assert same(got, want) and 0 < want.sum() < n
+    h1, h2 = np.broadcast_to(np.array([2.7, 1.3]), (n, 2)), rng.uniform(0.3, 3, (n, 2))
+    inline = np.stack([np.stack([np.cos(y1), np.sin(y1)], -1), np.stack([-np.sin(y1), np.cos(y1)], -1)], 1)
+    assert same(_axes(y1), inline)
+    a1, a2 = _axes(y1), _axes(y2)
+    batched = _obb_overlap(c1, a1, h1, c2, a2, h2)
+    one_by_one = np.concatenate([_obb_overlap(c1[i:i + 1], a1[i:i + 1], h1[i:i + 1], c2[i:i + 1], a2[i:i + 1],
+                                              h2[i:i + 1]) for i in range(n)])
+    assert same(batched, one_by_one) and 0 < batched.sum() < n
