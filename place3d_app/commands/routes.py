@@ -87,8 +87,6 @@ def pooled_psog(args, spec, backend, specs=None):
     if spec.scene.kind == "semantickitti" and len({s.scene.name for s in specs}) != len(specs):
         raise ValueError("a semantickitti: sequence is one recorded drive; pool several sequences with --scene")
 
-    from concurrent.futures import Future
-
     t = time.perf_counter()
     # the cached drives read side by side (pooled.cached_records) before the backend is waited for: reading needs
     # none, so a warm optimize reads them while its probe runs (on the H200 it waited for the probe, 0.55 s, then
@@ -305,8 +303,6 @@ def _workers_backend(args, backend) -> str:
     ended at 1.76 [1.59-1.91] s of its profile instead of 1.93 [1.77-2.09] s (5 runs each, H200;
     bench/results/ab-2026-12-01-s40/). A name no worker can resolve fails in the workers with the message the
     probe would give."""
-    from concurrent.futures import Future
-
     from place3d_kernels.backends.registry import default_name
     from place3d_kernels.spec import backend_name
 
