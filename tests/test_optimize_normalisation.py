@@ -202,9 +202,11 @@ def test_uncertain_on_two_subsets_is_flat_and_the_command_says_so(capsys):
 
 
 def test_held_out_pool_made_during_the_search_scores_as_after_it(tmp_path, monkeypatch):
-    """The held-out P-SOG pooled from two drives is made with its grids on a thread while the search runs
-    (``held_out_ahead``, hosts of 4+ cores or PLACE3D_JACKKNIFE_PREFETCH=1) or after it (=0): the same
-    held-out scores either way, each ``msog_batch`` of the rig on that pool under the run's normalisation."""
+    """The held-out P-SOG pooled from two drives is made on a thread while the search runs (``held_out_ahead``,
+    hosts of 4+ cores or PLACE3D_JACKKNIFE_PREFETCH=1), with its grids or without them (made in the held-out
+    check, as on a GPU: ``grids_beside_search``), or after the search (=0): the same held-out scores every way,
+    each ``msog_batch`` of the rig on that pool under the run's normalisation."""
+    import place3d_app.commands.optimize as opt
     from place3d_app.cli import main
     from place3d_app.commands.optimize import holdout_specs
     from place3d_app.commands.routes import drive_specs
@@ -213,25 +215,50 @@ def test_held_out_pool_made_during_the_search_scores_as_after_it(tmp_path, monke
 
     extra = ["--routes", "2", "--holdout-seeds", "5,6", "--interval", "none"]
     monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "cache"))
+    asked = []
+    real = opt.held_out_psogs
+
+    def held_out_psogs(*a, **k):
+        asked.append(k.get("grids", False))
+        yield from real(*a, **k)
+
+    monkeypatch.setattr(opt, "held_out_psogs", held_out_psogs)
     got = {}
-    for ahead in ("1", "0"):
+    for ahead, grids in (("1", True), ("1", False), ("0", None)):
         monkeypatch.setenv("PLACE3D_JACKKNIFE_PREFETCH", ahead)
+        monkeypatch.setattr(opt, "grids_beside_search", lambda b, grids=grids: grids)
         with contextlib.redirect_stdout(io.StringIO()):
-            assert main(["optimize", *TINY, *extra, "--output", str(tmp_path / ahead)]) == 0
-        got[ahead] = json.loads((tmp_path / ahead / "result.json").read_text())
-    assert got["1"]["holdout"] == got["0"]["holdout"] and got["1"]["best_placement"] == got["0"]["best_placement"]
+            assert main(["optimize", *TINY, *extra, "--output", str(tmp_path / f"{ahead}{grids}")]) == 0
+        got[ahead, grids] = json.loads((tmp_path / f"{ahead}{grids}" / "result.json").read_text())
+    assert asked == [True, False, False]        # the thread's with and without grids, then the check's own
+    assert got["1", True]["holdout"] == got["1", False]["holdout"] == got["0", None]["holdout"]
+    assert got["1", True]["best_placement"] == got["1", False]["best_placement"] == got["0", None]["best_placement"]
     args = _args(extra)
     spec = specs_from_args(args)
     args.drives = drive_specs(args, spec)
     ((_, seeds, drives),) = holdout_specs(args, spec)
     held = pool_specs(drives, backend=B).psog()
-    (h,) = got["1"]["holdout"]
+    (h,) = got["1", True]["holdout"]
     lidar = LidarModel.load("place3d_16ch")
     assert seeds == [5, 6] and h["seeds"] == [5, 6]
-    for name, poses in [("best", np.array(got["1"]["best_placement"])),
+    for name, poses in [("best", np.array(got["1", True]["best_placement"])),
                         *((n, Placement.load(n).poses) for n in ("center", "line"))]:
         want = float(msog_batch(held, lidar, poses[None], backend=B, normalisation="uncertain")[0])
         assert (h["best"] if name == "best" else h["baselines"][name]) == want, name
+
+
+def test_held_out_grids_beside_the_search_off_the_gpu_only():
+    """The held-out grids are made beside the search where the backend makes grids on this process's threads
+    (the reference, Warp's CPU, an OpenCL CPU device), not where it makes them on a GPU's queue."""
+    from place3d_app.commands.optimize import grids_beside_search
+    from place3d_kernels.backends.registry import get_backend
+
+    names = [n for n in available_backends() if n in ("reference", "warp:cpu", "opencl:pocl")
+             or n.startswith("warp:cuda")]
+    assert "reference" in names
+    for n in names:
+        b = get_backend(n)
+        assert grids_beside_search(b) is (not n.startswith("warp:cuda")), n
 
 
 @pytest.mark.parametrize("ahead", ["1", "0"])

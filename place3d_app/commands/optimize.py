@@ -318,7 +318,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     from place3d_app.commands.common import warn_flat_objective
 
     warn_flat_objective(psog, args.normalisation)
-    held_out = held_out_ahead(args, spec, b)     # the held-out P-SOGs and their grids, made during the search
+    held_out = held_out_ahead(args, spec, b)     # the held-out P-SOGs (their grids where cheap), during the search
     if plotter is not None and plotter.processes:
         # coverage.png's left panel, drawn during the search; its entropies (float, every stored voxel: 0.3-0.4 s
         # of NumPy on the H200 host, before the baselines) are made on a thread, joined before the figures start
@@ -576,10 +576,11 @@ def held_out_psogs(args, spec, specs, b, grids: bool = False):
 
 
 def held_out_ahead(args, spec, b):
-    """A ``Future`` of the held-out P-SOGs (``held_out_psogs`` with their grids), made on a daemon thread while
-    the search runs, or None (they are made after it, as before): where there are held-out P-SOGs, each pooled
-    from drives the workers built (a single drive would be built with a progress bar), and the host has cores
-    to spare (``prefetch.prefetch_wanted``: 4 or more, or ``PLACE3D_JACKKNIFE_PREFETCH=1``).
+    """A ``Future`` of the held-out P-SOGs (``held_out_psogs``), made on a daemon thread while the search runs,
+    or None (they are made after it, as before): where there are held-out P-SOGs, each pooled from drives the
+    workers built (a single drive would be built with a progress bar), and the host has cores to spare
+    (``prefetch.prefetch_wanted``: 4 or more, or ``PLACE3D_JACKKNIFE_PREFETCH=1``). Their grids are made on the
+    thread too unless ``b`` makes them on its device (``grids_beside_search``).
 
     They depend on the held-out drives alone, not on the search, and took about 1 s of a cold default
     ``optimize`` after it on the H200 (pooling, weights, and the uploads of three grids). An error on the
@@ -595,12 +596,23 @@ def held_out_ahead(args, spec, b):
 
     def work():
         try:
-            done.set_result(list(held_out_psogs(args, spec, specs, b, grids=True)))
+            done.set_result(list(held_out_psogs(args, spec, specs, b, grids=grids_beside_search(b))))
         except BaseException as e:  # noqa: BLE001 - raised by result() in the command
             done.set_exception(e)
 
     threading.Thread(target=work, name="place3d-held-out", daemon=True).start()
     return done
+
+
+def grids_beside_search(b) -> bool:
+    """Whether ``held_out_ahead``'s thread also makes the held-out P-SOGs' grids: not where backend ``b`` makes
+    a grid on its device (``fields_on_device``: Warp on CUDA, OpenCL GPUs with doubles), whose one in-order
+    queue the search's scores wait on. There the grids' kernels and copies, made beside the search, held some
+    of its generations 20-120 ms each: a cold default ``optimize`` on the H200 host scored its generations in
+    0.49-0.62 s with them beside it and 0.35-0.41 s with them made after it, in the held-out check (about 0.08
+    s there; one lease, 5 runs each, traced; bench/results/ab-2026-12-01-s42/README.md). A CPU device makes
+    them on this process's threads, as before."""
+    return not getattr(b, "fields_on_device", False)
 
 
 def report_trust(args, spec, res, psog, lidar, b, baselines, held_out=None) -> None:
