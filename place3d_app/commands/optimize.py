@@ -610,8 +610,9 @@ def grids_beside_search(b) -> bool:
     queue the search's scores wait on. There the grids' kernels and copies, made beside the search, held some
     of its generations 20-120 ms each: a cold default ``optimize`` on the H200 host scored its generations in
     0.49-0.62 s with them beside it and 0.35-0.41 s with them made after it, in the held-out check (about 0.08
-    s there; one lease, 5 runs each, traced; bench/results/ab-2026-12-01-s42/README.md). A CPU device makes
-    them on this process's threads, as before."""
+    s there; 5 runs each, traced), and ended at 3.49 against 3.62 s and 3.89 against 4.05 s (two leases, 6 runs
+    each; bench/results/ab-2026-12-01-s42/README.md). A CPU device makes them on this process's threads, as
+    before."""
     return not getattr(b, "fields_on_device", False)
 
 
