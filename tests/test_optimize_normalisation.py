@@ -19,7 +19,7 @@ import pytest
 from place3d_kernels.backends.registry import available_backends
 from place3d_kernels.lidar import LidarModel
 from place3d_kernels.metrics import msog_batch
-from place3d_kernels.placement import Placement
+from place3d_kernels.placement import PAPER_PLACEMENTS, Placement
 
 # the fastest CPU backend present (the backends agree bit for bit)
 B = "opencl:pocl" if "opencl:pocl" in available_backends() else "reference"
@@ -245,6 +245,36 @@ def test_held_out_pool_made_during_the_search_scores_as_after_it(tmp_path, monke
                         *((n, Placement.load(n).poses) for n in ("center", "line"))]:
         want = float(msog_batch(held, lidar, poses[None], backend=B, normalisation="uncertain")[0])
         assert (h["best"] if name == "best" else h["baselines"][name]) == want, name
+
+
+def test_held_out_thread_starts_after_the_baselines(tmp_path, monkeypatch):
+    """The held-out P-SOGs' thread (``held_out_ahead``) starts once the baselines are scored (the first
+    ``msog_batch`` of the command), not beside that call; the search's first score comes after both."""
+    import place3d_app.commands.optimize as opt
+    import place3d_kernels.metrics as metrics
+    from place3d_app.cli import main
+
+    order = []
+    real_ahead, real_batch = opt.held_out_ahead, metrics.msog_batch
+
+    def held_out_ahead(*a, **k):
+        order.append("held-out thread")
+        return real_ahead(*a, **k)
+
+    def msog_batch(psog, lidar, poses, *a, **k):
+        order.append(f"score {len(poses)}")
+        return real_batch(psog, lidar, poses, *a, **k)
+
+    monkeypatch.setattr(opt, "held_out_ahead", held_out_ahead)
+    monkeypatch.setattr(metrics, "msog_batch", msog_batch)
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("PLACE3D_JACKKNIFE_PREFETCH", "1")
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["optimize", *TINY, "--routes", "2", "--holdout-seeds", "5,6", "--interval", "none",
+                     "--output", str(tmp_path / "out")]) == 0
+    baselines = f"score {len(PAPER_PLACEMENTS)}"
+    assert order[:2] == [baselines, "held-out thread"], order[:3]
+    assert order[2].startswith("score ")                # the search's first generation
 
 
 def test_held_out_grids_beside_the_search_off_the_gpu_only():

@@ -318,20 +318,6 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     from place3d_app.commands.common import warn_flat_objective
 
     warn_flat_objective(psog, args.normalisation)
-    held_out = held_out_ahead(args, spec, b)     # the held-out P-SOGs (their grids where cheap), during the search
-    if plotter is not None and plotter.processes:
-        # coverage.png's left panel, drawn during the search; its entropies (float, every stored voxel: 0.3-0.4 s
-        # of NumPy on the H200 host, before the baselines) are made on a thread, joined before the figures start
-        def keep_panel():
-            try:
-                plotter.keep_panel(*entropy_view(psog))
-            except Exception:  # noqa: BLE001 - the figure then draws the panel itself, and meets the error there
-                pass
-
-        panel = threading.Thread(target=keep_panel, daemon=True, name="place3d-panel")
-        panel.start()
-    else:
-        panel = None
     # The jackknife after the search scores the rigs on the drive's left-out grids, which depend on the
     # records and the task, not on the search: they are prepared on a thread while it runs
     # (place3d_app.prefetch.prepare_in_background)
@@ -371,6 +357,24 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
             got = msog_batch(psog, lidar, np.stack([Placement.load(n).poses for n in PAPER_PLACEMENTS]),
                              args.occlusion, args.task, b, normalisation=args.normalisation)
             baselines = {name: float(v) for name, v in zip(PAPER_PLACEMENTS, got)}
+    # The held-out P-SOGs and coverage.png's left panel are made on threads during the search, started once the
+    # baselines are scored: started before them, they slowed the baselines' call (which makes the pooled P-SOG's
+    # grids), 0.13 -> 0.10 s cold and 0.19 -> 0.09 s warm; the default optimize 3.41 -> 3.24 s cold, 2.39 -> 2.29 s
+    # warm (H200, 6 runs each; bench/results/ab-2026-12-01-s42/)
+    held_out = held_out_ahead(args, spec, b)     # the held-out P-SOGs (their grids where cheap), during the search
+    if plotter is not None and plotter.processes:
+        # the panel's entropies (float, every stored voxel: 0.3-0.4 s of NumPy on the H200 host) on a thread,
+        # joined before the figures start
+        def keep_panel():
+            try:
+                plotter.keep_panel(*entropy_view(psog))
+            except Exception:  # noqa: BLE001 - the figure then draws the panel itself, and meets the error there
+                pass
+
+        panel = threading.Thread(target=keep_panel, daemon=True, name="place3d-panel")
+        panel.start()
+    else:
+        panel = None
     # A warm start from the best paper placement with a smaller step: on the default town the "center"
     # rig is a strong local optimum for detection, which 2,000-evaluation runs from the box centre
     # (sigma0 0.3) beat in none of seeds 0-3 and runs from center (sigma0 0.15) in each of them
