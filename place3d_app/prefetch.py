@@ -261,8 +261,8 @@ def prepare_in_background(spec, reference, lidar, task: str, occlusion: str, bac
 
 
 #: ``PLACE3D_JACKKNIFE_PREFETCH``: ``1`` = ``place3d optimize`` prepares the jackknife's left-out grids (one
-#: drive) or its held-out P-SOGs (pooled held-out drives, ``optimize.held_out_ahead``; their grids too, but on a
-#: GPU) on a thread during the search; ``0`` = never (they are made after the search); unset or ``auto`` = on
+#: drive) or its held-out P-SOGs (pooled held-out drives, ``optimize.held_out_ahead``; their grids too, except
+#: on a GPU) on a thread during the search; ``0`` = never (they are made after the search); unset or ``auto`` = on
 #: hosts with 4 or more usable cores (on 2 the thread would take turns with the search's scoring).
 PREFETCH_ENV = "PLACE3D_JACKKNIFE_PREFETCH"
 

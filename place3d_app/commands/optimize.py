@@ -361,7 +361,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     # baselines are scored: started before them, they slowed the baselines' call (which makes the pooled P-SOG's
     # grids), 0.13 -> 0.10 s cold and 0.19 -> 0.09 s warm; the default optimize 3.41 -> 3.24 s cold, 2.39 -> 2.29 s
     # warm (H200, 6 runs each; bench/results/ab-2026-12-01-s42/)
-    held_out = held_out_ahead(args, spec, b)     # the held-out P-SOGs (their grids where cheap), during the search
+    held_out = held_out_ahead(args, spec, b)     # the held-out P-SOGs (their grids off a GPU), during the search
     if plotter is not None and plotter.processes:
         # the panel's entropies (float, every stored voxel: 0.3-0.4 s of NumPy on the H200 host) on a thread,
         # joined before the figures start
