@@ -7,7 +7,11 @@ Nested sections are timed on their own and also inside their parent; the table i
 parent's row includes its children's time. Sections opened on other threads are counted at top level.
 The table's last two columns say when a section was first entered and last left (seconds from the
 profile's start): where sections overlap (a thread beside the main one, a wait for worker processes),
-the sum of the rows is more than the wall time, and these columns show what ran beside what.
+the sum of the rows is more than the wall time, and these columns show what ran beside what. Below the
+table, each section entered at least ``REPEATED`` times gets a line on its calls: the median, the slowest
+and when it began, and how many took over ``SLOW`` times the median. Work beside a loop that holds some of
+its iterations shows there (a search's generations held 20-120 ms each by grids made beside it on the
+GPU's one queue: bench/results/ab-2026-12-01-s42/README.md), where the sums hide it.
 
     place3d --profile optimize --max-evals 300     # prints the table on stderr when the command ends
 """
@@ -21,18 +25,27 @@ import time
 
 __all__ = ["section", "record", "profile", "enabled", "report", "Profile", "count_start_up_of"]
 
+#: sections entered at least this often get a line on their calls below the table
+REPEATED = 20
+#: a call counts as slow over this many times its section's median
+SLOW = 3.0
+#: calls kept per section for that line (a section in a hot loop keeps its first ones)
+KEPT_CALLS = 100_000
+
 _ACTIVE: "Profile | None" = None
 _START_PID: "int | None" = None     # whose start the table's start-up line counts from (None: this process)
 _NULL = contextlib.nullcontext()
 
 
 class Profile:
-    """Accumulated sections: ``totals[path] = [seconds, calls]``, ``path`` a tuple of nested names, and
-    ``spans[path] = [first entered, last left]`` in seconds from the profile's start."""
+    """Accumulated sections: ``totals[path] = [seconds, calls]``, ``path`` a tuple of nested names,
+    ``spans[path] = [first entered, last left]`` in seconds from the profile's start, and ``calls[path]``
+    each call's (start, seconds)."""
 
     def __init__(self):
         self.totals: dict[tuple[str, ...], list] = {}
         self.spans: dict[tuple[str, ...], list] = {}
+        self.calls: dict[tuple[str, ...], list] = {}
         self.start = time.perf_counter()
         self.wall = 0.0
         self._local = threading.local()
@@ -63,6 +76,9 @@ class Profile:
         span = self.spans.setdefault(path, [end - seconds - self.start, 0.0])
         span[0] = min(span[0], end - seconds - self.start)
         span[1] = max(span[1], end - self.start)
+        kept = self.calls.setdefault(path, [])
+        if len(kept) < KEPT_CALLS:
+            kept.append((end - seconds - self.start, seconds))
 
     def table(self) -> str:
         """The sections as an indented text table in first-seen order, with the whole span last."""
@@ -76,7 +92,25 @@ class Profile:
         top = sum(v[0] for p, v in self.totals.items() if len(p) == 1)
         rows.append(f"{'(not in a section)':44s} {max(wall - top, 0.0):9.3f}")
         rows.append(f"{'total (profile span)':44s} {wall:9.3f}")
-        return "\n".join(rows)
+        return "\n".join(rows + self.repeated())
+
+    def repeated(self) -> list[str]:
+        """A line for each section entered at least ``REPEATED`` times: its calls' median, its slowest call and
+        when that began, and how many calls took over ``SLOW`` times the median (of its first ``KEPT_CALLS``)."""
+        import statistics
+
+        out = []
+        for path, calls in self.calls.items():
+            if len(calls) < REPEATED:
+                continue
+            med = statistics.median(c[1] for c in calls)
+            at, worst = max(calls, key=lambda c: c[1])
+            slow = sum(1 for c in calls if c[1] > SLOW * med)
+            if not out:
+                out.append(f"calls of sections entered {REPEATED} times or more (ms; slow: over {SLOW:g}x the median):")
+            out.append(f"  {path[-1][:42]:42s} median {1e3 * med:8.2f}  slowest {1e3 * worst:8.1f} at {at:6.2f} s  "
+                       f"slow {slow}")
+        return out
 
 
 def _tree_order(totals):

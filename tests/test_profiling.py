@@ -81,3 +81,25 @@ def test_spans_say_when_a_section_was_first_entered_and_last_left():
     assert first + 0.06 <= t0 < t1 <= p.wall and t1 - t0 >= 0.03
     row = next(r for r in p.table().splitlines() if r.startswith("twice"))
     assert row.split()[-2:] == [f"{first:.2f}", f"{last:.2f}"]
+
+
+def test_a_repeated_section_reports_its_median_and_slowest_call():
+    """A section entered ``REPEATED`` times or more gets a line below the table: the median call, the slowest
+    call and when it began, and the calls over ``SLOW`` times the median; sections entered fewer times get
+    none."""
+    with profiling.profile(print_table=False) as p:
+        for i in range(profiling.REPEATED):
+            with profiling.section("loop"):
+                time.sleep(0.06 if i == 5 else 0.002)
+        with profiling.section("once"):
+            pass
+    lines = p.table().splitlines()
+    (row,) = [ln for ln in lines if ln.startswith("  loop")]
+    words = row.split()
+    median, slowest, at, slow = float(words[2]), float(words[4]), float(words[6]), int(words[-1])
+    assert 2.0 <= median < 10.0 and slowest >= 60.0 and slow == 1
+    start, seconds = max(p.calls[("loop",)], key=lambda c: c[1])
+    assert at == round(start, 2) and abs(seconds * 1e3 - slowest) < 0.051      # as printed: 0.1 ms, 0.01 s
+    assert 5 * 0.002 <= start < 0.5
+    assert not any(ln.startswith("  once") for ln in lines)
+    assert lines[lines.index(row) - 1].startswith("calls of sections entered")
