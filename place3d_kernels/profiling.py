@@ -108,8 +108,9 @@ class Profile:
             slow = sum(1 for c in calls if c[1] > SLOW * med)
             if not out:
                 out.append(f"calls of sections entered {REPEATED} times or more (ms; slow: over {SLOW:g}x the median):")
-            out.append(f"  {path[-1][:42]:42s} median {1e3 * med:8.2f}  slowest {1e3 * worst:8.1f} at {at:6.2f} s  "
-                       f"slow {slow}")
+            # the whole path: a step's name may recur under several parents (the table indents them instead)
+            name = " / ".join(path)[-42:]
+            out.append(f"  {name:42s} median {1e3 * med:8.2f}  slowest {1e3 * worst:8.1f} at {at:6.2f} s  slow {slow}")
         return out
 
 

@@ -92,14 +92,17 @@ def test_a_repeated_section_reports_its_median_and_slowest_call():
             with profiling.section("loop"):
                 time.sleep(0.06 if i == 5 else 0.002)
         with profiling.section("once"):
-            pass
+            for _ in range(profiling.REPEATED):
+                with profiling.section("loop"):     # the same name under another parent: its own line
+                    pass
     lines = p.table().splitlines()
-    (row,) = [ln for ln in lines if ln.startswith("  loop")]
+    (row,) = [ln for ln in lines if ln.startswith("  loop ") and " median " in ln]
     words = row.split()
     median, slowest, at, slow = float(words[2]), float(words[4]), float(words[6]), int(words[-1])
     assert 2.0 <= median < 10.0 and slowest >= 60.0 and slow == 1
     start, seconds = max(p.calls[("loop",)], key=lambda c: c[1])
     assert at == round(start, 2) and abs(seconds * 1e3 - slowest) < 0.051      # as printed: 0.1 ms, 0.01 s
     assert 5 * 0.002 <= start < 0.5
-    assert not any(ln.startswith("  once") for ln in lines)
+    named = [ln.split(" median ")[0].strip() for ln in lines if " median " in ln]
+    assert named == ["loop", "once / loop"]          # "once", entered once, gets no line
     assert lines[lines.index(row) - 1].startswith("calls of sections entered")
