@@ -197,18 +197,13 @@ class ProcessExecutor(Executor):
             ``backend`` may then be set until the first ``map``.
         opendrive: whether the workers may build scenes of OpenDRIVE maps (the server then imports the SciPy
             parts of their builders too; ``forkserver.OPENDRIVE_PRELOAD``).
-        pool: a ``concurrent.futures.ProcessPoolExecutor`` of spawned workers started already
-            (``early_workers.take``) with ``workers`` processes, used instead of starting any.
     """
 
     kind = "process"
 
     def __init__(self, workers: int | None = None, backend: str | None = None, start_method: str = "spawn",
-                 prestart: bool = False, preload: str | None = None, opendrive: bool = True, pool=None) -> None:
+                 prestart: bool = False, preload: str | None = None, opendrive: bool = True) -> None:
         super().__init__()
-        if pool is not None:
-            # workers spawned already (early_workers.take): the pool is used as it is, its processes started
-            start_method, prestart = "spawn", False
         if start_method not in ("spawn", "forkserver"):
             raise ValueError(f"start_method must be 'spawn' or 'forkserver', got {start_method!r}")
         self.workers = default_workers() if workers is None else int(workers)
@@ -222,8 +217,6 @@ class ProcessExecutor(Executor):
         self._started = 0
         self._lock = threading.Lock()           # _ensure and shutdown, which a prestart thread may be in
         self._server_started = False
-        if pool is not None:
-            self._pool, self._started = pool, self.workers
         if prestart and start_method == "forkserver":
             # the server imports its preload (a second or so) before it forks the first worker, and starting a
             # worker waits for that fork: the workers are started on a thread, so this process goes on meanwhile

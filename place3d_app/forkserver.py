@@ -22,8 +22,7 @@ import os
 import sys
 
 __all__ = ["WORKER_ENV", "FORKSERVER_PRELOAD", "START_METHOD_ENV", "WORKERS_ENV", "worker_environment",
-           "OPENDRIVE_PRELOAD", "preload_for", "command_start_method", "start", "start_early", "DRIVE_PARTS",
-           "drive_parts", "drive_workers", "DEFAULT_ROUTES"]
+           "OPENDRIVE_PRELOAD", "preload_for", "command_start_method", "start", "start_early"]
 
 #: What each worker process starts with, unless the user set it: one BLAS thread. The workers fill the cores
 #: themselves; a BLAS library that also starts a thread per core in every worker (NumPy's OpenBLAS does for a
@@ -59,33 +58,6 @@ START_METHOD_ENV = "PLACE3D_START_METHOD"
 #: ``PLACE3D_WORKERS=N``: at most N worker processes for the process executor (default: the usable cores;
 #: ``executors.default_workers``).
 WORKERS_ENV = "PLACE3D_WORKERS"
-
-
-#: Parts a missing drive is built in where the host has the cores (``drive_parts``): each part builds the scene
-#: and simulates and votes its share of the drive's subsets, and the parts' records are merged (exact integer
-#: sums) into the drive's. On the lent H200 (16 cores) the cold default optimize's median went down by 0.16-0.42 s
-#: on three leases, e.g. 4.32 [4.08-4.59] -> 3.90 [3.84-4.34] s (5 runs each; bench/results/ab-2026-11-30-s37/).
-DRIVE_PARTS = 2
-
-
-def drive_parts(first: int, later: int, workers: int) -> int:
-    """Parts each of ``first`` missing drives, and of ``later`` ones (queued behind them), is built in by
-    ``workers`` usable cores: ``DRIVE_PARTS`` where the worker processes that takes (``DRIVE_PARTS`` per drive of
-    the larger group) are at most three quarters of the cores, else 1 (a quarter stays for this process and the
-    workers' own threads). On the H200 host (16 cores) eight part workers built the searched drives 0.3-0.4 s
-    sooner than eight whole drives, and sixteen 20-frame drives at once took as long as eight 40-frame ones."""
-    return DRIVE_PARTS if first and max(first, later) * DRIVE_PARTS <= workers * 3 // 4 else 1
-
-
-def drive_workers(first: int, later: int, cores: int) -> tuple[int, int]:
-    """(parts per drive, worker processes) for ``first`` missing drives and ``later`` ones queued behind them on
-    ``cores`` usable cores (``routes.build_missing``; ``start_early`` guesses the same from the command line):
-    in parts (``drive_parts``), as many workers as the larger group has parts; whole, one worker a drive; never
-    more workers than cores."""
-    parts = drive_parts(first, later, cores)
-    if parts == 1:
-        return 1, min(cores, first + later)
-    return parts, min(cores, max(first, later) * parts)
 
 
 @contextlib.contextmanager
@@ -200,42 +172,14 @@ def _no_drive_cached() -> bool:
 DRIVE_COMMANDS = ("evaluate", "optimize")
 
 
-#: ``pooled.DEFAULT_ROUTES`` (routes per scene when the command line names none), which this module cannot import
-#: (tests/test_early_workers.py holds the two together)
-DEFAULT_ROUTES = 4
-
-
-def _drive_workers_guess(cmd: str, argv: list[str], scenes: list[str], cores: int) -> int:
-    """The worker processes ``routes.build_missing`` starts for an ``evaluate`` / ``optimize`` whose drives are all
-    missing (``drive_workers``): ``--routes`` (default ``DEFAULT_ROUTES``) drives per scene, and for ``optimize``
-    as many held-out drives unless ``--no-holdout``; 0 where the command line asks for something this does not
-    read (``--route-seeds``, ``--holdout-seeds``, ``--holdout-scenes``, a mesh or recorded scene) or for fewer than
-    two workers."""
-    if cmd not in DRIVE_COMMANDS or _option(argv, "--route-seeds") is not None \
-            or any(v.startswith(("mesh:", "semantickitti:")) for v in scenes):
-        return 0
-    first = int(_option(argv, "--routes") or DEFAULT_ROUTES) * len(scenes)
-    later = 0
-    if cmd == "optimize" and "--no-holdout" not in argv:
-        if _option(argv, "--holdout-seeds") is not None or _option(argv, "--holdout-scenes") is not None:
-            return 0
-        later = first                   # held-out drives: as many routes as searched, on the searched scenes
-    n = drive_workers(first, later, cores)[1]
-    return n if n >= 2 and first + later >= 2 else 0      # build_missing starts none for fewer
-
-
 def start_early(argv: list[str]) -> bool:
     """Start the forkserver now when ``argv`` (the command line without the program name) is a command that will
     fork its workers from it: a ``reproduce`` with the default or ``--executor process``/``auto``, or an
     ``evaluate`` / ``optimize`` of several drives (not ``--routes 1``, not only mesh or recorded scenes, which
     have one route each) with the local executor, the cache on and no drive in it yet; never with
     ``--ray-address``; a forkserver as the start method, more than one usable core (and ``$PLACE3D_WORKERS`` not
-    1). The backend of ``--backend`` (default ``$PLACE3D_BACKEND``, else ``auto``) picks the preload, as
-    ``executors.executor_from_args`` does; SciPy's parts are left out for drives of the embedded town only.
-
-    On a Warp CUDA backend (``early_workers.wanted``), with the start method not set by ``$PLACE3D_START_METHOD``,
-    an ``evaluate`` / ``optimize`` whose worker count can be told from the command line (``_drive_workers_guess``)
-    spawns those workers now instead (``early_workers``): each makes its CUDA context while it imports.
+    1). The backend of ``--backend`` (default ``auto``) picks the preload, as ``executors.executor_from_args``
+    does; SciPy's parts are left out for drives of the embedded town only.
 
     A guess from the raw arguments (argparse, which reads them later, also takes abbreviated options): a wrong
     one costs an idle server, never a result, and an invalid setting is left for the command to report.
@@ -257,16 +201,7 @@ def start_early(argv: list[str]) -> bool:
         if min(_usable_cores(), int(cap) if cap.isdigit() else 2) < 2:
             return False
         town_only = cmd != "reproduce" and all(v == "town" for v in scenes)
-        backend = _option(argv, "--backend") or os.environ.get("PLACE3D_BACKEND") or "auto"
-        n = _drive_workers_guess(cmd, argv, scenes, min(_usable_cores(), int(cap) if cap.isdigit() else 1 << 30))
-        if n and not os.environ.get(START_METHOD_ENV, "").strip():
-            from place3d_app import early_workers
-
-            if early_workers.wanted(backend):
-                # a CUDA backend: the workers spawned now, each making its context while it imports
-                early_workers.start(n, backend, preload_for(backend, opendrive=not town_only))
-                return True
-        start(backend, opendrive=not town_only)
+        start(_option(argv, "--backend") or "auto", opendrive=not town_only)
         return True
     except Exception:  # noqa: BLE001 - a speed-up only: the command starts its server itself, or reports why not
         return False

@@ -260,7 +260,6 @@ def test_the_launcher_starts_the_server_early_for_evaluate_and_optimize_only_on_
     # the cache holds no P-SOG file (the first run on a machine), without SciPy's parts for town drives
     started = []
     monkeypatch.setattr(forkserver, "start", lambda b, opendrive=True: started.append((b, opendrive)))
-    monkeypatch.setattr("place3d_app.early_workers.wanted", lambda b: False)    # the forkserver's path (no CUDA)
     monkeypatch.delenv(forkserver.START_METHOD_ENV, raising=False)
     monkeypatch.delenv(forkserver.WORKERS_ENV, raising=False)
     monkeypatch.setattr(forkserver, "_usable_cores", lambda: 4)
