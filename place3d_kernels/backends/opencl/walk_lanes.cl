@@ -15,6 +15,11 @@
  * Slower and not kept: 8 lanes, one ray per work-item written branch-free (each step then waits for the
  * last), spilling the lanes to private arrays for the marking, 64-bit voxel indices. The host builds this
  * file with FLAT32 (32-bit indices) and uses it for grids of fewer than 2^31 voxels, score_walk beyond.
+ *
+ * Only the marking loop is unrolled. The lanes' first rays and their slow path are plain loops over j:
+ * unrolled, sixteen inlined copies of dda_init and dda_step_slow made PoCL take 10-20 s to compile this
+ * kernel at its first launch (a first `place3d evaluate` on a CPU waited for it) against 3-4 s, and the walk
+ * was no faster (bench/results/opencl-walk-compile-2026-12-02-s45/README.md).
  */
 #ifndef SW
 #define SW 16
@@ -86,7 +91,6 @@ __kernel void score_walk_lanes(__global const real* rig, __global const real* sd
     VF tx = 0, ty = 0, tz = 0, qx = 0, qy = 0, qz = 0, vx = 0, vy = 0, vz = 0, t1 = 0, tol = 0;
     const float sf = (float)s;
     const VI vnx = (VI)nx, vny = (VI)ny, vnz = (VI)nz;
-    #pragma unroll
     for (int j = 0; j < SW; ++j)
         if (lane_next_ray(&lane[j], &next, r1, rig, sdir, p, L, CA, t_max, s, nx, ny, nz)) LANE_NEW(j);
     while (any(live)) {
@@ -123,7 +127,6 @@ __kernel void score_walk_lanes(__global const real* rig, __global const real* sd
         done |= sure & out;
         VI slow = go & ~sure;
         if (any(slow | done)) {
-            #pragma unroll
             for (int j = 0; j < SW; ++j) {
                 if (slow[j]) {            /* a near-tie or the segment's end: settled as dda_step does */
                     LANE_OUT(j);
