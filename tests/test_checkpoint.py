@@ -39,7 +39,7 @@ def wavy(X):
 KW = dict(max_evals=2430, seed=0, progress=False, delta=0.05)
 
 _CHILD = textwrap.dedent("""
-    import json, sys
+    import json, sys, time
     import numpy as np
     sys.path.insert(0, {root!r})
     from place3d_kernels.optimize import MinDistance, SearchSpace, optimize
@@ -47,21 +47,31 @@ _CHILD = textwrap.dedent("""
     {wavy}
     # a checkpoint after every generation, so that the kill lands anywhere
     sys.modules["place3d_kernels.optimize.optimizer"].CHECKPOINT_SECONDS = 0.0
-    r = optimize(wavy, SearchSpace(n_lidars=4), [MinDistance(0.2)], checkpoint=sys.argv[1],
+    # a fresh run waits, once it has evaluated kill_after points, at its next generation (whose predecessor's
+    # checkpoint is written): the parent kills it there, not after the run has ended (a whole run takes 0.2 s)
+    seen = [0]
+
+    def objective(X):
+        if sys.argv[2] == "fresh" and seen[0] >= int(sys.argv[3]):
+            time.sleep(600)
+        seen[0] += len(X)
+        return wavy(X)
+
+    r = optimize(objective, SearchSpace(n_lidars=4), [MinDistance(0.2)], checkpoint=sys.argv[1],
                  resume=sys.argv[2] == "resume", **KW)
     print(json.dumps({{"best": r.best_score, "evaluations": r.evaluations, "history": r.history,
                       "resumed": r.resumed, "vector": r.best_vector.tolist()}}))
 """)
 
 
-def _child(tmp_path, ckpt, mode, hashseed):
+def _child(tmp_path, ckpt, mode, hashseed, kill_after=0):
     script = tmp_path / "child.py"
     import inspect
 
     src = textwrap.indent(inspect.getsource(wavy), "    ").strip()
     script.write_text(_CHILD.format(root=str(ROOT), kw=KW, wavy=src))
     env = {**os.environ, "PYTHONHASHSEED": str(hashseed), "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen([sys.executable, str(script), str(ckpt), mode], stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, str(script), str(ckpt), mode, str(kill_after)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, env=env, cwd=ROOT)
 
 
@@ -70,7 +80,7 @@ def test_killed_and_resumed_in_another_process_equals_uninterrupted(tmp_path, ki
     ref = optimize(wavy, SearchSpace(n_lidars=4), [MinDistance(0.2)], **KW)
     assert ref.evaluations > 2000
     ckpt = tmp_path / "run.ckpt"
-    proc = _child(tmp_path, ckpt, "fresh", seeds[0])
+    proc = _child(tmp_path, ckpt, "fresh", seeds[0], kill_after)
     try:
         deadline = time.time() + 120
         while time.time() < deadline and proc.poll() is None:
