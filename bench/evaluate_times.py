@@ -11,6 +11,11 @@ command imports (``cold_profile.compile_bytecode``: Warp, NumPy, ...), as ``pip 
 
 Writes ``evaluate-times-<machine>-<date>.json``: per tree the cold and warm walls (median, min, max, runs) and
 a digest of each run's table (the scores must agree between trees and runs).
+
+``--first-run`` times a new user's first command instead: each cold run also gets empty Warp and PoCL kernel
+caches (``WARP_CACHE_PATH``, ``POCL_CACHE_DIR``), kept for its warm run, and nothing is warmed first. With
+``--tree .:PLACE3D_BACKEND=warp:cpu --tree .`` it compares the CPU backend a plain install had before PyOpenCL
+and PoCL became dependencies with the one ``auto`` picks now.
 """
 
 from __future__ import annotations
@@ -66,6 +71,8 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--args", default="", help="more options of the command, e.g. '--voxel-size 0.2'")
     ap.add_argument("--no-warmup", action="store_true", help="the kernel cache is warm already")
+    ap.add_argument("--first-run", action="store_true",
+                    help="every cold run with empty Warp and PoCL kernel caches too (a new user's first command)")
     ap.add_argument("--machine", default=None)
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
@@ -79,7 +86,7 @@ def main() -> None:
     # took most of a second of every run
     for line in compile_bytecode(trees):
         print(line, flush=True)
-    if not a.no_warmup:
+    if not (a.no_warmup or a.first_run):
         with tempfile.TemporaryDirectory() as c:      # Warp's kernels compiled once, untimed
             _run(variants[-1][1], c, [*extra, "--routes", "2", "--frames", "8"], variants[-1][2])
     walls = {label: {"cold": [], "warm": []} for label, _, _ in variants}
@@ -89,12 +96,13 @@ def main() -> None:
         # runs slower, a bias a fixed order cannot tell from an effect
         for label, t, settings in (variants if r % 2 == 0 else variants[::-1]):
             with tempfile.TemporaryDirectory() as c:
+                kernels = {"WARP_CACHE_PATH": f"{c}/warp", "POCL_CACHE_DIR": f"{c}/pocl"} if a.first_run else {}
                 for kind in ("cold", "warm"):
-                    w, d = _run(t, c, extra, settings)
+                    w, d = _run(t, f"{c}/psog", extra, {**settings, **kernels})
                     walls[label][kind].append(round(w, 3))
                     digests[label].append(d)
                     print(f"run {r + 1} {label}: {kind} {w:.2f} s  table {d}", flush=True)
-    figures = {"command": "place3d evaluate " + " ".join(extra), "trees": {
+    figures = {"command": "place3d evaluate " + " ".join(extra), "first_run": a.first_run, "trees": {
         k: {kind: _stats(v) for kind, v in w.items()} for k, w in walls.items()}, "table_digests": digests,
         "same_tables": len({d for v in digests.values() for d in v}) == 1}
     print(write_result("evaluate-times", figures, machine=a.machine, out=a.out or os.environ.get("OUT")))

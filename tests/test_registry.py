@@ -57,6 +57,24 @@ def test_a_family_whose_runtime_is_missing_is_reported_with_its_install_command(
         registry.forget()
 
 
+def test_a_family_whose_runtime_fails_to_import_is_unavailable_not_fatal(monkeypatch, tmp_path):
+    # what `pip uninstall pyopencl` can leave: a folder that imports as an empty namespace package, so the
+    # backend's own import fails with an AttributeError (cl.mem_flags) instead of an ImportError
+    (tmp_path / "broken_runtime_for_place3d.py").write_text("import sys\nsys.modules[__name__].mem_flags\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    fams = {"broken": registry.Family("broken_runtime_for_place3d", "Broken", devices="broken_devices",
+                                      install="pip install broken"), "reference": registry.FAMILIES["reference"]}
+    monkeypatch.setattr(registry, "FAMILIES", fams)
+    registry.forget()
+    try:
+        rows = [r for r in registry.backend_report() if r[0] == "broken"]
+        assert len(rows) == 1 and rows[0][1] is False
+        assert "AttributeError" in rows[0][2] and "pip install broken" in rows[0][2]
+        assert "reference" in registry.available_backends()
+    finally:
+        registry.forget()
+
+
 def test_a_second_pocl_platform_is_a_cpu_not_a_gpu():
     # PyPI's PoCL beside Debian's is named opencl:pocl2; "auto" once took it for an OpenCL GPU and chose it
     from place3d_kernels.backends.registry import _cpu_name

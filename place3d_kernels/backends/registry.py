@@ -80,6 +80,12 @@ def _probe_family(fam: str, spec: Family) -> tuple[list[str], list[tuple[str, st
         return [fam], []
     try:
         mod = importlib.import_module(spec.module)
+    except ImportError as e:
+        return [], [(fam, f"{e}; install with: {spec.install}")]
+    except Exception as e:  # noqa: BLE001 - a broken install (e.g. the empty folder an uninstall leaves) fails
+        # its import with another error; the family is then unavailable, not every command ("auto" probes it)
+        return [], [(fam, f"its runtime failed to import ({type(e).__name__}: {e}); reinstall with: {spec.install}")]
+    try:
         devs = getattr(mod, spec.devices)()
         bad = getattr(mod, spec.unusable)() if spec.unusable else []
     except ImportError as e:
