@@ -46,6 +46,8 @@ def grid_arrays(b, h) -> list:
     """The arrays a grid handle holds, by backend: what score_placements reads."""
     if b.name == "reference":
         return [h.weights, h.stop]
+    if b.name.startswith("warp:"):              # weights and the brick masks (flat masks too on CUDA)
+        return [h.weights.numpy(), h.masks.numpy(), None if h.flat is None else h.flat.numpy()]
     n = h.spec.n_voxels
     out = [b._read(h.weights, np.int64, n)]
     if h.masks is not None and b.score_strategy == "atomic":
