@@ -244,16 +244,31 @@ class MeshGroups:
                 or o.ndim != 2 or o.shape[1] != 3 or np.ndim(t_max) != 0 or r <= 0 or len(o) == 0
                 or len(o) % r or not 0 <= first <= len(self.meshes) - len(o) // r):
             return None
-        # every origin within COORDINATE_LIMIT of every mesh's shift (else raycast checks each block)
+        if self.handle_near(o) is None:
+            return None
+        with section("raycast: backend"):
+            out = self.b.raycast_groups(self._handle, o, d, float(t_max), self._shifts, r, first)
+        return None if out is None else Hits(*out)
+
+
+    def handle_near(self, origins):
+        """The backend's grouped tree of the meshes (built on first use), or None where the backend has no
+        grouped casts or an origin lies more than COORDINATE_LIMIT from a mesh's shift (``cast`` then leaves
+        the rays to ``raycast``, which checks each block)."""
+        o = np.asarray(origins, dtype=np.float64)
         lim, shifts = COORDINATE_LIMIT, self._shifts
-        if not (float(np.min(o)) >= float(shifts.max()) - lim and float(np.max(o)) <= float(shifts.min()) + lim):
+        if not self.available or not len(o) or not (float(np.min(o)) >= float(shifts.max()) - lim
+                                                    and float(np.max(o)) <= float(shifts.min()) + lim):
             return None
         if self._handle is None:
             with section("raycast: grouped build"):
                 self._handle = self.b.upload_mesh_groups([m.upload_parts() for m in self.meshes])
-        with section("raycast: backend"):
-            out = self.b.raycast_groups(self._handle, o, d, float(t_max), self._shifts, r, first)
-        return None if out is None else Hits(*out)
+        return self._handle
+
+    @property
+    def shifts(self) -> np.ndarray:
+        """(G, 3) each mesh's shift."""
+        return self._shifts
 
 
 def _device_rays(origins, directions, t_max):

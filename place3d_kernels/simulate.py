@@ -15,6 +15,7 @@ import os
 
 import numpy as np
 
+from place3d_kernels.backends.base import first_far_row
 from place3d_kernels.backends.registry import get_backend
 from place3d_kernels.classes import REFLECTIVITY
 from place3d_kernels.lidar import LidarModel
@@ -25,7 +26,7 @@ from place3d_kernels.pose import pose_from_matrix, pose_matrix
 from place3d_kernels.profiling import section
 from place3d_kernels.rig_metrics import check_outside_body
 
-__all__ = ["simulate_frame", "simulate", "body_hits", "DEFAULT_MOUNT", "SWEEP_BATCH_RAYS", "check_frames",
+__all__ = ["simulate_frame", "simulate", "device_returns", "sensor_poses", "body_hits", "DEFAULT_MOUNT", "SWEEP_BATCH_RAYS", "check_frames",
            "simulation_size", "BYTES_PER_RETURN", "ANNOUNCE_RAYS"]
 
 log = logging.getLogger(__name__)
@@ -53,6 +54,10 @@ SWEEP_BATCH_RAYS = 1 << 20
 #: ``PLACE3D_ACTOR_GROUPS=0``: cast each frame's actors through a tree of their own (one build and one cast
 #: per frame) also where the backend can cast all frames' actors through one grouped tree (``MeshGroups``)
 ACTOR_GROUPS_ENV = "PLACE3D_ACTOR_GROUPS"
+
+#: ``PLACE3D_DEVICE_RETURNS=0``: make every frame's returns on the host (``_returns``) also where the backend
+#: makes them on its device (``device_returns``)
+DEVICE_RETURNS_ENV = "PLACE3D_DEVICE_RETURNS"
 
 
 def physical_memory() -> int | None:
@@ -187,6 +192,39 @@ def body_hits(body, lidar: LidarModel, mount=DEFAULT_MOUNT, backend=None) -> np.
     return np.asarray(raycast(body.mesh, o, d, lidar.max_range, backend=b).t, dtype=np.float64)
 
 
+def sensor_poses(scene, frames, mount=DEFAULT_MOUNT) -> np.ndarray:
+    """(F, 6) world poses of the sensor mounted at ``mount`` (ego frame) at each of ``frames``: ``simulate``'s."""
+    mount_T = pose_matrix(np.asarray(mount, dtype=np.float64))
+    return np.stack([pose_from_matrix(pose_matrix(scene.ego_poses[f]) @ mount_T) for f in frames])
+
+
+def device_returns(static: Mesh, groups, lidar: LidarModel, poses, backend=None, first: int = 0):
+    """``simulate``'s returns without intensities and without an ego body (each frame's points, labels and
+    origin) of one sweep from each of ``poses`` ((F, 6) sensor poses, ``sensor_poses``) into ``static`` and,
+    with ``groups`` (a ``MeshGroups`` of the frames' actor meshes), sweep k into mesh ``first + k`` too, made
+    on the backend's device (``sweep_returns``): the same arrays as ``simulate``'s host pass
+    (``_returns``), without the rays and their hits coming to the host. None where the backend cannot (no
+    ``sweep_returns``, no grouped casts) or a ray would fail ``raycast``'s checks: then the host pass.
+
+    Returns:
+        one (points (H, 3) float64, labels (H,) int32, origin (3,)) per sweep, or None.
+    """
+    b = get_backend(backend)
+    poses = np.ascontiguousarray(poses, dtype=np.float64).reshape(-1, 6)
+    if not hasattr(b, "sweep_returns") or not len(poses) or first_far_row(poses[:, :3], static.shift) >= 0:
+        return None
+    handle = shifts = None
+    if groups is not None:
+        if not 0 <= first <= len(groups.meshes) - len(poses):
+            raise ValueError(f"sweeps {first}..{first + len(poses) - 1} need as many actor meshes, "
+                             f"got {len(groups.meshes)}")
+        handle, shifts = groups.handle_near(poses[:, :3]), groups.shifts
+        if handle is None:
+            return None
+    return b.sweep_returns(static.handle(b), static.shift, handle, shifts, lidar.elevations, lidar.azimuths, poses,
+                           lidar.max_range, first)
+
+
 def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_MOUNT, frames=None,
              backend=None, progress: bool = False, body=None, dynamic=None,
              intensity: bool = True, hit_faces: bool = False):
@@ -237,10 +275,24 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
         # every frame's actor mesh in one tree with a subtree per frame
         with section("simulate: actors (build)"):
             groups = MeshGroups([dynamic.pop(f) if dynamic and f in dynamic else scene.dynamic(f) for f in frames], b)
+    # the returns made on the device where nothing the host pass adds is asked for (intensities, an ego body,
+    # hit faces) and the backend can (device_returns: Warp): the rays and their hits stay there
+    on_device = (not intensity and body is None and not hit_faces and hasattr(b, "sweep_returns")
+                 and (groups is not None or not scene.actors) and os.environ.get(DEVICE_RETURNS_ENV, "1").strip() != "0")
     out, faces = [], []
     for at in range(0, len(frames), per_batch):
         batch = frames[at:at + per_batch]
         sensor = np.stack([pose_from_matrix(pose_matrix(scene.ego_poses[f]) @ mount_T) for f in batch])
+        got = None
+        if on_device:
+            with section("simulate: returns on the device"):
+                got = device_returns(scene.static, groups, lidar, sensor, b, first=at)
+        if got is not None:
+            for f, (pts, lab, origin) in zip(batch, got):
+                out.append(PointCloud(pts, lab, None, origin, ego_pose=scene.ego_poses[f].copy()))
+                if bar is not None:
+                    bar.update(1)
+            continue
         with section("simulate: rays"):
             o_all, d_all = b.lidar_rays(lidar.elevations, lidar.azimuths, sensor)
         with section("simulate: static mesh"):

@@ -204,3 +204,42 @@ def test_frames_without_intensities_are_the_same_returns(town):
     grid = Grid(DEFAULT_GRID.lower, DEFAULT_GRID.upper, 0.2)      # the old default's 0.2 m: 8x fewer voxels
     a, c = PSOG.from_frames(full, grid, 3, backend=b), PSOG.from_frames(bare, grid, 3, backend=b)
     assert a.voxels.tobytes() == c.voxels.tobytes() and a.probs.tobytes() == c.probs.tobytes()
+
+
+@pytest.mark.parametrize("batch", [2, 100])
+def test_returns_made_on_the_device_are_the_hosts(town, monkeypatch, batch):
+    """simulate(intensity=False) on a backend that makes the returns on its device (``device_returns``, Warp):
+    every frame's points, labels, intensities (zeros), origins and ego pose as the host pass makes them, with
+    the sweeps in batches of 2 (a remainder of 1, the actors' groups taken from an offset) and all at once;
+    frames out of order."""
+    from place3d_kernels import available_backends
+    from place3d_kernels.simulate import device_returns, simulate
+
+    names = [n for n in available_backends() if hasattr(get_backend(n), "sweep_returns")]
+    if not names:
+        pytest.skip("no backend here makes returns on its device")
+    lidar = LidarModel.load("collection_64ch")
+    monkeypatch.setattr(SIM, "SWEEP_BATCH_RAYS", batch * 64 * 1024)
+    frames = [5, 0, 1, 3, 2]
+    for name in names:
+        b = get_backend(name)
+        monkeypatch.setenv(SIM.DEVICE_RETURNS_ENV, "0")
+        host = simulate(town, lidar, frames=frames, backend=b, intensity=False)
+        monkeypatch.setenv(SIM.DEVICE_RETURNS_ENV, "1")
+        calls = []
+        real = SIM.device_returns
+
+        def counted(*a, **k):
+            calls.append(1)
+            return real(*a, **k)
+
+        monkeypatch.setattr(SIM, "device_returns", counted)
+        dev = simulate(town, lidar, frames=frames, backend=b, intensity=False)
+        monkeypatch.setattr(SIM, "device_returns", real)
+        assert len(calls) == -(-len(frames) // batch), name          # one call a batch: the device path ran
+        assert len(dev) == len(host)
+        for x, y in zip(host, dev):
+            _same((x.points, x.labels, x.intensity, x.origins, x.sweep_origin, x.ego_pose),
+                  (y.points, y.labels, y.intensity, y.origins, y.sweep_origin, y.ego_pose))
+    # a backend without the device pass: None, and simulate keeps the host pass
+    assert device_returns(town.static, None, lidar, np.zeros((1, 6)), backend="reference") is None

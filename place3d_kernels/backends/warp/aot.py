@@ -8,7 +8,7 @@ driver compiles for the device, well under half the compile time, with the same 
 bench/README.md, "What the studies found", cold command: kernels and start; docs/architecture.md says
 why the binaries are committed).
 
-What is shipped: for each of the three modules, CUBINs for the architectures in ``CUBIN_ARCHS`` and PTX
+What is shipped: for each of the modules of ``modules()``, CUBINs for the architectures in ``CUBIN_ARCHS`` and PTX
 for ``PTX_ARCH`` (which every later GPU can run through the driver's compiler), under
 ``aot/warp-<Warp version>/``. A file is named by Warp from the module's content hash (its kernels'
 source, the functions they call and the module options), so a binary of other code is never found:
@@ -42,15 +42,15 @@ def folder() -> Path:
 
 
 def modules() -> list:
-    """The Warp modules shipped compiled: ``kernels.py``, the score kernel's module of its own and the
-    jackknife's left-out fields (``left_out_kernels.py``). They are what ``place3d optimize`` and
+    """The Warp modules shipped compiled: ``kernels.py``, the score kernel's module of its own, the
+    jackknife's left-out fields (``left_out_kernels.py``) and the simulation's returns (``returns_kernels.py``). They are what ``place3d optimize`` and
     ``evaluate`` run on a GPU (the left-out fields since pooled P-SOGs are the default: compiled on first
     use they took 1.7 s of a cold ``optimize`` on an H200, 2026-11-29); others (conditions, per-ray scores)
     compile on first use as before."""
-    from place3d_kernels.backends.warp import kernels, left_out_kernels, score_gpu
+    from place3d_kernels.backends.warp import kernels, left_out_kernels, returns_kernels, score_gpu
 
     return [kernels.raycast_query_kernel.module, score_gpu.score_kernel_gpu.module,
-            left_out_kernels.left_out_fields_kernel.module]
+            left_out_kernels.left_out_fields_kernel.module, returns_kernels.returns_hit_kernel.module]
 
 
 def binary_for(identifier: str, arch: int, where: Path | None = None) -> tuple[int, bool] | None:

@@ -370,6 +370,63 @@ class WarpCore(WarpScoring, Backend):
             out_t[a:b], out_f[a:b], out_l[a:b], flags])
         return self._checked_results(buf, n)
 
+    def sweep_returns(self, static, static_shift, groups, group_shifts, elevations, azimuths, sensor_poses, t_max,
+                      first: int = 0):
+        """``simulate``'s returns (no intensities) of one sweep from each of ``sensor_poses`` ((F, 6) world poses),
+        computed on the device: the rays made there, cast into ``static`` (an ``upload_mesh`` handle, the mesh's
+        shift ``static_shift``) and, with ``groups`` (an ``upload_mesh_groups`` handle, its meshes' (G, 3) shifts),
+        sweep k's rays into mesh ``first + k``; only the returns come back (returns_kernels.py says why they are
+        the host's bits). Returns one (points (H, 3) float64, labels (H,) int32, origin (3,)) per sweep, or None
+        where a ray fails ``ops.raycast``'s checks (the caller then casts the usual way, which reports it)."""
+        from place3d_kernels.backends.warp import returns_kernels as rk
+
+        poses = np.ascontiguousarray(sensor_poses, dtype=np.float64).reshape(-1, 6)
+        F = len(poses)
+        sd, sd_a = self._directions.get(elevations, azimuths)
+        R = len(sd)
+        n = F * R
+        if n == 0:
+            return [(np.zeros((0, 3)), np.zeros(0, np.int32), p[:3].copy()) for p in poses]
+        dev = self.device
+        o = wp.empty(n, dtype=wp.vec3d, device=dev)
+        d = wp.empty(n, dtype=wp.vec3d, device=dev)
+        rot = wp.array(rotation_matrices(poses), dtype=wp.mat33d, device=dev)
+        wp.launch(self.k.lidar_rays_kernel, dim=n, device=dev, inputs=[sd_a, rot, self._vec3d(poses[:, :3]), o, d])
+        # the outputs are views of one buffer each, which must live as long as they are read
+        buf_s, (ts, _fs, ls, flags) = self._checked_outputs(n)
+        s = wp.vec3d(*np.asarray(static_shift, dtype=np.float64).reshape(3).tolist())
+        tm = self._t_in(static, t_max, 1)
+        self._launch(self.k.RAYCAST_CHECKED[wp.vec3d], n, lambda a, b: [
+            static.mesh.id, static.corners64, static.reach, static.face_ids, static.face_labels, o[a:b], 1, s,
+            d[a:b], tm, 0, ts[a:b], _fs[a:b], ls[a:b], flags])
+        ta, la, has, buf_g = ts, ls, 0, None
+        if groups is not None:
+            buf_g, (ta, fa, la, flags_g) = self._checked_outputs(n)
+            sh = self._vec3d(group_shifts)
+            tg = self._t_in(groups, t_max, 1)
+            self._launch_by_group(self.k.raycast_groups_kernel, F, R, lambda g0, g1: [
+                groups.mesh.id, groups.corners64, groups.reach, groups.face_ids, groups.face_labels,
+                o[g0 * R:g1 * R], sh, d[g0 * R:g1 * R], tg, R, first + g0, ta[g0 * R:g1 * R], fa[g0 * R:g1 * R],
+                la[g0 * R:g1 * R], flags_g])
+            has = 1
+        hit = wp.empty(n, dtype=wp.int32, device=dev)
+        wp.launch(rk.returns_hit_kernel, dim=n, device=dev, inputs=[ts, ta, has, hit])
+        at = wp.empty(n, dtype=wp.int32, device=dev)
+        wp.utils.array_scan(hit, at, inclusive=False)
+        starts = wp.empty(F + 1, dtype=wp.int32, device=dev)
+        wp.launch(rk.sweep_starts_kernel, dim=F + 1, device=dev, inputs=[hit, at, R, F, starts])
+        st = starts.numpy().astype(np.int64)
+        if flags.numpy().any() or (groups is not None and flags_g.numpy().any()):
+            return None
+        H = int(st[-1])
+        pts = wp.empty(max(H, 1), dtype=wp.vec3d, device=dev)
+        lab = wp.empty(max(H, 1), dtype=wp.int32, device=dev)
+        wp.launch(rk.returns_write_kernel, dim=n, device=dev, inputs=[o, d, ts, ls, ta, la, has, hit, at, pts, lab])
+        P = pts.numpy().reshape(-1, 3)[:H]
+        L = lab.numpy()[:H]
+        del buf_s, buf_g
+        return [(P[st[k]:st[k + 1]], L[st[k]:st[k + 1]], poses[k, :3].copy()) for k in range(F)]
+
     def _checked_outputs(self, n: int):
         """The outputs of a checked cast of n rays in one allocation (t float64 | face int64 | label int32 |
         flags int32, the flags zeroed), so that they come back in one copy: one allocation and one
