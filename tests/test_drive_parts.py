@@ -113,10 +113,23 @@ def test_drive_parts_leaves_a_quarter_of_the_cores():
     assert drive_parts(4, 0, 2) == 1 and drive_parts(0, 4, 16) == 1
 
 
-def test_missing_drives_built_in_parts_with_held_out_ones_later(tmp_path, monkeypatch):
-    # eight cores: two searched drives in two parts each (four workers) and the held-out drive's two parts queued
-    # behind them; the command has the searched drives' merged records when build_missing returns, the held-out
-    # one later, and the cache files of all three are those of whole builds
+def test_drive_plan_builds_whole_drives_with_later_ones_queued():
+    from place3d_app.commands.routes import drive_plan
+
+    # optimize's searched and held-out drives: whole, the held-out ones queued behind (one worker a drive)
+    assert drive_plan(4, 4, 16) == (1, True) and drive_plan(2, 1, 8) == (1, True) and drive_plan(4, 7, 16) == (1, True)
+    # no later drives (evaluate): parts where the cores allow them, else every drive whole at once
+    assert drive_plan(4, 0, 16) == (2, True) and drive_plan(8, 0, 16) == (1, False)
+    # too few cores for a worker a drive of the larger group: every drive whole at once, as many as the cores
+    assert drive_plan(4, 4, 2) == (1, False) and drive_plan(4, 13, 16) == (1, False)
+
+
+@pytest.mark.parametrize("held_out", [True, False], ids=["whole-with-held-out", "parts"])
+def test_missing_drives_built_with_held_out_ones_later(tmp_path, monkeypatch, held_out):
+    # eight cores: two searched drives whole (two workers) and the held-out drive queued behind them; without a
+    # held-out drive, the two searched drives in two parts each (four workers). The command has the searched
+    # drives' records when build_missing returns, the held-out one later, and the cache files are those of
+    # whole builds
     import argparse
 
     from place3d_app import executors
@@ -138,11 +151,11 @@ def test_missing_drives_built_in_parts_with_held_out_ones_later(tmp_path, monkey
     monkeypatch.setattr("place3d_app.executors.usable_cores", lambda: 8)
     monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "workers"))
     specs = [PSOGSpec(SceneSpec("town", s, 8), grid=0.8, frames_per_subset=2) for s in (3, 4)]
-    later = [PSOGSpec(SceneSpec("town", 7, 8), grid=0.8, frames_per_subset=2)]
+    later = [PSOGSpec(SceneSpec("town", 7, 8), grid=0.8, frames_per_subset=2)] if held_out else []
     opts = argparse.Namespace(no_cache=False, quiet=True, backend="warp:cpu")
-    assert build_missing(opts, specs, "warp:cpu", later=later) == 3
+    assert build_missing(opts, specs, "warp:cpu", later=later) == len(specs) + len(later)
     (ex,) = made
-    assert ex.workers == 4 and set(opts.built) == set(specs) and set(opts.building) == set(later)
+    assert ex.workers == (2 if held_out else 4) and set(opts.built) == set(specs) and set(opts.building) == set(later)
     held = built_records(opts, later)
     end = time.monotonic() + 120
     while not hasattr(ex, "workers_at_end") or any(p.is_alive() for p in ex.workers_at_end):

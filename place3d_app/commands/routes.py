@@ -15,7 +15,7 @@ import time
 from concurrent.futures import Future
 
 __all__ = ["add_route_arguments", "route_seeds", "drive_specs", "pooled_psog", "psog_for_routes",
-           "build_missing", "built_records", "drive_parts", "DRIVE_PARTS", "SINGLE_ROUTE_WARNING"]
+           "build_missing", "built_records", "drive_parts", "drive_plan", "DRIVE_PARTS", "SINGLE_ROUTE_WARNING"]
 
 SINGLE_ROUTE_WARNING = ("place3d: warning: one route: the order of the placements is not converged on a single "
                         "drive (docs/guide.md, 'How many routes'); pool several with --routes N")
@@ -177,6 +177,22 @@ def drive_parts(first: int, later: int, workers: int) -> int:
     return DRIVE_PARTS if first and max(first, later) * DRIVE_PARTS <= workers * 3 // 4 else 1
 
 
+def drive_plan(first: int, later: int, workers: int) -> tuple[int, bool]:
+    """(parts per drive, whether the ``later`` drives queue behind the ``first`` ones in the same workers) for
+    ``first`` missing drives needed now and ``later`` ones needed after optimize's search, on ``workers`` usable
+    cores. With later drives, where one worker a drive of the larger group takes at most three quarters of the
+    cores: every drive whole, the later ones queued. They are built during the search, and whole there are half
+    as many processes beside it and no parts for the command's threads to merge: the search took 0.81 s against
+    0.89 s with part workers, the cold default optimize 3.22 against 3.24 s (medians of 32 runs each in five
+    alternated rounds on one H200 lease, four of the rounds faster; the searched drives back as soon;
+    bench/results/ab-2026-12-02-s46/, section 3). Otherwise ``drive_parts``, the later drives queued behind the
+    first where that gives parts."""
+    if first and later and max(first, later) <= workers * 3 // 4:
+        return 1, True
+    parts = drive_parts(first, later, workers)
+    return parts, parts > 1
+
+
 def built_records(args, specs) -> dict:
     """{spec: record} of the drives of ``specs`` that the workers built (``build_missing``): ``args.built``, with
     the drives still building (``args.building``) waited for."""
@@ -194,13 +210,14 @@ def build_missing(args, specs, backend, later=()) -> int:
     ``DriveRecord`` is kept in ``args.built`` ({spec: record}), which ``pooled_psog`` and ``pool_specs(known=...)``
     take instead of reading the file.
 
-    Where the cores allow (``drive_parts``), each missing drive is built in ``DRIVE_PARTS`` parts (``_build_part``),
-    ``specs``' drives first, one worker a part, and ``later``'s (optimize's held-out drives, needed after the
-    search) queued behind them: the same workers take them as they finish, their backends made already. This
-    returns when ``specs``' drives are back and merged, ``later``'s in ``args.building`` ({spec: Future of its
-    record}, ``built_records``), merged by a thread of this process as they come back; workers write the merged
-    drives to the cache (``_save_drive``), and leave once every task is done. Otherwise every drive is built
-    whole at once and this returns when all are back.
+    How (``drive_plan``): where the cores allow, ``specs``' drives first, one worker each (with ``later`` drives:
+    optimize's held-out drives, needed after the search) or one worker a part (``DRIVE_PARTS`` parts,
+    ``_build_part``), and ``later``'s queued behind them: the same workers take them as they finish, their
+    backends made already. This returns when ``specs``' drives are back (merged where built in parts),
+    ``later``'s in ``args.building`` ({spec: Future of its record}, ``built_records``), taken by a thread of this
+    process as they come back; workers write the drives to the cache (a part-built one merged, ``_save_drive``),
+    and leave once every task is done. Otherwise every drive is built whole at once and this returns when all
+    are back.
 
     A drive counts as cached when its cache file exists (``PSOGSpec.cache_file``: found without building
     its scene; one whose scene key was never remembered counts as missing). Nothing is started for fewer
@@ -224,8 +241,8 @@ def build_missing(args, specs, backend, later=()) -> int:
 
     first, rest = lacking(specs), lacking(later)
     cores = default_workers()
-    parts = drive_parts(len(first), len(rest), cores)
-    if parts == 1:
+    parts, queued = drive_plan(len(first), len(rest), cores)
+    if not queued:
         first, rest = first + rest, []         # every drive whole, one worker each, as many as the cores
     n = min(cores, max(len(first), len(rest)) * parts)      # the later drives' parts queue behind
     if len(first) + len(rest) < 2 or n < 2:
