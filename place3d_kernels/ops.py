@@ -250,7 +250,6 @@ class MeshGroups:
             out = self.b.raycast_groups(self._handle, o, d, float(t_max), self._shifts, r, first)
         return None if out is None else Hits(*out)
 
-
     def handle_near(self, origins):
         """The backend's grouped tree of the meshes (built on first use), or None where the backend has no
         grouped casts or an origin lies more than COORDINATE_LIMIT from a mesh's shift (``cast`` then leaves

@@ -26,8 +26,8 @@ from place3d_kernels.pose import pose_from_matrix, pose_matrix
 from place3d_kernels.profiling import section
 from place3d_kernels.rig_metrics import check_outside_body
 
-__all__ = ["simulate_frame", "simulate", "device_returns", "sensor_poses", "body_hits", "DEFAULT_MOUNT", "SWEEP_BATCH_RAYS", "check_frames",
-           "simulation_size", "BYTES_PER_RETURN", "ANNOUNCE_RAYS"]
+__all__ = ["simulate_frame", "simulate", "device_returns", "sensor_poses", "body_hits", "DEFAULT_MOUNT",
+           "SWEEP_BATCH_RAYS", "check_frames", "simulation_size", "BYTES_PER_RETURN", "ANNOUNCE_RAYS"]
 
 log = logging.getLogger(__name__)
 
@@ -255,7 +255,6 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
     if isinstance(lidar, str):
         lidar = LidarModel.load(lidar)
     idx = range(scene.n_frames) if frames is None else frames
-    mount_T = pose_matrix(np.asarray(mount, dtype=np.float64))
     body_t = body_hits(body, lidar, mount, backend)
     frames = list(idx)
     bar = None
@@ -278,11 +277,12 @@ def simulate(scene, lidar: LidarModel | str = "collection_64ch", mount=DEFAULT_M
     # the returns made on the device where nothing the host pass adds is asked for (intensities, an ego body,
     # hit faces) and the backend can (device_returns: Warp): the rays and their hits stay there
     on_device = (not intensity and body is None and not hit_faces and hasattr(b, "sweep_returns")
-                 and (groups is not None or not scene.actors) and os.environ.get(DEVICE_RETURNS_ENV, "1").strip() != "0")
+                 and (groups is not None or not scene.actors)
+                 and os.environ.get(DEVICE_RETURNS_ENV, "1").strip() != "0")
     out, faces = [], []
     for at in range(0, len(frames), per_batch):
         batch = frames[at:at + per_batch]
-        sensor = np.stack([pose_from_matrix(pose_matrix(scene.ego_poses[f]) @ mount_T) for f in batch])
+        sensor = sensor_poses(scene, batch, mount)
         got = None
         if on_device:
             with section("simulate: returns on the device"):

@@ -393,12 +393,12 @@ class WarpCore(WarpScoring, Backend):
         rot = wp.array(rotation_matrices(poses), dtype=wp.mat33d, device=dev)
         wp.launch(self.k.lidar_rays_kernel, dim=n, device=dev, inputs=[sd_a, rot, self._vec3d(poses[:, :3]), o, d])
         # the outputs are views of one buffer each, which must live as long as they are read
-        buf_s, (ts, _fs, ls, flags) = self._checked_outputs(n)
+        buf_s, (ts, fs, ls, flags) = self._checked_outputs(n)
         s = wp.vec3d(*np.asarray(static_shift, dtype=np.float64).reshape(3).tolist())
         tm = self._t_in(static, t_max, 1)
         self._launch(self.k.RAYCAST_CHECKED[wp.vec3d], n, lambda a, b: [
             static.mesh.id, static.corners64, static.reach, static.face_ids, static.face_labels, o[a:b], 1, s,
-            d[a:b], tm, 0, ts[a:b], _fs[a:b], ls[a:b], flags])
+            d[a:b], tm, 0, ts[a:b], fs[a:b], ls[a:b], flags])
         ta, la, has, buf_g = ts, ls, 0, None
         if groups is not None:
             buf_g, (ta, fa, la, flags_g) = self._checked_outputs(n)
