@@ -26,7 +26,9 @@ imports, where writable) and says so in the output; without it the runs measure 
     python3 bench/cold_profile.py --runs 4 --tree .:PLACE3D_FAST_EXIT=0 --tree . --out $OUT
 
 Writes one file per run of this script, ``cold-profile-<machine>-<date>.json`` in ``--out`` (default $OUT, else
-bench/results/): the walls per tree (median, min, max, every run) and ``log``, every run's wall, last stdout line
+bench/results/): the walls per tree (median, min, max, every run), ``marks`` per tree (the same for each cold run's
+process exit and the profile's ``MARK_ROWS``: the drives' step's end, the pooled P-SOG's, the search, the span) and
+``log``, every run's wall, last stdout line
 (with a digest of the results, which must match between trees) and profile table, and the cProfile listings.
 """
 
@@ -38,6 +40,7 @@ import hashlib
 import json
 import os
 import pstats
+import re
 import statistics
 import subprocess
 import sys
@@ -114,6 +117,37 @@ def cold_run(tree: Path, backend: str, max_evals: int, cprofile: Path | None = N
     return wall, last, table
 
 
+#: profile rows whose end (``to``) or span a run's summary keeps (``marks``): when the drives' step ended, when the
+#: pooled P-SOG was ready, the search (first to last scoring) and the profile's whole span
+MARK_ROWS = {"drives_end_s": ("  drives: worker processes", "to"), "pooled_end_s": ("  P-SOG (pooled drives)", "to"),
+             "search_s": ("scoring (objective)", "span"), "profile_s": ("total (profile span)", "seconds")}
+
+
+def marks(last: str, table: str) -> dict:
+    """A run's figures for the summary: ``exit_s`` (when the command's own process ended, from ``cold_run``'s
+    line) and the ``MARK_ROWS`` read from its profile table (a row the table lacks is left out)."""
+    out = {}
+    m = re.search(r"process exit ([\d.]+) s", last)
+    if m:
+        out["exit_s"] = float(m.group(1))
+    rows = table.splitlines()
+    for key, (prefix, what) in MARK_ROWS.items():
+        row = next((r for r in rows if r.startswith(prefix)), None)
+        if row is None:
+            continue
+        f = row[44:].split()            # seconds, calls, share, from, to (the total's row: seconds alone)
+        try:
+            out[key] = round(float(f[0]) if what == "seconds" else float(f[4]) if what == "to"
+                             else float(f[4]) - float(f[3]), 3)
+        except (IndexError, ValueError):
+            continue
+    return out
+
+
+def _stats(v: list[float]) -> dict:
+    return {"median": statistics.median(v), "min": min(v), "max": max(v), "runs": v}
+
+
 #: packages ``place3d optimize`` imports (besides the standard library), whose bytecode ``--bytecode`` compiles
 BYTECODE_PACKAGES = ("warp", "numpy", "cma", "scipy", "matplotlib", "pyopencl", "trimesh", "PIL", "tqdm", "platformdirs")
 
@@ -160,6 +194,7 @@ def main() -> None:
     trees = [parse_tree(t) for t in (a.tree or [str(ROOT)])]
     walls: dict[str, list[float]] = {label: [] for label, _, _ in trees}
     warm: dict[str, list[float]] = {label: [] for label, _, _ in trees}
+    run_marks: dict[str, list[dict]] = {label: [] for label, _, _ in trees}       # cold runs' marks()
     log = [f"# cold place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend} {a.args}; fresh Warp, "
            f"CUDA and P-SOG caches each run; trees alternating: {[f'{t} {e or {}}' for _, t, e in trees]}"]
     if a.bytecode:
@@ -175,6 +210,8 @@ def main() -> None:
                     w, last, table = cold_run(t, a.backend, a.max_evals, args=tuple(a.args.split()), extra_env=env,
                                               caches=caches)
                     into[label].append(w)
+                    if kind == "cold":
+                        run_marks[label].append(marks(last, table))
                     name = label if kind == "cold" else f"{label} (warm)"
                     log += [f"## {name} run {r + 1}: wall {w:.3f} s | {last}", table.rstrip(), ""]
                     print(f"{name} run {r + 1}: wall {w:.3f} s | {last}", flush=True)
@@ -185,6 +222,12 @@ def main() -> None:
                 into[t] = {"median": statistics.median(ws), "min": min(ws), "max": max(ws), "runs": ws}
                 log.append(f"{t}{kind}: wall median {into[t]['median']:.3f} [{min(ws):.3f}-{max(ws):.3f}] s "
                            f"over {len(ws)} runs")
+    # per tree, the median and range of each mark over its cold runs (process exit: what a shell waits for)
+    marks_summary = {t: {k: _stats([m[k] for m in ms if k in m]) for k in ("exit_s", *MARK_ROWS)
+                         if any(k in m for m in ms)} for t, ms in run_marks.items()}
+    for t, ms in marks_summary.items():
+        log.append(f"{t}: " + "; ".join(f"{k} median {v['median']:.3f} [{v['min']:.3f}-{v['max']:.3f}]"
+                                        for k, v in ms.items()))
     if a.cprofile:
         for label, t, env in trees:
             pf = Path(tempfile.mkdtemp()) / "cold.pstats"
@@ -198,13 +241,15 @@ def main() -> None:
                 log.append(s.read())
     path = write_result("cold-profile", {
         "command": f"place3d optimize --max-evals {a.max_evals} --task seg --backend {a.backend} {a.args}".strip(),
-        "trees": {label: str(t) for label, t, _ in trees}, "walls_s": summary,
+        "trees": {label: str(t) for label, t, _ in trees}, "walls_s": summary, "marks": marks_summary,
         **({"warm_walls_s": warm_summary} if a.warm else {}), "bytecode_compiled_ahead": a.bytecode,
         "log": "\n".join(log) + "\n"}, a.machine, a.out)
     print(f"wrote {path}")
     for kind, source in (("cold", summary), ("warm", warm_summary)):
         for t, s in source.items():
             print(f"{t}: {kind} wall median {s['median']:.3f} [{s['min']:.3f}-{s['max']:.3f}] s")
+    for t, ms in marks_summary.items():
+        print(f"{t}: cold " + "; ".join(f"{k} {v['median']:.3f} [{v['min']:.3f}-{v['max']:.3f}]" for k, v in ms.items()))
 
 
 if __name__ == "__main__":
