@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["brick_shape", "brick_bits", "brick_masks", "flat_shape", "flat_brick_masks"]
+__all__ = ["brick_shape", "brick_bits", "brick_word_bits", "brick_masks", "flat_shape", "flat_brick_masks"]
 
 
 def brick_shape(shape) -> tuple[int, int, int]:
@@ -43,13 +43,20 @@ DENSE_SHARE = 50
 DENSE_MIN_VOXELS = 4096
 
 
+def brick_word_bits(voxels: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
+    """(brick word (N,) int64, the voxel's bit in it (N,) uint32) of flat voxel indices (C order over ``shape``)."""
+    i, j, k = np.unravel_index(np.asarray(voxels, dtype=np.int64), tuple(int(v) for v in shape))
+    _, by, bz = brick_shape(shape)
+    word = ((i >> 2) * by + (j >> 2)) * bz + (k >> 1)
+    bit = np.left_shift(np.uint32(1), ((i & 3) | ((j & 3) << 2) | ((k & 1) << 4)).astype(np.uint32))
+    return word, bit
+
+
 def _brick_bits_sparse(mask: np.ndarray, shape) -> np.ndarray:
     bx, by, bz = brick_shape(shape)
     words = np.zeros(bx * by * bz, dtype=np.uint32)
-    i, j, k = np.unravel_index(np.flatnonzero(mask), tuple(int(v) for v in shape))
-    if i.size:
-        word = ((i >> 2) * by + (j >> 2)) * bz + (k >> 1)
-        bit = np.left_shift(np.uint32(1), ((i & 3) | ((j & 3) << 2) | ((k & 1) << 4)).astype(np.uint32))
+    word, bit = brick_word_bits(np.flatnonzero(mask), shape)
+    if word.size:
         order = np.argsort(word, kind="stable")
         word, bit = word[order], bit[order]
         first = np.flatnonzero(np.r_[True, word[1:] != word[:-1]])

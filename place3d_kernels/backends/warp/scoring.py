@@ -12,7 +12,7 @@ import numpy as np
 import warp as wp
 
 from place3d_kernels.backends.base import check_voxel_rows, resident_copy, rotation_matrices
-from place3d_kernels.backends.bricks import brick_masks, brick_shape, flat_shape
+from place3d_kernels.backends.bricks import brick_masks, brick_shape, brick_word_bits, flat_shape
 from place3d_kernels.backends.warp.cpu_split import CHUNKS_PER_THREAD, MIN_CHUNK
 
 __all__ = ["WarpScoring", "SPLIT_SINGLE_RIG", "SPLIT_MIN_RAYS"]
@@ -47,7 +47,8 @@ class _WarpGrid:
                                         # (uint32 pairs; on CUDA the same bytes as one uint64 per brick)
         self.flat = flat                # CUDA: the score kernel's masks per 8 x 4 x 1 brick (bricks.flat_brick_masks)
         self.binary = False             # every weight 0 or 1 (prepare_indicator): its sums are counts of bits
-        self.writable = None            # CPU working grids (working_grid): whether the grid has a stop mask
+        self.writable = False           # a CPU working grid (working_grid), which write_voxels changes
+        self.has_stop = False           # a working grid's: whether it has a stop mask (occlusion bits)
 
     def nonzero_words(self, cuda: bool):
         """This grid's masks in the score bitsets' layout, one uint64 per word (nonzero-weight bits high):
@@ -109,31 +110,22 @@ class WarpScoring:
         bx, by, bz = brick_shape(grid.shape)
         h = _WarpGrid(grid, wp.zeros(grid.n_voxels, dtype=wp.int64, device=self.device),
                       wp.zeros(2 * bx * by * bz, dtype=wp.uint32, device=self.device))
-        h.writable = {"stop": stop is not None}
+        h.writable, h.has_stop = True, stop is not None
         self.write_voxels(h, voxels, weights, stop)
         return h
 
     def write_voxels(self, handle, voxels, weights, stop):
         if not isinstance(handle, _WarpGrid) or not handle.writable:
             raise TypeError(f"write_voxels needs a handle from {self.name}.working_grid, got {type(handle).__name__}")
-        spec = handle.spec
-        has_stop = handle.writable["stop"]
-        ids, w, s = check_voxel_rows(voxels, weights, stop, spec.n_voxels, has_stop)
+        ids, w, s = check_voxel_rows(voxels, weights, stop, handle.spec.n_voxels, handle.has_stop)
         if not len(ids):
             return
         handle.weights.numpy()[ids] = w           # the CPU device's arrays: host memory, viewed without a copy
-        # each voxel's bit in its brick's pair of words (bricks.py): cleared, then set where it holds
-        nx, ny, nz = spec.shape
-        _, by, bz = brick_shape(spec.shape)
-        k = ids % nz
-        j = (ids // nz) % ny
-        i = ids // (ny * nz)
-        word = ((i >> 2) * by + (j >> 2)) * bz + (k >> 1)
-        bit = np.left_shift(np.uint32(1), ((i & 3) | ((j & 3) << 2) | ((k & 1) << 4)).astype(np.uint32))
+        # each voxel's bit in its brick's pair of words (nonzero-weight word 2b + 1, occlusion word 2b): cleared,
+        # then set where it holds
+        word, bit = brick_word_bits(ids, handle.spec.shape)
         masks = handle.masks.numpy()
-        for at, on in ((2 * word + 1, w != 0), (2 * word, s != 0) if has_stop else (None, None)):
-            if at is None:
-                continue
+        for at, on in [(2 * word + 1, w != 0)] + ([(2 * word, s != 0)] if handle.has_stop else []):
             np.bitwise_and.at(masks, at, ~bit)
             np.bitwise_or.at(masks, at[on], bit[on])
 
