@@ -135,10 +135,9 @@ def marks(last: str, table: str) -> dict:
         row = next((r for r in rows if r.startswith(prefix)), None)
         if row is None:
             continue
-        f = row[44:].split()            # seconds, calls, share, from, to (the total's row: seconds alone)
+        f = row.split()                 # ..., seconds, calls, share, from, to (the total's row ends at seconds)
         try:
-            out[key] = round(float(f[0]) if what == "seconds" else float(f[4]) if what == "to"
-                             else float(f[4]) - float(f[3]), 3)
+            out[key] = round(float(f[-1]) if what in ("seconds", "to") else float(f[-1]) - float(f[-2]), 3)
         except (IndexError, ValueError):
             continue
     return out
