@@ -53,7 +53,12 @@ def invert(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
-def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply one 4x4 transform to (N, 3) points in float64."""
+def transform_points(T: np.ndarray, points: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Apply one 4x4 transform to (N, 3) points in float64 (into ``out``, a C-contiguous (N, 3) float64 array,
+    when given: the same product and sum, the same bits)."""
     p = np.asarray(points, dtype=np.float64)
-    return p @ T[:3, :3].T + T[:3, 3]
+    if out is None:
+        return p @ T[:3, :3].T + T[:3, 3]
+    np.matmul(p, T[:3, :3].T, out=out)
+    out += T[:3, 3]
+    return out

@@ -25,7 +25,7 @@ from place3d_kernels.pose import invert, pose_matrix, transform_points
 from place3d_kernels.threads import block_map
 
 __all__ = ["PSOG", "entropy", "cache_dir", "cache_folder", "cache_key", "keep_loaded", "subset_groups", "subset_votes",
-           "pool_votes"]
+           "pool_votes", "vote_entries"]
 
 _FORMAT = 5  # bump when the on-disk layout or the build changes (2: float64 voxel binning; 3: ray-mesh
              # distances from the reference formula on every backend, so P-SOGs agree across backends;
@@ -79,12 +79,27 @@ def subset_votes(frames: list[PointCloud], grid: Grid, frames_per_subset: int, b
 
         it = tqdm(groups, desc="P-SOG subsets", unit="subset", leave=False)
     votes = []
+    # one buffer of points and one of labels for every subset (the largest's size): a fresh array per frame, per
+    # merge and per shift to the grid's corner was new memory each time, faulted in page by page, in every
+    # worker process that builds a drive
+    size = max(sum(len(f.points) for f in g) for g in groups)
+    pts_buf, lab_buf = np.empty((size, 3)), np.empty(size, dtype=np.int32)
+    lower = np.asarray(grid.lower, dtype=np.float64)
     for g in it:
         ref = g[len(g) // 2]
         to_ref = invert(pose_matrix(ref.ego_pose))
-        pts = np.concatenate([transform_points(to_ref, f.points) for f in g])
-        lab = np.concatenate([np.asarray(f.labels, dtype=np.int32) for f in g])
-        vox, win = b.vote(b.voxel_keys(grid.spec, grid.to_local(pts)), lab, N_CLASSES)
+        n = sum(len(f.points) for f in g)
+        pts, lab = pts_buf[:n], lab_buf[:n]
+        at = 0
+        for f in g:
+            m = len(f.points)
+            # transform_points' arithmetic (one product, then the shift), written into the buffer, and then
+            # Grid.to_local's subtraction: the same float64 roundings in the same order
+            transform_points(to_ref, f.points, out=pts[at:at + m])
+            lab[at:at + m] = f.labels
+            at += m
+        np.subtract(pts, lower, out=pts)
+        vox, win = b.vote(b.voxel_keys(grid.spec, pts), lab, N_CLASSES)
         votes.append((np.asarray(vox, np.int64), np.asarray(win, np.int64)))
     return votes
 
@@ -126,6 +141,46 @@ def pool_votes(votes: list[tuple[np.ndarray, np.ndarray]], n_voxels: int,
         counts = counts.reshape(len(uniq), n_classes)
     counts[:, 0] = T - counts[:, 1:].sum(axis=1)
     return uniq.astype(np.int64, copy=False), counts
+
+
+def vote_entries(votes: list[tuple[np.ndarray, np.ndarray]], n_voxels: int,
+                 n_classes: int = N_CLASSES) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """``pool_votes``' counts as the occupied entries a cache file stores (``_counts_members``), counted by one
+    sort of every (voxel, class) vote, without the dense (M, K) table: ``PSOG(grid, voxels, None,
+    n_subsets=len(votes), occupied=entries)`` is the P-SOG of ``PSOG.from_counts(grid, *pool_votes(...))``,
+    the same counts to the bit, and its file the same bytes.
+
+    Returns:
+        voxels (M,) int64 ascending (every voxel voted in some subset), and (flat indices into ``counts[:, 1:]``,
+        row-major, int64 as ``_counts_members`` gives them; their counts, int32).
+
+    Raises:
+        ValueError: a class outside [0, n_classes) or a voxel outside [0, n_voxels).
+    """
+    vox = np.concatenate([np.asarray(v, np.int64) for v, _ in votes]) if votes else np.zeros(0, np.int64)
+    lab = np.concatenate([np.asarray(w, np.int64) for _, w in votes]) if votes else np.zeros(0, np.int64)
+    if len(lab) and (lab.min() < 0 or lab.max() >= n_classes):
+        raise ValueError(f"votes must be classes in [0, {n_classes}), got range [{lab.min()}, {lab.max()}]")
+    if len(vox) and (vox.min() < 0 or vox.max() >= n_voxels):
+        raise ValueError(f"voted voxels must lie in [0, {n_voxels}), got range [{vox.min()}, {vox.max()}]")
+    key = vox * n_classes + lab
+    key.sort()
+    first = np.empty(len(key), dtype=bool)              # the first of each run of equal (voxel, class) votes
+    first[:1] = True
+    np.not_equal(key[1:], key[:-1], out=first[1:])
+    starts = np.flatnonzero(first)
+    count = np.diff(np.append(starts, len(key))).astype(np.int32)
+    key = key[starts]
+    voxel, cls = np.divmod(key, n_classes)
+    new = np.empty(len(voxel), dtype=bool)              # the first entry of each voxel
+    new[:1] = True
+    np.not_equal(voxel[1:], voxel[:-1], out=new[1:])
+    voxels = voxel[new]
+    row = np.cumsum(new) - 1
+    # class 0 (empty) is T minus the others in every row: not an occupied entry (no vote gives it; one that did
+    # would still add its voxel, as in pool_votes)
+    keep = cls > 0
+    return voxels, (row[keep] * (n_classes - 1) + cls[keep] - 1, count[keep])
 
 
 class PSOG:
@@ -243,7 +298,8 @@ class PSOG:
         fill a subset are dropped (all frames form one subset when there are fewer than k).
         """
         votes = subset_votes(frames, grid, frames_per_subset, backend=backend, progress=progress)
-        return cls.from_counts(grid, *pool_votes(votes, grid.n_voxels), n_subsets=len(votes))
+        voxels, occupied = vote_entries(votes, grid.n_voxels)
+        return cls(grid, voxels, None, n_subsets=len(votes), occupied=occupied)
 
     @classmethod
     def from_counts(cls, grid: Grid, voxels: np.ndarray, counts: np.ndarray, n_subsets: int) -> "PSOG":
@@ -423,7 +479,11 @@ class PSOG:
 
         arrays = dict(voxels=self.voxels, meta=json.dumps({"grid": self.grid.to_dict(), "channels": list(self.channels),
                                                            "n_subsets": self.n_subsets, "format": _FORMAT}))
-        arrays.update(_counts_members(self.counts, self.n_subsets))
+        occupied = self.occupied
+        # the entries the P-SOG was made with are its counts' _counts_members (a file's, or vote_entries'):
+        # written as they are, without the dense table
+        arrays.update(_counts_members(self.counts, self.n_subsets) if occupied is None else
+                      {"occupied_index": occupied[0], "occupied_counts": occupied[1]})
         # probs left out when they are counts / T to the bit (P-SOGs from frames): a third of the bytes to
         # decompress on every cached load, a visible part of a warm optimise (more beside other work)
         if not self.probs_are_counts():

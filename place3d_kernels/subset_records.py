@@ -174,7 +174,7 @@ def records_aggregator(spec) -> Callable:
     from place3d_kernels.pipeline import DEFAULT_FRAMES_PER_SUBSET
 
     def aggregate(frames, backend):
-        from place3d_kernels.sog import PSOG, pool_votes, subset_votes
+        from place3d_kernels.sog import PSOG, subset_votes, vote_entries
 
         from place3d_kernels.left_out import HANDLES
 
@@ -186,8 +186,8 @@ def records_aggregator(spec) -> Callable:
             _write_records(path, inputs, recs)
         # the pool of the records (PooledPSOG(grid, recs).psog()) counted straight from their entries: the
         # same voxels (those with a voting class), counts and float64 probabilities (counts / T)
-        voxels, counts = pool_votes([(r.voxels, r.classes.astype(np.int64)) for r in recs], grid.n_voxels)
-        psog = PSOG.from_counts(grid, voxels, counts, n_subsets=len(recs))
+        voxels, occupied = vote_entries([(r.voxels, r.classes.astype(np.int64)) for r in recs], grid.n_voxels)
+        psog = PSOG(grid, voxels, None, n_subsets=len(recs), occupied=occupied)
         if path is not None:
             # the intervals read these records back (keyed_subset_records: this file's identity while it is
             # not rewritten) and find this P-SOG their pool without pooling and comparing them again

@@ -196,3 +196,61 @@ def test_psog_identical_across_backends(device_backend, rng):
     b = p3k.PSOG.from_frames(frames, grid, frames_per_subset=2, backend=device_backend)
     np.testing.assert_array_equal(a.voxels, b.voxels)
     np.testing.assert_array_equal(a.probs, b.probs)
+
+
+def test_vote_entries_are_the_entries_of_pool_votes_counts(rng):
+    # PSOG.from_frames keeps its counts as the occupied entries a cache file stores, counted by one sort of the
+    # votes (sog.vote_entries) instead of pool_votes' dense table: the same entries, dtypes and P-SOG; votes
+    # whose voxels repeat within a subset, a class-0 vote (its voxel kept, as pool_votes keeps it) and an
+    # empty subset included
+    from place3d_kernels.classes import N_CLASSES
+    from place3d_kernels.sog import _counts_members, pool_votes, vote_entries
+
+    K, n = N_CLASSES, 5000
+    votes = [(np.sort(rng.choice(n, 300, replace=False)), rng.integers(1, K, 300)) for _ in range(6)]
+    votes.append((rng.integers(0, n, 200), rng.integers(1, K, 200)))               # repeats, not ascending
+    votes.append((np.array([7, 4999], np.int64), np.array([0, 3], np.int64)))      # a class-0 vote
+    votes.append((np.zeros(0, np.int64), np.zeros(0, np.int64)))
+    voxels, counts = pool_votes(votes, n, K)
+    got_voxels, (at, cnt) = vote_entries(votes, n, K)
+    want = _counts_members(counts, len(votes))
+    assert got_voxels.dtype == voxels.dtype and np.array_equal(got_voxels, voxels)
+    assert at.dtype == want["occupied_index"].dtype and np.array_equal(at, want["occupied_index"])
+    assert cnt.dtype == want["occupied_counts"].dtype and np.array_equal(cnt, want["occupied_counts"])
+    g = p3k.Grid(lower=(0, 0, 0), upper=(50, 10, 10), voxel_size=1.0)
+    made = p3k.PSOG(g, got_voxels, None, n_subsets=len(votes), occupied=(at, cnt))
+    assert made.counts.dtype == counts.dtype and np.array_equal(made.counts, counts)
+    for bad, match in (([(np.array([n]), np.array([1]))], "voxels must lie"),
+                       ([(np.array([1]), np.array([K]))], "classes in")):
+        with pytest.raises(ValueError, match=match):
+            pool_votes(bad, n, K)
+        with pytest.raises(ValueError, match=match):
+            vote_entries(bad, n, K)
+
+
+def test_a_psog_from_frames_saves_the_members_of_its_dense_counts(tmp_path):
+    # save writes a P-SOG's occupied entries as made (no dense table in between): the members a P-SOG with the
+    # same counts given densely writes, byte for byte
+    import zipfile
+
+    f = [frame([[0.5, 0.5, 0.5], [1.5, 2.5, 1.5], [2.5, 0.5, 0.5]], [ROAD, CAR, CAR]),
+         frame([[0.5, 0.5, 0.5], [1.5, 2.5, 1.5]], [ROAD, ROAD]), frame([[3.5, 3.5, 1.5]], [TREE])]
+    made = p3k.PSOG.from_frames(f, G, frames_per_subset=1, backend="reference")
+    assert made.occupied is not None and made._counts is None
+    dense = p3k.PSOG.from_counts(G, made.voxels, made.counts, made.n_subsets)
+    a, b = zipfile.ZipFile(made.save(tmp_path / "a.npz")), zipfile.ZipFile(dense.save(tmp_path / "b.npz"))
+    assert a.namelist() == b.namelist() and "occupied_index.npy" in a.namelist()
+    for name in a.namelist():
+        assert a.read(name) == b.read(name), name
+
+
+def test_transform_points_into_a_buffer_gives_the_same_bits(rng):
+    from place3d_kernels.pose import pose_matrix, transform_points
+
+    T = pose_matrix(np.array([3.1, -2.7, 0.4, 0.03, -0.02, 1.3]))
+    p = rng.normal(scale=40.0, size=(1001, 3))
+    buf = np.full((1500, 3), np.nan)
+    got = transform_points(T, p, out=buf[200:1201])
+    assert got.base is buf or got is buf[200:1201] or np.shares_memory(got, buf)
+    assert np.array_equal(got.view(np.uint64), transform_points(T, p).view(np.uint64))
+    assert np.isnan(buf[:200]).all() and np.isnan(buf[1201:]).all()
