@@ -391,8 +391,14 @@ class PSOG:
     @property
     def stop_rows(self) -> np.ndarray:
         """(M,) bool: ``stop_mask`` at the stored voxels (every other voxel is empty and stops no ray)."""
-        if "stop rows" not in self._cache and not self._count_fields():
-            self._cache["stop rows"] = (1.0 - self.probs[:, 0]) >= 0.5 - 1e-12
+        if "stop rows" not in self._cache:
+            src = self._count_source("seg" if len(self.channels) == N_CLASSES else "det")
+            # p(empty) = c / T from the count rows' empty column, as ``probs`` and the field tables divide: the
+            # flags alone, without the weights ``_count_fields`` makes with them (a backend that computes
+            # fields has the weights on its device: the plot's coverage mask was the only host reader, and
+            # the weights were most of its time)
+            p0 = self.probs[:, 0] if src is None else np.asarray(src[0])[:, 0] / float(src[1])
+            self._cache["stop rows"] = (1.0 - p0) >= 0.5 - 1e-12
         return self._cache["stop rows"]
 
     def has_entropy(self) -> bool:

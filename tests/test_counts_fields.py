@@ -195,3 +195,19 @@ def test_check_entropy_from_counts_agrees_with_the_weights(degenerate, block, mo
     else:
         assert check_entropy(lazy) is lazy
     assert "weight rows" not in lazy._cache          # decided from the counts
+
+
+@pytest.mark.parametrize("T", [7, 40, FieldTables.MAX_T + 3])
+def test_stop_flags_alone_from_the_empty_counts(T):
+    """A P-SOG's stop flags read first come from its rows' empty counts alone, without the weights (the plot's
+    coverage mask on a backend that computes fields on its device reads only these): the probabilities' flags,
+    bit for bit, and the weights made later are theirs too."""
+    vox, c = _random_counts(T, 500, seed=T + 1)
+    eager = PSOG(GRID, vox, c / float(T), n_subsets=T)
+    for task in ("seg", "det"):
+        a, b = PSOG.from_counts(GRID, vox, c, T).for_task(task), eager.for_task(task)
+        assert a.stop_rows.dtype == b.stop_rows.dtype and a.stop_rows.tobytes() == b.stop_rows.tobytes()
+        assert "weight rows" not in a._cache and a._probs is None
+        assert a.stop_rows.any() and not a.stop_rows.all()
+        assert a.weight_rows.tobytes() == b.weight_rows.tobytes()
+        assert a.stop_mask.tobytes() == b.stop_mask.tobytes()

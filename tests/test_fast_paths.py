@@ -84,13 +84,18 @@ def test_covered_voxels_equal_the_unique_traversal():
         got = p3k.covered_voxels(psog, lidar, poses, occlusion=occlusion, backend=b)
         assert np.array_equal(got, want)
         # the mask coverage.png reads: True exactly there; its columns and count are the indices'
-        from place3d_app.commands.optimize import coverage_view
+        from place3d_app.commands.optimize import coverage_view, entropy_view
         from place3d_kernels.metrics import coverage_mask
 
         mask = coverage_mask(psog, lidar, poses, occlusion=occlusion, backend=b)
         assert mask.shape == (grid.n_voxels,) and np.array_equal(np.flatnonzero(mask), want)
-        _, columns, n, _ = coverage_view(psog, mask)
+        column, columns, n, extent = coverage_view(psog, mask)
         assert n == len(want) and np.array_equal(np.flatnonzero(columns), np.unique(want // grid.shape[2]))
+        # with the panel's entropy view made already (optimize keeps it during the search): the same view
+        kept = entropy_view(psog)
+        again = coverage_view(psog, mask, kept)
+        assert again[0] is kept[0] and np.array_equal(again[0], column) and again[3] == extent
+        assert np.array_equal(again[1], columns) and again[2] == n
 
 
 def test_scene_keys_are_remembered_and_a_new_identity_builds_again(tmp_path, monkeypatch):

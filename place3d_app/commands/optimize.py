@@ -362,12 +362,14 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     # grids), 0.13 -> 0.10 s cold and 0.19 -> 0.09 s warm; the default optimize 3.41 -> 3.24 s cold, 2.39 -> 2.29 s
     # warm (H200, 6 runs each; bench/results/ab-2026-12-01-s42/)
     held_out = held_out_ahead(args, spec, b)     # the held-out P-SOGs (their grids off a GPU), during the search
+    panel_view = []                 # keep_panel's entropy_view, which coverage.png's view then reuses
     if plotter is not None and plotter.processes:
         # the panel's entropies (float, every stored voxel: 0.3-0.4 s of NumPy on the H200 host) on a thread,
         # joined before the figures start
         def keep_panel():
             try:
-                plotter.keep_panel(*entropy_view(psog))
+                panel_view.append(entropy_view(psog))
+                plotter.keep_panel(*panel_view[0])
             except Exception:  # noqa: BLE001 - the figure then draws the panel itself, and meets the error there
                 pass
 
@@ -401,7 +403,8 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
             if panel is not None:
                 with section("plotting: panel (wait)"):
                     panel.join()
-            plots = start_plots(plotter, history, placement, space, psog, lidar, b, args.occlusion, out)
+            plots = start_plots(plotter, history, placement, space, psog, lidar, b, args.occlusion, out,
+                                panel_view[0] if panel_view else None)
 
     try:
         with warnings.catch_warnings():
@@ -652,11 +655,12 @@ def report_trust(args, spec, res, psog, lidar, b, baselines, held_out=None) -> N
         print(line)
 
 
-def start_plots(plotter, history, best, space, psog, lidar, backend, occlusion, out: Path):
+def start_plots(plotter, history, best, space, psog, lidar, backend, occlusion, out: Path, panel=None):
     """Hand convergence.png, rig.png and coverage.png to ``plotter`` (a ``PlotWorker``); returns the Future.
 
     The rig's covered voxels (a backend call) and the coverage view's two top-view arrays are computed
-    here, on the calling thread; matplotlib then runs beside the diagnostics and the jackknife.
+    here, on the calling thread; matplotlib then runs beside the diagnostics and the jackknife. ``panel``:
+    ``entropy_view(psog)`` where it was made already (the panel kept during the search).
     """
     from place3d_kernels.metrics import coverage_mask
 
@@ -664,7 +668,7 @@ def start_plots(plotter, history, best, space, psog, lidar, backend, occlusion, 
         # called by the worker once the other two figures are on their way
         with section("plotting: covered voxels"):
             covered = coverage_mask(psog, lidar, best.poses, occlusion=occlusion, backend=backend)
-            return coverage_view(psog, covered) + (best.name or "the rig",)
+            return coverage_view(psog, covered, panel) + (best.name or "the rig",)
 
     return plotter.submit(history, best, space, view, out)
 
@@ -675,11 +679,11 @@ def entropy_view(psog) -> tuple:
     return psog.entropy.sum(axis=2), (g.lower[1], g.upper[1], g.lower[0], g.upper[0])
 
 
-def coverage_view(psog, covered) -> tuple:
+def coverage_view(psog, covered, view=None) -> tuple:
     """(column entropy, covered columns, covered voxels, extent): ``draw_coverage``'s data for a rig's
     ``coverage_mask`` on ``psog`` (the mask itself: rebuilding it from ``covered_voxels``' indices took
-    about 50 ms of a default optimize on the dev VM)."""
+    about 50 ms of a default optimize on the dev VM); ``view``: ``entropy_view(psog)`` if made already."""
     g = psog.grid
     mask = np.asarray(covered, dtype=bool).reshape(g.shape)
-    column, extent = entropy_view(psog)
+    column, extent = entropy_view(psog) if view is None else view
     return column, mask.any(axis=2), int(np.count_nonzero(mask)), extent
