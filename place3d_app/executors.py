@@ -164,9 +164,11 @@ def start_backend(backend: str) -> None:
 
 def _resolve_backend(backend: str) -> None:
     from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.profiling import section
 
     try:
-        get_backend(backend)
+        with section("worker backend start (thread)"):
+            get_backend(backend)
     except Exception:  # noqa: BLE001 - the task's own get_backend meets the same failure and reports it
         pass
 

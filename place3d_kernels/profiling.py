@@ -23,7 +23,8 @@ import sys
 import threading
 import time
 
-__all__ = ["section", "record", "profile", "enabled", "report", "Profile", "count_start_up_of"]
+__all__ = ["section", "record", "profile", "enabled", "report", "Profile", "count_start_up_of", "Traced", "traced",
+           "untraced"]
 
 #: sections entered at least this often get a line on their calls below the table
 REPEATED = 20
@@ -169,6 +170,38 @@ def count_start_up_of(pid: int | None) -> None:
     """
     global _START_PID
     _START_PID = pid
+
+
+class Traced:
+    """A task's result with the sections its process recorded while it ran (``traced``): ``calls`` holds
+    (path, start, seconds) per call, ``start`` on ``time.perf_counter``'s clock, which is the system's monotonic
+    clock (one for every process on Linux, macOS and Windows), so another process's profile can place them."""
+
+    def __init__(self, value, calls: list):
+        self.value, self.calls = value, calls
+
+
+def traced(label: str, fn, *args):
+    """Run ``fn(*args)`` (a worker process's task) under a profile of its own and return ``Traced``: its
+    result and every section recorded meanwhile, the task's own under ``label`` and those of its process's
+    other threads (a worker's backend start) as they are. The command's process adds them to its table
+    with ``untraced``, so ``place3d --profile`` shows where its drive workers spent their time."""
+    with profile(print_table=False) as p:
+        with section(label):
+            value = fn(*args)
+    return Traced(value, [(path, p.start + t, sec) for path, kept in p.calls.items() for t, sec in kept])
+
+
+def untraced(result):
+    """``result`` itself, or for a ``Traced`` one its value, with its sections added to the profile running
+    here (placed by their start; a no-op without a profile)."""
+    if not isinstance(result, Traced):
+        return result
+    p = _ACTIVE
+    if p is not None:
+        for path, start, sec in result.calls:
+            p._add(tuple(path), float(sec), float(start) + float(sec))
+    return result.value
 
 
 def _since_start(p: Profile) -> float | None:

@@ -22,6 +22,7 @@ from place3d_kernels.grid import Grid
 from place3d_kernels.kept import Kept
 from place3d_kernels.pointcloud import PointCloud
 from place3d_kernels.pose import invert, pose_matrix, transform_points
+from place3d_kernels.profiling import section
 from place3d_kernels.threads import block_map
 
 __all__ = ["PSOG", "entropy", "cache_dir", "cache_folder", "cache_key", "keep_loaded", "subset_groups", "subset_votes",
@@ -91,15 +92,17 @@ def subset_votes(frames: list[PointCloud], grid: Grid, frames_per_subset: int, b
         n = sum(len(f.points) for f in g)
         pts, lab = pts_buf[:n], lab_buf[:n]
         at = 0
-        for f in g:
-            m = len(f.points)
-            # transform_points' arithmetic (one product, then the shift), written into the buffer, and then
-            # Grid.to_local's subtraction: the same float64 roundings in the same order
-            transform_points(to_ref, f.points, out=pts[at:at + m])
-            lab[at:at + m] = f.labels
-            at += m
-        np.subtract(pts, lower, out=pts)
-        vox, win = b.vote(b.voxel_keys(grid.spec, pts), lab, N_CLASSES)
+        with section("P-SOG vote: frames moved"):
+            for f in g:
+                m = len(f.points)
+                # transform_points' arithmetic (one product, then the shift), written into the buffer, and then
+                # Grid.to_local's subtraction: the same float64 roundings in the same order
+                transform_points(to_ref, f.points, out=pts[at:at + m])
+                lab[at:at + m] = f.labels
+                at += m
+            np.subtract(pts, lower, out=pts)
+        with section("P-SOG vote: keys and vote"):
+            vox, win = b.vote(b.voxel_keys(grid.spec, pts), lab, N_CLASSES)
         votes.append((np.asarray(vox, np.int64), np.asarray(win, np.int64)))
     return votes
 

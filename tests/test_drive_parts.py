@@ -203,3 +203,40 @@ def test_later_drives_are_merged_as_they_come_back_and_a_failure_reaches_their_f
     with pytest.raises(RuntimeError, match="gpu lost"):
         building["s2"].result()
     assert ex.sent == [("_save_drive", "spec1")] and ex.ended == (False, False)
+
+
+def test_profiled_drive_workers_report_their_sections(tmp_path, monkeypatch):
+    # under `place3d --profile` each drive task records its sections in its worker process (profiling.traced)
+    # and the command's table gets them, placed by their start on the shared monotonic clock; the records are
+    # those of a run without the profile
+    import argparse
+
+    from place3d_app.commands.routes import build_missing
+    from place3d_kernels import profiling
+
+    monkeypatch.delenv("PLACE3D_WORKERS", raising=False)
+    monkeypatch.setattr("place3d_app.executors.usable_cores", lambda: 2)
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "workers"))
+    specs = [PSOGSpec(SceneSpec("town", s, 8), grid=0.8, frames_per_subset=2) for s in (5, 6)]
+    opts = argparse.Namespace(no_cache=False, quiet=True, backend="warp:cpu")
+    with profiling.profile(print_table=False) as p:
+        assert build_missing(opts, specs, "warp:cpu") == 2
+    task = ("drive worker task",)
+    assert p.totals[task][1] == 2 and p.totals[task + ("P-SOG build: simulate",)][1] == 2
+    assert p.totals[task + ("P-SOG build: aggregate", "P-SOG vote: keys and vote")][1] == 2 * 4
+    first, last = p.spans[task]
+    assert 0.0 <= first <= last <= p.wall
+    for s in specs:
+        whole = s.build(cache=str(tmp_path / "whole"), backend="warp:cpu")
+        _same_record(opts.built[s], DriveRecord.from_psog(whole, s.scene.label))
+
+
+def test_traced_results_outside_a_profile_are_plain():
+    from place3d_kernels import profiling
+
+    t = profiling.traced("task", sum, [1, 2, 3])
+    assert isinstance(t, profiling.Traced) and t.value == 6 and [c[0] for c in t.calls] == [("task",)]
+    assert profiling.untraced(t) == 6 and profiling.untraced(7) == 7      # no profile here: nothing recorded
+    with profiling.profile(print_table=False) as p:
+        assert profiling.untraced(profiling.traced("task", sum, [4])) == 4
+    assert p.totals[("task",)][1] == 1 and p.spans[("task",)][0] >= 0.0

@@ -335,9 +335,22 @@ def _submit_drive(ex, spec, parts: int):
     drive (``_build_spec``) or ``parts`` parts of about equal subsets (``_build_part``)."""
     T = spec.subsets()
     if parts == 1 or T < parts:
-        return spec, [ex.submit(_build_spec, spec)]
+        return spec, [_submit(ex, _build_spec, spec)]
     cut = [round(T * j / parts) for j in range(parts + 1)]
-    return spec, [ex.submit(_build_part, (spec, range(a, b))) for a, b in zip(cut, cut[1:])]
+    return spec, [_submit(ex, _build_part, (spec, range(a, b))) for a, b in zip(cut, cut[1:])]
+
+
+def _submit(ex, fn, arg):
+    """``ex.submit(fn, arg)``; under ``place3d --profile`` the task records its sections in its process
+    (``profiling.traced``: "drive worker task" and its steps), which ``_finish_drive`` adds to the command's
+    table."""
+    import functools
+
+    from place3d_kernels import profiling
+
+    if profiling.enabled():
+        return ex.submit(functools.partial(profiling.traced, "drive worker task", fn), arg)
+    return ex.submit(fn, arg)
 
 
 def _finish_drive(ex, spec, tasks):
@@ -345,7 +358,9 @@ def _finish_drive(ex, spec, tasks):
     writes it to the cache (a drive built whole was written by its task)."""
     from place3d_kernels.pooled import DriveRecord
 
-    record = DriveRecord.merge([f.result() for f in tasks])
+    from place3d_kernels.profiling import untraced
+
+    record = DriveRecord.merge([untraced(f.result()) for f in tasks])
     if len(tasks) > 1:
         ex.submit(_save_drive, (spec, record)).add_done_callback(_report_failed_save)
     return record
