@@ -43,6 +43,22 @@ def test_process_pool_is_the_local_pool_bit_for_bit(device_backend, start_method
     assert np.array_equal(procs.psog().probs, local.psog().probs)
 
 
+def test_a_profiled_process_pool_reports_its_workers_steps():
+    # under --profile (a profile running here) each worker task records its steps (profiling.traced) and the
+    # table here gets them: one "drive worker task" call a task, the simulation nested; the same pool as without
+    from place3d_kernels import profiling
+
+    settings = PoolSettings(0.8, "collection_64ch", 4, "warp:cpu", False)
+    drives = [Drive("town", seed=s, frames=f) for s, f in ((0, 8), (1, 4), (2, 8))]
+    with profiling.profile(print_table=False) as p:
+        with ProcessExecutor(2, backend="warp:cpu") as ex:
+            procs = build_pooled(drives, settings, executor=ex)
+    task = ("drive worker task",)
+    assert p.totals[task][1] == 2 and p.totals[task + ("P-SOG build: simulate",)][1] == 3
+    assert 0.0 <= p.spans[task][0] <= p.spans[task][1] <= p.wall
+    _same_records(procs, build_pooled(drives, settings, executor=LocalExecutor()))
+
+
 @pytest.mark.parametrize("wait", [True, False])
 def test_the_workers_cache_files_are_whole_when_the_workers_end(device_backend, tmp_path, monkeypatch, wait):
     # the workers compress each drive's P-SOG into the cache on a thread while they build the next drive, and
