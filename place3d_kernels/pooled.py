@@ -485,17 +485,19 @@ def _records_task(t) -> list[DriveRecord]:
     # (``SceneSpec.for_cache``): a warm reproduce --routes 8 built all 32 scenes for nothing (pool 19.0 [18.3-19.2]
     # of 69.6 [65.2-71.4] s on the 2-core dev VM, 3 runs; 3.5 s after).
     from place3d_kernels.pipeline import end_task_saves
+    from place3d_kernels.profiling import section
     from place3d_kernels.scene.keymemo import SceneRef
 
     drives, settings = t
     try:
-        looked = [_cached_record(d, settings) for d in drives]        # (record or None, scene or SceneRef)
-        missing = [j for j, (rec, _) in enumerate(looked) if rec is None]
-        # the scenes of every miss first; one built to learn its cache key is not built again
-        scenes = []
-        for j in missing:
-            sc = looked[j][1]
-            scenes.append(drives[j].build() if sc is None or isinstance(sc, SceneRef) else sc)
+        with section("drives: cache look-up and scenes"):
+            looked = [_cached_record(d, settings) for d in drives]        # (record or None, scene or SceneRef)
+            missing = [j for j, (rec, _) in enumerate(looked) if rec is None]
+            # the scenes of every miss first; one built to learn its cache key is not built again
+            scenes = []
+            for j in missing:
+                sc = looked[j][1]
+                scenes.append(drives[j].build() if sc is None or isinstance(sc, SceneRef) else sc)
         out = [rec for rec, _ in looked]
         del looked
         for j in missing:                   # each scene let go once its record is made
