@@ -15,7 +15,7 @@ import numpy as np
 
 from place3d_kernels.atomic import file_identity
 from place3d_kernels.backends.registry import get_backend
-from place3d_kernels.backends.base import ENTROPY_SCALE, cache_dir, cache_folder, unique_ints
+from place3d_kernels.backends.base import ENTROPY_SCALE, cache_dir, cache_folder
 from place3d_kernels.classes import CLASSES, N_CLASSES, VEHICLE
 from place3d_kernels.entropy import ENTROPY_BLOCK, entropy
 from place3d_kernels.grid import Grid
@@ -119,39 +119,19 @@ def pool_votes(votes: list[tuple[np.ndarray, np.ndarray]], n_voxels: int,
     Raises:
         ValueError: a class outside [0, n_classes) or a voxel outside [0, n_voxels).
     """
-    vox = np.concatenate([v for v, _ in votes])
-    lab = np.concatenate([w for _, w in votes])
-    T = len(votes)
-    if len(lab) and (lab.min() < 0 or lab.max() >= n_classes):
-        raise ValueError(f"votes must be classes in [0, {n_classes}), got range [{lab.min()}, {lab.max()}]")
-    if len(vox) and (vox.min() < 0 or vox.max() >= n_voxels):
-        raise ValueError(f"voted voxels must lie in [0, {n_voxels}), got range [{vox.min()}, {vox.max()}]")
-    # one sort of every vote (a grid-sized flag array, the earlier way, was fresh memory a worker faulted in per
-    # drive, and NumPy's bare np.unique hashes: base.unique_ints)
-    uniq = unique_ints(vox)
-    if all(len(v) < 2 or bool(np.all(v[1:] > v[:-1])) for v, _ in votes):
-        # each subset votes a voxel once (``subset_votes``: ascending, distinct), so within one subset no
-        # (row, class) cell repeats and one fancy-indexed increment per subset counts it: the counts of a
-        # bincount over all votes, without its (M, K) int64 temporary
-        counts = np.zeros((len(uniq), n_classes), dtype=np.int32)
-        flat = counts.reshape(-1)
-        for v, w in votes:
-            flat[np.searchsorted(uniq, v) * n_classes + w] += 1
-    else:
-        # integer counts of (row, class) pairs by bincount: the counts np.add.at gave, in well under half its time
-        inv = np.searchsorted(uniq, vox)
-        counts = np.bincount(inv * n_classes + lab, minlength=len(uniq) * n_classes).astype(np.int32)
-        counts = counts.reshape(len(uniq), n_classes)
-    counts[:, 0] = T - counts[:, 1:].sum(axis=1)
-    return uniq.astype(np.int64, copy=False), counts
+    # the dense table of vote_entries' occupied entries (the one count of the votes; PSOG.from_frames keeps
+    # the entries alone)
+    voxels, (at, cnt) = vote_entries(votes, n_voxels, n_classes)
+    return voxels, _dense_counts(at, cnt, len(voxels), n_classes, len(votes))
 
 
 def vote_entries(votes: list[tuple[np.ndarray, np.ndarray]], n_voxels: int,
                  n_classes: int = N_CLASSES) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
-    """``pool_votes``' counts as the occupied entries a cache file stores (``_counts_members``), counted by one
-    sort of every (voxel, class) vote, without the dense (M, K) table: ``PSOG(grid, voxels, None,
-    n_subsets=len(votes), occupied=entries)`` is the P-SOG of ``PSOG.from_counts(grid, *pool_votes(...))``,
-    the same counts to the bit, and its file the same bytes.
+    """Per-voxel label counts over the T = ``len(votes)`` subset SOGs of ``subset_votes`` as the occupied entries a
+    cache file stores (``_counts_members``), counted by one sort of every (voxel, class) vote, without the dense
+    (M, K) table (``pool_votes`` makes it from these): ``PSOG(grid, voxels, None, n_subsets=len(votes),
+    occupied=entries)`` is the P-SOG of ``PSOG.from_counts(grid, *pool_votes(...))``, the same counts to the bit,
+    and its file the same bytes.
 
     Returns:
         voxels (M,) int64 ascending (every voxel voted in some subset), and (flat indices into ``counts[:, 1:]``,
@@ -181,7 +161,7 @@ def vote_entries(votes: list[tuple[np.ndarray, np.ndarray]], n_voxels: int,
     voxels = voxel[new]
     row = np.cumsum(new) - 1
     # class 0 (empty) is T minus the others in every row: not an occupied entry (no vote gives it; one that did
-    # would still add its voxel, as in pool_votes)
+    # still adds its voxel)
     keep = cls > 0
     return voxels, (row[keep] * (n_classes - 1) + cls[keep] - 1, count[keep])
 

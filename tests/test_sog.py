@@ -198,11 +198,23 @@ def test_psog_identical_across_backends(device_backend, rng):
     np.testing.assert_array_equal(a.probs, b.probs)
 
 
-def test_vote_entries_are_the_entries_of_pool_votes_counts(rng):
+def _counts_by_hand(votes, n_classes):
+    """Every subset's votes counted one by one (np.unique + np.add.at): the dense (M, K) counts, column 0 the
+    subsets in which the voxel was empty (T minus the others)."""
+    vox = np.concatenate([np.asarray(v, np.int64) for v, _ in votes])
+    lab = np.concatenate([np.asarray(w, np.int64) for _, w in votes])
+    uniq, inv = np.unique(vox, return_inverse=True)
+    counts = np.zeros((len(uniq), n_classes), dtype=np.int32)
+    np.add.at(counts.reshape(-1), inv * n_classes + lab, 1)
+    counts[:, 0] = len(votes) - counts[:, 1:].sum(axis=1)
+    return uniq, counts
+
+
+def test_vote_entries_are_the_entries_of_the_votes_counts(rng):
     # PSOG.from_frames keeps its counts as the occupied entries a cache file stores, counted by one sort of the
-    # votes (sog.vote_entries) instead of pool_votes' dense table: the same entries, dtypes and P-SOG; votes
-    # whose voxels repeat within a subset, a class-0 vote (its voxel kept, as pool_votes keeps it) and an
-    # empty subset included
+    # votes (sog.vote_entries), and pool_votes makes its dense table from them: the entries, dtypes and P-SOG
+    # of the votes counted by hand; votes whose voxels repeat within a subset, a class-0 vote (its voxel kept)
+    # and an empty subset included
     from place3d_kernels.classes import N_CLASSES
     from place3d_kernels.sog import _counts_members, pool_votes, vote_entries
 
@@ -211,8 +223,10 @@ def test_vote_entries_are_the_entries_of_pool_votes_counts(rng):
     votes.append((rng.integers(0, n, 200), rng.integers(1, K, 200)))               # repeats, not ascending
     votes.append((np.array([7, 4999], np.int64), np.array([0, 3], np.int64)))      # a class-0 vote
     votes.append((np.zeros(0, np.int64), np.zeros(0, np.int64)))
-    voxels, counts = pool_votes(votes, n, K)
+    voxels, counts = _counts_by_hand(votes, K)
     got_voxels, (at, cnt) = vote_entries(votes, n, K)
+    dense_voxels, dense = pool_votes(votes, n, K)
+    assert np.array_equal(dense_voxels, voxels) and dense.dtype == counts.dtype and np.array_equal(dense, counts)
     want = _counts_members(counts, len(votes))
     assert got_voxels.dtype == voxels.dtype and np.array_equal(got_voxels, voxels)
     assert at.dtype == want["occupied_index"].dtype and np.array_equal(at, want["occupied_index"])
@@ -251,6 +265,6 @@ def test_transform_points_into_a_buffer_gives_the_same_bits(rng):
     p = rng.normal(scale=40.0, size=(1001, 3))
     buf = np.full((1500, 3), np.nan)
     got = transform_points(T, p, out=buf[200:1201])
-    assert got.base is buf or got is buf[200:1201] or np.shares_memory(got, buf)
+    assert np.shares_memory(got, buf)
     assert np.array_equal(got.view(np.uint64), transform_points(T, p).view(np.uint64))
     assert np.isnan(buf[:200]).all() and np.isnan(buf[1201:]).all()
