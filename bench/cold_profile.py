@@ -218,7 +218,7 @@ def main() -> None:
     for kind, source, into in (("", walls, summary), (" (warm)", warm, warm_summary)):
         for t, ws in source.items():
             if ws:
-                into[t] = {"median": statistics.median(ws), "min": min(ws), "max": max(ws), "runs": ws}
+                into[t] = _stats(ws)
                 log.append(f"{t}{kind}: wall median {into[t]['median']:.3f} [{min(ws):.3f}-{max(ws):.3f}] s "
                            f"over {len(ws)} runs")
     # per tree, the median and range of each mark over its cold runs (process exit: what a shell waits for)

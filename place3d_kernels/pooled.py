@@ -577,7 +577,6 @@ def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(
                 print(f"  drive {i + 1}/{len(drives)} {d.label}: {time.perf_counter() - t0:.1f} s",
                       file=sys.stderr)
         return pooled
-    import functools
     import time
 
     from place3d_kernels import profiling
@@ -587,9 +586,8 @@ def build_pooled(drives: Sequence[Drive], settings: PoolSettings = PoolSettings(
     if workers:
         # worker processes of this machine: a task is two routes of one town, so the town's roads are made once
         groups = scene_groups(drives, workers)
-        fn = _records_task
-        if profiling.enabled():        # under --profile each task's steps join the table (profiling.traced)
-            fn = functools.partial(profiling.traced, "drive worker task", _records_task)
+        # under --profile each task's steps join the table (profiling.task)
+        fn = profiling.task("drive worker task", _records_task)
         got = [profiling.untraced(r) for r in executor.map(fn, [([drives[i] for i in g], settings) for g in groups])]
         records: list = [None] * len(drives)
         for g, recs in zip(groups, got):

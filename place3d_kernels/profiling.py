@@ -24,7 +24,7 @@ import threading
 import time
 
 __all__ = ["section", "record", "profile", "enabled", "report", "Profile", "count_start_up_of", "Traced", "traced",
-           "untraced"]
+           "task", "untraced"]
 
 #: sections entered at least this often get a line on their calls below the table
 REPEATED = 20
@@ -190,6 +190,16 @@ def traced(label: str, fn, *args):
         with section(label):
             value = fn(*args)
     return Traced(value, [(path, p.start + t, sec) for path, kept in p.calls.items() for t, sec in kept])
+
+
+def task(label: str, fn):
+    """``fn`` to send to a worker process as it is, or while a profile runs here, ``fn`` under ``traced(label,
+    ...)`` (a picklable partial), so that ``untraced`` adds the task's sections to this table."""
+    if _ACTIVE is None:
+        return fn
+    import functools
+
+    return functools.partial(traced, label, fn)
 
 
 def untraced(result):

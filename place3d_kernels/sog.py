@@ -344,7 +344,8 @@ class PSOG:
             w[a:b], s[a:b] = f(rows[a:b])
 
         block_map(block, len(rows), ENTROPY_BLOCK, rows.shape[1])
-        self._cache["weight rows"], self._cache["stop rows"] = w, s
+        self._cache["weight rows"] = w
+        self._cache.setdefault("stop rows", s)      # the same bits as stop_rows made alone, if it was read first
         return True
 
     def for_task(self, task: str) -> "PSOG":

@@ -237,6 +237,8 @@ def test_traced_results_outside_a_profile_are_plain():
     t = profiling.traced("task", sum, [1, 2, 3])
     assert isinstance(t, profiling.Traced) and t.value == 6 and [c[0] for c in t.calls] == [("task",)]
     assert profiling.untraced(t) == 6 and profiling.untraced(7) == 7      # no profile here: nothing recorded
+    assert profiling.task("task", sum) is sum                          # sent as it is without a profile
     with profiling.profile(print_table=False) as p:
         assert profiling.untraced(profiling.traced("task", sum, [4])) == 4
-    assert p.totals[("task",)][1] == 1 and p.spans[("task",)][0] >= 0.0
+        assert profiling.untraced(profiling.task("task", sum)([5])) == 5
+    assert p.totals[("task",)][1] == 2 and p.spans[("task",)][0] >= 0.0

@@ -342,15 +342,11 @@ def _submit_drive(ex, spec, parts: int):
 
 def _submit(ex, fn, arg):
     """``ex.submit(fn, arg)``; under ``place3d --profile`` the task records its sections in its process
-    (``profiling.traced``: "drive worker task" and its steps), which ``_finish_drive`` adds to the command's
+    (``profiling.task``: "drive worker task" and its steps), which ``_finish_drive`` adds to the command's
     table."""
-    import functools
+    from place3d_kernels.profiling import task
 
-    from place3d_kernels import profiling
-
-    if profiling.enabled():
-        return ex.submit(functools.partial(profiling.traced, "drive worker task", fn), arg)
-    return ex.submit(fn, arg)
+    return ex.submit(task("drive worker task", fn), arg)
 
 
 def _finish_drive(ex, spec, tasks):
