@@ -242,3 +242,95 @@ def test_traced_results_outside_a_profile_are_plain():
         assert profiling.untraced(profiling.traced("task", sum, [4])) == 4
         assert profiling.untraced(profiling.task("task", sum)([5])) == 5
     assert p.totals[("task",)][1] == 2 and p.spans[("task",)][0] >= 0.0
+
+
+#: run in a fresh interpreter (one thread, as a worker's first task: forking is safe there): a worker's task for
+#: drive A that also builds held-out drive B's scene, then its task for B; prints what the worker saw
+PAIRED_TASKS = """
+import json, sys
+from place3d_app import prefetch
+from place3d_app.commands import routes
+from place3d_kernels import profiling
+from place3d_kernels.spec import PSOGSpec, SceneSpec
+
+a, b = (PSOGSpec(SceneSpec("town", s, 8), grid=0.8, frames_per_subset=2, backend="warp:cpu", cache=sys.argv[1])
+        for s in (3, 7))
+first = profiling.traced("task", routes._build_spec_then, (a, b))
+pending = sorted(k.seed for k in prefetch._pending)        # B's scene, still in its child or waiting there
+second = profiling.traced("task", routes._build_spec_then, (b, None))
+rows = lambda t: sorted({" / ".join(path[1:]) for path, _, _ in t.calls if "scene: " in path[-1]})
+print(json.dumps({"enabled": prefetch.enabled(), "pending": pending, "first": rows(first), "second": rows(second),
+                  "left": len(prefetch._pending)}))
+import pickle
+with open(sys.argv[2], "wb") as f:
+    pickle.dump([first.value, second.value], f)
+"""
+
+
+def test_a_worker_builds_the_next_drives_scene_in_a_child_and_then_takes_it(tmp_path):
+    # routes._build_spec_then((A, B)): A's scene and B's are built in forked children (prefetch) while the
+    # worker's backend starts; the worker's next task, B, takes B's scene from its child instead of building it
+    # (no new child: B's was pending after the first task, nothing is left after the second). The records are
+    # those of builds in this process (no child), and so are the cache files
+    import os
+    import pickle
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env = {k: v for k, v in os.environ.items() if k != "PLACE3D_SCENE_PREFETCH"}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))
+    p = subprocess.run([sys.executable, "-c", PAIRED_TASKS, str(tmp_path / "workers"), str(tmp_path / "records.pkl")],
+                       capture_output=True, text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr[-3000:]
+    got = json.loads(p.stdout.strip().splitlines()[-1])
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("forked scene builds need 2+ cores")
+    assert got["pending"] == [7] and got["left"] == 0
+    built_in_child = ["P-SOG build: scene / scene: child: scene", "P-SOG build: scene / scene: forked build (wait)"]
+    assert all(r in got["first"] for r in built_in_child) and all(r in got["second"] for r in built_in_child)
+    with open(tmp_path / "records.pkl", "rb") as f:
+        records = pickle.load(f)
+    for s, rec in zip([PSOGSpec(SceneSpec("town", s, 8), grid=0.8, frames_per_subset=2) for s in (3, 7)], records):
+        whole = s.build(cache=str(tmp_path / "whole"), backend="warp:cpu")
+        _same_record(rec, DriveRecord.from_psog(whole, s.scene.label))
+        _same_file(s.cache_file(cache=str(tmp_path / "workers")), s.cache_file(cache=str(tmp_path / "whole")))
+
+
+def test_a_later_drive_is_sent_once_its_paired_task_is_done():
+    # routes._after: the later drive's task goes to the executor only when the searched drive's task is done (its
+    # worker is then the idle one), and its Future takes that task's result or error; a pool already shut down
+    # (the command failed) reaches the Future as an error
+    from concurrent.futures import Future, ThreadPoolExecutor
+
+    from place3d_app.commands import routes
+
+    sent = []
+
+    class Counting(ThreadPoolExecutor):
+        def submit(self, fn, *args):
+            sent.append(args)
+            return super().submit(fn, *args)
+
+    def square(x):
+        if x < 0:
+            raise ValueError("no drive")
+        return x * x
+
+    with Counting(2) as ex:
+        first = Future()
+        out = routes._after(ex, first, square, 3)
+        assert not out.done() and sent == []
+        first.set_result("searched drive")
+        assert out.result(timeout=10) == 9 and sent == [(3,)]
+        failing = Future()
+        bad = routes._after(ex, failing, square, -1)
+        failing.set_exception(RuntimeError("its paired task failed"))     # the later drive is still built
+        with pytest.raises(ValueError, match="no drive"):
+            bad.result(timeout=10)
+    late = Future()
+    gone = routes._after(ex, late, square, 2)
+    late.set_result(None)
+    with pytest.raises(RuntimeError, match="shutdown"):
+        gone.result(timeout=10)
