@@ -40,6 +40,7 @@ from place3d_kernels.profiling import section
 from place3d_kernels.threads import block_map, thread_map, threads_for
 
 __all__ = ["LeftOutRows", "LeftOutGrids", "left_out_fields", "FieldTables", "PreparedLeftOut", "HANDLES",
+           "index_tables_used",
            "KEEP_LEFT_OUT", "fused_path", "prepared_grids", "patched_on_host", "patched_on_backend", "patched_in_place",
            "device_fields"]
 
@@ -407,11 +408,23 @@ def patched_in_place(pooled, task: str, occlusion: str, backend, indicator: str 
 
 
 def _fields_here(grids: "LeftOutGrids", backend, indicator: str | None) -> bool:
-    """Whether the left-out rows are made on the backend (``left_out_on_device``; the "uncertain" indicator is
-    then their weights above 0, "evidence" needs the counts: the host's rows), the tables allow T and every
+    """Whether the left-out rows are made on the backend (``_rows_on_device``), the tables allow T and every
     count fits an int32."""
-    return (indicator in (None, "uncertain") and getattr(backend, "left_out_on_device", False)
+    return (_rows_on_device(backend, indicator)
             and grids.T <= FieldTables.MAX_T and (len(grids.counts) == 0 or int(grids.counts.max()) < 2**31))
+
+
+def _rows_on_device(backend, indicator: str | None) -> bool:
+    # the backend makes left-out rows (``left_out_on_device``) and the indicator is none or "uncertain" (their
+    # weights above 0; "evidence" needs the counts: the host's rows)
+    return indicator in (None, "uncertain") and getattr(backend, "left_out_on_device", False)
+
+
+def index_tables_used(lidar, occlusion: str, normalisation: str, backend, body=None) -> bool:
+    """Whether a jackknife with these settings makes its left-out grids from the pool's index tables
+    (``LeftOutRows.batch``): the fused path (``fused_path``) with the rows made on ``backend`` (``_fields_here``;
+    the pool's own conditions, T and the count range, are checked there)."""
+    return fused_path(lidar, occlusion, normalisation, body) and _rows_on_device(backend, _indicator(normalisation))
 
 
 def _written_from_device_rows(grids: "LeftOutGrids", pooled, task: str, occlusion: str, backend,

@@ -247,6 +247,43 @@ def test_held_out_pool_made_during_the_search_scores_as_after_it(tmp_path, monke
         assert (h["best"] if name == "best" else h["baselines"][name]) == want, name
 
 
+def test_jackknife_tables_made_during_the_search_give_the_same_intervals(tmp_path, monkeypatch):
+    """The jackknife's index tables of the pooled routes (``LeftOutRows.batch``) are made on a thread while the
+    search runs (``left_out_rows_ahead``, hosts of 4+ cores or PLACE3D_JACKKNIFE_PREFETCH=1), once, and the
+    jackknife takes them; with =0 the jackknife makes them itself. The intervals are the same either way."""
+    import threading
+
+    from place3d_app.cli import main
+    from place3d_kernels.left_out import LeftOutRows
+
+    made = []
+    real = LeftOutRows.batch
+
+    def batch(self):
+        if self._batch is None:
+            made.append(threading.current_thread().name)
+        return real(self)
+
+    monkeypatch.setattr(LeftOutRows, "batch", batch)
+    monkeypatch.setenv("PLACE3D_CACHE", str(tmp_path / "cache"))
+    got = {}
+    for ahead in ("1", "0"):
+        monkeypatch.setenv("PLACE3D_JACKKNIFE_PREFETCH", ahead)
+        with contextlib.redirect_stdout(io.StringIO()):
+            assert main(["optimize", *TINY, "--routes", "3", "--no-holdout", "--interval", "jackknife",
+                         "--output", str(tmp_path / ahead)]) == 0
+        got[ahead] = json.loads((tmp_path / ahead / "result.json").read_text())
+    from place3d_kernels.backends.registry import get_backend
+    from place3d_kernels.left_out import index_tables_used
+
+    if index_tables_used(LidarModel.load("place3d_16ch"), "sog", "uncertain", get_backend(B)):
+        assert made == ["place3d-left-out-rows", "MainThread"]  # once a run: on the thread, then in the jackknife
+    else:
+        assert made == []                   # a jackknife that reads no tables: none made, on no thread
+    assert got["1"]["intervals"] == got["0"]["intervals"] and got["1"]["intervals"] is not None
+    assert got["1"]["best_placement"] == got["0"]["best_placement"]
+
+
 def test_held_out_thread_starts_after_the_baselines(tmp_path, monkeypatch):
     """The held-out P-SOGs' thread (``held_out_ahead``) starts once the baselines are scored (the first
     ``msog_batch`` of the command), not beside that call; the search's first score comes after both."""

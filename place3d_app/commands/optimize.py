@@ -362,6 +362,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     # grids), 0.13 -> 0.10 s cold and 0.19 -> 0.09 s warm; the default optimize 3.41 -> 3.24 s cold, 2.39 -> 2.29 s
     # warm (H200, 6 runs each; bench/results/ab-2026-12-01-s42/)
     held_out = held_out_ahead(args, spec, b)     # the held-out P-SOGs (their grids off a GPU), during the search
+    left_out_rows = left_out_rows_ahead(args, lidar, b)   # the jackknife's index tables of the pooled drives
     panel_view = []                 # keep_panel's entropy_view, which coverage.png's view then reuses
     if plotter is not None and plotter.processes:
         # the panel's entropies (float, every stored voxel: 0.3-0.4 s of NumPy on the H200 host) on a thread,
@@ -434,7 +435,7 @@ def _run(args, spec, psog_for, plotter, t0) -> int:
     print("best placement (x, y, z, roll):")
     for p in best.poses:
         print("  " + ", ".join(f"{v:+.2f}" for v in p[:4]))
-    report_trust(args, spec, res, psog, lidar, b, baselines, held_out)
+    report_trust(args, spec, res, psog, lidar, b, baselines, held_out, left_out_rows)
     cert = res.certificate
     if args.output:
         best.save(out / f"optimized-{args.task}.toml",
@@ -611,6 +612,37 @@ def held_out_ahead(args, spec, b):
     return done
 
 
+def left_out_rows_ahead(args, lidar, b):
+    """A started thread making the jackknife's index tables of the pooled drives (``LeftOutRows.batch``: where
+    each record's entries fall in the pool, host NumPy over every entry) while the search runs, or None (made
+    in the jackknife, as before): where the intervals are a jackknife over pooled routes that will read them
+    (``left_out.index_tables_used``: its fused path, the rows made on backend ``b``) and the host has cores
+    to spare (``prefetch.prefetch_wanted``). They depend on the pooled records alone; after the search they took
+    most of the jackknife's "left-out grid" rows (0.07-0.085 s of a cold default optimize on the H200 host).
+    The tables are kept with the pool (``LeftOutRows.shared``), where the jackknife finds them; an error on the
+    thread is left to the jackknife, which makes them again and meets it there."""
+    from place3d_app.prefetch import prefetch_wanted
+
+    from place3d_kernels.left_out import LeftOutRows, index_tables_used
+
+    pool = getattr(args, "pool", None)
+    if (pool is None or args.interval != "jackknife" or len(pool[0]) < 2 or not prefetch_wanted()
+            or not index_tables_used(lidar, args.occlusion, args.normalisation, b)):
+        return None
+
+    rows = LeftOutRows.shared(pool[0])          # made here: the jackknife's shared() finds this one
+
+    def work():
+        try:
+            rows.batch()
+        except Exception:  # noqa: BLE001 - the jackknife calls batch() again and reports the error
+            pass
+
+    t = threading.Thread(target=work, daemon=True, name="place3d-left-out-rows")
+    t.start()
+    return t
+
+
 def grids_beside_search(b) -> bool:
     """Whether ``held_out_ahead``'s thread also makes the held-out P-SOGs' grids: not where backend ``b`` makes
     a grid on its device (``fields_on_device``: Warp on CUDA, OpenCL GPUs with doubles), whose one in-order
@@ -623,9 +655,10 @@ def grids_beside_search(b) -> bool:
     return not getattr(b, "fields_on_device", False)
 
 
-def report_trust(args, spec, res, psog, lidar, b, baselines, held_out=None) -> None:
+def report_trust(args, spec, res, psog, lidar, b, baselines, held_out=None, left_out_rows=None) -> None:
     """Fill ``res.diagnostics``, ``res.holdout`` and ``res.transfer`` (the held-out verdict, unless
-    --no-holdout) and print them (issue 34, item 4). ``held_out``: ``held_out_ahead``'s Future, or None."""
+    --no-holdout) and print them (issue 34, item 4). ``held_out``: ``held_out_ahead``'s Future, or None;
+    ``left_out_rows``: ``left_out_rows_ahead``'s thread, joined before the intervals, or None."""
     from place3d_kernels.optimize.diagnostics import diagnose, format_diagnostics, format_holdout, holdout
     from place3d_kernels.placement import Placement
 
@@ -636,6 +669,9 @@ def report_trust(args, spec, res, psog, lidar, b, baselines, held_out=None) -> N
     res.diagnostics["normalisation"] = args.normalisation
     for line in format_diagnostics(res.diagnostics):
         print(line)
+    if left_out_rows is not None:
+        with section("jackknife: index tables (wait)"):
+            left_out_rows.join()
     res.intervals = report_intervals(args, spec, res, lidar, b, base_poses, psog)
     specs = args.holdout if getattr(args, "holdout", None) is not None else holdout_specs(args, spec)
     if not specs:
