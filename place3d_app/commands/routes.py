@@ -243,10 +243,10 @@ def build_missing(args, specs, backend, later=()) -> int:
     ``_build_part``), and ``later``'s queued behind them: the same workers take them as they finish, their
     backends made already. Whole, each later drive is paired with a first one: that drive's worker builds the
     later drive's scene in a forked child while it builds its own (``_build_spec_then``), and the later drive
-    is sent once its paired drive's task is done (``_after``), when that worker is the idle one. This returns when ``specs``' drives are back (merged where built in parts),
-    ``later``'s in ``args.building`` ({spec: Future of its record}, ``built_records``), taken by a thread of this
-    process as they come back; workers write the drives to the cache (a part-built one merged, ``_save_drive``),
-    and leave once every task is done. Otherwise every drive is built whole at once and this returns when all
+    is sent once its paired drive's task is done (``_after``), when that worker is the idle one. This returns
+    when ``specs``' drives are back (merged where built in parts), ``later``'s in ``args.building`` ({spec:
+    Future of its record}, ``built_records``), taken by a thread of this process as they come back; workers
+    write the drives to the cache (a part-built one merged, ``_save_drive``), and leave once every task is done. Otherwise every drive is built whole at once and this returns when all
     are back.
 
     A drive counts as cached when its cache file exists (``PSOGSpec.cache_file``: found without building
