@@ -177,8 +177,8 @@ class Traced:
     (path, start, seconds) per call, ``start`` on ``time.perf_counter``'s clock, which is the system's monotonic
     clock (one for every process on Linux, macOS and Windows), so another process's profile can place them."""
 
-    def __init__(self, value, calls: list):
-        self.value, self.calls = value, calls
+    def __init__(self, value, calls: list, label: str | None = None):
+        self.value, self.calls, self.label = value, calls, label
 
 
 def traced(label: str, fn, *args):
@@ -189,7 +189,7 @@ def traced(label: str, fn, *args):
     with profile(print_table=False) as p:
         with section(label):
             value = fn(*args)
-    return Traced(value, [(path, p.start + t, sec) for path, kept in p.calls.items() for t, sec in kept])
+    return Traced(value, [(path, p.start + t, sec) for path, kept in p.calls.items() for t, sec in kept], label)
 
 
 def task(label: str, fn):
@@ -204,13 +204,18 @@ def task(label: str, fn):
 
 def untraced(result):
     """``result`` itself, or for a ``Traced`` one its value, with its sections added to the profile running
-    here (placed by their start; a no-op without a profile)."""
+    here (placed by their start; a no-op without a profile), and a row "<task label>: result taken here": from
+    the task's end in its process to now (sending the result back, and its wait until this process took it)."""
     if not isinstance(result, Traced):
         return result
     p = _ACTIVE
     if p is not None:
+        now = time.perf_counter()
         for path, start, sec in result.calls:
             p._add(tuple(path), float(sec), float(start) + float(sec))
+        for path, start, sec in result.calls:
+            if tuple(path) == (result.label,):  # the task's own section (``traced``'s label)
+                p._add((f"{result.label}: result taken here",), max(now - float(start) - float(sec), 0.0), now)
     return result.value
 
 

@@ -226,6 +226,8 @@ def test_profiled_drive_workers_report_their_sections(tmp_path, monkeypatch):
     assert p.totals[task + ("P-SOG build: aggregate", "P-SOG vote: keys and vote")][1] == 2 * 4
     first, last = p.spans[task]
     assert 0.0 <= first <= last <= p.wall
+    back = ("drive worker task: result taken here",)         # each task's end to the command holding its record
+    assert p.totals[back][1] == 2 and 0.0 <= p.totals[back][0] and p.spans[back][1] <= p.wall
     for s in specs:
         whole = s.build(cache=str(tmp_path / "whole"), backend="warp:cpu")
         _same_record(opts.built[s], DriveRecord.from_psog(whole, s.scene.label))
@@ -237,6 +239,9 @@ def test_traced_results_outside_a_profile_are_plain():
     t = profiling.traced("task", sum, [1, 2, 3])
     assert isinstance(t, profiling.Traced) and t.value == 6 and [c[0] for c in t.calls] == [("task",)]
     assert profiling.untraced(t) == 6 and profiling.untraced(7) == 7      # no profile here: nothing recorded
+    with profiling.profile(print_table=False) as p:
+        assert profiling.untraced(t) == 6
+    assert p.totals[("task",)][1] == 1 and p.totals[("task: result taken here",)][1] == 1
     assert profiling.task("task", sum) is sum                          # sent as it is without a profile
     with profiling.profile(print_table=False) as p:
         assert profiling.untraced(profiling.traced("task", sum, [4])) == 4
