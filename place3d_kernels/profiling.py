@@ -212,10 +212,10 @@ def untraced(result):
     if p is not None:
         now = time.perf_counter()
         for path, start, sec in result.calls:
-            p._add(tuple(path), float(sec), float(start) + float(sec))
-        for path, start, sec in result.calls:
-            if tuple(path) == (result.label,):  # the task's own section (``traced``'s label)
-                p._add((f"{result.label}: result taken here",), max(now - float(start) - float(sec), 0.0), now)
+            end = float(start) + float(sec)
+            p._add(tuple(path), float(sec), end)
+            if tuple(path) == (result.label,):  # the task's own section (``traced``'s label): its hand-over
+                p._add((f"{result.label}: result taken here",), max(now - end, 0.0), now)
     return result.value
 
 

@@ -219,11 +219,11 @@ def test_the_forkserver_preloads_scipy_only_for_workers_that_may_build_opendrive
         for m in forkserver.preload_for("warp:cpu", opendrive=False):
             importlib.import_module(m)
         from place3d_app.cli import build_parser
-        from place3d_app.commands.routes import _build_spec, drive_specs
+        from place3d_app.commands.routes import _build_spec_then, drive_specs
         from place3d_kernels.spec import specs_from_args
         args = build_parser().parse_args(["optimize", "--frames", "8", "--voxel-size", "0.8", "--backend", "warp:cpu"])
         d = drive_specs(args, specs_from_args(args))[0]
-        record = _build_spec(dataclasses.replace(d, cache={str(tmp_path)!r}))
+        record = _build_spec_then((dataclasses.replace(d, cache={str(tmp_path)!r}), None))
         print(d.scene.kind, record.n_subsets, sorted(m for m in sys.modules if m == "scipy" or m.startswith("scipy.")))
     """)
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
@@ -296,7 +296,7 @@ def test_the_launchers_cache_guess_reads_the_folder_and_files_the_package_writes
     import dataclasses
 
     from place3d_app.cli import build_parser
-    from place3d_app.commands.routes import _build_spec, drive_specs
+    from place3d_app.commands.routes import _build_spec_then, drive_specs
     from place3d_kernels.backends.base import cache_dir
     from place3d_kernels.spec import specs_from_args
 
@@ -307,7 +307,7 @@ def test_the_launchers_cache_guess_reads_the_folder_and_files_the_package_writes
     assert forkserver._no_drive_cached()                                   # no folder yet
     args = build_parser().parse_args(["optimize", "--frames", "8", "--voxel-size", "0.8", "--backend", "warp:cpu"])
     d = drive_specs(args, specs_from_args(args))[0]
-    _build_spec(dataclasses.replace(d, cache=str(cache_dir())))
+    _build_spec_then((dataclasses.replace(d, cache=str(cache_dir())), None))
     assert d.cache_file() is not None and d.cache_file().exists()
     assert not forkserver._no_drive_cached()
 
@@ -421,12 +421,12 @@ from place3d_kernels.spec import specs_from_args
 
 args = build_parser().parse_args(["optimize", "--frames", "8", "--voxel-size", "0.8", "--backend", "warp:cpu"])
 d = dataclasses.replace(drive_specs(args, specs_from_args(args))[0], backend="warp:cpu", cache=sys.argv[1])
-record = getattr(routes, sys.argv[2])(d)
+record = getattr(routes, sys.argv[2])((d, None))
 print(json.dumps({"started": sorted(executors._backends_started), "entries": len(record.voxels)}))
 """
 
 
-@pytest.mark.parametrize("task", ["_build_spec", "_build_part"])
+@pytest.mark.parametrize("task", ["_build_spec_then", "_build_part"])
 def test_a_drive_task_starts_its_backend_ahead(tmp_path, task):
     # a drive's task (whole or a part) starts its worker's backend on a thread as it starts, beside the scene
     # (optimize's held-out drives are parts too, queued behind the searched ones). A fresh process each: the set
@@ -437,7 +437,7 @@ def test_a_drive_task_starts_its_backend_ahead(tmp_path, task):
 
     root = Path(__file__).resolve().parents[1]
     program = DRIVE_TASK if task != "_build_part" else DRIVE_TASK.replace(
-        "getattr(routes, sys.argv[2])(d)", "routes._build_part((d, range(0, 1)))")
+        "getattr(routes, sys.argv[2])((d, None))", "routes._build_part((d, range(0, 1)))")
     p = subprocess.run([sys.executable, "-c", program, str(tmp_path), task], capture_output=True, text=True,
                        env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))},
                        timeout=300)

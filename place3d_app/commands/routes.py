@@ -126,41 +126,23 @@ def pooled_psog(args, spec, backend, specs=None):
 DRIVE_PARTS = 2
 
 
-def _build_spec(spec):
-    """A worker's task: the drive's record (``_drive_record``), the worker's backend started at once, on a
-    thread, while the scene is built in a forked child (``_fork_scenes``)."""
-    return _build_spec_then((spec, None))
-
-
 def _build_spec_then(task):
-    """A worker's task ``(spec, then)``: ``spec``'s record, as ``_build_spec``, with the scene of ``then`` (the
-    drive the command sends this worker next, ``_after``; or None) built in a second forked child meanwhile, so
-    that drive starts with its scene at hand."""
+    """A worker's task ``(spec, then)``: the drive's record (``_drive_record``), the worker's backend started at
+    once, on a thread, while the scene of ``spec``, and that of ``then`` (the drive the command sends this worker
+    next, ``_after``; or None), are built in forked children (``prefetch.start_for_spec``; a worker's first task
+    runs on its one thread, before its backend starts, so forking is safe there; elsewhere nothing is forked and
+    the build makes the scene here). In this process the scene's Python took turns with the backend's start on
+    the other thread (0.37 [0.18-0.41] s a scene there, session 47's worker probe on the H200 host), and a held-out
+    drive built its scene only once it came to the worker."""
     from place3d_app.executors import start_backend
+    from place3d_app.prefetch import start_for_spec
 
     spec, then = task
-    _fork_scenes([spec, then])
+    for s in (spec, then):
+        if s is not None:
+            start_for_spec(s, cache=False)     # cache=False: the scene is needed, its key remembered or not
     start_backend(spec.backend)
     return _drive_record(spec)
-
-
-def _fork_scenes(specs) -> None:
-    """Build the scenes of ``specs`` (None and drives of recorded or mesh scenes skipped) each in a forked child
-    (``prefetch.start``), which ``PSOGSpec.build`` takes through the scene supplier (``spec.supply_scenes``,
-    ``prefetch.take``); nothing where forking is off or unsafe (``prefetch.enabled``: a worker's first task
-    runs on its only thread, before its backend starts). In this process the scene's Python took turns with
-    the backend's start on the other thread: 0.37-0.5 s against 0.3 s alone on the H200 host."""
-    import functools
-
-    from place3d_app import prefetch
-    from place3d_kernels import spec as specs_mod
-
-    todo = [s for s in specs if s is not None and s.scene.kind in ("town", "opendrive")]
-    if not todo or not prefetch.enabled():
-        return
-    specs_mod.supply_scenes(prefetch.take)
-    for s in todo:
-        prefetch.start(s.scene, functools.partial(specs_mod.make_scene, s.scene), normals=s.condition is not None)
 
 
 def _drive_record(spec):
@@ -178,7 +160,8 @@ def _drive_record(spec):
 
 def _build_part(task):
     """A worker's task: ``(spec, subsets)``'s record (``PSOGSpec.build_part``), not cached (the command merges
-    the parts and has ``_save_drive`` write the drive); the worker's backend starts at once, as ``_build_spec``."""
+    the parts and has ``_save_drive`` write the drive); the worker's backend starts at once, as
+    ``_build_spec_then``'s."""
     from place3d_app.executors import start_backend
     from place3d_kernels.pooled import DriveRecord
 
@@ -297,18 +280,20 @@ def build_missing(args, specs, backend, later=()) -> int:
             # the cache folder resolved here: a forkserver's workers have the server's environment, which may
             # be older than this command's ($PLACE3D_CACHE set since, or a served client's)
             folder = str(cache_dir())
-            fixed = [dataclasses.replace(s, backend=name, cache=s.cache or folder) for s in first + rest]
-            # whole drives: each searched drive's worker also builds the scene of the held-out drive it takes next
-            nexts = fixed[len(first):] if parts == 1 else []
-            first_tasks = [_submit_drive(ex, s, parts, then=t) for s, t in
-                           zip(fixed[:len(first)], nexts + [None] * (len(first) - len(nexts)))]
+            mine = [dataclasses.replace(s, backend=name, cache=s.cache or folder) for s in first]
+            theirs = [dataclasses.replace(s, backend=name, cache=s.cache or folder) for s in rest]
+            # whole drives: the i-th held-out drive goes to the worker of the i-th searched one, which builds its
+            # scene meanwhile
+            paired = len(mine) if parts == 1 else 0
+            first_tasks = [_submit_drive(ex, s, parts, then=theirs[i] if i < len(theirs) and i < paired else None)
+                           for i, s in enumerate(mine)]
             # the drives needed later (optimize's held-out drives) in parts too, queued behind the searched ones:
             # the same workers take them as they finish, their backends made already. Built beside the parts in
             # four more workers, each making a CUDA context while the parts' were being made, they had kept the
             # parts' contexts and GPU work waiting: a cold default optimize ended at 3.67 [3.44-3.80] s, 3.40
             # [3.34-3.60] s so (H200, 6 runs each; the held-out drives back no later; bench/results/ab-2026-12-01-s41/)
-            later_tasks = [(s, _submit_drive(ex, d, parts, after=f))
-                           for s, d, f in zip(rest, fixed[len(first):], _followed(first_tasks, len(rest), parts))]
+            later_tasks = [(s, _submit_drive(ex, d, parts, after=first_tasks[i][1][0] if i < paired else None))
+                           for i, (s, d) in enumerate(zip(rest, theirs))]
             records = [_finish_drive(ex, spec, tasks) for spec, tasks in first_tasks]
         done = True
     finally:
@@ -375,13 +360,6 @@ def _submit_drive(ex, spec, parts: int, then=None, after=None):
         return spec, [_submit(ex, _build_spec_then, (spec, then))]
     cut = [round(T * j / parts) for j in range(parts + 1)]
     return spec, [_submit(ex, _build_part, (spec, range(a, b))) for a, b in zip(cut, cut[1:])]
-
-
-def _followed(first_tasks, n: int, parts: int) -> list:
-    """The Future each of ``n`` later drives is sent after: the task of the searched drive whose worker built
-    its scene (``_build_spec_then``'s ``then``), where drives are built whole; None (queued at once) else."""
-    futures = [tasks[0] for _, tasks in first_tasks] if parts == 1 else []
-    return (futures + [None] * n)[:n]
 
 
 def _after(ex, first, fn, arg) -> Future:
